@@ -1,0 +1,2 @@
+"""ROS-free algorithms: camera, geometry, Gaussian map, rasterizer, losses, merge,
+sampling, tracking and metrics. Nothing under here imports rclpy."""

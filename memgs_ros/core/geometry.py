@@ -1,0 +1,123 @@
+"""Rigid-body geometry: poses as 4x4 matrices, quaternions, interpolation.
+
+Conventions: ``T_wc`` maps camera coordinates to world (camera-in-world, as on the
+wire); ``T_cw`` is its inverse. Quaternion order is always in the name: ``xyzw``
+(ROS, TUM files) or ``wxyz`` (Gaussian parameters, PLY files).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation, Slerp
+
+
+def quat_xyzw_to_rotmat(q_xyzw: np.ndarray) -> np.ndarray:
+    """Unit or unnormalised quaternions [..., 4] (x, y, z, w) to rotation matrices [..., 3, 3]."""
+    q = np.asarray(q_xyzw, dtype=np.float64)
+    return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] to unit quaternions [..., 4] (x, y, z, w), w >= 0."""
+    R = np.asarray(R, dtype=np.float64)
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
+    q = np.where(q[:, 3:4] < 0, -q, q)
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+def pose_from_tq(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
+    """Translation [3] and quaternion [4] (x, y, z, w) to a 4x4 pose."""
+    T = np.eye(4)
+    T[:3, :3] = quat_xyzw_to_rotmat(np.asarray(q_xyzw))
+    T[:3, 3] = np.asarray(t, dtype=np.float64)
+    return T
+
+
+def pose_to_tq(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """4x4 pose to (translation [3], quaternion [4] x, y, z, w)."""
+    T = np.asarray(T, dtype=np.float64)
+    return T[:3, 3].copy(), rotmat_to_quat_xyzw(T[:3, :3])
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform [..., 4, 4] without a general matrix inverse."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3:4]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3:4] = -Rt @ t
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def interpolate_poses(stamps_ns: np.ndarray, poses: np.ndarray, query_ns: np.ndarray,
+                      max_gap_ns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Interpolate poses at query times: linear in translation, slerp in rotation.
+
+    stamps_ns: [M] increasing; poses: [M, 4, 4]; query_ns: [Q].
+    Returns (poses [Q, 4, 4], valid [Q] bool). A query outside [stamps[0], stamps[-1]],
+    or between two samples further apart than ``max_gap_ns``, is invalid (identity).
+    """
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    q = np.asarray(query_ns, dtype=np.int64)
+    out = np.tile(np.eye(4), (len(q), 1, 1))
+    if len(stamps) == 0:
+        return out, np.zeros(len(q), dtype=bool)
+    valid = (q >= stamps[0]) & (q <= stamps[-1])
+    idx = np.clip(np.searchsorted(stamps, q, side="right") - 1, 0, len(stamps) - 1)
+    nxt = np.minimum(idx + 1, len(stamps) - 1)
+    if max_gap_ns is not None:
+        valid &= (stamps[nxt] - stamps[idx]) <= max_gap_ns
+    if not valid.any():
+        return out, valid
+    if len(stamps) == 1:
+        out[valid] = poses[0]
+        return out, valid
+    t_s = (stamps - stamps[0]).astype(np.float64) * 1e-9
+    qs = (q[valid] - stamps[0]).astype(np.float64) * 1e-9
+    rot = Slerp(t_s, Rotation.from_matrix(poses[:, :3, :3]))(qs).as_matrix()
+    i0, i1 = idx[valid], nxt[valid]
+    span = np.maximum(t_s[i1] - t_s[i0], 1e-12)
+    w = np.clip((qs - t_s[i0]) / span, 0.0, 1.0)[:, None]
+    trans = (1 - w) * poses[i0, :3, 3] + w * poses[i1, :3, 3]
+    out[valid, :3, :3] = rot
+    out[valid, :3, 3] = trans
+    return out, valid
+
+
+def quat_wxyz_to_rotmat_torch(q_wxyz: torch.Tensor) -> torch.Tensor:
+    """Quaternions [N, 4] (w, x, y, z; normalised here) to rotation matrices [N, 3, 3]."""
+    q = q_wxyz / q_wxyz.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_to_quat_wxyz_torch(R: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices [N, 3, 3] to unit quaternions [N, 4] (w, x, y, z), w >= 0."""
+    m = R.reshape(-1, 9)
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m.unbind(-1)
+    # Shepperd's method: pick the largest of four candidate denominators for stability.
+    cand = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
+    k = cand.argmax(-1)
+    s = torch.sqrt(cand.gather(-1, k[:, None]).squeeze(-1).clamp_min(1e-12)) * 2
+    q = torch.empty(m.shape[0], 4, dtype=R.dtype, device=R.device)
+    opts = [
+        torch.stack([s / 4, (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s], -1),
+        torch.stack([(m21 - m12) / s, s / 4, (m01 + m10) / s, (m02 + m20) / s], -1),
+        torch.stack([(m02 - m20) / s, (m01 + m10) / s, s / 4, (m12 + m21) / s], -1),
+        torch.stack([(m10 - m01) / s, (m02 + m20) / s, (m12 + m21) / s, s / 4], -1),
+    ]
+    for i, o in enumerate(opts):
+        q = torch.where((k == i)[:, None], o, q)
+    q = q / q.norm(dim=-1, keepdim=True)
+    q = torch.where(q[:, :1] < 0, -q, q)
+    return q.reshape(R.shape[:-2] + (4,))

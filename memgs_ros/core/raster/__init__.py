@@ -1,0 +1,1 @@
+"""Differentiable Gaussian rasterization (project -> bin into tiles -> composite)."""

@@ -1,0 +1,1 @@
+"""Front-end visual odometry (feature tracker for RGB-D and monocular cameras)."""

@@ -1,0 +1,1 @@
+"""Datasets and bags: TUM folders, the synthetic scene generator, rosbags read/write (no rclpy)."""

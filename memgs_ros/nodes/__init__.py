@@ -1,0 +1,1 @@
+"""Thin rclpy nodes: messages and parameters in, core calls, messages out."""

@@ -1,0 +1,1 @@
+"""rclpy glue only: message codecs, QoS profiles, stamp pairing."""

@@ -1,0 +1,59 @@
+"""ament_python package set-up for memgs_ros.
+
+The ROS 2 Python wheels are an optional extra (``[ros]``): on a Jetson rclpy
+comes from apt, and everything that is not a node imports without it.
+"""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "memgs_ros"
+
+NODES = {
+    "tracker": "memgs_ros.nodes.tracker:main",
+    "keyframe_sampler": "memgs_ros.nodes.keyframe_sampler:main",
+    "mapper": "memgs_ros.nodes.mapper:main",
+    "merger": "memgs_ros.nodes.merger:main",
+    "bag_player": "memgs_ros.nodes.bag_player:main",
+}
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "opencv-python-headless>=4.8",
+        # Pinned range that the CPU wheel on these machines satisfies; users with CUDA
+        # install their own torch first and pip keeps it.
+        "torch>=2.1",
+        "rosbags>=0.10",
+        "mcap>=1.1",
+        "tqdm>=4.60",
+        "matplotlib>=3.6",
+    ],
+    extras_require={
+        "ros": [
+            "ros-jazzy-rclpy",
+            "ros-jazzy-common-interfaces",
+            "ros-jazzy-rmw-fastrtps-cpp",
+        ],
+        "test": ["pytest>=7", "hypothesis>=6", "colcon-core", "colcon-ros", "colcon-python-setup-py"],
+    },
+    zip_safe=True,
+    maintainer="memgs_ros maintainers",
+    description="MemGS Gaussian-splatting SLAM as ROS 2 nodes",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [f"{name}={target}" for name, target in NODES.items()]
+        + ["memgs=memgs_ros.cli:main"],
+    },
+)

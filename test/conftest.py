@@ -1,0 +1,13 @@
+"""Shared test fixtures. Tests never read ../shared: every input is generated here."""
+from __future__ import annotations
+
+import os
+import random
+
+import pytest
+
+
+@pytest.fixture
+def ros_domain_id() -> int:
+    """A DDS domain id of its own for each test that starts nodes, so parallel runs never hear each other."""
+    return random.Random(os.getpid() ^ id(object())).randrange(100, 200)
