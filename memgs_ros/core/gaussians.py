@@ -1,0 +1,557 @@
+"""The Gaussian map: leaf parameters, per-Gaussian side arrays and the Adam optimiser, in step.
+
+Two types live here:
+
+- ``GaussianRecords``: a frozen plain-numpy record of N Gaussians whose fields are named as the
+  INRIA 3DGS PLY (reference section 10). PLY files, map deltas and the merger's replica all use it.
+- ``GaussianMap``: the trainable map. Parameters are stored pre-activation (log scales, opacity
+  logits, unnormalised w-first quaternions, SH coefficients). Every grow/shrink of the map goes
+  through one private helper, ``_resize``, that edits parameters, Adam moments and side arrays
+  together, so the optimiser is never rebuilt and no row can fall out of step.
+
+Row order and ids: ``ids`` are unique and never reused (a monotonic ``next_id``). New rows are
+appended and removal keeps the order of the survivors, so ``ids`` is always strictly increasing;
+``index_of`` relies on that.
+
+Side arrays (all ``[N]`` tensors on the map's device, stable names for other modules):
+
+- ``ids`` int64: the Gaussian's id.
+- ``keyframe_ids`` int64: id of the keyframe that created it (-1 when unknown, e.g. loaded maps).
+- ``created_iter`` int64: mapper iteration at creation.
+- ``densify_grad_sum`` float32 / ``densify_count`` int64: sum of the view-space (NDC-scaled) 2D
+  positional gradient norm and the number of renders it was visible in (3DGS densification).
+- ``merge_grad_sum`` float32 / ``merge_count`` int64: sum of the 3D positional gradient norm and
+  the number of renders it was visible in (MemGS merge candidates, reference section 4). Use
+  ``merge_grad_mean()``; an unseen Gaussian has mean 0.
+- ``max_radii2d`` float32: the largest screen radius (pixels) seen since the last densification.
+- ``dirty`` bool: added or changed since the last ``pop_changes``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+
+from memgs_ros.errors import ConfigError, DataError
+
+SH_C0 = 0.28209479177387814  # zeroth real spherical harmonic, Y_0^0
+PLY_F_REST = 45  # 15 higher-order coefficients x 3 channels (SH degree 3), always written
+PARAM_NAMES = ("means", "log_scales", "quats_wxyz", "opacity_logits", "sh_dc", "sh_rest")
+SIDE_NAMES = (
+    "ids", "keyframe_ids", "created_iter", "densify_grad_sum", "densify_count",
+    "merge_grad_sum", "merge_count", "max_radii2d", "dirty",
+)
+_SIDE_DTYPES = {
+    "ids": torch.int64, "keyframe_ids": torch.int64, "created_iter": torch.int64,
+    "densify_grad_sum": torch.float32, "densify_count": torch.int64,
+    "merge_grad_sum": torch.float32, "merge_count": torch.int64,
+    "max_radii2d": torch.float32, "dirty": torch.bool,
+}
+
+
+def num_sh_rest(sh_degree: int) -> int:
+    """Number of higher-order SH coefficients per channel, K = (d + 1)^2 - 1."""
+    if not 0 <= sh_degree <= 3:
+        raise ConfigError(f"sh_degree must be in 0..3, got {sh_degree}")
+    return (sh_degree + 1) ** 2 - 1
+
+
+def rgb_to_sh_dc(rgb: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+    """Colours in [0, 1] ([M, 3]) to SH DC coefficients ([M, 3]) as 3DGS initialises them."""
+    return (rgb - 0.5) / SH_C0
+
+
+@dataclass(frozen=True, eq=False)
+class GaussianRecords:
+    """N Gaussians as plain numpy arrays, fields named as the 3DGS PLY properties.
+
+    ids: [N] int64, unique map ids.
+    xyz: [N, 3] float32 world positions.
+    f_dc: [N, 3] float32 SH DC coefficients.
+    f_rest: [N, 45] float32 higher SH coefficients, channel-major (R 1..15, G 1..15, B 1..15);
+        always 45, zeros beyond the map's SH degree.
+    opacity: [N] float32 opacity logit.
+    scale: [N, 3] float32 log standard deviations.
+    rot: [N, 4] float32 quaternion, w first, unnormalised.
+    """
+
+    ids: np.ndarray
+    xyz: np.ndarray
+    f_dc: np.ndarray
+    f_rest: np.ndarray
+    opacity: np.ndarray
+    scale: np.ndarray
+    rot: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = int(np.asarray(self.ids).shape[0])
+        want = {"ids": (n,), "xyz": (n, 3), "f_dc": (n, 3), "f_rest": (n, PLY_F_REST),
+                "opacity": (n,), "scale": (n, 3), "rot": (n, 4)}
+        for f in fields(self):
+            arr = getattr(self, f.name)
+            if not isinstance(arr, np.ndarray) or arr.shape != want[f.name]:
+                got = getattr(arr, "shape", type(arr).__name__)
+                raise DataError(f"GaussianRecords.{f.name} must be an array of shape {want[f.name]}, got {got}")
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+    @staticmethod
+    def empty() -> "GaussianRecords":
+        """Zero Gaussians."""
+        return GaussianRecords.from_arrays(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)),
+                                           np.zeros((0, PLY_F_REST)), np.zeros(0), np.zeros((0, 3)),
+                                           np.zeros((0, 4)))
+
+    @staticmethod
+    def from_arrays(ids: np.ndarray, xyz: np.ndarray, f_dc: np.ndarray, f_rest: np.ndarray,
+                    opacity: np.ndarray, scale: np.ndarray, rot: np.ndarray) -> "GaussianRecords":
+        """Build records casting to the canonical dtypes (ids int64, everything else float32)."""
+        f32 = lambda a: np.ascontiguousarray(np.asarray(a, dtype=np.float32))  # noqa: E731
+        return GaussianRecords(np.ascontiguousarray(np.asarray(ids, dtype=np.int64)), f32(xyz), f32(f_dc),
+                               f32(f_rest), f32(opacity), f32(scale), f32(rot))
+
+    def select(self, index: np.ndarray) -> "GaussianRecords":
+        """Rows picked by a bool mask [N] or an index array [M]."""
+        return GaussianRecords(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+    @staticmethod
+    def concat(parts: list["GaussianRecords"]) -> "GaussianRecords":
+        """Rows of several records, in order."""
+        if not parts:
+            return GaussianRecords.empty()
+        return GaussianRecords(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])
+                                  for f in fields(GaussianRecords)})
+
+
+@dataclass(frozen=True)
+class MemoryReport:
+    """Bytes held by the map's per-Gaussian tensors (reference section 11 accounting).
+
+    params: the six parameter tensors; grads: their gradients at their in-training size (they
+    exist between backward and the optimiser step, which frees them), counted once the map has
+    been trained or while gradients are allocated; optimizer: Adam's per-row moments
+    (exp_avg, exp_avg_sq). Scalar step counters and the int
+    side arrays are not counted, so at SH degree 3 a trained map holds 236 B + 236 B + 472 B
+    = 944 B per Gaussian.
+    """
+
+    params: int
+    grads: int
+    optimizer: int
+    total: int
+
+
+@dataclass(frozen=True)
+class GaussianLearningRates:
+    """Adam learning rates per parameter (reference section 5).
+
+    ``means`` is multiplied by the scene extent (``spatial_lr_scale``). With ``means_decay`` the
+    position LR follows the 3DGS schedule: log-linear from ``means`` to ``means_final`` over
+    ``means_decay_steps`` iterations; otherwise it stays at ``means``.
+    """
+
+    means: float = 1.6e-4
+    means_final: float = 1.6e-6
+    means_decay_steps: int = 30_000
+    means_decay: bool = False
+    sh_dc: float = 0.0025
+    sh_rest: float = 0.0025 / 20.0
+    opacity: float = 0.05
+    scaling: float = 0.005
+    rotation: float = 0.001
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool):
+                continue
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"learning rate {f.name} must be a positive finite number, got {v}")
+
+
+def _expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> float:
+    """3DGS exponential decay: log-linear interpolation from lr_init to lr_final, then held."""
+    t = min(max(step / max(max_steps, 1), 0.0), 1.0)
+    return math.exp(math.log(lr_init) * (1 - t) + math.log(lr_final) * t)
+
+
+class GaussianMap:
+    """A 3D Gaussian map with its Adam optimiser and per-Gaussian side arrays.
+
+    Parameters (leaf ``torch.nn.Parameter``s, float32, on ``device``):
+    means [N, 3], log_scales [N, 3], quats_wxyz [N, 4], opacity_logits [N, 1], sh_dc [N, 1, 3],
+    sh_rest [N, K, 3] with K = (max_sh_degree + 1)^2 - 1.
+
+    Not thread-safe by itself: the mapper holds a lock around every call.
+    """
+
+    def __init__(self, max_sh_degree: int = 3, device: torch.device | str = "cpu",
+                 lrs: GaussianLearningRates | None = None, spatial_lr_scale: float = 1.0) -> None:
+        self.max_sh_degree = int(max_sh_degree)
+        self.k_rest = num_sh_rest(self.max_sh_degree)
+        self.active_sh_degree = 0
+        self.device = torch.device(device)
+        self.lrs = lrs if lrs is not None else GaussianLearningRates()
+        if not (math.isfinite(spatial_lr_scale) and spatial_lr_scale > 0):
+            raise ConfigError(f"spatial_lr_scale must be positive, got {spatial_lr_scale}")
+        self.spatial_lr_scale = float(spatial_lr_scale)
+        self.next_id = 0
+        shapes = {"means": (3,), "log_scales": (3,), "quats_wxyz": (4,), "opacity_logits": (1,),
+                  "sh_dc": (1, 3), "sh_rest": (self.k_rest, 3)}
+        self._row_shapes = shapes
+        self.means = self._empty_param("means")
+        self.log_scales = self._empty_param("log_scales")
+        self.quats_wxyz = self._empty_param("quats_wxyz")
+        self.opacity_logits = self._empty_param("opacity_logits")
+        self.sh_dc = self._empty_param("sh_dc")
+        self.sh_rest = self._empty_param("sh_rest")
+        for name in SIDE_NAMES:
+            setattr(self, name, torch.zeros(0, dtype=_SIDE_DTYPES[name], device=self.device))
+        base = self._base_lrs()
+        self.optimizer = torch.optim.Adam(
+            [{"params": [getattr(self, n)], "lr": base[n], "name": n} for n in PARAM_NAMES],
+            lr=0.0, eps=1e-15,
+        )
+        self._removed_ids: list[torch.Tensor] = []
+
+    # ------------------------------------------------------------------ basics
+    def _empty_param(self, name: str) -> torch.nn.Parameter:
+        return torch.nn.Parameter(torch.zeros((0,) + self._row_shapes[name], dtype=torch.float32,
+                                              device=self.device))
+
+    def _base_lrs(self) -> dict[str, float]:
+        lr = self.lrs
+        return {"means": lr.means * self.spatial_lr_scale, "log_scales": lr.scaling,
+                "quats_wxyz": lr.rotation, "opacity_logits": lr.opacity, "sh_dc": lr.sh_dc,
+                "sh_rest": lr.sh_rest}
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def num_gaussians(self) -> int:
+        return len(self)
+
+    def params(self) -> dict[str, torch.nn.Parameter]:
+        """The six parameters by name (same objects for the map's lifetime)."""
+        return {n: getattr(self, n) for n in PARAM_NAMES}
+
+    def raise_sh_degree(self) -> int:
+        """Activate one more SH band (up to max_sh_degree). Returns the active degree."""
+        self.active_sh_degree = min(self.active_sh_degree + 1, self.max_sh_degree)
+        return self.active_sh_degree
+
+    def update_learning_rate(self, iteration: int) -> float:
+        """Apply the position LR schedule for ``iteration``; returns the position LR in use."""
+        base = self.lrs.means * self.spatial_lr_scale
+        lr = base
+        if self.lrs.means_decay:
+            lr = _expon_lr(iteration, base, self.lrs.means_final * self.spatial_lr_scale,
+                           self.lrs.means_decay_steps)
+        for g in self.optimizer.param_groups:
+            if g["name"] == "means":
+                g["lr"] = lr
+        return lr
+
+    def set_spatial_lr_scale(self, extent: float) -> None:
+        """Re-scale the position LR to a new scene extent (metres)."""
+        if not (math.isfinite(extent) and extent > 0):
+            raise ConfigError(f"scene extent must be positive, got {extent}")
+        self.spatial_lr_scale = float(extent)
+        self.update_learning_rate(0)
+
+    # ------------------------------------------------------------ activations
+    def scales(self) -> torch.Tensor:
+        """Activated scales exp(log_scales): [N, 3]."""
+        return torch.exp(self.log_scales)
+
+    def opacities(self) -> torch.Tensor:
+        """Activated opacities sigmoid(logit): [N, 1]."""
+        return torch.sigmoid(self.opacity_logits)
+
+    # ------------------------------------------------------- the one resize helper
+    def _resize(self, keep: torch.Tensor | None, new_params: dict[str, torch.Tensor] | None,
+                new_side: dict[str, torch.Tensor] | None) -> None:
+        """Keep rows ``keep`` ([N] bool, None = all) then append ``new_params`` rows.
+
+        Parameters, Adam moments (new rows get zeros) and every side array change together.
+        Parameter objects keep their identity (``.data`` is swapped) so the optimiser's
+        param_groups and state keys stay valid; gradients are dropped.
+        """
+        n_new = 0 if new_params is None else int(new_params["means"].shape[0])
+        for name in PARAM_NAMES:
+            p: torch.nn.Parameter = getattr(self, name)
+            data = p.data if keep is None else p.data[keep]
+            if n_new:
+                data = torch.cat([data, new_params[name].to(self.device, torch.float32).reshape(
+                    (n_new,) + self._row_shapes[name])], 0)
+            state = self.optimizer.state.get(p)
+            if state:
+                for key in ("exp_avg", "exp_avg_sq", "max_exp_avg_sq"):
+                    if key not in state:
+                        continue
+                    moment = state[key] if keep is None else state[key][keep]
+                    if n_new:
+                        moment = torch.cat([moment, moment.new_zeros((n_new,) + moment.shape[1:])], 0)
+                    state[key] = moment.contiguous()
+            p.data = data.contiguous()
+            p.grad = None
+        for name in SIDE_NAMES:
+            arr = getattr(self, name)
+            if keep is not None:
+                arr = arr[keep]
+            if n_new:
+                arr = torch.cat([arr, new_side[name].to(self.device, _SIDE_DTYPES[name])], 0)
+            setattr(self, name, arr.contiguous())
+
+    # ------------------------------------------------------------------ grow
+    def add(self, means: torch.Tensor, log_scales: torch.Tensor, quats_wxyz: torch.Tensor,
+            opacity_logits: torch.Tensor, sh_dc: torch.Tensor, sh_rest: torch.Tensor | None,
+            keyframe_id: int | torch.Tensor, iteration: int) -> torch.Tensor:
+        """Append M Gaussians with fresh ids and zero Adam moments.
+
+        means [M, 3], log_scales [M, 3], quats_wxyz [M, 4], opacity_logits [M, 1] or [M],
+        sh_dc [M, 1, 3] or [M, 3], sh_rest [M, K', 3] (K' <= K, zero-padded; None = zeros).
+        keyframe_id: an int or an int64 tensor [M]. Returns the new ids: [M] int64.
+        """
+        m = int(means.shape[0])
+        if tuple(means.shape) != (m, 3):
+            raise DataError(f"means must be [M, 3], got {tuple(means.shape)}")
+        rest = torch.zeros((m, self.k_rest, 3), dtype=torch.float32, device=self.device)
+        if sh_rest is not None and sh_rest.numel():
+            k = min(int(sh_rest.shape[1]), self.k_rest)
+            rest[:, :k] = sh_rest[:, :k].to(self.device, torch.float32)
+        new = {"means": means, "log_scales": log_scales, "quats_wxyz": quats_wxyz,
+               "opacity_logits": opacity_logits.reshape(m, 1), "sh_dc": sh_dc.reshape(m, 1, 3),
+               "sh_rest": rest}
+        for name in ("log_scales", "quats_wxyz"):
+            if tuple(new[name].shape) != (m,) + self._row_shapes[name]:
+                raise DataError(f"{name} must be [M, {self._row_shapes[name][0]}], got {tuple(new[name].shape)}")
+        new = {k_: v.detach() for k_, v in new.items()}
+        ids = torch.arange(self.next_id, self.next_id + m, dtype=torch.int64, device=self.device)
+        self.next_id += m
+        kf = torch.as_tensor(keyframe_id, dtype=torch.int64, device=self.device).expand(m).clone()
+        side = {
+            "ids": ids, "keyframe_ids": kf,
+            "created_iter": torch.full((m,), int(iteration), dtype=torch.int64),
+            "densify_grad_sum": torch.zeros(m), "densify_count": torch.zeros(m, dtype=torch.int64),
+            "merge_grad_sum": torch.zeros(m), "merge_count": torch.zeros(m, dtype=torch.int64),
+            "max_radii2d": torch.zeros(m), "dirty": torch.ones(m, dtype=torch.bool),
+        }
+        self._resize(None, new, side)
+        return ids
+
+    def add_from_points(self, points_w: np.ndarray | torch.Tensor, colors: np.ndarray | torch.Tensor,
+                        keyframe_id: int, iteration: int) -> torch.Tensor:
+        """Initialise Gaussians at points as 3DGS does (reference section 3).
+
+        points_w: [M, 3] world positions; colors: [M, 3] RGB in [0, 1].
+        Scale = log(sqrt(mean squared distance to the 3 nearest neighbours)), the neighbours
+        searched among the existing map's means AND the new points (so a seed dropped into an
+        already covered region gets a size matching its neighbourhood, not the batch's spread);
+        squared distance clamped at 1e-7. Identity rotation, opacity logit(0.1), SH DC from the
+        colour, higher bands zero. Returns the new ids [M].
+        """
+        from scipy.spatial import cKDTree  # scipy only needed here
+
+        pts = np.asarray(points_w.detach().cpu() if isinstance(points_w, torch.Tensor) else points_w,
+                         dtype=np.float64)
+        cols = np.asarray(colors.detach().cpu() if isinstance(colors, torch.Tensor) else colors,
+                          dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3 or cols.shape != pts.shape:
+            raise DataError(f"points_w and colors must both be [M, 3], got {pts.shape} and {cols.shape}")
+        finite = np.isfinite(pts).all(1) & np.isfinite(cols).all(1)
+        pts, cols = pts[finite], cols[finite]
+        m = pts.shape[0]
+        if m == 0:
+            return torch.zeros(0, dtype=torch.int64, device=self.device)
+        existing = self.means.detach().cpu().numpy().astype(np.float64)
+        cloud = np.concatenate([existing, pts], 0)
+        k = min(4, cloud.shape[0])  # the point itself plus up to 3 neighbours
+        if k > 1:
+            d, _ = cKDTree(cloud).query(pts, k=k)
+            mean_sq = np.mean(np.asarray(d)[:, 1:] ** 2, axis=1)
+        else:
+            mean_sq = np.full(m, 1e-2)  # a lone point: no neighbour to size it by, 10 cm
+        mean_sq = np.maximum(mean_sq, 1e-7)
+        log_s = np.log(np.sqrt(mean_sq))[:, None].repeat(3, 1)
+        quats = np.zeros((m, 4)); quats[:, 0] = 1.0
+        opac = np.full((m, 1), math.log(0.1 / 0.9))
+        dc = rgb_to_sh_dc(np.clip(cols, 0.0, 1.0))
+        t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=self.device)  # noqa: E731
+        return self.add(t(pts), t(log_s), t(quats), t(opac), t(dc).reshape(m, 1, 3), None,
+                        keyframe_id, iteration)
+
+    # ---------------------------------------------------------------- shrink
+    def remove(self, mask: torch.Tensor | np.ndarray) -> torch.Tensor:
+        """Remove the rows where ``mask`` ([N] bool) is True. Returns their ids [R] int64."""
+        mask_t = torch.as_tensor(mask, dtype=torch.bool, device=self.device)
+        if tuple(mask_t.shape) != (len(self),):
+            raise DataError(f"remove mask must be [{len(self)}] bool, got {tuple(mask_t.shape)}")
+        removed = self.ids[mask_t].clone()
+        if removed.numel():
+            self._resize(~mask_t, None, None)
+            self._removed_ids.append(removed)
+        return removed
+
+    def index_of(self, ids: torch.Tensor | np.ndarray) -> torch.Tensor:
+        """Row positions of ``ids`` ([M] int64); -1 for ids not in the map. Returns [M] int64."""
+        q = torch.as_tensor(ids, dtype=torch.int64, device=self.device).reshape(-1)
+        if len(self) == 0:
+            return torch.full_like(q, -1)
+        pos = torch.searchsorted(self.ids, q).clamp_max(len(self) - 1)
+        return torch.where(self.ids[pos] == q, pos, torch.full_like(pos, -1))
+
+    def reset_rows(self, index: torch.Tensor, *, moments: bool = True, accumulators: bool = True) -> None:
+        """Zero Adam moments and/or the gradient accumulators of rows ``index`` ([M] int64 or [N] bool).
+
+        Used after rows' parameters were overwritten in place (e.g. a merge that keeps ids).
+        """
+        with torch.no_grad():
+            if moments:
+                for p in self.params().values():
+                    state = self.optimizer.state.get(p)
+                    for key in ("exp_avg", "exp_avg_sq"):
+                        if state and key in state:
+                            state[key][index] = 0.0
+            if accumulators:
+                for name in ("densify_grad_sum", "densify_count", "merge_grad_sum", "merge_count",
+                             "max_radii2d"):
+                    getattr(self, name)[index] = 0
+            self.dirty[index] = True
+
+    # ------------------------------------------------------------ statistics
+    def accumulate_stats(self, means2d_grad: torch.Tensor | None, visible: torch.Tensor,
+                         radii: torch.Tensor, width: int, height: int) -> None:
+        """Add one render's gradient statistics (call after backward, before the optimiser step).
+
+        means2d_grad: [N, 2] gradient of the loss w.r.t. pixel positions (None = skip densify
+        stats); visible: [N] bool; radii: [N] screen radii in pixels. The 2D gradient is scaled to
+        normalised device coordinates (x W/2, x H/2) so the densify threshold means what it
+        means in 3DGS whatever the render resolution. The 3D gradient comes from ``means.grad``.
+        """
+        with torch.no_grad():
+            vis = visible.to(self.device, torch.bool)
+            if means2d_grad is not None:
+                g = means2d_grad.detach().to(self.device)
+                scale = torch.tensor([width * 0.5, height * 0.5], device=self.device, dtype=g.dtype)
+                self.densify_grad_sum += torch.where(vis, (g * scale).norm(dim=-1), 0.0).float()
+                self.densify_count += vis.long()
+            if self.means.grad is not None:
+                self.merge_grad_sum += torch.where(vis, self.means.grad.norm(dim=-1), 0.0).float()
+                self.merge_count += vis.long()
+            r = radii.to(self.device).float()
+            self.max_radii2d = torch.where(vis, torch.maximum(self.max_radii2d, r), self.max_radii2d)
+
+    def densify_grad_mean(self) -> torch.Tensor:
+        """Mean 2D (NDC) gradient norm per Gaussian since the last reset: [N]; 0 when unseen."""
+        return self.densify_grad_sum / self.densify_count.clamp_min(1).float()
+
+    def merge_grad_mean(self) -> torch.Tensor:
+        """Mean 3D positional gradient norm per Gaussian: [N]; 0 when unseen (reference section 4)."""
+        return self.merge_grad_sum / self.merge_count.clamp_min(1).float()
+
+    def reset_densify_stats(self) -> None:
+        self.densify_grad_sum.zero_(); self.densify_count.zero_(); self.max_radii2d.zero_()
+
+    def reset_merge_stats(self) -> None:
+        self.merge_grad_sum.zero_(); self.merge_count.zero_()
+
+    # ------------------------------------------------------ optimisation step
+    def optimizer_step(self) -> None:
+        """Adam step, then mark every row the step moved as dirty, then drop gradients.
+
+        A row moves iff its first moment is non-zero in any parameter (Adam's update is
+        lr * m_hat / (sqrt(v_hat) + eps)), which also covers rows carried by momentum.
+        """
+        self.optimizer.step()
+        with torch.no_grad():
+            moved = torch.zeros(len(self), dtype=torch.bool, device=self.device)
+            for p in self.params().values():
+                state = self.optimizer.state.get(p)
+                if state and "exp_avg" in state:
+                    moved |= state["exp_avg"].reshape(len(self), -1).ne(0).any(dim=1)
+            self.dirty |= moved
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def pop_changes(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Ids removed and rows dirty since the last call; clears both.
+
+        Returns (removed_ids [R] int64, changed_index [C] int64 row positions). Ids both added and
+        removed since the last call appear in removed_ids only (consumers ignore unknown ids).
+        """
+        removed = (torch.cat(self._removed_ids) if self._removed_ids
+                   else torch.zeros(0, dtype=torch.int64, device=self.device))
+        self._removed_ids = []
+        changed = torch.nonzero(self.dirty).reshape(-1)
+        self.dirty.zero_()
+        return removed, changed
+
+    # ------------------------------------------------------------- memory
+    def memory_bytes(self) -> MemoryReport:
+        """Bytes of parameters, allocated gradients and Adam moments (see ``MemoryReport``)."""
+        params = grads = opt = 0
+        for p in self.params().values():
+            params += p.numel() * p.element_size()
+            state = self.optimizer.state.get(p)
+            if p.grad is not None or state:
+                grads += p.numel() * p.element_size()
+            if state:
+                for key in ("exp_avg", "exp_avg_sq"):
+                    if key in state:
+                        opt += state[key].numel() * state[key].element_size()
+        return MemoryReport(params=params, grads=grads, optimizer=opt, total=params + grads + opt)
+
+    # ------------------------------------------------------------ records
+    def to_records(self, index: torch.Tensor | None = None) -> GaussianRecords:
+        """The map (or rows ``index``) as ``GaussianRecords``; exact float32 copies."""
+        with torch.no_grad():
+            sel = (lambda t: t) if index is None else (lambda t: t[index])  # noqa: E731
+            n = int(sel(self.ids).shape[0])
+            rest = torch.zeros((n, 3, 15), dtype=torch.float32, device=self.device)
+            rest[:, :, : self.k_rest] = sel(self.sh_rest.detach()).transpose(1, 2)
+            np_ = lambda t: t.detach().cpu().numpy()  # noqa: E731
+            return GaussianRecords.from_arrays(
+                np_(sel(self.ids)), np_(sel(self.means)), np_(sel(self.sh_dc).reshape(n, 3)),
+                np_(rest.reshape(n, PLY_F_REST)), np_(sel(self.opacity_logits).reshape(n)),
+                np_(sel(self.log_scales)), np_(sel(self.quats_wxyz)))
+
+    @staticmethod
+    def from_records(records: GaussianRecords, max_sh_degree: int = 3, device: torch.device | str = "cpu",
+                     lrs: GaussianLearningRates | None = None, spatial_lr_scale: float = 1.0,
+                     keyframe_id: int = -1, iteration: int = 0) -> "GaussianMap":
+        """A new map holding ``records`` with their ids (next_id continues after the largest).
+
+        SH coefficients beyond ``max_sh_degree`` are dropped. Keyframe ids are not part of the
+        records: every row gets ``keyframe_id``.
+        """
+        gmap = GaussianMap(max_sh_degree, device, lrs, spatial_lr_scale)
+        gmap.load_records(records, keyframe_id=keyframe_id, iteration=iteration)
+        return gmap
+
+    def load_records(self, records: GaussianRecords, keyframe_id: int = -1, iteration: int = 0) -> torch.Tensor:
+        """Append ``records`` keeping their ids (they must all exceed the map's ids). Returns ids."""
+        n = len(records)
+        if n == 0:
+            return torch.zeros(0, dtype=torch.int64, device=self.device)
+        ids = torch.as_tensor(records.ids, dtype=torch.int64, device=self.device)
+        if bool((ids[1:] <= ids[:-1]).any()) or (len(self) and int(ids[0]) <= int(self.ids[-1])) or int(ids[0]) < 0:
+            order = np.argsort(records.ids, kind="stable")
+            if np.any(np.diff(records.ids[order]) == 0) or records.ids.min() < 0:
+                raise DataError("GaussianRecords.ids must be unique non-negative integers")
+            if len(self) and int(records.ids.min()) <= int(self.ids[-1]):
+                raise DataError("GaussianRecords.ids must be larger than every id already in the map")
+            records = records.select(order)
+            ids = torch.as_tensor(records.ids, dtype=torch.int64, device=self.device)
+        t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32, device=self.device)  # noqa: E731
+        rest = t(records.f_rest).reshape(n, 3, 15).transpose(1, 2)[:, : self.k_rest]
+        saved_next = self.next_id
+        self.next_id = int(ids[0])  # add() numbers sequentially; rewrite ids below
+        self.add(t(records.xyz), t(records.scale), t(records.rot), t(records.opacity),
+                 t(records.f_dc), rest, keyframe_id, iteration)
+        self.ids[-n:] = ids
+        self.next_id = max(saved_next, int(ids[-1]) + 1)
+        return ids
