@@ -1,0 +1,246 @@
+"""Gaussian-map deltas and the replica that applies them (the mapper -> merger protocol).
+
+A map message is a table of rows whose columns use the 3DGS PLY property names
+(reference section 10) plus ``id`` and ``op``, so exporting a PLY is a field copy.
+Row 0 is always a META row; the others are Gaussians:
+
+=====  ==================================================================
+op     meaning
+=====  ==================================================================
+2      META of a delta: ``id = (seq << 32) | total``
+3      META of a snapshot: ``id = (seq << 32) | total``
+0      upsert: the Gaussian ``id`` was added or changed; float columns hold it
+1      remove: the Gaussian ``id`` was removed (float columns are zero)
+=====  ==================================================================
+
+``seq`` counts deltas from 1; a snapshot carries the ``seq`` of the last delta folded
+into it, so a receiver applies only deltas with a larger ``seq`` after it. ``total``
+is the sender's Gaussian count after the message, a cheap consistency check.
+A delta applies its removals first, then its upserts; ids are never reused, so the
+two sets never overlap. Only the ``f_rest`` columns of the sender's SH degree travel
+(zeros elsewhere): a degree-0 map costs 73 bytes a Gaussian instead of 253.
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+
+from memgs_ros.core.gaussians import PLY_F_REST, GaussianRecords
+from memgs_ros.errors import MessageError
+
+OP_UPSERT = 0
+OP_REMOVE = 1
+OP_META_DELTA = 2
+OP_META_SNAPSHOT = 3
+_F_REST_PER_CHANNEL = PLY_F_REST // 3
+_U32 = (1 << 32) - 1
+
+
+def f_rest_columns(sh_degree: int) -> list[int]:
+    """Indices into the 45 channel-major ``f_rest`` columns that a degree-``sh_degree`` map uses."""
+    if not 0 <= sh_degree <= 3:
+        raise ValueError(f"SH degree must be 0..3, got {sh_degree}")
+    k = (sh_degree + 1) ** 2 - 1
+    return [c * _F_REST_PER_CHANNEL + i for c in range(3) for i in range(k)]
+
+
+def message_dtype(sh_degree: int) -> np.dtype:
+    """Structured dtype of one row for a map of the given SH degree."""
+    names = ["id", "op", "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"]
+    names += [f"f_rest_{i}" for i in f_rest_columns(sh_degree)]
+    names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    formats = [np.uint64, np.uint8] + [np.float32] * (len(names) - 2)
+    return np.dtype({"names": names, "formats": formats})
+
+
+class MessageKind(enum.Enum):
+    DELTA = OP_META_DELTA
+    SNAPSHOT = OP_META_SNAPSHOT
+
+
+@dataclass(frozen=True, eq=False)
+class MapMessage:
+    """A decoded delta or snapshot.
+
+    removed_ids: [R] int64 (always empty for a snapshot).
+    upserts: the added or changed Gaussians (for a snapshot: the whole map).
+    """
+
+    kind: MessageKind
+    seq: int
+    total: int
+    upserts: GaussianRecords
+    removed_ids: np.ndarray
+
+
+def encode(kind: MessageKind, seq: int, total: int, upserts: GaussianRecords,
+           removed_ids: np.ndarray, sh_degree: int) -> np.ndarray:
+    """A delta or snapshot as a structured array (row 0 META) ready for a PointCloud2.
+
+    upserts: U Gaussians; removed_ids: [R]. Returns [1 + U + R] rows of ``message_dtype``.
+    """
+    if not (0 <= seq <= _U32 and 0 <= total <= _U32):
+        raise ValueError(f"seq {seq} and total {total} must fit in 32 bits")
+    removed = np.asarray(removed_ids, dtype=np.int64).reshape(-1)
+    if kind is MessageKind.SNAPSHOT and removed.size:
+        raise ValueError("a snapshot carries no removals")
+    u, r = len(upserts), removed.size
+    out = np.zeros(1 + u + r, dtype=message_dtype(sh_degree))
+    out["id"][0] = (seq << 32) | total
+    out["op"][0] = kind.value
+    rows = out[1:1 + u]
+    rows["id"] = upserts.ids.astype(np.uint64)
+    rows["op"] = OP_UPSERT
+    for i, name in enumerate("xyz"):
+        rows[name] = upserts.xyz[:, i]
+    for i in range(3):
+        rows[f"f_dc_{i}"] = upserts.f_dc[:, i]
+        rows[f"scale_{i}"] = upserts.scale[:, i]
+    for col in f_rest_columns(sh_degree):
+        rows[f"f_rest_{col}"] = upserts.f_rest[:, col]
+    rows["opacity"] = upserts.opacity
+    for i in range(4):
+        rows[f"rot_{i}"] = upserts.rot[:, i]
+    out["id"][1 + u:] = removed.astype(np.uint64)
+    out["op"][1 + u:] = OP_REMOVE
+    return out
+
+
+_REQUIRED = ("id", "op", "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
+
+
+def decode(rows: np.ndarray) -> MapMessage:
+    """Structured array (from a PointCloud2) back to a MapMessage; MessageError if malformed.
+
+    Missing ``f_rest_*`` columns decode as zeros (the sender's SH degree was lower).
+    """
+    names = rows.dtype.names or ()
+    missing = [n for n in _REQUIRED if n not in names]
+    if missing:
+        raise MessageError(f"map message lacks fields {missing}")
+    if rows.ndim != 1 or rows.shape[0] < 1:
+        raise MessageError("map message has no META row")
+    op = rows["op"].astype(np.int64)
+    ids = rows["id"].astype(np.uint64)
+    if op[0] not in (OP_META_DELTA, OP_META_SNAPSHOT):
+        raise MessageError(f"map message row 0 must be META (op 2 or 3), got op {op[0]}")
+    if np.any((op[1:] != OP_UPSERT) & (op[1:] != OP_REMOVE)):
+        raise MessageError("map message has rows with an unknown op")
+    kind = MessageKind(int(op[0]))
+    seq, total = int(ids[0] >> np.uint64(32)), int(ids[0] & np.uint64(_U32))
+    body = rows[1:]
+    up = body[op[1:] == OP_UPSERT]
+    removed = body["id"][op[1:] == OP_REMOVE].astype(np.int64)
+    if kind is MessageKind.SNAPSHOT and removed.size:
+        raise MessageError("a snapshot must not carry removals")
+    up_ids = up["id"].astype(np.int64)
+    if np.unique(up_ids).size != up_ids.size:
+        raise MessageError("map message upserts the same id twice")
+    if np.intersect1d(up_ids, removed).size:
+        raise MessageError("map message both upserts and removes an id")
+    f_rest = np.zeros((up.shape[0], PLY_F_REST), np.float32)
+    for col in range(PLY_F_REST):
+        if f"f_rest_{col}" in names:
+            f_rest[:, col] = up[f"f_rest_{col}"]
+    stack = lambda cols: np.stack([up[c].astype(np.float32) for c in cols], axis=1)  # noqa: E731
+    records = GaussianRecords.from_arrays(
+        up_ids, stack(["x", "y", "z"]), stack(["f_dc_0", "f_dc_1", "f_dc_2"]), f_rest,
+        up["opacity"], stack(["scale_0", "scale_1", "scale_2"]),
+        stack(["rot_0", "rot_1", "rot_2", "rot_3"]))
+    for arr in (records.xyz, records.f_dc, records.f_rest, records.opacity, records.scale, records.rot):
+        if not np.all(np.isfinite(arr)):
+            raise MessageError("map message has non-finite Gaussian parameters")
+    return MapMessage(kind, seq, total, records, removed)
+
+
+class ApplyStatus(enum.Enum):
+    APPLIED = "applied"
+    STALE = "stale"          # seq already folded in: ignored
+    GAP = "gap"              # a delta is missing: resynchronise from a snapshot
+    NEEDS_SNAPSHOT = "needs_snapshot"  # no snapshot yet and the delta is not seq 1
+    MISMATCH = "mismatch"    # applied, but the count disagrees with the sender: resync
+
+
+class MapReplica:
+    """The receiver's copy of the map: rows kept sorted by id; applies deltas in sequence.
+
+    Not thread-safe: the owning node serialises calls.
+    """
+
+    def __init__(self) -> None:
+        self._records = GaussianRecords.empty()
+        self.seq = 0
+        self.synced = False  # True once a snapshot or delta 1 has been applied
+        self.unknown_removals = 0
+
+    def __len__(self) -> int:
+        return len(self._records)
+
+    @property
+    def records(self) -> GaussianRecords:
+        return self._records
+
+    def load_snapshot(self, msg: MapMessage) -> None:
+        """Replace the whole replica by a snapshot."""
+        if msg.kind is not MessageKind.SNAPSHOT:
+            raise ValueError("load_snapshot needs a snapshot")
+        order = np.argsort(msg.upserts.ids, kind="stable")
+        self._records = msg.upserts.select(order)
+        self.seq = msg.seq
+        self.synced = True
+
+    def apply(self, msg: MapMessage) -> ApplyStatus:
+        """Apply a delta (or a snapshot); says whether the replica is still in step."""
+        if msg.kind is MessageKind.SNAPSHOT:
+            if self.synced and msg.seq < self.seq:
+                return ApplyStatus.STALE
+            self.load_snapshot(msg)
+            return ApplyStatus.APPLIED
+        if not self.synced:
+            if msg.seq != 1:
+                return ApplyStatus.NEEDS_SNAPSHOT
+            self.synced = True
+        if msg.seq <= self.seq:
+            return ApplyStatus.STALE
+        if msg.seq != self.seq + 1:
+            return ApplyStatus.GAP
+        self._remove(msg.removed_ids)
+        self._upsert(msg.upserts)
+        self.seq = msg.seq
+        return ApplyStatus.APPLIED if len(self) == msg.total else ApplyStatus.MISMATCH
+
+    def _remove(self, ids: np.ndarray) -> None:
+        if ids.size == 0:
+            return
+        hit = np.isin(self._records.ids, ids)
+        self.unknown_removals += int(ids.size - hit.sum())
+        self._records = self._records.select(~hit)
+
+    def _upsert(self, up: GaussianRecords) -> None:
+        if len(up) == 0:
+            return
+        cur = self._records
+        if len(cur):
+            pos_c = np.minimum(np.searchsorted(cur.ids, up.ids), len(cur) - 1)
+            exists = cur.ids[pos_c] == up.ids
+        else:
+            pos_c, exists = np.zeros(len(up), np.int64), np.zeros(len(up), bool)
+        if exists.any():
+            # Records are frozen, their arrays are not: copy once, then write the changed rows.
+            merged = GaussianRecords.from_arrays(*(a.copy() for a in _columns(cur)))
+            for dst, src in zip(_columns(merged), _columns(up)):
+                dst[pos_c[exists]] = src[exists]
+            cur = merged
+        new = up.select(~exists)
+        if len(new):
+            cur = GaussianRecords.concat([cur, new])
+            if len(cur) > 1 and np.any(np.diff(cur.ids) <= 0):
+                cur = cur.select(np.argsort(cur.ids, kind="stable"))
+        self._records = cur
+
+
+def _columns(r: GaussianRecords) -> tuple[np.ndarray, ...]:
+    return (r.ids, r.xyz, r.f_dc, r.f_rest, r.opacity, r.scale, r.rot)

@@ -1,0 +1,90 @@
+"""Pairing messages by header stamp, with bounded memory (no rclpy import).
+
+``StampBundler`` collects the parts of a bundle that share one exact stamp (the
+tracker publishes a keyframe as colour, depth, pose and keypoints with one stamp).
+``NearestPairer`` pairs two streams (colour, depth) whose stamps differ by at most
+``max_dt_ns``, as message_filters' approximate policy does for two inputs.
+Both drop the oldest pending items when full and count what they dropped.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+T = TypeVar("T")
+
+
+class StampBundler:
+    """Assemble bundles of ``parts`` keyed by exact stamp.
+
+    add() returns the finished bundle ({part: payload}) once every part for that
+    stamp has arrived, else None. At most ``max_pending`` incomplete bundles are kept.
+    """
+
+    def __init__(self, parts: set[str] | frozenset[str], max_pending: int = 8) -> None:
+        if not parts:
+            raise ValueError("a bundle needs at least one part")
+        self.parts = frozenset(parts)
+        self.max_pending = max_pending
+        self._pending: OrderedDict[int, dict[str, Any]] = OrderedDict()
+        self.dropped = 0
+
+    def add(self, part: str, stamp_ns: int, payload: Any) -> dict[str, Any] | None:
+        if part not in self.parts:
+            raise KeyError(f"unknown bundle part {part!r}; expected one of {sorted(self.parts)}")
+        bundle = self._pending.setdefault(stamp_ns, {})
+        bundle[part] = payload
+        if bundle.keys() == self.parts:
+            return self._pending.pop(stamp_ns)
+        while len(self._pending) > self.max_pending:
+            self._pending.popitem(last=False)
+            self.dropped += 1
+        return None
+
+    @property
+    def pending(self) -> int:
+        return len(self._pending)
+
+
+@dataclass
+class NearestPairer(Generic[T]):
+    """Pair items of streams ``a`` and ``b`` whose stamps are within ``max_dt_ns``.
+
+    ``max_dt_ns = 0`` demands exact stamps. Each item is used at most once; items that
+    can no longer be paired (older than the newest pair) are dropped and counted.
+    """
+
+    max_dt_ns: int
+    queue_size: int = 5
+    dropped: int = 0
+    _a: "OrderedDict[int, T]" = field(default_factory=OrderedDict)
+    _b: "OrderedDict[int, T]" = field(default_factory=OrderedDict)
+
+    def add_a(self, stamp_ns: int, item: T) -> tuple[int, T, T] | None:
+        return self._add(self._a, self._b, stamp_ns, item, a_first=True)
+
+    def add_b(self, stamp_ns: int, item: T) -> tuple[int, T, T] | None:
+        return self._add(self._b, self._a, stamp_ns, item, a_first=False)
+
+    def _add(self, mine: "OrderedDict[int, T]", other: "OrderedDict[int, T]", stamp_ns: int, item: T,
+             a_first: bool) -> tuple[int, T, T] | None:
+        best = None
+        for s in other:
+            d = abs(s - stamp_ns)
+            if d <= self.max_dt_ns and (best is None or d < abs(best - stamp_ns)):
+                best = s
+        if best is None:
+            mine[stamp_ns] = item
+            while len(mine) > self.queue_size:
+                mine.popitem(last=False)
+                self.dropped += 1
+            return None
+        match = other.pop(best)
+        # Anything older than this pair on either side can only pair out of order now.
+        for q in (mine, other):
+            for s in [s for s in q if s < min(best, stamp_ns)]:
+                del q[s]
+                self.dropped += 1
+        a, b = (item, match) if a_first else (match, item)
+        return (stamp_ns if a_first else best), a, b

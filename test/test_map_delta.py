@@ -1,0 +1,94 @@
+"""The map-delta wire format and the replica that applies it."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from memgs_ros.core.gaussians import GaussianRecords
+from memgs_ros.core.map_delta import (
+    ApplyStatus, MapReplica, MessageKind, decode, encode, f_rest_columns, message_dtype,
+)
+from memgs_ros.errors import MessageError
+
+
+def _records(ids, seed=0, sh_degree=3) -> GaussianRecords:
+    rng = np.random.default_rng(seed)
+    n = len(ids)
+    f_rest = np.zeros((n, 45), np.float32)
+    cols = f_rest_columns(sh_degree)
+    f_rest[:, cols] = rng.normal(size=(n, len(cols)))
+    return GaussianRecords.from_arrays(np.asarray(ids), rng.normal(size=(n, 3)), rng.normal(size=(n, 3)),
+                                       f_rest, rng.normal(size=n), rng.normal(size=(n, 3)),
+                                       rng.normal(size=(n, 4)))
+
+
+def _same(a: GaussianRecords, b: GaussianRecords) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f))
+               for f in ("ids", "xyz", "f_dc", "f_rest", "opacity", "scale", "rot"))
+
+
+@pytest.mark.parametrize("degree", [0, 1, 3])
+def test_round_trip_exact(degree: int) -> None:
+    up = _records([3, 7, 9], sh_degree=degree)
+    rows = encode(MessageKind.DELTA, 5, 42, up, np.array([1, 2]), degree)
+    assert rows.dtype == message_dtype(degree)
+    msg = decode(rows)
+    assert (msg.kind, msg.seq, msg.total) == (MessageKind.DELTA, 5, 42)
+    assert _same(msg.upserts, up)
+    assert msg.removed_ids.tolist() == [1, 2]
+
+
+def test_degree_zero_is_small() -> None:
+    assert message_dtype(0).itemsize == 8 + 1 + 14 * 4
+    assert message_dtype(3).itemsize == 8 + 1 + 59 * 4
+
+
+def test_decode_rejects_malformed() -> None:
+    rows = encode(MessageKind.DELTA, 1, 1, _records([1]), np.zeros(0), 3)
+    with pytest.raises(MessageError, match="META"):
+        decode(rows[1:])
+    bad = rows.copy()
+    bad["op"][1] = 9
+    with pytest.raises(MessageError, match="unknown op"):
+        decode(bad)
+    nan = rows.copy()
+    nan["x"][1] = np.nan
+    with pytest.raises(MessageError, match="non-finite"):
+        decode(nan)
+    dropped = rows[[n for n in rows.dtype.names if n != "opacity"]]
+    with pytest.raises(MessageError, match="opacity"):
+        decode(np.array(dropped.tolist(), dtype=[(n, rows.dtype[n]) for n in dropped.dtype.names]))
+
+
+def test_replica_follows_sequence_and_detects_gaps() -> None:
+    rep = MapReplica()
+    first = decode(encode(MessageKind.DELTA, 1, 3, _records([1, 2, 3]), np.zeros(0), 3))
+    assert rep.apply(first) is ApplyStatus.APPLIED
+    changed = _records([2, 4], seed=1)
+    second = decode(encode(MessageKind.DELTA, 2, 3, changed, np.array([1]), 3))
+    assert rep.apply(second) is ApplyStatus.APPLIED
+    assert rep.records.ids.tolist() == [2, 3, 4]
+    assert np.array_equal(rep.records.xyz[0], changed.xyz[0])
+    assert rep.apply(second) is ApplyStatus.STALE
+    fourth = decode(encode(MessageKind.DELTA, 4, 3, _records([5]), np.zeros(0), 3))
+    assert rep.apply(fourth) is ApplyStatus.GAP
+    assert rep.seq == 2 and rep.records.ids.tolist() == [2, 3, 4]
+
+
+def test_late_replica_needs_snapshot_then_resyncs() -> None:
+    rep = MapReplica()
+    later = decode(encode(MessageKind.DELTA, 7, 2, _records([10]), np.zeros(0), 3))
+    assert rep.apply(later) is ApplyStatus.NEEDS_SNAPSHOT
+    snap_recs = _records([9, 4, 10], seed=3)
+    snap = decode(encode(MessageKind.SNAPSHOT, 7, 3, snap_recs, np.zeros(0), 3))
+    assert rep.apply(snap) is ApplyStatus.APPLIED
+    assert rep.records.ids.tolist() == [4, 9, 10]
+    nxt = decode(encode(MessageKind.DELTA, 8, 2, GaussianRecords.empty(), np.array([4]), 3))
+    assert rep.apply(nxt) is ApplyStatus.APPLIED
+    assert rep.records.ids.tolist() == [9, 10]
+
+
+def test_count_mismatch_is_reported() -> None:
+    rep = MapReplica()
+    msg = decode(encode(MessageKind.DELTA, 1, 5, _records([1, 2]), np.zeros(0), 3))
+    assert rep.apply(msg) is ApplyStatus.MISMATCH
