@@ -1,0 +1,119 @@
+"""SSIM (fast grouped-separable path vs references), PSNR and frame matching."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy import ndimage
+
+from memgs_ros.core.ssim import _ssim_map, gaussian_window_1d, ssim, ssim_map
+
+
+def _numpy_ssim_map(a: np.ndarray, b: np.ndarray, size: int = 11, sigma: float = 1.5,
+                    c1: float = 1e-4, c2: float = 9e-4) -> np.ndarray:
+    """Textbook SSIM: explicit 2-D Gaussian window, zero padding, float64. a, b: [C, H, W]."""
+    x = np.arange(size) - (size - 1) / 2
+    g = np.exp(-x ** 2 / (2 * sigma ** 2))
+    w = np.outer(g, g)
+    w /= w.sum()
+
+    def f(img: np.ndarray) -> np.ndarray:
+        return np.stack([ndimage.correlate(ch, w, mode="constant", cval=0.0) for ch in img])
+
+    mu1, mu2 = f(a), f(b)
+    s11 = f(a * a) - mu1 ** 2
+    s22 = f(b * b) - mu2 ** 2
+    s12 = f(a * b) - mu1 * mu2
+    return ((2 * mu1 * mu2 + c1) * (2 * s12 + c2)) / ((mu1 ** 2 + mu2 ** 2 + c1) * (s11 + s22 + c2))
+
+
+def _pair(shape: tuple[int, ...], seed: int = 0, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    a = torch.rand(shape, generator=g, dtype=dtype)
+    # b is half image, half noise so SSIM lands well inside (0, 1).
+    b = (0.5 * a + 0.5 * torch.rand(shape, generator=g, dtype=dtype)).clamp(0, 1)
+    return a, b
+
+
+def test_window_is_normalised_and_symmetric() -> None:
+    k = gaussian_window_1d(11, 1.5, torch.float64, torch.device("cpu"))
+    assert k.shape == (11,)
+    assert torch.isclose(k.sum(), torch.tensor(1.0, dtype=torch.float64))
+    assert torch.equal(k, k.flip(0))
+    assert int(k.argmax()) == 5
+    with pytest.raises(ValueError, match="odd"):
+        gaussian_window_1d(10, 1.5, torch.float32, torch.device("cpu"))
+
+
+def test_identical_images_give_one() -> None:
+    a, _ = _pair((3, 37, 53))
+    assert ssim(a, a).item() == pytest.approx(1.0, abs=1e-6)
+    m = ssim_map(a, a)
+    assert m.shape == a.shape
+    assert torch.allclose(m, torch.ones_like(m), atol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(3, 40, 56), (2, 3, 31, 47), (1, 1, 12, 12), (3, 5, 64)])
+def test_fast_path_matches_2d_window_twin(shape: tuple[int, ...]) -> None:
+    a, b = _pair(shape, seed=1)
+    fast = ssim_map(a, b)
+    ref = _ssim_map(a, b)
+    assert fast.shape == a.shape
+    assert torch.allclose(fast, ref, atol=1e-5), float((fast - ref).abs().max())
+
+
+def test_matches_textbook_numpy_ssim() -> None:
+    a, b = _pair((3, 33, 41), seed=2, dtype=torch.float64)
+    ref = _numpy_ssim_map(a.numpy(), b.numpy())
+    fast = ssim_map(a, b).numpy()
+    assert np.abs(fast - ref).max() < 1e-5
+    assert ssim(a, b).item() == pytest.approx(ref.mean(), abs=1e-6)
+    # The pair is dissimilar enough that this comparison means something.
+    assert 0.2 < ref.mean() < 0.95
+
+
+def test_other_window_and_float32_against_numpy() -> None:
+    a, b = _pair((3, 30, 30), seed=3)
+    ref = _numpy_ssim_map(a.double().numpy(), b.double().numpy(), size=7, sigma=1.0)
+    fast = ssim_map(a, b, window_size=7, sigma=1.0).double().numpy()
+    assert np.abs(fast - ref).max() < 1e-5
+
+
+def test_gradcheck_double() -> None:
+    a, b = _pair((1, 3, 9, 10), seed=4, dtype=torch.float64)
+    a.requires_grad_(True)
+    b.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x, y: ssim_map(x, y), (a, b), eps=1e-6, atol=1e-5)
+
+
+def test_gradient_matches_twin_with_random_cotangent() -> None:
+    a, b = _pair((2, 3, 20, 24), seed=5, dtype=torch.float64)
+    a.requires_grad_(True)
+    b.requires_grad_(True)
+    v = torch.randn(2, 3, 20, 24, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
+    v_fast = torch.autograd.grad(ssim_map(a, b), (a, b), v)
+    v_ref = torch.autograd.grad(_ssim_map(a, b), (a, b), v)
+    for g_fast, g_ref in zip(v_fast, v_ref):
+        assert torch.allclose(g_fast, g_ref, atol=1e-10)
+        assert g_fast.abs().max() > 0
+
+
+def test_reductions_and_data_range() -> None:
+    a, b = _pair((4, 3, 16, 18), seed=7)
+    per = ssim(a, b, reduction="per_image")
+    assert per.shape == (4,)
+    assert torch.allclose(per.mean(), ssim(a, b), atol=1e-6)
+    assert torch.allclose(ssim(a[0], b[0], reduction="per_image"), per[0], atol=1e-6)
+    assert ssim(a, b, reduction="none").shape == a.shape
+    # Scaling both images and the data range together leaves SSIM unchanged.
+    assert ssim(a * 255, b * 255, data_range=255.0).item() == pytest.approx(ssim(a, b).item(), abs=1e-5)
+    with pytest.raises(ValueError, match="reduction"):
+        ssim(a, b, reduction="sum")
+
+
+def test_shape_mismatch_is_refused() -> None:
+    a, _ = _pair((3, 10, 10))
+    with pytest.raises(AssertionError, match=r"\(3, 10, 10\) vs \(3, 10, 11\)"):
+        ssim(a, torch.rand(3, 10, 11))
+    with pytest.raises(AssertionError, match="floating"):
+        ssim(a.to(torch.uint8), a.to(torch.uint8))
