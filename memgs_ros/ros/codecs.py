@@ -1,0 +1,499 @@
+"""Conversions between ROS 2 messages and numpy / core types.
+
+cv_bridge and sensor_msgs_py are not on PyPI, so image and PointCloud2 packing live
+here. Every conversion that can fail raises :class:`MessageError` naming the field,
+encoding or size that is wrong. Decoders return views on the message buffer where the
+layout allows it (no copy); treat them as read-only.
+
+uint64 / int64 in PointCloud2: ``sensor_msgs/PointField`` has no 64-bit integer type, so
+a 64-bit field ``name`` travels as two 4-byte fields at adjacent offsets: ``name_lo``
+(UINT32, low word) and ``name_hi`` (UINT32 for uint64, INT32 for int64, high word).
+:func:`structured_to_pointcloud2` splits such fields and :func:`pointcloud2_to_structured`
+joins the pair back into one 64-bit field, so round trips are transparent and any other
+reader still sees two plain integer fields.
+"""
+from __future__ import annotations
+
+import array
+import sys
+from collections.abc import Sequence
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Pose, PoseStamped
+from nav_msgs.msg import Odometry, Path
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
+from std_msgs.msg import Header
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry import pose_from_tq, pose_to_tq
+from memgs_ros.errors import DataError, MessageError
+
+__all__ = [
+    "IMAGE_ENCODINGS",
+    "stamp_to_ns",
+    "ns_to_stamp",
+    "make_header",
+    "image_to_numpy",
+    "numpy_to_image",
+    "rgb_from_image",
+    "depth_from_image",
+    "depth_to_image",
+    "camera_info_to_camera",
+    "camera_to_camera_info",
+    "pose_to_matrix",
+    "matrix_to_pose",
+    "matrix_to_pose_stamped",
+    "matrix_to_odometry",
+    "append_to_path",
+    "structured_to_pointcloud2",
+    "pointcloud2_to_structured",
+]
+
+# encoding -> (element dtype, channels). Multi-byte types are read in the byte order
+# the message declares (is_bigendian) and written little-endian.
+IMAGE_ENCODINGS: dict[str, tuple[np.dtype, int]] = {
+    "rgb8": (np.dtype(np.uint8), 3),
+    "bgr8": (np.dtype(np.uint8), 3),
+    "rgba8": (np.dtype(np.uint8), 4),
+    "bgra8": (np.dtype(np.uint8), 4),
+    "mono8": (np.dtype(np.uint8), 1),
+    "8UC1": (np.dtype(np.uint8), 1),
+    "mono16": (np.dtype(np.uint16), 1),
+    "16UC1": (np.dtype(np.uint16), 1),
+    "32FC1": (np.dtype(np.float32), 1),
+}
+_COLOR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1")
+_DEPTH_ENCODINGS = ("16UC1", "mono16", "32FC1")
+_NS_PER_S = 1_000_000_000
+_INT32_MAX = 2**31 - 1
+
+
+def _bytes_array(arr: np.ndarray) -> array.array:
+    """The raw bytes of a C-contiguous array as the array('B') rclpy stores uint8[] in.
+
+    Assigning array('B') to a message field skips rclpy's per-element type check, so this
+    is one memcpy; bytes or lists go through a Python loop over every byte.
+    """
+    out = array.array("B")
+    out.frombytes(np.ascontiguousarray(arr).reshape(-1).view(np.uint8).data)
+    return out
+
+
+def _buffer(data: object) -> np.ndarray:
+    """uint8 view of a message's data field (array('B'), bytes, bytearray or list)."""
+    if isinstance(data, (array.array, bytes, bytearray, memoryview)):
+        return np.frombuffer(data, dtype=np.uint8)
+    return np.asarray(data, dtype=np.uint8)
+
+
+# --------------------------------------------------------------------------- stamps
+
+
+def stamp_to_ns(stamp: Time) -> int:
+    """builtin_interfaces/Time to integer nanoseconds."""
+    return int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
+
+
+def ns_to_stamp(stamp_ns: int) -> Time:
+    """Integer nanoseconds (>= 0, fits the int32 seconds of Time) to builtin_interfaces/Time."""
+    ns = int(stamp_ns)
+    sec, nanosec = divmod(ns, _NS_PER_S)
+    if ns < 0 or sec > _INT32_MAX:
+        raise MessageError(f"stamp {ns} ns does not fit builtin_interfaces/Time (0 <= sec <= {_INT32_MAX})")
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def make_header(stamp_ns: int, frame_id: str) -> Header:
+    return Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id)
+
+
+# --------------------------------------------------------------------------- images
+
+
+def image_to_numpy(msg: Image) -> np.ndarray:
+    """Decode an Image without interpreting channels.
+
+    Returns [H, W] for one-channel encodings, [H, W, C] otherwise, in native byte order,
+    dtype per :data:`IMAGE_ENCODINGS`. Row padding (``step`` > width * bytes per pixel)
+    is skipped by strides; the result is a view on ``msg.data`` unless a byte swap was
+    needed.
+    """
+    enc = msg.encoding
+    if enc not in IMAGE_ENCODINGS:
+        raise MessageError(f"unsupported image encoding '{enc}' (supported: {', '.join(IMAGE_ENCODINGS)})")
+    dtype, channels = IMAGE_ENCODINGS[enc]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise MessageError(f"{enc} image has no pixels ({w}x{h})")
+    row_bytes = w * channels * dtype.itemsize
+    if step < row_bytes:
+        raise MessageError(f"{enc} image step {step} is less than width*bytes_per_pixel = {row_bytes}")
+    buf = _buffer(msg.data)
+    if buf.size != step * h:
+        raise MessageError(
+            f"{enc} image data has {buf.size} bytes, expected step*height = {step}*{h} = {step * h}"
+        )
+    wire = dtype.newbyteorder(">" if msg.is_bigendian else "<") if dtype.itemsize > 1 else dtype
+    arr = np.ndarray(
+        shape=(h, w, channels), dtype=wire, buffer=buf, strides=(step, channels * dtype.itemsize, dtype.itemsize)
+    )
+    if wire != dtype.newbyteorder("="):
+        arr = arr.astype(dtype.newbyteorder("="))
+    return arr[:, :, 0] if channels == 1 else arr
+
+
+def numpy_to_image(arr: np.ndarray, encoding: str, stamp_ns: int, frame_id: str) -> Image:
+    """Encode an array as an Image (little-endian, no row padding).
+
+    arr: [H, W] or [H, W, C] with the dtype and channel count of ``encoding``
+    (uint8 for rgb8/bgr8/rgba8/bgra8/mono8, uint16 for 16UC1/mono16, float32 for 32FC1).
+    """
+    if encoding not in IMAGE_ENCODINGS:
+        raise MessageError(f"unsupported image encoding '{encoding}' (supported: {', '.join(IMAGE_ENCODINGS)})")
+    dtype, channels = IMAGE_ENCODINGS[encoding]
+    a = np.asarray(arr)
+    if a.ndim == 3 and channels == 1 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    expected = "[H, W]" if channels == 1 else f"[H, W, {channels}]"
+    if (channels == 1 and a.ndim != 2) or (channels > 1 and (a.ndim != 3 or a.shape[2] != channels)):
+        raise MessageError(f"{encoding} needs an array {expected}, got shape {a.shape}")
+    if a.dtype.newbyteorder("=") != dtype.newbyteorder("="):
+        raise MessageError(f"{encoding} needs dtype {dtype}, got {a.dtype}")
+    if a.shape[0] == 0 or a.shape[1] == 0:
+        raise MessageError(f"{encoding} image has no pixels, shape {a.shape}")
+    a = a.astype(dtype.newbyteorder("<"), copy=False)
+    msg = Image()
+    msg.header = make_header(stamp_ns, frame_id)
+    msg.height, msg.width = int(a.shape[0]), int(a.shape[1])
+    msg.encoding = encoding
+    msg.is_bigendian = 0
+    msg.step = msg.width * channels * dtype.itemsize
+    msg.data = _bytes_array(a)
+    return msg
+
+
+def rgb_from_image(msg: Image) -> np.ndarray:
+    """Colour image -> [H, W, 3] uint8 RGB, from rgb8, bgr8, rgba8, bgra8 or mono8."""
+    if msg.encoding not in _COLOR_ENCODINGS:
+        raise MessageError(
+            f"image encoding '{msg.encoding}' is not a colour encoding ({', '.join(_COLOR_ENCODINGS)})"
+        )
+    a = image_to_numpy(msg)
+    enc = msg.encoding
+    if enc == "rgb8":
+        return a
+    if enc in ("bgr8", "bgra8"):
+        return np.ascontiguousarray(a[:, :, 2::-1])
+    if enc == "rgba8":
+        return np.ascontiguousarray(a[:, :, :3])
+    return np.repeat(a[:, :, None], 3, axis=2)  # mono8 / 8UC1
+
+
+def depth_from_image(msg: Image, depth_scale: float = 1000.0) -> np.ndarray:
+    """Depth image -> [H, W] float32 metres, NaN where invalid.
+
+    16UC1 / mono16 hold integer units with ``depth_scale`` units per metre (RealSense 1000,
+    TUM PNG 5000); 32FC1 holds metres. Zero, negative and non-finite values become NaN.
+    """
+    if msg.encoding not in _DEPTH_ENCODINGS:
+        raise MessageError(f"image encoding '{msg.encoding}' is not a depth encoding ({', '.join(_DEPTH_ENCODINGS)})")
+    if not (np.isfinite(depth_scale) and depth_scale > 0):
+        raise MessageError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
+    a = image_to_numpy(msg)
+    if a.dtype == np.uint16:
+        d = a.astype(np.float32) * np.float32(1.0 / depth_scale)
+        d[a == 0] = np.nan
+        return d
+    d = np.array(a, dtype=np.float32)  # copy: never edit the message buffer
+    with np.errstate(invalid="ignore"):
+        d[~(d > 0) | ~np.isfinite(d)] = np.nan
+    return d
+
+
+def depth_to_image(
+    depth_m: np.ndarray, encoding: str, stamp_ns: int, frame_id: str, depth_scale: float = 1000.0
+) -> Image:
+    """[H, W] metres -> 32FC1 (NaN invalid) or 16UC1 (``depth_scale`` units per metre, 0 invalid).
+
+    For 16UC1, depths that round to 0 or exceed 65535 units are written as 0 (invalid)
+    rather than clamped, so no wrong depth reaches the tracker.
+    """
+    d = np.asarray(depth_m, dtype=np.float32)
+    if d.ndim != 2:
+        raise MessageError(f"depth must be [H, W], got shape {d.shape}")
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(d) & (d > 0)
+    if encoding == "32FC1":
+        return numpy_to_image(np.where(valid, d, np.float32(np.nan)).astype(np.float32), encoding, stamp_ns, frame_id)
+    if encoding == "16UC1":
+        if not (np.isfinite(depth_scale) and depth_scale > 0):
+            raise MessageError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
+        units = np.where(valid, np.rint(d.astype(np.float64) * depth_scale), 0.0)
+        units[units > 65535] = 0
+        return numpy_to_image(units.astype(np.uint16), encoding, stamp_ns, frame_id)
+    raise MessageError(f"depth encoding must be 32FC1 or 16UC1, got '{encoding}'")
+
+
+# --------------------------------------------------------------------------- camera info
+
+
+def camera_info_to_camera(msg: CameraInfo) -> PinholeCamera:
+    """CameraInfo -> PinholeCamera from K and plumb_bob D.
+
+    An empty distortion model with empty D means no distortion. Other models
+    (rational_polynomial, equidistant) and binning are refused rather than approximated.
+    """
+    model = msg.distortion_model
+    d = [float(x) for x in msg.d]
+    if model == "plumb_bob":
+        if len(d) != 5:
+            raise MessageError(f"CameraInfo plumb_bob distortion needs 5 coefficients in D, got {len(d)}")
+    elif model in ("", "none") and len(d) == 0:
+        d = [0.0] * 5
+    else:
+        raise MessageError(
+            f"CameraInfo distortion_model '{model}' with {len(d)} coefficients is not supported (only plumb_bob)"
+        )
+    if msg.binning_x > 1 or msg.binning_y > 1:
+        raise MessageError(f"CameraInfo binning {msg.binning_x}x{msg.binning_y} is not supported")
+    k = [float(x) for x in msg.k]
+    fx, fy, cx, cy = k[0], k[4], k[2], k[5]
+    if not (np.isfinite(fx) and np.isfinite(fy) and fx > 0 and fy > 0):
+        raise MessageError(f"CameraInfo K has invalid focal lengths fx={fx} fy={fy}")
+    try:
+        return PinholeCamera(int(msg.width), int(msg.height), fx, fy, cx, cy, tuple(d))  # type: ignore[arg-type]
+    except DataError as err:
+        raise MessageError(f"CameraInfo is not a valid camera: {err}") from err
+
+
+def camera_to_camera_info(cam: PinholeCamera, stamp_ns: int, frame_id: str) -> CameraInfo:
+    """PinholeCamera -> CameraInfo (plumb_bob, R identity, P = [K | 0])."""
+    msg = CameraInfo()
+    msg.header = make_header(stamp_ns, frame_id)
+    msg.width, msg.height = int(cam.width), int(cam.height)
+    msg.distortion_model = "plumb_bob"
+    msg.d = [float(x) for x in cam.dist]
+    msg.k = [float(cam.fx), 0.0, float(cam.cx), 0.0, float(cam.fy), float(cam.cy), 0.0, 0.0, 1.0]
+    msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    msg.p = [float(cam.fx), 0.0, float(cam.cx), 0.0, 0.0, float(cam.fy), float(cam.cy), 0.0, 0.0, 0.0, 1.0, 0.0]
+    return msg
+
+
+# --------------------------------------------------------------------------- poses
+
+
+def pose_to_matrix(pose: Pose) -> np.ndarray:
+    """geometry_msgs/Pose -> [4, 4] float64 (the quaternion is normalised)."""
+    p, o = pose.position, pose.orientation
+    t = np.array([p.x, p.y, p.z], dtype=np.float64)
+    q_xyzw = np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
+    n = float(np.linalg.norm(q_xyzw))
+    if not (np.all(np.isfinite(t)) and np.isfinite(n) and n > 1e-9):
+        raise MessageError(f"Pose is not finite or has a zero quaternion: position {t}, orientation xyzw {q_xyzw}")
+    return pose_from_tq(t, q_xyzw / n)
+
+
+def matrix_to_pose(T: np.ndarray) -> Pose:
+    """[4, 4] rigid transform -> geometry_msgs/Pose."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise MessageError(f"pose must be a finite 4x4 matrix, got shape {T.shape}")
+    t, q = pose_to_tq(T)
+    pose = Pose()
+    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in t)
+    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
+    return pose
+
+
+def matrix_to_pose_stamped(T_wc: np.ndarray, stamp_ns: int, frame_id: str) -> PoseStamped:
+    """Camera-in-world [4, 4] -> PoseStamped in ``frame_id`` (the world frame)."""
+    return PoseStamped(header=make_header(stamp_ns, frame_id), pose=matrix_to_pose(T_wc))
+
+
+def matrix_to_odometry(T_wc: np.ndarray, stamp_ns: int, frame_id: str, child_frame_id: str) -> Odometry:
+    """Camera-in-world [4, 4] -> Odometry (pose only; twist left zero with zero covariance)."""
+    msg = Odometry(header=make_header(stamp_ns, frame_id), child_frame_id=child_frame_id)
+    msg.pose.pose = matrix_to_pose(T_wc)
+    return msg
+
+
+def append_to_path(path: Path, pose: PoseStamped, max_len: int = 0) -> Path:
+    """Append ``pose`` to ``path`` in place, keep at most ``max_len`` poses (0 = all), and
+    stamp the path with the newest pose. Returns ``path`` for chaining."""
+    path.poses.append(pose)
+    if max_len > 0 and len(path.poses) > max_len:
+        del path.poses[: len(path.poses) - max_len]
+    path.header.stamp = pose.header.stamp
+    if not path.header.frame_id:
+        path.header.frame_id = pose.header.frame_id
+    return path
+
+
+# --------------------------------------------------------------------------- PointCloud2
+
+_POINTFIELD_DTYPES: dict[int, np.dtype] = {
+    PointField.INT8: np.dtype(np.int8),
+    PointField.UINT8: np.dtype(np.uint8),
+    PointField.INT16: np.dtype(np.int16),
+    PointField.UINT16: np.dtype(np.uint16),
+    PointField.INT32: np.dtype(np.int32),
+    PointField.UINT32: np.dtype(np.uint32),
+    PointField.FLOAT32: np.dtype(np.float32),
+    PointField.FLOAT64: np.dtype(np.float64),
+}
+_DTYPE_POINTFIELDS: dict[np.dtype, int] = {dt: code for code, dt in _POINTFIELD_DTYPES.items()}
+
+
+def structured_to_pointcloud2(arr: np.ndarray, stamp_ns: int, frame_id: str) -> PointCloud2:
+    """Structured array -> unorganised (height 1) or organised PointCloud2, little-endian.
+
+    arr: [N] or [H, W] structured array; each field a scalar or fixed sub-array (-> count)
+    of int8/16/32, uint8/16/32, float32/64, or uint64/int64 (split into ``<name>_lo`` /
+    ``<name>_hi``, see the module docstring). The dtype's offsets and itemsize (padding)
+    become the PointField offsets and point_step, so the bytes are copied once, as is.
+    """
+    a = np.asarray(arr)
+    if a.dtype.names is None:
+        raise MessageError(f"PointCloud2 needs a structured array, got dtype {a.dtype}")
+    if a.ndim not in (1, 2):
+        raise MessageError(f"PointCloud2 needs a [N] or [H, W] structured array, got shape {a.shape}")
+    fields: list[PointField] = []
+    names = set(a.dtype.names)
+    le_fields: dict[str, tuple] = {}
+    for name in a.dtype.names:
+        ftype, offset = a.dtype.fields[name][:2]
+        base, shape = ftype.base, ftype.shape
+        count = int(np.prod(shape)) if shape else 1
+        le_fields[name] = (base.newbyteorder("<") if base.itemsize > 1 else base, shape, offset)
+        if base.kind in "iu" and base.itemsize == 8:
+            if count != 1:
+                raise MessageError(f"PointCloud2 field '{name}': 64-bit integer sub-arrays are not supported")
+            for part in (f"{name}_lo", f"{name}_hi"):
+                if part in names:
+                    raise MessageError(f"PointCloud2 field '{name}' (64-bit) clashes with existing field '{part}'")
+            hi_type = PointField.INT32 if base.kind == "i" else PointField.UINT32
+            fields.append(PointField(name=f"{name}_lo", offset=offset, datatype=PointField.UINT32, count=1))
+            fields.append(PointField(name=f"{name}_hi", offset=offset + 4, datatype=hi_type, count=1))
+            continue
+        code = _DTYPE_POINTFIELDS.get(base.newbyteorder("="))
+        if code is None:
+            raise MessageError(f"PointCloud2 field '{name}' has dtype {base}, which PointField cannot carry")
+        fields.append(PointField(name=name, offset=offset, datatype=code, count=count))
+    # Little-endian on the wire; byte-swaps only when the input was big-endian.
+    wire = np.dtype({
+        "names": list(le_fields),
+        "formats": [(b, s) if s else b for b, s, _ in le_fields.values()],
+        "offsets": [o for _, _, o in le_fields.values()],
+        "itemsize": a.dtype.itemsize,
+    })
+    a = np.ascontiguousarray(a.astype(wire, copy=False))
+    msg = PointCloud2()
+    msg.header = make_header(stamp_ns, frame_id)
+    msg.height, msg.width = (1, a.shape[0]) if a.ndim == 1 else (a.shape[0], a.shape[1])
+    msg.fields = fields
+    msg.is_bigendian = False
+    msg.point_step = a.dtype.itemsize
+    msg.row_step = msg.point_step * msg.width
+    msg.is_dense = False  # we do not scan for NaNs; False is always a safe claim
+    msg.data = _bytes_array(a) if a.size else array.array("B")
+    return msg
+
+
+def _field_dtype(f: PointField, big: bool) -> np.dtype:
+    base = _POINTFIELD_DTYPES.get(int(f.datatype))
+    if base is None:
+        raise MessageError(f"PointCloud2 field '{f.name}' has unknown datatype {f.datatype}")
+    return base.newbyteorder(">" if big else "<") if base.itemsize > 1 else base
+
+
+def pointcloud2_to_structured(msg: PointCloud2, required: Sequence[str] = ()) -> np.ndarray:
+    """PointCloud2 -> [H*W] structured array in native byte order.
+
+    Honours point_step, row_step (row padding is skipped), field offsets, count (-> a
+    sub-array field) and is_bigendian. A ``<name>_lo`` / ``<name>_hi`` pair of 4-byte
+    integer fields at adjacent offsets comes back as one 64-bit field ``name``.
+    ``required`` lists field names that must be present. The result is a view on the
+    message buffer for little-endian clouds without row padding.
+    """
+    big = bool(msg.is_bigendian)
+    h, w = int(msg.height), int(msg.width)
+    point_step, row_step = int(msg.point_step), int(msg.row_step)
+    by_name: dict[str, PointField] = {}
+    for f in msg.fields:
+        if f.name in by_name:
+            raise MessageError(f"PointCloud2 has field '{f.name}' twice")
+        by_name[f.name] = f
+    missing = [n for n in required if n not in by_name and not (f"{n}_lo" in by_name and f"{n}_hi" in by_name)]
+    if missing:
+        raise MessageError(f"PointCloud2 lacks required field(s) {missing}; it has {list(by_name)}")
+    if not by_name:
+        raise MessageError("PointCloud2 has no fields")
+    n_points = h * w
+    for f in msg.fields:
+        dt = _field_dtype(f, big)
+        count = int(f.count)
+        if count < 1:
+            raise MessageError(f"PointCloud2 field '{f.name}' has count {count}, must be >= 1")
+        if f.offset + dt.itemsize * count > point_step:
+            raise MessageError(
+                f"PointCloud2 field '{f.name}' (offset {f.offset}, {dt.itemsize * count} bytes) "
+                f"does not fit point_step {point_step}"
+            )
+    if n_points and row_step < w * point_step:
+        raise MessageError(f"PointCloud2 row_step {row_step} is less than width*point_step = {w * point_step}")
+    buf = _buffer(msg.data)
+    if buf.size != row_step * h:
+        raise MessageError(
+            f"PointCloud2 data has {buf.size} bytes, expected row_step*height = {row_step}*{h} = {row_step * h}"
+        )
+
+    # Join 64-bit pairs: the 8 bytes are contiguous, low word first on little-endian wires
+    # and high word first on big-endian ones, so one 8-byte field covers both.
+    joined: dict[str, tuple[np.dtype, int]] = {}
+    consumed: set[str] = set()
+    for name, lo in by_name.items():
+        if not name.endswith("_lo"):
+            continue
+        stem = name[:-3]
+        hi = by_name.get(f"{stem}_hi")
+        if (
+            hi is None or stem in by_name or lo.datatype != PointField.UINT32 or lo.count != 1 or hi.count != 1
+            or hi.datatype not in (PointField.UINT32, PointField.INT32)
+        ):
+            continue
+        start = lo.offset if not big else hi.offset
+        if (hi.offset - lo.offset) != (4 if not big else -4):
+            continue
+        base = np.dtype(np.int64 if hi.datatype == PointField.INT32 else np.uint64)
+        joined[stem] = (base.newbyteorder(">" if big else "<"), start)
+        consumed.update((name, f"{stem}_hi"))
+
+    names, formats, offsets = [], [], []
+    for f in msg.fields:
+        if f.name in consumed:
+            continue
+        dt = _field_dtype(f, big)
+        names.append(f.name)
+        formats.append((dt, (int(f.count),)) if f.count > 1 else dt)
+        offsets.append(int(f.offset))
+    for stem, (dt, start) in joined.items():
+        names.append(stem)
+        formats.append(dt)
+        offsets.append(start)
+    order = np.argsort(offsets, kind="stable")
+    wire = np.dtype({
+        "names": [names[i] for i in order],
+        "formats": [formats[i] for i in order],
+        "offsets": [offsets[i] for i in order],
+        "itemsize": point_step,
+    })
+    if n_points == 0:
+        return np.zeros(0, dtype=wire.newbyteorder("="))
+    if row_step == w * point_step:
+        out = np.frombuffer(buf, dtype=wire, count=n_points)
+    else:
+        out = np.ndarray(shape=(h, w), dtype=wire, buffer=buf, strides=(row_step, point_step)).reshape(-1)
+    if big and sys.byteorder == "little" or not big and sys.byteorder == "big":
+        out = out.astype(wire.newbyteorder("="))
+    return out

@@ -1,0 +1,51 @@
+"""The three QoS profiles the nodes use (reference section 9, DESIGN.md topic contract).
+
+- ``sensor()``: what camera subscribers use (BEST_EFFORT, VOLATILE, depth 5). It also
+  receives from RELIABLE publishers, so it works with RealSense (RELIABLE by default)
+  and with the bag player.
+- ``reliable(depth)``: keyframes, seeds, map deltas, lockstep acks, and the bag player's
+  sensor topics (a RELIABLE publisher serves both kinds of subscriber; a BEST_EFFORT one
+  would starve RELIABLE subscribers).
+- ``latched()``: RELIABLE + TRANSIENT_LOCAL, depth 1: the latest map snapshot or "done"
+  flag reaches subscribers that join late. Subscribers must use it too to get the
+  latched sample.
+"""
+from __future__ import annotations
+
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+
+__all__ = ["sensor", "reliable", "latched"]
+
+
+def sensor() -> QoSProfile:
+    """qos_profile_sensor_data (BEST_EFFORT, VOLATILE, keep last 5), as a fresh copy."""
+    p = qos_profile_sensor_data
+    return QoSProfile(history=p.history, depth=p.depth, reliability=p.reliability, durability=p.durability)
+
+
+def reliable(depth: int = 10) -> QoSProfile:
+    """RELIABLE, VOLATILE, keep last ``depth`` (>= 1)."""
+    if depth < 1:
+        raise ValueError(f"QoS depth must be >= 1, got {depth}")
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+    )
+
+
+def latched() -> QoSProfile:
+    """RELIABLE, TRANSIENT_LOCAL, keep last 1: late joiners get the last sample."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
