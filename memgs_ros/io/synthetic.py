@@ -40,6 +40,7 @@ from memgs_ros.core.camera import TUM_FR3, PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.geometry import pose_to_tq
 from memgs_ros.errors import ConfigError, DataError
+from memgs_ros.io.tum import CAMERA_JSON, format_stamp, write_camera_json
 
 # Synthetic stamps start here (a plausible wall-clock epoch, like TUM's), in ns.
 SYNTH_START_NS = 1_700_000_000 * 1_000_000_000
@@ -550,7 +551,9 @@ def write_tum_folder(frames: Iterable[Frame], path: str | os.PathLike[str], dept
     """Write frames as a TUM RGB-D folder (rgb/, depth/ 16-bit PNG, rgb.txt, depth.txt, groundtruth.txt).
 
     Written into a temporary sibling directory and renamed into place, so ``path`` is
-    either complete or absent. Depth NaN/0/out of range -> 0. Returns the number of frames.
+    either complete or absent. Depth NaN/0/out of range -> 0. Stamps are written in whole
+    microseconds (TUM's format). The camera of the first frame and the depth factor go to
+    ``camera.json`` (read back by ``TumFolder``). Returns the number of frames.
     """
     out = Path(path)
     if out.exists():
@@ -565,8 +568,9 @@ def write_tum_folder(frames: Iterable[Frame], path: str | os.PathLike[str], dept
         gt_lines = ["# ground truth trajectory", "# file: memgs_ros synthetic", "# timestamp tx ty tz qx qy qz qw"]
         n = 0
         for f in frames:
-            sec, nsec = divmod(int(f.stamp_ns), 1_000_000_000)
-            ts = f"{sec}.{nsec // 1000:06d}"
+            ts = format_stamp(f.stamp_ns)
+            if n == 0:
+                write_camera_json(tmp / CAMERA_JSON, f.camera, depth_factor)
             if not cv2.imwrite(str(tmp / "rgb" / f"{ts}.png"), cv2.cvtColor(f.rgb, cv2.COLOR_RGB2BGR)):
                 raise DataError(f"{tmp / 'rgb' / ts}.png: could not write image")
             rgb_lines.append(f"{ts} rgb/{ts}.png")

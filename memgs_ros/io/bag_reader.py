@@ -1,0 +1,441 @@
+"""Read RGB-D frames and ground truth from bags: TUM's ROS 1 bags (bz2), ROS 2 MCAP and sqlite3.
+
+Opening a bag makes one pass over its small messages and image headers: it finds the
+camera (first CameraInfo on the colour info topic, unless a camera is given), pairs colour
+and depth images by nearest header stamp (one-to-one within ``max_dt_s``) and collects
+ground truth, either from a PoseStamped topic or by composing ``/tf`` (and ``/tf_static``)
+edges from the world frame down to the camera optical frame. Iterating makes a second
+pass that decodes only the paired images, so memory stays at a few frames.
+
+Bad input never stops a read: a message that does not deserialise, an unsupported
+encoding, a size mismatch or an unexpected type is counted in ``skipped`` (kind -> count),
+logged once per kind, and skipped; topics nobody asked for (``/cortex_marker_array``,
+``/imu``) are counted without being read. A bag that cannot be opened or read at all
+(missing, truncated, corrupt) raises DataError naming the file.
+"""
+from __future__ import annotations
+
+import logging
+from collections import defaultdict
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.frame import Frame
+from memgs_ros.core.geometry import interpolate_poses, pose_from_tq
+from memgs_ros.errors import DataError, MemgsError, MessageError
+from memgs_ros.io.bag_writer import (
+    DEPTH_INFO_TOPIC,
+    DEPTH_TOPIC,
+    POSE_TOPIC,
+    RGB_INFO_TOPIC,
+    RGB_TOPIC,
+    TF_TOPIC,
+    ros2_typestore,
+)
+from memgs_ros.io.tum import associate
+
+logger = logging.getLogger(__name__)
+
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
+# Tried in this order when no camera frame is configured (frames compared without leading '/').
+DEFAULT_CAMERA_FRAMES = ("openni_rgb_optical_frame", "camera_rgb_optical_frame")
+
+
+@dataclass(frozen=True)
+class BagTopics:
+    """Topic and frame names. Defaults are TUM's (and what ``bag_writer`` writes).
+
+    camera_frame: tf frame of the colour optical frame; None = the first of
+    DEFAULT_CAMERA_FRAMES in the tf tree, else the colour images' header frame_id.
+    world_frame: None = the root of the tf tree above the camera frame.
+    Frame names match with or without ROS 1's leading slash.
+    """
+
+    rgb: str = RGB_TOPIC
+    depth: str = DEPTH_TOPIC
+    rgb_info: str = RGB_INFO_TOPIC
+    depth_info: str = DEPTH_INFO_TOPIC
+    tf: str = TF_TOPIC
+    tf_static: str = "/tf_static"
+    pose: str = POSE_TOPIC
+    camera_frame: str | None = None
+    world_frame: str | None = None
+
+
+def _frame_name(name: str) -> str:
+    return name.lstrip("/")
+
+
+def _stamp_ns(header: Any) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+_ENCODINGS: dict[str, tuple[str, int]] = {
+    # encoding -> (numpy base dtype, channels)
+    "rgb8": ("u1", 3), "bgr8": ("u1", 3), "rgba8": ("u1", 4), "bgra8": ("u1", 4), "mono8": ("u1", 1),
+    "8UC1": ("u1", 1), "8UC3": ("u1", 3), "16UC1": ("u2", 1), "mono16": ("u2", 1), "32FC1": ("f4", 1),
+}
+COLOR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1", "8UC3")
+DEPTH_ENCODINGS = ("16UC1", "mono16", "32FC1")
+
+
+def check_image(msg: Any, allowed: tuple[str, ...]) -> None:
+    """Raise MessageError unless msg is an image of an allowed encoding whose buffer fits its size."""
+    enc = str(msg.encoding)
+    if enc not in allowed:
+        raise MessageError(f"unsupported encoding {enc!r} (expected one of {', '.join(allowed)})")
+    base, ch = _ENCODINGS[enc]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    row = w * ch * np.dtype(base).itemsize
+    if h <= 0 or w <= 0:
+        raise MessageError(f"empty image {w}x{h}")
+    if step < row:
+        raise MessageError(f"step {step} smaller than a row of {w} px {enc} ({row} bytes)")
+    if len(msg.data) < step * (h - 1) + row:
+        raise MessageError(f"data has {len(msg.data)} bytes, {w}x{h} {enc} with step {step} needs {step * (h - 1) + row}")
+
+
+def decode_image(msg: Any, depth_scale_16u: float = 0.001) -> np.ndarray:
+    """sensor_msgs/Image -> numpy, honouring step padding and is_bigendian.
+
+    Colour encodings give [H, W, 3] uint8 RGB (mono is replicated); depth encodings give
+    [H, W] float32 metres (16UC1 / mono16 times ``depth_scale_16u``), 0 where invalid.
+    """
+    enc = str(msg.encoding)
+    check_image(msg, COLOR_ENCODINGS + DEPTH_ENCODINGS)
+    base, ch = _ENCODINGS[enc]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    dt = np.dtype(base).newbyteorder(">" if msg.is_bigendian else "<")
+    buf = np.frombuffer(np.asarray(msg.data, dtype=np.uint8), dtype=np.uint8)
+    rows = np.lib.stride_tricks.as_strided(buf, shape=(h, w * ch * dt.itemsize), strides=(step, 1))
+    img = np.ascontiguousarray(rows).view(dt).reshape(h, w, ch) if ch > 1 else np.ascontiguousarray(rows).view(dt).reshape(h, w)
+    if enc in DEPTH_ENCODINGS:
+        d = img.astype(np.float32) * np.float32(depth_scale_16u) if base == "u2" else img.astype(np.float32)
+        d[~(np.isfinite(d) & (d > 0))] = 0.0
+        return d
+    if enc in ("mono8", "8UC1"):
+        return np.repeat(img[..., None], 3, axis=2)
+    if enc in ("bgr8", "bgra8"):
+        return np.ascontiguousarray(img[..., 2::-1])
+    return np.ascontiguousarray(img[..., :3])
+
+
+def camera_from_info(msg: Any) -> PinholeCamera:
+    """sensor_msgs/CameraInfo (ROS 1 or 2 field names) -> PinholeCamera with plumb_bob distortion."""
+    K = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, dtype=np.float64).reshape(-1)
+    D = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, dtype=np.float64).reshape(-1)
+    if K.size != 9 or K[0] <= 0 or K[4] <= 0:
+        raise MessageError(f"camera_info K is not a valid intrinsic matrix: {K.tolist()}")
+    model = str(msg.distortion_model)
+    if D.size and model not in ("plumb_bob", "rational_polynomial"):
+        raise MessageError(f"camera_info distortion model {model!r} is not supported (plumb_bob only)")
+    dist = np.zeros(5)
+    # rational_polynomial starts with the same k1 k2 p1 p2 k3; its k4..k6 are dropped
+    dist[: min(5, D.size)] = D[:5]
+    return PinholeCamera(int(msg.width), int(msg.height), float(K[0]), float(K[4]), float(K[2]), float(K[5]),
+                         tuple(float(x) for x in dist))  # type: ignore[arg-type]
+
+
+def _transform_to_T(tr: Any) -> np.ndarray:
+    t, q = tr.translation, tr.rotation
+    return pose_from_tq(np.array([t.x, t.y, t.z]), np.array([q.x, q.y, q.z, q.w]))
+
+
+class _Edge:
+    """One tf edge parent -> child: stamped samples of T_parent_child."""
+
+    def __init__(self) -> None:
+        self.stamps: list[int] = []
+        self.poses: list[np.ndarray] = []
+        self.static = False
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        st = np.asarray(self.stamps, dtype=np.int64)
+        P = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
+        order = np.argsort(st, kind="stable")
+        st, P = st[order], P[order]
+        keep = np.concatenate([[True], np.diff(st) > 0]) if len(st) else np.zeros(0, bool)
+        return st[keep], P[keep]
+
+    def is_constant(self) -> bool:
+        P = np.asarray(self.poses)
+        return self.static or bool(np.allclose(P, P[:1], atol=1e-9))
+
+
+class BagSource:
+    """A bag as a frame source: ``.camera``, ``.name``, ``len()``, iteration, ``ground_truth()``.
+
+    path: ROS 1 ``.bag`` file, ROS 2 bag directory, or a bare ``.mcap`` / ``.db3`` file.
+    depth_scale_16u: metres per unit of 16UC1 depth (RealSense 0.001; TUM PNG-style 0.0002).
+    with_depth: False pairs nothing and yields every colour image with depth None.
+    """
+
+    def __init__(self, path: str | Path, topics: BagTopics = BagTopics(), camera: PinholeCamera | None = None,
+                 max_dt_s: float = 0.02, depth_scale_16u: float = 0.001, with_depth: bool = True,
+                 gt_max_gap_s: float = 0.1, max_frames: int | None = None) -> None:
+        self.path = Path(path)
+        self.name = self.path.name
+        self.topics = topics
+        self.depth_scale_16u = depth_scale_16u
+        self.with_depth = with_depth
+        self.skipped: dict[str, int] = defaultdict(int)
+        self._logged: set[str] = set()
+        if not self.path.exists():
+            raise DataError(f"{self.path}: bag not found")
+        self._scan(camera, max_dt_s, gt_max_gap_s, max_frames)
+
+    # ------------------------------------------------------------------ helpers
+
+    def _skip(self, kind: str, detail: str = "", n: int = 1, level: int = logging.WARNING) -> None:
+        self.skipped[kind] += n
+        if kind not in self._logged:
+            self._logged.add(kind)
+            logger.log(level, "%s: skipping %s%s (logged once; counted in skipped)", self.path, kind,
+                           f": {detail}" if detail else "")
+
+    def _open(self) -> Any:
+        from rosbags.highlevel import AnyReader
+
+        return AnyReader([self.path], default_typestore=ros2_typestore())
+
+    def _fail(self, err: Exception) -> DataError:
+        return DataError(f"{self.path}: cannot read bag ({type(err).__name__}: {err})")
+
+    # -------------------------------------------------------------------- pass 1
+
+    def _scan(self, camera: PinholeCamera | None, max_dt_s: float, gt_max_gap_s: float,
+              max_frames: int | None) -> None:
+        t = self.topics
+        wanted_types = {t.rgb: (IMAGE_TYPE,), t.depth: (IMAGE_TYPE,), t.rgb_info: (INFO_TYPE,),
+                        t.tf: TF_TYPES, t.tf_static: TF_TYPES, t.pose: (POSE_TYPE,)}
+        if not self.with_depth:
+            del wanted_types[t.depth]
+        rgb_stamps: list[tuple[int, int]] = []  # (index on topic, stamp)
+        depth_stamps: list[tuple[int, int]] = []
+        info: PinholeCamera | None = None
+        rgb_frame_id: str | None = None
+        rgb_size: tuple[int, int] | None = None
+        edges: dict[tuple[str, str], _Edge] = {}
+        pose_st: list[int] = []
+        pose_T: list[np.ndarray] = []
+        try:
+            with self._open() as reader:
+                conns = []
+                for c in reader.connections:
+                    if c.topic == t.depth_info:
+                        continue  # depth is registered to colour: its camera_info adds nothing
+                    if c.topic not in wanted_types:
+                        # unused topics are normal (TUM: /imu, /cortex_marker_array): counted, not read
+                        self._skip(f"topic {c.topic}", f"not used ({c.msgtype})", int(c.msgcount), logging.INFO)
+                    elif c.msgtype not in wanted_types[c.topic]:
+                        self._skip(f"type {c.msgtype} on {c.topic}", f"expected {wanted_types[c.topic][0]}",
+                                   int(c.msgcount))
+                    else:
+                        conns.append(c)
+                counters: dict[str, int] = defaultdict(int)
+                for c, bag_ns, raw in reader.messages(connections=conns):
+                    topic = c.topic
+                    index = counters[topic]
+                    counters[topic] += 1
+                    try:
+                        msg = reader.deserialize(raw, c.msgtype)
+                    except Exception as err:  # noqa: BLE001 - any decoder failure is one bad message
+                        self._skip(f"malformed message on {topic}", f"{type(err).__name__}: {err}")
+                        continue
+                    try:
+                        if topic == t.rgb or topic == t.depth:
+                            is_rgb = topic == t.rgb
+                            check_image(msg, COLOR_ENCODINGS if is_rgb else DEPTH_ENCODINGS)
+                            stamp = _stamp_ns(msg.header) or int(bag_ns)
+                            if is_rgb:
+                                rgb_stamps.append((index, stamp))
+                                if rgb_frame_id is None:
+                                    rgb_frame_id = _frame_name(str(msg.header.frame_id))
+                                    rgb_size = (int(msg.width), int(msg.height))
+                            else:
+                                depth_stamps.append((index, stamp))
+                        elif topic == t.rgb_info:
+                            if info is None and camera is None:
+                                info = camera_from_info(msg)
+                        elif topic == t.pose:
+                            pose_st.append(_stamp_ns(msg.header) or int(bag_ns))
+                            p, q = msg.pose.position, msg.pose.orientation
+                            pose_T.append(pose_from_tq(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w])))
+                        else:
+                            for ts in msg.transforms:
+                                key = (_frame_name(str(ts.header.frame_id)), _frame_name(str(ts.child_frame_id)))
+                                e = edges.setdefault(key, _Edge())
+                                e.static |= topic == t.tf_static
+                                e.stamps.append(_stamp_ns(ts.header) or int(bag_ns))
+                                e.poses.append(_transform_to_T(ts.transform))
+                    except (MessageError, AttributeError, ValueError, DataError) as err:
+                        self._skip(f"bad message on {topic}", str(err))
+        except MemgsError:
+            raise
+        except Exception as err:  # noqa: BLE001 - rosbags/mcap/sqlite raise many kinds; the bag is unusable
+            raise self._fail(err) from err
+
+        if camera is None:
+            camera = info
+        if camera is None:
+            raise DataError(f"{self.path}: no CameraInfo on {t.rgb_info}; pass a camera explicitly")
+        if rgb_size is not None and rgb_size != (camera.width, camera.height):
+            raise DataError(f"{self.path}: colour images are {rgb_size[0]}x{rgb_size[1]} but the camera is "
+                            f"{camera.width}x{camera.height}")
+        self.camera = camera
+
+        rs = np.array([s for _, s in rgb_stamps], dtype=np.int64)
+        plan: list[tuple[int, int | None, int]] = []  # (rgb index, depth index, stamp)
+        if self.with_depth:
+            ds = np.array([s for _, s in depth_stamps], dtype=np.int64)
+            for i, j in associate(rs, ds, int(round(max_dt_s * 1e9))):
+                plan.append((rgb_stamps[i][0], depth_stamps[j][0], int(rs[i])))
+        else:
+            plan = [(k, None, s) for k, s in rgb_stamps]
+        plan.sort(key=lambda p: p[2])
+        if max_frames is not None:
+            plan = plan[:max_frames]
+        if not plan:
+            raise DataError(f"{self.path}: no frames (colour on {t.rgb}"
+                            f"{f' paired with depth on {t.depth}' if self.with_depth else ''})")
+        self._plan = plan
+
+        if pose_st and t.camera_frame is None:
+            self._gt_stamps, self._gt_poses = _sorted_unique(np.array(pose_st, np.int64), np.array(pose_T))
+            self.gt_source = t.pose
+        else:
+            self._gt_stamps, self._gt_poses, self.gt_source = self._gt_from_tf(edges, rgb_frame_id)
+        q = np.array([p[2] for p in plan], dtype=np.int64)
+        self._frame_gt, self._frame_gt_valid = interpolate_poses(
+            self._gt_stamps, self._gt_poses, q, int(round(gt_max_gap_s * 1e9)))
+
+    def _gt_from_tf(self, edges: dict[tuple[str, str], _Edge], rgb_frame_id: str | None
+                    ) -> tuple[np.ndarray, np.ndarray, str]:
+        """Compose tf edges world -> ... -> camera optical frame into (stamps [M], T_wc [M, 4, 4], description)."""
+        empty = (np.zeros(0, np.int64), np.zeros((0, 4, 4)), "none")
+        if not edges:
+            return empty
+        parent_of = {child: parent for parent, child in edges}
+        t = self.topics
+        if t.camera_frame is not None:
+            cam = _frame_name(t.camera_frame)
+        else:
+            cands = [f for f in DEFAULT_CAMERA_FRAMES if f in parent_of] + ([rgb_frame_id] if rgb_frame_id else [])
+            cam = next((f for f in cands if f in parent_of), "")
+        if cam not in parent_of:
+            logger.info("%s: camera frame %r not in the tf tree; no ground truth from tf", self.path, cam)
+            return empty
+        world = _frame_name(t.world_frame) if t.world_frame is not None else None
+        chain: list[_Edge] = []  # from camera up
+        node, seen = cam, {cam}
+        while node in parent_of and node != world:
+            parent = parent_of[node]
+            chain.append(edges[(parent, node)])
+            if parent in seen:
+                raise DataError(f"{self.path}: tf cycle at {parent!r}")
+            seen.add(parent)
+            node = parent
+        if world is not None and node != world:
+            logger.info("%s: world frame %r is not above %r in tf; no ground truth", self.path, world, cam)
+            return empty
+        chain.reverse()  # world first
+        dynamic = [e for e in chain if not e.is_constant()]
+        stamps = dynamic[0].arrays()[0] if dynamic else chain[0].arrays()[0][:1]
+        T = np.tile(np.eye(4), (len(stamps), 1, 1))
+        valid = np.ones(len(stamps), dtype=bool)
+        for e in chain:
+            if e.is_constant():
+                T = T @ e.poses[0]
+            else:
+                st, P = e.arrays()
+                Pi, ok = interpolate_poses(st, P, stamps)
+                T = T @ Pi
+                valid &= ok
+        return stamps[valid], T[valid], f"tf {node} -> {cam}"
+
+    # -------------------------------------------------------------------- pass 2
+
+    @property
+    def gt_coverage(self) -> float:
+        return float(np.mean(self._frame_gt_valid)) if len(self._frame_gt_valid) else 0.0
+
+    def __len__(self) -> int:
+        return len(self._plan)
+
+    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
+        """The whole ground-truth trajectory in the bag: (stamps_ns [M], T_wc [M, 4, 4]); empty when absent."""
+        return self._gt_stamps.copy(), self._gt_poses.copy()
+
+    def __iter__(self) -> Iterator[Frame]:
+        t = self.topics
+        want_rgb = {p[0]: k for k, p in enumerate(self._plan)}
+        want_depth = {p[1]: k for k, p in enumerate(self._plan) if p[1] is not None}
+        rgb: dict[int, np.ndarray] = {}
+        depth: dict[int, np.ndarray] = {}
+        failed: set[int] = set()
+        next_k = 0
+        topics = {t.rgb, t.depth} if self.with_depth else {t.rgb}
+        try:
+            with self._open() as reader:
+                conns = [c for c in reader.connections if c.topic in topics and c.msgtype == IMAGE_TYPE]
+                counters: dict[str, int] = defaultdict(int)
+                for c, _, raw in reader.messages(connections=conns):
+                    index = counters[c.topic]
+                    counters[c.topic] += 1
+                    is_rgb = c.topic == t.rgb
+                    k = (want_rgb if is_rgb else want_depth).get(index)
+                    if k is None:
+                        continue
+                    try:
+                        img = decode_image(reader.deserialize(raw, c.msgtype), self.depth_scale_16u)
+                        expected = (self.camera.height, self.camera.width)
+                        if img.shape[:2] != expected:
+                            raise MessageError(f"image is {img.shape[1]}x{img.shape[0]}, camera is {expected[1]}x{expected[0]}")
+                    except Exception as err:  # noqa: BLE001 - pass 1 validated it; a failure here is one bad frame
+                        self._skip(f"undecodable image on {c.topic}", str(err))
+                        failed.add(k)
+                    else:
+                        (rgb if is_rgb else depth)[k] = img
+                    while next_k < len(self._plan):
+                        need_depth = self._plan[next_k][1] is not None
+                        if next_k in failed:
+                            rgb.pop(next_k, None)
+                            depth.pop(next_k, None)
+                            next_k += 1
+                            continue
+                        if next_k not in rgb or (need_depth and next_k not in depth):
+                            break
+                        yield self._frame(next_k, rgb.pop(next_k), depth.pop(next_k, None))
+                        next_k += 1
+            # a planned image that never came back (bag changed under us): emit what is complete
+            for k in range(next_k, len(self._plan)):
+                if k in rgb and (self._plan[k][1] is None or k in depth):
+                    yield self._frame(k, rgb.pop(k), depth.pop(k, None))
+                elif k not in failed:
+                    self._skip("incomplete frame", f"stamp {self._plan[k][2]}")
+        except MemgsError:
+            raise
+        except Exception as err:  # noqa: BLE001 - the bag became unreadable mid-way
+            raise self._fail(err) from err
+
+    def _frame(self, k: int, rgb: np.ndarray, depth: np.ndarray | None) -> Frame:
+        gt = self._frame_gt[k].copy() if self._frame_gt_valid[k] else None
+        return Frame(self._plan[k][2], rgb, depth, self.camera, gt)
+
+
+def _sorted_unique(stamps: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    order = np.argsort(stamps, kind="stable")
+    stamps, poses = stamps[order], poses[order].reshape(-1, 4, 4)
+    keep = np.concatenate([[True], np.diff(stamps) > 0]) if len(stamps) else np.zeros(0, bool)
+    return stamps[keep], poses[keep]
+
+
+__all__ = ["BagSource", "BagTopics", "decode_image", "check_image", "camera_from_info"]

@@ -1,0 +1,304 @@
+"""Write frames to ROS 2 bags (MCAP or sqlite3) and to ROS 1 bags in the official TUM layout.
+
+ROS 2 layout (TUM topic names, Jazzy types):
+
+| topic | type | content |
+| --- | --- | --- |
+| ``/camera/rgb/image_color`` | sensor_msgs/Image | rgb8 |
+| ``/camera/depth/image`` | sensor_msgs/Image | 32FC1 metres, NaN = invalid |
+| ``/camera/rgb/camera_info``, ``/camera/depth/camera_info`` | sensor_msgs/CameraInfo | plumb_bob + distortion |
+| ``/tf`` | tf2_msgs/TFMessage | ``world`` -> camera optical frame (ground truth) |
+| ``/groundtruth/pose`` | geometry_msgs/PoseStamped | camera in ``world`` (ground truth) |
+
+Every message's bag time is its header stamp. Output is atomic: written under a temporary
+name beside ``out_path`` and renamed into place. An ``out_path`` ending in ``.mcap`` or
+``.db3`` is a single storage file (rosbags and ``ros2 bag`` read those without
+``metadata.yaml``); anything else is a bag directory.
+
+The ROS 1 variant reproduces TUM's own bags: ``tf/tfMessage`` with ``/world -> /kinect``
+(the mocap body) plus the static ``/kinect -> /openni_camera -> /openni_rgb_frame ->
+/openni_rgb_optical_frame`` chain republished with every frame, frame ids with leading
+slashes, bz2-compressed chunks.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.frame import Frame
+from memgs_ros.core.geometry import invert_pose, pose_from_tq, pose_to_tq
+from memgs_ros.errors import DataError
+
+RGB_TOPIC = "/camera/rgb/image_color"
+DEPTH_TOPIC = "/camera/depth/image"
+RGB_INFO_TOPIC = "/camera/rgb/camera_info"
+DEPTH_INFO_TOPIC = "/camera/depth/camera_info"
+TF_TOPIC = "/tf"
+POSE_TOPIC = "/groundtruth/pose"
+WORLD_FRAME = "world"
+CAMERA_FRAME = "camera_rgb_optical_frame"
+
+# ROS 1 TUM frames and the static chain below the mocap body (kinect). The rotations are
+# what make composition worth testing: the optical frame is z forward, x right, y down.
+ROS1_WORLD = "/world"
+ROS1_KINECT = "/kinect"
+ROS1_CHAIN: tuple[tuple[str, str, tuple[float, float, float], tuple[float, float, float, float]], ...] = (
+    ("/kinect", "/openni_camera", (0.0, -0.02, 0.05), (0.0, 0.0, 0.0, 1.0)),
+    ("/openni_camera", "/openni_rgb_frame", (0.0, -0.0125, 0.0), (0.0, 0.0, 0.0, 1.0)),
+    ("/openni_rgb_frame", "/openni_rgb_optical_frame", (0.0, 0.0, 0.0), (-0.5, 0.5, -0.5, 0.5)),
+)
+ROS1_OPTICAL = "/openni_rgb_optical_frame"
+ROS1_DEPTH_OPTICAL = "/openni_depth_optical_frame"
+
+TF_MESSAGE_ROS1 = "tf/msg/tfMessage"
+_TF_MESSAGE_ROS1_DEF = "geometry_msgs/TransformStamped[] transforms\n"
+
+
+def ros2_typestore() -> Any:
+    """The ROS 2 Jazzy type store (pinned: ``Stores.LATEST`` moves with rosbags releases)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def ros1_typestore() -> Any:
+    """ROS 1 Noetic store with ``tf/msg/tfMessage`` registered (it is not in rosbags' store)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    if TF_MESSAGE_ROS1 not in ts.types:
+        ts.register(get_types_from_msg(_TF_MESSAGE_ROS1_DEF, TF_MESSAGE_ROS1))
+    return ts
+
+
+def chain_T_kinect_optical() -> np.ndarray:
+    """Composed static chain /kinect -> /openni_rgb_optical_frame, [4, 4]."""
+    T = np.eye(4)
+    for _, _, t, q in ROS1_CHAIN:
+        T = T @ pose_from_tq(np.array(t), np.array(q))
+    return T
+
+
+@dataclass(frozen=True)
+class MessageFactory:
+    """Builds rosbags message objects for one type store (ROS 1 and ROS 2 differ in field names)."""
+
+    ts: Any
+    ros1: bool
+
+    def _t(self, name: str) -> Any:
+        return self.ts.types[name]
+
+    def header(self, stamp_ns: int, frame_id: str, seq: int = 0) -> Any:
+        sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+        stamp = self._t("builtin_interfaces/msg/Time")(sec=sec, nanosec=nsec)
+        if self.ros1:
+            return self._t("std_msgs/msg/Header")(seq=seq, stamp=stamp, frame_id=frame_id)
+        return self._t("std_msgs/msg/Header")(stamp=stamp, frame_id=frame_id)
+
+    def image(self, header: Any, data: np.ndarray, encoding: str) -> Any:
+        """data: [H, W, 3] uint8 (rgb8/bgr8), [H, W] uint8/uint16/float32; little endian, no padding."""
+        h, w = data.shape[:2]
+        raw = np.ascontiguousarray(data)
+        step = raw.strides[0]
+        buf = raw.view(np.uint8).reshape(-1)
+        return self._t("sensor_msgs/msg/Image")(header=header, height=h, width=w, encoding=encoding,
+                                                is_bigendian=0, step=step, data=buf)
+
+    def camera_info(self, header: Any, camera: PinholeCamera) -> Any:
+        K = camera.K.reshape(-1)
+        R = np.eye(3).reshape(-1)
+        P = np.zeros(12)
+        P[[0, 2, 5, 6, 10]] = (camera.fx, camera.cx, camera.fy, camera.cy, 1.0)
+        roi = self._t("sensor_msgs/msg/RegionOfInterest")(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        D = camera.dist_coeffs.astype(np.float64)
+        fields = {"D": D, "K": K, "R": R, "P": P} if self.ros1 else {"d": D, "k": K, "r": R, "p": P}
+        return self._t("sensor_msgs/msg/CameraInfo")(
+            header=header, height=camera.height, width=camera.width, distortion_model="plumb_bob",
+            binning_x=0, binning_y=0, roi=roi, **fields)
+
+    def transform_stamped(self, header: Any, child: str, T: np.ndarray) -> Any:
+        t, q = pose_to_tq(T)
+        tr = self._t("geometry_msgs/msg/Transform")(
+            translation=self._t("geometry_msgs/msg/Vector3")(x=t[0], y=t[1], z=t[2]),
+            rotation=self._t("geometry_msgs/msg/Quaternion")(x=q[0], y=q[1], z=q[2], w=q[3]))
+        return self._t("geometry_msgs/msg/TransformStamped")(header=header, child_frame_id=child, transform=tr)
+
+    def tf_message(self, transforms: list[Any]) -> Any:
+        return self._t(TF_MESSAGE_ROS1 if self.ros1 else "tf2_msgs/msg/TFMessage")(transforms=transforms)
+
+    def pose_stamped(self, header: Any, T: np.ndarray) -> Any:
+        t, q = pose_to_tq(T)
+        pose = self._t("geometry_msgs/msg/Pose")(
+            position=self._t("geometry_msgs/msg/Point")(x=t[0], y=t[1], z=t[2]),
+            orientation=self._t("geometry_msgs/msg/Quaternion")(x=q[0], y=q[1], z=q[2], w=q[3]))
+        return self._t("geometry_msgs/msg/PoseStamped")(header=header, pose=pose)
+
+    def serialize(self, msg: Any, msgtype: str) -> bytes:
+        if self.ros1:
+            return bytes(self.ts.serialize_ros1(msg, msgtype))
+        return bytes(self.ts.serialize_cdr(msg, msgtype))
+
+
+def depth_to_32fc1(depth_m: np.ndarray) -> np.ndarray:
+    """[H, W] float32 metres with 0 or NaN invalid -> [H, W] float32 with NaN invalid (TUM bag convention)."""
+    d = depth_m.astype(np.float32, copy=True)
+    d[~(np.isfinite(d) & (d > 0))] = np.nan
+    return d
+
+
+def _tmp_sibling(out: Path) -> Path:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    d = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    return d
+
+
+@dataclass(frozen=True)
+class BagWriteResult:
+    """What a writer produced."""
+
+    path: Path
+    frames: int
+    bytes: int
+
+
+def _size(path: Path) -> int:
+    if path.is_file():
+        return path.stat().st_size
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def write_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str], storage: str | None = None,
+              camera_frame_id: str = CAMERA_FRAME, world_frame_id: str = WORLD_FRAME,
+              on_frame: Callable[[Frame], None] | None = None) -> BagWriteResult:
+    """Write frames to a ROS 2 bag (module docstring for the layout).
+
+    storage: "mcap" or "sqlite3"; None = from the suffix of ``out_path`` (.db3 -> sqlite3),
+    else mcap. ``on_frame`` is called after each frame is written (progress bars).
+    Returns the path, frame count and size in bytes.
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    out = Path(out_path)
+    if storage is None:
+        storage = "sqlite3" if out.suffix == ".db3" else "mcap"
+    plugins = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
+    if storage not in plugins:
+        raise DataError(f"{out}: unknown bag storage {storage!r}; use mcap or sqlite3")
+    single_file = out.suffix in (".mcap", ".db3")
+    if single_file and out.suffix != {"mcap": ".mcap", "sqlite3": ".db3"}[storage]:
+        raise DataError(f"{out}: suffix {out.suffix} does not match storage {storage}")
+    if out.exists():
+        raise DataError(f"{out}: already exists; refusing to overwrite")
+    ts = ros2_typestore()
+    mf = MessageFactory(ts, ros1=False)
+    tmp_root = _tmp_sibling(out)
+    bag_dir = tmp_root / out.name
+    n = 0
+    try:
+        with Writer(bag_dir, version=9, storage_plugin=plugins[storage]) as writer:
+            conns: dict[str, Any] = {}
+
+            def put(topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
+                if topic not in conns:
+                    conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
+                writer.write(conns[topic], stamp_ns, mf.serialize(msg, msgtype))
+
+            for f in frames:
+                s = int(f.stamp_ns)
+                put(RGB_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s, mf.camera_info(mf.header(s, camera_frame_id), f.camera))
+                put(RGB_TOPIC, "sensor_msgs/msg/Image", s, mf.image(mf.header(s, camera_frame_id), f.rgb, "rgb8"))
+                if f.depth_m is not None:
+                    put(DEPTH_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
+                        mf.camera_info(mf.header(s, camera_frame_id), f.camera))
+                    put(DEPTH_TOPIC, "sensor_msgs/msg/Image", s,
+                        mf.image(mf.header(s, camera_frame_id), depth_to_32fc1(f.depth_m), "32FC1"))
+                if f.T_wc_gt is not None:
+                    tf = mf.transform_stamped(mf.header(s, world_frame_id), camera_frame_id, f.T_wc_gt)
+                    put(TF_TOPIC, "tf2_msgs/msg/TFMessage", s, mf.tf_message([tf]))
+                    put(POSE_TOPIC, "geometry_msgs/msg/PoseStamped", s, mf.pose_stamped(mf.header(s, world_frame_id), f.T_wc_gt))
+                n += 1
+                if on_frame is not None:
+                    on_frame(f)
+        if n == 0:
+            raise DataError(f"{out}: no frames to write")
+        if single_file:
+            produced = next(p for p in bag_dir.iterdir() if p.suffix == out.suffix)
+            os.replace(produced, out)
+        else:
+            os.replace(bag_dir, out)
+    finally:
+        shutil.rmtree(tmp_root, ignore_errors=True)
+    return BagWriteResult(out, n, _size(out))
+
+
+def write_ros1_tum_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str], compress: bool = True,
+                       on_frame: Callable[[Frame], None] | None = None) -> BagWriteResult:
+    """Write frames as a ROS 1 bag in TUM's layout (see the module docstring).
+
+    Ground truth goes out as /world -> /kinect = T_wc_gt composed with the inverse of the
+    static chain, so composing the chain back gives T_wc_gt for /openni_rgb_optical_frame.
+    Chunks are bz2-compressed unless ``compress`` is False.
+    """
+    from rosbags.rosbag1 import Writer
+
+    out = Path(out_path)
+    if out.exists():
+        raise DataError(f"{out}: already exists; refusing to overwrite")
+    ts = ros1_typestore()
+    mf = MessageFactory(ts, ros1=True)
+    T_optical_kinect = invert_pose(chain_T_kinect_optical())
+    tmp_root = _tmp_sibling(out)
+    tmp_bag = tmp_root / out.name
+    n = 0
+    try:
+        writer = Writer(tmp_bag)
+        if compress:
+            writer.set_compression(Writer.CompressionFormat.BZ2)
+        with writer:
+            conns: dict[str, Any] = {}
+
+            def put(topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
+                if topic not in conns:
+                    conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
+                writer.write(conns[topic], stamp_ns, mf.serialize(msg, msgtype))
+
+            for seq, f in enumerate(frames):
+                s = int(f.stamp_ns)
+                if f.T_wc_gt is not None:
+                    T_world_kinect = f.T_wc_gt @ T_optical_kinect
+                    tfs = [mf.transform_stamped(mf.header(s, ROS1_WORLD, seq), ROS1_KINECT, T_world_kinect)]
+                    tfs += [mf.transform_stamped(mf.header(s, parent, seq), child, pose_from_tq(np.array(t), np.array(q)))
+                            for parent, child, t, q in ROS1_CHAIN]
+                    put(TF_TOPIC, TF_MESSAGE_ROS1, s, mf.tf_message(tfs))
+                put(RGB_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s, mf.camera_info(mf.header(s, ROS1_OPTICAL, seq), f.camera))
+                put(RGB_TOPIC, "sensor_msgs/msg/Image", s, mf.image(mf.header(s, ROS1_OPTICAL, seq), f.rgb, "rgb8"))
+                if f.depth_m is not None:
+                    put(DEPTH_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
+                        mf.camera_info(mf.header(s, ROS1_DEPTH_OPTICAL, seq), f.camera))
+                    put(DEPTH_TOPIC, "sensor_msgs/msg/Image", s,
+                        mf.image(mf.header(s, ROS1_DEPTH_OPTICAL, seq), depth_to_32fc1(f.depth_m), "32FC1"))
+                n += 1
+                if on_frame is not None:
+                    on_frame(f)
+        if n == 0:
+            raise DataError(f"{out}: no frames to write")
+        os.replace(tmp_bag, out)
+    finally:
+        shutil.rmtree(tmp_root, ignore_errors=True)
+    return BagWriteResult(out, n, _size(out))
+
+
+__all__ = [
+    "write_bag", "write_ros1_tum_bag", "BagWriteResult", "MessageFactory", "ros1_typestore", "ros2_typestore",
+    "chain_T_kinect_optical", "depth_to_32fc1", "RGB_TOPIC", "DEPTH_TOPIC", "RGB_INFO_TOPIC",
+    "DEPTH_INFO_TOPIC", "TF_TOPIC", "POSE_TOPIC", "WORLD_FRAME", "CAMERA_FRAME", "ROS1_OPTICAL", "ROS1_WORLD",
+]

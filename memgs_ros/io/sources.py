@@ -1,0 +1,127 @@
+"""One entry point for every frame input: ``open_source(spec)``.
+
+``spec`` is a TUM RGB-D folder, a bag (ROS 1 ``.bag`` file, ROS 2 bag directory, bare
+``.mcap`` / ``.db3`` file) or a synthetic spec string (``synthetic:w=160,h=120,n=60``, keys
+in ``memgs_ros.io.synthetic``). Every source has ``.camera`` (with distortion), ``.name``,
+``len()``, iteration over ``Frame`` in stamp order, and ``ground_truth()`` -> the whole
+ground-truth trajectory (stamps_ns [M], T_wc [M, 4, 4]), empty arrays when there is none.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.frame import Frame
+from memgs_ros.errors import ConfigError, DataError
+from memgs_ros.io.bag_reader import BagSource, BagTopics
+from memgs_ros.io.synthetic import (
+    SyntheticScene,
+    SyntheticSpec,
+    build_scene,
+    generate_frames,
+    is_spec_string,
+    parse_spec,
+    trajectory,
+)
+from memgs_ros.io.tum import TumFolder
+
+BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+
+
+@runtime_checkable
+class FrameSource(Protocol):
+    """What every reader offers (TumFolder, BagSource, SyntheticSource)."""
+
+    name: str
+
+    @property
+    def camera(self) -> PinholeCamera: ...
+
+    def __iter__(self) -> Iterator[Frame]: ...
+
+    def __len__(self) -> int: ...
+
+    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+class SyntheticSource:
+    """The synthetic room as a frame source; the scene is baked once, on first iteration."""
+
+    def __init__(self, spec: SyntheticSpec, with_depth: bool = True) -> None:
+        self.spec = spec
+        self.with_depth = with_depth
+        self.name = spec.to_string()
+        self._scene: SyntheticScene | None = None
+
+    @property
+    def camera(self) -> PinholeCamera:
+        return self.spec.camera
+
+    def __len__(self) -> int:
+        return self.spec.n_frames
+
+    def __iter__(self) -> Iterator[Frame]:
+        if self._scene is None:
+            self._scene = build_scene(self.spec.seed)
+        for f in generate_frames(self.spec, self._scene):
+            yield f if self.with_depth else replace(f, depth_m=None)
+
+    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
+        return trajectory(self.spec)
+
+
+def source_kind(spec: str | os.PathLike[str]) -> str:
+    """'synthetic', 'tum' or 'bag' for a spec; DataError when it is none of them."""
+    if is_spec_string(spec):  # type: ignore[arg-type]
+        return "synthetic"
+    p = Path(spec)
+    if not p.exists():
+        raise DataError(f"{p}: no such file or directory (expected a TUM folder, a bag or 'synthetic:...')")
+    if p.is_dir():
+        if (p / "rgb.txt").is_file():
+            return "tum"
+        if (p / "metadata.yaml").is_file() or any(q.suffix in (".mcap", ".db3") for q in p.iterdir()):
+            return "bag"
+        raise DataError(f"{p}: directory is neither a TUM folder (rgb.txt) nor a ROS 2 bag (metadata.yaml)")
+    if p.suffix in BAG_SUFFIXES:
+        return "bag"
+    raise DataError(f"{p}: unknown input; expected a TUM folder, a {'/'.join(BAG_SUFFIXES)} bag or 'synthetic:...'")
+
+
+def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = None, max_dt_s: float = 0.02, *,
+                depth_factor: float | None = None, depth_scale_16u: float = 0.001,
+                topics: BagTopics = BagTopics(), with_depth: bool = True,
+                max_frames: int | None = None) -> FrameSource:
+    """Open any frame input (module docstring).
+
+    camera: overrides the camera from the data (TUM name/camera.json, bag CameraInfo);
+      not allowed for synthetic specs, whose camera the spec defines.
+    max_dt_s: colour/depth pairing tolerance. depth_factor: TUM PNG units per metre
+      (default from the folder). depth_scale_16u: metres per unit of 16UC1 bag depth.
+    topics: bag topic/frame names. with_depth: False = colour only (monocular).
+    max_frames: keep only the first N frames.
+    """
+    if max_frames is not None and max_frames < 1:
+        raise ConfigError(f"max_frames must be >= 1, got {max_frames}")
+    kind = source_kind(spec)
+    if kind == "synthetic":
+        if camera is not None:
+            raise ConfigError("a synthetic source defines its own camera (w=, h=); do not pass one")
+        s = parse_spec(str(spec))
+        if max_frames is not None and max_frames < s.n_frames:
+            s = replace(s, n_frames=max_frames)
+        return SyntheticSource(s, with_depth=with_depth)
+    if kind == "tum":
+        return TumFolder(spec, camera=camera, depth_factor=depth_factor, max_dt_s=max_dt_s, with_depth=with_depth,
+                         max_frames=max_frames)
+    return BagSource(spec, topics=topics, camera=camera, max_dt_s=max_dt_s, depth_scale_16u=depth_scale_16u,
+                     with_depth=with_depth, max_frames=max_frames)
+
+
+__all__ = ["FrameSource", "SyntheticSource", "open_source", "source_kind"]
