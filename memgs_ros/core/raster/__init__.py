@@ -1,1 +1,143 @@
-"""Differentiable Gaussian rasterization (project -> bin into tiles -> composite)."""
+"""Differentiable Gaussian rasterization (project -> bin into tiles -> composite).
+
+``rasterize`` is the one entry point. The torch backend runs anywhere (CPU tests, CUDA
+users without gsplat): projection and SH are plain autograd (O(N)); compositing is a custom
+autograd Function over small tiles (:mod:`.composite`) whose memory is 8 B per pixel-Gaussian
+pair. ``_rasterize_reference`` (:mod:`.reference`) is its brute-force twin for tests; gsplat
+(:mod:`.gsplat_backend`) is an optional CUDA backend behind the same signature.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.raster.composite import MIN_ALPHA, composite
+from memgs_ros.core.raster.gsplat_backend import gsplat_available, rasterize_gsplat
+from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians, screen_radii
+from memgs_ros.core.raster.reference import _rasterize_reference
+from memgs_ros.core.raster.tiles import build_tile_plan
+
+__all__ = ["RenderOutput", "rasterize", "_rasterize_reference"]
+
+BACKENDS = ("auto", "torch", "gsplat")
+
+
+@dataclass(frozen=True)
+class RenderOutput:
+    """One rendered view.
+
+    color: [3, H, W]; depth: [H, W] alpha-blended camera z, sum_i w_i z_i (not divided by
+    alpha); alpha: [H, W] accumulated opacity; means2d: [N, 2] screen-space means whose
+    ``.grad`` holds dL/d(means2d) after backward (densification statistic); radii: [N] int32
+    3-sigma screen radius in px, 0 where not visible; visible: [N] bool, the Gaussian is in
+    front of the camera and can reach alpha >= 1/255 inside the image.
+    """
+
+    color: Tensor
+    depth: Tensor
+    alpha: Tensor
+    means2d: Tensor
+    radii: Tensor
+    visible: Tensor
+
+
+def _check_inputs(
+    means: Tensor,
+    quats_wxyz: Tensor,
+    log_scales: Tensor,
+    opacity_logits: Tensor,
+    sh_dc: Tensor,
+    sh_rest: Tensor,
+    T_cw: Tensor,
+    sh_degree: int,
+    background: Tensor | None,
+    backend: str,
+) -> None:
+    n = means.shape[0]
+    expected = {
+        "means": (means, (n, 3)),
+        "quats_wxyz": (quats_wxyz, (n, 4)),
+        "log_scales": (log_scales, (n, 3)),
+        "opacity_logits": (opacity_logits, (n, 1)),
+        "sh_dc": (sh_dc, (n, 1, 3)),
+        "T_cw": (T_cw, (4, 4)),
+    }
+    for name, (t, shape) in expected.items():
+        if tuple(t.shape) != shape:
+            raise ValueError(f"rasterize: {name} must have shape {list(shape)}, got {list(t.shape)}")
+        if t.device != means.device:
+            raise ValueError(f"rasterize: {name} is on {t.device}, means on {means.device}")
+    if sh_rest.dim() != 3 or sh_rest.shape[0] != n or sh_rest.shape[2] != 3:
+        raise ValueError(f"rasterize: sh_rest must have shape [{n}, K, 3], got {list(sh_rest.shape)}")
+    if not 0 <= sh_degree <= 3 or sh_rest.shape[1] < (sh_degree + 1) ** 2 - 1:
+        raise ValueError(
+            f"rasterize: sh_degree {sh_degree} needs 0..3 and sh_rest with >= {(sh_degree + 1) ** 2 - 1} "
+            f"coefficients, got {sh_rest.shape[1]}"
+        )
+    if background is not None and tuple(background.shape) != (3,):
+        raise ValueError(f"rasterize: background must have shape [3], got {list(background.shape)}")
+    if backend not in BACKENDS:
+        raise ValueError(f"rasterize: backend must be one of {BACKENDS}, got {backend!r}")
+
+
+def rasterize(
+    means: Tensor,  # [N, 3]
+    quats_wxyz: Tensor,  # [N, 4]
+    log_scales: Tensor,  # [N, 3]
+    opacity_logits: Tensor,  # [N, 1]
+    sh_dc: Tensor,  # [N, 1, 3]
+    sh_rest: Tensor,  # [N, K, 3]
+    T_cw: Tensor,  # [4, 4]
+    camera: PinholeCamera,
+    sh_degree: int,
+    background: Tensor | None = None,  # [3]
+    near: float = 0.01,
+    backend: str = "auto",
+) -> RenderOutput:
+    """Render N Gaussians into ``camera`` (undistorted; its width/height are the output size).
+
+    means: [N, 3] world; quats_wxyz: [N, 4] unnormalised; log_scales: [N, 3];
+    opacity_logits: [N, 1]; sh_dc: [N, 1, 3]; sh_rest: [N, K, 3], K = (deg_max + 1)^2 - 1
+    (may be 0); T_cw: [4, 4] world-to-camera; sh_degree: active degree (bands above it are
+    ignored); background: [3] (black when None); near: camera-z culling plane in metres;
+    backend: "torch", "gsplat", or "auto" (gsplat when importable and the tensors are on CUDA).
+
+    Returns a :class:`RenderOutput` (color [3, H, W], depth [H, W], alpha [H, W], means2d [N, 2],
+    radii [N], visible [N]). Differentiable w.r.t. means, quats, log_scales, opacity_logits,
+    sh_dc, sh_rest, T_cw and background.
+    """
+    _check_inputs(means, quats_wxyz, log_scales, opacity_logits, sh_dc, sh_rest, T_cw, sh_degree, background, backend)
+    T_cw = T_cw.to(means.dtype)
+    if background is not None:
+        background = background.to(device=means.device, dtype=means.dtype)
+    use_gsplat = backend == "gsplat" or (backend == "auto" and means.is_cuda and gsplat_available())
+    if use_gsplat:
+        return rasterize_gsplat(
+            means, quats_wxyz, log_scales, opacity_logits, sh_dc, sh_rest, T_cw, camera, sh_degree, background, near
+        )
+
+    proj = project_gaussians(
+        means, quats_wxyz, log_scales, opacity_logits, sh_dc, sh_rest, T_cw, camera, sh_degree, near
+    )
+    if proj.means2d.requires_grad:
+        proj.means2d.retain_grad()
+    plan = build_tile_plan(
+        proj.means2d,
+        proj.cov2d,
+        alpha_cutoff_sq(proj.opacities.detach(), MIN_ALPHA),
+        proj.depths,
+        proj.in_front,
+        camera.width,
+        camera.height,
+    )
+    if background is None:
+        background = torch.zeros(3, dtype=means.dtype, device=means.device)
+    color, depth, alpha = composite(
+        proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, background, plan
+    )
+    visible = plan.gaussian_hit
+    radii = torch.where(visible, screen_radii(proj.cov2d), torch.zeros_like(visible, dtype=torch.int32))
+    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=proj.means2d, radii=radii, visible=visible)

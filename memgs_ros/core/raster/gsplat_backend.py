@@ -1,0 +1,98 @@
+"""Optional CUDA backend: the same :func:`rasterize` contract on top of gsplat (>= 1.0).
+
+Used only when ``gsplat`` imports and the tensors live on a CUDA device (``backend="auto"``),
+or when asked for by name. It is not exercised by the CPU test-suite (no GPU in CI); what it
+maps, and where gsplat's semantics differ from the torch backend:
+
+- parameters are activated here (exp scales, sigmoid opacity) and the SH coefficients are
+  passed raw with ``sh_degree``; gsplat applies the same 3DGS SH convention (+0.5, clamp at 0);
+- ``render_mode="RGB+D"`` gives the alpha-blended, un-normalised depth (the paper's D_p);
+- gsplat bins by a 3-sigma box on 16x16 tiles, so pixels far in a Gaussian's tail can differ
+  from the torch backend by up to one 1/255 step of alpha;
+- ``means2d`` is a detached [N, 2] copy of gsplat's ``meta["means2d"]`` whose ``.grad`` a
+  backward hook fills (it is not part of the graph: do not differentiate through it).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from memgs_ros.core.camera import PinholeCamera
+
+if TYPE_CHECKING:
+    from memgs_ros.core.raster import RenderOutput
+
+
+def gsplat_available() -> bool:
+    """True when the gsplat package can be imported."""
+    try:
+        import gsplat  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def rasterize_gsplat(
+    means: Tensor,  # [N, 3]
+    quats_wxyz: Tensor,  # [N, 4]
+    log_scales: Tensor,  # [N, 3]
+    opacity_logits: Tensor,  # [N, 1]
+    sh_dc: Tensor,  # [N, 1, 3]
+    sh_rest: Tensor,  # [N, K, 3]
+    T_cw: Tensor,  # [4, 4]
+    camera: PinholeCamera,
+    sh_degree: int,
+    background: Tensor | None,  # [3]
+    near: float,
+) -> "RenderOutput":
+    """gsplat twin of :func:`memgs_ros.core.raster.rasterize`; same arguments and result."""
+    from gsplat import rasterization
+
+    from memgs_ros.core.raster import RenderOutput
+
+    dtype, device = means.dtype, means.device
+    K = torch.tensor(
+        [[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]], dtype=dtype, device=device
+    )
+    n_bases = (sh_degree + 1) ** 2
+    coeffs = torch.cat([sh_dc, sh_rest[:, : n_bases - 1]], dim=1)  # [N, B, 3]
+    renders, alphas, meta = rasterization(
+        means=means,
+        quats=quats_wxyz,
+        scales=torch.exp(log_scales),
+        opacities=torch.sigmoid(opacity_logits[:, 0]),
+        colors=coeffs,
+        viewmats=T_cw[None],
+        Ks=K[None],
+        width=camera.width,
+        height=camera.height,
+        near_plane=near,
+        sh_degree=sh_degree,
+        packed=False,
+        backgrounds=None if background is None else background[None],
+        render_mode="RGB+D",
+    )
+    # gsplat's means2d is [1, N, 2]; hand out an [N, 2] leaf whose .grad a hook fills, so that
+    # callers read out.means2d.grad exactly as with the torch backend.
+    full = meta["means2d"]
+    means2d = full[0].detach()
+    if full.requires_grad:
+
+        def _store(grad: Tensor) -> None:
+            means2d.grad = grad[0] if means2d.grad is None else means2d.grad + grad[0]
+
+        full.register_hook(_store)
+    radii = meta["radii"][0]
+    if radii.dim() == 2:  # gsplat >= 1.5 returns per-axis radii [N, 2]
+        radii = radii.max(dim=-1).values
+    radii = radii.to(torch.int32)
+    return RenderOutput(
+        color=renders[0, ..., :3].permute(2, 0, 1),
+        depth=renders[0, ..., 3],
+        alpha=alphas[0, ..., 0],
+        means2d=means2d,
+        radii=radii,
+        visible=radii > 0,
+    )

@@ -1,0 +1,171 @@
+"""Binning of projected Gaussians into small square tiles, and chunking of the tile lists.
+
+A Gaussian can only reach ``alpha >= 1/255`` inside the ellipse
+``d^T Sigma2D^-1 d <= r^2`` with ``r^2 = 2 ln(255 opacity)``. Each Gaussian is assigned to
+exactly the tiles whose pixel centres that ellipse can touch: per tile row the ellipse's
+x-range over the row band is found in closed form (the left/right boundary curves are convex
+in y, so their extremes are at the tangent point clamped to the band). This is tighter than
+3DGS's bounding square, and because nothing with ``alpha >= 1/255`` is left out, the rendered
+image does not depend on the tile size (the brute-force reference needs no tiles at all).
+
+Within a tile the Gaussians are in front-to-back order (stable sort by camera z). Tiles are then
+sorted by list length and grouped into chunks of about ``pairs_per_chunk`` pixel-Gaussian pairs,
+each padded to its longest list, so that compositing is a handful of dense tensor ops per chunk.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+TILE_SIZE = 4  # px; small tiles + exact ellipse binning give ~4x fewer pairs than 16x16 boxes
+PAIRS_PER_CHUNK = 1 << 18  # pixel-Gaussian pairs per compositing chunk (~1 MB per float32 buffer)
+BIN_MARGIN = 1.001  # widen the cutoff ellipse a little: binning must never miss a pixel
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """Tiles composited together. tiles: [T] int64 tile ids; k: padded list length."""
+
+    tiles: Tensor
+    k: int
+
+
+@dataclass(frozen=True)
+class TilePlan:
+    """Which Gaussian touches which tile, in compositing order.
+
+    pair_gid: [M] int64 Gaussian index of each (tile, Gaussian) pair, grouped by tile and
+    front-to-back inside a tile; pair_tile: [M] int64 tile id of each pair;
+    tile_start, tile_count: [tiles_y * tiles_x] int64 offsets into the pair arrays;
+    gaussian_hit: [N] bool, the Gaussian touches at least one tile; chunks: the compositing
+    schedule (every tile with a non-empty list appears in exactly one chunk).
+    """
+
+    width: int
+    height: int
+    tile_size: int
+    tiles_x: int
+    tiles_y: int
+    pair_gid: Tensor
+    pair_tile: Tensor
+    tile_start: Tensor
+    tile_count: Tensor
+    gaussian_hit: Tensor
+    chunks: tuple[Chunk, ...]
+
+    @property
+    def num_pairs(self) -> int:
+        return int(self.pair_gid.shape[0])
+
+
+def build_tile_plan(
+    means2d: Tensor,  # [N, 2]
+    cov2d: Tensor,  # [N, 3]
+    cutoff_sq: Tensor,  # [N]
+    depths: Tensor,  # [N]
+    active: Tensor,  # [N] bool
+    width: int,
+    height: int,
+    tile_size: int = TILE_SIZE,
+    pairs_per_chunk: int = PAIRS_PER_CHUNK,
+) -> TilePlan:
+    """Bin Gaussians into tiles (no gradients).
+
+    means2d: [N, 2] px; cov2d: [N, 3] (xx, xy, yy) px^2; cutoff_sq: [N] squared Mahalanobis
+    radius of the support (<= 0: never visible); depths: [N] sort key; active: [N] bool
+    (in front of the camera). Returns a :class:`TilePlan`.
+    """
+    device = means2d.device
+    n = means2d.shape[0]
+    tiles_x = (width + tile_size - 1) // tile_size
+    tiles_y = (height + tile_size - 1) // tile_size
+    n_tiles = tiles_x * tiles_y
+    with torch.no_grad():
+        # float64: the per-row extents subtract nearly equal numbers for thin, far-off ellipses.
+        m = means2d.detach().to(torch.float64)
+        cov = cov2d.detach().to(torch.float64)
+        r2 = cutoff_sq.detach().to(torch.float64) * (BIN_MARGIN * BIN_MARGIN)
+        ok = active & (r2 > 0)
+        sxx, sxy, syy = cov.unbind(-1)
+        r = torch.sqrt(r2.clamp_min(0.0))
+        half_x = r * torch.sqrt(sxx)
+        half_y = r * torch.sqrt(syy)
+        row_lo = torch.ceil(m[:, 1] - half_y).clamp_min(0)
+        row_hi = torch.floor(m[:, 1] + half_y).clamp_max(height - 1)
+        col_lo = torch.ceil(m[:, 0] - half_x).clamp_min(0)
+        col_hi = torch.floor(m[:, 0] + half_x).clamp_max(width - 1)
+        ok &= (row_lo <= row_hi) & (col_lo <= col_hi)
+
+        # Front-to-back order first; every later expansion keeps it (repeat_interleave, stable sort).
+        idx = torch.nonzero(ok).squeeze(1)
+        idx = idx[torch.argsort(depths.detach()[idx], stable=True)]
+        row_lo_i, row_hi_i = row_lo[idx].long(), row_hi[idx].long()
+        ty0 = torch.div(row_lo_i, tile_size, rounding_mode="floor")
+        ty1 = torch.div(row_hi_i, tile_size, rounding_mode="floor")
+        n_rows = ty1 - ty0 + 1  # [G]
+        rg = torch.repeat_interleave(torch.arange(idx.shape[0], device=device), n_rows)  # [R]
+        first_row = torch.cumsum(n_rows, 0) - n_rows
+        ty = ty0[rg] + (torch.arange(rg.shape[0], device=device) - first_row[rg])  # [R]
+
+        # Band of pixel-centre rows of this tile row that lie inside the ellipse's y-range.
+        gi = idx[rg]
+        band_lo = torch.maximum((ty * tile_size).to(torch.float64), row_lo[gi]) - m[gi, 1]
+        band_hi = torch.minimum((ty * tile_size + tile_size - 1).to(torch.float64), row_hi[gi]) - m[gi, 1]
+        gxx, gxy, gyy, gr, gr2 = sxx[gi], sxy[gi], syy[gi], r[gi], r2[gi]
+        det = gxx * gyy - gxy * gxy
+        slope = gxy / gyy  # centre line of the horizontal chords: x = slope * dy
+        dy_tan = gr * gxy / torch.sqrt(gxx)  # dy of the right-most point (left-most is -dy_tan)
+
+        def chord_half(dy: Tensor) -> Tensor:
+            return torch.sqrt((det * (gr2 * gyy - dy * dy)).clamp_min(0.0)) / gyy
+
+        dy_l = torch.minimum(torch.maximum(-dy_tan, band_lo), band_hi)
+        dy_r = torch.minimum(torch.maximum(dy_tan, band_lo), band_hi)
+        x_lo = m[gi, 0] + slope * dy_l - chord_half(dy_l)
+        x_hi = m[gi, 0] + slope * dy_r + chord_half(dy_r)
+        c_lo = torch.ceil(x_lo).clamp_min(0).long()
+        c_hi = torch.floor(x_hi).clamp_max(width - 1).long()
+        tx0 = torch.div(c_lo, tile_size, rounding_mode="floor")
+        tx1 = torch.div(c_hi, tile_size, rounding_mode="floor")
+        n_cols = (tx1 - tx0 + 1).clamp_min(0)  # [R]
+        pr = torch.repeat_interleave(torch.arange(rg.shape[0], device=device), n_cols)  # [M]
+        first_col = torch.cumsum(n_cols, 0) - n_cols
+        tx = tx0[pr] + (torch.arange(pr.shape[0], device=device) - first_col[pr])
+        pair_tile = ty[pr] * tiles_x + tx  # [M]
+        pair_gid = gi[pr]  # [M]
+        pair_tile, perm = torch.sort(pair_tile, stable=True)
+        pair_gid = pair_gid[perm]
+
+        tile_count = torch.bincount(pair_tile, minlength=n_tiles)  # [n_tiles]
+        tile_start = torch.cumsum(tile_count, 0) - tile_count
+        gaussian_hit = torch.zeros(n, dtype=torch.bool, device=device)
+        gaussian_hit[pair_gid] = True
+
+        counts_sorted, order = torch.sort(tile_count, descending=True, stable=True)
+        counts_list = counts_sorted.tolist()
+        chunks: list[Chunk] = []
+        pix = tile_size * tile_size
+        i = 0
+        while i < n_tiles and counts_list[i] > 0:
+            k = counts_list[i]
+            take = max(1, pairs_per_chunk // (pix * k))
+            j = min(i + take, n_tiles)
+            while counts_list[j - 1] == 0:
+                j -= 1
+            chunks.append(Chunk(tiles=order[i:j], k=k))
+            i = j
+    return TilePlan(
+        width=width,
+        height=height,
+        tile_size=tile_size,
+        tiles_x=tiles_x,
+        tiles_y=tiles_y,
+        pair_gid=pair_gid,
+        pair_tile=pair_tile,
+        tile_start=tile_start,
+        tile_count=tile_count,
+        gaussian_hit=gaussian_hit,
+        chunks=tuple(chunks),
+    )

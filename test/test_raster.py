@@ -1,0 +1,298 @@
+"""Tests of the Gaussian rasterizer: tiled custom-autograd path vs the brute-force reference,
+finite differences, projection geometry, and edge cases. CPU, small images, generated data."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
+from memgs_ros.core.raster import RenderOutput, _rasterize_reference, rasterize
+from memgs_ros.core.raster.composite import MIN_ALPHA, composite
+from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
+from memgs_ros.core.raster.tiles import build_tile_plan
+
+PARAM_NAMES = ("means", "quats_wxyz", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+
+
+def _pose_cw(seed: int, dtype: torch.dtype) -> torch.Tensor:
+    """A random world-to-camera pose [4, 4] (rotation by up to ~30 degrees, small translation)."""
+    g = torch.Generator().manual_seed(seed)
+    q = torch.cat([torch.ones(1, dtype=dtype), 0.3 * torch.randn(3, generator=g, dtype=dtype)])
+    T = torch.eye(4, dtype=dtype)
+    T[:3, :3] = quat_wxyz_to_rotmat_torch(q[None])[0]
+    T[:3, 3] = 0.2 * torch.randn(3, generator=g, dtype=dtype)
+    return T
+
+
+def _scene(
+    n: int,
+    seed: int,
+    dtype: torch.dtype = torch.float64,
+    sh_deg_max: int = 1,
+    spread: float = 1.0,
+    depth: float = 4.0,
+    T_cw: torch.Tensor | None = None,
+) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """n random Gaussians in front of the camera (camera z ~ depth), as leaf tensors needing grad.
+
+    spread scales the lateral extent: > 1 puts many Gaussians partly or fully off-screen.
+    Returns ([means, quats, log_scales, opacity_logits, sh_dc, sh_rest], T_cw).
+    """
+    g = torch.Generator().manual_seed(seed)
+    T = _pose_cw(seed + 1000, dtype) if T_cw is None else T_cw
+    p_c = torch.randn(n, 3, generator=g, dtype=dtype) * torch.tensor([1.0 * spread, 0.7 * spread, 0.5], dtype=dtype)
+    p_c[:, 2] += depth
+    R, t = T[:3, :3], T[:3, 3]
+    means = (p_c - t) @ R  # world = R^T (p_c - t)
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    log_scales = torch.log(torch.rand(n, 3, generator=g, dtype=dtype) * 0.2 + 0.03)
+    opacity_logits = torch.randn(n, 1, generator=g, dtype=dtype) * 2.0
+    sh_dc = torch.randn(n, 1, 3, generator=g, dtype=dtype)
+    sh_rest = 0.3 * torch.randn(n, (sh_deg_max + 1) ** 2 - 1, 3, generator=g, dtype=dtype)
+    params = [p.requires_grad_() for p in (means, quats, log_scales, opacity_logits, sh_dc, sh_rest)]
+    return params, T
+
+
+def _loss(out: RenderOutput, seed: int) -> torch.Tensor:
+    """A random linear functional of the three images (random cotangents)."""
+    g = torch.Generator().manual_seed(seed)
+    dtype = out.color.dtype
+    total = (out.color * torch.randn(out.color.shape, generator=g, dtype=dtype)).sum()
+    total = total + (out.depth * torch.randn(out.depth.shape, generator=g, dtype=dtype)).sum()
+    return total + (out.alpha * torch.randn(out.alpha.shape, generator=g, dtype=dtype)).sum()
+
+
+CAM_64 = PinholeCamera(64, 48, 50.0, 52.0, 30.3, 25.7)
+# Principal point far from the centre: catches code that assumes a centred frustum.
+CAM_OFFCENTRE = PinholeCamera(48, 40, 45.0, 40.0, 12.0, 31.0)
+CAM_32 = PinholeCamera(32, 24, 30.0, 30.0, 15.5, 11.5)
+
+
+def _compare(params, T_cw, cam, deg, background=None, atol_fwd=1e-10, rtol_grad=1e-8, seed=7) -> RenderOutput:
+    out = rasterize(*params, T_cw, cam, deg, background=background, backend="torch")
+    ref = _rasterize_reference(*params, T_cw, cam, deg, background=background)
+    for name in ("color", "depth", "alpha"):
+        a, b = getattr(out, name), getattr(ref, name)
+        assert a.shape == b.shape
+        err = (a - b).abs().max().item() if a.numel() else 0.0
+        assert err <= atol_fwd, f"{name}: max |fast - reference| = {err}"
+    inputs = list(params) + ([T_cw] if T_cw.requires_grad else [])
+    g_out = torch.autograd.grad(_loss(out, seed), inputs + [out.means2d], allow_unused=True, retain_graph=True)
+    g_ref = torch.autograd.grad(_loss(ref, seed), inputs + [ref.means2d], allow_unused=True)
+    names = list(PARAM_NAMES) + (["T_cw"] if T_cw.requires_grad else []) + ["means2d"]
+    for name, a, b in zip(names, g_out, g_ref):
+        assert (a is None) == (b is None), name
+        if a is None:
+            continue
+        scale = max(1.0, b.abs().max().item())
+        err = (a - b).abs().max().item() if a.numel() else 0.0
+        assert err <= rtol_grad * scale, f"d/d{name}: max error {err} (scale {scale})"
+    assert torch.equal(out.radii[ref.visible], ref.radii[ref.visible])
+    # The tiled path may call a Gaussian visible whose support only grazes the image (binning
+    # margin), never the other way round.
+    assert not (ref.visible & ~out.visible).any()
+    return out
+
+
+@pytest.mark.parametrize(
+    "n,cam,deg,seed",
+    [(5, CAM_32, 0, 1), (60, CAM_64, 1, 2), (200, CAM_64, 3, 3), (120, CAM_OFFCENTRE, 2, 4)],
+)
+def test_matches_reference_float64(n: int, cam: PinholeCamera, deg: int, seed: int) -> None:
+    params, T = _scene(n, seed, sh_deg_max=3)
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    out = _compare(params, T, cam, deg, background=bg)
+    assert out.alpha.max() > 0.5  # the scene is not empty, so the comparison means something
+
+
+def test_matches_reference_float32() -> None:
+    params, T = _scene(150, 11, dtype=torch.float32, sh_deg_max=2)
+    _compare(params, T, CAM_64, 2, atol_fwd=1e-4, rtol_grad=1e-3)
+
+
+def test_offscreen_and_large_gaussians() -> None:
+    # Lateral spread 3x the frustum and some Gaussians close to the camera (large on screen).
+    params, T = _scene(150, 21, spread=3.0, depth=2.0)
+    with torch.no_grad():
+        params[2][:20] += 1.5  # a few big ones
+    out = _compare(params, T, CAM_OFFCENTRE, 1)
+    proj_u = out.means2d.detach()[:, 0]
+    partly = out.visible & ((proj_u < 0) | (proj_u >= CAM_OFFCENTRE.width))
+    assert partly.any(), "the scene must contain visible Gaussians centred off-screen"
+
+
+def test_pose_gradient_matches_reference() -> None:
+    params, T = _scene(40, 31)
+    T = T.clone().requires_grad_()
+    _compare(params, T, CAM_32, 1)
+
+
+@pytest.mark.parametrize("deg", [0, 1, 2, 3])
+def test_sh_degrees(deg: int) -> None:
+    params, T = _scene(30, 40 + deg, sh_deg_max=3)
+    out = _compare(params, T, CAM_32, deg)
+    # Bands above the active degree must not influence the image.
+    if deg < 3:
+        g = torch.autograd.grad(out.color.sum(), params[5], allow_unused=True)[0]
+        n_active = (deg + 1) ** 2 - 1
+        if deg == 0:
+            assert g is None  # sh_rest is not used at all
+        else:
+            assert g[:, n_active:].abs().max() == 0
+            assert g[:, :n_active].abs().max() > 0
+
+
+def test_degree_zero_without_rest_coefficients() -> None:
+    params, T = _scene(20, 50, sh_deg_max=0)
+    assert params[5].shape == (20, 0, 3)
+    _compare(params, T, CAM_32, 0)
+
+
+def test_finite_differences_float64() -> None:
+    """Directional derivatives of the tiled path against central differences, per parameter."""
+    params, T = _scene(12, 61, sh_deg_max=1)
+    cam = CAM_32
+    out = rasterize(*params, T, cam, 1, backend="torch")
+    grads = torch.autograd.grad(_loss(out, 3), params)
+    g = torch.Generator().manual_seed(9)
+    eps = 1e-6
+    for name, p, gp in zip(PARAM_NAMES, params, grads):
+        for _ in range(2):
+            d = torch.randn(p.shape, generator=g, dtype=p.dtype)
+            with torch.no_grad():
+                shifted = []
+                for sign in (1.0, -1.0):
+                    moved = [q + sign * eps * d if q is p else q for q in params]
+                    shifted.append(_loss(rasterize(*moved, T, cam, 1, backend="torch"), 3).item())
+            fd = (shifted[0] - shifted[1]) / (2 * eps)
+            an = (gp * d).sum().item()
+            assert abs(fd - an) <= 1e-5 * max(1.0, abs(an)), f"{name}: finite diff {fd} vs analytic {an}"
+
+
+def test_means2d_grad_populated() -> None:
+    params, T = _scene(50, 71)
+    out = rasterize(*params, T, CAM_64, 1, backend="torch")
+    _loss(out, 1).backward()
+    assert out.means2d.grad is not None and out.means2d.grad.shape == (50, 2)
+    assert (out.means2d.grad[out.visible].abs().sum(-1) > 0).any()
+    assert (out.means2d.grad[~out.visible] == 0).all()
+
+
+def test_no_gaussians() -> None:
+    params, T = _scene(0, 1)
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    out = rasterize(*params, T, CAM_32, 1, background=bg, backend="torch")
+    assert out.color.shape == (3, 24, 32) and out.depth.shape == (24, 32) and out.alpha.shape == (24, 32)
+    assert torch.allclose(out.color, bg[:, None, None].expand(3, 24, 32))
+    assert (out.depth == 0).all() and (out.alpha == 0).all()
+    assert out.radii.shape == (0,) and out.visible.shape == (0,)
+    g = torch.autograd.grad(out.color.sum(), params[0])[0]
+    assert g.shape == (0, 3)
+
+
+def test_all_behind_camera() -> None:
+    params, T = _scene(30, 81, depth=-3.0)
+    out = rasterize(*params, T, CAM_32, 1, backend="torch")
+    assert (out.color == 0).all() and (out.alpha == 0).all() and (out.depth == 0).all()
+    assert not out.visible.any() and (out.radii == 0).all()
+    grads = torch.autograd.grad(out.color.sum() + out.depth.sum(), params, allow_unused=True)
+    for name, gp in zip(PARAM_NAMES, grads):
+        assert gp is None or (torch.isfinite(gp).all() and (gp == 0).all()), name
+
+
+def test_near_plane_culls() -> None:
+    params, T = _scene(40, 91, depth=1.0)
+    out_near = rasterize(*params, T, CAM_32, 0, near=0.01, backend="torch")
+    out_far = rasterize(*params, T, CAM_32, 0, near=100.0, backend="torch")
+    assert out_near.visible.any() and not out_far.visible.any()
+
+
+def test_projection_geometry() -> None:
+    """means2d is the pinhole projection; cov2d is J Sigma_c J^T + 0.3 I with J from autograd."""
+    params, T = _scene(25, 101, sh_deg_max=0)
+    cam = CAM_OFFCENTRE
+    means, quats, log_scales = params[0].detach(), params[1].detach(), params[2].detach()
+    proj = project_gaussians(*[p.detach() for p in params], T, cam, 0, 0.01)
+    p_c = means @ T[:3, :3].T + T[:3, 3]
+    u, v = cam.project(p_c.numpy())
+    np.testing.assert_allclose(proj.means2d[:, 0].numpy(), u, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(proj.means2d[:, 1].numpy(), v, rtol=0, atol=1e-9)
+
+    def pix(p: torch.Tensor) -> torch.Tensor:
+        return torch.stack([cam.fx * p[0] / p[2] + cam.cx, cam.fy * p[1] / p[2] + cam.cy])
+
+    inside = (proj.means2d[:, 0].abs() < 40) & (proj.means2d[:, 1].abs() < 40)  # no FOV clamp active
+    for i in torch.nonzero(inside).squeeze(1).tolist():
+        J = torch.autograd.functional.jacobian(pix, p_c[i])  # [2, 3]
+        R = quat_wxyz_to_rotmat_torch(quats[i : i + 1])[0]
+        S = torch.diag(torch.exp(log_scales[i]))
+        sigma_c = T[:3, :3] @ R @ S @ S @ R.T @ T[:3, :3].T
+        cov = J @ sigma_c @ J.T + 0.3 * torch.eye(2, dtype=torch.float64)
+        expect = torch.stack([cov[0, 0], cov[0, 1], cov[1, 1]])
+        torch.testing.assert_close(proj.cov2d[i], expect, rtol=1e-10, atol=1e-10)
+
+
+def test_image_does_not_depend_on_tiles_or_threads() -> None:
+    """Exact ellipse binning keeps every alpha >= 1/255; chunking and threads change nothing."""
+    params, T = _scene(120, 111)
+    cam = CAM_64
+    proj = project_gaussians(*params, T, cam, 1, 0.01)
+    cut = alpha_cutoff_sq(proj.opacities.detach(), MIN_ALPHA)
+    bg = torch.zeros(3, dtype=torch.float64)
+    images = []
+    for tile, chunk, workers in [(4, 1 << 18, 1), (8, 2000, 2), (16, 500, 3)]:
+        plan = build_tile_plan(proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, 64, 48, tile, chunk)
+        images.append(composite(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, bg, plan, workers))
+    for other in images[1:]:
+        for a, b in zip(images[0], other):
+            assert (a - b).abs().max() < 1e-12
+
+
+def test_tile_lists_are_front_to_back() -> None:
+    params, T = _scene(80, 121)
+    proj = project_gaussians(*[p.detach() for p in params], T, CAM_64, 1, 0.01)
+    cut = alpha_cutoff_sq(proj.opacities, MIN_ALPHA)
+    plan = build_tile_plan(proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, 64, 48)
+    z = proj.depths[plan.pair_gid]
+    same_tile = plan.pair_tile[1:] == plan.pair_tile[:-1]
+    assert (z[1:][same_tile] >= z[:-1][same_tile]).all()
+    assert (plan.pair_tile[1:] >= plan.pair_tile[:-1]).all()
+    covered = torch.cat([c.tiles for c in plan.chunks])
+    assert torch.equal(torch.sort(covered).values, torch.nonzero(plan.tile_count).squeeze(1))
+
+
+def test_bad_shapes_are_refused() -> None:
+    params, T = _scene(10, 131)
+    bad = list(params)
+    bad[1] = bad[1][:, :3]
+    with pytest.raises(ValueError, match=r"quats_wxyz must have shape \[10, 4\], got \[10, 3\]"):
+        rasterize(*bad, T, CAM_32, 1)
+    with pytest.raises(ValueError, match="sh_degree 2 needs"):
+        rasterize(*params, T, CAM_32, 2)
+    with pytest.raises(ValueError, match="backend"):
+        rasterize(*params, T, CAM_32, 1, backend="opengl")
+
+
+def test_opaque_front_gaussian_terminates() -> None:
+    """A wall of opaque Gaussians hides everything behind it (early termination at T < 1e-4)."""
+    dtype = torch.float64
+    ys, xs = torch.meshgrid(torch.linspace(-1.0, 1.0, 6, dtype=dtype), torch.linspace(-1.3, 1.3, 7, dtype=dtype), indexing="ij")
+    layer = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)
+    wall = torch.cat([torch.cat([layer, torch.full((42, 1), z, dtype=dtype)], -1) for z in (2.0, 2.1, 2.2)])
+    behind = torch.tensor([[0.0, 0.0, 3.0]], dtype=dtype)
+    means = torch.cat([wall, behind]).requires_grad_()
+    n = means.shape[0]
+    quats = torch.tensor([[1.0, 0, 0, 0]], dtype=dtype).repeat(n, 1).requires_grad_()
+    log_scales = torch.full((n, 3), math.log(0.3), dtype=dtype).requires_grad_()
+    opac = torch.full((n, 1), 8.0, dtype=dtype).requires_grad_()
+    dc = torch.randn(n, 1, 3, dtype=dtype, generator=torch.Generator().manual_seed(0)).requires_grad_()
+    rest = torch.zeros(n, 0, 3, dtype=dtype).requires_grad_()
+    T = torch.eye(4, dtype=dtype)
+    out = _compare([means, quats, log_scales, opac, dc, rest], T, CAM_32, 0)
+    g = torch.autograd.grad(out.color.sum(), dc)[0]
+    assert g[-1].abs().max() == 0  # the hidden Gaussian gets no gradient
+    assert out.alpha.min() > 0.998
