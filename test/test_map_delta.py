@@ -92,3 +92,33 @@ def test_count_mismatch_is_reported() -> None:
     rep = MapReplica()
     msg = decode(encode(MessageKind.DELTA, 1, 5, _records([1, 2]), np.zeros(0), 3))
     assert rep.apply(msg) is ApplyStatus.MISMATCH
+
+
+def test_outbox_budgeted_deltas_keep_replica_in_step() -> None:
+    from memgs_ros.core.map_delta import DeltaOutbox
+
+    out, rep = DeltaOutbox(sh_degree=3), MapReplica()
+    out.add(np.zeros(0), _records(range(10)))
+    first = out.next_delta(max_rows=4)
+    assert rep.apply(decode(first)) is ApplyStatus.APPLIED and len(rep) == 4
+    # 2 is already at the receiver (needs a removal row), 7 never left (dropped silently).
+    out.add(np.array([2, 7]), _records([11], seed=5))
+    while (rows := out.next_delta(max_rows=3)) is not None:
+        assert rep.apply(decode(rows)) is ApplyStatus.APPLIED
+    assert rep.records.ids.tolist() == [0, 1, 3, 4, 5, 6, 8, 9, 11]
+    assert out.pending_rows == 0 and out.next_delta() is None
+
+
+def test_outbox_snapshot_then_deltas() -> None:
+    from memgs_ros.core.map_delta import DeltaOutbox
+
+    out = DeltaOutbox(sh_degree=3)
+    out.add(np.zeros(0), _records([1, 2, 3]))
+    out.next_delta()
+    full = _records([1, 2, 3, 4], seed=2)
+    out.add(np.zeros(0), full.select(np.array([3])))
+    late = MapReplica()
+    assert late.apply(decode(out.snapshot(full))) is ApplyStatus.APPLIED
+    out.add(np.array([1]), GaussianRecords.empty())
+    assert late.apply(decode(out.next_delta())) is ApplyStatus.APPLIED
+    assert late.records.ids.tolist() == [2, 3, 4] and late.seq == 2

@@ -244,3 +244,57 @@ class MapReplica:
 
 def _columns(r: GaussianRecords) -> tuple[np.ndarray, ...]:
     return (r.ids, r.xyz, r.f_dc, r.f_rest, r.opacity, r.scale, r.rot)
+
+
+class DeltaOutbox:
+    """The sender's side: folds map changes into pending upserts/removals and cuts deltas.
+
+    ``add(removed_ids, changed)`` merges a ``pop_changes`` result (newer values win; a
+    removal cancels a pending upsert). ``next_delta(max_rows)`` cuts the next delta of at
+    most ``max_rows`` Gaussian rows (removals first, then the longest-pending upserts;
+    ``None`` = everything) and numbers it; nothing pending, no delta. The outbox tracks
+    which ids the receiver holds, so each message's ``total`` is what an in-step
+    receiver must count after applying it, even when the budget leaves rows pending.
+    """
+
+    def __init__(self, sh_degree: int) -> None:
+        self.sh_degree = sh_degree
+        self.seq = 0
+        self._up = GaussianRecords.empty()
+        self._removed = np.zeros(0, np.int64)
+        self._receiver_ids = np.zeros(0, np.int64)  # sorted
+
+    @property
+    def pending_rows(self) -> int:
+        return len(self._up) + int(self._removed.size)
+
+    def add(self, removed_ids: np.ndarray, changed: GaussianRecords) -> None:
+        removed = np.asarray(removed_ids, dtype=np.int64).reshape(-1)
+        keep = ~np.isin(self._up.ids, np.concatenate([removed, changed.ids]))
+        self._up = GaussianRecords.concat([self._up.select(keep), changed.select(~np.isin(changed.ids, removed))])
+        # Only ids the receiver holds need a removal row; the rest never left the sender.
+        self._removed = np.union1d(self._removed, removed[np.isin(removed, self._receiver_ids)])
+
+    def next_delta(self, max_rows: int | None = None) -> np.ndarray | None:
+        """The next delta as structured rows (see ``encode``), or None when nothing is pending."""
+        if self.pending_rows == 0:
+            return None
+        budget = self.pending_rows if max_rows is None else max(int(max_rows), 1)
+        n_rem = min(self._removed.size, budget)
+        removed, self._removed = self._removed[:n_rem], self._removed[n_rem:]
+        n_up = min(len(self._up), budget - n_rem)
+        sent, self._up = self._up.select(np.arange(n_up)), self._up.select(np.arange(n_up, len(self._up)))
+        self._receiver_ids = np.union1d(np.setdiff1d(self._receiver_ids, removed, assume_unique=True), sent.ids)
+        self.seq += 1
+        return encode(MessageKind.DELTA, self.seq, self._receiver_ids.size, sent, removed, self.sh_degree)
+
+    def snapshot(self, records: GaussianRecords) -> np.ndarray:
+        """A snapshot of the whole map at the current ``seq``; pending changes are folded in.
+
+        Call with the map as it is now (the same instant as the last ``add``).
+        """
+        self._up = GaussianRecords.empty()
+        self._removed = np.zeros(0, np.int64)
+        self._receiver_ids = np.sort(records.ids)
+        return encode(MessageKind.SNAPSHOT, self.seq, len(records), records, np.zeros(0, np.int64),
+                      self.sh_degree)

@@ -1,0 +1,90 @@
+"""keyframe_sampler node: Patch-Grid sampling of each keyframe into seeds for new Gaussians.
+
+Subscribes (reliable): ``memgs/keyframe/{color,depth,camera_info,pose,keypoints}`` (one stamp per
+keyframe; depth only in RGB-D mode). Publishes ``memgs/keyframe/seeds``: PointCloud2 with
+x, y, z (world, float32), rgb (float32-packed 0x00RRGGBB, the PCL/RViz convention) and
+source (uint8: 0 keypoint, 1 Patch-Grid sample), stamped like the keyframe.
+"""
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+
+from memgs_ros.core.sampling import PatchGridConfig, seeds_mono, seeds_rgbd
+from memgs_ros.errors import DataError, MessageError
+from memgs_ros.ros import qos
+from memgs_ros.ros.codecs import (
+    camera_info_to_camera, depth_from_image, pointcloud2_to_structured, pose_to_matrix, rgb_from_image,
+    stamp_to_ns, structured_to_pointcloud2,
+)
+from memgs_ros.ros.config_params import declare_config
+from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.node_main import run_node
+from memgs_ros.ros.params import declare
+from memgs_ros.ros.seed_cloud import encode_seeds
+from memgs_ros.ros.stamp_sync import StampBundler
+
+class KeyframeSamplerNode(Node):
+    def __init__(self, **node_kwargs: object) -> None:
+        super().__init__("keyframe_sampler", **node_kwargs)
+        self.mode = declare(self, "mode", "rgbd", "camera mode (mono: depth from the nearest keypoint)",
+                            choices=("rgbd", "mono"))
+        self.depth_scale = declare(self, "depth_scale", 1000.0, "16UC1 depth units per metre", range=(1e-3, 1e6))
+        self.cfg: PatchGridConfig = declare_config(self, PatchGridConfig, "patch_grid")
+        self.world_frame = declare(self, "world_frame", "map", "frame id of the seed cloud")
+        self.stats = NodeStats(self, "keyframe_sampler")
+        parts = {"color", "camera_info", "pose", "keypoints"} | ({"depth"} if self.mode == "rgbd" else set())
+        self.bundler = StampBundler(parts, max_pending=16)
+        self.rng = np.random.default_rng(self.cfg.seed)
+        self.n_keyframes = 0
+
+        self.pub = self.create_publisher(PointCloud2, "memgs/keyframe/seeds", qos.reliable(20))
+        kf = qos.reliable(20)
+        self.create_subscription(Image, "memgs/keyframe/color", lambda m: self._add("color", m), kf)
+        self.create_subscription(CameraInfo, "memgs/keyframe/camera_info", lambda m: self._add("camera_info", m), kf)
+        self.create_subscription(PoseStamped, "memgs/keyframe/pose", lambda m: self._add("pose", m), kf)
+        self.create_subscription(PointCloud2, "memgs/keyframe/keypoints", lambda m: self._add("keypoints", m), kf)
+        if self.mode == "rgbd":
+            self.create_subscription(Image, "memgs/keyframe/depth", lambda m: self._add("depth", m), kf)
+
+    def _add(self, part: str, msg) -> None:  # noqa: ANN001 - any of the bundle's message types
+        bundle = self.bundler.add(part, stamp_to_ns(msg.header.stamp), msg)
+        self.stats.gauges["pending_bundles"] = self.bundler.pending
+        self.stats.gauges["dropped_bundles"] = self.bundler.dropped
+        if bundle is not None:
+            self._sample(stamp_to_ns(msg.header.stamp), bundle)
+
+    def _sample(self, stamp_ns: int, b: dict) -> None:
+        try:
+            cam = camera_info_to_camera(b["camera_info"])
+            rgb = rgb_from_image(b["color"])
+            kps = pointcloud2_to_structured(b["keypoints"], required=("u", "v", "depth"))
+            T_wc = pose_to_matrix(b["pose"].pose)
+            uv = np.stack([kps["u"], kps["v"]], axis=1).astype(np.float32)
+            kp_depth = kps["depth"].astype(np.float32)
+            kf_id = self.n_keyframes
+            if self.mode == "rgbd":
+                depth = depth_from_image(b["depth"], self.depth_scale)
+                seeds = seeds_rgbd(rgb, depth, cam, T_wc, kf_id, uv, kp_depth, self.cfg, self.rng)
+            else:
+                seeds = seeds_mono(rgb, cam, T_wc, kf_id, uv, kp_depth, self.cfg, self.rng)
+        except (MessageError, DataError) as err:
+            self.stats.problem("bad_keyframe", f"keyframe {stamp_ns} refused: {err}")
+            return
+        self.n_keyframes += 1
+        self.pub.publish(structured_to_pointcloud2(encode_seeds(seeds.points_w, seeds.colors, seeds.source), stamp_ns, self.world_frame))
+        self.stats.counters["keyframes"] += 1
+        self.stats.counters["seeds_keypoint"] += int((seeds.source == 0).sum())
+        self.stats.counters["seeds_patch_grid"] += int((seeds.source == 1).sum())
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(KeyframeSamplerNode, "keyframe_sampler", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

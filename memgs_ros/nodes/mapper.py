@@ -1,0 +1,284 @@
+"""mapper node: owns the Gaussian map; trains it on keyframes, merges, publishes deltas and views.
+
+Subscribes (reliable): ``memgs/keyframe/{color,depth,camera_info,pose}`` from the tracker and
+``memgs/keyframe/seeds`` from the sampler (one stamp per keyframe), ``memgs/keyframe/refined_poses``
+(Path), ``memgs/pose`` (latest tracked pose, for the live view), ``memgs/render/view_pose``
+(render requests), ``memgs/tracker/processed`` (lockstep handshake).
+Publishes: ``memgs/map/delta`` (PointCloud2, see core/map_delta.py), ``memgs/mapper/snapshot``
+(latched full map), ``memgs/render/{color,depth,camera_info}``, ``memgs/frame_ack`` (lockstep),
+``memgs/mapper/stats``. Services: ``memgs/mapper/publish_snapshot`` and ``memgs/mapper/finish``
+(std_srvs/Trigger; finish stops training, flushes every change and answers ``seq=<n> gaussians=<n>``).
+
+Training runs in its own thread while messages arrive; in ``lockstep`` mode it instead runs a
+fixed number of iterations per frame before acknowledging it, so a lockstep replay is
+deterministic run to run.
+"""
+from __future__ import annotations
+
+import sys
+import threading
+import time
+
+import numpy as np
+import torch
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import Header
+from std_srvs.srv import Trigger
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.map_delta import DeltaOutbox
+from memgs_ros.core.mapping import GaussianMapper, MappingConfig
+from memgs_ros.core.runtime import configure_cpu_runtime
+from memgs_ros.errors import DataError, MessageError
+from memgs_ros.ros import qos
+from memgs_ros.ros.codecs import (
+    camera_info_to_camera, camera_to_camera_info, depth_from_image, depth_to_image, make_header,
+    numpy_to_image, pointcloud2_to_structured, pose_to_matrix, rgb_from_image, stamp_to_ns,
+    structured_to_pointcloud2,
+)
+from memgs_ros.ros.config_params import declare_config
+from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.node_main import run_node
+from memgs_ros.ros.params import declare
+from memgs_ros.ros.seed_cloud import decode_seeds
+from memgs_ros.ros.stamp_sync import StampBundler
+
+
+class MapperNode(Node):
+    def __init__(self, **node_kwargs: object) -> None:
+        super().__init__("mapper", **node_kwargs)
+        self.mode = declare(self, "mode", "rgbd", "camera mode (mono: keyframes carry no depth)",
+                            choices=("rgbd", "mono"))
+        self.cfg: MappingConfig = declare_config(self, MappingConfig, "mapping")
+        device = declare(self, "device", "auto", "torch device for the map: auto (CUDA when present), cpu, cuda, cuda:N")
+        self.lockstep = declare(self, "lockstep", False,
+                                "train a fixed number of iterations per frame and acknowledge each (deterministic replay)")
+        self.lockstep_iters = declare(self, "lockstep_iterations", 10,
+                                      "training iterations per frame in lockstep mode", range=(0, 10000))
+        self.final_iters = declare(self, "final_iterations", 0,
+                                   "extra training iterations run by the finish service before the final flush",
+                                   range=(0, 10**7))
+        self.delta_rate = declare(self, "delta_rate_hz", 1.0, "map deltas per second", range=(0.01, 100.0))
+        self.max_delta_rows = declare(self, "max_delta_rows", 20000,
+                                      "Gaussians per delta message at most (the rest wait for the next)",
+                                      range=(1, 10**8))
+        self.snapshot_period = declare(self, "snapshot_period_s", 0.0,
+                                       "publish a full snapshot this often (0 = only on request)", range=(0.0, 1e6))
+        self.render_rate = declare(self, "render_rate_hz", 1.0, "live view renders per second (0 = off)",
+                                   range=(0.0, 60.0))
+        self.world_frame = declare(self, "world_frame", "map", "frame id of published maps and poses")
+        self.ack_topic = declare(self, "ack_topic", "memgs/frame_ack", "lockstep acknowledgement topic (to the player)")
+
+        if device == "auto":
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        if device == "cpu":
+            configure_cpu_runtime()
+        self.mapper = GaussianMapper(self.cfg, device=device)
+        self.outbox = DeltaOutbox(self.cfg.max_sh_degree)
+        self.stats = NodeStats(self, "mapper")
+        self.kf_ids: dict[int, int] = {}  # keyframe stamp -> mapper keyframe id
+        self.render_camera: PinholeCamera | None = None
+        self.latest_pose: PoseStamped | None = None
+        self.awaiting_keyframes: set[int] = set()
+        self._send_lock = threading.Lock()  # one delta/snapshot cut at a time, in seq order
+        self._stop = threading.Event()
+        self._finished = False
+
+        parts = {"color", "camera_info", "pose", "seeds"} | ({"depth"} if self.mode == "rgbd" else set())
+        self.bundler = StampBundler(parts, max_pending=16)
+        rel = qos.reliable(20)
+        self.pub_delta = self.create_publisher(PointCloud2, "memgs/map/delta", qos.reliable(50))
+        self.pub_snapshot = self.create_publisher(PointCloud2, "memgs/mapper/snapshot", qos.latched())
+        self.pub_color = self.create_publisher(Image, "memgs/render/color", qos.reliable(2))
+        self.pub_depth = self.create_publisher(Image, "memgs/render/depth", qos.reliable(2))
+        self.pub_info = self.create_publisher(CameraInfo, "memgs/render/camera_info", qos.reliable(2))
+        self.pub_ack = self.create_publisher(Header, self.ack_topic, qos.reliable(100))
+
+        io_group = MutuallyExclusiveCallbackGroup()  # keyframe insertion and lockstep stay ordered
+        self.create_subscription(Image, "memgs/keyframe/color", lambda m: self._part("color", m), rel,
+                                 callback_group=io_group)
+        self.create_subscription(CameraInfo, "memgs/keyframe/camera_info", lambda m: self._part("camera_info", m),
+                                 rel, callback_group=io_group)
+        self.create_subscription(PoseStamped, "memgs/keyframe/pose", lambda m: self._part("pose", m), rel,
+                                 callback_group=io_group)
+        self.create_subscription(PointCloud2, "memgs/keyframe/seeds", lambda m: self._part("seeds", m), rel,
+                                 callback_group=io_group)
+        if self.mode == "rgbd":
+            self.create_subscription(Image, "memgs/keyframe/depth", lambda m: self._part("depth", m), rel,
+                                     callback_group=io_group)
+        self.create_subscription(Path, "memgs/keyframe/refined_poses", self.on_refined, rel, callback_group=io_group)
+        self.create_subscription(Header, "memgs/tracker/processed", self.on_processed, qos.reliable(100),
+                                 callback_group=io_group)
+        self.create_subscription(PoseStamped, "memgs/pose", self.on_pose, qos.reliable(5))
+        self.create_subscription(PoseStamped, "memgs/render/view_pose", self.on_view_request, qos.reliable(5))
+        self.create_service(Trigger, "memgs/mapper/publish_snapshot", self.on_snapshot_request)
+        self.create_service(Trigger, "memgs/mapper/finish", self.on_finish, callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_timer(1.0 / self.delta_rate, self.send_delta)
+        if self.snapshot_period > 0:
+            self.create_timer(self.snapshot_period, self.publish_snapshot)
+        if self.render_rate > 0:
+            self.create_timer(1.0 / self.render_rate, self.render_live)
+        self.trainer: threading.Thread | None = None
+        if not self.lockstep:
+            self.trainer = threading.Thread(target=self._train_loop, name="mapper-training", daemon=True)
+            self.trainer.start()
+        self.get_logger().info(f"mapper on {device}, {'lockstep' if self.lockstep else 'free-running'} training")
+
+    # ------------------------------------------------------------------ keyframes
+    def _part(self, part: str, msg) -> None:  # noqa: ANN001 - any bundle message type
+        stamp = stamp_to_ns(msg.header.stamp)
+        bundle = self.bundler.add(part, stamp, msg)
+        self.stats.gauges["dropped_keyframe_bundles"] = self.bundler.dropped
+        if bundle is not None:
+            self._insert(stamp, bundle)
+
+    def _insert(self, stamp_ns: int, b: dict) -> None:
+        if self._finished:
+            return
+        try:
+            cam = camera_info_to_camera(b["camera_info"])
+            rgb = rgb_from_image(b["color"])
+            depth = depth_from_image(b["depth"]) if "depth" in b else None
+            T_wc = pose_to_matrix(b["pose"].pose)
+            points, colors = decode_seeds(pointcloud2_to_structured(b["seeds"]))
+            kf_id = len(self.kf_ids)
+            added = self.mapper.add_keyframe(kf_id, stamp_ns, T_wc, rgb, depth, cam, points, colors)
+        except (MessageError, DataError) as err:
+            self.stats.problem("bad_keyframe", f"keyframe {stamp_ns} refused: {err}")
+            return
+        self.kf_ids[stamp_ns] = kf_id
+        self.render_camera = self.render_camera or cam.scaled(self.cfg.resolution_scale)
+        self.stats.counters["keyframes"] += 1
+        self.stats.counters["seeded_gaussians"] += added
+        if stamp_ns in self.awaiting_keyframes:
+            self.awaiting_keyframes.discard(stamp_ns)
+            self._lockstep_ack(stamp_ns)
+
+    def on_refined(self, msg: Path) -> None:
+        for p in msg.poses:
+            kf_id = self.kf_ids.get(stamp_to_ns(p.header.stamp))
+            if kf_id is not None:
+                self.mapper.update_keyframe_pose(kf_id, pose_to_matrix(p.pose))
+                self.stats.counters["keyframe_pose_updates"] += 1
+
+    # ------------------------------------------------------------------ training
+    def _train_loop(self) -> None:
+        while not self._stop.is_set():
+            if not self.mapper.ready:
+                self._stop.wait(0.05)
+                continue
+            self._step()
+
+    def _step(self) -> None:
+        st = self.mapper.step()
+        if st is not None:
+            self.stats.gauges["iteration"] = st.iteration
+            self.stats.gauges["gaussians"] = st.num_gaussians
+            self.stats.gauges["loss"] = round(sum(st.terms.values()), 5)
+
+    def on_processed(self, msg: Header) -> None:
+        """Lockstep: acknowledge a frame once its keyframe (if any) is in and training ran."""
+        if not self.lockstep:
+            return
+        stamp = stamp_to_ns(msg.stamp)
+        if msg.frame_id == "keyframe" and stamp not in self.kf_ids:
+            self.awaiting_keyframes.add(stamp)
+            return
+        self._lockstep_ack(stamp)
+
+    def _lockstep_ack(self, stamp_ns: int) -> None:
+        if self.mapper.ready:
+            for _ in range(self.lockstep_iters):
+                self._step()
+        self.pub_ack.publish(make_header(stamp_ns, "mapper"))
+
+    # ------------------------------------------------------------------ deltas
+    def _collect(self) -> None:
+        changes = self.mapper.pop_changes()
+        self.outbox.add(changes.removed_ids, changes.changed)
+
+    def send_delta(self, everything: bool = False) -> None:
+        with self._send_lock:
+            self._collect()
+            rows = self.outbox.next_delta(None if everything else self.max_delta_rows)
+            while rows is not None:
+                msg = structured_to_pointcloud2(rows, self.get_clock().now().nanoseconds, self.world_frame)
+                self.pub_delta.publish(msg)
+                self.stats.counters["delta_messages"] += 1
+                self.stats.counters["delta_bytes"] += len(msg.data)
+                self.stats.gauges["seq"] = self.outbox.seq
+                rows = self.outbox.next_delta() if everything else None
+            self.stats.gauges["delta_pending_rows"] = self.outbox.pending_rows
+
+    def publish_snapshot(self) -> int:
+        """Publish the whole map (latched) at the current seq; returns its size."""
+        with self._send_lock, self.mapper.lock:
+            self._collect()
+            records = self.mapper.snapshot()
+            rows = self.outbox.snapshot(records)
+        self.pub_snapshot.publish(structured_to_pointcloud2(rows, self.get_clock().now().nanoseconds,
+                                                            self.world_frame))
+        self.stats.counters["snapshots"] += 1
+        return len(records)
+
+    def on_snapshot_request(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        n = self.publish_snapshot()
+        res.success, res.message = True, f"seq={self.outbox.seq} gaussians={n}"
+        return res
+
+    def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        """Stop training, run the final iterations, flush every change; answer the final seq."""
+        self._stop.set()
+        if self.trainer is not None:
+            self.trainer.join()
+        if not self._finished and self.mapper.ready:
+            t0 = time.perf_counter()
+            for _ in range(self.final_iters):
+                self._step()
+            self.get_logger().info(f"final {self.final_iters} iterations in {time.perf_counter() - t0:.1f} s")
+        self._finished = True
+        self.send_delta(everything=True)
+        res.success = True
+        res.message = f"seq={self.outbox.seq} gaussians={len(self.mapper.gmap)}"
+        return res
+
+    # ------------------------------------------------------------------ views
+    def on_pose(self, msg: PoseStamped) -> None:
+        self.latest_pose = msg
+
+    def render_live(self) -> None:
+        if self.latest_pose is not None:
+            self._render(self.latest_pose)
+
+    def on_view_request(self, msg: PoseStamped) -> None:
+        self._render(msg)
+
+    def _render(self, pose: PoseStamped) -> None:
+        cam = self.render_camera
+        if cam is None or len(self.mapper.gmap) == 0:
+            return
+        out = self.mapper.render(pose_to_matrix(pose.pose), cam)
+        stamp = stamp_to_ns(pose.header.stamp)
+        rgb = (out.color.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+        depth = out.depth.cpu().numpy().astype(np.float32)
+        self.pub_color.publish(numpy_to_image(np.ascontiguousarray(rgb), "rgb8", stamp, "render_camera"))
+        self.pub_depth.publish(depth_to_image(depth, "32FC1", stamp, "render_camera"))
+        self.pub_info.publish(camera_to_camera_info(cam, stamp, "render_camera"))
+        self.stats.counters["renders"] += 1
+
+    def on_shutdown(self) -> None:
+        self._stop.set()
+        if self.trainer is not None:
+            self.trainer.join(timeout=10.0)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(MapperNode, "mapper", args, threads=4)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,215 @@
+"""merger node: the consolidated global map, built from the mapper's deltas (may run elsewhere).
+
+Subscribes: ``memgs/map/delta`` (reliable) and ``memgs/mapper/snapshot`` (latched) from the mapper,
+``memgs/merger/view_pose`` (PoseStamped render requests). Publishes ``memgs/map/gaussians`` (latched
+full map, on request and every ``publish_period_s``), ``memgs/merger/render/{color,depth}`` and
+``memgs/merger/stats``. Services: ``memgs/save_map`` (std_srvs/Trigger: write the PLY atomically,
+answers its path) and ``memgs/merger/publish_map``. Saves periodically and on shutdown.
+
+A gap in the delta sequence, a late start or a count mismatch triggers a resync: deltas are
+buffered, a snapshot is requested from the mapper (``memgs/mapper/publish_snapshot``), loaded, and
+the buffered deltas newer than it are replayed.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+import torch
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from sensor_msgs.msg import Image, PointCloud2
+from std_srvs.srv import Trigger
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.gaussians import GaussianMap
+from memgs_ros.core.map_delta import ApplyStatus, MapMessage, MapReplica, MessageKind, decode, encode
+from memgs_ros.core.ply import save_ply
+from memgs_ros.core.raster import rasterize
+from memgs_ros.errors import MemgsError, MessageError
+from memgs_ros.ros import qos
+from memgs_ros.ros.codecs import (
+    depth_to_image, numpy_to_image, pointcloud2_to_structured, pose_to_matrix, stamp_to_ns,
+    structured_to_pointcloud2,
+)
+from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.node_main import run_node
+from memgs_ros.ros.params import declare
+
+
+class MergerNode(Node):
+    def __init__(self, **node_kwargs: object) -> None:
+        super().__init__("merger", **node_kwargs)
+        self.map_path = Path(declare(self, "map_path", "memgs_map.ply", "where the map PLY is saved (atomically)"))
+        self.save_period = declare(self, "save_period_s", 0.0, "save the PLY this often (0 = on request and shutdown)",
+                                   range=(0.0, 1e6))
+        self.publish_period = declare(self, "publish_period_s", 0.0,
+                                      "publish the full map on memgs/map/gaussians this often (0 = on request)",
+                                      range=(0.0, 1e6))
+        self.resync_interval = declare(self, "resync_interval_s", 1.0, "least time between snapshot requests",
+                                       range=(0.0, 3600.0))
+        self.max_buffered = declare(self, "max_buffered_deltas", 200, "deltas kept while resynchronising",
+                                    range=(1, 100000))
+        self.world_frame = declare(self, "world_frame", "map", "frame id of the published map")
+        w = declare(self, "render_width", 320, "render width (px) for view requests", range=(1, 8192))
+        h = declare(self, "render_height", 240, "render height (px) for view requests", range=(1, 8192))
+        fx = declare(self, "render_fx", 258.65, "render focal length x (px)", range=(1e-3, 1e6))
+        fy = declare(self, "render_fy", 258.23, "render focal length y (px)", range=(1e-3, 1e6))
+        cx = declare(self, "render_cx", 159.32, "render principal point x (px)", range=(-1e6, 1e6))
+        cy = declare(self, "render_cy", 127.66, "render principal point y (px)", range=(-1e6, 1e6))
+        self.render_camera = PinholeCamera(w, h, fx, fy, cx, cy)
+
+        self.replica = MapReplica()
+        self.stats = NodeStats(self, "merger")
+        self.buffer: deque[MapMessage] = deque(maxlen=self.max_buffered)
+        self.resyncing = False
+        self._last_request = 0.0
+        self._render_cache: tuple[int, int, GaussianMap] | None = None  # (seq, size, map)
+        self._saved_version: tuple[int, int] | None = None
+
+        self.pub_map = self.create_publisher(PointCloud2, "memgs/map/gaussians", qos.latched())
+        self.pub_color = self.create_publisher(Image, "memgs/merger/render/color", qos.reliable(2))
+        self.pub_depth = self.create_publisher(Image, "memgs/merger/render/depth", qos.reliable(2))
+        self.create_subscription(PointCloud2, "memgs/map/delta", self.on_delta, qos.reliable(50))
+        self.create_subscription(PointCloud2, "memgs/mapper/snapshot", self.on_snapshot, qos.latched())
+        self.create_subscription(PoseStamped, "memgs/merger/view_pose", self.on_view_request, qos.reliable(5))
+        self.snapshot_client = self.create_client(Trigger, "memgs/mapper/publish_snapshot")
+        self.create_service(Trigger, "memgs/save_map", self.on_save)
+        self.create_service(Trigger, "memgs/merger/publish_map", self.on_publish_map)
+        if self.save_period > 0:
+            self.create_timer(self.save_period, self.save)
+        if self.publish_period > 0:
+            self.create_timer(self.publish_period, self.publish_map)
+        self.create_timer(0.5, self._retry_resync)
+
+    # ------------------------------------------------------------------ sync
+    def _decode(self, msg: PointCloud2) -> MapMessage | None:
+        try:
+            return decode(pointcloud2_to_structured(msg))
+        except MessageError as err:
+            self.stats.problem("bad_map_message", f"map message refused: {err}")
+            return None
+
+    def on_delta(self, msg: PointCloud2) -> None:
+        m = self._decode(msg)
+        if m is None:
+            return
+        self.stats.counters["deltas"] += 1
+        self.stats.counters["delta_bytes"] += len(msg.data)
+        if self.resyncing:
+            self.buffer.append(m)
+            return
+        self._apply(m)
+
+    def on_snapshot(self, msg: PointCloud2) -> None:
+        m = self._decode(msg)
+        if m is None or m.kind is not MessageKind.SNAPSHOT:
+            return
+        status = self.replica.apply(m)
+        self.stats.counters["snapshots"] += 1
+        if status is not ApplyStatus.APPLIED:
+            return
+        self.resyncing = False
+        pending = sorted((d for d in self.buffer if d.seq > self.replica.seq), key=lambda d: d.seq)
+        self.buffer.clear()
+        for d in pending:
+            if not self._apply(d):
+                break
+        self._gauges()
+
+    def _apply(self, m: MapMessage) -> bool:
+        """Apply one delta; on a gap, late start or mismatch start a resync. True while in step."""
+        status = self.replica.apply(m)
+        self._gauges()
+        if status in (ApplyStatus.APPLIED, ApplyStatus.STALE):
+            return True
+        self.stats.counters[f"resync.{status.value}"] += 1
+        self.get_logger().warning(f"delta {m.seq}: {status.value} at replica seq {self.replica.seq}; resynchronising")
+        self.resyncing = True
+        self.buffer.append(m)
+        self._request_snapshot()
+        return False
+
+    def _request_snapshot(self) -> None:
+        now = time.monotonic()
+        if now - self._last_request < self.resync_interval or not self.snapshot_client.service_is_ready():
+            return
+        self._last_request = now
+        self.snapshot_client.call_async(Trigger.Request())
+        self.stats.counters["snapshot_requests"] += 1
+
+    def _retry_resync(self) -> None:
+        if self.resyncing:
+            self._request_snapshot()
+
+    def _gauges(self) -> None:
+        self.stats.gauges["seq"] = self.replica.seq
+        self.stats.gauges["gaussians"] = len(self.replica)
+        self.stats.gauges["resyncing"] = int(self.resyncing)
+        self.stats.gauges["unknown_removals"] = self.replica.unknown_removals
+
+    # ------------------------------------------------------------------ outputs
+    def save(self) -> Path | None:
+        """Write the PLY atomically if the map changed since the last save."""
+        if not self.replica.synced:
+            return None
+        version = (self.replica.seq, len(self.replica))
+        if version != self._saved_version or not self.map_path.exists():
+            save_ply(self.replica.records, self.map_path)
+            self._saved_version = version
+            self.stats.counters["saves"] += 1
+        return self.map_path
+
+    def on_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        try:
+            path = self.save()
+        except (MemgsError, OSError) as err:
+            res.success, res.message = False, f"could not save {self.map_path}: {err}"
+            return res
+        res.success = path is not None
+        res.message = (f"{path.resolve()} gaussians={len(self.replica)} seq={self.replica.seq}" if path
+                       else "no map received yet")
+        return res
+
+    def publish_map(self) -> None:
+        rows = encode(MessageKind.SNAPSHOT, self.replica.seq, len(self.replica), self.replica.records,
+                      np.zeros(0, np.int64), sh_degree=3)
+        self.pub_map.publish(structured_to_pointcloud2(rows, self.get_clock().now().nanoseconds, self.world_frame))
+
+    def on_publish_map(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        self.publish_map()
+        res.success, res.message = True, f"gaussians={len(self.replica)} seq={self.replica.seq}"
+        return res
+
+    def on_view_request(self, msg: PoseStamped) -> None:
+        if len(self.replica) == 0:
+            return
+        key = (self.replica.seq, len(self.replica))
+        if self._render_cache is None or self._render_cache[:2] != key:
+            self._render_cache = (*key, GaussianMap.from_records(self.replica.records, max_sh_degree=3))
+        g = self._render_cache[2]
+        T_cw = torch.from_numpy(np.linalg.inv(pose_to_matrix(msg.pose))).float()
+        with torch.no_grad():
+            out = rasterize(g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh_dc, g.sh_rest,
+                            T_cw, self.render_camera, sh_degree=3)
+        stamp = stamp_to_ns(msg.header.stamp)
+        rgb = (out.color.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+        self.pub_color.publish(numpy_to_image(np.ascontiguousarray(rgb), "rgb8", stamp, "render_camera"))
+        self.pub_depth.publish(depth_to_image(out.depth.numpy().astype(np.float32), "32FC1", stamp, "render_camera"))
+        self.stats.counters["renders"] += 1
+
+    def on_shutdown(self) -> None:
+        path = self.save()
+        if path is not None:
+            self.get_logger().info(f"map saved to {path} ({len(self.replica)} Gaussians)")
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(MergerNode, "merger", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,221 @@
+"""tracker node: colour (+ depth) + camera_info in; pose, path, tracking state and keyframes out.
+
+Subscribes (sensor-data QoS): ``color_topic``, ``depth_topic`` (RGB-D only), ``camera_info_topic``.
+Publishes: ``memgs/pose`` (PoseStamped), ``memgs/odom`` (Odometry), ``memgs/path`` (Path),
+``memgs/tracking_state`` (String), per keyframe ``memgs/keyframe/{color,depth,camera_info,pose,
+keypoints}`` sharing the frame's stamp (images undistorted), refined keyframe poses after local
+BA on ``memgs/keyframe/refined_poses`` (Path, one PoseStamped per keyframe stamp), and
+``memgs/tracker/processed`` (Header; frame_id "keyframe" or "frame") for every frame handled, which
+the lockstep player or the mapper waits on.
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry, Path
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header, String
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.frame import Frame
+from memgs_ros.core.sampling import Undistorter
+from memgs_ros.core.tracking import TrackerConfig, TrackResult, make_tracker
+from memgs_ros.errors import DataError, MessageError
+from memgs_ros.ros import qos
+from memgs_ros.ros.codecs import (
+    append_to_path, camera_info_to_camera, camera_to_camera_info, depth_from_image, depth_to_image,
+    make_header, matrix_to_odometry, matrix_to_pose_stamped, numpy_to_image, rgb_from_image, stamp_to_ns,
+    structured_to_pointcloud2,
+)
+from memgs_ros.ros.config_params import declare_config
+from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.node_main import run_node
+from memgs_ros.ros.params import declare
+from memgs_ros.ros.stamp_sync import NearestPairer
+
+KEYPOINT_DTYPE = np.dtype([("u", np.float32), ("v", np.float32), ("depth", np.float32), ("active", np.uint8)])
+
+
+class TrackerNode(Node):
+    def __init__(self, **node_kwargs: object) -> None:
+        super().__init__("tracker", **node_kwargs)
+        self.color_topic = declare(self, "color_topic", "camera/camera/color/image_raw", "colour image input")
+        self.depth_topic = declare(self, "depth_topic", "camera/camera/aligned_depth_to_color/image_raw",
+                                   "depth image input registered to colour (16UC1 or 32FC1); unused in mono mode")
+        self.info_topic = declare(self, "camera_info_topic", "camera/camera/color/camera_info",
+                                  "camera_info of the colour camera (plumb_bob)")
+        self.depth_scale = declare(self, "depth_scale", 1000.0, "16UC1 depth units per metre (RealSense 1000, TUM 5000)",
+                                   range=(1e-3, 1e6))
+        self.sync = declare(self, "sync", "approximate", "colour/depth pairing", choices=("approximate", "exact"))
+        max_dt = declare(self, "max_sync_dt_s", 0.02, "largest colour/depth stamp difference paired (approximate)",
+                         range=(0.0, 1.0))
+        self.world_frame = declare(self, "world_frame", "map", "frame id of published poses")
+        self.camera_frame = declare(self, "camera_frame", "camera_color_optical_frame",
+                                    "child frame id of the odometry (camera optical frame)")
+        self.path_max_len = declare(self, "path_max_len", 10000, "poses kept in memgs/path (0 = all)",
+                                    range=(0, 10**7))
+        self.cfg: TrackerConfig = declare_config(self, TrackerConfig, "tracker")
+        self.rgbd = self.cfg.mode == "rgbd"
+
+        self.stats = NodeStats(self, "tracker")
+        self.camera: PinholeCamera | None = None
+        self.tracker = None
+        self.undistort: Undistorter | None = None
+        self.last_stamp_ns = -1
+        self.kf_stamps: dict[int, int] = {}
+        self.path = Path()
+        self.path.header.frame_id = self.world_frame
+        self.kf_path = Path()
+        self.kf_path.header.frame_id = self.world_frame
+        self.pairer: NearestPairer[Image] = NearestPairer(
+            max_dt_ns=0 if self.sync == "exact" else int(max_dt * 1e9), queue_size=5)
+
+        rel = qos.reliable(10)
+        self.pub_pose = self.create_publisher(PoseStamped, "memgs/pose", rel)
+        self.pub_odom = self.create_publisher(Odometry, "memgs/odom", rel)
+        self.pub_path = self.create_publisher(Path, "memgs/path", rel)
+        self.pub_state = self.create_publisher(String, "memgs/tracking_state", rel)
+        self.pub_processed = self.create_publisher(Header, "memgs/tracker/processed", qos.reliable(100))
+        kf = qos.reliable(20)
+        self.pub_kf_color = self.create_publisher(Image, "memgs/keyframe/color", kf)
+        self.pub_kf_depth = self.create_publisher(Image, "memgs/keyframe/depth", kf)
+        self.pub_kf_info = self.create_publisher(CameraInfo, "memgs/keyframe/camera_info", kf)
+        self.pub_kf_pose = self.create_publisher(PoseStamped, "memgs/keyframe/pose", kf)
+        from sensor_msgs.msg import PointCloud2  # local: only the keypoint cloud needs it
+        self.pub_kf_kps = self.create_publisher(PointCloud2, "memgs/keyframe/keypoints", kf)
+        self.pub_refined = self.create_publisher(Path, "memgs/keyframe/refined_poses", kf)
+
+        sensor = qos.sensor()
+        self.create_subscription(CameraInfo, self.info_topic, self.on_camera_info, sensor)
+        self.create_subscription(Image, self.color_topic, self.on_color, sensor)
+        if self.rgbd:
+            self.create_subscription(Image, self.depth_topic, self.on_depth, sensor)
+        self.get_logger().info(
+            f"tracking {self.cfg.mode} from {self.resolve_topic_name(self.color_topic)}"
+            + (f" + {self.resolve_topic_name(self.depth_topic)}" if self.rgbd else ""))
+
+    # ------------------------------------------------------------------ inputs
+    def on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            cam = camera_info_to_camera(msg)
+        except MessageError as err:
+            self.stats.problem("camera_info", f"camera_info refused: {err}")
+            return
+        if self.camera is None:
+            self.camera = cam
+            self.tracker = make_tracker(self.cfg, cam)
+            self.undistort = Undistorter(cam)
+            self.get_logger().info(f"camera {cam.width}x{cam.height} fx={cam.fx:.1f} fy={cam.fy:.1f}")
+        elif cam != self.camera:
+            self.stats.problem("camera_changed", "camera_info changed after tracking started; keeping the first")
+
+    def on_color(self, msg: Image) -> None:
+        if not self.rgbd:
+            self._handle(msg, None)
+            return
+        pair = self.pairer.add_a(stamp_to_ns(msg.header.stamp), msg)
+        if pair is not None:
+            self._handle(pair[1], pair[2])
+
+    def on_depth(self, msg: Image) -> None:
+        pair = self.pairer.add_b(stamp_to_ns(msg.header.stamp), msg)
+        if pair is not None:
+            self._handle(pair[1], pair[2])
+
+    def _frame(self, color: Image, depth: Image | None) -> Frame | None:
+        """Messages to a Frame, or None (counted, logged once) when they cannot be used."""
+        if self.camera is None:
+            self.stats.problem("no_camera_info", f"no valid camera_info on {self.info_topic} yet: dropping frames")
+            return None
+        try:
+            rgb = rgb_from_image(color)
+            depth_m = depth_from_image(depth, self.depth_scale) if depth is not None else None
+            return Frame(stamp_to_ns(color.header.stamp), rgb, depth_m, self.camera)
+        except (MessageError, DataError) as err:
+            self.stats.problem("bad_image", f"frame {stamp_to_ns(color.header.stamp)} refused: {err}")
+            return None
+
+    def _handle(self, color: Image, depth: Image | None) -> None:
+        self.stats.counters["frames_in"] += 1
+        stamp = stamp_to_ns(color.header.stamp)
+        if stamp <= self.last_stamp_ns:
+            self.stats.problem("stamp_order", f"frame stamp {stamp} is not after the previous "
+                                              f"{self.last_stamp_ns}: dropped")
+            self._processed(stamp, keyframe=False)
+            return
+        frame = self._frame(color, depth)
+        if frame is None or self.tracker is None:
+            self._processed(stamp, keyframe=False)
+            return
+        if depth is not None and not frame.valid_depth_mask().any():
+            self.stats.problem("empty_depth", f"frame {stamp} has no valid depth")
+        self.last_stamp_ns = stamp
+        t0 = time.perf_counter()
+        result = self.tracker.track(frame)
+        dt = time.perf_counter() - t0
+        self.stats.gauges["track_ms"] = round(dt * 1e3, 2)
+        self.stats.counters["track_us_total"] += int(dt * 1e6)
+        self._publish(frame, result, color.header.frame_id or self.camera_frame)
+        self._publish_refined()
+        self._processed(stamp, keyframe=result.keyframe is not None)
+
+    # ------------------------------------------------------------------ outputs
+    def _processed(self, stamp_ns: int, keyframe: bool) -> None:
+        self.pub_processed.publish(make_header(stamp_ns, "keyframe" if keyframe else "frame"))
+
+    def _publish(self, frame: Frame, result: TrackResult, camera_frame: str) -> None:
+        self.pub_state.publish(String(data=result.state.name))
+        self.stats.counters[f"state.{result.state.name}"] += 1
+        self.stats.gauges["segment"] = result.segment_id
+        if result.T_wc is None:
+            return
+        pose = matrix_to_pose_stamped(result.T_wc, frame.stamp_ns, self.world_frame)
+        self.pub_pose.publish(pose)
+        self.pub_odom.publish(matrix_to_odometry(result.T_wc, frame.stamp_ns, self.world_frame, camera_frame))
+        append_to_path(self.path, pose, self.path_max_len)
+        self.pub_path.publish(self.path)
+        self.stats.counters["poses_out"] += 1
+        if result.keyframe is not None:
+            self._publish_keyframe(frame, result, camera_frame)
+
+    def _publish_keyframe(self, frame: Frame, result: TrackResult, camera_frame: str) -> None:
+        kf = result.keyframe
+        assert kf is not None and self.undistort is not None
+        stamp = frame.stamp_ns
+        rgb_u, depth_u, cam_u = self.undistort(frame.rgb, frame.depth_m)
+        kps = np.zeros(len(kf.keypoints_uv), dtype=KEYPOINT_DTYPE)
+        kps["u"], kps["v"] = kf.keypoints_uv[:, 0], kf.keypoints_uv[:, 1]
+        kps["depth"], kps["active"] = kf.keypoint_depth, kf.keypoint_active
+        self.pub_kf_info.publish(camera_to_camera_info(cam_u, stamp, camera_frame))
+        self.pub_kf_color.publish(numpy_to_image(rgb_u, "rgb8", stamp, camera_frame))
+        if depth_u is not None:
+            self.pub_kf_depth.publish(depth_to_image(depth_u, "32FC1", stamp, camera_frame))
+        self.pub_kf_kps.publish(structured_to_pointcloud2(kps, stamp, camera_frame))
+        self.pub_kf_pose.publish(matrix_to_pose_stamped(kf.T_wc, stamp, self.world_frame))
+        self.kf_stamps[kf.keyframe_id] = stamp
+        self.stats.counters["keyframes"] += 1
+
+    def _publish_refined(self) -> None:
+        refined = self.tracker.poll_refined_keyframes() if self.tracker is not None else []
+        poses = [matrix_to_pose_stamped(T, self.kf_stamps[i], self.world_frame)
+                 for i, T in refined if i in self.kf_stamps]
+        if poses:
+            self.kf_path.poses = poses
+            self.pub_refined.publish(self.kf_path)
+            self.stats.counters["refined_keyframe_poses"] += len(poses)
+
+    def on_shutdown(self) -> None:
+        if self.tracker is not None:
+            self.tracker.close()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(TrackerNode, "tracker", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,89 @@
+"""Expose every field of a core config dataclass as a described, ranged ROS parameter.
+
+The core configs (TrackerConfig, MappingConfig, MergeConfig, PatchGridConfig) are the
+single source of truth: their fields give names, types and defaults, their source
+comments give the descriptions, and their ``__post_init__`` validation refuses bad
+values. A node declares them under a prefix (``tracker.n_features``) and gets the
+typed, validated config back. Numbers get a range: the node's table where it gives
+one, else non-negative when the default is, so ``ros2 param describe`` documents all.
+"""
+from __future__ import annotations
+
+import inspect
+import re
+from collections.abc import Mapping
+from dataclasses import MISSING, fields, is_dataclass
+from functools import lru_cache
+from typing import TypeVar
+
+from rclpy.node import Node
+
+from memgs_ros.errors import ConfigError, MemgsError
+from memgs_ros.ros.params import declare
+
+C = TypeVar("C")
+_BIG = 1e12
+_FIELD = re.compile(r"^\s+(\w+)\s*:[^=]*=.*?(?:#\s*(.*))?$")
+_COMMENT = re.compile(r"^\s+#\s*(.*)$")
+
+
+@lru_cache(maxsize=None)
+def field_descriptions(config_cls: type) -> dict[str, str]:
+    """Field name -> the comment on its line (or the comment block just above it)."""
+    out: dict[str, str] = {}
+    try:
+        lines = inspect.getsource(config_cls).splitlines()
+    except (OSError, TypeError):
+        return out
+    above: list[str] = []  # comment lines right above the current field
+    group = ""  # the last comment block: it heads every field below it until a blank line
+    for line in lines:
+        m = _FIELD.match(line)
+        if m:
+            if above:
+                group = " ".join(above).rstrip(".")
+            own = (m.group(2) or "").strip()
+            words = m.group(1).replace("_", " ")
+            out[m.group(1)] = own or (f"{group}: {words}" if group else words)
+            above = []
+            continue
+        c = _COMMENT.match(line)
+        if c:
+            above.append(c.group(1).strip())
+        elif not line.strip():
+            above, group = [], ""
+    return out
+
+
+def declare_config(node: Node, config_cls: type[C], prefix: str,
+                   ranges: Mapping[str, tuple[float, float]] | None = None,
+                   defaults: Mapping[str, object] | None = None) -> C:
+    """Declare ``<prefix>.<field>`` for every plain (bool/int/float/str) field; build the config.
+
+    defaults: per-node default overrides (e.g. mode="mono"); parameter files still win.
+    Raises ConfigError naming the parameter when a value is refused.
+    """
+    if not is_dataclass(config_cls):
+        raise TypeError(f"{config_cls!r} is not a dataclass")
+    ranges = ranges or {}
+    defaults = defaults or {}
+    docs = field_descriptions(config_cls)
+    values: dict[str, object] = {}
+    for f in fields(config_cls):
+        default = defaults.get(f.name, f.default)
+        if default is MISSING or not isinstance(default, (bool, int, float, str)):
+            continue  # tuples and nested configs stay at their defaults
+        name = f"{prefix}.{f.name}"
+        desc = docs.get(f.name) or f"{config_cls.__name__}.{f.name}"
+        rng = ranges.get(f.name)
+        if rng is None and isinstance(default, (int, float)) and not isinstance(default, bool):
+            rng = (0, _BIG) if default >= 0 else (-_BIG, _BIG)
+            if isinstance(default, int):
+                rng = (int(rng[0]), 2**31 - 1)
+        values[f.name] = declare(node, name, default, desc, range=rng)
+    try:
+        return config_cls(**values)
+    except MemgsError as err:
+        raise ConfigError(f"parameters '{prefix}.*': {err}") from err
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"parameters '{prefix}.*' are inconsistent: {err}") from err

@@ -1,0 +1,49 @@
+"""Node statistics as diagnostic_msgs/DiagnosticArray on ``memgs/<node>/stats``."""
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Mapping
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+
+from memgs_ros.ros import qos
+from memgs_ros.ros.codecs import make_header
+
+
+class NodeStats:
+    """Counters and gauges a node publishes once a second, plus warn-once logging per problem kind."""
+
+    def __init__(self, node: Node, name: str, period_s: float = 1.0) -> None:
+        self._node = node
+        self._name = name
+        self.counters: Counter[str] = Counter()
+        self.gauges: dict[str, float | int | str] = {}
+        self._warned: set[str] = set()
+        self._pub = node.create_publisher(DiagnosticArray, f"memgs/{name}/stats", qos.reliable(5))
+        self._timer = node.create_timer(period_s, self.publish)
+
+    def problem(self, kind: str, message: str) -> None:
+        """Count a problem; log it once per kind (then only the counter grows)."""
+        self.counters[f"problem.{kind}"] += 1
+        if kind not in self._warned:
+            self._warned.add(kind)
+            self._node.get_logger().warning(f"{message} (further '{kind}' problems are only counted)")
+
+    def message(self) -> DiagnosticArray:
+        values: Mapping[str, object] = {**self.counters, **self.gauges}
+        level = DiagnosticStatus.WARN if any(k.startswith("problem.") for k in self.counters) else DiagnosticStatus.OK
+        status = DiagnosticStatus(
+            level=level, name=f"memgs/{self._name}", hardware_id=self._node.get_fully_qualified_name(),
+            message="problems seen" if level else "ok",
+            values=[KeyValue(key=k, value=str(v)) for k, v in sorted(values.items())])
+        now_ns = self._node.get_clock().now().nanoseconds
+        return DiagnosticArray(header=make_header(now_ns, ""), status=[status])
+
+    def publish(self) -> None:
+        self._pub.publish(self.message())
+
+
+def stats_values(msg: DiagnosticArray) -> dict[str, str]:
+    """The key/values of the first status of a stats message."""
+    return {kv.key: kv.value for kv in msg.status[0].values} if msg.status else {}

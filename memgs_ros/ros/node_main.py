@@ -1,0 +1,49 @@
+"""One ``main()`` for every node: init, spin, clean shutdown on Ctrl-C or SIGTERM.
+
+A node may define ``on_shutdown()`` (save the map, stop threads); it runs before
+``destroy_node()`` whether the node ends normally, by signal, or by error. A
+``MemgsError`` at start (a refused parameter, say) is one fatal log line and exit 2.
+"""
+from __future__ import annotations
+
+import signal
+from collections.abc import Callable, Sequence
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.node import Node
+
+from memgs_ros.errors import MemgsError
+
+
+def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None = None,
+             threads: int = 1) -> int:
+    """Create the node with ``factory`` after rclpy.init and spin it until shutdown."""
+    rclpy.init(args=list(args) if args is not None else None)
+    # SIGTERM (e.g. from a supervisor) shuts down like Ctrl-C, so on_shutdown still runs.
+    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    node: Node | None = None
+    executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
+    code = 0
+    try:
+        node = factory()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except MemgsError as err:
+        rclpy.logging.get_logger(name).fatal(str(err))
+        code = 2
+    finally:
+        if node is not None:
+            hook = getattr(node, "on_shutdown", None)
+            if hook is not None:
+                try:
+                    hook()
+                except Exception as err:  # noqa: BLE001 - shutdown must finish; say what failed
+                    rclpy.logging.get_logger(name).error(f"shutdown hook failed: {err}")
+                    code = code or 1
+            executor.shutdown()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code

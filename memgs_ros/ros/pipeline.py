@@ -1,0 +1,335 @@
+"""Run the whole graph on a recorded source: player -> tracker -> sampler -> mapper -> merger.
+
+``run_pipeline(options)`` starts the five nodes either as separate processes over real DDS
+(the default, as on a robot) or in this process on one multi-threaded executor, watches them
+through an observer node, and at the end of the source finishes the mapper (final flush),
+waits for the merger to hold the mapper's last delta, saves the map and returns a summary.
+It is what ``memgs run`` / ``memgs demo`` and the end-to-end tests call.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from memgs_ros.errors import ConfigError, MemgsError
+
+logger = logging.getLogger(__name__)
+
+GRAPH_NODES = ("merger", "mapper", "keyframe_sampler", "tracker")
+NODE_CLASSES = {
+    "tracker": ("memgs_ros.nodes.tracker", "TrackerNode"),
+    "keyframe_sampler": ("memgs_ros.nodes.keyframe_sampler", "KeyframeSamplerNode"),
+    "mapper": ("memgs_ros.nodes.mapper", "MapperNode"),
+    "merger": ("memgs_ros.nodes.merger", "MergerNode"),
+    "bag_player": ("memgs_ros.nodes.bag_player", "BagPlayer"),
+}
+
+
+class PipelineError(MemgsError):
+    """A node died, timed out or the run could not finish."""
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    source: str
+    config: str = "synthetic"
+    out_dir: Path = Path("memgs_out")
+    single_process: bool = False
+    lockstep: bool = True
+    rate: float = 1.0
+    namespace: str = ""
+    domain_id: int | None = None
+    max_frames: int = 0
+    overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value
+    timeout_s: float = 1800.0
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    source: str
+    frames: int
+    poses: int
+    keyframes: int
+    gaussians: int
+    tracking_fps: float
+    wall_s: float
+    ply_path: str
+    trajectory_path: str
+    delta_messages: int
+    delta_bytes: int
+    delta_bytes_per_s: float
+    lost_frames: int
+    merger_seq: int
+    namespace: str
+    domain_id: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def config_path(name_or_path: str) -> Path:
+    """A config name (``tum_fr1``) or path to the YAML file; searches the source tree and ``share/``."""
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") and p.exists():
+        return p
+    name = p.name if p.suffix in (".yaml", ".yml") else f"{name_or_path}.yaml"
+    roots = [Path(__file__).resolve().parents[2] / "config"]
+    roots += [Path(prefix) / "share" / "memgs_ros" / "config"
+              for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if prefix]
+    roots.append(Path(sys.prefix) / "share" / "memgs_ros" / "config")
+    for root in roots:
+        if (root / name).exists():
+            return root / name
+    raise ConfigError(f"no config '{name_or_path}' (looked for {name} in {', '.join(map(str, roots))})")
+
+
+def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
+    """The run's parameter file: the config, then the run's own settings, then the overrides."""
+    path = config_path(options.config)
+    try:
+        base = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"could not read config {path}: {err}") from err
+    params: dict[str, dict[str, Any]] = {}
+    for key, section in base.items():
+        node = key.rsplit("/", 1)[-1]
+        params[node] = dict((section or {}).get("ros__parameters", {}))
+    params.setdefault("bag_player", {}).update(
+        source=str(options.source), lockstep=options.lockstep, rate=float(options.rate),
+        max_frames=int(options.max_frames), ack_topic="memgs/frame_ack", world_frame_id="map")
+    params.setdefault("mapper", {})["lockstep"] = options.lockstep
+    params.setdefault("merger", {})["map_path"] = str(map_path)
+    for key, value in options.overrides.items():
+        node, _, name = key.partition(".")
+        if node not in NODE_CLASSES or not name:
+            raise ConfigError(f"override '{key}' must be <node>.<parameter> with node one of {sorted(NODE_CLASSES)}")
+        params.setdefault(node, {})[name] = value
+    return {f"/**/{node}": {"ros__parameters": p} for node, p in params.items()}
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+class _Observer:
+    """An rclpy node that watches the graph and drives its end (created after rclpy.init)."""
+
+    def __init__(self, context: Any) -> None:
+        from geometry_msgs.msg import PoseStamped
+        from rclpy.node import Node
+        from std_msgs.msg import Bool
+        from std_srvs.srv import Trigger
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from memgs_ros.ros import qos
+        from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
+        from memgs_ros.ros.diagnostics import stats_values
+
+        self.node = Node("memgs_run_observer", context=context)
+        self.done = threading.Event()
+        self.stats: dict[str, dict[str, str]] = {}
+        self.trajectory: list[tuple[int, np.ndarray]] = []
+        self._lock = threading.Lock()
+
+        def on_pose(msg: PoseStamped) -> None:
+            with self._lock:
+                self.trajectory.append((stamp_to_ns(msg.header.stamp), pose_to_matrix(msg.pose)))
+
+        def stats_cb(name: str):  # noqa: ANN202
+            return lambda msg: self.stats.__setitem__(name, stats_values(msg))
+
+        self.node.create_subscription(Bool, "memgs/player/done", lambda m: m.data and self.done.set(), qos.latched())
+        self.node.create_subscription(PoseStamped, "memgs/pose", on_pose, qos.reliable(1000))
+        for name in ("tracker", "keyframe_sampler", "mapper", "merger"):
+            self.node.create_subscription(DiagnosticArray, f"memgs/{name}/stats", stats_cb(name), qos.reliable(5))
+        self.finish_client = self.node.create_client(Trigger, "memgs/mapper/finish")
+        self.save_client = self.node.create_client(Trigger, "memgs/save_map")
+        self._trigger = Trigger
+
+    def call(self, client: Any, timeout_s: float) -> str:
+        """Call a Trigger service and return its message; PipelineError if it fails."""
+        if not client.wait_for_service(timeout_sec=min(timeout_s, 30.0)):
+            raise PipelineError(f"service {client.srv_name} is not available")
+        future = client.call_async(self._trigger.Request())
+        end = time.monotonic() + timeout_s
+        while not future.done():
+            if time.monotonic() > end:
+                raise PipelineError(f"service {client.srv_name} did not answer within {timeout_s:.0f} s")
+            time.sleep(0.05)
+        res = future.result()
+        if not res.success:
+            raise PipelineError(f"service {client.srv_name} failed: {res.message}")
+        return res.message
+
+    def stat(self, node: str, key: str, default: float = 0.0) -> float:
+        try:
+            return float(self.stats.get(node, {}).get(key, default))
+        except ValueError:
+            return default
+
+
+def _parse_kv(message: str) -> dict[str, str]:
+    return dict(part.split("=", 1) for part in message.split() if "=" in part)
+
+
+class _Processes:
+    """The graph's nodes as child processes, logs in ``log_dir``; stopped with SIGINT."""
+
+    def __init__(self, params_file: Path, namespace: str, env: dict[str, str], log_dir: Path) -> None:
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.log_dir = log_dir
+        self._params_file, self._ns, self._env = params_file, namespace, env
+
+    def start(self, name: str) -> None:
+        module = NODE_CLASSES[name][0]
+        cmd = [sys.executable, "-m", module, "--ros-args", "--params-file", str(self._params_file)]
+        if self._ns:
+            cmd += ["-r", f"__ns:={self._ns}"]
+        log = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 - owned by the child
+        self.procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self._env)
+
+    def check(self) -> None:
+        for name, p in self.procs.items():
+            code = p.poll()
+            if code is not None and not (name == "bag_player" and code == 0):
+                tail = (self.log_dir / f"{name}.log").read_text(errors="replace").strip().splitlines()[-15:]
+                raise PipelineError(f"node {name} exited with code {code}:\n  " + "\n  ".join(tail))
+
+    def stop(self, timeout_s: float = 20.0) -> None:
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        end = time.monotonic() + timeout_s
+        for name, p in self.procs.items():
+            try:
+                p.wait(timeout=max(0.1, end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                logger.warning("node %s did not stop on SIGINT; killing it", name)
+                p.kill()
+                p.wait()
+
+
+def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
+    """Replay ``options.source`` through the graph and return what it produced."""
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+
+    out = Path(options.out_dir).resolve()
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    map_path = out / "map.ply"
+    params_file = out / "params.yaml"
+    _write_atomic(params_file, yaml.safe_dump(build_params(options, map_path), sort_keys=False))
+    domain = options.domain_id if options.domain_id is not None else random.randrange(100, 200)
+    os.environ["ROS_DOMAIN_ID"] = str(domain)
+    ns = options.namespace
+    ros_args = ["--ros-args", "--params-file", str(params_file)] + (["-r", f"__ns:={ns}"] if ns else [])
+    context = rclpy.Context()
+    rclpy.init(args=ros_args, context=context)
+    executor = MultiThreadedExecutor(num_threads=8, context=context)
+    procs: _Processes | None = None
+    in_process: list[Any] = []
+    t0 = time.monotonic()
+    try:
+        observer = _Observer(context)
+        executor.add_node(observer.node)
+        if options.single_process:
+            import importlib
+
+            for name in (*GRAPH_NODES, "bag_player"):
+                module, cls = NODE_CLASSES[name]
+                node = getattr(importlib.import_module(module), cls)(context=context)
+                in_process.append(node)
+                executor.add_node(node)
+        spin = threading.Thread(target=executor.spin, daemon=True)
+        spin.start()
+        if not options.single_process:
+            env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1")
+            procs = _Processes(params_file, ns, env, out / "logs")
+            for name in GRAPH_NODES:
+                procs.start(name)
+            procs.start("bag_player")
+        summary = _drive(observer, options, procs, out, t0, progress)
+        return summary
+    finally:
+        if procs is not None:
+            procs.stop()
+        for node in in_process:
+            hook = getattr(node, "on_shutdown", None)
+            if hook is not None:
+                hook()
+        executor.shutdown()
+        for node in in_process:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: Path, t0: float,
+           progress: bool) -> RunSummary:
+    """Wait for the end of the source, finish the mapper, sync the merger, save, summarise."""
+    end = t0 + options.timeout_s
+    last_log = 0.0
+    while not obs.done.is_set():
+        if procs is not None:
+            procs.check()
+        if time.monotonic() > end:
+            raise PipelineError(f"the source did not finish within {options.timeout_s:.0f} s")
+        if progress and time.monotonic() - last_log > 5.0:
+            last_log = time.monotonic()
+            logger.info("frames tracked %d, keyframes %d, Gaussians %d, mapping iteration %d",
+                        obs.stat("tracker", "poses_out"), obs.stat("tracker", "keyframes"),
+                        obs.stat("mapper", "gaussians"), obs.stat("mapper", "iteration"))
+        time.sleep(0.1)
+    if not options.lockstep:
+        time.sleep(2.0)  # let the last frames drain through the graph
+    logger.info("source finished after %.1f s; finishing the mapper", time.monotonic() - t0)
+    final = _parse_kv(obs.call(obs.finish_client, max(60.0, end - time.monotonic())))
+    final_seq, gaussians = int(final.get("seq", 0)), int(final.get("gaussians", 0))
+    while obs.stat("merger", "seq", -1) < final_seq or obs.stat("merger", "resyncing") > 0:
+        if procs is not None:
+            procs.check()
+        if time.monotonic() > end:
+            raise PipelineError(f"the merger did not reach delta {final_seq} in time")
+        time.sleep(0.1)
+    saved = obs.call(obs.save_client, 120.0) if gaussians or final_seq else ""
+    ply = saved.split()[0] if saved else ""
+    wall = time.monotonic() - t0
+    with obs._lock:
+        traj = sorted(obs.trajectory, key=lambda p: p[0])
+    traj_path = out / "trajectory.txt"
+    _write_atomic(traj_path, _tum_trajectory(traj))
+    frames = int(obs.stat("tracker", "frames_in"))
+    track_s = obs.stat("tracker", "track_us_total") * 1e-6
+    delta_bytes = int(obs.stat("merger", "delta_bytes"))
+    return RunSummary(
+        source=str(options.source), frames=frames, poses=len(traj),
+        keyframes=int(obs.stat("tracker", "keyframes")), gaussians=gaussians,
+        tracking_fps=(frames / track_s) if track_s > 0 else 0.0, wall_s=wall, ply_path=ply,
+        trajectory_path=str(traj_path), delta_messages=int(obs.stat("merger", "deltas")),
+        delta_bytes=delta_bytes, delta_bytes_per_s=delta_bytes / wall if wall > 0 else 0.0,
+        lost_frames=int(obs.stat("tracker", "state.LOST")), merger_seq=int(obs.stat("merger", "seq")),
+        namespace=options.namespace, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
+
+
+def _tum_trajectory(traj: list[tuple[int, np.ndarray]]) -> str:
+    from memgs_ros.core.geometry import pose_to_tq
+
+    lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world, memgs_ros tracker)"]
+    for stamp, T in traj:
+        t, q = pose_to_tq(T)
+        lines.append(f"{stamp * 1e-9:.6f} " + " ".join(f"{v:.7f}" for v in (*t, *q)))
+    return "\n".join(lines) + "\n"
