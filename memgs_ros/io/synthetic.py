@@ -220,6 +220,21 @@ class _Noise:
         return out / norm
 
 
+def _smooth_field(fn, w: int, h: int, step: int = 8) -> np.ndarray:
+    """Evaluate a smooth field fn(u_m, v_m) on every ``step``-th texel and upsample bilinearly to [h, w].
+
+    Only for fields that vary over decimetres (blotches, light falloff): 8 texels = 4 cm.
+    """
+    cw, ch = w // step + 2, h // step + 2
+    u = (np.arange(cw, dtype=np.float32) * step + 0.5) * TEXEL_M
+    v = (np.arange(ch, dtype=np.float32) * step + 0.5) * TEXEL_M
+    coarse = np.ascontiguousarray(fn(u[None, :].repeat(ch, 0), v[:, None].repeat(cw, 1)), dtype=np.float32)
+    # coarse sample k sits on texel k*step; map texel c to coarse coordinate c/step
+    xs = (np.arange(w, dtype=np.float32) / step)[None, :].repeat(h, 0)
+    ys = (np.arange(h, dtype=np.float32) / step)[:, None].repeat(w, 1)
+    return cv2.remap(coarse, xs, ys, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
 def _rect(u: np.ndarray, v: np.ndarray, u0: float, v0: float, u1: float, v1: float) -> np.ndarray:
     return (u >= u0) & (u < u1) & (v >= v0) & (v < v1)
 
@@ -263,7 +278,8 @@ def _bake_texture(name: str, kind: str, size_m: tuple[float, float], rng: np.ran
     h = max(2, int(math.ceil(size_m[1] / TEXEL_M)))
     u = ((np.arange(w, dtype=np.float32) + 0.5) * TEXEL_M)[None, :].repeat(h, 0)
     v = ((np.arange(h, dtype=np.float32) + 0.5) * TEXEL_M)[:, None].repeat(w, 1)
-    blot = noise.fbm(u / 0.45 + rng.random() * 100, v / 0.45 + rng.random() * 100, octaves=2)
+    ou, ov = rng.random() * 100, rng.random() * 100
+    blot = _smooth_field(lambda uu, vv: noise.fbm(uu / 0.45 + ou, vv / 0.45 + ov, octaves=2), w, h)
     img = np.empty((h, w, 3), np.float32)
     img[:] = base
     if kind == "floor":
@@ -352,12 +368,16 @@ def build_scene(seed: int = 0) -> SyntheticScene:
         tex = _bake_texture(name, kind, size, rng, noise, base)
         # baked shading: orientation term + soft falloff from the light (view-independent)
         h, w = tex.shape[:2]
-        uu = (np.arange(w) + 0.5) * TEXEL_M
-        vv = (np.arange(h) + 0.5) * TEXEL_M
-        p = o[None, None, :] + uu[None, :, None] * ua + vv[:, None, None] * va  # [h, w, 3]
-        dist2 = np.sum((p - light) ** 2, axis=-1)
+        rel = (o - light).astype(np.float32)
+        ua32, va32 = ua.astype(np.float32), va.astype(np.float32)
+
+        def falloff(uu: np.ndarray, vv: np.ndarray) -> np.ndarray:
+            # squared distance from the light of the surface point at (uu, vv)
+            dist2 = sum((rel[k] + uu * ua32[k] + vv * va32[k]) ** 2 for k in range(3))
+            return np.exp(-dist2 / np.float32(12.0))
+
         orient = 0.8 + 0.2 * float(n @ np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]))
-        shade = (orient * (0.7 + 0.45 * np.exp(-dist2 / 12.0))).astype(np.float32)
+        shade = (orient * (0.7 + 0.45 * _smooth_field(falloff, w, h))).astype(np.float32)
         textures.append(np.clip(tex * shade[..., None], 0.0, 1.0))
     # shelf-pack the textures into one atlas with a 2-texel gutter (bilinear never bleeds)
     atlas_w, gutter = 2048, 2
