@@ -1,0 +1,286 @@
+"""bag_player: replay a frame source (TUM folder, ROS 1/2 bag, synthetic spec) as camera topics.
+
+Publishes, per frame and with one shared header stamp:
+``color/image_raw`` (rgb8), ``depth/image_raw`` (32FC1 metres or 16UC1 scaled units),
+``color/camera_info``, and ``groundtruth/pose`` (PoseStamped, camera in world) when the
+source has ground truth. At the end it latches ``memgs/player/done`` (std_msgs/Bool:
+True when every frame was played, False when the source failed) and exits, unless
+``loop`` is set.
+
+Two pacings:
+- real time: frame i goes out at start + (stamp_i - stamp_0) / rate (never skipping
+  frames; a slow machine just plays late);
+- lockstep: frame i+1 goes out when a std_msgs/Header with frame i's stamp arrives on
+  ``ack_topic`` (or after ``ack_timeout_s``, with a warning), so the pipeline sees every
+  frame however slow it is. ``rate`` is ignored.
+
+When looping, each pass is shifted by the length of the sequence plus one frame period,
+so stamps downstream never go backwards.
+
+    python -m memgs_ros.nodes.bag_player --ros-args -p source:=synthetic:w=64,h=48,n=20 -p lockstep:=true
+"""
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.task import Future
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Bool, Header
+
+from memgs_ros.core.frame import Frame
+from memgs_ros.errors import ConfigError, MemgsError
+from memgs_ros.ros import codecs, qos
+from memgs_ros.ros.params import ParamSpec, declare_all
+
+TICK_S = 0.005  # pacing resolution; lockstep frames go out from the ack callback, not the tick
+SETTLE_S = 0.5  # after the first subscriber matches, let the other topics' matching finish
+LINGER_S = 0.5  # keep the latched "done" publisher alive so matched readers receive it
+PROGRESS_EVERY_S = 5.0
+DEFAULT_PERIOD_NS = 33_333_333  # loop gap for a one-frame source (30 Hz)
+
+PARAMS = (
+    ParamSpec("source", "", "frame source: TUM folder, .bag, ROS 2 bag folder/.mcap, or 'synthetic:...' spec"),
+    ParamSpec("rate", 1.0, "real-time factor (2.0 plays twice as fast); ignored in lockstep", (0.01, 1000.0)),
+    ParamSpec("loop", False, "start over at the end (stamps keep increasing)"),
+    ParamSpec("lockstep", False, "publish the next frame only after the pipeline acks the current one"),
+    ParamSpec("ack_topic", "memgs/frame_ack", "std_msgs/Header acks (stamp of the finished frame), lockstep only"),
+    ParamSpec("ack_timeout_s", 10.0, "lockstep: warn and go on when no ack arrives within this time", (0.05, 3600.0)),
+    ParamSpec("start_delay_s", 5.0, "wait at most this long for a color subscriber before the first frame",
+              (0.0, 600.0)),
+    ParamSpec("max_frames", 0, "stop after this many frames, over all loops (0 = no limit)", (0, 2**31 - 1)),
+    ParamSpec("depth_encoding", "32FC1", "depth image encoding: 32FC1 metres or 16UC1 scaled units",
+              choices=("32FC1", "16UC1")),
+    ParamSpec("depth_scale", 1000.0, "16UC1 units per metre (1000 = millimetres)", (1.0, 100000.0)),
+    ParamSpec("frame_id", "camera_color_optical_frame", "frame id of the images and camera info"),
+    ParamSpec("world_frame_id", "world", "frame id of the ground-truth poses"),
+)
+
+
+@dataclass(frozen=True)
+class PlayerConfig:
+    source: str
+    rate: float
+    loop: bool
+    lockstep: bool
+    ack_topic: str
+    ack_timeout_s: float
+    start_delay_s: float
+    max_frames: int
+    depth_encoding: str
+    depth_scale: float
+    frame_id: str
+    world_frame_id: str
+
+
+class BagPlayer(Node):
+    """Replays ``frames`` (or ``open_source(source)`` when None); ``finished`` completes at the end."""
+
+    def __init__(self, frames: Iterable[Frame] | None = None, **node_kwargs: object) -> None:
+        super().__init__("bag_player", **node_kwargs)
+        self.cfg = PlayerConfig(**declare_all(self, PARAMS))
+        if frames is None:
+            if not self.cfg.source:
+                raise ConfigError("parameter 'source' is empty: give a TUM folder, bag or 'synthetic:...' spec")
+            from memgs_ros.io.sources import open_source  # heavy readers only when replaying files
+
+            frames = open_source(self.cfg.source)
+        self._source = frames
+        self.finished: Future = Future()
+        self.ok = True
+
+        self._pub_color = self.create_publisher(Image, "color/image_raw", qos.reliable(5))
+        self._pub_depth = self.create_publisher(Image, "depth/image_raw", qos.reliable(5))
+        self._pub_info = self.create_publisher(CameraInfo, "color/camera_info", qos.reliable(5))
+        self._pub_gt = self.create_publisher(PoseStamped, "groundtruth/pose", qos.reliable(10))
+        self._pub_done = self.create_publisher(Bool, "memgs/player/done", qos.latched())
+        self._ack_sub = (
+            self.create_subscription(Header, self.cfg.ack_topic, self._on_ack, qos.reliable(10))
+            if self.cfg.lockstep
+            else None
+        )
+
+        self._it: Iterator[Frame] = iter(self._source)
+        self._loop_offset_ns = 0
+        self._first_src_ns: int | None = None  # first / last source stamp of the current pass
+        self._last_src_ns: int | None = None
+        self._period_ns = DEFAULT_PERIOD_NS
+        self._next: Frame | None = None
+        self._next_stamp_ns = 0
+        self._published = 0
+        self._awaiting_ns: int | None = None  # lockstep: stamp of the frame we wait an ack for
+        self._sent_at = 0.0
+        self._ack_timeouts = 0
+        self._created_at = time.monotonic()
+        self._first_match_at: float | None = None
+        self._t0: float | None = None  # wall time and stamp of the first frame (real-time pacing)
+        self._stamp0_ns = 0
+        self._last_progress = 0.0
+        self._finish_at: float | None = None
+        self._timer = self.create_timer(TICK_S, self._tick)
+        self.get_logger().info(
+            f"replaying '{self.cfg.source or type(frames).__name__}' "
+            f"({'lockstep' if self.cfg.lockstep else f'real time x{self.cfg.rate:g}'}"
+            f"{', looping' if self.cfg.loop else ''})"
+        )
+
+    # ------------------------------------------------------------------ pacing
+
+    def _tick(self) -> None:
+        now = time.monotonic()
+        if self._finish_at is not None:
+            if now >= self._finish_at and not self.finished.done():
+                self.finished.set_result(self.ok)
+            return
+        if self._t0 is None:
+            if not self._ready_to_start(now):
+                return
+            self._t0 = now
+            self._last_progress = now
+            self._prefetch()
+            if self._next is None:
+                self.get_logger().warning("the source has no frames")
+                self._finish(ok=self.ok)
+                return
+            self._stamp0_ns = self._next_stamp_ns
+        if self.cfg.lockstep:
+            if self._awaiting_ns is None:
+                self._publish_next()
+            elif now - self._sent_at > self.cfg.ack_timeout_s:
+                self._ack_timeouts += 1
+                self.get_logger().warning(
+                    f"no ack for stamp {self._awaiting_ns} within {self.cfg.ack_timeout_s:g} s "
+                    f"on '{self.cfg.ack_topic}' ({self._ack_timeouts} timeouts so far); going on"
+                )
+                self._awaiting_ns = None
+                self._publish_next()
+        elif now >= self._t0 + (self._next_stamp_ns - self._stamp0_ns) * 1e-9 / self.cfg.rate:
+            self._publish_next()
+        if now - self._last_progress >= PROGRESS_EVERY_S:
+            self._last_progress = now
+            self._log_progress(now)
+
+    def _ready_to_start(self, now: float) -> bool:
+        """Start once a color subscriber (and, in lockstep, an ack publisher) has matched and
+        SETTLE_S has passed, or when start_delay_s runs out."""
+        waited = now - self._created_at
+        has_reader = self._pub_color.get_subscription_count() > 0
+        has_acker = self._ack_sub is None or self.count_publishers(self._ack_sub.topic_name) > 0
+        matched = has_reader and has_acker
+        if matched and self._first_match_at is None:
+            self._first_match_at = now
+        if self._first_match_at is not None and now - self._first_match_at >= min(SETTLE_S, self.cfg.start_delay_s):
+            return True
+        if waited >= self.cfg.start_delay_s:
+            if not has_reader or not has_acker:
+                missing = "a color subscriber" if not has_reader else f"a publisher on '{self.cfg.ack_topic}'"
+                self.get_logger().warning(f"starting without {missing} after {self.cfg.start_delay_s:g} s")
+            return True
+        return False
+
+    def _on_ack(self, msg: Header) -> None:
+        stamp_ns = codecs.stamp_to_ns(msg.stamp)
+        if self._awaiting_ns is None or stamp_ns != self._awaiting_ns:
+            self.get_logger().debug(f"ignoring ack for stamp {stamp_ns} (waiting for {self._awaiting_ns})")
+            return
+        self._awaiting_ns = None
+        if self._finish_at is None:
+            self._publish_next()
+
+    # ------------------------------------------------------------------ frames
+
+    def _prefetch(self) -> None:
+        """Load the next frame into self._next (None at the end), handling loops and max_frames."""
+        self._next = None
+        if self.cfg.max_frames and self._published >= self.cfg.max_frames:
+            return
+        try:
+            frame = next(self._it, None)
+            if frame is None and self.cfg.loop and self._first_src_ns is not None:
+                span = (self._last_src_ns or self._first_src_ns) - self._first_src_ns
+                self._loop_offset_ns += span + self._period_ns
+                self._first_src_ns = self._last_src_ns = None
+                self._it = iter(self._source)
+                frame = next(self._it, None)
+        except MemgsError as err:
+            self.get_logger().error(f"cannot read the next frame: {err}")
+            self.ok = False
+            return
+        if frame is None:
+            return
+        if self._first_src_ns is None:
+            self._first_src_ns = frame.stamp_ns
+        elif self._last_src_ns is not None and frame.stamp_ns > self._last_src_ns and self._published < 2:
+            self._period_ns = frame.stamp_ns - self._last_src_ns
+        self._last_src_ns = frame.stamp_ns
+        self._next = frame
+        self._next_stamp_ns = frame.stamp_ns + self._loop_offset_ns
+
+    def _publish_next(self) -> None:
+        frame, stamp_ns = self._next, self._next_stamp_ns
+        if frame is None:
+            self._finish(ok=self.ok)
+            return
+        fid = self.cfg.frame_id
+        self._pub_color.publish(codecs.numpy_to_image(frame.rgb, "rgb8", stamp_ns, fid))
+        if frame.depth_m is not None:
+            self._pub_depth.publish(
+                codecs.depth_to_image(frame.depth_m, self.cfg.depth_encoding, stamp_ns, fid, self.cfg.depth_scale)
+            )
+        self._pub_info.publish(codecs.camera_to_camera_info(frame.camera, stamp_ns, fid))
+        if frame.T_wc_gt is not None:
+            self._pub_gt.publish(codecs.matrix_to_pose_stamped(frame.T_wc_gt, stamp_ns, self.cfg.world_frame_id))
+        self._published += 1
+        self._sent_at = time.monotonic()
+        if self.cfg.lockstep:
+            self._awaiting_ns = stamp_ns
+        self._prefetch()
+        if self._next is None and not self.cfg.lockstep:
+            self._finish(ok=self.ok)
+
+    def _finish(self, ok: bool) -> None:
+        if self._finish_at is not None:
+            return
+        now = time.monotonic()
+        self.ok = ok
+        self._pub_done.publish(Bool(data=ok))
+        self._log_progress(now, final=True)
+        self._finish_at = now + LINGER_S
+
+    def _log_progress(self, now: float, final: bool = False) -> None:
+        elapsed = max(now - (self._t0 or now), 1e-9)
+        self.get_logger().info(
+            f"{'done: ' if final else ''}{self._published} frames in {elapsed:.1f} s "
+            f"({self._published / elapsed:.1f} frames/s), last stamp {self._next_stamp_ns * 1e-9:.3f} s, "
+            f"ack timeouts {self._ack_timeouts}"
+        )
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    node: BagPlayer | None = None
+    code = 0
+    try:
+        node = BagPlayer()
+        rclpy.spin_until_future_complete(node, node.finished)
+        code = 0 if node.finished.done() and node.finished.result() else 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except MemgsError as err:
+        rclpy.logging.get_logger("bag_player").fatal(str(err))
+        code = 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
