@@ -192,3 +192,31 @@ def test_lpips_hook_is_none_without_the_package(monkeypatch: pytest.MonkeyPatch)
     import sys
     monkeypatch.setitem(sys.modules, "lpips", None)  # makes `import lpips` raise ImportError
     assert make_lpips() is None
+
+
+def test_psnr_map_size_and_frame_strip_plots() -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from memgs_ros.plots import frame_strip_image, plot_frame_strip, plot_map_size, plot_psnr_per_frame
+
+    fig = Figure()
+    FigureCanvasAgg(fig)
+    ax1, ax2, ax3 = fig.subplots(1, 3)
+    plot_psnr_per_frame(ax1, np.arange(4) * 0.1, np.array([20.0, 22.0, 24.0, 26.0]),
+                        is_keyframe=np.array([True, False, True, False]))
+    labels = [ln.get_label() for ln in ax1.get_lines()]
+    assert labels == ["PSNR (mean 23.00 dB)", "keyframes (mean 22.00 dB)"]
+    twin = plot_map_size(ax2, np.arange(3.0), np.array([1000, 2000, 1500]), np.array([1, 2, 3]) * 1024 ** 3)
+    assert twin is not None and np.allclose(twin.get_lines()[0].get_ydata(), [1, 2, 3])
+    assert np.allclose(ax2.get_lines()[0].get_ydata(), [1.0, 2.0, 1.5])
+    render = np.full((8, 10, 3), 1.5, np.float32)  # clamped to 1
+    real = np.zeros((8, 10, 3), np.uint8)
+    strip = frame_strip_image([render, render], [real, real])
+    assert strip.shape == (2 * 8 + 4, 2 * 10 + 4, 3)
+    assert strip[:8, :10].min() == 1.0 and strip[12:, 14:].max() == 0.0 and strip[8:12].min() == 1.0
+    plot_frame_strip(ax3, [render], [real], titles=["t=0.0 s"])
+    assert len(ax3.get_images()) == 1 and ax3.texts[0].get_text() == "t=0.0 s"
+    fig.canvas.draw()
+    with pytest.raises(ValueError, match="as many renders"):
+        frame_strip_image([render], [])

@@ -171,3 +171,25 @@ def test_ate_too_few_matches_names_the_problem() -> None:
 def test_path_length() -> None:
     assert path_length_m(_poses(np.array([[0, 0, 0], [3, 4, 0], [3, 4, 1]], float))) == pytest.approx(6.0)
     assert path_length_m(_poses(np.zeros((1, 3)))) == 0.0
+
+
+def test_trajectory_and_error_plots_draw_the_data() -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from memgs_ros.plots import plot_ate_errors, plot_trajectory_top
+
+    gt_p, est_p, _ = _hand_case()
+    fig = Figure()
+    FigureCanvasAgg(fig)
+    ax1, ax2 = fig.subplots(1, 2)
+    plot_trajectory_top(ax1, est_p, gt_p, plane="xz", keyframe_xyz=est_p[:2])
+    lines = {ln.get_label(): ln for ln in ax1.get_lines()}
+    assert set(lines) == {"ground truth", "estimate", "start", "keyframes"}
+    assert np.allclose(lines["estimate"].get_ydata(), est_p[:, 2])
+    assert np.allclose(lines["ground truth"].get_xdata(), gt_p[:, 0])
+    plot_ate_errors(ax2, np.arange(6) * 0.1, np.array([0.03, 0.03, 0.04, 0.04, 0.05, 0.05]))
+    assert any("RMSE 4.08 cm" in ln.get_label() for ln in ax2.get_lines())
+    fig.canvas.draw()
+    with pytest.raises(ValueError, match="plane"):
+        plot_trajectory_top(ax1, est_p, plane="xw")
