@@ -415,19 +415,45 @@ def _ray_dirs(camera: PinholeCamera, aa: int) -> np.ndarray:
     return d
 
 
-def _cast(scene: SyntheticScene, T_wc: np.ndarray, dirs_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Nearest hit along each ray. dirs_c: [..., 3] (z = 1). Returns (t [...] = camera z depth,
-    surface index [...] int32, hit points p_w [..., 3]) in float32."""
+def _box_window(lo: np.ndarray, hi: np.ndarray, T_cw: np.ndarray, dirs_c: np.ndarray) -> tuple[slice, slice] | None:
+    """Rows/cols of the ray grid [Hs, Ws, 3] whose rays can hit the box, or None if none can.
+
+    Projects the 8 corners; when a corner is behind (or at) the camera the whole grid is kept.
+    Rays with z = 1 map x/z, y/z linearly to grid columns/rows, so the corner hull bounds them.
+    """
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    pc = corners @ T_cw[:3, :3].T + T_cw[:3, 3]
+    hs, ws = dirs_c.shape[:2]
+    if np.any(pc[:, 2] <= 1e-3):
+        return slice(0, hs), slice(0, ws)
+    x, y = pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2]
+    xs, ys = dirs_c[0, :, 0], dirs_c[:, 0, 1]  # increasing
+    c0 = max(int(np.searchsorted(xs, x.min())) - 1, 0)
+    c1 = min(int(np.searchsorted(xs, x.max())) + 1, ws)
+    r0 = max(int(np.searchsorted(ys, y.min())) - 1, 0)
+    r1 = min(int(np.searchsorted(ys, y.max())) + 1, hs)
+    if c0 >= c1 or r0 >= r1:
+        return None
+    return slice(r0, r1), slice(c0, c1)
+
+
+def _cast(scene: SyntheticScene, T_wc: np.ndarray, dirs_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Nearest hit along each ray of a grid. dirs_c: [Hs, Ws, 3] camera-frame rays with z = 1.
+
+    Returns (t [Hs, Ws] = camera z of the hit, surface index [Hs, Ws] int32 (room faces 0-5,
+    box b faces 6+6b..), hit point components [x, y, z] each [Hs, Ws]), float32.
+    """
     R = T_wc[:3, :3].astype(np.float32)
     o = T_wc[:3, 3].astype(np.float32)
+    T_cw = np.linalg.inv(T_wc)
     # per-component planes: numpy reductions over a trailing axis of 3 are slow, so never make them
     d = [dirs_c @ R[k] for k in range(3)]  # world directions; t along them equals camera z
     d = [np.where(np.abs(dk) < 1e-9, np.float32(1e-9), dk) for dk in d]
-    inv = [1.0 / dk for dk in d]
+    inv = [np.float32(1.0) / dk for dk in d]
     lo, hi = scene.room_lo.astype(np.float32), scene.room_hi.astype(np.float32)
-    # exit of the room box from inside: per axis the face the ray points at
     pos = [dk > 0 for dk in d]
-    t = None
+    # exit of the room box from inside: per axis the face the ray points at
+    t = sid = None
     for k in range(3):
         tk = (np.where(pos[k], hi[k], lo[k]) - o[k]) * inv[k]
         sk = (2 * k + pos[k]).astype(np.int32)
@@ -437,26 +463,32 @@ def _cast(scene: SyntheticScene, T_wc: np.ndarray, dirs_c: np.ndarray) -> tuple[
             closer = tk < t
             t = np.where(closer, tk, t)
             sid = np.where(closer, sk, sid)
+    assert t is not None and sid is not None
     for b in range(len(scene.boxes_lo)):
-        blo, bhi = scene.boxes_lo[b].astype(np.float32), scene.boxes_hi[b].astype(np.float32)
+        blo, bhi = scene.boxes_lo[b], scene.boxes_hi[b]
+        win = _box_window(blo, bhi, T_cw, dirs_c)
+        if win is None:
+            continue
+        blo32, bhi32 = blo.astype(np.float32), bhi.astype(np.float32)
         tnear = tfar = face = None
         for k in range(3):
-            t1 = (blo[k] - o[k]) * inv[k]
-            t2 = (bhi[k] - o[k]) * inv[k]
+            pk, ik = pos[k][win], inv[k][win]
+            t1 = (blo32[k] - o[k]) * ik
+            t2 = (bhi32[k] - o[k]) * ik
             # a ray going +axis enters through the lo face (side 0)
-            tmin, tmax = np.where(pos[k], t1, t2), np.where(pos[k], t2, t1)
-            fk = (6 + 6 * b + 2 * k + ~pos[k]).astype(np.int32)
+            tmin, tmax = np.where(pk, t1, t2), np.where(pk, t2, t1)
             if tnear is None:
-                tnear, tfar, face = tmin, tmax, fk
+                tnear, tfar, face = tmin, tmax, np.where(pk, np.int32(2 * k), np.int32(2 * k + 1))
             else:
                 later = tmin > tnear
                 tnear = np.where(later, tmin, tnear)
-                face = np.where(later, fk, face)
+                face = np.where(later, np.where(pk, np.int32(2 * k), np.int32(2 * k + 1)), face)
                 tfar = np.minimum(tfar, tmax)
-        hit = (tnear <= tfar) & (tnear > 0) & (tnear < t)
-        t = np.where(hit, tnear, t)
-        sid = np.where(hit, face, sid)
-    p = np.stack([o[k] + d[k] * t for k in range(3)], axis=-1)
+        tw = t[win]
+        hit = (tnear <= tfar) & (tnear > 0) & (tnear < tw)
+        t[win] = np.where(hit, tnear, tw)
+        sid[win] = np.where(hit, face + np.int32(6 + 6 * b), sid[win])
+    p = [o[k] + d[k] * t for k in range(3)]
     return t, sid, p
 
 
@@ -464,25 +496,27 @@ def render(scene: SyntheticScene, camera: PinholeCamera, T_wc: np.ndarray, aa: i
     """Render one view (pinhole, distortion ignored).
 
     T_wc: [4, 4] camera-to-world (optical frame: x right, y down, z forward).
+    aa: colour rays per pixel per axis (box-filtered); depth always uses pixel centres.
     Returns (rgb [H, W, 3] uint8, depth_m [H, W] float32, exact z at pixel centres).
     """
-    dirs = _ray_dirs(camera, 1)
-    t, sid, p = _cast(scene, T_wc, dirs)
+    t, sid, p = _cast(scene, T_wc, _ray_dirs(camera, 1))
     depth = t.astype(np.float32)
     if aa > 1:
         _, sid, p = _cast(scene, T_wc, _ray_dirs(camera, aa))
+    # per face an affine map world point -> atlas pixel: texel c's centre is at (c + 0.5) * TEXEL
     S = scene.surfaces
-    origins = np.array([s.origin for s in S], np.float32)
-    ua = np.array([s.u_axis for s in S], np.float32)
-    va = np.array([s.v_axis for s in S], np.float32)
-    off = np.array([s.atlas_xy for s in S], np.float32)
-    size = np.array([s.size_m for s in S], np.float32) / TEXEL_M - 0.5
-    rel = p - origins[sid]
-    # texel centre c is at (c + 0.5) * TEXEL; clamp to the face so float error never leaves it
-    tu = np.clip(np.einsum("...k,...k->...", rel, ua[sid]) / TEXEL_M - 0.5, -0.5, size[sid, 0])
-    tv = np.clip(np.einsum("...k,...k->...", rel, va[sid]) / TEXEL_M - 0.5, -0.5, size[sid, 1])
-    mx = (tu + off[sid, 0]).astype(np.float32)
-    my = (tv + off[sid, 1]).astype(np.float32)
+    ua = np.array([s.u_axis for s in S]) / TEXEL_M
+    va = np.array([s.v_axis for s in S]) / TEXEL_M
+    orig = np.array([s.origin for s in S])
+    off = np.array([s.atlas_xy for s in S], np.float64)
+    bu = off[:, 0] - 0.5 - np.einsum("sk,sk->s", orig, ua)
+    bv = off[:, 1] - 0.5 - np.einsum("sk,sk->s", orig, va)
+    # float error puts a hit at most ~1e-6 m off its face; the atlas gutter (2 texels) absorbs it
+    mx = np.take(bu.astype(np.float32), sid)
+    my = np.take(bv.astype(np.float32), sid)
+    for k in range(3):
+        mx += np.take(ua[:, k].astype(np.float32), sid) * p[k]
+        my += np.take(va[:, k].astype(np.float32), sid) * p[k]
     rgb = cv2.remap(scene.atlas, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     if aa > 1:
         rgb = cv2.resize(rgb, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
