@@ -98,27 +98,46 @@ def test_outbox_budgeted_deltas_keep_replica_in_step() -> None:
     from memgs_ros.core.map_delta import DeltaOutbox
 
     out, rep = DeltaOutbox(sh_degree=3), MapReplica()
-    out.add(np.zeros(0), _records(range(10)))
-    first = out.next_delta(max_rows=4)
-    assert rep.apply(decode(first)) is ApplyStatus.APPLIED and len(rep) == 4
-    # 2 is already at the receiver (needs a removal row), 7 never left (dropped silently).
-    out.add(np.array([2, 7]), _records([11], seed=5))
-    while (rows := out.next_delta(max_rows=3)) is not None:
+    live = _records(range(10))
+    first = out.next_delta(live, max_rows=4)
+    assert rep.apply(decode(first)) is ApplyStatus.APPLIED and len(rep) == 4 and out.pending_rows == 6
+    # 2 is at the receiver (needs a removal row); 7 never left the sender (nothing to remove).
+    live = GaussianRecords.concat([live.select(~np.isin(live.ids, [2, 7])), _records([11], seed=5)])
+    while (rows := out.next_delta(live, max_rows=3)) is not None:
         assert rep.apply(decode(rows)) is ApplyStatus.APPLIED
     assert rep.records.ids.tolist() == [0, 1, 3, 4, 5, 6, 8, 9, 11]
-    assert out.pending_rows == 0 and out.next_delta() is None
+    assert out.pending_rows == 0 and out.next_delta(live) is None
+
+
+def test_outbox_sends_only_changes_over_tolerance_then_flushes_exactly() -> None:
+    from memgs_ros.core.map_delta import DeltaOutbox
+
+    out, rep = DeltaOutbox(sh_degree=3, tolerance=1e-3), MapReplica()
+    live = _records(range(5))
+    rep.apply(decode(out.next_delta(live)))
+    xyz = live.xyz.copy()
+    xyz[1] += 1e-4  # below tolerance
+    xyz[3] += 1e-2  # above
+    live = GaussianRecords.from_arrays(live.ids, xyz, live.f_dc, live.f_rest, live.opacity, live.scale, live.rot)
+    delta = decode(out.next_delta(live))
+    assert delta.upserts.ids.tolist() == [3] and delta.removed_ids.size == 0
+    rep.apply(delta)
+    assert not np.array_equal(rep.records.xyz, live.xyz)
+    assert rep.apply(decode(out.next_delta(live, tolerance=0.0))) is ApplyStatus.APPLIED
+    assert _same(rep.records, live)
 
 
 def test_outbox_snapshot_then_deltas() -> None:
     from memgs_ros.core.map_delta import DeltaOutbox
 
     out = DeltaOutbox(sh_degree=3)
-    out.add(np.zeros(0), _records([1, 2, 3]))
-    out.next_delta()
+    out.next_delta(_records([1, 2, 3]))
     full = _records([1, 2, 3, 4], seed=2)
-    out.add(np.zeros(0), full.select(np.array([3])))
     late = MapReplica()
     assert late.apply(decode(out.snapshot(full))) is ApplyStatus.APPLIED
-    out.add(np.array([1]), GaussianRecords.empty())
-    assert late.apply(decode(out.next_delta())) is ApplyStatus.APPLIED
-    assert late.records.ids.tolist() == [2, 3, 4] and late.seq == 2
+    assert late.apply(decode(out.next_delta(full.select(np.array([1, 2, 3]))))) is ApplyStatus.APPLIED
+    assert late.records.ids.tolist() == [2, 3, 4] and late.seq == 3
+    in_step = MapReplica()
+    in_step.apply(decode(encode(MessageKind.DELTA, 1, 3, _records([1, 2, 3]), np.zeros(0), 3)))
+    # A delta overtaking the snapshot it follows is a gap, never silently applied.
+    assert in_step.apply(decode(encode(MessageKind.DELTA, 3, 3, _records([9]), np.zeros(0), 3))) is ApplyStatus.GAP

@@ -13,8 +13,8 @@ op     meaning
 1      remove: the Gaussian ``id`` was removed (float columns are zero)
 =====  ==================================================================
 
-``seq`` counts deltas from 1; a snapshot carries the ``seq`` of the last delta folded
-into it, so a receiver applies only deltas with a larger ``seq`` after it. ``total``
+``seq`` counts messages from 1; a snapshot takes the next number too (it may fold in
+changes no delta carried), and after it a receiver applies only deltas with a larger ``seq``. ``total``
 is the sender's Gaussian count after the message, a cheap consistency check.
 A delta applies its removals first, then its upserts; ids are never reused, so the
 two sets never overlap. Only the ``f_rest`` columns of the sender's SH degree travel
@@ -246,55 +246,77 @@ def _columns(r: GaussianRecords) -> tuple[np.ndarray, ...]:
     return (r.ids, r.xyz, r.f_dc, r.f_rest, r.opacity, r.scale, r.rot)
 
 
-class DeltaOutbox:
-    """The sender's side: folds map changes into pending upserts/removals and cuts deltas.
+def _param_matrix(r: GaussianRecords) -> np.ndarray:
+    """All parameters of each Gaussian side by side: [N, 59] float32."""
+    return np.concatenate([r.xyz, r.f_dc, r.f_rest, r.opacity[:, None], r.scale, r.rot], axis=1)
 
-    ``add(removed_ids, changed)`` merges a ``pop_changes`` result (newer values win; a
-    removal cancels a pending upsert). ``next_delta(max_rows)`` cuts the next delta of at
-    most ``max_rows`` Gaussian rows (removals first, then the longest-pending upserts;
-    ``None`` = everything) and numbers it; nothing pending, no delta. The outbox tracks
-    which ids the receiver holds, so each message's ``total`` is what an in-step
-    receiver must count after applying it, even when the budget leaves rows pending.
+
+class DeltaOutbox:
+    """The sender's side: diffs the live map against a mirror of what the receiver holds.
+
+    ``next_delta(current)`` compares the map now with the mirror and cuts a delta of the
+    removed ids, the new Gaussians, and the Gaussians whose parameters moved by more than
+    ``tolerance`` (max abs difference over their 59 parameters; metres for positions,
+    pre-activation units for the rest), new ones first, then the largest changes, at most
+    ``max_rows`` rows. Training nudges every Gaussian a little on every step, so the
+    tolerance is what keeps a real link from carrying the whole map each time; a final
+    flush with ``tolerance=0`` and no row limit leaves the receiver exactly equal to the map.
+    Mirror memory: one float32 copy of the map's parameters (236 B a Gaussian at SH 3).
     """
 
-    def __init__(self, sh_degree: int) -> None:
+    def __init__(self, sh_degree: int, tolerance: float = 1e-3) -> None:
         self.sh_degree = sh_degree
+        self.tolerance = tolerance
         self.seq = 0
-        self._up = GaussianRecords.empty()
-        self._removed = np.zeros(0, np.int64)
-        self._receiver_ids = np.zeros(0, np.int64)  # sorted
+        self._mirror = GaussianRecords.empty()  # rows sorted by id
+        self.pending_rows = 0  # rows over tolerance that the last row limit held back
 
     @property
-    def pending_rows(self) -> int:
-        return len(self._up) + int(self._removed.size)
+    def receiver_size(self) -> int:
+        return len(self._mirror)
 
-    def add(self, removed_ids: np.ndarray, changed: GaussianRecords) -> None:
-        removed = np.asarray(removed_ids, dtype=np.int64).reshape(-1)
-        keep = ~np.isin(self._up.ids, np.concatenate([removed, changed.ids]))
-        self._up = GaussianRecords.concat([self._up.select(keep), changed.select(~np.isin(changed.ids, removed))])
-        # Only ids the receiver holds need a removal row; the rest never left the sender.
-        self._removed = np.union1d(self._removed, removed[np.isin(removed, self._receiver_ids)])
-
-    def next_delta(self, max_rows: int | None = None) -> np.ndarray | None:
-        """The next delta as structured rows (see ``encode``), or None when nothing is pending."""
-        if self.pending_rows == 0:
+    def next_delta(self, current: GaussianRecords, max_rows: int | None = None,
+                   tolerance: float | None = None) -> np.ndarray | None:
+        """The next delta as structured rows (see ``encode``), or None when nothing differs."""
+        tol = self.tolerance if tolerance is None else tolerance
+        cur = _sorted(current)
+        mir = self._mirror
+        removed = np.setdiff1d(mir.ids, cur.ids, assume_unique=True)
+        in_mirror = np.isin(cur.ids, mir.ids, assume_unique=True)
+        change = np.full(len(cur), np.inf, dtype=np.float32)  # new Gaussians rank first
+        if in_mirror.any():
+            kept = mir.select(np.isin(mir.ids, cur.ids, assume_unique=True))
+            change[in_mirror] = np.abs(_param_matrix(cur.select(in_mirror)) - _param_matrix(kept)).max(axis=1)
+        send = np.flatnonzero(change > tol)
+        if removed.size == 0 and send.size == 0:
+            self.pending_rows = 0
             return None
-        budget = self.pending_rows if max_rows is None else max(int(max_rows), 1)
-        n_rem = min(self._removed.size, budget)
-        removed, self._removed = self._removed[:n_rem], self._removed[n_rem:]
-        n_up = min(len(self._up), budget - n_rem)
-        sent, self._up = self._up.select(np.arange(n_up)), self._up.select(np.arange(n_up, len(self._up)))
-        self._receiver_ids = np.union1d(np.setdiff1d(self._receiver_ids, removed, assume_unique=True), sent.ids)
+        budget = send.size + removed.size if max_rows is None else max(int(max_rows), 1)
+        n_rem = min(removed.size, budget)
+        order = send[np.argsort(-change[send], kind="stable")]
+        sent_idx = np.sort(order[: budget - n_rem])
+        self.pending_rows = int(removed.size - n_rem + order.size - sent_idx.size)
+        removed = removed[:n_rem]
+        sent = cur.select(sent_idx)
+        keep = ~np.isin(mir.ids, np.concatenate([removed, sent.ids]), assume_unique=True)
+        self._mirror = _sorted(GaussianRecords.concat([mir.select(keep), sent]))
         self.seq += 1
-        return encode(MessageKind.DELTA, self.seq, self._receiver_ids.size, sent, removed, self.sh_degree)
+        return encode(MessageKind.DELTA, self.seq, len(self._mirror), sent, removed, self.sh_degree)
 
-    def snapshot(self, records: GaussianRecords) -> np.ndarray:
-        """A snapshot of the whole map at the current ``seq``; pending changes are folded in.
+    def snapshot(self, current: GaussianRecords) -> np.ndarray:
+        """The whole map as the next ``seq``; the mirror becomes the map.
 
-        Call with the map as it is now (the same instant as the last ``add``).
+        A snapshot takes a sequence number of its own: it folds in changes no delta carried,
+        so a receiver that misses it must see a gap at the next delta and resynchronise.
         """
-        self._up = GaussianRecords.empty()
-        self._removed = np.zeros(0, np.int64)
-        self._receiver_ids = np.sort(records.ids)
-        return encode(MessageKind.SNAPSHOT, self.seq, len(records), records, np.zeros(0, np.int64),
+        self.seq += 1
+        self._mirror = _sorted(current)
+        self.pending_rows = 0
+        return encode(MessageKind.SNAPSHOT, self.seq, len(current), current, np.zeros(0, np.int64),
                       self.sh_degree)
+
+
+def _sorted(r: GaussianRecords) -> GaussianRecords:
+    if len(r) > 1 and np.any(np.diff(r.ids) <= 0):
+        return r.select(np.argsort(r.ids, kind="stable"))
+    return r

@@ -66,6 +66,9 @@ class MapperNode(Node):
         self.max_delta_rows = declare(self, "max_delta_rows", 20000,
                                       "Gaussians per delta message at most (the rest wait for the next)",
                                       range=(1, 10**8))
+        delta_tol = declare(self, "delta_tolerance", 1e-3,
+                            "send a Gaussian again only when a parameter moved more than this (m, or "
+                            "pre-activation units); the final flush is exact", range=(0.0, 10.0))
         self.snapshot_period = declare(self, "snapshot_period_s", 0.0,
                                        "publish a full snapshot this often (0 = only on request)", range=(0.0, 1e6))
         self.render_rate = declare(self, "render_rate_hz", 1.0, "live view renders per second (0 = off)",
@@ -78,7 +81,7 @@ class MapperNode(Node):
         if device == "cpu":
             configure_cpu_runtime()
         self.mapper = GaussianMapper(self.cfg, device=device)
-        self.outbox = DeltaOutbox(self.cfg.max_sh_degree)
+        self.outbox = DeltaOutbox(self.cfg.max_sh_degree, delta_tol)
         self.stats = NodeStats(self, "mapper")
         self.kf_ids: dict[int, int] = {}  # keyframe stamp -> mapper keyframe id
         self.render_camera: PinholeCamera | None = None
@@ -197,27 +200,29 @@ class MapperNode(Node):
         self.pub_ack.publish(make_header(stamp_ns, "mapper"))
 
     # ------------------------------------------------------------------ deltas
-    def _collect(self) -> None:
-        changes = self.mapper.pop_changes()
-        self.outbox.add(changes.removed_ids, changes.changed)
+    def send_delta(self, exact: bool = False) -> None:
+        """Diff the map against what the merger holds and publish the difference.
 
-    def send_delta(self, everything: bool = False) -> None:
+        exact: tolerance 0 and no row limit, repeated until nothing differs (final flush).
+        """
         with self._send_lock:
-            self._collect()
-            rows = self.outbox.next_delta(None if everything else self.max_delta_rows)
-            while rows is not None:
+            while True:
+                rows = self.outbox.next_delta(self.mapper.snapshot(), None if exact else self.max_delta_rows,
+                                              0.0 if exact else None)
+                if rows is None:
+                    break
                 msg = structured_to_pointcloud2(rows, self.get_clock().now().nanoseconds, self.world_frame)
                 self.pub_delta.publish(msg)
                 self.stats.counters["delta_messages"] += 1
                 self.stats.counters["delta_bytes"] += len(msg.data)
                 self.stats.gauges["seq"] = self.outbox.seq
-                rows = self.outbox.next_delta() if everything else None
+                if not exact:
+                    break
             self.stats.gauges["delta_pending_rows"] = self.outbox.pending_rows
 
     def publish_snapshot(self) -> int:
         """Publish the whole map (latched) at the current seq; returns its size."""
-        with self._send_lock, self.mapper.lock:
-            self._collect()
+        with self._send_lock:
             records = self.mapper.snapshot()
             rows = self.outbox.snapshot(records)
         self.pub_snapshot.publish(structured_to_pointcloud2(rows, self.get_clock().now().nanoseconds,
@@ -241,7 +246,7 @@ class MapperNode(Node):
                 self._step()
             self.get_logger().info(f"final {self.final_iters} iterations in {time.perf_counter() - t0:.1f} s")
         self._finished = True
-        self.send_delta(everything=True)
+        self.send_delta(exact=True)
         res.success = True
         res.message = f"seq={self.outbox.seq} gaussians={len(self.mapper.gmap)}"
         return res

@@ -54,6 +54,9 @@ class MergerNode(Node):
         self.max_buffered = declare(self, "max_buffered_deltas", 200, "deltas kept while resynchronising",
                                     range=(1, 100000))
         self.world_frame = declare(self, "world_frame", "map", "frame id of the published map")
+        self.drop_every = declare(self, "fault_drop_every_nth_delta", 0,
+                                  "fault injection for tests: ignore every n-th delta on arrival (0 = off)",
+                                  range=(0, 10**6))
         w = declare(self, "render_width", 320, "render width (px) for view requests", range=(1, 8192))
         h = declare(self, "render_height", 240, "render height (px) for view requests", range=(1, 8192))
         fx = declare(self, "render_fx", 258.65, "render focal length x (px)", range=(1e-3, 1e6))
@@ -99,6 +102,9 @@ class MergerNode(Node):
             return
         self.stats.counters["deltas"] += 1
         self.stats.counters["delta_bytes"] += len(msg.data)
+        if self.drop_every and self.stats.counters["deltas"] % self.drop_every == 0:
+            self.stats.counters["fault_dropped_deltas"] += 1
+            return
         if self.resyncing:
             self.buffer.append(m)
             return

@@ -54,6 +54,8 @@ class RunOptions:
     domain_id: int | None = None
     max_frames: int = 0
     overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value
+    # Start these nodes this many seconds late (a ground-station merger joining mid-run).
+    start_delays_s: Mapping[str, float] = field(default_factory=dict)
     timeout_s: float = 1800.0
 
 
@@ -75,6 +77,11 @@ class RunSummary:
     merger_seq: int
     namespace: str
     domain_id: int
+    merger_resyncs: int  # gaps, late starts or mismatches the merger repaired from a snapshot
+    replica_identical: bool  # merger's map == mapper's map (same ids, parameters within 1e-6)
+    replica_max_abs_diff: float
+    render_size: tuple[int, int]  # (width, height) of the last live render, (0, 0) if none
+    render_std: float  # spread of its pixel values in [0, 255]: ~0 means a blank view
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -157,7 +164,19 @@ class _Observer:
         self.node.create_subscription(PoseStamped, "memgs/pose", on_pose, qos.reliable(1000))
         for name in ("tracker", "keyframe_sampler", "mapper", "merger"):
             self.node.create_subscription(DiagnosticArray, f"memgs/{name}/stats", stats_cb(name), qos.reliable(5))
+        from sensor_msgs.msg import Image, PointCloud2
+
+        self.maps: dict[str, Any] = {}
+        self.render: Any = None
+        self.node.create_subscription(PointCloud2, "memgs/mapper/snapshot",
+                                      lambda m: self.maps.__setitem__("mapper", m), qos.latched())
+        self.node.create_subscription(PointCloud2, "memgs/map/gaussians",
+                                      lambda m: self.maps.__setitem__("merger", m), qos.latched())
+        self.node.create_subscription(Image, "memgs/render/color", lambda m: setattr(self, "render", m),
+                                      qos.reliable(2))
         self.finish_client = self.node.create_client(Trigger, "memgs/mapper/finish")
+        self.snapshot_client = self.node.create_client(Trigger, "memgs/mapper/publish_snapshot")
+        self.publish_map_client = self.node.create_client(Trigger, "memgs/merger/publish_map")
         self.save_client = self.node.create_client(Trigger, "memgs/save_map")
         self._trigger = Trigger
 
@@ -204,18 +223,18 @@ class _Processes:
         self.procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self._env)
 
     def check(self) -> None:
-        for name, p in self.procs.items():
+        for name, p in list(self.procs.items()):
             code = p.poll()
             if code is not None and not (name == "bag_player" and code == 0):
                 tail = (self.log_dir / f"{name}.log").read_text(errors="replace").strip().splitlines()[-15:]
                 raise PipelineError(f"node {name} exited with code {code}:\n  " + "\n  ".join(tail))
 
     def stop(self, timeout_s: float = 20.0) -> None:
-        for p in self.procs.values():
+        for p in list(self.procs.values()):
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
         end = time.monotonic() + timeout_s
-        for name, p in self.procs.items():
+        for name, p in list(self.procs.items()):
             try:
                 p.wait(timeout=max(0.1, end - time.monotonic()))
             except subprocess.TimeoutExpired:
@@ -261,7 +280,13 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
             env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1")
             procs = _Processes(params_file, ns, env, out / "logs")
             for name in GRAPH_NODES:
-                procs.start(name)
+                delay = float(options.start_delays_s.get(name, 0.0))
+                if delay > 0:
+                    timer = threading.Timer(delay, procs.start, args=(name,))
+                    timer.daemon = True
+                    timer.start()
+                else:
+                    procs.start(name)
             procs.start("bag_player")
         summary = _drive(observer, options, procs, out, t0, progress)
         return summary
@@ -305,6 +330,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
         if time.monotonic() > end:
             raise PipelineError(f"the merger did not reach delta {final_seq} in time")
         time.sleep(0.1)
+    identical, max_diff = _compare_maps(obs, final_seq, end)
     saved = obs.call(obs.save_client, 120.0) if gaussians or final_seq else ""
     ply = saved.split()[0] if saved else ""
     wall = time.monotonic() - t0
@@ -322,7 +348,44 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
         trajectory_path=str(traj_path), delta_messages=int(obs.stat("merger", "deltas")),
         delta_bytes=delta_bytes, delta_bytes_per_s=delta_bytes / wall if wall > 0 else 0.0,
         lost_frames=int(obs.stat("tracker", "state.LOST")), merger_seq=int(obs.stat("merger", "seq")),
-        namespace=options.namespace, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
+        namespace=options.namespace, domain_id=int(os.environ["ROS_DOMAIN_ID"]),
+        merger_resyncs=sum(int(v) for k, v in obs.stats.get("merger", {}).items() if k.startswith("resync.")),
+        replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render))
+
+
+def _compare_maps(obs: _Observer, final_seq: int, end: float) -> tuple[bool, float]:
+    """Ask mapper and merger for their whole maps at ``final_seq`` and compare them."""
+    from memgs_ros.core.map_delta import decode
+    from memgs_ros.ros.codecs import pointcloud2_to_structured
+
+    obs.maps.clear()
+    obs.call(obs.snapshot_client, 120.0)
+    obs.call(obs.publish_map_client, 120.0)
+    decoded: dict[str, Any] = {}
+    while len(decoded) < 2:
+        for name, msg in list(obs.maps.items()):
+            m = decode(pointcloud2_to_structured(msg))
+            if m.seq >= final_seq:
+                decoded[name] = m
+        if time.monotonic() > end:
+            raise PipelineError("mapper and merger maps did not arrive for the final comparison")
+        time.sleep(0.05)
+    a = decoded["mapper"].upserts.select(np.argsort(decoded["mapper"].upserts.ids))
+    b = decoded["merger"].upserts.select(np.argsort(decoded["merger"].upserts.ids))
+    if len(a) != len(b) or not np.array_equal(a.ids, b.ids):
+        return False, float("inf")
+    diff = max((float(np.abs(getattr(a, f) - getattr(b, f)).max(initial=0.0))
+                for f in ("xyz", "f_dc", "f_rest", "opacity", "scale", "rot")), default=0.0)
+    return diff <= 1e-6, diff
+
+
+def _render_info(msg: Any) -> dict[str, Any]:
+    if msg is None:
+        return {"render_size": (0, 0), "render_std": 0.0}
+    from memgs_ros.ros.codecs import image_to_numpy
+
+    img = image_to_numpy(msg)
+    return {"render_size": (int(msg.width), int(msg.height)), "render_std": float(img.std())}
 
 
 def _tum_trajectory(traj: list[tuple[int, np.ndarray]]) -> str:
@@ -331,5 +394,6 @@ def _tum_trajectory(traj: list[tuple[int, np.ndarray]]) -> str:
     lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world, memgs_ros tracker)"]
     for stamp, T in traj:
         t, q = pose_to_tq(T)
-        lines.append(f"{stamp * 1e-9:.6f} " + " ".join(f"{v:.7f}" for v in (*t, *q)))
+        sec, nsec = divmod(int(stamp), 1_000_000_000)  # exact ns: the stamps key frames downstream
+        lines.append(f"{sec}.{nsec:09d} " + " ".join(f"{v:.9f}" for v in (*t, *q)))
     return "\n".join(lines) + "\n"

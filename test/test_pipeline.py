@@ -1,0 +1,109 @@
+"""The node graph end to end: real processes, real DDS, a generated bag replayed in lockstep."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install -e '.[ros]')")
+
+from memgs_ros.core.gaussians import GaussianMap  # noqa: E402
+from memgs_ros.core.geometry import invert_pose  # noqa: E402
+from memgs_ros.core.metrics import psnr  # noqa: E402
+from memgs_ros.core.ply import load_ply  # noqa: E402
+from memgs_ros.core.raster import rasterize  # noqa: E402
+from memgs_ros.core.trajectory import ate  # noqa: E402
+from memgs_ros.io.bag_writer import write_bag  # noqa: E402
+from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
+from memgs_ros.io.tum import read_trajectory  # noqa: E402
+from memgs_ros.ros.pipeline import RunOptions, run_pipeline  # noqa: E402
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+SPEC = "synthetic:w=160,h=120,n=30,seed=3"
+# Short, CPU-friendly training: the assertions are about the graph, the quality bounds are
+# loose but far above what a broken map gives (an empty or misplaced map renders ~8-12 dB).
+FAST = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 150,
+        "mapper.mapping.merge_start_iter": 60, "mapper.mapping.merge_interval": 60}
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("bag") / "synthetic.mcap"
+    write_bag(generate_frames(parse_spec(SPEC)), path)
+    return path
+
+
+def _keyframe_psnr(ply: Path, trajectory: Path, stride: int = 5) -> float:
+    """Mean PSNR of the saved map rendered at tracked poses against the source frames."""
+    records = load_ply(ply)
+    g = GaussianMap.from_records(records, max_sh_degree=3)
+    stamps, poses = read_trajectory(trajectory)
+    by_stamp = dict(zip(stamps.tolist(), poses))
+    values = []
+    for i, frame in enumerate(generate_frames(parse_spec(SPEC))):
+        if i % stride or frame.stamp_ns not in by_stamp:
+            continue
+        T_cw = torch.from_numpy(invert_pose(by_stamp[frame.stamp_ns])).float()
+        with torch.no_grad():
+            out = rasterize(g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh_dc, g.sh_rest,
+                            T_cw, frame.camera, sh_degree=3)
+        values.append(psnr(out.color.clamp(0, 1), torch.from_numpy(frame.rgb).permute(2, 0, 1).float() / 255))
+    return float(np.mean(values))
+
+
+def test_graph_end_to_end_in_processes(bag: Path, tmp_path: Path, ros_domain_id: int) -> None:
+    s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path,
+                                domain_id=ros_domain_id, overrides=FAST, timeout_s=600), progress=False)
+    assert s.frames == 30 and s.poses == 30 and s.lost_frames == 0
+    assert 3 <= s.keyframes < 30
+    gt_stamps, gt_poses = generate_stamps_and_poses()
+    est_stamps, est_poses = read_trajectory(Path(s.trajectory_path))
+    err = ate(est_stamps, est_poses, gt_stamps, gt_poses)
+    assert err.n_matched == 30 and err.rmse_m < 0.02, err.rmse_m
+    assert s.replica_identical and s.gaussians > 1000
+    assert Path(s.ply_path).exists() and len(load_ply(s.ply_path)) == s.gaussians
+    assert s.render_size == (160, 120) and s.render_std > 10.0
+    assert _keyframe_psnr(Path(s.ply_path), Path(s.trajectory_path)) > 20.0
+    assert s.delta_messages > 0 and s.delta_bytes > 0
+
+
+def generate_stamps_and_poses() -> tuple[np.ndarray, np.ndarray]:
+    frames = list(generate_frames(parse_spec(SPEC)))
+    return np.array([f.stamp_ns for f in frames]), np.stack([f.T_wc_gt for f in frames])
+
+
+def test_late_merger_with_dropped_deltas_resyncs(bag: Path, tmp_path: Path, ros_domain_id: int) -> None:
+    overrides = {**FAST, "merger.fault_drop_every_nth_delta": 3, "mapper.delta_rate_hz": 4.0}
+    s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path, domain_id=ros_domain_id,
+                                overrides=overrides, start_delays_s={"merger": 15.0}, timeout_s=600),
+                     progress=False)
+    assert s.merger_resyncs >= 1
+    assert s.replica_identical, s.replica_max_abs_diff
+    assert len(load_ply(s.ply_path)) == s.gaussians
+
+
+def test_namespaced_instances_do_not_cross_talk(tmp_path: Path, ros_domain_id: int) -> None:
+    """Two single-process graphs in one ROS domain, each on its own namespace and sequence."""
+    procs = {}
+    for ns, n in (("/uav_a", 12), ("/uav_b", 20)):
+        out = tmp_path / ns.strip("/")
+        cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", f"synthetic:w=128,h=96,n={n},seed=1",
+               "--config", "synthetic", "--single-process", "--namespace", ns, "--domain-id", str(ros_domain_id),
+               "--out", str(out), "--json", str(out / "summary.json"), "--set", "mapper.lockstep_iterations=1",
+               "--set", "mapper.mapping.merge_enabled=false", "--timeout", "500"]
+        out.mkdir()
+        procs[ns] = (n, out, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                              env=dict(os.environ)))
+    for ns, (n, out, p) in procs.items():
+        log = p.communicate(timeout=560)[0].decode(errors="replace")
+        assert p.returncode == 0, log[-3000:]
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["frames"] == n and summary["poses"] == n, (ns, summary)
+        assert summary["namespace"] == ns
