@@ -337,7 +337,7 @@ def _bake_texture(name: str, kind: str, size_m: tuple[float, float], rng: np.ran
             img[((np.floor(u / 0.1) + np.floor(v / 0.1)) % 2) == 0] = base * 0.6
         label = _rect(u, v, size_m[0] * 0.2, size_m[1] * 0.3, size_m[0] * 0.8, size_m[1] * 0.6)
         img[label] = (0.92, 0.9, 0.85)
-        img[label & (((u / 0.03).astype(int) % 3) == 0) & (v < size_m[1] * 0.5)] = (0.1, 0.1, 0.1)
+        img[label & (((u / 0.05).astype(int) % 3) == 0) & (v < size_m[1] * 0.5)] = (0.1, 0.1, 0.1)
     img *= (0.85 + 0.25 * blot)[..., None]
     return img
 
