@@ -38,6 +38,7 @@ setup(
         "mcap>=1.1",
         "tqdm>=4.60",
         "matplotlib>=3.6",
+        "PyYAML>=5.4",
     ],
     extras_require={
         "ros": [
