@@ -178,10 +178,20 @@ class MapperNode(Node):
 
     def _step(self) -> None:
         st = self.mapper.step()
-        if st is not None:
-            self.stats.gauges["iteration"] = st.iteration
-            self.stats.gauges["gaussians"] = st.num_gaussians
-            self.stats.gauges["loss"] = round(sum(st.terms.values()), 5)
+        if st is None:
+            return
+        g = self.stats.gauges
+        g["iteration"] = st.iteration
+        g["gaussians"] = st.num_gaussians
+        g["loss"] = round(sum(st.terms.values()), 5)
+        mem = self.mapper.gmap.memory_bytes()
+        g["model_bytes"] = mem.total
+        g["model_bytes_peak"] = max(int(g.get("model_bytes_peak", 0)), mem.total)
+        g["gaussians_peak"] = max(int(g.get("gaussians_peak", 0)), st.num_gaussians)
+        if self.mapper.device.type == "cuda":
+            g["cuda_max_allocated"] = torch.cuda.max_memory_allocated(self.mapper.device)
+        self.stats.counters["merged_removed"] += st.merged_removed
+        self.stats.counters["merged_added"] += st.merged_added
 
     def on_processed(self, msg: Header) -> None:
         """Lockstep: acknowledge a frame once its keyframe (if any) is in and training ran."""

@@ -1,6 +1,7 @@
 """Node statistics as diagnostic_msgs/DiagnosticArray on ``memgs/<node>/stats``."""
 from __future__ import annotations
 
+import resource
 from collections import Counter
 from collections.abc import Mapping
 
@@ -31,6 +32,8 @@ class NodeStats:
             self._node.get_logger().warning(f"{message} (further '{kind}' problems are only counted)")
 
     def message(self) -> DiagnosticArray:
+        # ru_maxrss is in KiB on Linux: the process's peak resident memory so far.
+        self.gauges["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
         values: Mapping[str, object] = {**self.counters, **self.gauges}
         level = DiagnosticStatus.WARN if any(k.startswith("problem.") for k in self.counters) else DiagnosticStatus.OK
         status = DiagnosticStatus(

@@ -77,6 +77,10 @@ class RunSummary:
     merger_seq: int
     namespace: str
     domain_id: int
+    mapping_iterations: int
+    model_bytes_peak: int  # the map's parameters + gradients + Adam state, peak over the run
+    gaussians_peak: int
+    peak_rss_mb: dict[str, float]  # per node process (in one process: the same figure for all)
     merger_resyncs: int  # gaps, late starts or mismatches the merger repaired from a snapshot
     replica_identical: bool  # merger's map == mapper's map (same ids, parameters within 1e-6)
     replica_max_abs_diff: float
@@ -151,6 +155,7 @@ class _Observer:
         self.done = threading.Event()
         self.stats: dict[str, dict[str, str]] = {}
         self.trajectory: list[tuple[int, np.ndarray]] = []
+        self.keyframes: list[tuple[int, np.ndarray]] = []
         self._lock = threading.Lock()
 
         def on_pose(msg: PoseStamped) -> None:
@@ -161,7 +166,12 @@ class _Observer:
             return lambda msg: self.stats.__setitem__(name, stats_values(msg))
 
         self.node.create_subscription(Bool, "memgs/player/done", lambda m: m.data and self.done.set(), qos.latched())
+        def on_keyframe(msg: PoseStamped) -> None:
+            with self._lock:
+                self.keyframes.append((stamp_to_ns(msg.header.stamp), pose_to_matrix(msg.pose)))
+
         self.node.create_subscription(PoseStamped, "memgs/pose", on_pose, qos.reliable(1000))
+        self.node.create_subscription(PoseStamped, "memgs/keyframe/pose", on_keyframe, qos.reliable(1000))
         for name in ("tracker", "keyframe_sampler", "mapper", "merger"):
             self.node.create_subscription(DiagnosticArray, f"memgs/{name}/stats", stats_cb(name), qos.reliable(5))
         from sensor_msgs.msg import Image, PointCloud2
@@ -331,13 +341,16 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
             raise PipelineError(f"the merger did not reach delta {final_seq} in time")
         time.sleep(0.1)
     identical, max_diff = _compare_maps(obs, final_seq, end)
+    time.sleep(1.5)  # one more round of the 1 Hz stats, so the summary sees the final counts
     saved = obs.call(obs.save_client, 120.0) if gaussians or final_seq else ""
     ply = saved.split()[0] if saved else ""
     wall = time.monotonic() - t0
     with obs._lock:
         traj = sorted(obs.trajectory, key=lambda p: p[0])
+        kfs = sorted(obs.keyframes, key=lambda p: p[0])
     traj_path = out / "trajectory.txt"
     _write_atomic(traj_path, _tum_trajectory(traj))
+    _write_atomic(out / "keyframes.txt", _tum_trajectory(kfs))  # poses at insertion
     frames = int(obs.stat("tracker", "frames_in"))
     track_s = obs.stat("tracker", "track_us_total") * 1e-6
     delta_bytes = int(obs.stat("merger", "delta_bytes"))
@@ -349,6 +362,10 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
         delta_bytes=delta_bytes, delta_bytes_per_s=delta_bytes / wall if wall > 0 else 0.0,
         lost_frames=int(obs.stat("tracker", "state.LOST")), merger_seq=int(obs.stat("merger", "seq")),
         namespace=options.namespace, domain_id=int(os.environ["ROS_DOMAIN_ID"]),
+        mapping_iterations=int(obs.stat("mapper", "iteration")),
+        model_bytes_peak=int(obs.stat("mapper", "model_bytes_peak")),
+        gaussians_peak=int(obs.stat("mapper", "gaussians_peak")),
+        peak_rss_mb={n: obs.stat(n, "peak_rss_mb") for n in GRAPH_NODES},
         merger_resyncs=sum(int(v) for k, v in obs.stats.get("merger", {}).items() if k.startswith("resync.")),
         replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render))
 
