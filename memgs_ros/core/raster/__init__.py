@@ -14,7 +14,8 @@ import torch
 from torch import Tensor
 
 from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.raster.composite import MIN_ALPHA, composite
+from memgs_ros.core.raster.composite import MIN_ALPHA
+from memgs_ros.core.raster.composite import composite as _composite  # keep the submodule name free
 from memgs_ros.core.raster.gsplat_backend import gsplat_available, rasterize_gsplat
 from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians, screen_radii
 from memgs_ros.core.raster.reference import _rasterize_reference
@@ -135,7 +136,7 @@ def rasterize(
     )
     if background is None:
         background = torch.zeros(3, dtype=means.dtype, device=means.device)
-    color, depth, alpha = composite(
+    color, depth, alpha = _composite(
         proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, background, plan
     )
     visible = plan.gaussian_hit

@@ -13,7 +13,7 @@ How it stays fast and small on a CPU:
 - For one (tile, Gaussian) pair the exponent is a quadratic in the tile-local pixel
   coordinates (u, v): power = [u^2, uv, v^2, u, v, 1] . k, so a chunk of tiles is a single
   ``[P, 6] @ [T, 6, K]`` matrix product (P pixels per tile, K padded list length, K innermost).
-  The six coefficients k are computed per pair in float64 (they cancel for far-off pixels).
+  The six coefficients k are computed per pair relative to the tile origin (small numbers).
 - Only ``alpha`` and ``T`` are kept per pixel-Gaussian pair (8 B in float32); the backward
   pass gets the colour still to come behind i as "total minus inclusive cumulative sum",
   so there is no autograd graph over pairs.
@@ -67,41 +67,70 @@ def _pixel_features(tile_size: int, dtype: torch.dtype, device: torch.device) ->
     return torch.stack([u * u, u * v, v * v, u, v, torch.ones_like(u)], dim=-1)
 
 
-def _pair_geometry(plan: TilePlan, means2d: Tensor, conics: Tensor) -> tuple[Tensor, ...]:
-    """Float64 per-pair (mu, mv, a, b, c): the mean relative to the pair's tile origin, and the conic."""
-    gid, tile = plan.pair_gid, plan.pair_tile
-    ox = (tile % plan.tiles_x).to(torch.float64) * plan.tile_size
-    oy = torch.div(tile, plan.tiles_x, rounding_mode="floor").to(torch.float64) * plan.tile_size
-    m = means2d.detach()[gid].to(torch.float64)  # [M, 2]
-    a, b, c = conics.detach()[gid].to(torch.float64).unbind(-1)
-    return m[:, 0] - ox, m[:, 1] - oy, a, b, c
-
-
 def _to_tiles(img: Tensor, plan: TilePlan) -> Tensor:
-    """[C, H, W] image -> [n_tiles, P, C] tile-major layout (zero padded at the right/bottom)."""
+    """[C, H, W] image -> [n_tiles, C, P] tile-major layout (zero padded at the right/bottom)."""
     ch = img.shape[0]
     ts = plan.tile_size
     hp, wp = plan.tiles_y * ts, plan.tiles_x * ts
     img = torch.nn.functional.pad(img, (0, wp - plan.width, 0, hp - plan.height))
-    img = img.reshape(ch, plan.tiles_y, ts, plan.tiles_x, ts).permute(1, 3, 2, 4, 0)
-    return img.reshape(plan.tiles_y * plan.tiles_x, ts * ts, ch).contiguous()
+    img = img.reshape(ch, plan.tiles_y, ts, plan.tiles_x, ts).permute(1, 3, 0, 2, 4)
+    return img.reshape(plan.tiles_y * plan.tiles_x, ch, ts * ts).contiguous()
 
 
 def _from_tiles(buf: Tensor, plan: TilePlan) -> Tensor:
-    """[n_tiles, P, C] tile-major buffer -> [C, H, W] image (padding cropped)."""
-    ch = buf.shape[-1]
+    """[n_tiles, C, P] tile-major buffer -> [C, H, W] image (padding cropped)."""
+    ch = buf.shape[1]
     ts = plan.tile_size
-    img = buf.reshape(plan.tiles_y, plan.tiles_x, ts, ts, ch).permute(4, 0, 2, 1, 3)
+    img = buf.reshape(plan.tiles_y, plan.tiles_x, ch, ts, ts).permute(2, 0, 3, 1, 4)
     img = img.reshape(ch, plan.tiles_y * ts, plan.tiles_x * ts)
     return img[:, : plan.height, : plan.width].contiguous()
 
 
-def _chunk_index(plan: TilePlan, chunk: Chunk, dummy: int) -> Tensor:
-    """[T, K] pair indices of the chunk's tiles, padded with the dummy (transparent) row."""
-    ar = torch.arange(chunk.k, device=chunk.tiles.device)
-    start = plan.tile_start[chunk.tiles].unsqueeze(1)
-    count = plan.tile_count[chunk.tiles].unsqueeze(1)
-    return torch.where(ar < count, start + ar, torch.full_like(start, dummy))
+# Rows of the per-slot table built by _slot_table.
+_MX, _MY, _CA, _CB, _CC, _OP, _CR, _CG, _CBL, _Z = range(10)
+
+
+def _slot_table(
+    plan: TilePlan, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, depths: Tensor
+) -> Tensor:
+    """[10, S] per-slot copy of (mean x, mean y, conic a, b, c, opacity, r, g, b, z) of each slot's
+    Gaussian; padding slots get a transparent one (opacity 0). One 1-D gather per row: several
+    times faster than gathering [N, 10] rows."""
+    n = means2d.shape[0]
+    per_g = torch.zeros(10, n + 1, dtype=means2d.dtype, device=means2d.device)
+    per_g[_MX : _MY + 1, :n] = means2d.detach().T
+    per_g[_CA : _CC + 1, :n] = conics.detach().T
+    per_g[_OP, :n] = opacities.detach()
+    per_g[_CR : _CBL + 1, :n] = colors.detach().T
+    per_g[_Z, :n] = depths.detach()
+    out = torch.empty(10, plan.slot_gid.shape[0], dtype=means2d.dtype, device=means2d.device)
+    for j in range(10):
+        torch.index_select(per_g[j], 0, plan.slot_gid, out=out[j])
+    return out
+
+
+def _chunk_geometry(plan: TilePlan, chunk: Chunk, x: Tensor) -> tuple[Tensor, ...]:
+    """The chunk's (mu, mv, a, b, c, k3, k4), each [T, K]: the mean relative to its tile's origin,
+    the conic, and the linear-term coefficients of the exponent. Relative coordinates keep every
+    number small, so the input dtype is enough (float32 loses ~1e-4 in the exponent only for
+    needle-thin Gaussians tens of pixels from their centre, as a direct evaluation does)."""
+    ox = (chunk.tiles % plan.tiles_x).to(x.dtype).unsqueeze(1) * plan.tile_size  # [T, 1]
+    oy = torch.div(chunk.tiles, plan.tiles_x, rounding_mode="floor").to(x.dtype).unsqueeze(1) * plan.tile_size
+    mu, mv = x[_MX] - ox, x[_MY] - oy
+    a, b, c = x[_CA], x[_CB], x[_CC]
+    return mu, mv, a, b, c, a * mu + b * mv, b * mu + c * mv
+
+
+def _chunk_block(table: Tensor, chunk: Chunk) -> Tensor:
+    """[10, S] slot table -> the chunk's [10, T, K] block (a view)."""
+    return table[:, chunk.slot_start : chunk.slot_start + chunk.num_slots].view(table.shape[0], -1, chunk.k)
+
+
+def _float_below(x: float, dtype: torch.dtype) -> float:
+    """The largest ``dtype`` value below x: ``F.threshold`` keeps values strictly above its
+    threshold, and the rules here keep values >= x."""
+    t = torch.tensor(x, dtype=dtype)
+    return float(torch.nextafter(t, torch.zeros_like(t)))
 
 
 class _CompositeFn(torch.autograd.Function):
@@ -118,69 +147,57 @@ class _CompositeFn(torch.autograd.Function):
         workers: int,
     ) -> tuple[Tensor, Tensor, Tensor]:
         dtype, device = means2d.dtype, means2d.device
-        m_pairs = plan.num_pairs
-        mu, mv, a, b, c = _pair_geometry(plan, means2d, conics)
-        k3 = a * mu + b * mv
-        k4 = b * mu + c * mv
-        coef = torch.stack([-0.5 * a, -b, -0.5 * c, k3, k4, -0.5 * (mu * k3 + mv * k4)], dim=-1)
-        gid = plan.pair_gid
-        # One row per pair: 6 exponent coefficients, opacity, r, g, b, z; the last row is the
-        # transparent pad (opacity 0) that short tile lists point to.
-        table = torch.zeros(m_pairs + 1, 11, dtype=dtype, device=device)
-        table[:m_pairs, :6] = coef.to(dtype)
-        table[:m_pairs, 6] = opacities.detach()[gid]
-        table[:m_pairs, 7:10] = colors.detach()[gid]
-        table[:m_pairs, 10] = depths.detach()[gid]
+        table = _slot_table(plan, means2d, conics, opacities, colors, depths)  # [10, S]
         feat = _pixel_features(plan.tile_size, dtype, device)  # [P, 6]
+        alpha_floor = _float_below(MIN_ALPHA, dtype)
+        t_floor = _float_below(MIN_TRANSMITTANCE, dtype)
 
-        def run(chunk: Chunk) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-            idx = _chunk_index(plan, chunk, m_pairs)  # [T, K]
-            tab = table[idx]  # [T, K, 11]
-            power = torch.matmul(feat, tab[..., :6].transpose(1, 2))  # [T, P, K]
-            power.clamp_(MIN_POWER, 0.0)
-            alpha = power.exp_().mul_(tab[..., 6].unsqueeze(1)).clamp_max_(MAX_ALPHA)
-            alpha.masked_fill_(alpha < MIN_ALPHA, 0.0)
+        def run(chunk: Chunk) -> tuple[Tensor, Tensor, Tensor]:
+            x = _chunk_block(table, chunk)  # [10, T, K]
+            mu, mv, a, b, c, k3, k4 = _chunk_geometry(plan, chunk, x)
+            coef = torch.stack([-0.5 * a, -b, -0.5 * c, k3, k4, -0.5 * (mu * k3 + mv * k4)], dim=1)  # [T, 6, K]
+            czT = torch.stack([x[_CR], x[_CG], x[_CBL], x[_Z], torch.ones_like(mu)], dim=1)  # [T, 5, K]
+            alpha = torch.matmul(feat, coef)  # [T, P, K] exponent
+            alpha.clamp_(MIN_POWER, 0.0).exp_().mul_(x[_OP].unsqueeze(1)).clamp_max_(MAX_ALPHA)
+            torch.nn.functional.threshold_(alpha, alpha_floor, 0.0)  # alpha < 1/255 -> 0
             one_minus = 1.0 - alpha
-            t_incl = torch.cumprod(one_minus, dim=-1)
-            keep = t_incl >= MIN_TRANSMITTANCE  # early termination: a prefix of each list survives
-            t_excl = t_incl.div_(one_minus)  # exclusive product; 1 - alpha >= 0.01
-            alpha.mul_(keep)
-            w = alpha * t_excl  # [T, P, K]
-            rgbd = torch.matmul(w, tab[..., 7:11])  # [T, P, 4]
-            t_end = 1.0 - w.sum(-1)  # [T, P]
-            return rgbd, t_end, alpha, t_excl
+            trans = torch.cumprod(one_minus, dim=-1)  # inclusive
+            t_excl = trans / one_minus  # 1 - alpha >= 0.01
+            # Early termination: Gaussians whose inclusive T fell below 1e-4 (a suffix of each
+            # list) are dropped. (x - floor) clamped to [0, 1] and ceiled is the 0/1 mask,
+            # several times cheaper than a bool tensor and a masked op.
+            alpha.mul_(trans.sub_(t_floor).clamp_(0.0, 1.0).ceil_())
+            w = alpha * t_excl
+            out = torch.matmul(czT, w.transpose(1, 2))  # [T, 5, P] r, g, b, z, sum w
+            return out, alpha, t_excl
 
         results = _map(run, plan.chunks, workers)
         n_tiles = plan.tiles_x * plan.tiles_y
         p = plan.tile_size * plan.tile_size
-        buf = torch.zeros(n_tiles, p, 5, dtype=dtype, device=device)  # r, g, b, depth, T_end
-        buf[..., 4] = 1.0
+        buf = torch.zeros(n_tiles, 5, p, dtype=dtype, device=device)  # r, g, b, depth, sum w
         if results:
             tiles = torch.cat([ch.tiles for ch in plan.chunks])
-            buf[tiles, :, :4] = torch.cat([r[0] for r in results])
-            buf[tiles, :, 4] = torch.cat([r[1] for r in results])
-        bg = background.detach().to(dtype)
-        buf[..., :3] += buf[..., 4:5] * bg
+            buf.index_copy_(0, tiles, torch.cat([r[0] for r in results]))
+        t_end = 1.0 - buf[:, 4]  # [n_tiles, P]
+        buf[:, :3] += t_end.unsqueeze(1) * background.detach().to(dtype).view(1, 3, 1)
+        buf[:, 4] = t_end
         img = _from_tiles(buf, plan)  # [5, H, W]
-        color, depth, t_end = img[:3], img[3], img[4]
-        alpha_img = 1.0 - t_end
 
         ctx.plan = plan
         ctx.workers = workers
         ctx.table = table
-        ctx.saved_pairs = [(r[2], r[3]) for r in results]
-        ctx.t_end_tiles = buf[..., 4].clone()  # [n_tiles, P]
-        ctx.save_for_backward(means2d, conics, opacities, background)
-        return color, depth.contiguous(), alpha_img.contiguous()
+        ctx.saved_pairs = [r[1:] for r in results]
+        ctx.t_end_tiles = t_end
+        ctx.save_for_backward(means2d, background)
+        return img[:3], img[3].contiguous(), (1.0 - img[4]).contiguous()
 
     @staticmethod
     @once_differentiable
     def backward(ctx: Any, v_color: Tensor, v_depth: Tensor, v_alpha: Tensor) -> tuple[Any, ...]:
-        means2d, conics, opacities, background = ctx.saved_tensors
+        means2d, background = ctx.saved_tensors
         plan: TilePlan = ctx.plan
         table: Tensor = ctx.table
         dtype, device = means2d.dtype, means2d.device
-        m_pairs = plan.num_pairs
         h, w_ = plan.height, plan.width
         if v_color is None:
             v_color = torch.zeros(3, h, w_, dtype=dtype, device=device)
@@ -188,67 +205,59 @@ class _CompositeFn(torch.autograd.Function):
             v_depth = torch.zeros(h, w_, dtype=dtype, device=device)
         if v_alpha is None:
             v_alpha = torch.zeros(h, w_, dtype=dtype, device=device)
-        grads = _to_tiles(torch.cat([v_color, v_depth[None], v_alpha[None]]), plan)  # [n_tiles, P, 5]
+        grads = _to_tiles(torch.cat([v_color, v_depth[None], v_alpha[None]]), plan)  # [n_tiles, 5, P]
         t_end = ctx.t_end_tiles  # [n_tiles, P]
         bg = background.detach().to(dtype)
-        # d/dT_end of (T_end bg . v_C + (1 - T_end) v_A): the colour/alpha "behind the last Gaussian".
-        behind = t_end * ((grads[..., :3] * bg).sum(-1) - grads[..., 4])  # [n_tiles, P]
+        # d/dT_end of (T_end bg . v_C - T_end v_A): what lies "behind the last Gaussian".
+        behind = t_end * ((grads[:, :3] * bg.view(1, 3, 1)).sum(1) - grads[:, 4])  # [n_tiles, P]
         feat_t = _pixel_features(plan.tile_size, dtype, device).T.contiguous()  # [6, P]
+        # Per slot: dL/d (mean x, mean y, conic a, b, c, opacity, r, g, b, z).
+        v_table = torch.empty_like(table)
 
-        def run(job: tuple[Chunk, tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor]:
+        def run(job: tuple[Chunk, tuple[Tensor, ...]]) -> None:
             chunk, (alpha, t_excl) = job
-            idx = _chunk_index(plan, chunk, m_pairs)  # [T, K]
-            tab = table[idx]  # [T, K, 11]
-            g = grads[chunk.tiles]  # [T, P, 5]
-            g4 = g[..., :4]  # [T, P, 4] (v_color, v_depth)
-            cz = tab[..., 7:11]  # [T, K, 4]
-            v = torch.matmul(g4, cz.transpose(1, 2))  # [T, P, K] dL/d(feature) per pair
+            x = _chunk_block(table, chunk)  # [10, T, K]
+            vx = _chunk_block(v_table, chunk)  # [10, T, K]
+            g4T = grads.index_select(0, chunk.tiles)[:, :4]  # [T, 4, P] v_color, v_depth
+            cz = torch.stack([x[_CR], x[_CG], x[_CBL], x[_Z]], dim=1)  # [T, 4, K]
+            v = torch.matmul(g4T.transpose(1, 2), cz)  # [T, P, K]
             w = alpha * t_excl
-            wv = w * v
-            after = wv.sum(-1, keepdim=True) - torch.cumsum(wv, dim=-1)  # sum_{j>i} w_j v_j
-            after.add_(behind[chunk.tiles].unsqueeze(-1)).div_(1.0 - alpha)
-            v_alpha_p = t_excl * v - after
-            # alpha = opacity * exp(power): d alpha / d power = alpha; 0 where clamped or dropped.
-            v_power = v_alpha_p.mul_(alpha).masked_fill_(alpha >= MAX_ALPHA, 0.0)
-            out = torch.empty(idx.shape + (11,), dtype=dtype, device=device)  # [T, K, 11]
-            out[..., :6] = torch.matmul(feat_t, v_power).transpose(1, 2)
-            out[..., 6] = v_power.sum(1) / tab[..., 6].clamp_min(1e-30)
-            out[..., 7:11] = torch.matmul(w.transpose(1, 2), g4)
-            return idx, out
+            vx[_CR : _Z + 1] = torch.matmul(g4T, w).transpose(0, 1)
+            after = torch.cumsum(w.mul_(v), dim=-1)  # inclusive sum of w_j v_j
+            after.neg_().add_(after[..., -1:].neg())  # sum_{j > i} w_j v_j
+            after.add_(behind.index_select(0, chunk.tiles).unsqueeze(-1)).div_(1.0 - alpha)
+            v_alpha_p = after.neg_().addcmul_(t_excl, v)  # [T, P, K] dL/d alpha_i
+            # d alpha / d power = alpha, except where clamped at 0.99: -alpha below it, 0 above
+            # (the sign is undone below), again without bool tensors.
+            d_alpha = torch.nn.functional.threshold_(alpha.neg(), -MAX_ALPHA, 0.0)
+            v_power = v_alpha_p.mul_(d_alpha)  # = -dL/d power
+            vx[_OP] = v_power.sum(1).div_(x[_OP].clamp_min(1e-30)).neg_()
+            g0, g1, g2, g3, g4, g5 = torch.matmul(feat_t, v_power).neg_().unbind(1)  # dL/d coef, [T, K] each
+            mu, mv, a, b, c, k3, k4 = _chunk_geometry(plan, chunk, x)
+            vx[_MX] = g3 * a + g4 * b - g5 * k3
+            vx[_MY] = g3 * b + g4 * c - g5 * k4
+            vx[_CA] = -0.5 * g0 + g3 * mu - 0.5 * g5 * mu * mu
+            vx[_CB] = -g1 + g3 * mv + g4 * mu - g5 * mu * mv
+            vx[_CC] = -0.5 * g2 + g4 * mv - 0.5 * g5 * mv * mv
 
-        results = _map(run, list(zip(plan.chunks, ctx.saved_pairs)), ctx.workers)  # type: ignore[arg-type]
-        v_pairs = torch.zeros(m_pairs + 1, 11, dtype=dtype, device=device)
-        for idx, out in results:
-            v_pairs.index_copy_(0, idx.reshape(-1), out.reshape(-1, 11))
-        v_pairs = v_pairs[:m_pairs]
-
-        mu, mv, a, b, c = _pair_geometry(plan, means2d, conics)
-        vk = v_pairs[:, :6].to(torch.float64)
-        g0, g1, g2, g3, g4_, g5 = vk.unbind(-1)
-        k3 = a * mu + b * mv
-        k4 = b * mu + c * mv
-        per_pair = torch.stack(
-            [
-                g3 * a + g4_ * b - g5 * k3,  # d/d mean_x
-                g3 * b + g4_ * c - g5 * k4,  # d/d mean_y
-                -0.5 * g0 + g3 * mu - 0.5 * g5 * mu * mu,  # d/d conic a
-                -g1 + g3 * mv + g4_ * mu - g5 * mu * mv,  # d/d conic b
-                -0.5 * g2 + g4_ * mv - 0.5 * g5 * mv * mv,  # d/d conic c
-            ],
-            dim=-1,
-        ).to(dtype)
+        _map(run, list(zip(plan.chunks, ctx.saved_pairs)), ctx.workers)  # type: ignore[arg-type]
         n = means2d.shape[0]
-        v_gauss = torch.zeros(n, 10, dtype=dtype, device=device)
-        v_gauss.index_add_(0, plan.pair_gid, torch.cat([per_pair, v_pairs[:, 6:]], dim=-1))
-        v_means2d = v_gauss[:, 0:2]
-        v_conics = v_gauss[:, 2:5]
-        v_opac = v_gauss[:, 5]
-        v_colors = v_gauss[:, 6:9]
-        v_depths = v_gauss[:, 9]
+        v_gauss = torch.zeros(10, n + 1, dtype=dtype, device=device)
+        v_gauss.index_add_(1, plan.slot_gid, v_table)
+        v_gauss = v_gauss[:, :n].T
         v_bg = None
         if ctx.needs_input_grad[5]:
-            v_bg = (grads[..., :3] * t_end.unsqueeze(-1)).sum((0, 1)).to(background.dtype)
-        return v_means2d, v_conics, v_opac, v_colors, v_depths, v_bg, None, None
+            v_bg = (grads[:, :3] * t_end.unsqueeze(1)).sum((0, 2)).to(background.dtype)
+        return (
+            v_gauss[:, _MX : _MY + 1],
+            v_gauss[:, _CA : _CC + 1],
+            v_gauss[:, _OP],
+            v_gauss[:, _CR : _CBL + 1],
+            v_gauss[:, _Z],
+            v_bg,
+            None,
+            None,
+        )
 
 
 def composite(

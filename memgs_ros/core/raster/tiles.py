@@ -26,10 +26,19 @@ BIN_MARGIN = 1.001  # widen the cutoff ellipse a little: binning must never miss
 
 @dataclass(frozen=True)
 class Chunk:
-    """Tiles composited together. tiles: [T] int64 tile ids; k: padded list length."""
+    """Tiles composited together.
+
+    tiles: [T] int64 tile ids; k: padded list length; slot_start: offset of the chunk's
+    T * k slots in ``TilePlan.slot_gid`` (row-major [T, k]).
+    """
 
     tiles: Tensor
     k: int
+    slot_start: int
+
+    @property
+    def num_slots(self) -> int:
+        return int(self.tiles.shape[0]) * self.k
 
 
 @dataclass(frozen=True)
@@ -40,7 +49,10 @@ class TilePlan:
     front-to-back inside a tile; pair_tile: [M] int64 tile id of each pair;
     tile_start, tile_count: [tiles_y * tiles_x] int64 offsets into the pair arrays;
     gaussian_hit: [N] bool, the Gaussian touches at least one tile; chunks: the compositing
-    schedule (every tile with a non-empty list appears in exactly one chunk).
+    schedule (every tile with a non-empty list appears in exactly one chunk);
+    slot_gid: [S] int64, the padded per-chunk lists laid end to end (chunk by chunk, [T, k]
+    row-major), with N (one past the last Gaussian) in the padding slots; slot_tile: [S] int64
+    tile id of each slot.
     """
 
     width: int
@@ -54,6 +66,8 @@ class TilePlan:
     tile_count: Tensor
     gaussian_hit: Tensor
     chunks: tuple[Chunk, ...]
+    slot_gid: Tensor
+    slot_tile: Tensor
 
     @property
     def num_pairs(self) -> int:
@@ -146,16 +160,30 @@ def build_tile_plan(
         counts_sorted, order = torch.sort(tile_count, descending=True, stable=True)
         counts_list = counts_sorted.tolist()
         chunks: list[Chunk] = []
+        slot_parts: list[Tensor] = []
+        slot_tiles: list[Tensor] = []
         pix = tile_size * tile_size
         i = 0
+        n_slots = 0
         while i < n_tiles and counts_list[i] > 0:
             k = counts_list[i]
             take = max(1, pairs_per_chunk // (pix * k))
             j = min(i + take, n_tiles)
             while counts_list[j - 1] == 0:
                 j -= 1
-            chunks.append(Chunk(tiles=order[i:j], k=k))
+            tiles = order[i:j]
+            chunks.append(Chunk(tiles=tiles, k=k, slot_start=n_slots))
+            ar = torch.arange(k, device=device)
+            pos = tile_start[tiles].unsqueeze(1) + ar  # [T, k]
+            valid = ar < tile_count[tiles].unsqueeze(1)
+            gids = pair_gid[pos.clamp_max(pair_gid.shape[0] - 1)]
+            slot_parts.append(torch.where(valid, gids, torch.full_like(gids, n)).reshape(-1))
+            slot_tiles.append(tiles.repeat_interleave(k))
+            n_slots += (j - i) * k
             i = j
+        empty = torch.zeros(0, dtype=torch.long, device=device)
+        slot_gid = torch.cat(slot_parts) if slot_parts else empty
+        slot_tile = torch.cat(slot_tiles) if slot_tiles else empty
     return TilePlan(
         width=width,
         height=height,
@@ -168,4 +196,6 @@ def build_tile_plan(
         tile_count=tile_count,
         gaussian_hit=gaussian_hit,
         chunks=tuple(chunks),
+        slot_gid=slot_gid,
+        slot_tile=slot_tile,
     )
