@@ -1,16 +1,22 @@
 """SSIM (fast grouped-separable path vs references), PSNR and frame matching."""
 from __future__ import annotations
 
+import sys
+from collections.abc import Iterator
+
 import numpy as np
 import pytest
 import torch
 from scipy import ndimage
 
+from memgs_ros.core.metrics import (
+    FrameScore, make_lpips, match_frames, psnr, score_frame, ssim_value, summarize_scores,
+)
 from memgs_ros.core.ssim import _ssim_map, gaussian_window_1d, ssim, ssim_map
 
 
 @pytest.fixture(autouse=True)
-def _one_torch_thread() -> object:
+def _one_torch_thread() -> Iterator[None]:
     """On a loaded shared machine each tiny OpenMP-parallel conv waits for a scheduler tick:
     measured 365 ms vs 1.2 ms per small SSIM forward with 2 threads vs 1 at load 11. The
     gradient checks run hundreds of them, so these tests use one thread."""
@@ -137,10 +143,6 @@ def test_shape_mismatch_is_refused() -> None:
 
 # --- PSNR, frame scores, matching ----------------------------------------------------------
 
-from memgs_ros.core.metrics import (  # noqa: E402 - grouped with the tests that use them
-    FrameScore, make_lpips, match_frames, psnr, score_frame, ssim_value, summarize_scores,
-)
-
 
 def test_psnr_hand_values() -> None:
     ref = np.zeros((4, 6, 3), np.float64)
@@ -189,7 +191,6 @@ def test_summarize_scores() -> None:
 
 
 def test_lpips_hook_is_none_without_the_package(monkeypatch: pytest.MonkeyPatch) -> None:
-    import sys
     monkeypatch.setitem(sys.modules, "lpips", None)  # makes `import lpips` raise ImportError
     assert make_lpips() is None
 
