@@ -176,6 +176,9 @@ def test_rgbd_seeds_backproject_to_their_pixels_and_depths() -> None:
     # Keypoints: back-projected at their pixel (10, 20) and (30, 90) with their own depth.
     assert np.allclose(pu[kp], [10, 30], atol=1e-3) and np.allclose(pv[kp], [20, 90], atol=1e-3)
     assert np.allclose(pz[kp], [2.0, 3.5], atol=1e-5)
+    # By hand: pixel (10, 20) at depth 2 is p_c = ((10 - cx) / fx * 2, (20 - cy) / fy * 2, 2).
+    p_c = np.array([(10 - 79.5) / 100.0 * 2, (20 - 59.5) / 110.0 * 2, 2.0])
+    assert np.allclose(seeds.points_w[0], T[:3, :3] @ p_c + T[:3, 3], atol=1e-5)
     # Samples: back-projected with the depth image value at their pixel.
     pg = seeds.source == SOURCE_PATCH_GRID
     # 160x120 at 80 px: 2 full cells (the 40 px bottom row is shorter than 50: skipped); each
