@@ -36,6 +36,11 @@ def test_same_seed_same_bytes_different_seed_differs(scene0):
     assert not np.allclose(a[0].T_wc_gt, c[0].T_wc_gt)
 
 
+def test_scene_of_another_seed_is_refused(scene0):
+    with pytest.raises(ConfigError, match="seed 0, the spec has seed 1"):
+        next(generate_frames(SyntheticSpec(seed=1, **SMALL), scene0))
+
+
 def test_frames_have_camera_stamps_and_texture(scene0):
     spec = SyntheticSpec(fps=30.0, **SMALL)
     frames = list(generate_frames(spec, scene0))

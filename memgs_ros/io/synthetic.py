@@ -22,6 +22,11 @@ keys: w, h (image size, px), n (frames), fps, seed, noise (depth noise std, m),
 holes (fraction of depth pixels zeroed in random blobs), amp (path translation scale,
 1 = about 1.9 m of travel), rot (path rotation scale, 1 = yaw +-35 deg, pitch +-8 deg,
 roll +-8 deg), aa (colour supersampling factor; 0 = auto: 2 up to 320x240, else 1).
+Defaults: 640x480, 120 frames at 30 fps, seed 0, no noise, no holes.
+
+The room geometry (6 x 5 x 2.7 m, six boxes) is fixed; the seed changes the textures and
+the phases of the camera path. The camera is TUM fr3-like without distortion, scaled to
+the image size; stamps start at SYNTH_START_NS and are whole microseconds.
 """
 from __future__ import annotations
 
@@ -29,8 +34,8 @@ import math
 import os
 import shutil
 import tempfile
-from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, fields, replace
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import cv2
@@ -160,6 +165,7 @@ class Surface:
 class SyntheticScene:
     """The room: boxes, the faces (room faces first: 6, then 6 per box) and the baked atlas."""
 
+    seed: int
     room_lo: np.ndarray  # [3]
     room_hi: np.ndarray  # [3]
     boxes_lo: np.ndarray  # [B, 3]
@@ -220,7 +226,7 @@ class _Noise:
         return out / norm
 
 
-def _smooth_field(fn, w: int, h: int, step: int = 8) -> np.ndarray:
+def _smooth_field(fn: Callable[[np.ndarray, np.ndarray], np.ndarray], w: int, h: int, step: int = 8) -> np.ndarray:
     """Evaluate a smooth field fn(u_m, v_m) on every ``step``-th texel and upsample bilinearly to [h, w].
 
     Only for fields that vary over decimetres (blotches, light falloff): 8 texels = 4 cm.
@@ -399,7 +405,7 @@ def build_scene(seed: int = 0) -> SyntheticScene:
             np.round(tex * 255).astype(np.uint8), ((gutter, gutter), (gutter, gutter), (0, 0)), mode="edge")
         surfaces.append(Surface(name, n.astype(np.float64), o.astype(np.float64), ua.astype(np.float64),
                                 va.astype(np.float64), size, (ox, oy)))
-    return SyntheticScene(room_lo, room_hi, boxes_lo, boxes_hi, tuple(surfaces), atlas)
+    return SyntheticScene(seed, room_lo, room_hi, boxes_lo, boxes_hi, tuple(surfaces), atlas)
 
 
 def _ray_dirs(camera: PinholeCamera, aa: int) -> np.ndarray:
@@ -592,6 +598,8 @@ def generate_frames(spec: SyntheticSpec, scene: SyntheticScene | None = None) ->
     camera = spec.camera
     if scene is None:
         scene = build_scene(spec.seed)
+    elif scene.seed != spec.seed:
+        raise ConfigError(f"scene was built with seed {scene.seed}, the spec has seed {spec.seed}")
     for k in range(spec.n_frames):
         rgb, depth = render(scene, camera, poses[k], spec.aa)
         depth = _corrupt_depth(depth, spec, k)
