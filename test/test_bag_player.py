@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,7 @@ from std_msgs.msg import Bool, Header  # noqa: E402
 from memgs_ros.core.camera import PinholeCamera  # noqa: E402
 from memgs_ros.core.frame import Frame  # noqa: E402
 from memgs_ros.core.geometry import pose_from_tq  # noqa: E402
-from memgs_ros.errors import ConfigError  # noqa: E402
+from memgs_ros.errors import ConfigError, DataError  # noqa: E402
 from memgs_ros.nodes.bag_player import BagPlayer  # noqa: E402
 from memgs_ros.ros import codecs, qos  # noqa: E402
 
@@ -92,7 +93,7 @@ def _params(**kw: object) -> list[Parameter]:
     return [Parameter(k, value=v) for k, v in kw.items()]
 
 
-def play_in_process(frames: list[Frame], domain_id: int, ack: bool = True, timeout_s: float = 30.0,
+def play_in_process(frames: Iterable[Frame], domain_id: int, ack: bool = True, timeout_s: float = 30.0,
                     **params: object) -> tuple[BagPlayer, Receiver]:
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain_id)
@@ -195,6 +196,34 @@ def test_bad_parameters_are_refused_by_name(ros_domain_id: int, params: dict, fr
     try:
         with pytest.raises(ConfigError, match=fragment):
             BagPlayer(make_frames(1), context=ctx, parameter_overrides=_params(**params))
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+class _BrokenSource:
+    """Two good frames, then the reader fails the way a truncated bag does."""
+
+    def __init__(self, frames: list[Frame]) -> None:
+        self.frames = frames
+
+    def __iter__(self) -> Iterator[Frame]:
+        yield from self.frames[:2]
+        raise DataError("test.bag: truncated chunk at byte 1234")
+
+
+def test_source_failure_ends_with_done_false(ros_domain_id: int) -> None:
+    frames = make_frames(4)
+    player, rx = play_in_process(_BrokenSource(frames), ros_domain_id, lockstep=True)
+    assert [s for s, _ in rx.color] == [f.stamp_ns for f in frames[:2]]
+    assert rx.done == [False] and player.finished.result() is False
+
+
+def test_missing_source_path_is_a_data_error(ros_domain_id: int, tmp_path: Path) -> None:
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=ros_domain_id)
+    try:
+        with pytest.raises(DataError, match="nope.bag: no such file"):
+            BagPlayer(context=ctx, parameter_overrides=_params(source=str(tmp_path / "nope.bag")))
     finally:
         rclpy.try_shutdown(context=ctx)
 
