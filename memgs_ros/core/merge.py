@@ -295,9 +295,9 @@ def _w2_terms_soa(x: torch.Tensor,  # [7, P]
     one vectorised pass over P). x rows: quaternion (wxyz, unnormalised) then log-scales of Sk;
     q_t: target unit quaternions; v_t: target variances s^2; adj_t: products of the other two
     variances (eigenvalues of adj St); r_t: prod(s). Returns [P]."""
-    kw, kx, ky, kz = x[0], x[1], x[2], x[3]
-    sc = x[4:7]
-    tw, tx, ty, tz = q_t[0], q_t[1], q_t[2], q_t[3]
+    kw, kx, ky, kz, s0, s1, s2 = x.unbind(0)  # one unbind: per-row indexing costs a [7, P] zero-fill each in backward
+    sc = torch.stack([s0, s1, s2])
+    tw, tx, ty, tz = q_t.unbind(0)
     # relative rotation Q = Rk^T Rt = R(conj(qk) (x) qt); entries of R(q) / |q|^2 for unnormalised q
     w = kw * tw + kx * tx + ky * ty + kz * tz
     a = kw * tx - kx * tw - ky * tz + kz * ty
@@ -320,23 +320,27 @@ def _w2_terms_soa(x: torch.Tensor,  # [7, P]
     return v_k.sum(0) + v_t.sum(0) - 2.0 * trace_sqrt_spd3(I1, I2, r)
 
 
-def _sym_sq_soa(X: torch.Tensor) -> torch.Tensor:  # [6, P] -> [6, P]
-    """X @ X for symmetric 3x3 stored as rows (00, 11, 22, 01, 02, 12), pairs innermost."""
-    a, d, f, b, c, e = X[0], X[1], X[2], X[3], X[4], X[5]
-    return torch.stack([a * a + b * b + c * c, b * b + d * d + e * e, c * c + e * e + f * f,
-                        a * b + b * d + c * e, a * c + b * e + c * f, b * c + d * e + e * f])
+Sym6 = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
 
 
-def _sym_adj_soa(X: torch.Tensor) -> torch.Tensor:  # [6, P] -> [6, P]
-    """Adjugate of symmetric 3x3 stored as rows (00, 11, 22, 01, 02, 12)."""
-    a, d, f, b, c, e = X[0], X[1], X[2], X[3], X[4], X[5]
-    return torch.stack([d * f - e * e, a * f - c * c, a * d - b * b, c * e - b * f, b * e - c * d, b * c - a * e])
+def _sym_sq_soa(X: Sym6) -> Sym6:
+    """X @ X for symmetric 3x3 given as six [P] tensors (00, 11, 22, 01, 02, 12). Tuples of
+    separate [P] tensors, not a stacked [6, P]: indexing a stacked tensor costs a zero-filled
+    [6, P] gradient per index in backward, which dominated the run time."""
+    a, d, f, b, c, e = X
+    return (a * a + b * b + c * c, b * b + d * d + e * e, c * c + e * e + f * f,
+            a * b + b * d + c * e, a * c + b * e + c * f, b * c + d * e + e * f)
 
 
-def _sym_dot_soa(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:  # [6, P] x [6, P] -> [P]
-    """<A, B> = tr(A B) of symmetric matrices in (00, 11, 22, 01, 02, 12) rows."""
-    prod = A * B
-    return prod[0:3].sum(0) + 2.0 * prod[3:6].sum(0)
+def _sym_adj_soa(X: Sym6) -> Sym6:
+    """Adjugate of symmetric 3x3 given as six [P] tensors (00, 11, 22, 01, 02, 12)."""
+    a, d, f, b, c, e = X
+    return (d * f - e * e, a * f - c * c, a * d - b * b, c * e - b * f, b * e - c * d, b * c - a * e)
+
+
+def _sym_dot_soa(A: Sym6, B: Sym6) -> torch.Tensor:  # -> [P]
+    """<A, B> = tr(A B) of symmetric matrices given as six [P] tensors."""
+    return A[0] * B[0] + A[1] * B[1] + A[2] * B[2] + 2.0 * (A[3] * B[3] + A[4] * B[4] + A[5] * B[5])
 
 
 def _sym_from_dense(A: torch.Tensor) -> torch.Tensor:  # [P, 3, 3] -> [6, P]
@@ -348,19 +352,24 @@ def _w2_terms_sqrtcov_soa(X: torch.Tensor,  # [6, P]
                           adj_t: torch.Tensor,  # [6, P]
                           r_t: torch.Tensor,  # [P]
                           ) -> torch.Tensor:  # [P]
-    """W2(X^2, St)^2 per column for symmetric X (the merged covariance's square root), SoA rows
-    (00, 11, 22, 01, 02, 12). In the commuting case this is exactly ||X - St^1/2||_F^2: the
-    Hessian is ~2I whatever the pair's shape, so one L-BFGS over many pairs behaves like one over
-    a single pair. S_t, adj_t: target covariance and its adjugate; r_t: sqrt(det St)."""
-    a, d, f, b, c, e = X[0], X[1], X[2], X[3], X[4], X[5]
-    det_x = a * (d * f - e * e) - b * (b * f - e * c) + c * (b * e - d * c)
-    S_k = _sym_sq_soa(X)
-    adj_k = _sym_sq_soa(_sym_adj_soa(X))  # adj(X^2) = adj(X)^2
-    I1 = _sym_dot_soa(S_k, S_t)
-    I2 = _sym_dot_soa(adj_k, adj_t)
+    """W2(X^2, St)^2 per column for symmetric X (the merged covariance's square root), rows
+    (00, 11, 22, 01, 02, 12), pairs innermost. In the commuting case this is exactly
+    ||X - St^1/2||_F^2: the Hessian is ~2I whatever the pair's shape, so one L-BFGS over many
+    pairs behaves like one over a single pair. S_t, adj_t: target covariance and its adjugate;
+    r_t: sqrt(det St)."""
+    Xs: Sym6 = X.unbind(0)  # type: ignore[assignment]
+    St: Sym6 = S_t.unbind(0)  # type: ignore[assignment]
+    At: Sym6 = adj_t.unbind(0)  # type: ignore[assignment]
+    a, d, f, b, c, e = Xs
+    adj_x = _sym_adj_soa(Xs)
+    det_x = a * adj_x[0] + b * adj_x[3] + c * adj_x[4]  # cofactor expansion along the first row
+    S_k = _sym_sq_soa(Xs)
+    adj_k = _sym_sq_soa(adj_x)  # adj(X^2) = adj(X)^2
+    I1 = _sym_dot_soa(S_k, St)
+    I2 = _sym_dot_soa(adj_k, At)
     r = det_x.abs() * r_t
     tr_k = S_k[0] + S_k[1] + S_k[2]
-    tr_t = S_t[0] + S_t[1] + S_t[2]
+    tr_t = St[0] + St[1] + St[2]
     return tr_k + tr_t - 2.0 * trace_sqrt_spd3(I1, I2, r)
 
 
@@ -433,7 +442,7 @@ def merge_covariance(q_i: torch.Tensor,  # [P, 4]
         def target(q: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, ...]:
             R = quat_wxyz_to_rotmat_torch(q)
             S = _sym_from_dense((R * (s * s)[:, None, :]) @ R.transpose(-1, -2))
-            return S, _sym_adj_soa(S), s.prod(-1)
+            return S, torch.stack(_sym_adj_soa(S.unbind(0))), s.prod(-1)
 
         ti, tj = target(qi, si_n), target(qj, sj_n)
         S_t, adj_t, r_t = (torch.cat([a, b], -1) for a, b in zip(ti, tj))  # 2P columns: i terms, j terms
