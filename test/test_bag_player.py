@@ -170,7 +170,7 @@ def test_lockstep_without_acks_times_out_and_goes_on(ros_domain_id: int) -> None
     frames = make_frames(3)
     player, rx = play_in_process(frames, ros_domain_id, ack=False, lockstep=True, ack_timeout_s=0.2)
     assert [s for s, _ in rx.color] == [f.stamp_ns for f in frames]
-    assert player._ack_timeouts == 3 and rx.done == [True]
+    assert player.ack_timeouts == 3 and player.frames_published == 3 and rx.done == [True]
 
 
 def test_depth_as_16uc1_millimetres(ros_domain_id: int) -> None:

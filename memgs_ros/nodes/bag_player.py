@@ -124,11 +124,24 @@ class BagPlayer(Node):
         self._last_progress = 0.0
         self._finish_at: float | None = None
         self._timer = self.create_timer(TICK_S, self._tick)
+        try:
+            count = f"{len(frames)} frames, "  # type: ignore[arg-type]
+        except TypeError:  # a plain iterable has no length
+            count = ""
         self.get_logger().info(
-            f"replaying '{self.cfg.source or type(frames).__name__}' "
-            f"({'lockstep' if self.cfg.lockstep else f'real time x{self.cfg.rate:g}'}"
+            f"replaying '{self.cfg.source or type(frames).__name__}' ({count}"
+            f"{'lockstep' if self.cfg.lockstep else f'real time x{self.cfg.rate:g}'}"
             f"{', looping' if self.cfg.loop else ''})"
         )
+
+    @property
+    def frames_published(self) -> int:
+        return self._published
+
+    @property
+    def ack_timeouts(self) -> int:
+        """Lockstep frames after which the player went on without an ack."""
+        return self._ack_timeouts
 
     # ------------------------------------------------------------------ pacing
 
