@@ -29,7 +29,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 SPEC = "synthetic:w=160,h=120,n=30,seed=3"
 # Short, CPU-friendly training: the assertions are about the graph, the quality bounds are
 # loose but far above what a broken map gives (an empty or misplaced map renders ~8-12 dB).
-FAST = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 150,
+FAST = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 150, "mapper.mapping.merge_enabled": False,
         "mapper.mapping.merge_start_iter": 60, "mapper.mapping.merge_interval": 60}
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections import deque
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -71,6 +72,8 @@ class TrackerNode(Node):
         self.path.header.frame_id = self.world_frame
         self.kf_path = Path()
         self.kf_path.header.frame_id = self.world_frame
+        # Frames that arrive before the first camera_info wait here (camera topics race at start).
+        self.waiting: deque[tuple[Image, Image | None]] = deque(maxlen=5)
         self.pairer: NearestPairer[Image] = NearestPairer(
             max_dt_ns=0 if self.sync == "exact" else int(max_dt * 1e9), queue_size=5)
 
@@ -110,6 +113,8 @@ class TrackerNode(Node):
             self.tracker = make_tracker(self.cfg, cam)
             self.undistort = Undistorter(cam)
             self.get_logger().info(f"camera {cam.width}x{cam.height} fx={cam.fx:.1f} fy={cam.fy:.1f}")
+            while self.waiting:
+                self._handle(*self.waiting.popleft())
         elif cam != self.camera:
             self.stats.problem("camera_changed", "camera_info changed after tracking started; keeping the first")
 
@@ -128,9 +133,7 @@ class TrackerNode(Node):
 
     def _frame(self, color: Image, depth: Image | None) -> Frame | None:
         """Messages to a Frame, or None (counted, logged once) when they cannot be used."""
-        if self.camera is None:
-            self.stats.problem("no_camera_info", f"no valid camera_info on {self.info_topic} yet: dropping frames")
-            return None
+        assert self.camera is not None
         try:
             rgb = rgb_from_image(color)
             depth_m = depth_from_image(depth, self.depth_scale) if depth is not None else None
@@ -140,6 +143,13 @@ class TrackerNode(Node):
             return None
 
     def _handle(self, color: Image, depth: Image | None) -> None:
+        if self.camera is None:
+            if len(self.waiting) == self.waiting.maxlen:
+                self.stats.problem("no_camera_info", f"no valid camera_info on {self.info_topic} yet: "
+                                                    "dropping the oldest waiting frame")
+                self._processed(stamp_to_ns(self.waiting[0][0].header.stamp), keyframe=False)
+            self.waiting.append((color, depth))
+            return
         self.stats.counters["frames_in"] += 1
         stamp = stamp_to_ns(color.header.stamp)
         if stamp <= self.last_stamp_ns:
@@ -148,13 +158,14 @@ class TrackerNode(Node):
             self._processed(stamp, keyframe=False)
             return
         frame = self._frame(color, depth)
-        if frame is None or self.tracker is None:
+        if frame is None:
             self._processed(stamp, keyframe=False)
             return
         if depth is not None and not frame.valid_depth_mask().any():
             self.stats.problem("empty_depth", f"frame {stamp} has no valid depth")
         self.last_stamp_ns = stamp
         t0 = time.perf_counter()
+        assert self.tracker is not None
         result = self.tracker.track(frame)
         dt = time.perf_counter() - t0
         self.stats.gauges["track_ms"] = round(dt * 1e3, 2)

@@ -297,6 +297,8 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
                     timer.start()
                 else:
                     procs.start(name)
+            _wait_for_graph(observer, procs, [n for n in GRAPH_NODES if not options.start_delays_s.get(n)],
+                            t0 + options.timeout_s)
             procs.start("bag_player")
         summary = _drive(observer, options, procs, out, t0, progress)
         return summary
@@ -311,6 +313,23 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
         for node in in_process:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+# A topic each node publishes: once the observer sees it, DDS discovery reached that node.
+_READY_TOPICS = {"tracker": "memgs/pose", "keyframe_sampler": "memgs/keyframe/seeds",
+                 "mapper": "memgs/frame_ack", "merger": "memgs/map/gaussians"}
+
+
+def _wait_for_graph(obs: _Observer, procs: _Processes, nodes: list[str], deadline: float) -> None:
+    """Block until every node in ``nodes`` is discovered, so the first frame reaches all of them."""
+    missing = list(nodes)
+    while missing:
+        procs.check()
+        if time.monotonic() > deadline:
+            raise PipelineError(f"nodes did not come up: {', '.join(missing)}")
+        missing = [n for n in missing if obs.node.count_publishers(_READY_TOPICS[n]) == 0]
+        time.sleep(0.1)
+    time.sleep(0.5)  # endpoint matching between the nodes themselves settles just after discovery
 
 
 def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: Path, t0: float,
