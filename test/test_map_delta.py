@@ -141,3 +141,34 @@ def test_outbox_snapshot_then_deltas() -> None:
     in_step.apply(decode(encode(MessageKind.DELTA, 1, 3, _records([1, 2, 3]), np.zeros(0), 3)))
     # A delta overtaking the snapshot it follows is a gap, never silently applied.
     assert in_step.apply(decode(encode(MessageKind.DELTA, 3, 3, _records([9]), np.zeros(0), 3))) is ApplyStatus.GAP
+
+
+# ---------------------------------------------------------------- property-based
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from hypothesis.extra import numpy as hnp  # noqa: E402
+
+_DTYPE = message_dtype(0)
+
+
+@settings(max_examples=150, deadline=None)
+@given(hnp.arrays(_DTYPE, st.integers(0, 6)), st.sets(st.sampled_from(_DTYPE.names), max_size=3))
+def test_decode_never_crashes_on_arbitrary_rows(rows: np.ndarray, drop: set[str]) -> None:
+    """Any table of rows, with any fields missing, decodes or raises MessageError: nothing else."""
+    kept = [n for n in _DTYPE.names if n not in drop]
+    table = np.zeros(rows.shape, dtype=[(n, _DTYPE[n]) for n in kept])
+    for n in kept:
+        table[n] = rows[n]
+    try:
+        msg = decode(table)
+    except MessageError:
+        return
+    assert np.all(np.isfinite(msg.upserts.xyz)) and len(msg.upserts) + msg.removed_ids.size == len(rows) - 1
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(0, 2**40), unique=True, max_size=20), st.integers(1, 2**31), st.integers(0, 3))
+def test_encode_decode_round_trip_property(ids: list[int], seq: int, degree: int) -> None:
+    up = _records(ids, sh_degree=degree)
+    msg = decode(encode(MessageKind.DELTA, seq, len(ids), up, np.zeros(0), degree))
+    assert msg.seq == seq and _same(msg.upserts, up)
