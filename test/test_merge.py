@@ -398,3 +398,10 @@ def test_surgery_bookkeeping(colour_from: str) -> None:
 def test_config_validation_names_the_field(kwargs: dict, field: str) -> None:
     with pytest.raises(ConfigError, match=field):
         MergeConfig(**kwargs)
+
+
+def test_unknown_keyframe_ids_are_never_candidates() -> None:
+    gmap = _make_map([{"pos": [0.0, 0.0, 0.0], "kf": -1}, {"pos": [0.001, 0.0, 0.0], "kf": -1},
+                      {"pos": [1.0, 0.0, 0.0], "kf": 3}, {"pos": [1.001, 0.0, 0.0], "kf": 4}])
+    res = merge_pass(gmap, MergeConfig(), newest_keyframe_id=5, iteration=0)
+    assert res.n_candidates == 2 and _ids_of_pairs(res) == {frozenset({2, 3})}

@@ -505,7 +505,8 @@ def merge_pass(gmap: "GaussianMap", cfg: MergeConfig, newest_keyframe_id: int, i
     """One merge pass over ``gmap`` in place (reference section 4).
 
     Candidates: ``merge_grad_mean() < cfg.tau`` and keyframe id in
-    ``[newest_keyframe_id - cfg.window_keyframes + 1, newest_keyframe_id]``. Per voxel the pair
+    ``[max(newest_keyframe_id - cfg.window_keyframes + 1, 0), newest_keyframe_id]`` (ids < 0,
+    i.e. loaded Gaussians of unknown keyframe, are never candidates). Per voxel the pair
     with minimum d2 is merged iff d2 < ``cfg.chi2_gate``: at most one merge per voxel per pass, so
     no Gaussian is in two merges. Each merged pair is removed and replaced by one Gaussian with a
     fresh id: closed-form mean, L-BFGS covariance, colour/SH/opacity from the older
@@ -529,8 +530,9 @@ def merge_pass(gmap: "GaussianMap", cfg: MergeConfig, newest_keyframe_id: int, i
 
     with torch.no_grad():
         k_max = int(newest_keyframe_id)
-        mask = candidate_mask(gmap.merge_grad_mean(), gmap.keyframe_ids, cfg.tau,
-                              k_max - cfg.window_keyframes + 1, k_max)
+        # keyframe id -1 marks Gaussians of unknown origin (a loaded map): never in the window
+        k_min = max(k_max - cfg.window_keyframes + 1, 0)
+        mask = candidate_mask(gmap.merge_grad_mean(), gmap.keyframe_ids, cfg.tau, k_min, k_max)
         cand = torch.nonzero(mask).reshape(-1)  # [M] rows
         t = lap("masking", t0)
 
