@@ -223,10 +223,11 @@ class _CompositeFn(torch.autograd.Function):
             v = torch.matmul(g4T.transpose(1, 2), cz)  # [T, P, K]
             w = alpha * t_excl
             vx[_CR : _Z + 1] = torch.matmul(g4T, w).transpose(0, 1)
-            after = torch.cumsum(w.mul_(v), dim=-1)  # inclusive sum of w_j v_j
-            after.neg_().add_(after[..., -1:].neg())  # sum_{j > i} w_j v_j
-            after.add_(behind.index_select(0, chunk.tiles).unsqueeze(-1)).div_(1.0 - alpha)
-            v_alpha_p = after.neg_().addcmul_(t_excl, v)  # [T, P, K] dL/d alpha_i
+            # dL/d alpha_i = T_i v_i - (sum_{j>i} w_j v_j + behind) / (1 - alpha_i), with the sum
+            # over j > i as "total minus inclusive cumulative sum".
+            cum = torch.cumsum(w.mul_(v), dim=-1)  # [T, P, K]
+            cum.sub_(cum[..., -1:] + behind.index_select(0, chunk.tiles).unsqueeze(-1)).div_(1.0 - alpha)
+            v_alpha_p = cum.addcmul_(t_excl, v)  # [T, P, K] dL/d alpha_i
             # d alpha / d power = alpha, except where clamped at 0.99: -alpha below it, 0 above
             # (the sign is undone below), again without bool tensors.
             d_alpha = torch.nn.functional.threshold_(alpha.neg(), -MAX_ALPHA, 0.0)

@@ -78,18 +78,18 @@ def project_gaussians(
     lim_y_neg = cy / fy + JACOBIAN_FOV_MARGIN * half_tan_y
     tx = (x * inv_z).clamp(-lim_x_neg, lim_x_pos)
     ty = (y * inv_z).clamp(-lim_y_neg, lim_y_pos)
-    zeros = torch.zeros_like(z)
-    J = torch.stack(
-        [fx * inv_z, zeros, -fx * tx * inv_z, zeros, fy * inv_z, -fy * ty * inv_z], dim=-1
-    ).reshape(-1, 2, 3)  # [N, 2, 3]
-
+    # cov2d = A A^T with A = J W R_g S ([N, 2, 3]); J has only four non-zeros, so each row of
+    # J W is a combination of two rows of W. Elementwise broadcasting instead of batched 2x3 / 3x3
+    # matmuls, which are slow on CPU for millions of tiny matrices (forward and backward).
+    jw0 = (fx * inv_z)[:, None] * R[0] - (fx * tx * inv_z)[:, None] * R[2]  # [N, 3]
+    jw1 = (fy * inv_z)[:, None] * R[1] - (fy * ty * inv_z)[:, None] * R[2]  # [N, 3]
     rot = quat_wxyz_to_rotmat_torch(quats_wxyz)  # [N, 3, 3]
-    M = rot * torch.exp(log_scales).unsqueeze(-2)  # [N, 3, 3] = R_g diag(s)
-    JW = J @ R  # [N, 2, 3]
-    A = JW @ M  # [N, 2, 3]; cov2d = A A^T
-    sxx = (A[:, 0] * A[:, 0]).sum(-1) + COV2D_DILATION
-    sxy = (A[:, 0] * A[:, 1]).sum(-1)
-    syy = (A[:, 1] * A[:, 1]).sum(-1) + COV2D_DILATION
+    scales = torch.exp(log_scales)  # [N, 3]
+    a0 = (jw0.unsqueeze(-1) * rot).sum(1) * scales  # [N, 3] row 0 of A: (J W)_0 R_g S
+    a1 = (jw1.unsqueeze(-1) * rot).sum(1) * scales  # [N, 3]
+    sxx = (a0 * a0).sum(-1) + COV2D_DILATION
+    sxy = (a0 * a1).sum(-1)
+    syy = (a1 * a1).sum(-1) + COV2D_DILATION
     det = sxx * syy - sxy * sxy  # > 0.09 thanks to the dilation
     inv_det = 1.0 / det
     conics = torch.stack([syy * inv_det, -sxy * inv_det, sxx * inv_det], dim=-1)  # [N, 3]

@@ -98,6 +98,7 @@ def build_tile_plan(
     n_tiles = tiles_x * tiles_y
     with torch.no_grad():
         # float64: the per-row extents subtract nearly equal numbers for thin, far-off ellipses.
+        # (index_select rather than x[idx] throughout: several times faster on CPU.)
         m = means2d.detach().to(torch.float64)
         cov = cov2d.detach().to(torch.float64)
         r2 = cutoff_sq.detach().to(torch.float64) * (BIN_MARGIN * BIN_MARGIN)
@@ -106,28 +107,32 @@ def build_tile_plan(
         r = torch.sqrt(r2.clamp_min(0.0))
         half_x = r * torch.sqrt(sxx)
         half_y = r * torch.sqrt(syy)
-        row_lo = torch.ceil(m[:, 1] - half_y).clamp_min(0)
-        row_hi = torch.floor(m[:, 1] + half_y).clamp_max(height - 1)
-        col_lo = torch.ceil(m[:, 0] - half_x).clamp_min(0)
-        col_hi = torch.floor(m[:, 0] + half_x).clamp_max(width - 1)
-        ok &= (row_lo <= row_hi) & (col_lo <= col_hi)
+        mx, my = m[:, 0], m[:, 1]
+        row_lo = torch.ceil(my - half_y).clamp_min(0)
+        row_hi = torch.floor(my + half_y).clamp_max(height - 1)
+        ok &= (row_lo <= row_hi) & (torch.ceil(mx - half_x) <= width - 1) & (torch.floor(mx + half_x) >= 0)
 
         # Front-to-back order first; every later expansion keeps it (repeat_interleave, stable sort).
         idx = torch.nonzero(ok).squeeze(1)
-        idx = idx[torch.argsort(depths.detach()[idx], stable=True)]
-        row_lo_i, row_hi_i = row_lo[idx].long(), row_hi[idx].long()
-        ty0 = torch.div(row_lo_i, tile_size, rounding_mode="floor")
-        ty1 = torch.div(row_hi_i, tile_size, rounding_mode="floor")
+        idx = idx.index_select(0, torch.argsort(depths.detach().index_select(0, idx), stable=True))
+        g_row_lo, g_row_hi = row_lo.index_select(0, idx), row_hi.index_select(0, idx)
+        ty0 = torch.div(g_row_lo.long(), tile_size, rounding_mode="floor")
+        ty1 = torch.div(g_row_hi.long(), tile_size, rounding_mode="floor")
         n_rows = ty1 - ty0 + 1  # [G]
-        rg = torch.repeat_interleave(torch.arange(idx.shape[0], device=device), n_rows)  # [R]
+        rg = torch.repeat_interleave(n_rows)  # [R] index into idx
         first_row = torch.cumsum(n_rows, 0) - n_rows
-        ty = ty0[rg] + (torch.arange(rg.shape[0], device=device) - first_row[rg])  # [R]
+        ty = ty0.index_select(0, rg) + (torch.arange(rg.shape[0], device=device) - first_row.index_select(0, rg))
 
-        # Band of pixel-centre rows of this tile row that lie inside the ellipse's y-range.
-        gi = idx[rg]
-        band_lo = torch.maximum((ty * tile_size).to(torch.float64), row_lo[gi]) - m[gi, 1]
-        band_hi = torch.minimum((ty * tile_size + tile_size - 1).to(torch.float64), row_hi[gi]) - m[gi, 1]
-        gxx, gxy, gyy, gr, gr2 = sxx[gi], sxy[gi], syy[gi], r[gi], r2[gi]
+        # Per tile row: the band of pixel-centre rows inside the ellipse's y-range, relative to the mean.
+        gi = idx.index_select(0, rg)  # [R] Gaussian ids
+
+        def at(x: Tensor) -> Tensor:
+            return x.index_select(0, gi)
+
+        gmy = at(my)
+        band_lo = torch.maximum((ty * tile_size).to(torch.float64), at(row_lo)) - gmy
+        band_hi = torch.minimum((ty * tile_size + tile_size - 1).to(torch.float64), at(row_hi)) - gmy
+        gxx, gxy, gyy, gr, gr2 = at(sxx), at(sxy), at(syy), at(r), at(r2)
         det = gxx * gyy - gxy * gxy
         slope = gxy / gyy  # centre line of the horizontal chords: x = slope * dy
         dy_tan = gr * gxy / torch.sqrt(gxx)  # dy of the right-most point (left-most is -dy_tan)
@@ -137,20 +142,22 @@ def build_tile_plan(
 
         dy_l = torch.minimum(torch.maximum(-dy_tan, band_lo), band_hi)
         dy_r = torch.minimum(torch.maximum(dy_tan, band_lo), band_hi)
-        x_lo = m[gi, 0] + slope * dy_l - chord_half(dy_l)
-        x_hi = m[gi, 0] + slope * dy_r + chord_half(dy_r)
+        gmx = at(mx)
+        x_lo = gmx + slope * dy_l - chord_half(dy_l)
+        x_hi = gmx + slope * dy_r + chord_half(dy_r)
         c_lo = torch.ceil(x_lo).clamp_min(0).long()
         c_hi = torch.floor(x_hi).clamp_max(width - 1).long()
         tx0 = torch.div(c_lo, tile_size, rounding_mode="floor")
         tx1 = torch.div(c_hi, tile_size, rounding_mode="floor")
-        n_cols = (tx1 - tx0 + 1).clamp_min(0)  # [R]
-        pr = torch.repeat_interleave(torch.arange(rg.shape[0], device=device), n_cols)  # [M]
+        n_cols = torch.where(c_lo <= c_hi, tx1 - tx0 + 1, torch.zeros_like(tx0))  # [R]
+        pr = torch.repeat_interleave(n_cols)  # [M] index into rows
         first_col = torch.cumsum(n_cols, 0) - n_cols
-        tx = tx0[pr] + (torch.arange(pr.shape[0], device=device) - first_col[pr])
-        pair_tile = ty[pr] * tiles_x + tx  # [M]
-        pair_gid = gi[pr]  # [M]
-        pair_tile, perm = torch.sort(pair_tile, stable=True)
-        pair_gid = pair_gid[perm]
+        tx = tx0.index_select(0, pr) + (torch.arange(pr.shape[0], device=device) - first_col.index_select(0, pr))
+        pair_tile = ty.index_select(0, pr) * tiles_x + tx  # [M]
+        # int32 keys: the stable sort is ~3x faster than on int64.
+        pair_tile, perm = torch.sort(pair_tile.to(torch.int32), stable=True)
+        pair_tile = pair_tile.long()
+        pair_gid = gi.index_select(0, pr.index_select(0, perm))
 
         tile_count = torch.bincount(pair_tile, minlength=n_tiles)  # [n_tiles]
         tile_start = torch.cumsum(tile_count, 0) - tile_count
@@ -176,7 +183,7 @@ def build_tile_plan(
             ar = torch.arange(k, device=device)
             pos = tile_start[tiles].unsqueeze(1) + ar  # [T, k]
             valid = ar < tile_count[tiles].unsqueeze(1)
-            gids = pair_gid[pos.clamp_max(pair_gid.shape[0] - 1)]
+            gids = pair_gid.index_select(0, pos.clamp_max(pair_gid.shape[0] - 1).reshape(-1)).view(pos.shape)
             slot_parts.append(torch.where(valid, gids, torch.full_like(gids, n)).reshape(-1))
             slot_tiles.append(tiles.repeat_interleave(k))
             n_slots += (j - i) * k
