@@ -9,7 +9,7 @@ from memgs_ros.core.camera import TUM_FR1, PinholeCamera
 from memgs_ros.core.geometry import invert_pose
 from memgs_ros.core.sampling import (
     PG_RGBD, SOURCE_KEYPOINT, SOURCE_PATCH_GRID, PatchGridConfig, SeedPoints, Undistorter,
-    patch_grid_uv, seeds_mono, seeds_rgbd, undistort_uv,
+    patch_grid_uv, seeds_mono, seeds_rgbd, undistort_rgbd, undistort_uv,
 )
 from memgs_ros.errors import ConfigError, DataError
 
@@ -291,6 +291,10 @@ def test_undistort_depth_is_nearest_and_agrees_with_undistort_uv() -> None:
     src_uv = np.c_[src % w, src // w]
     assert np.abs(src_uv - pts_d).max() <= 1.5
     assert np.abs(pts_u - pts_d).max() > 2.0  # the distortion is real at the corners
+    # The cached one-shot helper gives the same images.
+    rgb_c, depth_c, cam_c = undistort_rgbd(rgb, code, cam)
+    assert cam_c == cam_u and np.array_equal(rgb_c, rgb_u)
+    assert np.array_equal(depth_c, depth_u, equal_nan=True)
 
 
 def test_undistort_without_distortion_is_identity_and_checks_size() -> None:

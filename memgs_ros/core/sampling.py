@@ -15,6 +15,7 @@ All images here are undistorted: :func:`undistort_rgbd` / :class:`Undistorter` m
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -326,11 +327,19 @@ class Undistorter:
         return undistort_uv(uv, self.camera)
 
 
+@functools.lru_cache(maxsize=8)
+def _undistorter_for(camera: PinholeCamera) -> Undistorter:
+    """Remap tables per camera (building them costs ~12 ms at 640x480; applying them ~7 ms)."""
+    return Undistorter(camera)
+
+
 def undistort_rgbd(rgb: np.ndarray,  # [H, W, 3] uint8
                    depth_m: np.ndarray | None,  # [H, W] float32 metres, or None
                    camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray | None, PinholeCamera]:
-    """One-shot :class:`Undistorter` (build one and reuse it for a stream of frames)."""
-    return Undistorter(camera)(rgb, depth_m)
+    """Undistort a keyframe's colour (bilinear) and depth (nearest) images; see
+    :class:`Undistorter`. The remap tables are cached per camera.
+    Returns (rgb [H, W, 3] uint8, depth_m [H, W] float32 or None, undistorted camera)."""
+    return _undistorter_for(camera)(rgb, depth_m)
 
 
 def undistort_uv(uv: np.ndarray,  # [M, 2] distorted px
