@@ -1,0 +1,110 @@
+"""Nodes in-process (private rclpy context): bad input is counted and logged, never fatal."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
+
+from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
+from memgs_ros.nodes.tracker import TrackerNode  # noqa: E402
+from memgs_ros.ros import qos  # noqa: E402
+from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture
+def context(ros_domain_id: int):
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=ros_domain_id)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def _spin_until(executor: SingleThreadedExecutor, cond, timeout_s: float = 20.0) -> bool:  # noqa: ANN001
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.05)
+        if cond():
+            return True
+    return False
+
+
+def test_tracker_survives_bad_frames_and_tracks_good_ones(context) -> None:  # noqa: ANN001
+    params = [Parameter("color_topic", value="color/image_raw"), Parameter("depth_topic", value="depth/image_raw"),
+              Parameter("camera_info_topic", value="color/camera_info"), Parameter("sync", value="exact")]
+    node = TrackerNode(context=context, parameter_overrides=params)
+    pub_node = rclpy.create_node("feeder", context=context)
+    pc = pub_node.create_publisher(Image, "color/image_raw", qos.reliable(50))
+    pd = pub_node.create_publisher(Image, "depth/image_raw", qos.reliable(50))
+    pi = pub_node.create_publisher(CameraInfo, "color/camera_info", qos.reliable(50))
+    processed: list[Header] = []
+    pub_node.create_subscription(Header, "memgs/tracker/processed", processed.append, qos.reliable(100))
+    ex = SingleThreadedExecutor(context=context)
+    ex.add_node(node)
+    ex.add_node(pub_node)
+    try:
+        assert _spin_until(ex, lambda: pc.get_subscription_count() and pd.get_subscription_count()
+                           and pi.get_subscription_count())
+        frames = list(generate_frames(parse_spec("synthetic:w=128,h=96,n=6,seed=2")))
+        f0 = frames[0]
+        bad_info = camera_to_camera_info(f0.camera, f0.stamp_ns, "cam")
+        bad_info.k = [0.0] * 9  # zero focal length
+        pi.publish(bad_info)
+        sent = 0
+
+        def send(color: Image, depth: Image) -> None:
+            nonlocal sent
+            pc.publish(color)
+            pd.publish(depth)
+            sent += 1
+            assert _spin_until(ex, lambda: len(processed) >= sent), f"frame {sent} was never handled"
+
+        # Before any valid camera_info the first frame waits; then it is tracked.
+        pc.publish(numpy_to_image(f0.rgb, "rgb8", f0.stamp_ns, "cam"))
+        pd.publish(depth_to_image(f0.depth_m, "32FC1", f0.stamp_ns, "cam"))
+        assert _spin_until(ex, lambda: node.waiting, 10.0) and not processed
+        pi.publish(camera_to_camera_info(f0.camera, f0.stamp_ns, "cam"))
+        assert _spin_until(ex, lambda: node.stats.counters["poses_out"] == 1 and len(processed) == 1)
+        sent = 1
+        f1, f2, f3 = frames[1:4]
+        # Wrong encoding on the colour image.
+        weird = numpy_to_image(f1.rgb, "rgb8", f1.stamp_ns, "cam")
+        weird.encoding = "yuv422"
+        send(weird, depth_to_image(f1.depth_m, "32FC1", f1.stamp_ns, "cam"))
+        # Depth of another size than colour.
+        send(numpy_to_image(f2.rgb, "rgb8", f2.stamp_ns, "cam"),
+             depth_to_image(np.ones((48, 64), np.float32), "32FC1", f2.stamp_ns, "cam"))
+        # Truncated data (step says more than there is).
+        cut = numpy_to_image(f3.rgb, "rgb8", f3.stamp_ns, "cam")
+        cut.data = cut.data[: len(cut.data) // 2]
+        send(cut, depth_to_image(f3.depth_m, "32FC1", f3.stamp_ns, "cam"))
+        # All-NaN depth: refused by nobody, but reported.
+        f4 = frames[4]
+        send(numpy_to_image(f4.rgb, "rgb8", f4.stamp_ns, "cam"),
+             depth_to_image(np.full_like(f4.depth_m, np.nan), "32FC1", f4.stamp_ns, "cam"))
+        # A stamp going backwards.
+        send(numpy_to_image(f1.rgb, "rgb8", f1.stamp_ns - 10**6, "cam"),
+             depth_to_image(f1.depth_m, "32FC1", f1.stamp_ns - 10**6, "cam"))
+        # And a good frame still tracks afterwards.
+        f5 = frames[5]
+        send(numpy_to_image(f5.rgb, "rgb8", f5.stamp_ns, "cam"), depth_to_image(f5.depth_m, "32FC1", f5.stamp_ns, "cam"))
+        c = node.stats.counters
+        assert c["problem.camera_info"] == 1
+        assert c["problem.bad_image"] == 3
+        assert c["problem.empty_depth"] == 1
+        assert c["problem.stamp_order"] == 1
+        assert c["poses_out"] >= 2
+    finally:
+        node.on_shutdown()
+        ex.shutdown()
+        node.destroy_node()
+        pub_node.destroy_node()
