@@ -44,10 +44,11 @@ class MergerNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("merger", **node_kwargs)
         self.map_path = Path(declare(self, "map_path", "memgs_map.ply", "where the map PLY is saved (atomically)"))
-        self.save_period = declare(self, "save_period_s", 0.0, "save the PLY this often (0 = on request and shutdown)",
+        self.save_period = declare(self, "save_period_s", 60.0,
+                                   "also save the PLY this often when it changed (0 = only on request and shutdown)",
                                    range=(0.0, 1e6))
-        self.publish_period = declare(self, "publish_period_s", 0.0,
-                                      "publish the full map on memgs/map/gaussians this often (0 = on request)",
+        self.publish_period = declare(self, "publish_period_s", 30.0,
+                                      "publish the full map on memgs/map/gaussians this often (0 = only on request)",
                                       range=(0.0, 1e6))
         self.resync_interval = declare(self, "resync_interval_s", 1.0, "least time between snapshot requests",
                                        range=(0.0, 3600.0))
@@ -72,6 +73,7 @@ class MergerNode(Node):
         self._last_request = 0.0
         self._render_cache: tuple[int, int, GaussianMap] | None = None  # (seq, size, map)
         self._saved_version: tuple[int, int] | None = None
+        self._published_version: tuple[int, int] | None = None
 
         self.pub_map = self.create_publisher(PointCloud2, "memgs/map/gaussians", qos.latched())
         self.pub_color = self.create_publisher(Image, "memgs/merger/render/color", qos.reliable(2))
@@ -85,7 +87,7 @@ class MergerNode(Node):
         if self.save_period > 0:
             self.create_timer(self.save_period, self.save)
         if self.publish_period > 0:
-            self.create_timer(self.publish_period, self.publish_map)
+            self.create_timer(self.publish_period, lambda: self.publish_map(force=False))
         self.create_timer(0.5, self._retry_resync)
 
     # ------------------------------------------------------------------ sync
@@ -180,7 +182,12 @@ class MergerNode(Node):
                        else "no map received yet")
         return res
 
-    def publish_map(self) -> None:
+    def publish_map(self, force: bool = True) -> None:
+        """Publish the whole map (latched); the periodic call skips an unchanged map."""
+        version = (self.replica.seq, len(self.replica))
+        if not self.replica.synced or (not force and version == self._published_version):
+            return
+        self._published_version = version
         rows = encode(MessageKind.SNAPSHOT, self.replica.seq, len(self.replica), self.replica.records,
                       np.zeros(0, np.int64), sh_degree=3)
         self.pub_map.publish(structured_to_pointcloud2(rows, self.get_clock().now().nanoseconds, self.world_frame))

@@ -1,0 +1,99 @@
+"""The merger node in-process: deltas, a gap and its resync, a requested view, and the save service."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+
+from geometry_msgs.msg import PoseStamped  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import Image, PointCloud2  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from memgs_ros.core.gaussians import GaussianMap  # noqa: E402
+from memgs_ros.core.map_delta import DeltaOutbox  # noqa: E402
+from memgs_ros.core.ply import load_ply  # noqa: E402
+from memgs_ros.nodes.merger import MergerNode  # noqa: E402
+from memgs_ros.ros import qos  # noqa: E402
+from memgs_ros.ros.codecs import image_to_numpy, matrix_to_pose_stamped, structured_to_pointcloud2  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+
+def _wall_map(n: int, seed: int = 0) -> GaussianMap:
+    """Coloured Gaussians on a wall 2 m in front of a camera at the origin looking down +z."""
+    rng = np.random.default_rng(seed)
+    pts = np.stack([rng.uniform(-1, 1, n), rng.uniform(-0.8, 0.8, n), np.full(n, 2.0)], axis=1)
+    g = GaussianMap(max_sh_degree=0)
+    g.add_from_points(pts, rng.uniform(0.2, 0.9, (n, 3)), keyframe_id=0, iteration=0)
+    return g
+
+
+def test_merger_applies_deltas_resyncs_renders_and_saves(tmp_path: Path, ros_domain_id: int) -> None:
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=ros_domain_id)
+    path = tmp_path / "map.ply"
+    merger = MergerNode(context=ctx, parameter_overrides=[
+        Parameter("map_path", value=str(path)), Parameter("render_width", value=64),
+        Parameter("render_height", value=48), Parameter("render_fx", value=50.0), Parameter("render_fy", value=50.0),
+        Parameter("render_cx", value=31.5), Parameter("render_cy", value=23.5), Parameter("resync_interval_s", value=0.0)])
+    peer = rclpy.create_node("mapper_stand_in", context=ctx)
+    pub_delta = peer.create_publisher(PointCloud2, "memgs/map/delta", qos.reliable(50))
+    pub_snap = peer.create_publisher(PointCloud2, "memgs/mapper/snapshot", qos.latched())
+    pub_view = peer.create_publisher(PoseStamped, "memgs/merger/view_pose", qos.reliable(5))
+    renders: list[Image] = []
+    peer.create_subscription(Image, "memgs/merger/render/color", renders.append, qos.reliable(5))
+    outbox = DeltaOutbox(sh_degree=0)
+    g = _wall_map(300)
+    requests = []
+
+    def serve_snapshot(_req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        requests.append(1)
+        pub_snap.publish(structured_to_pointcloud2(outbox.snapshot(g.to_records()), 0, "map"))
+        res.success = True
+        return res
+
+    peer.create_service(Trigger, "memgs/mapper/publish_snapshot", serve_snapshot)
+    save = peer.create_client(Trigger, "memgs/save_map")
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(merger)
+    ex.add_node(peer)
+
+    def spin_until(cond, timeout_s: float = 20.0) -> bool:  # noqa: ANN001
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
+            if cond():
+                return True
+        return False
+
+    try:
+        assert spin_until(lambda: pub_delta.get_subscription_count() > 0 and save.service_is_ready())
+        pub_delta.publish(structured_to_pointcloud2(outbox.next_delta(g.to_records()), 0, "map"))
+        assert spin_until(lambda: len(merger.replica) == 300)
+        # Remove 50, then lose that delta: the next one is a gap and forces a resync.
+        g.remove(np.arange(len(g)) < 50)
+        outbox.next_delta(g.to_records())  # "lost" on the link
+        g.add_from_points(np.array([[0.0, 0.0, 1.5]]), np.array([[1.0, 0.0, 0.0]]), keyframe_id=1, iteration=1)
+        pub_delta.publish(structured_to_pointcloud2(outbox.next_delta(g.to_records()), 0, "map"))
+        assert spin_until(lambda: requests and merger.replica.seq >= 4 and not merger.resyncing)
+        assert np.array_equal(merger.replica.records.ids, np.sort(g.to_records().ids))
+        pub_view.publish(matrix_to_pose_stamped(np.eye(4), 123, "map"))
+        assert spin_until(lambda: renders)
+        img = image_to_numpy(renders[0])
+        assert img.shape == (48, 64, 3) and img.std() > 5.0
+        future = save.call_async(Trigger.Request())
+        assert spin_until(future.done)
+        assert future.result().success and str(path) in future.result().message
+        assert len(load_ply(path)) == len(g)
+        assert not list(tmp_path.glob("*.tmp*"))
+    finally:
+        ex.shutdown()
+        merger.destroy_node()
+        peer.destroy_node()
+        rclpy.try_shutdown(context=ctx)
