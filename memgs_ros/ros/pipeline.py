@@ -122,6 +122,9 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         source=str(options.source), lockstep=options.lockstep, rate=float(options.rate),
         max_frames=int(options.max_frames), ack_topic="memgs/frame_ack", world_frame_id="map")
     params.setdefault("mapper", {})["lockstep"] = options.lockstep
+    if options.lockstep:
+        # Background BA would refine poses at timing-dependent moments: run it in step instead.
+        params.setdefault("tracker", {}).setdefault("tracker.ba_threaded", False)
     params.setdefault("merger", {})["map_path"] = str(map_path)
     for key, value in options.overrides.items():
         node, _, name = key.partition(".")
