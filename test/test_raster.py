@@ -252,6 +252,20 @@ def test_image_does_not_depend_on_tiles_or_threads() -> None:
             assert (a - b).abs().max() < 1e-12
 
 
+def test_backward_recomputes_when_pairs_exceed_budget(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Above the saved-pairs budget alpha/T are recomputed per chunk: same gradients."""
+    import memgs_ros.core.raster.composite as composite_mod
+
+    params, T = _scene(80, 141)
+    out = rasterize(*params, T, CAM_64, 1, backend="torch")
+    saved = torch.autograd.grad(_loss(out, 2), params)
+    monkeypatch.setattr(composite_mod, "SAVED_PAIRS_BUDGET_BYTES", 0)
+    out2 = rasterize(*params, T, CAM_64, 1, backend="torch")
+    recomputed = torch.autograd.grad(_loss(out2, 2), params)
+    for a, b in zip(saved, recomputed):
+        assert torch.equal(a, b)
+
+
 def test_tile_lists_are_front_to_back() -> None:
     params, T = _scene(80, 121)
     proj = project_gaussians(*[p.detach() for p in params], T, CAM_64, 1, 0.01)

@@ -14,9 +14,13 @@ How it stays fast and small on a CPU:
   coordinates (u, v): power = [u^2, uv, v^2, u, v, 1] . k, so a chunk of tiles is a single
   ``[P, 6] @ [T, 6, K]`` matrix product (P pixels per tile, K padded list length, K innermost).
   The six coefficients k are computed per pair relative to the tile origin (small numbers).
-- Only ``alpha`` and ``T`` are kept per pixel-Gaussian pair (8 B in float32); the backward
-  pass gets the colour still to come behind i as "total minus inclusive cumulative sum",
-  so there is no autograd graph over pairs.
+- No autograd graph over pairs: only ``alpha`` and ``T`` are kept per pixel-Gaussian pair
+  (8 B in float32; above SAVED_PAIRS_BUDGET_BYTES they are recomputed per chunk instead, so
+  memory is then one chunk's worth). The backward pass gets the colour still to come behind
+  Gaussian i as "total minus inclusive cumulative sum".
+- No bool tensors in the per-pair work (comparisons and masked ops are several times slower
+  than arithmetic on this CPU): the 1/255 skip is ``threshold_``, the termination mask a
+  clamp + ceil; ``exp`` sees no argument below -30 (its slow path).
 - Chunks can run on several Python threads (torch releases the GIL inside each op); used when
   torch's own intra-op pool is one thread (see :mod:`memgs_ros.core.runtime`).
 """
@@ -37,6 +41,8 @@ MAX_ALPHA = 0.99
 MIN_TRANSMITTANCE = 1e-4
 # exp() of very negative arguments takes a slow path (~14x); below -30 alpha is 0 anyway.
 MIN_POWER = -30.0
+# Above this, alpha and T are recomputed in the backward pass instead of kept (see _saves_pairs).
+SAVED_PAIRS_BUDGET_BYTES = 512 * 1024 * 1024
 
 _T = TypeVar("_T")
 
@@ -133,6 +139,39 @@ def _float_below(x: float, dtype: torch.dtype) -> float:
     return float(torch.nextafter(t, torch.zeros_like(t)))
 
 
+def _forward_chunk(
+    plan: TilePlan, chunk: Chunk, table: Tensor, feat: Tensor, alpha_floor: float, t_floor: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Composite one chunk. Returns ([T, 5, P] r, g, b, depth, sum of weights; alpha [T, P, K]
+    after the skip/termination rules; transmittance before each Gaussian [T, P, K])."""
+    x = _chunk_block(table, chunk)  # [10, T, K]
+    mu, mv, a, b, c, k3, k4 = _chunk_geometry(plan, chunk, x)
+    coef = torch.stack([-0.5 * a, -b, -0.5 * c, k3, k4, -0.5 * (mu * k3 + mv * k4)], dim=1)  # [T, 6, K]
+    czT = torch.stack([x[_CR], x[_CG], x[_CBL], x[_Z], torch.ones_like(mu)], dim=1)  # [T, 5, K]
+    alpha = torch.matmul(feat, coef)  # [T, P, K] exponent
+    alpha.clamp_(MIN_POWER, 0.0).exp_().mul_(x[_OP].unsqueeze(1)).clamp_max_(MAX_ALPHA)
+    torch.nn.functional.threshold_(alpha, alpha_floor, 0.0)  # alpha < 1/255 -> 0
+    one_minus = 1.0 - alpha
+    trans = torch.cumprod(one_minus, dim=-1)  # inclusive
+    t_excl = trans / one_minus  # 1 - alpha >= 0.01
+    # Early termination: Gaussians whose inclusive T fell below 1e-4 (a suffix of each
+    # list) are dropped. (x - floor) clamped to [0, 1] and ceiled is the 0/1 mask,
+    # several times cheaper than a bool tensor and a masked op.
+    alpha.mul_(trans.sub_(t_floor).clamp_(0.0, 1.0).ceil_())
+    w = alpha * t_excl
+    out = torch.matmul(czT, w.transpose(1, 2))  # [T, 5, P] r, g, b, z, sum w
+    return out, alpha, t_excl
+
+
+def _saves_pairs(plan: TilePlan, dtype: torch.dtype) -> bool:
+    """Keep alpha and T per pixel-Gaussian pair for the backward pass (20 % faster) unless that
+    would exceed SAVED_PAIRS_BUDGET_BYTES; above it the backward pass recomputes them per chunk,
+    so memory stays at one chunk's worth."""
+    slots = int(plan.slot_gid.shape[0])
+    item = torch.tensor([], dtype=dtype).element_size()
+    return 2 * item * slots * plan.tile_size * plan.tile_size <= SAVED_PAIRS_BUDGET_BYTES
+
+
 class _CompositeFn(torch.autograd.Function):
     @staticmethod
     def forward(  # type: ignore[override]
@@ -152,24 +191,11 @@ class _CompositeFn(torch.autograd.Function):
         alpha_floor = _float_below(MIN_ALPHA, dtype)
         t_floor = _float_below(MIN_TRANSMITTANCE, dtype)
 
-        def run(chunk: Chunk) -> tuple[Tensor, Tensor, Tensor]:
-            x = _chunk_block(table, chunk)  # [10, T, K]
-            mu, mv, a, b, c, k3, k4 = _chunk_geometry(plan, chunk, x)
-            coef = torch.stack([-0.5 * a, -b, -0.5 * c, k3, k4, -0.5 * (mu * k3 + mv * k4)], dim=1)  # [T, 6, K]
-            czT = torch.stack([x[_CR], x[_CG], x[_CBL], x[_Z], torch.ones_like(mu)], dim=1)  # [T, 5, K]
-            alpha = torch.matmul(feat, coef)  # [T, P, K] exponent
-            alpha.clamp_(MIN_POWER, 0.0).exp_().mul_(x[_OP].unsqueeze(1)).clamp_max_(MAX_ALPHA)
-            torch.nn.functional.threshold_(alpha, alpha_floor, 0.0)  # alpha < 1/255 -> 0
-            one_minus = 1.0 - alpha
-            trans = torch.cumprod(one_minus, dim=-1)  # inclusive
-            t_excl = trans / one_minus  # 1 - alpha >= 0.01
-            # Early termination: Gaussians whose inclusive T fell below 1e-4 (a suffix of each
-            # list) are dropped. (x - floor) clamped to [0, 1] and ceiled is the 0/1 mask,
-            # several times cheaper than a bool tensor and a masked op.
-            alpha.mul_(trans.sub_(t_floor).clamp_(0.0, 1.0).ceil_())
-            w = alpha * t_excl
-            out = torch.matmul(czT, w.transpose(1, 2))  # [T, 5, P] r, g, b, z, sum w
-            return out, alpha, t_excl
+        keep = _saves_pairs(plan, dtype)
+
+        def run(chunk: Chunk) -> tuple[Tensor, Tensor | None, Tensor | None]:
+            out, alpha, t_excl = _forward_chunk(plan, chunk, table, feat, alpha_floor, t_floor)
+            return (out, alpha, t_excl) if keep else (out, None, None)
 
         results = _map(run, plan.chunks, workers)
         n_tiles = plan.tiles_x * plan.tiles_y
@@ -186,6 +212,7 @@ class _CompositeFn(torch.autograd.Function):
         ctx.plan = plan
         ctx.workers = workers
         ctx.table = table
+        ctx.thresholds = (alpha_floor, t_floor)
         ctx.saved_pairs = [r[1:] for r in results]
         ctx.t_end_tiles = t_end
         ctx.save_for_backward(means2d, background)
@@ -210,12 +237,16 @@ class _CompositeFn(torch.autograd.Function):
         bg = background.detach().to(dtype)
         # d/dT_end of (T_end bg . v_C - T_end v_A): what lies "behind the last Gaussian".
         behind = t_end * ((grads[:, :3] * bg.view(1, 3, 1)).sum(1) - grads[:, 4])  # [n_tiles, P]
-        feat_t = _pixel_features(plan.tile_size, dtype, device).T.contiguous()  # [6, P]
+        feat = _pixel_features(plan.tile_size, dtype, device)  # [P, 6]
+        feat_t = feat.T.contiguous()  # [6, P]
+        alpha_floor, t_floor = ctx.thresholds
         # Per slot: dL/d (mean x, mean y, conic a, b, c, opacity, r, g, b, z).
         v_table = torch.empty_like(table)
 
         def run(job: tuple[Chunk, tuple[Tensor, ...]]) -> None:
             chunk, (alpha, t_excl) = job
+            if alpha is None or t_excl is None:
+                _, alpha, t_excl = _forward_chunk(plan, chunk, table, feat, alpha_floor, t_floor)
             x = _chunk_block(table, chunk)  # [10, T, K]
             vx = _chunk_block(v_table, chunk)  # [10, T, K]
             g4T = grads.index_select(0, chunk.tiles)[:, :4]  # [T, 4, P] v_color, v_depth
@@ -276,7 +307,8 @@ def composite(
     means2d: [N, 2] px; conics: [N, 3] (a, b, c) of Sigma2D^-1; opacities: [N]; colors: [N, 3];
     depths: [N] camera z (also the value blended into the depth image); background: [3];
     plan: the tile binning of these Gaussians (front-to-back within each tile).
-    Differentiable w.r.t. all tensor inputs; memory is 8 B per pixel-Gaussian pair plus one chunk.
+    Differentiable w.r.t. all tensor inputs. Memory: 8 B per pixel-Gaussian pair (up to
+    SAVED_PAIRS_BUDGET_BYTES, then recomputed) plus one chunk per worker.
     """
     if workers is None:
         workers = default_workers(means2d.device)
