@@ -336,6 +336,21 @@ def test_pointcloud2_uint64_travels_as_lo_hi_pair() -> None:
         codecs.structured_to_pointcloud2(np.zeros(1, [("id", "<u8"), ("id_lo", "<u4")]), 0, "m")
 
 
+def test_pointcloud2_big_endian_lo_hi_pair_is_joined() -> None:
+    """Big-endian writers put the high word first; the pair still comes back as one uint64."""
+    raw = np.zeros(3, dtype=[("id", ">u8"), ("x", ">f4")])
+    raw["id"], raw["x"] = [2**64 - 2, 5, 2**40 + 3], [1.0, 2.0, 3.0]
+    fields = [PointField(name="id_hi", offset=0, datatype=PointField.UINT32, count=1),
+              PointField(name="id_lo", offset=4, datatype=PointField.UINT32, count=1),
+              PointField(name="x", offset=8, datatype=PointField.FLOAT32, count=1)]
+    msg = PointCloud2(height=1, width=3, is_bigendian=True, point_step=12, row_step=36, fields=fields)
+    msg.data = raw.tobytes()
+    out = codecs.pointcloud2_to_structured(msg, required=("id", "x"))
+    assert out.dtype.names == ("id", "x") and out.dtype["id"] == np.dtype(np.uint64)
+    np.testing.assert_array_equal(out["id"], raw["id"])
+    np.testing.assert_array_equal(out["x"], raw["x"])
+
+
 def _hand_cloud(arr: np.ndarray, big: bool, row_pad: int, height: int) -> PointCloud2:
     """A foreign-made cloud: fields in reverse order, chosen byte order, padded rows."""
     dtype = arr.dtype
