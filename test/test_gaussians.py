@@ -39,7 +39,7 @@ def test_add_from_points_initialisation_matches_3dgs() -> None:
     assert torch.equal(g.quats_wxyz[0], torch.tensor([1.0, 0, 0, 0]))
     assert float(torch.sigmoid(g.opacity_logits[0].detach())) == pytest.approx(0.1, rel=1e-6)
     assert g.sh_dc[0, 0].tolist() == pytest.approx([0.0, -0.5 / SH_C0, 0.5 / SH_C0], rel=1e-6)
-    assert g.sh_rest.shape == (5, 15, 3) and float(g.sh_rest.abs().sum()) == 0.0
+    assert g.sh_rest.shape == (5, 15, 3) and float(g.sh_rest.detach().abs().sum()) == 0.0
     assert g.keyframe_ids.tolist() == [7] * 5 and g.created_iter.tolist() == [3] * 5
 
 

@@ -66,6 +66,7 @@ def mapping_loss(rendered: torch.Tensor,  # [3, H, W]
     if depth_weight > 0 and rendered_depth is not None and target_depth is not None:
         depth = depth_l1_loss(rendered_depth, target_depth)
         total = total + depth_weight * depth
-    terms = {"l1": float(l1), "ssim": float(s), "photometric": float(photo), "iso": float(iso),
-             "depth": float(depth), "total": float(total)}
+    terms = {"l1": float(l1.detach()), "ssim": float(s.detach()), "photometric": float(photo.detach()),
+             "iso": float(iso.detach()),
+             "depth": float(depth.detach()), "total": float(total.detach())}
     return total, terms

@@ -1,0 +1,200 @@
+"""Benchmark: Gaussian mapping with ground-truth poses (no tracker), quality, time and memory.
+
+Datasets:
+  synthetic  the package's synthetic room (``synthetic:w=160,h=120,n=60,seed=0``), 160x120.
+             Target: mean PSNR on the training keyframes >= 30 dB.
+  tum        a TUM RGB-D folder (default the shared fr1/rpy head, 200 frames) trained at 320x240
+             (resolution scale 0.5). Target: mean keyframe PSNR >= 23 dB; PSNR over all frames
+             reported too (reference section 7: MemGS reports keyframes, Photo-SLAM all frames).
+
+Protocol: every ``--kf-every``-th frame is a keyframe with its ground-truth pose. Seeds: the
+depth of each keyframe back-projected on a regular pixel grid (``--grid`` px at the training
+resolution; distorted pixels are undistorted with cv2.undistortPoints). This is a plain grid,
+NOT the package's Patch-Grid sampler (another module). All keyframes are inserted first, then
+the mapper trains ``--iterations`` steps (offline mapping; the live system interleaves).
+Densification stops at 70 % of the iterations so the final numbers are not taken right after a
+densify step. PSNR = -10 log10(MSE) over the whole image in [0, 1] against the image the mapper
+trains on (undistorted, resized). Prints a table and writes JSON (default
+results/bench_mapping.json). Run on a machine shared with other jobs: ``uptime`` load is
+recorded before and after.
+
+    python benchmarks/bench_mapping.py --dataset synthetic
+    python benchmarks/bench_mapping.py --dataset tum --iterations 1500
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+MAPPING_DEPTH_WEIGHT = 0.1  # MappingConfig default
+DEFAULT_TUM = "/work/shared/data/tum/rgbd_dataset_freiburg1_rpy_head"
+DATASETS = {
+    # name: (source spec, resolution scale, keyframe stride, iterations, grid px, PSNR target)
+    "synthetic": ("synthetic:w=160,h=120,n=60,seed=0", 1.0, 6, 1500, 6, 30.0),
+    "tum": (DEFAULT_TUM, 0.5, 10, 1500, 10, 23.0),
+}
+
+
+def load_avg() -> float:
+    return os.getloadavg()[0]
+
+
+def grid_seeds(frame, step_px: int, scale: float):  # -> (points_w [M, 3], colors [M, 3])
+    """Back-project the frame's depth on a regular grid of ``step_px`` training pixels."""
+    import cv2
+    import numpy as np
+
+    cam = frame.camera
+    full_step = max(1, int(round(step_px / scale)))
+    v, u = np.mgrid[full_step // 2: cam.height: full_step, full_step // 2: cam.width: full_step]
+    u, v = u.ravel(), v.ravel()
+    d = frame.depth_m[v, u]
+    ok = np.isfinite(d) & (d > 1e-6) & (d < 40.0)
+    u, v, d = u[ok], v[ok], d[ok].astype(np.float64)
+    pix = np.stack([u, v], 1).astype(np.float64)[:, None, :]
+    norm = cv2.undistortPoints(pix, cam.K, cam.dist_coeffs).reshape(-1, 2)  # normalised, undistorted
+    p_c = np.concatenate([norm * d[:, None], d[:, None]], 1)
+    T = frame.T_wc_gt
+    return p_c @ T[:3, :3].T + T[:3, 3], frame.rgb[v, u].astype(np.float64) / 255.0
+
+
+def psnr_of(mapper, frame, scale: float) -> float:
+    import numpy as np
+    import torch
+
+    from memgs_ros.core.mapping import prepare_images
+
+    rgb, _, cam = prepare_images(frame.rgb, None, frame.camera, scale)
+    out = mapper.render(frame.T_wc_gt, cam)
+    gt = torch.from_numpy(rgb).to(out.color.device).permute(2, 0, 1).float() / 255.0
+    mse = float(((out.color.clamp(0, 1) - gt) ** 2).mean())
+    return -10.0 * math.log10(max(mse, 1e-12))
+
+
+def run(name: str, args: argparse.Namespace) -> dict:
+    import numpy as np
+    import torch
+
+    from memgs_ros.core.mapping import GaussianMapper, MappingConfig
+    from memgs_ros.io.sources import open_source
+
+    spec, scale, stride, iters, grid, target = DATASETS[name]
+    if name == "tum" and args.tum:
+        spec = args.tum
+    stride = args.kf_every or stride
+    iters = args.iterations or iters
+    grid = args.grid or grid
+    load0 = load_avg()
+    t0 = time.perf_counter()
+    frames = [f for f in open_source(spec) if f.T_wc_gt is not None]
+    if args.max_frames:
+        frames = frames[: args.max_frames]
+    t_load = time.perf_counter() - t0
+    kfs = frames[::stride]
+    cfg = MappingConfig(
+        min_keyframes=1, resolution_scale=scale, depth_weight=args.depth_weight,
+        densify_start_iter=min(500, iters // 4), densify_stop_iter=int(0.7 * iters),
+        merge_enabled=not args.no_merge, merge_start_iter=min(1000, iters // 2),
+        merge_interval=max(1, min(1000, iters // 3)), merge_stop_iter=int(0.7 * iters),
+        sh_up_interval=max(1, min(1000, iters // 4)), seed=0)
+    mapper = GaussianMapper(cfg, device=args.device)
+    t1 = time.perf_counter()
+    for i, f in enumerate(kfs):
+        p, c = grid_seeds(f, grid, scale)
+        mapper.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+    n_seed = len(mapper.gmap)
+    t_insert = time.perf_counter() - t1
+    print(f"[{name}] {len(frames)} frames, {len(kfs)} keyframes, {n_seed} seed Gaussians, "
+          f"extent {mapper.scene_extent:.2f} m, merge {'on' if mapper.merge_available and cfg.merge_enabled else 'off'}",
+          flush=True)
+    psnr_kf0 = float(np.mean([psnr_of(mapper, f, scale) for f in kfs]))
+    merges = []
+    t2 = time.perf_counter()
+    step_times = []
+
+    def on_step(st) -> None:  # noqa: ANN001
+        step_times.append(st.seconds)
+        if st.merged_removed or st.merged_added:
+            merges.append({"iteration": st.iteration, "removed": st.merged_removed, "added": st.merged_added})
+        if st.iteration % max(1, iters // 10) == 0:
+            print(f"  it {st.iteration:5d}  loss {st.terms['total']:.4f}  N {st.num_gaussians:6d}  "
+                  f"{time.perf_counter() - t2:7.1f} s", flush=True)
+
+    mapper.train(iters, progress=False, callback=on_step)
+    t_train = time.perf_counter() - t2
+    mem = mapper.gmap.memory_bytes()
+    t3 = time.perf_counter()
+    psnr_kf = [psnr_of(mapper, f, scale) for f in kfs]
+    psnr_all = [psnr_of(mapper, f, scale) for f in frames] if not args.skip_all_frames else []
+    t_eval = time.perf_counter() - t3
+    cam = kfs[0].camera.scaled(scale) if scale != 1.0 else kfs[0].camera
+    return {
+        "dataset": name, "source": str(spec), "resolution": [cam.width, cam.height],
+        "frames": len(frames), "keyframes": len(kfs), "kf_every": stride, "grid_px": grid,
+        "iterations": iters, "seed_gaussians": n_seed, "final_gaussians": len(mapper.gmap),
+        "psnr_keyframes_before": psnr_kf0, "psnr_keyframes": float(np.mean(psnr_kf)),
+        "psnr_keyframes_min": float(np.min(psnr_kf)),
+        "psnr_all_frames": float(np.mean(psnr_all)) if psnr_all else None,
+        "psnr_target_keyframes": target, "target_met": bool(np.mean(psnr_kf) >= target),
+        "train_wall_s": t_train, "median_step_s": float(np.median(step_times)),
+        "load_s": t_load, "insert_s": t_insert, "eval_s": t_eval,
+        "memory_bytes": asdict(mem), "bytes_per_gaussian": mem.total / max(len(mapper.gmap), 1),
+        "merges": merges, "loadavg_before": load0, "loadavg_after": load_avg(),
+        "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "torch_threads": torch.get_num_threads(), "device": args.device,
+        "config": {k: v for k, v in asdict(cfg).items()},
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--dataset", choices=["synthetic", "tum", "both"], default="both")
+    p.add_argument("--tum", default=None, help=f"TUM folder (default {DEFAULT_TUM})")
+    p.add_argument("--iterations", type=int, default=0, help="training steps (default per dataset)")
+    p.add_argument("--kf-every", type=int, default=0, help="keyframe stride in frames (default per dataset)")
+    p.add_argument("--grid", type=int, default=0, help="seed grid step in training pixels")
+    p.add_argument("--max-frames", type=int, default=0)
+    p.add_argument("--depth-weight", type=float, default=MAPPING_DEPTH_WEIGHT)
+    p.add_argument("--no-merge", action="store_true")
+    p.add_argument("--skip-all-frames", action="store_true", help="evaluate keyframes only")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (runtime tuning)")
+    p.add_argument("--out", default="results/bench_mapping.json")
+    args = p.parse_args(argv)
+
+    from memgs_ros.core.runtime import configure_cpu_runtime
+
+    rt = configure_cpu_runtime(torch_threads=args.threads)
+    names = ["synthetic", "tum"] if args.dataset == "both" else [args.dataset]
+    results = []
+    for name in names:
+        if name == "tum" and not Path(args.tum or DEFAULT_TUM).is_dir():
+            print(f"[tum] skipped: {args.tum or DEFAULT_TUM} not found", file=sys.stderr)
+            continue
+        results.append(run(name, args))
+    hdr = (f"{'dataset':10s} {'res':>8s} {'KF':>3s} {'iters':>6s} {'wall s':>7s} {'s/it':>6s} {'N seed':>7s} "
+           f"{'N end':>7s} {'MB':>7s} {'B/G':>5s} {'PSNR kf0':>8s} {'PSNR kf':>8s} {'PSNR all':>8s} {'target':>7s}")
+    print(hdr)
+    for r in results:
+        all_ = f"{r['psnr_all_frames']:8.2f}" if r["psnr_all_frames"] is not None else f"{'-':>8s}"
+        print(f"{r['dataset']:10s} {r['resolution'][0]:>4d}x{r['resolution'][1]:<3d} {r['keyframes']:3d} "
+              f"{r['iterations']:6d} {r['train_wall_s']:7.1f} {r['median_step_s']:6.3f} {r['seed_gaussians']:7d} "
+              f"{r['final_gaussians']:7d} {r['memory_bytes']['total'] / 2**20:7.2f} {r['bytes_per_gaussian']:5.0f} "
+              f"{r['psnr_keyframes_before']:8.2f} {r['psnr_keyframes']:8.2f} {all_} "
+              f"{('met' if r['target_met'] else 'MISSED'):>7s}")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"runtime": asdict(rt), "results": results}, indent=2))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

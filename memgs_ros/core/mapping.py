@@ -1,0 +1,481 @@
+"""The mapping back-end: keyframes in, an optimised Gaussian map out (reference section 5).
+
+``GaussianMapper`` owns a ``GaussianMap`` and a ``KeyframeStore``. Each ``step()`` draws one
+training view (Photo-SLAM schedule, coarse-to-fine pyramid), renders it, applies the loss
+(photometric + isotropic + optional depth L1), back-propagates, accumulates densification and
+merge statistics, takes an Adam step and, on schedule, densifies/prunes (3DGS clone/split),
+merges (MemGS voxel merge, ``memgs_ros.core.merge.merge_pass``) and raises the SH degree.
+
+Thread safety: one re-entrant lock guards the map, the optimiser and the iteration counter, so
+a ROS node may call ``add_keyframe`` / ``update_keyframe_pose`` / ``render`` / ``pop_changes``
+from callbacks while another thread loops on ``step()``. Image preparation (undistortion,
+pyramid) in ``add_keyframe`` runs outside the lock.
+
+Densification choices (documented differences from plain 3DGS): no opacity reset (reference
+section 5); a Gaussian younger than ``prune_min_age_iters`` is never pruned, because seeds start
+at opacity 0.1, at the prune threshold, and a new keyframe's seeds may not have been rendered yet;
+in an iteration where a merge is scheduled, densification waits for the next interval (merge and
+densification alternate, reference section 4).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, fields
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.gaussians import GaussianLearningRates, GaussianMap, GaussianRecords
+from memgs_ros.core.geometry import invert_pose, quat_wxyz_to_rotmat_torch
+from memgs_ros.core.keyframes import KeyframeStore, make_keyframe
+from memgs_ros.core.losses import mapping_loss
+from memgs_ros.errors import ConfigError, DataError
+
+logger = logging.getLogger(__name__)
+logger.addHandler(logging.NullHandler())
+
+
+@dataclass(frozen=True)
+class MappingConfig:
+    """Every mapping parameter (reference section 5); defaults are the paper's RGB-D TUM values.
+
+    Learning rates: ``lr_means`` is multiplied by the scene extent; with ``lr_means_decay`` it
+    decays log-linearly to ``lr_means_final`` over ``lr_means_decay_steps`` (3DGS schedule).
+    ``scene_extent`` <= 0 means automatic: max(1.1 x radius of the keyframe camera centres,
+    ``min_scene_extent``) (the floor matters for a camera that mostly rotates in place).
+    Densification: every ``densify_interval`` iterations in [densify_start_iter,
+    densify_stop_iter], Gaussians whose mean NDC 2D gradient exceeds ``densify_grad_threshold``
+    are cloned (max scale <= percent_dense x extent) or split into ``split_children`` scaled by
+    1/``split_scale_factor``; then Gaussians with opacity < ``prune_opacity`` (and, when
+    ``max_screen_size_px`` > 0, larger on screen than that or wider than 0.1 x extent) are pruned.
+    Merge (reference section 4): every ``merge_interval`` iterations in [merge_start_iter,
+    merge_stop_iter] when ``merge_enabled`` and memgs_ros.core.merge is importable.
+    """
+
+    # Optimiser (Adam, eps 1e-15)
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    lr_means_decay: bool = False
+    lr_means_decay_steps: int = 30_000
+    lr_sh_dc: float = 0.0025
+    lr_sh_rest: float = 0.0025 / 20.0
+    lr_opacity: float = 0.05
+    lr_scaling: float = 0.005
+    lr_rotation: float = 0.001
+    scene_extent: float = 0.0
+    min_scene_extent: float = 1.0
+    # Loss
+    ssim_lambda: float = 0.2
+    iso_weight: float = 1.0
+    depth_weight: float = 0.1
+    # Spherical harmonics
+    max_sh_degree: int = 3
+    sh_up_interval: int = 1000
+    # Densify / prune
+    densify_start_iter: int = 500
+    densify_stop_iter: int = 15_000
+    densify_interval: int = 100
+    densify_grad_threshold: float = 0.001
+    percent_dense: float = 0.01
+    split_children: int = 2
+    split_scale_factor: float = 1.6
+    prune_opacity: float = 0.1
+    prune_min_age_iters: int = 200
+    max_screen_size_px: float = 0.0
+    # Training views
+    min_keyframes: int = 10
+    new_keyframe_budget: int = 2
+    pyramid_uses_per_level: int = 8
+    resolution_scale: float = 1.0
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    raster_backend: str = "auto"
+    near_m: float = 0.01
+    # Merge schedule (the merge itself: memgs_ros.core.merge.merge_pass)
+    merge_enabled: bool = True
+    merge_start_iter: int = 1000
+    merge_interval: int = 1000
+    merge_stop_iter: int = 15_000
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("lr_means", "lr_means_final", "lr_sh_dc", "lr_sh_rest", "lr_opacity",
+                     "lr_scaling", "lr_rotation", "min_scene_extent", "split_scale_factor",
+                     "resolution_scale"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"MappingConfig.{name} must be positive, got {v}")
+        for name in ("ssim_lambda",):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"MappingConfig.{name} must be in [0, 1], got {getattr(self, name)}")
+        for name in ("iso_weight", "depth_weight", "densify_grad_threshold", "percent_dense",
+                     "prune_opacity", "max_screen_size_px", "near_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ConfigError(f"MappingConfig.{name} must be >= 0, got {v}")
+        for name in ("sh_up_interval", "densify_interval", "merge_interval", "split_children",
+                     "new_keyframe_budget", "lr_means_decay_steps"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"MappingConfig.{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("min_keyframes", "pyramid_uses_per_level", "prune_min_age_iters",
+                     "densify_start_iter", "merge_start_iter"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"MappingConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if not 0 <= self.max_sh_degree <= 3:
+            raise ConfigError(f"MappingConfig.max_sh_degree must be in 0..3, got {self.max_sh_degree}")
+        if len(self.background) != 3:
+            raise ConfigError(f"MappingConfig.background must have 3 values, got {self.background}")
+
+    def learning_rates(self) -> GaussianLearningRates:
+        return GaussianLearningRates(
+            means=self.lr_means, means_final=self.lr_means_final,
+            means_decay_steps=self.lr_means_decay_steps, means_decay=self.lr_means_decay,
+            sh_dc=self.lr_sh_dc, sh_rest=self.lr_sh_rest, opacity=self.lr_opacity,
+            scaling=self.lr_scaling, rotation=self.lr_rotation)
+
+    @staticmethod
+    def from_dict(values: dict[str, Any]) -> "MappingConfig":
+        """Build from a flat dict (e.g. ROS parameters), refusing unknown names."""
+        known = {f.name for f in fields(MappingConfig)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(f"unknown mapping parameter(s): {', '.join(unknown)}")
+        v = dict(values)
+        if "background" in v:
+            v["background"] = tuple(float(x) for x in v["background"])
+        return MappingConfig(**v)
+
+
+@dataclass(frozen=True)
+class StepStats:
+    """What one ``step()`` did. ``terms`` are the loss terms (see ``losses.mapping_loss``)."""
+
+    iteration: int
+    kf_id: int
+    level_factor: float
+    terms: dict[str, float]
+    num_gaussians: int
+    densified: int = 0
+    pruned: int = 0
+    merged_removed: int = 0
+    merged_added: int = 0
+    seconds: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class MapChanges:
+    """Map delta since the last ``pop_changes``: removed ids [R] int64 and the rows added or
+    changed (their current values)."""
+
+    removed_ids: np.ndarray
+    changed: GaussianRecords
+
+
+def _load_merge() -> Callable[..., Any] | None:
+    """memgs_ros.core.merge.merge_pass and its default config, when that module exists."""
+    try:
+        from memgs_ros.core import merge as merge_mod
+    except ImportError:
+        return None
+    return getattr(merge_mod, "merge_pass", None)
+
+
+def prepare_images(rgb: np.ndarray, depth_m: np.ndarray | None, camera: PinholeCamera,
+                   resolution_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray | None, PinholeCamera]:
+    """The images as the mapper trains on them: undistorted (when the camera has distortion;
+    colour bilinear, depth nearest so no depth is invented across edges; same K) then resized by
+    ``resolution_scale`` (colour area-averaged, depth nearest).
+
+    rgb: [H, W, 3] uint8; depth_m: [H, W] float32 metres or None. Returns (rgb [h, w, 3] uint8,
+    depth [h, w] float32 or None, undistorted camera of size w x h). Use it to prepare
+    evaluation images so they match the rendered views.
+    """
+    import cv2
+
+    depth = None if depth_m is None else np.asarray(depth_m, dtype=np.float32)
+    if camera.has_distortion:
+        K, dist = camera.K, camera.dist_coeffs
+        map1, map2 = cv2.initUndistortRectifyMap(K, dist, None, K, (camera.width, camera.height), cv2.CV_32FC1)
+        rgb = cv2.remap(rgb, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        if depth is not None:
+            depth = cv2.remap(depth, map1, map2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                              borderValue=float("nan"))
+        camera = camera.undistorted()
+    if resolution_scale != 1.0:
+        cam = camera.scaled(resolution_scale)
+        rgb = cv2.resize(rgb, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+        if depth is not None:
+            depth = cv2.resize(depth, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+        camera = cam
+    return np.ascontiguousarray(rgb), depth, camera
+
+
+class GaussianMapper:
+    """Trains a Gaussian map on keyframes (see module docstring). ``device``: torch device."""
+
+    def __init__(self, cfg: MappingConfig | None = None, device: torch.device | str = "cpu",
+                 merge_fn: Callable[..., Any] | None = None, merge_cfg: Any = None) -> None:
+        self.cfg = cfg if cfg is not None else MappingConfig()
+        self.device = torch.device(device)
+        extent = self.cfg.scene_extent if self.cfg.scene_extent > 0 else self.cfg.min_scene_extent
+        self.gmap = GaussianMap(self.cfg.max_sh_degree, self.device, self.cfg.learning_rates(), extent)
+        self.keyframes = KeyframeStore(self.cfg.new_keyframe_budget, self.cfg.pyramid_uses_per_level,
+                                       seed=self.cfg.seed)
+        self.iteration = 0
+        self._lock = threading.RLock()
+        self._newest_kf_id = -1
+        self._background = torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
+        self._generator = torch.Generator(device="cpu").manual_seed(self.cfg.seed)
+        self._merge_fn = merge_fn if merge_fn is not None else (_load_merge() if self.cfg.merge_enabled else None)
+        self._merge_cfg = merge_cfg
+        self.last_merge: Any = None
+
+    # ----------------------------------------------------------- properties
+    @property
+    def lock(self) -> threading.RLock:
+        """The mapper's lock (hold it to read ``gmap`` consistently from another thread)."""
+        return self._lock
+
+    @property
+    def scene_extent(self) -> float:
+        return self.gmap.spatial_lr_scale
+
+    @property
+    def ready(self) -> bool:
+        """True once ``min_keyframes`` keyframes exist (training starts then)."""
+        return len(self.keyframes) >= max(self.cfg.min_keyframes, 1)
+
+    @property
+    def merge_available(self) -> bool:
+        return self._merge_fn is not None
+
+    # ------------------------------------------------------------ keyframes
+    def add_keyframe(self, kf_id: int, stamp_ns: int, T_wc: np.ndarray, rgb: np.ndarray,
+                     depth_m: np.ndarray | None, camera: PinholeCamera,
+                     points_w: np.ndarray | None = None, colors: np.ndarray | None = None) -> int:
+        """Insert a keyframe and seed Gaussians at its points.
+
+        T_wc: [4, 4] camera-to-world; rgb: [H, W, 3] uint8; depth_m: [H, W] float32 metres
+        (NaN/0 invalid) or None; camera: intrinsics of rgb (distorted images are undistorted
+        here); points_w: [M, 3] world seeds (from undistorted pixels); colors: [M, 3] in [0, 1].
+        Returns the number of Gaussians added.
+        """
+        if rgb.dtype != np.uint8 or rgb.shape != (camera.height, camera.width, 3):
+            raise DataError(f"keyframe {kf_id}: rgb must be uint8 [{camera.height}, {camera.width}, 3], "
+                            f"got {rgb.dtype} {rgb.shape}")
+        if depth_m is not None and depth_m.shape != (camera.height, camera.width):
+            raise DataError(f"keyframe {kf_id}: depth must be [{camera.height}, {camera.width}], got {depth_m.shape}")
+        rgb, depth, camera = prepare_images(rgb, depth_m, camera, self.cfg.resolution_scale)
+        image = torch.from_numpy(np.ascontiguousarray(rgb)).to(self.device).permute(2, 0, 1).float() / 255.0
+        depth_t = None
+        if depth is not None:
+            d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+            depth_t = torch.from_numpy(d).to(self.device)
+        kf = make_keyframe(kf_id, stamp_ns, T_wc, image.contiguous(), depth_t, camera)
+        with self._lock:
+            self.keyframes.add(kf)
+            self._newest_kf_id = max(self._newest_kf_id, int(kf_id))
+            self._update_extent()
+            added = 0
+            if points_w is not None and len(points_w):
+                if colors is None:
+                    raise DataError(f"keyframe {kf_id}: points_w given without colors")
+                added = int(self.gmap.add_from_points(points_w, colors, kf_id, self.iteration).numel())
+            return added
+
+    def update_keyframe_pose(self, kf_id: int, T_wc: np.ndarray) -> None:
+        """Replace a keyframe's pose (e.g. after loop closure / bundle adjustment)."""
+        with self._lock:
+            self.keyframes.update_pose(kf_id, T_wc)
+            self._update_extent()
+
+    def _update_extent(self) -> None:
+        if self.cfg.scene_extent > 0:
+            return
+        centres = np.stack([kf.T_wc[:3, 3] for kf in self.keyframes.all()])
+        radius = float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
+        extent = max(1.1 * radius, self.cfg.min_scene_extent)
+        if abs(extent - self.gmap.spatial_lr_scale) > 1e-9:
+            self.gmap.set_spatial_lr_scale(extent)
+            self.gmap.update_learning_rate(self.iteration)
+
+    def load_map(self, records: GaussianRecords) -> None:
+        """Replace the map by ``records`` (e.g. handed back by the merger after a restart)."""
+        with self._lock:
+            self.gmap.remove(torch.ones(len(self.gmap), dtype=torch.bool, device=self.device))
+            self.gmap.pop_changes()
+            self.gmap.load_records(records, keyframe_id=-1, iteration=self.iteration)
+            self.gmap.pop_changes()
+
+    # ------------------------------------------------------------- training
+    def _rasterize(self, T_wc: np.ndarray, camera: PinholeCamera):  # -> RenderOutput
+        from memgs_ros.core.raster import rasterize
+
+        T_cw = torch.as_tensor(invert_pose(np.asarray(T_wc, dtype=np.float64)), dtype=torch.float32,
+                               device=self.device)
+        g = self.gmap
+        return rasterize(g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh_dc, g.sh_rest,
+                         T_cw, camera, g.active_sh_degree, background=self._background,
+                         near=self.cfg.near_m, backend=self.cfg.raster_backend)
+
+    def step(self) -> StepStats | None:
+        """One training iteration; None (and nothing done) until ``ready``."""
+        if not self.ready:
+            return None
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        with self._lock:
+            view = self.keyframes.next_view()
+            if view is None or len(self.gmap) == 0:
+                return None
+            level = view.level
+            out = self._rasterize(view.keyframe.T_wc, level.camera)
+            loss, terms = mapping_loss(out.color, level.image, self.gmap.log_scales, out.depth,
+                                       level.depth_m, ssim_lambda=cfg.ssim_lambda,
+                                       iso_weight=cfg.iso_weight, depth_weight=cfg.depth_weight)
+            loss.backward()
+            grad2d = out.means2d.grad if out.means2d.grad is not None else None
+            self.gmap.accumulate_stats(grad2d, out.visible, out.radii, level.camera.width, level.camera.height)
+            self.gmap.update_learning_rate(self.iteration)
+            self.gmap.optimizer_step()
+            self.iteration += 1
+            it = self.iteration
+            if it % cfg.sh_up_interval == 0:
+                self.gmap.raise_sh_degree()
+            merged_removed = merged_added = densified = pruned = 0
+            merge_due = (self._merge_fn is not None and cfg.merge_enabled
+                         and cfg.merge_start_iter <= it <= cfg.merge_stop_iter
+                         and it % cfg.merge_interval == 0)
+            if merge_due:
+                merged_removed, merged_added = self._run_merge()
+            elif cfg.densify_start_iter <= it <= cfg.densify_stop_iter and it % cfg.densify_interval == 0:
+                densified, pruned = self.densify_and_prune()
+            return StepStats(it, view.keyframe.kf_id, level.factor, terms, len(self.gmap), densified,
+                             pruned, merged_removed, merged_added, time.perf_counter() - t0)
+
+    def _run_merge(self) -> tuple[int, int]:
+        """The single merge hook: memgs_ros.core.merge.merge_pass on the live map.
+
+        Returns (removed, added) Gaussian counts; the full MergeResult is kept in ``last_merge``.
+        """
+        if self._merge_cfg is None:
+            from memgs_ros.core import merge as merge_mod
+
+            cfg_cls = getattr(merge_mod, "MergeConfig", None)
+            self._merge_cfg = cfg_cls() if cfg_cls is not None else None
+        result = self._merge_fn(self.gmap, self._merge_cfg, self._newest_kf_id, self.iteration)
+        # Each pass judges stability on the gradients seen since the previous pass.
+        self.gmap.reset_merge_stats()
+        self.last_merge = result
+        return int(result.removed_ids.numel()), int(result.added_ids.numel())
+
+    def train(self, iterations: int, progress: bool = True,
+              callback: Callable[[StepStats], None] | None = None) -> StepStats | None:
+        """Run ``iterations`` steps (raises ConfigError if the mapper is not ready); returns the last stats."""
+        if not self.ready:
+            raise ConfigError(f"mapping needs {self.cfg.min_keyframes} keyframes, has {len(self.keyframes)}")
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=iterations, desc="mapping", unit="it")
+        last = None
+        try:
+            for _ in range(iterations):
+                last = self.step()
+                if callback is not None and last is not None:
+                    callback(last)
+                if bar is not None:
+                    bar.update(1)
+                    if last is not None and last.iteration % 10 == 0:
+                        bar.set_postfix(loss=f"{last.terms['total']:.4f}", n=last.num_gaussians)
+        finally:
+            if bar is not None:
+                bar.close()
+        return last
+
+    # --------------------------------------------------------- densification
+    def densify_and_prune(self) -> tuple[int, int]:
+        """3DGS clone/split of high-gradient Gaussians, then pruning. Returns (added, removed)."""
+        cfg, g = self.cfg, self.gmap
+        with self._lock, torch.no_grad():
+            n0 = len(g)
+            extent = g.spatial_lr_scale
+            grads = g.densify_grad_mean()
+            max_scale = g.scales().max(dim=1).values
+            high = grads >= cfg.densify_grad_threshold
+            clone = high & (max_scale <= cfg.percent_dense * extent)
+            split = high & (max_scale > cfg.percent_dense * extent)
+            split_idx = torch.nonzero(split).reshape(-1)
+            clone_idx = torch.nonzero(clone).reshape(-1)
+            added = 0
+            # Split children are computed before anything changes the row positions.
+            k = cfg.split_children
+            if split_idx.numel():
+                std = g.scales()[split_idx].repeat(k, 1)
+                samples = torch.randn(std.shape, generator=self._generator).to(self.device) * std
+                rot = quat_wxyz_to_rotmat_torch(g.quats_wxyz[split_idx]).repeat(k, 1, 1)
+                child_means = (rot @ samples[..., None])[..., 0] + g.means[split_idx].repeat(k, 1)
+                child = dict(
+                    means=child_means,
+                    log_scales=torch.log(std / cfg.split_scale_factor),
+                    quats_wxyz=g.quats_wxyz[split_idx].repeat(k, 1),
+                    opacity_logits=g.opacity_logits[split_idx].repeat(k, 1),
+                    sh_dc=g.sh_dc[split_idx].repeat(k, 1, 1),
+                    sh_rest=g.sh_rest[split_idx].repeat(k, 1, 1),
+                    keyframe_id=g.keyframe_ids[split_idx].repeat(k),
+                )
+            if clone_idx.numel():
+                g.add(g.means[clone_idx], g.log_scales[clone_idx], g.quats_wxyz[clone_idx],
+                      g.opacity_logits[clone_idx], g.sh_dc[clone_idx], g.sh_rest[clone_idx],
+                      g.keyframe_ids[clone_idx], self.iteration)
+                added += clone_idx.numel()
+            if split_idx.numel():
+                g.add(iteration=self.iteration, **child)
+                added += child["means"].shape[0]
+                parents = torch.zeros(len(g), dtype=torch.bool, device=self.device)
+                parents[split_idx] = True
+                g.remove(parents)
+            n1 = len(g)
+            g.reset_densify_stats()
+            # Prune.
+            old_enough = g.created_iter <= self.iteration - cfg.prune_min_age_iters
+            prune = (g.opacities().reshape(-1) < cfg.prune_opacity) & old_enough
+            if cfg.max_screen_size_px > 0:
+                big = (g.max_radii2d > cfg.max_screen_size_px) | (g.scales().max(dim=1).values > 0.1 * extent)
+                prune |= big & old_enough
+            removed_prune = int(prune.sum())
+            if removed_prune:
+                g.remove(prune)
+            logger.debug("densify: %d -> %d (+%d clone/split) -> %d after pruning", n0, n1, added, len(g))
+            return added, removed_prune + int(split_idx.numel())
+
+    # -------------------------------------------------------------- outputs
+    def render(self, T_wc: np.ndarray, camera: PinholeCamera):  # -> RenderOutput
+        """Render the map from camera-to-world ``T_wc`` with undistorted ``camera`` (no grad)."""
+        with self._lock, torch.no_grad():
+            return self._rasterize(T_wc, camera)
+
+    def render_keyframe(self, kf_id: int):  # -> RenderOutput
+        """Render keyframe ``kf_id`` at its training resolution (no grad)."""
+        kf = self.keyframes.get(kf_id)
+        return self.render(kf.T_wc, kf.camera)
+
+    def pop_changes(self) -> MapChanges:
+        """Ids removed and Gaussians added or changed since the last call (then forgotten).
+
+        After optimiser steps "changed" is every Gaussian the steps moved (non-zero Adam first
+        moment), which includes every Gaussian that received a non-zero gradient.
+        """
+        with self._lock:
+            removed, changed_idx = self.gmap.pop_changes()
+            return MapChanges(removed.cpu().numpy().astype(np.int64), self.gmap.to_records(changed_idx))
+
+    def snapshot(self) -> GaussianRecords:
+        """The whole map as records (consistent: taken under the lock)."""
+        with self._lock:
+            return self.gmap.to_records()

@@ -1,0 +1,320 @@
+"""Losses, keyframe schedule and the mapper: training improves the map, poses matter, deltas."""
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.frame import Frame
+from memgs_ros.core.keyframes import KeyframeStore, make_keyframe
+from memgs_ros.core.losses import depth_l1_loss, isotropic_loss, mapping_loss, photometric_loss
+from memgs_ros.core.mapping import GaussianMapper, MappingConfig
+from memgs_ros.errors import ConfigError, DataError
+from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
+
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():  # noqa: ANN202
+    """The rasterizer runs its own chunk threads when torch is single-threaded, which is far
+    faster than OpenMP on a loaded 2-core machine; restored afterwards for other modules."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+# ----------------------------------------------------------------------------- losses
+
+
+def test_photometric_loss_hand_values() -> None:
+    a = torch.zeros(3, 16, 16)
+    b = torch.full((3, 16, 16), 0.25)
+    loss, l1, s = photometric_loss(a, a.clone())
+    assert float(l1) == 0.0 and float(s) == pytest.approx(1.0, abs=1e-6) and float(loss) == pytest.approx(0.0, abs=1e-6)
+    loss, l1, s = photometric_loss(a, b, ssim_lambda=0.2)
+    assert float(l1) == pytest.approx(0.25)
+    assert float(loss) == pytest.approx(0.8 * 0.25 + 0.2 * (1 - float(s)), rel=1e-6)
+    # Constant images: SSIM = (2 mu1 mu2 + C1) / (mu1^2 + mu2^2 + C1) at interior pixels; here mu1 = 0.
+    assert float(s) < 0.05
+
+
+def test_isotropic_and_depth_losses_hand_values() -> None:
+    log_s = torch.log(torch.tensor([[1.0, 2.0, 3.0], [2.0, 2.0, 2.0]]))
+    # Row 0: mean 2, |s - 2| = 1, 0, 1 -> mean over 6 entries = 2/6.
+    assert float(isotropic_loss(log_s)) == pytest.approx(2.0 / 6.0)
+    assert float(isotropic_loss(torch.zeros(0, 3))) == 0.0
+    rd = torch.tensor([[1.0, 2.0], [3.0, 4.0]])
+    td = torch.tensor([[1.5, float("nan")], [0.0, 2.0]])  # only (0,0) and (1,1) valid
+    assert float(depth_l1_loss(rd, td)) == pytest.approx((0.5 + 2.0) / 2)
+    assert float(depth_l1_loss(rd, torch.zeros(2, 2))) == 0.0
+
+
+def test_mapping_loss_combines_terms_and_backpropagates() -> None:
+    torch.manual_seed(0)
+    img = torch.rand(3, 12, 12, requires_grad=True)
+    gt = torch.rand(3, 12, 12)
+    log_s = torch.log(torch.tensor([[1.0, 2.0, 3.0]])).requires_grad_()
+    d = torch.full((12, 12), 2.0, requires_grad=True)
+    total, terms = mapping_loss(img, gt, log_s, d, torch.ones(12, 12), ssim_lambda=0.2, iso_weight=1.0,
+                                depth_weight=0.5)
+    assert terms["depth"] == pytest.approx(1.0) and terms["iso"] == pytest.approx(2.0 / 3.0)
+    assert float(total.detach()) == pytest.approx(terms["photometric"] + terms["iso"] + 0.5 * terms["depth"], rel=1e-6)
+    total.backward()
+    assert img.grad is not None and log_s.grad is not None and float(d.grad.abs().sum()) > 0
+    _, terms0 = mapping_loss(img, gt, log_s, d, torch.ones(12, 12), depth_weight=0.0)
+    assert terms0["depth"] == 0.0
+
+
+# ---------------------------------------------------------------------- keyframe store
+
+
+def _kf(kf_id: int, w: int = 64, h: int = 48) -> object:
+    cam = PinholeCamera(w, h, 50.0, 50.0, w / 2, h / 2)
+    return make_keyframe(kf_id, kf_id * 10, np.eye(4), torch.rand(3, h, w), torch.ones(h, w), cam)
+
+
+def test_keyframe_pyramid_levels() -> None:
+    kf = _kf(0)
+    assert [lv.factor for lv in kf.levels] == [0.125, 0.25, 0.5, 1.0]
+    assert [tuple(lv.image.shape) for lv in kf.levels] == [(3, 6, 8), (3, 12, 16), (3, 24, 32), (3, 48, 64)]
+    assert kf.levels[0].camera.width == 8 and kf.levels[-1].image is kf.image
+    assert tuple(kf.levels[1].depth_m.shape) == (12, 16)
+    with pytest.raises(DataError, match="image must be"):
+        make_keyframe(1, 0, np.eye(4), torch.rand(3, 10, 10), None, kf.camera)
+
+
+def test_view_schedule_budgets_and_coarse_to_fine() -> None:
+    store = KeyframeStore(new_keyframe_budget=2, uses_per_level=2, seed=3)
+    store.add(_kf(0))
+    store.add(_kf(1))
+    first = [store.next_view() for _ in range(4)]
+    # Budget 2 each: the first 4 draws use each keyframe exactly twice.
+    assert sorted(v.keyframe.kf_id for v in first) == [0, 0, 1, 1]
+    # Then every keyframe gets +1: the next 2 draws are one of each.
+    nxt = [store.next_view() for _ in range(2)]
+    assert sorted(v.keyframe.kf_id for v in nxt) == [0, 1]
+    # 3 uses each so far with 2 uses per level: level sequence for kf 0 is 1/8, 1/8, 1/4, ...
+    factors = [v.level.factor for v in first + nxt if v.keyframe.kf_id == 0]
+    assert factors == [0.125, 0.125, 0.25]
+    assert store.level_index(0) == 1
+    for _ in range(40):
+        store.next_view()
+    assert store.level_index(0) == 3  # full resolution once the pyramid is done
+
+
+def test_store_update_pose_replaces_keyframe_and_validates() -> None:
+    store = KeyframeStore()
+    store.add(_kf(4))
+    T = np.eye(4)
+    T[0, 3] = 1.5
+    store.update_pose(4, T)
+    assert store.get(4).T_wc[0, 3] == 1.5
+    with pytest.raises(DataError, match="no keyframe with id 9"):
+        store.get(9)
+    with pytest.raises(DataError, match="already"):
+        store.add(_kf(4))
+
+
+# ------------------------------------------------------------------------- mapper
+
+
+@pytest.fixture(scope="module")
+def tiny_frames() -> list[Frame]:
+    spec = SyntheticSpec(width=64, height=48, n_frames=30, seed=1)
+    return list(generate_frames(spec))[::10]  # 3 keyframes
+
+
+def _seeds(f: Frame, step: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    cam = f.camera
+    v, u = np.mgrid[step // 2: cam.height: step, step // 2: cam.width: step]
+    u, v = u.ravel(), v.ravel()
+    d = f.depth_m[v, u]
+    ok = np.isfinite(d) & (d > 0)
+    p_c = cam.backproject(u[ok], v[ok], d[ok])
+    return p_c @ f.T_wc_gt[:3, :3].T + f.T_wc_gt[:3, 3], f.rgb[v[ok], u[ok]] / 255.0
+
+
+def _mapper(frames: list[Frame], **overrides: object) -> GaussianMapper:
+    cfg = MappingConfig(**{"min_keyframes": 3, "pyramid_uses_per_level": 2, "merge_enabled": False,
+                           "densify_start_iter": 10_000, **overrides})
+    m = GaussianMapper(cfg)
+    for i, f in enumerate(frames):
+        p, c = _seeds(f)
+        m.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+    return m
+
+
+def _psnr(m: GaussianMapper, frames: list[Frame]) -> float:
+    vals = []
+    for f in frames:
+        out = m.render(f.T_wc_gt, f.camera)
+        gt = torch.from_numpy(f.rgb).permute(2, 0, 1).float() / 255.0
+        vals.append(-10.0 * math.log10(float(((out.color.clamp(0, 1) - gt) ** 2).mean())))
+    return float(np.mean(vals))
+
+
+def _full_res_loss(m: GaussianMapper) -> float:
+    """The training loss summed over every keyframe at full resolution (per-step losses mix
+    pyramid levels, so they are not comparable over time)."""
+    total = 0.0
+    for kf in m.keyframes.all():
+        out = m.render(kf.T_wc, kf.camera)
+        _, terms = mapping_loss(out.color, kf.image, m.gmap.log_scales.detach(), out.depth, kf.depth_m,
+                                depth_weight=m.cfg.depth_weight)
+        total += terms["total"]
+    return total
+
+
+def test_training_lowers_loss_and_raises_psnr(tiny_frames: list[Frame]) -> None:
+    m = _mapper(tiny_frames)
+    psnr0, loss0 = _psnr(m, tiny_frames), _full_res_loss(m)
+    stats = [m.step() for _ in range(30)]
+    psnr1, loss1 = _psnr(m, tiny_frames), _full_res_loss(m)
+    assert psnr1 > psnr0 + 2.0, (psnr0, psnr1)
+    assert loss1 < 0.8 * loss0, (loss0, loss1)
+    assert m.iteration == 30 and [s.iteration for s in stats] == list(range(1, 31))
+
+
+def test_not_ready_until_min_keyframes(tiny_frames: list[Frame]) -> None:
+    m = _mapper(tiny_frames[:2])
+    assert not m.ready and m.step() is None
+    with pytest.raises(ConfigError, match="needs 3 keyframes, has 2"):
+        m.train(1, progress=False)
+
+
+def test_pose_update_changes_training(tiny_frames: list[Frame]) -> None:
+    a, b, c = (_mapper(tiny_frames) for _ in range(3))
+    T = tiny_frames[0].T_wc_gt.copy()
+    T[:3, 3] += [0.2, 0.0, 0.0]
+    c.update_keyframe_pose(0, T)
+    assert np.array_equal(c.keyframes.get(0).T_wc, T)
+    for m in (a, b, c):
+        for _ in range(6):
+            m.step()
+    # Same inputs train identically (so the difference below is the pose, not noise) ...
+    assert torch.equal(a.gmap.means, b.gmap.means) and torch.equal(a.gmap.sh_dc, b.gmap.sh_dc)
+    # ... and the moved keyframe changes what the map learns.
+    assert not torch.equal(a.gmap.sh_dc, c.gmap.sh_dc)
+
+
+def test_pop_changes_semantics(tiny_frames: list[Frame]) -> None:
+    m = _mapper(tiny_frames)
+    n = len(m.gmap)
+    ch = m.pop_changes()
+    assert ch.removed_ids.size == 0 and len(ch.changed) == n
+    assert np.array_equal(np.sort(ch.changed.ids), np.arange(n))
+    assert len(m.pop_changes().changed) == 0
+    m.step()
+    ch = m.pop_changes()
+    assert 0 < len(ch.changed) <= n
+    snap = m.snapshot()
+    pos = np.searchsorted(snap.ids, ch.changed.ids)
+    assert np.array_equal(snap.xyz[pos], ch.changed.xyz)  # current values travel
+    # Rows nobody saw in that render were not touched and are not reported.
+    unchanged = np.setdiff1d(snap.ids, ch.changed.ids)
+    assert unchanged.size > 0
+    # Pruning reports removals.
+    with torch.no_grad():
+        m.gmap.opacity_logits[:5] = -10.0
+    m.gmap.created_iter[:] = -1000
+    m.densify_and_prune()
+    ch = m.pop_changes()
+    assert set(snap.ids[:5].tolist()) <= set(ch.removed_ids.tolist())
+
+
+def test_densify_clones_small_and_splits_large() -> None:
+    cam = PinholeCamera(32, 24, 30.0, 30.0, 16.0, 12.0)
+    m = GaussianMapper(MappingConfig(min_keyframes=1, merge_enabled=False, scene_extent=1.0,
+                                     prune_min_age_iters=0, prune_opacity=0.01))
+    g = m.gmap
+    m.add_keyframe(0, 0, np.eye(4), np.zeros((24, 32, 3), np.uint8), None, cam)
+    means = torch.tensor([[0.0, 0, 2], [0.5, 0, 2], [0.0, 0.5, 2]])
+    log_s = torch.log(torch.tensor([[0.005] * 3, [0.1, 0.05, 0.02], [0.1] * 3]))
+    quats = torch.tensor([[1.0, 0, 0, 0]] * 3)
+    g.add(means, log_s, quats, torch.zeros(3, 1), torch.zeros(3, 1, 3), None, torch.tensor([4, 5, 6]), 0)
+    g.densify_grad_sum[:] = torch.tensor([1.0, 1.0, 1e-6])
+    g.densify_count[:] = 1
+    added, removed = m.densify_and_prune()
+    # Row 0 (small) cloned, row 1 (large) split into 2, row 2 (low gradient) untouched.
+    assert (added, removed) == (3, 1)
+    assert g.ids.tolist() == [0, 2, 3, 4, 5]
+    assert g.keyframe_ids.tolist() == [4, 6, 4, 5, 5]
+    assert torch.equal(g.means[2], means[0])
+    assert torch.allclose(g.scales()[3:], torch.tensor([0.1, 0.05, 0.02]) / 1.6)
+    assert float((g.means[3:].detach() - means[1]).norm(dim=1).max()) < 0.6
+    assert float(g.densify_grad_sum.abs().sum()) == 0.0
+
+
+def test_merge_hook_called_on_schedule(tiny_frames: list[Frame]) -> None:
+    calls = []
+
+    class Result:
+        removed_ids = torch.tensor([1, 2])
+        added_ids = torch.tensor([999])
+
+    def fake_merge(gmap, cfg, newest, iteration):  # noqa: ANN001, ANN202
+        calls.append((gmap is m.gmap, cfg, newest, iteration))
+        return Result()
+
+    cfg = MappingConfig(min_keyframes=3, merge_enabled=True, merge_start_iter=2, merge_interval=2,
+                        merge_stop_iter=4, densify_start_iter=10_000)
+    m = GaussianMapper(cfg, merge_fn=fake_merge, merge_cfg="mcfg")
+    for i, f in enumerate(tiny_frames):
+        p, c = _seeds(f, 8)
+        m.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+    stats = [m.step() for _ in range(6)]
+    assert calls == [(True, "mcfg", 2, 2), (True, "mcfg", 2, 4)]
+    assert [s.merged_removed for s in stats] == [0, 2, 0, 2, 0, 0]
+    assert stats[1].merged_added == 1
+
+
+def test_distorted_keyframe_is_undistorted_and_scaled() -> None:
+    cam = PinholeCamera(40, 30, 35.0, 35.0, 20.0, 15.0, (0.2, -0.1, 0.0, 0.0, 0.0))
+    rgb = np.random.default_rng(0).integers(0, 255, (30, 40, 3), dtype=np.uint8)
+    depth = np.full((30, 40), 2.0, np.float32)
+    m = GaussianMapper(MappingConfig(min_keyframes=1, resolution_scale=0.5))
+    m.add_keyframe(0, 0, np.eye(4), rgb, depth, cam)
+    kf = m.keyframes.get(0)
+    assert not kf.camera.has_distortion
+    assert (kf.camera.width, kf.camera.height) == (20, 15) and kf.camera.fx == pytest.approx(17.5)
+    assert tuple(kf.image.shape) == (3, 15, 20) and float(kf.image.max()) <= 1.0
+    with pytest.raises(DataError, match="rgb must be uint8"):
+        m.add_keyframe(1, 0, np.eye(4), rgb[:, :10], depth, cam)
+
+
+def test_keyframes_can_be_added_while_training(tiny_frames: list[Frame]) -> None:
+    m = _mapper(tiny_frames)
+    errors: list[BaseException] = []
+
+    def train() -> None:
+        try:
+            for _ in range(15):
+                m.step()
+        except BaseException as err:  # noqa: BLE001 - reported to the main thread
+            errors.append(err)
+
+    t = threading.Thread(target=train)
+    t.start()
+    f = tiny_frames[1]
+    for k in range(3, 6):
+        p, c = _seeds(f, 8)
+        m.add_keyframe(k, f.stamp_ns + k, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+    t.join()
+    assert not errors and len(m.keyframes) == 6 and m.iteration == 15
+    g = m.gmap
+    assert all(int(getattr(g, n).shape[0]) == len(g) for n in ("ids", "keyframe_ids", "dirty"))
+
+
+def test_config_refuses_bad_values() -> None:
+    with pytest.raises(ConfigError, match="ssim_lambda"):
+        MappingConfig(ssim_lambda=1.5)
+    with pytest.raises(ConfigError, match="unknown mapping parameter"):
+        MappingConfig.from_dict({"lr_mean": 1.0})
+    assert MappingConfig.from_dict({"background": [1, 1, 1]}).background == (1.0, 1.0, 1.0)
+    assert replace(MappingConfig(), depth_weight=0.0).depth_weight == 0.0
