@@ -266,6 +266,16 @@ def test_backward_recomputes_when_pairs_exceed_budget(monkeypatch: pytest.Monkey
         assert torch.equal(a, b)
 
 
+def test_render_without_grad_matches() -> None:
+    params, T = _scene(60, 151)
+    with_grad = rasterize(*params, T, CAM_64, 1, backend="torch")
+    with torch.no_grad():
+        no_grad = rasterize(*params, T, CAM_64, 1, backend="torch")
+    assert not no_grad.color.requires_grad
+    for name in ("color", "depth", "alpha"):
+        assert torch.equal(getattr(with_grad, name).detach(), getattr(no_grad, name))
+
+
 def test_tile_lists_are_front_to_back() -> None:
     params, T = _scene(80, 121)
     proj = project_gaussians(*[p.detach() for p in params], T, CAM_64, 1, 0.01)

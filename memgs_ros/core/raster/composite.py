@@ -184,6 +184,7 @@ class _CompositeFn(torch.autograd.Function):
         background: Tensor,  # [3]
         plan: TilePlan,
         workers: int,
+        differentiable: bool,
     ) -> tuple[Tensor, Tensor, Tensor]:
         dtype, device = means2d.dtype, means2d.device
         table = _slot_table(plan, means2d, conics, opacities, colors, depths)  # [10, S]
@@ -191,7 +192,7 @@ class _CompositeFn(torch.autograd.Function):
         alpha_floor = _float_below(MIN_ALPHA, dtype)
         t_floor = _float_below(MIN_TRANSMITTANCE, dtype)
 
-        keep = _saves_pairs(plan, dtype)
+        keep = differentiable and _saves_pairs(plan, dtype)
 
         def run(chunk: Chunk) -> tuple[Tensor, Tensor | None, Tensor | None]:
             out, alpha, t_excl = _forward_chunk(plan, chunk, table, feat, alpha_floor, t_floor)
@@ -289,6 +290,7 @@ class _CompositeFn(torch.autograd.Function):
             v_bg,
             None,
             None,
+            None,
         )
 
 
@@ -312,6 +314,10 @@ def composite(
     """
     if workers is None:
         workers = default_workers(means2d.device)
+    inputs = (means2d, conics, opacities, colors, depths, background)
+    # Nothing to keep for a render without gradients (e.g. the published views); inside
+    # forward() grad mode is always off, so this is decided here.
+    differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
     return _CompositeFn.apply(
         means2d.contiguous(),
         conics.contiguous(),
@@ -321,4 +327,5 @@ def composite(
         background,
         plan,
         workers,
+        differentiable,
     )
