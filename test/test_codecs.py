@@ -107,6 +107,12 @@ def test_rgb_from_image_converts_channel_orders() -> None:
     np.testing.assert_array_equal(out, np.stack([gray] * 3, axis=2))
 
 
+@pytest.mark.parametrize("enc,order", [("bgr8", [2, 1, 0]), ("rgba8", [0, 1, 2]), ("bgra8", [2, 1, 0])])
+def test_rgb_from_padded_image(enc: str, order: list[int]) -> None:
+    arr = _random_image(enc, 3, 5, np.random.default_rng(6))
+    np.testing.assert_array_equal(codecs.rgb_from_image(_hand_image(arr, enc, pad=3, big=False)), arr[:, :, order])
+
+
 def test_depth_16uc1_scaled_and_zero_is_nan() -> None:
     mm = np.array([[0, 1000, 1500], [65535, 250, 0]], np.uint16)
     d = codecs.depth_from_image(codecs.numpy_to_image(mm, "16UC1", 0, "c"), depth_scale=1000.0)
