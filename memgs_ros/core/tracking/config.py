@@ -1,0 +1,162 @@
+"""Tracker configuration and the records the tracker hands out (no algorithm here)."""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from memgs_ros.errors import ConfigError
+
+MODES = ("rgbd", "mono")
+BACKENDS = ("feature", "orbslam3")
+
+
+class TrackingState(enum.Enum):
+    """Where the tracker stands after a frame.
+
+    NOT_INITIALIZED: no map yet (monocular before two-view initialisation, or no depth yet).
+    OK: pose estimated from enough inliers against the local map.
+    RECENTLY_LOST: too few inliers; the pose is the constant-velocity prediction (a few frames at most).
+    LOST: no pose (``TrackResult.T_wc`` is None) until relocalisation or a new segment.
+    """
+
+    NOT_INITIALIZED = "not_initialized"
+    OK = "ok"
+    RECENTLY_LOST = "recently_lost"
+    LOST = "lost"
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Every knob of the feature tracker; defaults suit 640x480 TUM-like RGB-D at 30 Hz.
+
+    Pixel thresholds are at pyramid level 0 and grow with ``scale_factor ** octave``.
+    """
+
+    mode: str = "rgbd"
+    backend: str = "feature"
+    # ORB extraction (ORB-SLAM defaults).
+    n_features: int = 1000
+    scale_factor: float = 1.2
+    n_levels: int = 8
+    fast_threshold: int = 20
+    fast_min_threshold: int = 7
+    grid_cell_px: int = 40  # detection is spread over cells of this size
+    # Depth accepted at keypoints (RGB-D), metres.
+    min_depth_m: float = 0.1
+    max_depth_m: float = 6.0
+    # Virtual stereo baseline times fx (pixels * m): turns depth into a disparity residual, as
+    # ORB-SLAM does for RGB-D, so depth and reprojection errors share pixel units.
+    virtual_baseline_m: float = 0.08
+    # Matching.
+    search_radius_px: float = 15.0  # first projection pass around the velocity-predicted pose
+    refine_radius_px: float = 4.0  # second pass around the optimised pose
+    max_descriptor_distance: int = 80  # Hamming, of 256 bits
+    match_ratio: float = 0.85  # best / second-best among candidates of one map point
+    # Pose estimation.
+    max_reprojection_px: float = 2.45  # inlier bound at level 0 (sqrt of chi2(2) 95 % = 5.991)
+    min_inliers: int = 25  # fewer -> tracking failure for this frame
+    ransac_iterations: int = 100
+    ransac_reprojection_px: float = 4.0
+    max_translation_jump_m: float = 0.25  # per-frame deviation from the velocity prediction
+    max_rotation_jump_deg: float = 20.0
+    # Keyframes.
+    keyframe_tracked_ratio: float = 0.75  # insert when tracked points fall below this of the reference KF's
+    keyframe_min_new_points: int = 70  # ... and at least this many close untracked keypoints
+    keyframe_max_frames: int = 20  # insert at least every this many frames
+    keyframe_min_frames: int = 1
+    keyframe_max_rotation_deg: float = 15.0
+    keyframe_max_translation_m: float = 0.15
+    # Local map and local bundle adjustment.
+    local_map_keyframes: int = 10  # covisible keyframes whose points form the local map
+    ba_window: int = 7  # keyframes optimised per local BA (oldest of them fixed)
+    ba_max_iterations: int = 10
+    ba_huber_px: float = 2.45
+    ba_enabled: bool = True
+    ba_threaded: bool = True
+    point_min_found_ratio: float = 0.25  # cull points found in fewer than this of frames that saw them
+    # Loss handling.
+    max_recently_lost_frames: int = 3
+    reloc_min_inliers: int = 50
+    reloc_max_keyframes: int = 30
+    new_segment_after_lost_frames: int = 30  # RGB-D: start a new map anchored at the last good pose
+    # Monocular initialisation.
+    mono_min_init_matches: int = 100
+    mono_min_parallax_deg: float = 1.0
+    mono_min_triangulated: int = 50
+    mono_homography_ratio: float = 0.45  # choose the homography when S_H / (S_H + S_E) exceeds this
+    # Optional ORB-SLAM3 backend.
+    orbslam3_vocabulary: str = ""
+    orbslam3_settings: str = ""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ConfigError(f"TrackerConfig.mode must be one of {MODES}, got {self.mode!r}")
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"TrackerConfig.backend must be one of {BACKENDS}, got {self.backend!r}")
+        positive = ("n_features", "scale_factor", "n_levels", "grid_cell_px", "search_radius_px",
+                    "refine_radius_px", "max_reprojection_px", "min_inliers", "ransac_iterations",
+                    "ransac_reprojection_px", "virtual_baseline_m", "keyframe_max_frames",
+                    "local_map_keyframes", "ba_window", "ba_max_iterations", "ba_huber_px",
+                    "reloc_min_inliers", "max_translation_jump_m", "max_rotation_jump_deg")
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in positive and not (np.isfinite(v) and v > 0):
+                raise ConfigError(f"TrackerConfig.{f.name} must be positive, got {v}")
+        if self.scale_factor <= 1.0:
+            raise ConfigError(f"TrackerConfig.scale_factor must exceed 1, got {self.scale_factor}")
+        if not 0 <= self.fast_min_threshold <= self.fast_threshold:
+            raise ConfigError(
+                f"TrackerConfig.fast_min_threshold ({self.fast_min_threshold}) must be in "
+                f"[0, fast_threshold={self.fast_threshold}]")
+        if not 0 < self.min_depth_m < self.max_depth_m:
+            raise ConfigError(
+                f"TrackerConfig depth range must satisfy 0 < min_depth_m < max_depth_m, "
+                f"got {self.min_depth_m}, {self.max_depth_m}")
+        if not 0 < self.match_ratio <= 1 or not 0 < self.keyframe_tracked_ratio <= 1:
+            raise ConfigError("TrackerConfig.match_ratio and keyframe_tracked_ratio must be in (0, 1]")
+        if not 0 <= self.max_descriptor_distance <= 256:
+            raise ConfigError(
+                f"TrackerConfig.max_descriptor_distance must be in [0, 256], got {self.max_descriptor_distance}")
+        if self.ba_window < 2:
+            raise ConfigError(f"TrackerConfig.ba_window must be at least 2, got {self.ba_window}")
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframeInfo:
+    """A keyframe as the mapper and Patch-Grid sampler see it.
+
+    T_wc: [4, 4] float64 pose at insertion (later refinements come from ``poll_refined_keyframes``).
+    keypoints_uv: [M, 2] float32 undistorted pixel coordinates.
+    keypoint_depth: [M] float32 metres along the optical axis, NaN where there is no 3D point.
+    keypoint_active: [M] bool, True where the keypoint has a map point.
+    """
+
+    keyframe_id: int
+    stamp_ns: int
+    T_wc: np.ndarray
+    keypoints_uv: np.ndarray
+    keypoint_depth: np.ndarray
+    keypoint_active: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class TrackResult:
+    """The tracker's answer for one frame.
+
+    T_wc: [4, 4] float64, or None when LOST / NOT_INITIALIZED (never a guessed pose there).
+    keyframe: set when this frame became a keyframe.
+    segment_id: increases when the tracker gave up relocalising and started a new map; poses of
+      different segments share a frame only through the anchor (the last good pose).
+    """
+
+    stamp_ns: int
+    T_wc: np.ndarray | None
+    state: TrackingState
+    keyframe: KeyframeInfo | None
+    n_matches: int
+    n_inliers: int
+    time_s: float
+    segment_id: int = 0

@@ -1,0 +1,215 @@
+"""ORB features spread over the image, undistorted keypoints, and descriptor matching.
+
+Images stay distorted (ORB sees what the sensor saw); only keypoint coordinates are
+undistorted, so every downstream step uses a plain pinhole model with ``camera.K``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.tracking.config import TrackerConfig
+
+DESCRIPTOR_BYTES = 32
+_CANDIDATES_PER_POINT = 12  # keypoints examined per projected map point
+# Bits set per byte value: Hamming distance of packed descriptors by table lookup.
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
+
+
+@dataclass(frozen=True, eq=False)
+class FrameFeatures:
+    """ORB features of one image.
+
+    uv_raw: [M, 2] float32 detected (distorted) pixel coordinates.
+    uv: [M, 2] float64 undistorted pixel coordinates.
+    octave: [M] int pyramid level.
+    desc: [M, 32] uint8 ORB descriptors.
+    depth_m: [M] float64 depth at the keypoint, NaN where invalid or absent.
+    """
+
+    uv_raw: np.ndarray
+    uv: np.ndarray
+    octave: np.ndarray
+    desc: np.ndarray
+    depth_m: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+
+class OrbExtractor:
+    """ORB keypoints distributed over a grid of cells (ORB-SLAM's idea, cheaper).
+
+    One detection at ``fast_threshold`` over-asks for keypoints; each cell keeps its strongest
+    share and the remaining budget goes to the strongest leftovers. Cells that found nothing
+    are retried at ``fast_min_threshold`` only when the image is short of keypoints.
+    """
+
+    def __init__(self, cfg: TrackerConfig) -> None:
+        self.cfg = cfg
+        self._orb = cv2.ORB_create(nfeatures=2 * cfg.n_features, scaleFactor=cfg.scale_factor,
+                                   nlevels=cfg.n_levels, edgeThreshold=19, patchSize=31,
+                                   fastThreshold=cfg.fast_threshold)
+        self._orb_low = cv2.ORB_create(nfeatures=2 * cfg.n_features, scaleFactor=cfg.scale_factor,
+                                       nlevels=cfg.n_levels, edgeThreshold=19, patchSize=31,
+                                       fastThreshold=cfg.fast_min_threshold)
+
+    def _select(self, kps: list, width: int, height: int) -> list:
+        n = self.cfg.n_features
+        if len(kps) <= n:
+            return list(kps)
+        pts = np.array([k.pt for k in kps], dtype=np.float32)
+        resp = np.array([k.response for k in kps], dtype=np.float32)
+        cell = self.cfg.grid_cell_px
+        gx = max(1, int(np.ceil(width / cell)))
+        gy = max(1, int(np.ceil(height / cell)))
+        cid = (np.minimum(pts[:, 1] // cell, gy - 1) * gx + np.minimum(pts[:, 0] // cell, gx - 1)).astype(np.int64)
+        # Rank within each cell by response (strongest first).
+        order = np.lexsort((-resp, cid))
+        cid_sorted = cid[order]
+        start = np.searchsorted(cid_sorted, cid_sorted, side="left")
+        rank = np.empty(len(kps), dtype=np.int64)
+        rank[order] = np.arange(len(kps)) - start
+        per_cell = max(1, n // (gx * gy))
+        chosen = rank < per_cell
+        if chosen.sum() < n:
+            rest = np.flatnonzero(~chosen)
+            rest = rest[np.argsort(-resp[rest], kind="stable")][: n - int(chosen.sum())]
+            chosen[rest] = True
+        elif chosen.sum() > n:
+            idx = np.flatnonzero(chosen)
+            drop = idx[np.argsort(resp[idx], kind="stable")][: int(chosen.sum()) - n]
+            chosen[drop] = False
+        return [kps[i] for i in np.flatnonzero(chosen)]
+
+    def extract(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None,
+                mask: np.ndarray | None = None) -> FrameFeatures:
+        """Keypoints of ``gray`` [H, W] uint8; depth [H, W] float32 (registered to gray) or None."""
+        kps = list(self._orb.detect(gray, mask))
+        if len(kps) < self.cfg.n_features:
+            kps = list(self._orb_low.detect(gray, mask))
+        kps = self._select(kps, gray.shape[1], gray.shape[0])
+        if kps:
+            kps, desc = self._orb.compute(gray, kps)
+        if not kps or desc is None:
+            empty2 = np.zeros((0, 2))
+            return FrameFeatures(empty2.astype(np.float32), empty2, np.zeros(0, np.int64),
+                                 np.zeros((0, DESCRIPTOR_BYTES), np.uint8), np.zeros(0))
+        octave = np.array([k.octave for k in kps], dtype=np.int64)
+        # OpenCV scales level coordinates by s = scale^octave without the pixel-centre shift;
+        # the centre of level pixel x is at (x + 0.5) s - 0.5 in level 0, a bias of 0.5 (s - 1)
+        # (1.3 px at level 7) that differs between octaves of the same point.
+        shift = 0.5 * (self.cfg.scale_factor ** octave - 1.0)
+        uv_raw = (np.array([k.pt for k in kps], dtype=np.float64) + shift[:, None]).astype(np.float32)
+        uv = undistort_points(uv_raw, camera)
+        depth = np.full(len(kps), np.nan)
+        if depth_m is not None:
+            ui = np.clip(np.round(uv_raw[:, 0]).astype(np.int64), 0, gray.shape[1] - 1)
+            vi = np.clip(np.round(uv_raw[:, 1]).astype(np.int64), 0, gray.shape[0] - 1)
+            d = depth_m[vi, ui].astype(np.float64)
+            ok = np.isfinite(d) & (d >= self.cfg.min_depth_m) & (d <= self.cfg.max_depth_m)
+            depth[ok] = d[ok]
+        return FrameFeatures(uv_raw, uv, octave, np.ascontiguousarray(desc), depth)
+
+
+def undistort_points(uv_raw: np.ndarray, camera: PinholeCamera) -> np.ndarray:
+    """Distorted pixels [M, 2] to undistorted pixels [M, 2] (float64) of the same K."""
+    if len(uv_raw) == 0 or not camera.has_distortion:
+        return np.asarray(uv_raw, dtype=np.float64).reshape(-1, 2).copy()
+    out = cv2.undistortPoints(np.asarray(uv_raw, np.float64).reshape(-1, 1, 2), camera.K,
+                              camera.dist_coeffs, P=camera.K)
+    return out.reshape(-1, 2)
+
+
+def hamming_pairs(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
+    """Row-wise Hamming distance of two packed descriptor arrays [P, 32] -> [P] int."""
+    a = np.ascontiguousarray(desc_a).view(np.uint64)  # [P, 4]
+    b = np.ascontiguousarray(desc_b).view(np.uint64)
+    return np.bitwise_count(np.bitwise_xor(a, b)).sum(axis=1, dtype=np.int64)
+
+
+def _hamming_pairs_table(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
+    """Reference twin of ``hamming_pairs`` (byte lookup table)."""
+    x = np.bitwise_xor(desc_a, desc_b)
+    return _POPCOUNT[x].sum(axis=1, dtype=np.int64)
+
+
+def match_by_projection(proj_uv: np.ndarray, point_desc: np.ndarray, feats: FrameFeatures,
+                        radius_px: np.ndarray | float, max_distance: int, ratio: float,
+                        available: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Match projected map points to keypoints within a pixel radius.
+
+    proj_uv: [P, 2] predicted undistorted pixels; point_desc: [P, 32]; radius_px: scalar or [P].
+    available: [M] bool, keypoints that may still take a match (default all).
+    Returns (point_index [K], keypoint_index [K], hamming [K]); one keypoint per point and one
+    point per keypoint (the lower distance wins).
+    """
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    if len(proj_uv) == 0 or len(feats) == 0:
+        return empty
+    radius = np.broadcast_to(np.asarray(radius_px, dtype=np.float64), (len(proj_uv),))
+    # The k nearest keypoints within the largest radius (bounded work per map point), then
+    # each point's own radius.
+    k = min(_CANDIDATES_PER_POINT, len(feats))
+    d, j = cKDTree(feats.uv).query(proj_uv, k=k, distance_upper_bound=float(radius.max()))
+    d, j = d.reshape(len(proj_uv), k), j.reshape(len(proj_uv), k)
+    keep = d <= radius[:, None]
+    pi = np.broadcast_to(np.arange(len(proj_uv))[:, None], keep.shape)[keep]
+    ki = j[keep].astype(np.int64)
+    if available is not None:
+        ok = available[ki]
+        pi, ki = pi[ok], ki[ok]
+    if len(pi) == 0:
+        return empty
+    dist = hamming_pairs(point_desc[pi], feats.desc[ki])
+    # Best and second best per map point.
+    order = np.lexsort((dist, pi))
+    pi, ki, dist = pi[order], ki[order], dist[order]
+    first = np.ones(len(pi), dtype=bool)
+    first[1:] = pi[1:] != pi[:-1]
+    best_idx = np.flatnonzero(first)
+    second_ok = np.zeros(len(best_idx), dtype=bool)
+    nxt = best_idx + 1
+    has_second = (nxt < len(pi))
+    has_second[has_second] = pi[nxt[has_second]] == pi[best_idx[has_second]]
+    second_dist = np.full(len(best_idx), 1e9)
+    second_dist[has_second] = dist[nxt[has_second]]
+    second_ok = dist[best_idx] <= ratio * second_dist
+    good = (dist[best_idx] <= max_distance) & second_ok
+    bp, bk, bd = pi[best_idx][good], ki[best_idx][good], dist[best_idx][good]
+    # One point per keypoint: keep the closest descriptor.
+    order = np.lexsort((bd, bk))
+    bp, bk, bd = bp[order], bk[order], bd[order]
+    first = np.ones(len(bk), dtype=bool)
+    first[1:] = bk[1:] != bk[:-1]
+    return bp[first], bk[first], bd[first]
+
+
+def match_descriptors(desc_q: np.ndarray, desc_t: np.ndarray, ratio: float,
+                      max_distance: int) -> tuple[np.ndarray, np.ndarray]:
+    """Brute-force matching with Lowe's ratio test and mutual uniqueness.
+
+    desc_q: [Q, 32], desc_t: [T, 32] uint8. Returns (query_index [K], train_index [K]).
+    """
+    if len(desc_q) < 2 or len(desc_t) < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    knn = bf.knnMatch(desc_q, desc_t, k=2)
+    q, t, d = [], [], []
+    for m in knn:
+        if len(m) == 2 and m[0].distance <= ratio * m[1].distance and m[0].distance <= max_distance:
+            q.append(m[0].queryIdx)
+            t.append(m[0].trainIdx)
+            d.append(m[0].distance)
+    if not q:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    q_a, t_a, d_a = np.array(q), np.array(t), np.array(d)
+    order = np.lexsort((d_a, t_a))
+    q_a, t_a = q_a[order], t_a[order]
+    first = np.ones(len(t_a), dtype=bool)
+    first[1:] = t_a[1:] != t_a[:-1]
+    return q_a[first], t_a[first]

@@ -1,0 +1,493 @@
+"""Frame-to-local-map feature tracking shared by the RGB-D and monocular trackers.
+
+Per frame: ORB features -> project the local map with the constant-velocity prediction ->
+match in a radius -> robust motion-only optimisation -> re-project with the optimised pose
+in a tight radius -> optimise again -> gate the pose change -> keyframe decision. New
+keyframes go to a background local bundle adjustment whose refined poses are committed
+under the map lock and applied to the tracker's last pose at the next frame.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.frame import Frame
+from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.tracking.bundle_adjustment import BAProblem, local_bundle_adjustment, optimize_pose
+from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
+from memgs_ros.core.tracking.features import FrameFeatures, OrbExtractor, match_by_projection, match_descriptors
+from memgs_ros.core.tracking.local_map import Keyframe, SparseMap
+from memgs_ros.core.tracking.relocalisation import relocalise
+from memgs_ros.errors import DataError
+
+logger = logging.getLogger(__name__)
+logger.addHandler(logging.NullHandler())
+
+_MIN_PROJECTION_MATCHES = 30  # below this the first pass is retried with a wider radius
+_WIDE_RADIUS_FACTOR = 3.0
+
+
+@dataclass(frozen=True, eq=False)
+class _TrackOutcome:
+    """T_cw: [4, 4]; point_ids / kp_idx: [K] inlier matches; n_matches before outlier rejection."""
+
+    T_cw: np.ndarray
+    point_ids: np.ndarray
+    kp_idx: np.ndarray
+    n_matches: int
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix [3, 3] in degrees."""
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(c)))
+
+
+class FeatureTracker:
+    """Common machinery; subclasses add initialisation and new map points (depth or triangulation)."""
+
+    uses_depth = True
+
+    def __init__(self, cfg: TrackerConfig, camera: PinholeCamera) -> None:
+        self.cfg = cfg
+        self.camera = camera
+        self.K = camera.K
+        self.bf = camera.fx * cfg.virtual_baseline_m
+        self.extractor = OrbExtractor(cfg)
+        self.inv_sigma_levels = cfg.scale_factor ** -np.arange(cfg.n_levels, dtype=np.float64)
+        self.map = SparseMap()
+        self.state = TrackingState.NOT_INITIALIZED
+        self.segment_id = 0
+        self._T_cw_last: np.ndarray | None = None
+        self._velocity = np.eye(4)  # T_cw(k) = velocity @ T_cw(k-1)
+        self._last_good_T_cw: np.ndarray | None = None
+        self._lost_frames = 0
+        self._last_kf_id = -1
+        self._frames_since_kf = 0
+        self._local_kfs: list[int] = []
+        self._last_kf_info: KeyframeInfo | None = None
+        self._refined: list[tuple[int, np.ndarray]] = []
+        self._pending: list[dict[int, tuple[np.ndarray, np.ndarray]]] = []
+        self._out_lock = threading.Lock()
+        self._ba_queue: queue.Queue[tuple[SparseMap, int]] = queue.Queue()
+        self._stop = threading.Event()
+        self._ba_thread: threading.Thread | None = None
+        if cfg.ba_enabled and cfg.ba_threaded:
+            self._ba_thread = threading.Thread(target=self._ba_loop, name="memgs-local-ba", daemon=True)
+            self._ba_thread.start()
+        self.ba_runs = 0
+        self.ba_time_s = 0.0
+
+    # -- public -------------------------------------------------------------------------
+    def track(self, frame: Frame) -> TrackResult:
+        """Estimate the pose of ``frame``; see TrackResult for what each state carries."""
+        t0 = time.perf_counter()
+        if frame.camera.width != self.camera.width or frame.camera.height != self.camera.height:
+            raise DataError(
+                f"frame is {frame.camera.width}x{frame.camera.height} but the tracker was built for "
+                f"{self.camera.width}x{self.camera.height}")
+        if self.uses_depth and frame.depth_m is None:
+            raise DataError("the RGB-D tracker needs frame.depth_m; use mode='mono' for colour-only input")
+        self._apply_ba_corrections()
+        gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
+        feats = self.extractor.extract(gray, self.camera, frame.depth_m if self.uses_depth else None)
+        if self.state == TrackingState.NOT_INITIALIZED:
+            T_cw, kf, n_m, n_i = self._initialise(frame, feats)
+        else:
+            T_cw, kf, n_m, n_i = self._track_frame(frame, feats)
+        T_wc = None if T_cw is None else invert_pose(T_cw)
+        return TrackResult(frame.stamp_ns, T_wc, self.state, kf, n_m, n_i, time.perf_counter() - t0,
+                           self.segment_id)
+
+    def poll_refined_keyframes(self) -> list[tuple[int, np.ndarray]]:
+        """(keyframe_id, refined T_wc [4, 4]) from local BA since the last poll, oldest first."""
+        with self._out_lock:
+            out, self._refined = self._refined, []
+        return out
+
+    def close(self) -> None:
+        """Stop the bundle adjustment thread (idempotent)."""
+        self._stop.set()
+        if self._ba_thread is not None:
+            self._ba_thread.join(timeout=10.0)
+            self._ba_thread = None
+
+    def wait_for_ba(self, timeout_s: float = 30.0) -> None:
+        """Block until queued local BA jobs are done (for tests and offline evaluation)."""
+        deadline = time.monotonic() + timeout_s
+        while self._ba_thread is not None and time.monotonic() < deadline:
+            if self._ba_queue.unfinished_tasks == 0:
+                return
+            time.sleep(0.005)
+
+    def __enter__(self) -> "FeatureTracker":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- subclass hooks -----------------------------------------------------------------
+    def _initialise(self, frame: Frame, feats: FrameFeatures
+                    ) -> tuple[np.ndarray | None, KeyframeInfo | None, int, int]:
+        raise NotImplementedError
+
+    def _create_points(self, kf: Keyframe, frame: Frame) -> None:
+        raise NotImplementedError
+
+    def _need_close_points(self, feats: FrameFeatures, kp_idx: np.ndarray) -> bool:
+        return False
+
+    def _lost_timeout(self, frame: Frame, feats: FrameFeatures) -> np.ndarray | None:
+        """Called when lost for too long; may start a new segment and return its pose T_cw."""
+        return None
+
+    # -- tracking -----------------------------------------------------------------------
+    def _inv_sigma(self, octave: np.ndarray) -> np.ndarray:
+        return self.inv_sigma_levels[np.clip(octave, 0, len(self.inv_sigma_levels) - 1)]
+
+    def _project(self, p_w: np.ndarray, T_cw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Map points [P, 3] to undistorted pixels [P, 2] and in-view mask [P]."""
+        p_c = p_w @ T_cw[:3, :3].T + T_cw[:3, 3]
+        z = p_c[:, 2]
+        front = z > self.cfg.min_depth_m * 0.5
+        zs = np.where(front, z, 1.0)
+        uv = np.column_stack([self.K[0, 0] * p_c[:, 0] / zs + self.K[0, 2],
+                              self.K[1, 1] * p_c[:, 1] / zs + self.K[1, 2]])
+        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < self.camera.width) & \
+            (uv[:, 1] >= 0) & (uv[:, 1] < self.camera.height)
+        return uv, inside
+
+    def _match_and_optimise(self, feats: FrameFeatures, pids: np.ndarray, p_w: np.ndarray,
+                            desc: np.ndarray, octave: np.ndarray, T_init: np.ndarray,
+                            radius_px: float, rounds: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+        """One projection pass; returns (T_cw, point index, kp index, inlier mask, n visible)."""
+        uv, vis = self._project(p_w, T_init)
+        idx = np.flatnonzero(vis)
+        radius = radius_px / self._inv_sigma(octave[idx])
+        pi, ki, _ = match_by_projection(uv[idx], desc[idx], feats, radius,
+                                        self.cfg.max_descriptor_distance, self.cfg.match_ratio)
+        pi = idx[pi]
+        if len(pi) < 4:
+            return T_init, pi, ki, np.zeros(len(pi), bool), len(idx)
+        T, inl = optimize_pose(T_init, p_w[pi], feats.uv[ki], feats.depth_m[ki],
+                               self._inv_sigma(feats.octave[ki]), self.K, self.bf, rounds=rounds)
+        return T, pi, ki, inl, len(idx)
+
+    def _ransac_pose(self, p_w: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
+        if len(p_w) < 6:
+            return None
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            p_w.astype(np.float64), uv.astype(np.float64), self.K, None,
+            iterationsCount=self.cfg.ransac_iterations, reprojectionError=self.cfg.ransac_reprojection_px,
+            confidence=0.99, flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inl is None or len(inl) < self.cfg.min_inliers // 2:
+            return None
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T[:3, 3] = tvec.ravel()
+        return T
+
+    def _track_local_map(self, feats: FrameFeatures, T_pred: np.ndarray,
+                         allow_fallback: bool) -> _TrackOutcome | None:
+        """Frame-to-local-map tracking from the prediction ``T_pred`` [4, 4] (T_cw)."""
+        cfg = self.cfg
+        pids = self.map.points_of(self._local_kfs)
+        if len(pids) < cfg.min_inliers:
+            return None
+        p_w, desc, octave = self.map.point_arrays(pids)
+        T, pi, ki, inl, _ = self._match_and_optimise(feats, pids, p_w, desc, octave, T_pred,
+                                                     cfg.search_radius_px)
+        if inl.sum() < _MIN_PROJECTION_MATCHES:
+            T, pi, ki, inl, _ = self._match_and_optimise(feats, pids, p_w, desc, octave, T_pred,
+                                                         cfg.search_radius_px * _WIDE_RADIUS_FACTOR)
+        if inl.sum() < cfg.min_inliers and len(pi) >= 6:
+            T_r = self._ransac_pose(p_w[pi], feats.uv[ki])
+            if T_r is not None:
+                T, pi, ki, inl, _ = self._match_and_optimise(feats, pids, p_w, desc, octave, T_r,
+                                                             cfg.search_radius_px)
+        if inl.sum() < cfg.min_inliers and allow_fallback:
+            T_f = self._pose_from_keyframe(feats, self._last_kf_id)
+            if T_f is not None:
+                T, pi, ki, inl, _ = self._match_and_optimise(feats, pids, p_w, desc, octave, T_f,
+                                                             cfg.search_radius_px)
+        if inl.sum() < cfg.min_inliers:
+            return None
+        # Second pass: everything in view, tight radius around the optimised pose.
+        T2, pi2, ki2, inl2, _ = self._match_and_optimise(feats, pids, p_w, desc, octave, T,
+                                                         cfg.refine_radius_px, rounds=4)
+        if inl2.sum() >= inl.sum():
+            T, pi, ki, inl = T2, pi2, ki2, inl2
+        uv, vis = self._project(p_w, T)
+        self.map.count_visible(pids[vis])
+        self.map.count_found(pids[pi[inl]])
+        return _TrackOutcome(T, pids[pi[inl]], ki[inl], len(pi))
+
+    def _pose_from_keyframe(self, feats: FrameFeatures, kf_id: int) -> np.ndarray | None:
+        """Fallback: brute-force match against one keyframe's map points, then PnP RANSAC."""
+        kf = self.map.keyframes.get(kf_id)
+        if kf is None:
+            return None
+        has = np.flatnonzero(kf.point_ids >= 0)
+        pids = kf.point_ids[has]
+        ok = self.map.good(pids)
+        has, pids = has[ok], pids[ok]
+        q, t = match_descriptors(feats.desc, kf.feats.desc[has], ratio=0.8,
+                                 max_distance=self.cfg.max_descriptor_distance)
+        if len(q) < self.cfg.min_inliers:
+            return None
+        p_w, _, _ = self.map.point_arrays(pids[t])
+        return self._ransac_pose(p_w, feats.uv[q])
+
+    def _pose_is_plausible(self, T_cw: np.ndarray, T_pred: np.ndarray) -> bool:
+        """Gate the change against the constant-velocity prediction (never emit a wild pose)."""
+        d = T_cw @ invert_pose(T_pred)
+        c_new = -T_cw[:3, :3].T @ T_cw[:3, 3]
+        c_pred = -T_pred[:3, :3].T @ T_pred[:3, 3]
+        return (np.linalg.norm(c_new - c_pred) <= self.cfg.max_translation_jump_m * self._scale_unit()
+                and rotation_angle_deg(d[:3, :3]) <= self.cfg.max_rotation_jump_deg)
+
+    def _scale_unit(self) -> float:
+        """Metres per map unit for the translation gate (1 for RGB-D; mono overrides)."""
+        return 1.0
+
+    def _track_frame(self, frame: Frame, feats: FrameFeatures
+                     ) -> tuple[np.ndarray | None, KeyframeInfo | None, int, int]:
+        cfg = self.cfg
+        assert self._T_cw_last is not None
+        T_pred = self._velocity @ self._T_cw_last
+        outcome = None
+        predicting = self.state == TrackingState.OK or (
+            self.state == TrackingState.RECENTLY_LOST and self._lost_frames <= cfg.max_recently_lost_frames)
+        if predicting:
+            outcome = self._track_local_map(feats, T_pred, allow_fallback=True)
+            if outcome is not None and not self._pose_is_plausible(outcome.T_cw, T_pred):
+                logger.debug("frame %d: pose jump rejected", frame.stamp_ns)
+                outcome = None
+        relocalised = False
+        if outcome is None and self.state != TrackingState.OK:
+            outcome = self._relocalise(feats)
+            relocalised = outcome is not None
+        if outcome is not None:
+            T = outcome.T_cw
+            if self.state == TrackingState.OK or not relocalised:
+                self._velocity = T @ invert_pose(self._T_cw_last)
+            else:
+                self._velocity = np.eye(4)
+            self.state = TrackingState.OK
+            self._T_cw_last = T
+            self._last_good_T_cw = T
+            self._lost_frames = 0
+            self._frames_since_kf += 1
+            self._update_local_keyframes(outcome.point_ids)
+            kf = None
+            if self._need_keyframe(T, feats, outcome):
+                kf = self._insert_keyframe(frame, feats, T, outcome)
+            return T, kf, outcome.n_matches, len(outcome.point_ids)
+        # Failure: coast on the velocity model for a few frames, then report no pose.
+        self._lost_frames += 1
+        if self._lost_frames <= cfg.max_recently_lost_frames and self.state != TrackingState.LOST:
+            self.state = TrackingState.RECENTLY_LOST
+            self._T_cw_last = T_pred
+            return T_pred, None, 0, 0
+        self.state = TrackingState.LOST
+        if self._lost_frames > cfg.new_segment_after_lost_frames:
+            T_new = self._lost_timeout(frame, feats)
+            if T_new is not None:
+                return T_new, self._last_kf_info, 0, 0
+        return None, None, 0, 0
+
+    def _relocalise(self, feats: FrameFeatures) -> _TrackOutcome | None:
+        found = relocalise(self.map, feats, self.K, self.bf, self.cfg, self.inv_sigma_levels)
+        if found is None:
+            return None
+        T, _ = found
+        # Confirm against the local map around the relocalised pose, strictly.
+        saved = self._local_kfs
+        with self.map.lock:
+            pids = self._observed_points_near(T)
+        self._local_kfs = self.map.covisible(pids, self.cfg.local_map_keyframes) if len(pids) else saved
+        outcome = self._track_local_map(feats, T, allow_fallback=False)
+        if outcome is None or len(outcome.point_ids) < self.cfg.reloc_min_inliers:
+            self._local_kfs = saved
+            return None
+        return outcome
+
+    def _observed_points_near(self, T_cw: np.ndarray) -> np.ndarray:
+        """Ids of good points that project into the image at ``T_cw`` (all keyframes)."""
+        ids = self.map.points_of(list(self.map.keyframes))
+        p_w, _, _ = self.map.point_arrays(ids)
+        _, vis = self._project(p_w, T_cw)
+        return ids[vis]
+
+    def _update_local_keyframes(self, point_ids: np.ndarray) -> None:
+        cov = self.map.covisible(point_ids, self.cfg.local_map_keyframes)
+        recent = sorted(self.map.keyframes)[-2:]
+        self._local_kfs = list(dict.fromkeys(cov + recent))
+
+    # -- keyframes ----------------------------------------------------------------------
+    def _need_keyframe(self, T_cw: np.ndarray, feats: FrameFeatures, outcome: _TrackOutcome) -> bool:
+        cfg = self.cfg
+        if self._frames_since_kf < cfg.keyframe_min_frames:
+            return False
+        n_tracked = len(outcome.point_ids)
+        if n_tracked < cfg.min_inliers:
+            return False
+        ref = self.map.keyframes.get(self._last_kf_id)
+        if ref is None:
+            return True
+        ref_tracked = self._reference_tracked(ref)
+        d = T_cw @ invert_pose(ref.T_cw)
+        moved = np.linalg.norm(d[:3, 3]) / self._scale_unit()
+        return (self._frames_since_kf >= cfg.keyframe_max_frames
+                or n_tracked < cfg.keyframe_tracked_ratio * ref_tracked
+                or self._need_close_points(feats, outcome.kp_idx)
+                or rotation_angle_deg(d[:3, :3]) > cfg.keyframe_max_rotation_deg
+                or moved > cfg.keyframe_max_translation_m)
+
+    def _reference_tracked(self, ref: Keyframe) -> int:
+        """Points of the reference keyframe seen by enough keyframes (ORB-SLAM's nMinObs)."""
+        min_obs = 3 if len(self.map.keyframes) > 2 else 2
+        ids = ref.point_ids[ref.point_ids >= 0]
+        with self.map.lock:
+            ids = ids[self.map.good(ids)]
+            return sum(1 for pid in ids.tolist() if len(self.map.observations[pid]) >= min_obs)
+
+    def _make_keyframe(self, frame: Frame, feats: FrameFeatures, T_cw: np.ndarray) -> Keyframe:
+        kf = Keyframe(self.map.new_keyframe_id(), frame.stamp_ns, T_cw.copy(), feats,
+                      np.full(len(feats), -1, dtype=np.int64), self.segment_id)
+        self.map.add_keyframe(kf)
+        return kf
+
+    def _insert_keyframe(self, frame: Frame, feats: FrameFeatures, T_cw: np.ndarray,
+                         outcome: _TrackOutcome) -> KeyframeInfo:
+        kf = self._make_keyframe(frame, feats, T_cw)
+        self.map.add_observations(outcome.point_ids, kf.keyframe_id, outcome.kp_idx)
+        self._create_points(kf, frame)
+        self.map.cull_points(kf.keyframe_id, self.cfg.point_min_found_ratio, self._min_point_obs())
+        return self._finish_keyframe(kf)
+
+    def _min_point_obs(self) -> int:
+        return 2
+
+    def _finish_keyframe(self, kf: Keyframe) -> KeyframeInfo:
+        self._last_kf_id = kf.keyframe_id
+        self._frames_since_kf = 0
+        if kf.keyframe_id not in self._local_kfs:
+            self._local_kfs.append(kf.keyframe_id)
+        if self.cfg.ba_enabled and len(self.map.keyframes) >= 2:
+            if self._ba_thread is not None:
+                self._ba_queue.put((self.map, kf.keyframe_id))
+            else:
+                self._run_local_ba(self.map, kf.keyframe_id)
+        info = self._keyframe_info(kf)
+        self._last_kf_info = info
+        return info
+
+    def _keyframe_info(self, kf: Keyframe) -> KeyframeInfo:
+        active = kf.point_ids >= 0
+        depth = np.full(len(kf.point_ids), np.nan, dtype=np.float32)
+        if active.any():
+            p_w, _, _ = self.map.point_arrays(kf.point_ids[active])
+            depth[active] = (p_w @ kf.T_cw[2, :3] + kf.T_cw[2, 3]).astype(np.float32)
+        return KeyframeInfo(kf.keyframe_id, kf.stamp_ns, invert_pose(kf.T_cw),
+                            kf.feats.uv.astype(np.float32), depth, active)
+
+    # -- local bundle adjustment ----------------------------------------------------------
+    def _ba_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                job = self._ba_queue.get(timeout=0.05)
+            except queue.Empty:
+                continue
+            # Only the newest job matters: drop older ones queued while we were busy.
+            skipped = 0
+            while True:
+                try:
+                    newer = self._ba_queue.get_nowait()
+                except queue.Empty:
+                    break
+                skipped += 1
+                job = newer
+            try:
+                self._run_local_ba(*job)
+            except Exception:  # a failed refinement must not kill tracking
+                logger.exception("local bundle adjustment failed")
+            finally:
+                for _ in range(skipped + 1):
+                    self._ba_queue.task_done()
+
+    def _ba_fixed_count(self) -> int:
+        return 1
+
+    def _run_local_ba(self, smap: SparseMap, kf_id: int) -> None:
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        with smap.lock:
+            kf = smap.keyframes[kf_id]
+            own = kf.point_ids[kf.point_ids >= 0]
+            window = [kf_id] + smap.covisible(own, cfg.ba_window - 1, exclude=kf_id)
+            pids = smap.points_of(window)
+            counts: dict[int, int] = {}
+            for pid in pids.tolist():
+                for k in smap.observations[pid]:
+                    if k not in window:
+                        counts[k] = counts.get(k, 0) + 1
+            outside = [k for k, _ in sorted(counts.items(), key=lambda kv: -kv[1])[:3]]
+            cams = window + outside
+            fixed = np.array([c in outside for c in cams])
+            if not fixed.any():
+                for c in sorted(window)[: self._ba_fixed_count()]:
+                    fixed[cams.index(c)] = True
+            if fixed.all():
+                return
+            cam_index = {c: i for i, c in enumerate(cams)}
+            o_cam, o_pt, o_uv, o_depth, o_oct, o_kf = [], [], [], [], [], []
+            for j, pid in enumerate(pids.tolist()):
+                for k, i in smap.observations[pid].items():
+                    ci = cam_index.get(k)
+                    if ci is None:
+                        continue
+                    f = smap.keyframes[k].feats
+                    o_cam.append(ci)
+                    o_pt.append(j)
+                    o_uv.append(f.uv[i])
+                    o_depth.append(f.depth_m[i])
+                    o_oct.append(f.octave[i])
+                    o_kf.append(k)
+            T_cw = np.stack([smap.keyframes[c].T_cw for c in cams])
+            p_w, _, _ = smap.point_arrays(pids)
+        if len(o_cam) < 20:
+            return
+        prob = BAProblem(T_cw, fixed, p_w, np.array(o_cam), np.array(o_pt), np.array(o_uv),
+                         np.array(o_depth, dtype=np.float64), self._inv_sigma(np.array(o_oct)))
+        res = local_bundle_adjustment(prob, self.K, self.bf, cfg.ba_huber_px, cfg.ba_max_iterations)
+        if not np.isfinite(res.final_cost) or res.final_cost > res.initial_cost:
+            return
+        free = [c for c, f in zip(cams, fixed) if not f]
+        T_new = res.T_cw[~fixed]
+        outliers = [(int(pids[p]), k) for p, k, ok in zip(o_pt, o_kf, res.obs_inlier) if not ok]
+        moved = smap.commit_refinement(free, T_new, pids, res.points_w, outliers)
+        with self._out_lock:
+            if smap is self.map:
+                self._pending.append(moved)
+            self._refined.extend((k, invert_pose(T)) for k, T in zip(free, T_new))
+        self.ba_runs += 1
+        self.ba_time_s += time.perf_counter() - t0
+
+    def _apply_ba_corrections(self) -> None:
+        """Move the last pose with its keyframe when BA refined that keyframe (keeps velocity)."""
+        with self._out_lock:
+            pending, self._pending = self._pending, []
+        if self._T_cw_last is None:
+            return
+        for moved in pending:
+            if self._last_kf_id in moved:
+                old, new = moved[self._last_kf_id]
+                self._T_cw_last = self._T_cw_last @ invert_pose(old) @ new

@@ -1,0 +1,205 @@
+"""The tracker's sparse map: keyframes, map points, observations, covisibility.
+
+One lock guards every mutation, because local bundle adjustment reads a snapshot in a
+background thread and commits refined poses/points back while the tracker keeps going.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.tracking.features import FrameFeatures
+
+
+@dataclass(eq=False)
+class Keyframe:
+    """A keyframe inside the map (mutable: BA refines ``T_cw``; points attach to keypoints).
+
+    feats: its ORB features; point_ids: [M] int64 map point per keypoint, -1 where none.
+    """
+
+    keyframe_id: int
+    stamp_ns: int
+    T_cw: np.ndarray
+    feats: FrameFeatures
+    point_ids: np.ndarray
+    segment_id: int = 0
+
+    @property
+    def T_wc(self) -> np.ndarray:
+        return invert_pose(self.T_cw)
+
+
+@dataclass(eq=False)
+class _PointStore:
+    """Growable arrays of map point attributes (index = point id)."""
+
+    pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    desc: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))
+    octave: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    n_visible: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    n_found: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    first_kf: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    bad: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    size: int = 0
+
+
+class SparseMap:
+    """Keyframes and map points of one tracking segment."""
+
+    def __init__(self, first_keyframe_id: int = 0) -> None:
+        self.lock = threading.RLock()
+        self.keyframes: dict[int, Keyframe] = {}
+        self._pts = _PointStore()
+        self.observations: list[dict[int, int]] = []  # point id -> {keyframe id: keypoint index}
+        self._next_kf_id = first_keyframe_id  # ids stay unique across segments
+        self.version = 0  # bumped on every BA commit
+
+    # -- points -------------------------------------------------------------------------
+    @property
+    def n_points(self) -> int:
+        return self._pts.size
+
+    def _grow(self, extra: int) -> None:
+        p = self._pts
+        need = p.size + extra
+        cap = len(p.pos)
+        if need <= cap:
+            return
+        new_cap = max(need, 2 * cap, 1024)
+
+        def g(a: np.ndarray, fill: object = 0) -> np.ndarray:
+            out = np.full((new_cap,) + a.shape[1:], fill, dtype=a.dtype)
+            out[: len(a)] = a
+            return out
+
+        p.pos, p.desc, p.octave = g(p.pos), g(p.desc), g(p.octave)
+        p.n_visible, p.n_found, p.first_kf = g(p.n_visible), g(p.n_found), g(p.first_kf)
+        p.bad = g(p.bad, True)
+
+    def add_points(self, pos_w: np.ndarray, desc: np.ndarray, octave: np.ndarray,
+                   kf_id: int, kp_idx: np.ndarray) -> np.ndarray:
+        """New points [K, 3] seen by keyframe ``kf_id`` at keypoints ``kp_idx`` [K]; returns ids [K]."""
+        with self.lock:
+            k = len(pos_w)
+            self._grow(k)
+            p = self._pts
+            ids = np.arange(p.size, p.size + k)
+            p.pos[ids], p.desc[ids], p.octave[ids] = pos_w, desc, octave
+            p.n_visible[ids], p.n_found[ids] = 1, 1
+            p.first_kf[ids], p.bad[ids] = kf_id, False
+            p.size += k
+            self.observations.extend({kf_id: int(i)} for i in kp_idx)
+            self.keyframes[kf_id].point_ids[kp_idx] = ids
+            return ids
+
+    def add_observations(self, point_ids: np.ndarray, kf_id: int, kp_idx: np.ndarray) -> None:
+        with self.lock:
+            kf = self.keyframes[kf_id]
+            for pid, i in zip(point_ids.tolist(), kp_idx.tolist()):
+                if self._pts.bad[pid]:
+                    continue
+                self.observations[pid][kf_id] = i
+                kf.point_ids[i] = pid
+
+    def remove_observation(self, pid: int, kf_id: int) -> None:
+        with self.lock:
+            i = self.observations[pid].pop(kf_id, None)
+            kf = self.keyframes.get(kf_id)
+            if i is not None and kf is not None and kf.point_ids[i] == pid:
+                kf.point_ids[i] = -1
+            if not self.observations[pid]:
+                self._pts.bad[pid] = True
+
+    def set_bad(self, pids: np.ndarray) -> None:
+        with self.lock:
+            for pid in np.asarray(pids).tolist():
+                for kf_id, i in self.observations[pid].items():
+                    kf = self.keyframes.get(kf_id)
+                    if kf is not None and kf.point_ids[i] == pid:
+                        kf.point_ids[i] = -1
+                self.observations[pid] = {}
+                self._pts.bad[pid] = True
+
+    def point_arrays(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(pos [K, 3], desc [K, 32], octave [K]) copies for point ids [K]."""
+        with self.lock:
+            p = self._pts
+            return p.pos[ids].copy(), p.desc[ids].copy(), p.octave[ids].copy()
+
+    def good(self, ids: np.ndarray) -> np.ndarray:
+        return ~self._pts.bad[ids]
+
+    def count_visible(self, ids: np.ndarray) -> None:
+        np.add.at(self._pts.n_visible, ids, 1)
+
+    def count_found(self, ids: np.ndarray) -> None:
+        np.add.at(self._pts.n_found, ids, 1)
+
+    def cull_points(self, current_kf_id: int, min_found_ratio: float, min_obs: int) -> int:
+        """Mark recent points bad when rarely found or seen by too few keyframes; returns count."""
+        with self.lock:
+            p = self._pts
+            ids = np.flatnonzero(~p.bad[: p.size] & (p.first_kf[: p.size] >= current_kf_id - 3))
+            if len(ids) == 0:
+                return 0
+            ratio = p.n_found[ids] / np.maximum(p.n_visible[ids], 1)
+            n_obs = np.array([len(self.observations[i]) for i in ids.tolist()])
+            age = current_kf_id - p.first_kf[ids]
+            bad = (ratio < min_found_ratio) | ((age >= 2) & (n_obs < min_obs))
+            self.set_bad(ids[bad])
+            return int(bad.sum())
+
+    # -- keyframes ----------------------------------------------------------------------
+    @property
+    def next_keyframe_id(self) -> int:
+        return self._next_kf_id
+
+    def new_keyframe_id(self) -> int:
+        self._next_kf_id += 1
+        return self._next_kf_id - 1
+
+    def add_keyframe(self, kf: Keyframe) -> None:
+        with self.lock:
+            self.keyframes[kf.keyframe_id] = kf
+
+    def covisible(self, point_ids: np.ndarray, k: int, exclude: int | None = None) -> list[int]:
+        """The ``k`` keyframes observing most of ``point_ids``, most first."""
+        counts: dict[int, int] = {}
+        with self.lock:
+            for pid in np.asarray(point_ids).tolist():
+                for kf_id in self.observations[pid]:
+                    counts[kf_id] = counts.get(kf_id, 0) + 1
+        if exclude is not None:
+            counts.pop(exclude, None)
+        return [kf for kf, _ in sorted(counts.items(), key=lambda kv: -kv[1])[:k]]
+
+    def points_of(self, kf_ids: list[int]) -> np.ndarray:
+        """Unique good point ids observed by the keyframes ``kf_ids``."""
+        with self.lock:
+            arrs = [self.keyframes[i].point_ids for i in kf_ids if i in self.keyframes]
+            if not arrs:
+                return np.zeros(0, np.int64)
+            ids = np.unique(np.concatenate(arrs))
+            ids = ids[ids >= 0]
+            return ids[~self._pts.bad[ids]]
+
+    def commit_refinement(self, kf_ids: list[int], T_cw: np.ndarray, point_ids: np.ndarray,
+                          points_w: np.ndarray, outliers: list[tuple[int, int]]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """Write BA results; returns {kf_id: (old T_cw, new T_cw)} for the keyframes moved."""
+        with self.lock:
+            moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+            for kf_id, T in zip(kf_ids, T_cw):
+                kf = self.keyframes.get(kf_id)
+                if kf is not None:
+                    moved[kf_id] = (kf.T_cw.copy(), T.copy())
+                    kf.T_cw = T.copy()
+            ok = ~self._pts.bad[point_ids]
+            self._pts.pos[point_ids[ok]] = points_w[ok]
+            for pid, kf_id in outliers:
+                self.remove_observation(pid, kf_id)
+            self.version += 1
+            return moved
