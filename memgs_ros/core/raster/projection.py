@@ -85,11 +85,13 @@ def project_gaussians(
     jw1 = (fy * inv_z)[:, None] * R[1] - (fy * ty * inv_z)[:, None] * R[2]  # [N, 3]
     rot = quat_wxyz_to_rotmat_torch(quats_wxyz)  # [N, 3, 3]
     scales = torch.exp(log_scales)  # [N, 3]
-    a0 = (jw0.unsqueeze(-1) * rot).sum(1) * scales  # [N, 3] row 0 of A: (J W)_0 R_g S
-    a1 = (jw1.unsqueeze(-1) * rot).sum(1) * scales  # [N, 3]
-    sxx = (a0 * a0).sum(-1) + COV2D_DILATION
-    sxy = (a0 * a1).sum(-1)
-    syy = (a1 * a1).sum(-1) + COV2D_DILATION
+    # (Sums over the length-3 axes written out: torch reductions over such short axes are slow.)
+    a0 = (jw0[:, 0:1] * rot[:, 0] + jw0[:, 1:2] * rot[:, 1] + jw0[:, 2:3] * rot[:, 2]) * scales  # [N, 3] row 0 of A
+    a1 = (jw1[:, 0:1] * rot[:, 0] + jw1[:, 1:2] * rot[:, 1] + jw1[:, 2:3] * rot[:, 2]) * scales  # [N, 3]
+    ones = torch.ones(3, 1, dtype=a0.dtype, device=a0.device)
+    sxx = ((a0 * a0) @ ones)[:, 0] + COV2D_DILATION
+    sxy = ((a0 * a1) @ ones)[:, 0]
+    syy = ((a1 * a1) @ ones)[:, 0] + COV2D_DILATION
     det = sxx * syy - sxy * sxy  # > 0.09 thanks to the dilation
     inv_det = 1.0 / det
     conics = torch.stack([syy * inv_det, -sxy * inv_det, sxx * inv_det], dim=-1)  # [N, 3]
