@@ -4,7 +4,9 @@ For each input (synthetic room and/or a TUM folder), every ``--kf-every``-th fra
 keyframe with its ground-truth pose; seeds come from Patch-Grid sampling (RGB-D) around ORB
 keypoints (OpenCV, 500 features, depth read from the depth image), as the keyframe sampler
 does. Two ``GaussianMapper`` runs train on the same keyframes with the same seed, one with
-merging, one without, for ``--iters`` iterations at ``--resolution-scale``. Reported per run:
+merging, one whose merge passes merge nothing (same schedule: the mapper skips densification in
+merge iterations, so a plain merge_enabled=False run would densify more often and confound the
+comparison), for ``--iters`` iterations at ``--resolution-scale``. Reported per run:
 Gaussians, ``GaussianMap.memory_bytes()`` (params + grads + Adam), mean PSNR over the
 keyframes (rendered at the training resolution), merges done, wall time. The merge
 schedule is compressed for a CPU budget (``--merge-start``, ``--merge-interval``,
@@ -24,7 +26,18 @@ import json
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
+
+
+def _no_merge(gmap, cfg, newest_keyframe_id: int, iteration: int):  # -> MergeResult
+    """A merge pass that merges nothing (the "off" arm of the ablation)."""
+    import torch
+
+    from memgs_ros.core.merge import MergeResult
+
+    empty = torch.zeros(0, dtype=torch.int64, device=gmap.device)
+    return MergeResult(empty, empty, 0, 0, 0, 0)
 
 
 def run_one(args: argparse.Namespace) -> dict:
@@ -51,7 +64,10 @@ def run_one(args: argparse.Namespace) -> dict:
         densify_stop_iter=args.densify_stop, resolution_scale=args.resolution_scale,
         min_keyframes=1, seed=args.seed, max_sh_degree=args.sh_degree)
     merge_cfg = MergeConfig(tau=args.tau, window_keyframes=args.window, voxel_size_m=args.voxel_size)
-    mapper = GaussianMapper(mcfg, merge_cfg=merge_cfg if merge_on else None)
+    # "off" keeps the merge schedule with a pass that merges nothing: the mapper skips
+    # densification in merge iterations, so both runs densify at exactly the same iterations
+    mapper = GaussianMapper(replace(mcfg, merge_enabled=True), merge_fn=None if merge_on else _no_merge,
+                            merge_cfg=merge_cfg)
     n_kf = 0
     for k, frame in enumerate(src):
         if k % args.kf_every or frame.T_wc_gt is None or frame.depth_m is None:
