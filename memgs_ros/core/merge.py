@@ -10,9 +10,12 @@ One pass, all vectorised (no Python loop over voxels or pairs):
    ``select_min_pair_per_voxel`` keeps each voxel's minimum, merged only if ``d2 < 7.815``
    (chi-square, 3 dof, 95 %; the paper's direction, the released code's is inverted).
 4. ``merged_mean``: ``(Si^-1 + Sj^-1)^-1 (Si^-1 mu_i + Sj^-1 mu_j)``.
-5. ``merge_covariance``: ``argmin_Sk W2(Sk, Si)^2 + W2(Sk, Sj)^2`` by one batched L-BFGS over
-   (quaternion, log-scale), initialised by slerp and the mean scale (see ``memgs_ros.core.wasserstein``
-   for the eigh-free, repeated-eigenvalue-safe W2).
+5. ``merge_covariance``: ``argmin_Sk W2(Sk, Si)^2 + W2(Sk, Sj)^2`` by one batched L-BFGS
+   (torch.optim.LBFGS, strong Wolfe) initialised as the paper does (slerp of the rotations,
+   mean scale + [1, 2, 3] mm), over the symmetric square root of Sk (default; well conditioned
+   for a shared line search) or the paper's quaternion + scale; the result is returned as
+   quaternion + scale either way. ``memgs_ros.core.wasserstein`` holds the eigh-free,
+   repeated-eigenvalue-safe W2.
 6. ``merge_pass``: the map surgery. Each merged pair becomes ONE new Gaussian (fresh id, zero
    Adam moments and accumulators) with colour, SH and opacity from the older Gaussian (paper;
    ``colour_from="newer"`` is the released code's choice); both old ids are removed.
