@@ -161,8 +161,9 @@ def test_real_time_paces_by_stamps_over_rate(ros_domain_id: int) -> None:
     _, rx = play_in_process(frames, ros_domain_id, lockstep=False, rate=2.0)
     assert [s for s, _ in rx.color] == [f.stamp_ns for f in frames]
     span = rx.arrival_s[-1] - rx.arrival_s[0]
-    # 0.25 s at x2; publishing earlier than the stamps allow would be the bug; a loaded machine may be late.
-    assert 0.2 <= span < 2.5, span
+    # 0.25 s at x2 (unpaced it would be a few ms); first-message latency may eat a little of it,
+    # a loaded machine may add delay.
+    assert 0.15 <= span < 2.5, span
     assert rx.done == [True]
 
 

@@ -40,7 +40,7 @@ from memgs_ros.ros import codecs, qos
 from memgs_ros.ros.params import ParamSpec, declare_all
 
 TICK_S = 0.005  # pacing resolution; lockstep frames go out from the ack callback, not the tick
-SETTLE_S = 0.5  # after the first subscriber matches, let the other topics' matching finish
+SETTLE_S = 0.5  # subscriber counts must be steady this long before the first frame goes out
 LINGER_S = 0.5  # keep the latched "done" publisher alive so matched readers receive it
 PROGRESS_EVERY_S = 5.0
 DEFAULT_PERIOD_NS = 33_333_333  # loop gap for a one-frame source (30 Hz)
@@ -118,7 +118,9 @@ class BagPlayer(Node):
         self._sent_at = 0.0
         self._ack_timeouts = 0
         self._created_at = time.monotonic()
-        self._first_match_at: float | None = None
+        self._frame_pubs = (self._pub_color, self._pub_depth, self._pub_info, self._pub_gt)
+        self._match_counts: tuple[int, ...] = ()
+        self._steady_since = self._created_at
         self._t0: float | None = None  # wall time and stamp of the first frame (real-time pacing)
         self._stamp0_ns = 0
         self._last_progress = 0.0
@@ -180,17 +182,18 @@ class BagPlayer(Node):
             self._log_progress(now)
 
     def _ready_to_start(self, now: float) -> bool:
-        """Start once a color subscriber (and, in lockstep, an ack publisher) has matched and
-        SETTLE_S has passed, or when start_delay_s runs out."""
-        waited = now - self._created_at
-        has_reader = self._pub_color.get_subscription_count() > 0
-        has_acker = self._ack_sub is None or self.count_publishers(self._ack_sub.topic_name) > 0
-        matched = has_reader and has_acker
-        if matched and self._first_match_at is None:
-            self._first_match_at = now
-        if self._first_match_at is not None and now - self._first_match_at >= min(SETTLE_S, self.cfg.start_delay_s):
+        """Start once a color subscriber (and, in lockstep, an ack publisher) has matched and the
+        match counts of all topics have been steady for SETTLE_S (so a subscriber's depth and
+        info readers, discovered a moment after its color reader, get the first frame too),
+        or when start_delay_s runs out."""
+        counts = tuple(p.get_subscription_count() for p in self._frame_pubs)
+        has_reader = counts[0] > 0
+        has_acker = self._ack_sub is None or self._ack_sub.get_publisher_count() > 0
+        if counts != self._match_counts:
+            self._match_counts, self._steady_since = counts, now
+        if has_reader and has_acker and now - self._steady_since >= min(SETTLE_S, self.cfg.start_delay_s):
             return True
-        if waited >= self.cfg.start_delay_s:
+        if now - self._created_at >= self.cfg.start_delay_s:
             if not has_reader or not has_acker:
                 missing = "a color subscriber" if not has_reader else f"a publisher on '{self.cfg.ack_topic}'"
                 self.get_logger().warning(f"starting without {missing} after {self.cfg.start_delay_s:g} s")
