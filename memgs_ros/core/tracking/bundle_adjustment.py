@@ -28,6 +28,19 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(w.reshape(-1, 3)).as_matrix().reshape(w.shape[:-1] + (3, 3))
 
 
+def orthonormalized(T: np.ndarray) -> np.ndarray:
+    """The pose [4, 4] with its rotation projected back onto SO(3) (SVD).
+
+    Products of rotations drift off SO(3); ``invert_pose`` transposes, so the drift would
+    compound through the velocity model every frame.
+    """
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = T.copy()
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
 def apply_left_update(T_cw: np.ndarray, xi: np.ndarray) -> np.ndarray:
     """T_cw [4, 4] updated by xi = (w, v) [6] on the left; returns a new [4, 4]."""
     R = cv2.Rodrigues(np.asarray(xi[:3], dtype=np.float64))[0]
@@ -134,7 +147,7 @@ def optimize_pose(T_cw: np.ndarray, p_w: np.ndarray, uv: np.ndarray, depth_m: np
         r = _residuals(p_c, obs, has_depth, K, bf)
         chi2 = w2 * np.einsum("ij,ij->i", r, r)
         inlier = front & (chi2 < np.where(has_depth, th_stereo, th_mono))
-    return T, inlier
+    return orthonormalized(T), inlier
 
 
 @dataclass(frozen=True, eq=False)
@@ -236,11 +249,12 @@ def _local_bundle_adjustment_scipy(prob: BAProblem, K: np.ndarray, bf: float, hu
 
     x0 = np.concatenate([np.zeros(n_pose), prob.points_w.ravel()])
     res = least_squares(fun, x0, jac=jac, method="trf", loss="huber", f_scale=huber_px,
-                        max_nfev=max_iterations, tr_solver="lsmr", x_scale="jac")
+                        max_nfev=max_iterations, tr_solver="lsmr")
     R, t, pts = unpack(res.x)
     T = np.tile(np.eye(4), (C, 1, 1))
     T[:, :3, :3] = R
     T[:, :3, 3] = t
+    T = np.stack([orthonormalized(Ti) for Ti in T])
     p_c = np.einsum("oij,oj->oi", R[cam], pts[pt]) + t[cam]
     front = p_c[:, 2] > 1e-4
     p_c[:, 2] = np.where(front, p_c[:, 2], 1.0)
@@ -383,4 +397,5 @@ def local_bundle_adjustment(prob: BAProblem, K: np.ndarray, bf: float, huber_px:
     chi2 = np.einsum("ij,ij->i", r, r)
     p_cz = np.einsum("oij,oj->oi", T[cam, :3, :3], X[pt])[:, 2] + T[cam, 2, 3]
     inl = (p_cz > 1e-4) & (chi2 < np.where(has_depth, CHI2_STEREO, CHI2_MONO))
+    T = np.stack([orthonormalized(Ti) for Ti in T])
     return BAResult(T, X, inl, cost0, cost, n_eval)

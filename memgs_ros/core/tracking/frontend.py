@@ -20,7 +20,8 @@ import numpy as np
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.geometry import invert_pose
-from memgs_ros.core.tracking.bundle_adjustment import BAProblem, local_bundle_adjustment, optimize_pose
+from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, local_bundle_adjustment, optimize_pose,
+                                                        orthonormalized)
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.features import FrameFeatures, OrbExtractor, match_by_projection, match_descriptors
 from memgs_ros.core.tracking.local_map import Keyframe, SparseMap
@@ -192,7 +193,7 @@ class FeatureTracker:
         T = np.eye(4)
         T[:3, :3] = cv2.Rodrigues(rvec)[0]
         T[:3, 3] = tvec.ravel()
-        return T
+        return orthonormalized(T)
 
     def _track_local_map(self, feats: FrameFeatures, T_pred: np.ndarray,
                          allow_fallback: bool) -> _TrackOutcome | None:
@@ -261,7 +262,7 @@ class FeatureTracker:
                      ) -> tuple[np.ndarray | None, KeyframeInfo | None, int, int]:
         cfg = self.cfg
         assert self._T_cw_last is not None
-        T_pred = self._velocity @ self._T_cw_last
+        T_pred = orthonormalized(self._velocity @ self._T_cw_last)
         outcome = None
         predicting = self.state == TrackingState.OK or (
             self.state == TrackingState.RECENTLY_LOST and self._lost_frames <= cfg.max_recently_lost_frames)
@@ -277,7 +278,7 @@ class FeatureTracker:
         if outcome is not None:
             T = outcome.T_cw
             if self.state == TrackingState.OK or not relocalised:
-                self._velocity = T @ invert_pose(self._T_cw_last)
+                self._velocity = orthonormalized(T @ invert_pose(self._T_cw_last))
             else:
                 self._velocity = np.eye(4)
             self.state = TrackingState.OK
@@ -346,10 +347,13 @@ class FeatureTracker:
         d = T_cw @ invert_pose(ref.T_cw)
         moved = np.linalg.norm(d[:3, 3]) / self._scale_unit()
         return (self._frames_since_kf >= cfg.keyframe_max_frames
-                or n_tracked < cfg.keyframe_tracked_ratio * ref_tracked
+                or n_tracked < self._keyframe_ratio() * ref_tracked
                 or self._need_close_points(feats, outcome.kp_idx)
                 or rotation_angle_deg(d[:3, :3]) > cfg.keyframe_max_rotation_deg
                 or moved > cfg.keyframe_max_translation_m)
+
+    def _keyframe_ratio(self) -> float:
+        return self.cfg.keyframe_tracked_ratio
 
     def _reference_tracked(self, ref: Keyframe) -> int:
         """Points of the reference keyframe seen by enough keyframes (ORB-SLAM's nMinObs)."""
@@ -490,4 +494,4 @@ class FeatureTracker:
         for moved in pending:
             if self._last_kf_id in moved:
                 old, new = moved[self._last_kf_id]
-                self._T_cw_last = self._T_cw_last @ invert_pose(old) @ new
+                self._T_cw_last = orthonormalized(self._T_cw_last @ invert_pose(old) @ new)

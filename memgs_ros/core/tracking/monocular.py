@@ -195,6 +195,9 @@ class MonocularTracker(FeatureTracker):
             ids = self.map.add_points(X, kf.feats.desc[ia], kf.feats.octave[ia], kf.keyframe_id, ia)
             self.map.add_observations(ids, nb_id, ib)
 
+    def _keyframe_ratio(self) -> float:
+        return self.cfg.mono_keyframe_tracked_ratio
+
     def _ba_fixed_count(self) -> int:
         # Fixing two keyframes also pins the scale, the seventh gauge freedom of monocular BA.
         return 2
