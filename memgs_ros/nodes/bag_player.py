@@ -114,6 +114,7 @@ class BagPlayer(Node):
         self._next: Frame | None = None
         self._next_stamp_ns = 0
         self._published = 0
+        self._last_sent_ns = 0
         self._awaiting_ns: int | None = None  # lockstep: stamp of the frame we wait an ack for
         self._sent_at = 0.0
         self._ack_timeouts = 0
@@ -253,6 +254,7 @@ class BagPlayer(Node):
         if frame.T_wc_gt is not None:
             self._pub_gt.publish(codecs.matrix_to_pose_stamped(frame.T_wc_gt, stamp_ns, self.cfg.world_frame_id))
         self._published += 1
+        self._last_sent_ns = stamp_ns
         self._sent_at = time.monotonic()
         if self.cfg.lockstep:
             self._awaiting_ns = stamp_ns
@@ -273,7 +275,7 @@ class BagPlayer(Node):
         elapsed = max(now - (self._t0 or now), 1e-9)
         self.get_logger().info(
             f"{'done: ' if final else ''}{self._published} frames in {elapsed:.1f} s "
-            f"({self._published / elapsed:.1f} frames/s), last stamp {self._next_stamp_ns * 1e-9:.3f} s, "
+            f"({self._published / elapsed:.1f} frames/s), last stamp {self._last_sent_ns * 1e-9:.3f} s, "
             f"ack timeouts {self._ack_timeouts}"
         )
 
