@@ -293,3 +293,37 @@ def test_process_lockstep_replay_of_synthetic_source(ros_domain_id: int, tmp_pat
     np.testing.assert_array_equal(codecs.depth_from_image(rx.depth[-1][1]), expected[-1].depth_m)
     assert "done: 20 frames" in out
 
+
+
+# ----------------------------------------------------------------------------- params and QoS helpers
+
+
+def test_declare_documents_range_and_refuses_runtime_changes(ros_domain_id: int) -> None:
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+
+    from memgs_ros.ros.params import ParamSpec, declare, declare_all
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=ros_domain_id)
+    node = Node("params_test", context=ctx, parameter_overrides=[Parameter("rate", value=2.5)])
+    try:
+        assert declare(node, "rate", 1.0, "replay speed", range=(0.1, 10.0)) == 2.5
+        desc = node.describe_parameter("rate")
+        assert desc.description == "replay speed" and desc.read_only
+        assert (desc.floating_point_range[0].from_value, desc.floating_point_range[0].to_value) == (0.1, 10.0)
+        assert not node.set_parameters([Parameter("rate", value=3.0)])[0].successful
+        got = declare_all(node, [ParamSpec("n", 3, "count", (0, 5)), ParamSpec("mode", "a", "m", choices=("a", "b"))])
+        assert got == {"n": 3, "mode": "a"}
+        assert node.describe_parameter("n").integer_range[0].to_value == 5
+        assert "one of: a, b" in node.describe_parameter("mode").description
+        with pytest.raises(ConfigError, match="parameter 'bad': a range needs a numeric default"):
+            declare(node, "bad", "x", "d", range=(0, 1))
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    assert qos.sensor().reliability == ReliabilityPolicy.BEST_EFFORT
+    assert qos.reliable(5).reliability == ReliabilityPolicy.RELIABLE and qos.reliable(5).depth == 5
+    latched = qos.latched()
+    assert latched.durability == DurabilityPolicy.TRANSIENT_LOCAL and latched.depth == 1
+    with pytest.raises(ValueError, match="depth must be >= 1"):
+        qos.reliable(0)
