@@ -322,6 +322,19 @@ def test_bad_shapes_are_refused() -> None:
         rasterize(*params, T, CAM_32, 1, backend="opengl")
 
 
+def test_gsplat_backend_refused_without_gsplat() -> None:
+    from memgs_ros.core.raster.gsplat_backend import gsplat_available
+    from memgs_ros.errors import ConfigError
+
+    if gsplat_available():
+        pytest.skip("gsplat is installed here; the refusal path cannot be exercised")
+    params, T = _scene(5, 161)
+    with pytest.raises(ConfigError, match="gsplat package is not installed"):
+        rasterize(*params, T, CAM_32, 1, backend="gsplat")
+    # "auto" on CPU falls back to the torch backend.
+    assert rasterize(*params, T, CAM_32, 1, backend="auto").color.shape == (3, 24, 32)
+
+
 def test_opaque_front_gaussian_terminates() -> None:
     """A wall of opaque Gaussians hides everything behind it (early termination at T < 1e-4)."""
     dtype = torch.float64

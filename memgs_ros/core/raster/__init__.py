@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.errors import ConfigError
 from memgs_ros.core.raster.composite import MIN_ALPHA
 from memgs_ros.core.raster.composite import composite as _composite  # keep the submodule name free
 from memgs_ros.core.raster.gsplat_backend import gsplat_available, rasterize_gsplat
@@ -114,6 +115,8 @@ def rasterize(
     T_cw = T_cw.to(means.dtype)
     if background is not None:
         background = background.to(device=means.device, dtype=means.dtype)
+    if backend == "gsplat" and not gsplat_available():
+        raise ConfigError("rasterize: backend 'gsplat' was asked for but the gsplat package is not installed")
     use_gsplat = backend == "gsplat" or (backend == "auto" and means.is_cuda and gsplat_available())
     if use_gsplat:
         return rasterize_gsplat(

@@ -44,7 +44,8 @@ MIN_POWER = -30.0
 # Above this, alpha and T are recomputed in the backward pass instead of kept (see _saves_pairs).
 SAVED_PAIRS_BUDGET_BYTES = 512 * 1024 * 1024
 
-_T = TypeVar("_T")
+_In = TypeVar("_In")
+_Out = TypeVar("_Out")
 
 
 def default_workers(device: torch.device) -> int:
@@ -58,11 +59,12 @@ def default_workers(device: torch.device) -> int:
     return max(1, min(cores, 4))
 
 
-def _map(fn: Callable[[Chunk], _T], chunks: Sequence[Chunk], workers: int) -> list[_T]:
-    if workers <= 1 or len(chunks) <= 1:
-        return [fn(c) for c in chunks]
-    with ThreadPoolExecutor(max_workers=min(workers, len(chunks))) as pool:
-        return list(pool.map(fn, chunks))
+def _map(fn: Callable[[_In], _Out], jobs: Sequence[_In], workers: int) -> list[_Out]:
+    """[fn(j) for j in jobs], on up to ``workers`` threads (results in job order)."""
+    if workers <= 1 or len(jobs) <= 1:
+        return [fn(j) for j in jobs]
+    with ThreadPoolExecutor(max_workers=min(workers, len(jobs))) as pool:
+        return list(pool.map(fn, jobs))
 
 
 def _pixel_features(tile_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
@@ -244,7 +246,7 @@ class _CompositeFn(torch.autograd.Function):
         # Per slot: dL/d (mean x, mean y, conic a, b, c, opacity, r, g, b, z).
         v_table = torch.empty_like(table)
 
-        def run(job: tuple[Chunk, tuple[Tensor, ...]]) -> None:
+        def run(job: tuple[Chunk, tuple[Tensor | None, Tensor | None]]) -> None:
             chunk, (alpha, t_excl) = job
             if alpha is None or t_excl is None:
                 _, alpha, t_excl = _forward_chunk(plan, chunk, table, feat, alpha_floor, t_floor)
@@ -273,7 +275,7 @@ class _CompositeFn(torch.autograd.Function):
             vx[_CB] = -g1 + g3 * mv + g4 * mu - g5 * mu * mv
             vx[_CC] = -0.5 * g2 + g4 * mv - 0.5 * g5 * mv * mv
 
-        _map(run, list(zip(plan.chunks, ctx.saved_pairs)), ctx.workers)  # type: ignore[arg-type]
+        _map(run, list(zip(plan.chunks, ctx.saved_pairs)), ctx.workers)
         n = means2d.shape[0]
         v_gauss = torch.zeros(10, n + 1, dtype=dtype, device=device)
         v_gauss.index_add_(1, plan.slot_gid, v_table)
