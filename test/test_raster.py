@@ -271,6 +271,24 @@ def test_image_does_not_depend_on_tiles_or_threads() -> None:
     for other in images[1:]:
         for a, b in zip(images[0], other):
             assert (a - b).abs().max() < 1e-12
+    # Backward on several threads: the same gradients as on one.
+    plan = build_tile_plan(proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, 64, 48, 4, 3000)
+    assert len(plan.chunks) > 3
+    inputs = (proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
+    grads = []
+    for workers in (1, 3):
+        color, depth, alpha = composite(*inputs, bg, plan, workers)
+        loss = (color * color).sum() + depth.sum() + alpha.sum()
+        grads.append(torch.autograd.grad(loss, inputs, retain_graph=True))
+    for a, b in zip(*grads):
+        assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("width,height", [(1, 1), (33, 17), (7, 40)])
+def test_odd_image_sizes(width: int, height: int) -> None:
+    cam = PinholeCamera(width, height, 30.0, 30.0, width / 2 - 0.3, height / 2 + 0.2)
+    params, T = _scene(40, 171 + width)
+    _compare(params, T, cam, 1)
 
 
 def test_backward_recomputes_when_pairs_exceed_budget(monkeypatch: pytest.MonkeyPatch) -> None:
