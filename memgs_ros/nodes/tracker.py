@@ -57,6 +57,10 @@ class TrackerNode(Node):
         self.world_frame = declare(self, "world_frame", "map", "frame id of published poses")
         self.camera_frame = declare(self, "camera_frame", "camera_color_optical_frame",
                                     "child frame id of the odometry (camera optical frame)")
+        self.input_reliability = declare(
+            self, "input_reliability", "best_effort",
+            "camera subscriptions: best_effort (sensor-data QoS, live cameras: drop rather than queue) or "
+            "reliable (lockstep replays must not lose a frame)", choices=("best_effort", "reliable"))
         self.path_max_len = declare(self, "path_max_len", 10000, "poses kept in memgs/path (0 = all)",
                                     range=(0, 10**7))
         self.cfg: TrackerConfig = declare_config(self, TrackerConfig, "tracker")
@@ -92,7 +96,7 @@ class TrackerNode(Node):
         self.pub_kf_kps = self.create_publisher(PointCloud2, "memgs/keyframe/keypoints", kf)
         self.pub_refined = self.create_publisher(Path, "memgs/keyframe/refined_poses", kf)
 
-        sensor = qos.sensor()
+        sensor = qos.sensor() if self.input_reliability == "best_effort" else qos.reliable(5)
         self.create_subscription(CameraInfo, self.info_topic, self.on_camera_info, sensor)
         self.create_subscription(Image, self.color_topic, self.on_color, sensor)
         if self.rgbd:

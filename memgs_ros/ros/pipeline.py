@@ -125,6 +125,7 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
     if options.lockstep:
         # Background BA would refine poses at timing-dependent moments: run it in step instead.
         params.setdefault("tracker", {}).setdefault("tracker.ba_threaded", False)
+        params["tracker"].setdefault("input_reliability", "reliable")  # lockstep must not lose a frame
     params.setdefault("merger", {})["map_path"] = str(map_path)
     for key, value in options.overrides.items():
         node, _, name = key.partition(".")
