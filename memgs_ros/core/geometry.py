@@ -6,9 +6,13 @@ wire); ``T_cw`` is its inverse. Quaternion order is always in the name: ``xyzw``
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
 from scipy.spatial.transform import Rotation, Slerp
+
+if TYPE_CHECKING:  # torch is imported only by the torch helpers, so light nodes start fast
+    import torch
 
 
 def quat_xyzw_to_rotmat(q_xyzw: np.ndarray) -> np.ndarray:
@@ -87,8 +91,10 @@ def interpolate_poses(stamps_ns: np.ndarray, poses: np.ndarray, query_ns: np.nda
     return out, valid
 
 
-def quat_wxyz_to_rotmat_torch(q_wxyz: torch.Tensor) -> torch.Tensor:
+def quat_wxyz_to_rotmat_torch(q_wxyz: "torch.Tensor") -> "torch.Tensor":
     """Quaternions [N, 4] (w, x, y, z; normalised here) to rotation matrices [N, 3, 3]."""
+    import torch
+
     q = q_wxyz / q_wxyz.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     w, x, y, z = q.unbind(-1)
     return torch.stack(
@@ -101,8 +107,10 @@ def quat_wxyz_to_rotmat_torch(q_wxyz: torch.Tensor) -> torch.Tensor:
     ).reshape(q.shape[:-1] + (3, 3))
 
 
-def rotmat_to_quat_wxyz_torch(R: torch.Tensor) -> torch.Tensor:
+def rotmat_to_quat_wxyz_torch(R: "torch.Tensor") -> "torch.Tensor":
     """Rotation matrices [N, 3, 3] to unit quaternions [N, 4] (w, x, y, z), w >= 0."""
+    import torch
+
     m = R.reshape(-1, 9)
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = m.unbind(-1)
     # Shepperd's method: pick the largest of four candidate denominators for stability.

@@ -94,9 +94,9 @@ class RunSummary:
 def config_path(name_or_path: str) -> Path:
     """A config name (``tum_fr1``) or path to the YAML file; searches the source tree and ``share/``."""
     p = Path(name_or_path)
-    if p.suffix in (".yaml", ".yml") and p.exists():
+    if p.suffix in (".yaml", ".yml", ".xml") and p.exists():
         return p
-    name = p.name if p.suffix in (".yaml", ".yml") else f"{name_or_path}.yaml"
+    name = p.name if p.suffix in (".yaml", ".yml", ".xml") else f"{name_or_path}.yaml"
     roots = [Path(__file__).resolve().parents[2] / "config"]
     roots += [Path(prefix) / "share" / "memgs_ros" / "config"
               for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if prefix]
@@ -269,6 +269,9 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
     _write_atomic(params_file, yaml.safe_dump(build_params(options, map_path), sort_keys=False))
     domain = options.domain_id if options.domain_id is not None else random.randrange(100, 200)
     os.environ["ROS_DOMAIN_ID"] = str(domain)
+    # A 50 ms heartbeat repairs lost fragments of big messages fast (see config/fastdds.xml);
+    # a profile the user chose is kept.
+    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(config_path("fastdds.xml")))
     ns = options.namespace
     ros_args = ["--ros-args", "--params-file", str(params_file)] + (["-r", f"__ns:={ns}"] if ns else [])
     context = rclpy.Context()
