@@ -204,13 +204,16 @@ def test_local_ba_reduces_error_and_matches_reference() -> None:
     fixed[0] = True
     prob = BAProblem(T0, fixed, X0, cam, pt, uv, depth, np.ones(len(cam)))
     fast = local_bundle_adjustment(prob, K, BF, 2.45, 20)
-    ref = _local_bundle_adjustment_scipy(prob, K, BF, 2.45, 200)
+    ref = _local_bundle_adjustment_scipy(prob, K, BF, 2.45, 2000)  # TRF needs ~750 evaluations here
     assert fast.final_cost < 0.05 * fast.initial_cost
     assert np.array_equal(fast.T_cw[0], T0[0])  # fixed stays fixed
     cam_err = np.linalg.norm(fast.T_cw[:, :3, 3] - T[:, :3, 3], axis=1).max()
     assert cam_err < 0.01
-    assert np.median(np.linalg.norm(fast.points_w - X, axis=1)) < 0.01
+    # Depth of points 2.5-5 m from a 0.36 m baseline at 0.3 px: ~4 cm is the geometry's own limit.
+    assert np.median(np.linalg.norm(fast.points_w - X, axis=1)) < 0.08
+    assert np.median(np.linalg.norm(fast.points_w - X, axis=1)) < np.median(np.linalg.norm(X0 - X, axis=1))
     # Both solvers reach the same minimum.
+    assert abs(fast.final_cost - ref.final_cost) < 1e-3 * ref.final_cost
     assert np.abs(fast.T_cw[:, :3, 3] - ref.T_cw[:, :3, 3]).max() < 2e-3
     assert np.median(np.linalg.norm(fast.points_w - ref.points_w, axis=1)) < 2e-3
 

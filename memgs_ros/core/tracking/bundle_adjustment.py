@@ -115,7 +115,7 @@ def optimize_pose(T_cw: np.ndarray, p_w: np.ndarray, uv: np.ndarray, depth_m: np
         use = inlier.copy()
         if use.sum() < 4:
             break
-        robust = rnd < rounds - 1
+        robust = rounds == 1 or rnd < rounds - 1
         for _ in range(iterations):
             p_c = p_w[use] @ T[:3, :3].T + T[:3, 3]
             if np.any(p_c[:, 2] <= 1e-6):
@@ -139,14 +139,18 @@ def optimize_pose(T_cw: np.ndarray, p_w: np.ndarray, uv: np.ndarray, depth_m: np
             except np.linalg.LinAlgError:
                 break
             T = apply_left_update(T, dx)
-            if np.linalg.norm(dx) < 1e-6:
+            if np.linalg.norm(dx) < 1e-5:  # 10 um / 10 urad: far below pixel noise
                 break
         p_c = p_w @ T[:3, :3].T + T[:3, 3]
         front = p_c[:, 2] > 1e-6
         p_c[:, 2] = np.where(front, p_c[:, 2], 1.0)
         r = _residuals(p_c, obs, has_depth, K, bf)
         chi2 = w2 * np.einsum("ij,ij->i", r, r)
-        inlier = front & (chi2 < np.where(has_depth, th_stereo, th_mono))
+        new_inlier = front & (chi2 < np.where(has_depth, th_stereo, th_mono))
+        settled = np.array_equal(new_inlier, inlier) and rnd < rounds - 1
+        inlier = new_inlier
+        if settled:
+            break  # the same set again: more rounds would repeat this one
     return orthonormalized(T), inlier
 
 

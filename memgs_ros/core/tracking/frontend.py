@@ -167,7 +167,7 @@ class FeatureTracker:
 
     def _match_and_optimise(self, feats: FrameFeatures, pids: np.ndarray, p_w: np.ndarray,
                             desc: np.ndarray, octave: np.ndarray, T_init: np.ndarray,
-                            radius_px: float, rounds: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+                            radius_px: float, rounds: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
         """One projection pass; returns (T_cw, point index, kp index, inlier mask, n visible)."""
         uv, vis = self._project(p_w, T_init)
         idx = np.flatnonzero(vis)
@@ -222,7 +222,7 @@ class FeatureTracker:
             return None
         # Second pass: everything in view, tight radius around the optimised pose.
         T2, pi2, ki2, inl2, _ = self._match_and_optimise(feats, pids, p_w, desc, octave, T,
-                                                         cfg.refine_radius_px, rounds=4)
+                                                         cfg.refine_radius_px, rounds=3)
         if inl2.sum() >= inl.sum():
             T, pi, ki, inl = T2, pi2, ki2, inl2
         uv, vis = self._project(p_w, T)
@@ -359,9 +359,7 @@ class FeatureTracker:
         """Points of the reference keyframe seen by enough keyframes (ORB-SLAM's nMinObs)."""
         min_obs = 3 if len(self.map.keyframes) > 2 else 2
         ids = ref.point_ids[ref.point_ids >= 0]
-        with self.map.lock:
-            ids = ids[self.map.good(ids)]
-            return sum(1 for pid in ids.tolist() if len(self.map.observations[pid]) >= min_obs)
+        return int((self.map.n_observations(ids) >= min_obs).sum())
 
     def _make_keyframe(self, frame: Frame, feats: FrameFeatures, T_cw: np.ndarray) -> Keyframe:
         kf = Keyframe(self.map.new_keyframe_id(), frame.stamp_ns, T_cw.copy(), feats,

@@ -43,6 +43,7 @@ class _PointStore:
     n_visible: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     n_found: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     first_kf: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    n_obs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # keyframes observing
     bad: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     size: int = 0
 
@@ -78,6 +79,7 @@ class SparseMap:
 
         p.pos, p.desc, p.octave = g(p.pos), g(p.desc), g(p.octave)
         p.n_visible, p.n_found, p.first_kf = g(p.n_visible), g(p.n_found), g(p.first_kf)
+        p.n_obs = g(p.n_obs)
         p.bad = g(p.bad, True)
 
     def add_points(self, pos_w: np.ndarray, desc: np.ndarray, octave: np.ndarray,
@@ -89,7 +91,7 @@ class SparseMap:
             p = self._pts
             ids = np.arange(p.size, p.size + k)
             p.pos[ids], p.desc[ids], p.octave[ids] = pos_w, desc, octave
-            p.n_visible[ids], p.n_found[ids] = 1, 1
+            p.n_visible[ids], p.n_found[ids], p.n_obs[ids] = 1, 1, 1
             p.first_kf[ids], p.bad[ids] = kf_id, False
             p.size += k
             self.observations.extend({kf_id: int(i)} for i in kp_idx)
@@ -100,14 +102,17 @@ class SparseMap:
         with self.lock:
             kf = self.keyframes[kf_id]
             for pid, i in zip(point_ids.tolist(), kp_idx.tolist()):
-                if self._pts.bad[pid]:
+                if self._pts.bad[pid] or kf_id in self.observations[pid]:
                     continue
                 self.observations[pid][kf_id] = i
+                self._pts.n_obs[pid] += 1
                 kf.point_ids[i] = pid
 
     def remove_observation(self, pid: int, kf_id: int) -> None:
         with self.lock:
             i = self.observations[pid].pop(kf_id, None)
+            if i is not None:
+                self._pts.n_obs[pid] -= 1
             kf = self.keyframes.get(kf_id)
             if i is not None and kf is not None and kf.point_ids[i] == pid:
                 kf.point_ids[i] = -1
@@ -123,12 +128,17 @@ class SparseMap:
                         kf.point_ids[i] = -1
                 self.observations[pid] = {}
                 self._pts.bad[pid] = True
+                self._pts.n_obs[pid] = 0
 
     def point_arrays(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(pos [K, 3], desc [K, 32], octave [K]) copies for point ids [K]."""
         with self.lock:
             p = self._pts
             return p.pos[ids].copy(), p.desc[ids].copy(), p.octave[ids].copy()
+
+    def n_observations(self, ids: np.ndarray) -> np.ndarray:
+        """[K] number of keyframes observing each point id (0 for bad points)."""
+        return self._pts.n_obs[ids]
 
     def good(self, ids: np.ndarray) -> np.ndarray:
         return ~self._pts.bad[ids]
@@ -147,7 +157,7 @@ class SparseMap:
             if len(ids) == 0:
                 return 0
             ratio = p.n_found[ids] / np.maximum(p.n_visible[ids], 1)
-            n_obs = np.array([len(self.observations[i]) for i in ids.tolist()])
+            n_obs = p.n_obs[ids]
             age = current_kf_id - p.first_kf[ids]
             bad = (ratio < min_found_ratio) | ((age >= 2) & (n_obs < min_obs))
             self.set_bad(ids[bad])
