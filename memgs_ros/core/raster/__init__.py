@@ -5,6 +5,10 @@ users without gsplat): projection and SH are plain autograd (O(N)); compositing 
 autograd Function over small tiles (:mod:`.composite`) whose memory is 8 B per pixel-Gaussian
 pair. ``_rasterize_reference`` (:mod:`.reference`) is its brute-force twin for tests; gsplat
 (:mod:`.gsplat_backend`) is an optional CUDA backend behind the same signature.
+
+On a small shared CPU call :func:`memgs_ros.core.runtime.configure_cpu_runtime` once from the
+entry point: it keeps freed memory in the heap and sets torch to one intra-op thread, which
+makes the compositor spread its chunks over Python threads (one per core, up to 4).
 """
 from __future__ import annotations
 

@@ -51,8 +51,7 @@ class TilePlan:
     gaussian_hit: [N] bool, the Gaussian touches at least one tile; chunks: the compositing
     schedule (every tile with a non-empty list appears in exactly one chunk);
     slot_gid: [S] int64, the padded per-chunk lists laid end to end (chunk by chunk, [T, k]
-    row-major), with N (one past the last Gaussian) in the padding slots; slot_tile: [S] int64
-    tile id of each slot.
+    row-major), with N (one past the last Gaussian) in the padding slots.
     """
 
     width: int
@@ -67,7 +66,6 @@ class TilePlan:
     gaussian_hit: Tensor
     chunks: tuple[Chunk, ...]
     slot_gid: Tensor
-    slot_tile: Tensor
 
     @property
     def num_pairs(self) -> int:
@@ -168,7 +166,6 @@ def build_tile_plan(
         counts_list = counts_sorted.tolist()
         chunks: list[Chunk] = []
         slot_parts: list[Tensor] = []
-        slot_tiles: list[Tensor] = []
         pix = tile_size * tile_size
         i = 0
         n_slots = 0
@@ -185,12 +182,10 @@ def build_tile_plan(
             valid = ar < tile_count[tiles].unsqueeze(1)
             gids = pair_gid.index_select(0, pos.clamp_max(pair_gid.shape[0] - 1).reshape(-1)).view(pos.shape)
             slot_parts.append(torch.where(valid, gids, torch.full_like(gids, n)).reshape(-1))
-            slot_tiles.append(tiles.repeat_interleave(k))
             n_slots += (j - i) * k
             i = j
         empty = torch.zeros(0, dtype=torch.long, device=device)
         slot_gid = torch.cat(slot_parts) if slot_parts else empty
-        slot_tile = torch.cat(slot_tiles) if slot_tiles else empty
     return TilePlan(
         width=width,
         height=height,
@@ -204,5 +199,4 @@ def build_tile_plan(
         gaussian_hit=gaussian_hit,
         chunks=tuple(chunks),
         slot_gid=slot_gid,
-        slot_tile=slot_tile,
     )
