@@ -6,6 +6,14 @@ import random
 
 import pytest
 
+try:
+    import torch
+
+    # Two shared cores: one intra-op thread is far steadier than two fighting (reference sec. 11).
+    torch.set_num_threads(1)
+except ImportError:  # pragma: no cover - torch is a hard dependency; keep collection readable
+    pass
+
 
 @pytest.fixture
 def ros_domain_id() -> int:

@@ -39,7 +39,6 @@ class KeyframeSamplerNode(Node):
         self.stats = NodeStats(self, "keyframe_sampler")
         parts = {"color", "camera_info", "pose", "keypoints"} | ({"depth"} if self.mode == "rgbd" else set())
         self.bundler = StampBundler(parts, max_pending=16)
-        self.rng = np.random.default_rng(self.cfg.seed)
         self.n_keyframes = 0
 
         self.pub = self.create_publisher(PointCloud2, "memgs/keyframe/seeds", qos.reliable(20))
@@ -69,9 +68,9 @@ class KeyframeSamplerNode(Node):
             kf_id = self.n_keyframes
             if self.mode == "rgbd":
                 depth = depth_from_image(b["depth"], self.depth_scale)
-                seeds = seeds_rgbd(rgb, depth, cam, T_wc, kf_id, uv, kp_depth, self.cfg, self.rng)
+                seeds = seeds_rgbd(rgb, depth, cam, T_wc, kf_id, uv, kp_depth, self.cfg)  # rng from (seed, kf_id)
             else:
-                seeds = seeds_mono(rgb, cam, T_wc, kf_id, uv, kp_depth, self.cfg, self.rng)
+                seeds = seeds_mono(rgb, cam, T_wc, kf_id, uv, kp_depth, self.cfg)
         except (MessageError, DataError) as err:
             self.stats.problem("bad_keyframe", f"keyframe {stamp_ns} refused: {err}")
             return
