@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
+from typing import BinaryIO, Callable
 
 import numpy as np
 
@@ -43,7 +44,7 @@ def ids_sidecar_path(path: str | os.PathLike[str]) -> Path:
     return Path(str(path) + ".ids.npy")
 
 
-def _atomic_write(path: Path, write: "callable[[object], None]") -> None:
+def _atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
     """Write through a temp file in the same folder, fsync, then os.replace onto ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
