@@ -226,3 +226,15 @@ def test_close_stops_ba_thread(frames: list[Frame]) -> None:
     tracker.close()
     assert not thread.is_alive()
     tracker.close()  # idempotent
+
+
+def test_orbslam3_backend_without_binding_is_a_clear_error(frames: list[Frame]) -> None:
+    try:
+        import pyorbslam3  # noqa: F401
+    except ImportError:
+        with pytest.raises(ConfigError, match="pyorbslam3"):
+            make_tracker(TrackerConfig(backend="orbslam3"), frames[0].camera)
+    else:
+        with pytest.raises(ConfigError, match="orbslam3_vocabulary"):
+            make_tracker(TrackerConfig(backend="orbslam3", orbslam3_vocabulary="/nonexistent"),
+                         frames[0].camera)
