@@ -1,6 +1,8 @@
 """Feature tracker: synthetic RGB-D / monocular sequences, loss and recovery, BA and matching pieces."""
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -238,3 +240,21 @@ def test_orbslam3_backend_without_binding_is_a_clear_error(frames: list[Frame]) 
         with pytest.raises(ConfigError, match="orbslam3_vocabulary"):
             make_tracker(TrackerConfig(backend="orbslam3", orbslam3_vocabulary="/nonexistent"),
                          frames[0].camera)
+
+
+def test_new_segment_after_lost_timeout(frames: list[Frame]) -> None:
+    """Lost for longer than the timeout in an unknown place: a new map anchored at the last good pose."""
+    spec = SyntheticSpec(width=320, height=240, n_frames=N_FRAMES, seed=7, supersample=1)
+    other = [Frame(frames[-1].stamp_ns + (i + 1) * 33_000_000, f.rgb, f.depth_m, f.camera, None)
+             for i, f in enumerate(itertools.islice(generate_frames(spec), 4))]
+    cfg = TrackerConfig(ba_threaded=False, max_recently_lost_frames=1, new_segment_after_lost_frames=3)
+    seq = frames[:10] + [_black(f) for f in frames[10:14]] + other
+    results = _run(seq, cfg)
+    assert all(r.segment_id == 0 for r in results[:14])
+    assert [r.state for r in results[11:14]] == [TrackingState.LOST] * 3
+    first_new = results[14]
+    assert first_new.segment_id == 1 and first_new.state == TrackingState.OK
+    assert first_new.keyframe is not None
+    np.testing.assert_allclose(first_new.T_wc, results[9].T_wc, atol=1e-9)
+    assert all(r.state == TrackingState.OK and r.segment_id == 1 for r in results[15:])
+    assert first_new.keyframe.keyframe_id > max(r.keyframe.keyframe_id for r in results[:10] if r.keyframe)
