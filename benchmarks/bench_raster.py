@@ -203,6 +203,45 @@ def run_one(n: int, width: int, height: int, runs: int, warmup: int, threads: in
     }
 
 
+def stage_breakdown(n: int, width: int, height: int, runs: int) -> dict[str, float]:
+    """CPU ms per stage (min over ``runs``), compositing on this thread only (workers = 1)."""
+    import torch
+
+    from memgs_ros.core.raster.composite import MIN_ALPHA, composite
+    from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
+    from memgs_ros.core.raster.tiles import build_tile_plan
+    from memgs_ros.core.runtime import configure_cpu_runtime
+
+    configure_cpu_runtime(torch_threads=1)
+    params, T_cw, cam = build_scene(n, width, height)
+    target = torch.rand(3, height, width, generator=torch.Generator().manual_seed(1))
+    times: dict[str, list[float]] = {}
+    for _ in range(runs + 2):
+        for q in params:
+            q.grad = None
+        marks = [("start", time.thread_time())]
+        proj = project_gaussians(*params, T_cw, cam, 3, 0.01)
+        proj.means2d.retain_grad()
+        marks.append(("project", time.thread_time()))
+        cut = alpha_cutoff_sq(proj.opacities.detach(), MIN_ALPHA)
+        plan = build_tile_plan(proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, width, height)
+        marks.append(("bin", time.thread_time()))
+        bg = torch.zeros(3)
+        inputs = [proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths]
+        color, depth, _ = composite(*inputs, bg, plan, workers=1)
+        marks.append(("composite fwd", time.thread_time()))
+        loss = (color - target).abs().mean() + 0.1 * depth.abs().mean()
+        v_color, v_depth = torch.autograd.grad(loss, [color, depth], retain_graph=True)
+        marks.append(("loss", time.thread_time()))
+        v_inputs = torch.autograd.grad([color, depth], inputs, [v_color, v_depth], retain_graph=True)
+        marks.append(("composite bwd", time.thread_time()))
+        torch.autograd.backward(inputs, list(v_inputs))
+        marks.append(("project bwd", time.thread_time()))
+        for (_, t0), (name, t1) in zip(marks, marks[1:]):
+            times.setdefault(name, []).append(1e3 * (t1 - t0))
+    return {name: min(v[2:]) for name, v in times.items()}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--width", type=int, default=320)
@@ -213,6 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads (1 = Python threads per chunk)")
     ap.add_argument("--no-keep-heap", action="store_true", help="skip the mallopt tuning")
     ap.add_argument("--out", type=Path, default=Path("results/bench_raster.json"))
+    ap.add_argument("--stages", action="store_true", help="also print a CPU-time breakdown per stage (one thread)")
     ap.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
 
@@ -250,6 +290,12 @@ def main(argv: list[str] | None = None) -> int:
     args.out.write_text(
         json.dumps({"rows": rows, "loadavg_before": load_before, "loadavg_after": load_after, "argv": sys.argv}, indent=2)
     )
+    if args.stages:
+        print(f"CPU ms per stage, one thread, min of {args.runs} (N = {args.counts[0]}):")
+        stages = stage_breakdown(args.counts[0], args.width, args.height, args.runs)
+        for name, ms in stages.items():
+            print(f"  {name:14s} {ms:7.1f}")
+        print(f"  {'total':14s} {sum(stages.values()):7.1f}")
     print(f"wrote {args.out}")
     return 0
 
