@@ -15,7 +15,6 @@ from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.tracking.config import TrackerConfig
 
 DESCRIPTOR_BYTES = 32
-_CANDIDATES_PER_POINT = 12  # keypoints examined per projected map point
 # Bits set per byte value: Hamming distance of packed descriptors by table lookup.
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
 
@@ -62,7 +61,7 @@ class OrbExtractor:
         n = self.cfg.n_features
         if len(kps) <= n:
             return list(kps)
-        pts = np.array([k.pt for k in kps], dtype=np.float32)
+        pts = cv2.KeyPoint_convert(kps)
         resp = np.array([k.response for k in kps], dtype=np.float32)
         cell = self.cfg.grid_cell_px
         gx = max(1, int(np.ceil(width / cell)))
@@ -104,7 +103,7 @@ class OrbExtractor:
         # the centre of level pixel x is at (x + 0.5) s - 0.5 in level 0, a bias of 0.5 (s - 1)
         # (1.3 px at level 7) that differs between octaves of the same point.
         shift = 0.5 * (self.cfg.scale_factor ** octave - 1.0)
-        uv_raw = (np.array([k.pt for k in kps], dtype=np.float64) + shift[:, None]).astype(np.float32)
+        uv_raw = (cv2.KeyPoint_convert(kps).astype(np.float64) + shift[:, None]).astype(np.float32)
         uv = undistort_points(uv_raw, camera)
         depth = np.full(len(kps), np.nan)
         if depth_m is not None:
@@ -140,11 +139,13 @@ def _hamming_pairs_table(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
 
 def match_by_projection(proj_uv: np.ndarray, point_desc: np.ndarray, feats: FrameFeatures,
                         radius_px: np.ndarray | float, max_distance: int, ratio: float,
-                        available: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                        available: np.ndarray | None = None, max_candidates: int = 12,
+                        kp_tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Match projected map points to keypoints within a pixel radius.
 
     proj_uv: [P, 2] predicted undistorted pixels; point_desc: [P, 32]; radius_px: scalar or [P].
     available: [M] bool, keypoints that may still take a match (default all).
+    max_candidates: nearest keypoints examined per point; kp_tree: a cKDTree of ``feats.uv`` to reuse.
     Returns (point_index [K], keypoint_index [K], hamming [K]); one keypoint per point and one
     point per keypoint (the lower distance wins).
     """
@@ -154,8 +155,9 @@ def match_by_projection(proj_uv: np.ndarray, point_desc: np.ndarray, feats: Fram
     radius = np.broadcast_to(np.asarray(radius_px, dtype=np.float64), (len(proj_uv),))
     # The k nearest keypoints within the largest radius (bounded work per map point), then
     # each point's own radius.
-    k = min(_CANDIDATES_PER_POINT, len(feats))
-    d, j = cKDTree(feats.uv).query(proj_uv, k=k, distance_upper_bound=float(radius.max()))
+    k = min(max_candidates, len(feats))
+    tree = kp_tree if kp_tree is not None else cKDTree(feats.uv)
+    d, j = tree.query(proj_uv, k=k, distance_upper_bound=float(radius.max()))
     d, j = d.reshape(len(proj_uv), k), j.reshape(len(proj_uv), k)
     keep = d <= radius[:, None]
     pi = np.broadcast_to(np.arange(len(proj_uv))[:, None], keep.shape)[keep]

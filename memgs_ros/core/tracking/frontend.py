@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
@@ -74,6 +75,7 @@ class FeatureTracker:
         self._frames_since_kf = 0
         self._local_kfs: list[int] = []
         self._last_kf_info: KeyframeInfo | None = None
+        self._kp_tree: tuple[FrameFeatures, cKDTree] | None = None
         self._refined: list[tuple[int, np.ndarray]] = []
         self._pending: list[dict[int, tuple[np.ndarray, np.ndarray]]] = []
         self._out_lock = threading.Lock()
@@ -167,13 +169,17 @@ class FeatureTracker:
 
     def _match_and_optimise(self, feats: FrameFeatures, pids: np.ndarray, p_w: np.ndarray,
                             desc: np.ndarray, octave: np.ndarray, T_init: np.ndarray,
-                            radius_px: float, rounds: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+                            radius_px: float, rounds: int = 1, max_candidates: int = 12
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
         """One projection pass; returns (T_cw, point index, kp index, inlier mask, n visible)."""
         uv, vis = self._project(p_w, T_init)
         idx = np.flatnonzero(vis)
         radius = radius_px / self._inv_sigma(octave[idx])
+        if self._kp_tree is None or self._kp_tree[0] is not feats:
+            self._kp_tree = (feats, cKDTree(feats.uv))  # one tree per frame, shared by the passes
         pi, ki, _ = match_by_projection(uv[idx], desc[idx], feats, radius,
-                                        self.cfg.max_descriptor_distance, self.cfg.match_ratio)
+                                        self.cfg.max_descriptor_distance, self.cfg.match_ratio,
+                                        max_candidates=max_candidates, kp_tree=self._kp_tree[1])
         pi = idx[pi]
         if len(pi) < 4:
             return T_init, pi, ki, np.zeros(len(pi), bool), len(idx)
