@@ -166,7 +166,7 @@ def _forward_chunk(
 
 
 def _saves_pairs(plan: TilePlan, dtype: torch.dtype) -> bool:
-    """Keep alpha and T per pixel-Gaussian pair for the backward pass (20 % faster) unless that
+    """Keep alpha and T per pixel-Gaussian pair for the backward pass (no recomputation) unless that
     would exceed SAVED_PAIRS_BUDGET_BYTES; above it the backward pass recomputes them per chunk,
     so memory stays at one chunk's worth."""
     slots = int(plan.slot_gid.shape[0])

@@ -19,7 +19,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-TILE_SIZE = 4  # px; small tiles + exact ellipse binning give ~4x fewer pairs than 16x16 boxes
+# px. Pixel-Gaussian pairs per pixel on the benchmark scene (20k, 320x240, exact binning):
+# 27 at 2 px, 38 at 4 px, 62 at 8 px, 130 at 16 px; 4 px balances pairs against per-tile overhead.
+TILE_SIZE = 4
 PAIRS_PER_CHUNK = 1 << 18  # pixel-Gaussian pairs per compositing chunk (~1 MB per float32 buffer)
 BIN_MARGIN = 1.001  # widen the cutoff ellipse a little: binning must never miss a pixel
 
