@@ -49,6 +49,8 @@ class TrackerConfig:
     # Virtual stereo baseline times fx (pixels * m): turns depth into a disparity residual, as
     # ORB-SLAM does for RGB-D, so depth and reprojection errors share pixel units.
     virtual_baseline_m: float = 0.08
+    # Use the current frame's depth in per-frame pose refinement (map points always use depth).
+    track_with_depth: bool = True
     # Matching.
     search_radius_px: float = 15.0  # first projection pass around the velocity-predicted pose
     refine_radius_px: float = 4.0  # second pass around the optimised pose

@@ -183,7 +183,8 @@ class FeatureTracker:
         pi = idx[pi]
         if len(pi) < 4:
             return T_init, pi, ki, np.zeros(len(pi), bool), len(idx)
-        T, inl = optimize_pose(T_init, p_w[pi], feats.uv[ki], feats.depth_m[ki],
+        depth = feats.depth_m[ki] if self.cfg.track_with_depth else np.full(len(ki), np.nan)
+        T, inl = optimize_pose(T_init, p_w[pi], feats.uv[ki], depth,
                                self._inv_sigma(feats.octave[ki]), self.K, self.bf, rounds=rounds)
         return T, pi, ki, inl, len(idx)
 
