@@ -46,6 +46,8 @@ setup(
             "ros-jazzy-common-interfaces",
             "ros-jazzy-rmw-fastrtps-cpp",
         ],
+        # CUDA users: the rasterizer's gsplat backend (same signature, used when importable on CUDA).
+        "gsplat": ["gsplat>=1.0"],
         "test": ["pytest>=7", "hypothesis>=6", "colcon-core", "colcon-ros", "colcon-python-setup-py"],
     },
     zip_safe=True,
