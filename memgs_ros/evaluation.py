@@ -45,7 +45,7 @@ logger.addHandler(logging.NullHandler())
 __all__ = [
     "ABLATION_VARIANTS", "AblationResult", "EvalResult", "MapSample", "MemoryResult", "QualityResult",
     "TrajectoryResult", "ablation", "ablation_table", "evaluate", "markdown_row", "markdown_table",
-    "mode_overrides", "score_map", "score_trajectory", "write_json",
+    "mode_overrides", "result_from_dict", "score_map", "score_trajectory", "training_rate", "write_json",
 ]
 
 FRAME_MATCH_MAX_DT_S = 0.08  # rendered frame <-> ground-truth image (reference section 7)
@@ -104,12 +104,14 @@ class TrajectoryResult:
 class MemoryResult:
     """Memory of the run. ``cuda_max_allocated_bytes`` is None when the mapper ran on CPU (no
     allocator statistic there); ``model_bytes_peak`` is the map's parameters + gradients + Adam
-    state at its peak; ``peak_rss_mb``: per node process."""
+    state at its peak; ``peak_rss_mb``: per node process (``peak_rss_source`` says how measured)."""
 
     mapper_device: str
     cuda_max_allocated_bytes: int | None
     model_bytes_peak: int
     peak_rss_mb: dict[str, float]
+    peak_rss_source: str = ""
+    peak_rss_mb_node_stats: dict[str, float] = field(default_factory=dict)  # as the nodes report it
 
     @property
     def headline_bytes(self) -> int:
@@ -151,7 +153,8 @@ class EvalResult:
     lost_frames: int
     tracking_fps: float
     mapping_iterations: int
-    mapping_iters_per_s: float  # iterations / wall time of the whole run
+    mapping_iters_per_s: float  # iterations / wall time of the whole run (start-up included)
+    mapping_iters_per_s_training: float | None  # from the 1 Hz mapper stats, while the count grew
     wall_s: float
     eval_s: float  # scoring time (rendering every frame)
     gaussians: int  # in the saved PLY
@@ -237,6 +240,20 @@ def _quality(stamps: list[int], scores: Sequence[Any]) -> QualityResult:
         stamps_ns=tuple(int(t) for t in stamps),
         psnr_db_per_frame=tuple(float(x.psnr_db) for x in scores),
         ssim_per_frame=tuple(float(x.ssim) for x in scores))
+
+
+def training_rate(samples: Sequence[MapSample]) -> float | None:
+    """Mapping iterations per second while training ran: from the first sample with a positive
+    iteration count to the first sample at the final count (None with fewer than 2 such samples)."""
+    active = [m for m in samples if m.iteration > 0]
+    if len(active) < 2:
+        return None
+    final = max(m.iteration for m in active)
+    end = next(m for m in active if m.iteration == final)
+    start = active[0]
+    if end.t_s <= start.t_s:
+        return None
+    return (end.iteration - start.iteration) / (end.t_s - start.t_s)
 
 
 # ----------------------------------------------------------------------------- scoring
@@ -385,13 +402,60 @@ def score_trajectory(trajectory_path: str | os.PathLike[str], gt_stamps_ns: np.n
 # ----------------------------------------------------------------------------- stats observer
 
 
+def _child_node_peaks_mb() -> dict[str, float]:
+    """Peak RSS (VmHWM, MB) of this process's node children, by node name (Linux /proc; {} elsewhere).
+
+    VmHWM belongs to the address space made by execve, unlike ``ru_maxrss``, which Linux carries
+    over from the parent across fork and execve (a node started by a process that once held
+    500 MB reports at least 500 MB).
+    """
+    peaks: dict[str, float] = {}
+    me = str(os.getpid())
+    try:
+        pids = [p for p in os.listdir("/proc") if p.isdigit()]
+    except OSError:
+        return peaks
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                stat = f.read()
+            if stat[stat.rindex(")") + 2:].split()[1] != me:  # field 4: ppid
+                continue
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                argv = f.read().split(b"\0")
+            module = next((a.decode() for a in argv if a.startswith(b"memgs_ros.nodes.")), None)
+            if module is None:
+                continue
+            with open(f"/proc/{pid}/status") as f:
+                hwm = next((line.split()[1] for line in f if line.startswith("VmHWM:")), None)
+        except (OSError, ValueError, IndexError):
+            continue  # the process ended while we looked
+        if hwm is not None:
+            name = module.rsplit(".", 1)[-1]
+            peaks[name] = max(peaks.get(name, 0.0), int(hwm) / 1024.0)
+    return peaks
+
+
 class _StatsRecorder:
     """Records ``memgs/mapper/stats`` over the run from an rclpy context of its own (the
-    pipeline's observer keeps only the latest message). Use as a context manager."""
+    pipeline's observer keeps only the latest message). Use as a context manager.
 
-    def __init__(self, domain_id: int, namespace: str = "") -> None:
-        self.domain_id = domain_id
+    With ``domain_id`` None it picks a DDS domain nobody else is using: on a machine where
+    other runs and tests start graphs on random domains, a shared domain mixes two graphs
+    (seen: another run's camera_info reached this run's tracker). A candidate is taken when
+    no other node shows up on it within ``probe_s``.
+    """
+
+    # Outside 100..199, where the tests' fixture and run_pipeline draw their random domains.
+    CANDIDATE_DOMAINS = tuple(range(1, 100)) + tuple(range(200, 233))
+
+    def __init__(self, domain_id: int | None, namespace: str = "", probe_s: float = 1.5,
+                 max_probes: int = 8) -> None:
+        self.requested_domain = domain_id
+        self.domain_id = -1
         self.namespace = namespace
+        self.probe_s = probe_s
+        self.max_probes = max_probes
         self.samples: list[MapSample] = []
         self.last: dict[str, str] = {}
         self._lock = threading.Lock()
@@ -399,8 +463,39 @@ class _StatsRecorder:
         self._context: Any = None
         self._executor: Any = None
         self._thread: threading.Thread | None = None
+        self.node_peak_rss_mb: dict[str, float] = {}
+        self._rss_stop = threading.Event()
+        self._rss_thread: threading.Thread | None = None
+
+    def _sample_rss(self) -> None:
+        while not self._rss_stop.wait(1.0):
+            for name, mb in _child_node_peaks_mb().items():
+                with self._lock:
+                    self.node_peak_rss_mb[name] = max(self.node_peak_rss_mb.get(name, 0.0), round(mb, 1))
 
     def __enter__(self) -> _StatsRecorder:
+        self._rss_thread = threading.Thread(target=self._sample_rss, name="eval-rss", daemon=True)
+        self._rss_thread.start()
+        if self.requested_domain is not None:
+            self._start(self.requested_domain)
+            return self
+        rng = random.Random()
+        candidates = rng.sample(self.CANDIDATE_DOMAINS, self.max_probes)
+        for k, domain in enumerate(candidates):
+            self._start(domain)
+            time.sleep(self.probe_s)  # DDS discovery on one host takes well under a second
+            others = [n for n, _ in self._node.get_node_names_and_namespaces() if n != self._node.get_name()]
+            if not others or k == len(candidates) - 1:
+                if others:
+                    logger.warning("every probed DDS domain was busy; using %d (nodes seen: %s)", domain,
+                                   ", ".join(sorted(set(others))[:5]))
+                break
+            logger.info("DDS domain %d is in use (%s); trying another", domain, ", ".join(sorted(set(others))[:3]))
+            self._stop()
+        self._t0 = time.monotonic()
+        return self
+
+    def _start(self, domain: int) -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
@@ -410,12 +505,14 @@ class _StatsRecorder:
         from memgs_ros.ros import qos
         from memgs_ros.ros.diagnostics import stats_values
 
+        self.domain_id = int(domain)
         self._t0 = time.monotonic()
         self._context = rclpy.Context()
         # The pipeline's own context handles signals; this one only listens.
         rclpy.init(args=None, context=self._context, domain_id=self.domain_id,
                    signal_handler_options=SignalHandlerOptions.NO)
         node = Node("memgs_eval_recorder", namespace=self.namespace or None, context=self._context)
+        self._node = node
 
         def on_stats(msg: DiagnosticArray) -> None:
             v = stats_values(msg)
@@ -440,18 +537,27 @@ class _StatsRecorder:
         self._executor.add_node(node)
         self._thread = threading.Thread(target=self._executor.spin, name="eval-stats", daemon=True)
         self._thread.start()
-        return self
 
-    def __exit__(self, *exc: object) -> None:
+    def _stop(self) -> None:
         import rclpy
 
         if self._executor is not None:
             self._executor.shutdown(timeout_sec=2.0)
             for node in list(self._executor.get_nodes()):
                 node.destroy_node()
-        rclpy.try_shutdown(context=self._context)
+            self._executor = None
+        if self._context is not None:
+            rclpy.try_shutdown(context=self._context)
+            self._context = None
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+            self._thread = None
+
+    def __exit__(self, *exc: object) -> None:
+        self._rss_stop.set()
+        if self._rss_thread is not None:
+            self._rss_thread.join(timeout=5.0)
+        self._stop()
 
 
 # ----------------------------------------------------------------------------- evaluate
@@ -468,7 +574,8 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
 
     resolution_scale: mapping resolution (``mapper.mapping.resolution_scale``); None keeps the
     config's. seed: seeds the mapper and the Patch-Grid sampler (and the tracker's RANSAC).
-    overrides: "node.param" -> value, applied after mode/scale/seed. device: where the
+    overrides: "node.param" -> value, applied after mode/scale/seed. domain_id: DDS domain of
+    the run; None probes for one no other node is using (outside 100..199). device: where the
     evaluation renders (default CUDA when available, else CPU; the mapper picks its own). On
     CPU, call :func:`memgs_ros.core.runtime.configure_cpu_runtime` first (the CLI does): with
     OpenMP threads on a shared machine each render is ~30x slower.
@@ -488,16 +595,16 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
             raise ConfigError(f"resolution_scale must be positive, got {resolution_scale}")
         run_overrides["mapper.mapping.resolution_scale"] = float(resolution_scale)
     run_overrides.update(dict(overrides or {}))
-    domain = domain_id if domain_id is not None else random.randrange(100, 200)
-    options = RunOptions(source=str(source), config=config, out_dir=out, single_process=single_process,
-                         lockstep=True, namespace=namespace, domain_id=domain, max_frames=int(max_frames),
-                         overrides=run_overrides, timeout_s=timeout_s)
-    with _StatsRecorder(domain, namespace) as recorder:
+    with _StatsRecorder(domain_id, namespace) as recorder:
+        options = RunOptions(source=str(source), config=config, out_dir=out, single_process=single_process,
+                             lockstep=True, namespace=namespace, domain_id=recorder.domain_id,
+                             max_frames=int(max_frames), overrides=run_overrides, timeout_s=timeout_s)
         summary = run_pipeline(options, progress=progress)
         time.sleep(0.2)
     with recorder._lock:
         samples = tuple(recorder.samples)
         last = dict(recorder.last)
+        node_rss = dict(recorder.node_peak_rss_mb)
 
     t_eval = time.monotonic()
     params = _run_params(out)
@@ -546,9 +653,15 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
     if cuda_peak is None:
         notes.append("memory: the mapper ran on CPU, where torch has no allocator peak; the table's "
                      "memory is the map's peak parameters + gradients + Adam bytes (model_bytes_peak)")
+    if node_rss:
+        rss, rss_source = node_rss, "VmHWM of each node process, sampled at 1 Hz by memgs eval"
+    else:
+        rss = {k: float(v) for k, v in summary.peak_rss_mb.items()}
+        rss_source = "node stats (ru_maxrss: on Linux it includes the parent's peak at spawn)"
     memory = MemoryResult(mapper_device=mapper_device, cuda_max_allocated_bytes=cuda_peak,
-                          model_bytes_peak=int(summary.model_bytes_peak),
-                          peak_rss_mb={k: float(v) for k, v in summary.peak_rss_mb.items()})
+                          model_bytes_peak=int(summary.model_bytes_peak), peak_rss_mb=rss,
+                          peak_rss_source=rss_source,
+                          peak_rss_mb_node_stats={k: float(v) for k, v in summary.peak_rss_mb.items()})
     if not samples:
         notes.append("no mapper stats were recorded during the run (map size over time unavailable)")
     result = EvalResult(
@@ -559,6 +672,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
         lost_frames=int(summary.lost_frames), tracking_fps=float(summary.tracking_fps),
         mapping_iterations=int(summary.mapping_iterations),
         mapping_iters_per_s=summary.mapping_iterations / summary.wall_s if summary.wall_s > 0 else 0.0,
+        mapping_iters_per_s_training=training_rate(samples),
         wall_s=float(summary.wall_s), eval_s=time.monotonic() - t_eval, gaussians=n_ply,
         gaussians_peak=int(summary.gaussians_peak), frames_quality=quality["frames"],
         keyframes_quality=quality["keyframes"], trajectory=trajectory, memory=memory, map_samples=samples,
@@ -598,6 +712,8 @@ def _fmt(v: float | None, spec: str) -> str:
 TABLE_HEADER = ("| method | PSNR dB / Mem GB / Points k | PSNR kf dB | SSIM | LPIPS | ATE cm | rot deg "
                 "| track FPS | map it/s | frames | KF |\n"
                 "|---|---|---|---|---|---|---|---|---|---|---|")
+TABLE_FOOTNOTE_SPEED = ("track FPS: 1 / mean tracker time per frame; map it/s: mapping iterations per second "
+                        "while training (mapper stats), whole-run rate in eval.json.")
 
 
 def markdown_row(r: EvalResult, label: str | None = None) -> str:
@@ -610,7 +726,8 @@ def markdown_row(r: EvalResult, label: str | None = None) -> str:
     rot = None if r.trajectory is None else r.trajectory.rotation_rmse_deg
     return (f"| {label or ABLATION_LABELS.get(r.variant, r.variant)} | {_fmt(q.psnr_db, '.2f')} / {mem:.3g}{star} / "
             f"{r.gaussians / 1000:.1f} | {_fmt(k.psnr_db, '.2f')} | {_fmt(q.ssim, '.3f')} | {_fmt(q.lpips, '.3f')} "
-            f"| {_fmt(ate_cm, '.2f')} | {_fmt(rot, '.2f')} | {r.tracking_fps:.1f} | {r.mapping_iters_per_s:.2f} "
+            f"| {_fmt(ate_cm, '.2f')} | {_fmt(rot, '.2f')} | {r.tracking_fps:.1f} "
+            f"| {_fmt(r.mapping_iters_per_s_training, '.2f')} "
             f"| {q.n} | {k.n} |")
 
 
@@ -624,7 +741,8 @@ def markdown_table(results: Sequence[EvalResult], labels: Sequence[str] | None =
                 f"rendered at the mapping resolution {r0.render_size[0]}x{r0.render_size[1]} "
                 f"(scale {r0.resolution_scale:g}); 'PSNR kf' on keyframes only. ATE: "
                 f"{'Sim(3)' if r0.mode == 'mono' else 'SE(3)'} alignment. "
-                "Mem*: CPU run, map parameters + gradients + Adam state at peak (no CUDA allocator).")
+                "Mem*: CPU run, map parameters + gradients + Adam state at peak (no CUDA allocator). "
+                + TABLE_FOOTNOTE_SPEED)
     return TABLE_HEADER + "\n" + "\n".join(rows) + "\n" + foot + "\n"
 
 

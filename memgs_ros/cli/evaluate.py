@@ -121,6 +121,33 @@ def save_plots(result: Any, out_dir: Path) -> list[Path]:
     return written
 
 
+def save_ablation_plot(results: list[Any], out_dir: Path) -> Path | None:
+    """Gaussians over time of every ablation variant on one axes (``ablation_map_size.png``)."""
+    import numpy as np
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    if not any(r.map_samples for r in results):
+        return None
+    fig = Figure(figsize=(8, 3.8))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    for r in results:
+        if r.map_samples:
+            t = np.array([m.t_s for m in r.map_samples])
+            ax.plot(t - t[0], np.array([m.gaussians for m in r.map_samples]) / 1000.0,
+                    label=f"{r.variant} (final {r.gaussians / 1000:.1f}k)")
+    ax.set_xlabel("time since training started [s]")
+    ax.set_ylabel("Gaussians [k]")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    ax.set_title("ablation: map size over the run (mapper stats, 1 Hz)")
+    fig.tight_layout()
+    path = out_dir / "ablation_map_size.png"
+    fig.savefig(path, dpi=110)
+    return path
+
+
 def _print_result(r: Any) -> None:
     q, k, m = r.frames_quality, r.keyframes_quality, r.memory
     print(f"[{r.variant}] frames {r.frames} ({r.poses} poses, {r.lost_frames} lost), keyframes {r.keyframes}, "
@@ -136,8 +163,10 @@ def _print_result(r: Any) -> None:
     rss = ", ".join(f"{n} {v:.0f}" for n, v in m.peak_rss_mb.items())
     print(f"[{r.variant}] Gaussians {r.gaussians} (peak {r.gaussians_peak}), memory {m.headline_kind} "
           f"{m.headline_bytes / 1e6:.1f} MB, peak RSS MB: {rss}")
+    rate = r.mapping_iters_per_s_training
     print(f"[{r.variant}] tracking {r.tracking_fps:.1f} FPS, mapping {r.mapping_iterations} iterations "
-          f"({r.mapping_iters_per_s:.2f} it/s over the run)")
+          f"({'n/a' if rate is None else f'{rate:.2f}'} it/s while training, "
+          f"{r.mapping_iters_per_s:.2f} it/s over the whole run)")
     for note in r.notes:
         print(f"[{r.variant}] note: {note}")
 
@@ -174,6 +203,10 @@ def run(args: argparse.Namespace) -> int:
         if not args.no_plots:
             for path in save_plots(r, Path(r.out_dir)):
                 print(f"[{r.variant}] wrote {path}")
+    if args.ablation and not args.no_plots:
+        path = save_ablation_plot(results, out)
+        if path is not None:
+            print(f"wrote {path}")
     print()
     print(table)
     return 0

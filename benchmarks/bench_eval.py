@@ -1,0 +1,39 @@
+"""Thin wrapper around ``memgs eval`` for benchmark runs: the paper's table for one sequence.
+
+Usage: ``python benchmarks/bench_eval.py SOURCE [memgs eval options]``; the results go to
+``--json`` (default results/bench_eval.json) besides ``--out`` (default results/bench_eval/).
+Every option of ``memgs eval`` is accepted (``--ablation``, ``--scale``, ``--set``, ...).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from memgs_ros.cli import evaluate as eval_cli
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    eval_cli.add_arguments(p)
+    p.add_argument("--json", type=Path, default=Path("results/bench_eval.json"), help="summary JSON path")
+    p.set_defaults(out=Path("results/bench_eval"))
+    args = p.parse_args(argv)
+    uptime = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    print(f"machine: {os.cpu_count()} cores, {uptime}")
+    code = eval_cli.run(args)
+    if code == 0:
+        from memgs_ros.evaluation import write_json
+
+        name = "ablation.json" if args.ablation else "eval.json"
+        record = json.loads((args.out / name).read_text())
+        write_json(args.json, {"uptime_before": uptime, "argv": sys.argv[1:], "result": record})
+        print(f"wrote {args.json}")
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
