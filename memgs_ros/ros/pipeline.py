@@ -295,6 +295,10 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
         spin.start()
         if not options.single_process:
             env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1")
+            # Threaded BLAS/OpenMP pools fight over a few shared cores (a 1 ms product took
+            # 460 ms under load): one thread per node unless the user asked otherwise.
+            for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+                env.setdefault(var, "1")
             procs = _Processes(params_file, ns, env, out / "logs")
             for name in GRAPH_NODES:
                 delay = float(options.start_delays_s.get(name, 0.0))
