@@ -17,18 +17,6 @@ from memgs_ros.core.mapping import GaussianMapper, MappingConfig
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():  # noqa: ANN202
-    """The rasterizer runs its own chunk threads when torch is single-threaded, which is far
-    faster than OpenMP on a loaded 2-core machine; restored afterwards for other modules."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 # ----------------------------------------------------------------------------- losses
 
 
