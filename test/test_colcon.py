@@ -18,14 +18,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[1]
 PKG = "memgs_ros"
-# Executable -> module files it needs; a node is only tested once its module is written.
-NODES: dict[str, tuple[str, ...]] = {
-    "tracker": ("memgs_ros/nodes/tracker.py",),
-    "keyframe_sampler": ("memgs_ros/nodes/keyframe_sampler.py",),
-    "mapper": ("memgs_ros/nodes/mapper.py",),
-    "merger": ("memgs_ros/nodes/merger.py",),
-    "bag_player": ("memgs_ros/nodes/bag_player.py",),
-}
+NODES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player")
 # Extra arguments a node needs to start and then idle: the player waits for subscribers.
 NODE_ARGS: dict[str, list[str]] = {
     "bag_player": ["-p", "source:=synthetic:w=32,h=24,n=3", "-p", "start_delay_s:=600.0"],
@@ -63,6 +56,9 @@ def test_install_layout_has_ament_index_and_every_executable(prefix: Path) -> No
     base = prefix / PKG
     assert (base / "share/ament_index/resource_index/packages" / PKG).is_file()
     assert (base / "share" / PKG / "package.xml").is_file()
+    for name in ("tum_fr1", "tum_fr2", "tum_fr3", "realsense_d435i", "synthetic"):
+        assert (base / "share" / PKG / "config" / f"{name}.yaml").is_file(), f"config {name} not installed"
+    assert (base / "share" / PKG / "config" / "fastdds.xml").is_file()
     for exe in EXECUTABLES:
         path = base / "lib" / PKG / exe
         assert path.is_file() and os.access(path, os.X_OK), f"missing executable {path}"
@@ -78,21 +74,20 @@ def test_memgs_cli_runs(prefix: Path, ros_domain_id: int) -> None:
     assert "usage: memgs" in proc.stdout
 
 
-def _available(exe: str) -> list[str]:
-    return [m for m in NODES[exe] if not (REPO / m).is_file()]
-
-
 @pytest.fixture(scope="module")
 def node_procs(prefix: Path) -> Iterator[dict[str, tuple[subprocess.Popen, int]]]:
-    """Start every written node at once, each in a DDS domain of its own, so their (slow)
-    imports overlap; each test below then checks and stops one of them."""
-    exes = [exe for exe in NODES if not _available(exe)]
+    """Start every node at once as `ros2 run memgs_ros <node> --ros-args --params-file <installed
+    config> -r __ns:=/uav1` would, each in a DDS domain of its own so their (slow) imports
+    overlap; each test below then checks and stops one of them."""
+    exes = list(NODES)
+    config = prefix / PKG / "share" / PKG / "config" / "tum_fr1.yaml"
     domains = random.Random(os.getpid()).sample(range(100, 200), len(exes))
     procs: dict[str, tuple[subprocess.Popen, int]] = {}
     try:
         for exe, domain in zip(exes, domains):
             procs[exe] = (subprocess.Popen(
-                [str(prefix / PKG / "lib" / PKG / exe), "--ros-args", *NODE_ARGS.get(exe, [])],
+                [str(prefix / PKG / "lib" / PKG / exe), "--ros-args", "--params-file", str(config),
+                 "-r", "__ns:=/uav1", *NODE_ARGS.get(exe, [])],
                 env=_env(prefix, domain), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
             ), domain)
         yield procs
@@ -113,7 +108,8 @@ def _wait_for_node(domain_id: int, proc: subprocess.Popen, timeout_s: float) -> 
     try:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and proc.poll() is None:
-            names = [n for n in watcher.get_node_names() if n != "colcon_test_watcher"]
+            names = [f"{ns.rstrip('/')}/{n}" for n, ns in watcher.get_node_names_and_namespaces()
+                     if n != "colcon_test_watcher"]
             if names:
                 return names
             time.sleep(0.1)
@@ -123,17 +119,15 @@ def _wait_for_node(domain_id: int, proc: subprocess.Popen, timeout_s: float) -> 
         rclpy.try_shutdown(context=ctx)
 
 
-@pytest.mark.parametrize("exe", list(NODES))
+@pytest.mark.parametrize("exe", NODES)
 def test_node_starts_and_stops_on_sigint(node_procs: dict[str, tuple[subprocess.Popen, int]], exe: str) -> None:
-    missing = _available(exe)
-    if missing:
-        pytest.skip(f"{exe}: module(s) {missing} not written yet")
     proc, domain = node_procs[exe]
     names = _wait_for_node(domain, proc, START_TIMEOUT_S)
     if not names:
         proc.kill()
         out, _ = proc.communicate()
         pytest.fail(f"{exe} never appeared in the ROS graph (exit {proc.returncode}):\n{out[-4000:]}")
+    assert names == [f"/uav1/{exe}"], names
     time.sleep(0.5)  # let it get from the constructor into spin
     proc.send_signal(signal.SIGINT)
     try:
