@@ -21,7 +21,6 @@ SUBCOMMANDS: dict[str, str] = {
     "synth": "synth",
     "convert": "convert",
     "eval": "evaluate",
-    "bench": "bench",
 }
 
 
@@ -30,12 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, module_name in SUBCOMMANDS.items():
-        try:
-            module = importlib.import_module(f"memgs_ros.cli.{module_name}")
-        except ModuleNotFoundError as err:
-            if err.name != f"memgs_ros.cli.{module_name}":
-                raise
-            continue  # subcommand not built yet
+        module = importlib.import_module(f"memgs_ros.cli.{module_name}")
         p = sub.add_parser(name, help=module.HELP, description=module.HELP)
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
