@@ -13,7 +13,7 @@ from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.keyframes import KeyframeStore, make_keyframe
 from memgs_ros.core.losses import depth_l1_loss, isotropic_loss, mapping_loss, photometric_loss
-from memgs_ros.core.mapping import GaussianMapper, MappingConfig
+from memgs_ros.core.mapping import GaussianMapper, MappingConfig, undistortion_valid_mask
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
@@ -57,6 +57,54 @@ def test_mapping_loss_combines_terms_and_backpropagates() -> None:
     assert img.grad is not None and log_s.grad is not None and float(d.grad.abs().sum()) > 0
     _, terms0 = mapping_loss(img, gt, log_s, d, torch.ones(12, 12), depth_weight=0.0)
     assert terms0["depth"] == 0.0
+
+
+def test_masked_losses_ignore_invalid_pixels() -> None:
+    torch.manual_seed(1)
+    gt = torch.rand(3, 16, 16)
+    img = gt.clone()
+    mask = torch.ones(16, 16, dtype=torch.bool)
+    mask[:, :4] = False
+    img[:, :, :4] = 1.0 - gt[:, :, :4]  # wrong only where the mask is off
+    _, l1, _ = photometric_loss(img, gt, mask=mask)
+    assert float(l1) == 0.0
+    _, l1_all, _ = photometric_loss(img, gt)
+    assert float(l1_all) > 0.05
+    # Masked SSIM is the mean of the SSIM map over valid pixels (the wrong band still enters
+    # the 11x11 windows of nearby valid pixels, so it is below 1 but above the unmasked mean).
+    _, _, s_m = photometric_loss(img, gt, mask=mask)
+    _, _, s_all = photometric_loss(img, gt)
+    assert float(s_all) < float(s_m) < 1.0
+    rd = torch.tensor([[1.0, 2.0], [3.0, 4.0]])
+    td = torch.tensor([[1.5, 5.0], [0.0, 2.0]])
+    dm = torch.tensor([[True, False], [True, True]])
+    assert float(depth_l1_loss(rd, td, dm)) == pytest.approx((0.5 + 2.0) / 2)
+    img = (gt * 0.5).requires_grad_()  # wrong everywhere now
+    total, _ = mapping_loss(img, gt, torch.zeros(1, 3), ssim_lambda=0.0, iso_weight=0.0, mask=mask)
+    total.backward()
+    assert float(img.grad[:, :, :4].abs().sum()) == 0.0  # no L1 gradient reaches masked pixels
+    assert float(img.grad[:, :, 4:].abs().sum()) > 0.0
+
+
+def test_undistortion_mask_and_keyframe_levels() -> None:
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0, (0.3, -0.9, 0.0, 0.0, 1.1))
+    mask = undistortion_valid_mask(cam)
+    assert mask is not None and mask.shape == (48, 64) and mask.dtype == bool
+    assert mask[24, 32] and not mask.all()  # centre valid, some border lost
+    half = undistortion_valid_mask(cam, 0.5)
+    assert half.shape == (24, 32) and half.sum() <= mask.sum() / 4 + 1
+    assert undistortion_valid_mask(PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)) is None
+    m = GaussianMapper(MappingConfig(min_keyframes=1))
+    rgb = np.full((48, 64, 3), 128, np.uint8)
+    m.add_keyframe(0, 0, np.eye(4), rgb, np.full((48, 64), 2.0, np.float32), cam)
+    kf = m.keyframes.get(0)
+    assert torch.equal(kf.valid_mask, torch.from_numpy(mask))
+    assert [tuple(lv.valid_mask.shape) for lv in kf.levels] == [(6, 8), (12, 16), (24, 32), (48, 64)]
+    # A coarse pixel is valid only when all the fine pixels it covers are.
+    assert int(kf.levels[2].valid_mask.sum()) <= int(mask.sum()) // 4
+    m2 = GaussianMapper(MappingConfig(min_keyframes=1, mask_invalid_pixels=False))
+    m2.add_keyframe(0, 0, np.eye(4), rgb, None, cam)
+    assert m2.keyframes.get(0).valid_mask is None
 
 
 # ---------------------------------------------------------------------- keyframe store

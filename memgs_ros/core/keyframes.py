@@ -29,12 +29,14 @@ PYRAMID_FACTORS: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)  # coarse to fine
 
 @dataclass(frozen=True, eq=False)
 class PyramidLevel:
-    """One resolution of a keyframe. image: [3, h, w] float in [0, 1]; depth_m: [h, w] or None."""
+    """One resolution of a keyframe. image: [3, h, w] float in [0, 1]; depth_m: [h, w] or None;
+    valid_mask: [h, w] bool (pixels with real image content) or None (all valid)."""
 
     factor: float
     image: torch.Tensor
     depth_m: torch.Tensor | None
     camera: PinholeCamera
+    valid_mask: torch.Tensor | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,7 +46,8 @@ class Keyframe:
     kf_id: keyframe id; stamp_ns: capture time; T_wc: [4, 4] float64 camera-to-world.
     image: [3, H, W] float32 in [0, 1]; depth_m: [H, W] float32 metres (NaN/0 invalid) or None;
     camera: undistorted intrinsics of ``image``; levels: coarse-to-fine pyramid, the last
-    level is the full-resolution image itself.
+    level is the full-resolution image itself; valid_mask: [H, W] bool, the pixels that carry
+    image content (undistortion leaves a border that maps outside the source image), or None.
     """
 
     kf_id: int
@@ -54,6 +57,7 @@ class Keyframe:
     depth_m: torch.Tensor | None
     camera: PinholeCamera
     levels: tuple[PyramidLevel, ...]
+    valid_mask: torch.Tensor | None = None
 
 
 def _resize_depth(depth: torch.Tensor, h: int, w: int) -> torch.Tensor:
@@ -63,10 +67,13 @@ def _resize_depth(depth: torch.Tensor, h: int, w: int) -> torch.Tensor:
 
 def make_keyframe(kf_id: int, stamp_ns: int, T_wc: np.ndarray, image: torch.Tensor,
                   depth_m: torch.Tensor | None, camera: PinholeCamera,
-                  factors: tuple[float, ...] = PYRAMID_FACTORS) -> Keyframe:
-    """Build a keyframe and its pyramid (area-averaged colour, nearest depth).
+                  factors: tuple[float, ...] = PYRAMID_FACTORS,
+                  valid_mask: torch.Tensor | None = None) -> Keyframe:
+    """Build a keyframe and its pyramid (area-averaged colour, nearest depth; a coarse pixel
+    of the mask is valid only when every fine pixel it averages is).
 
-    image: [3, H, W] float in [0, 1] matching ``camera``; depth_m: [H, W] or None.
+    image: [3, H, W] float in [0, 1] matching ``camera``; depth_m: [H, W] or None;
+    valid_mask: [H, W] bool or None.
     """
     if image.dim() != 3 or image.shape[0] != 3 or tuple(image.shape[1:]) != (camera.height, camera.width):
         raise DataError(f"keyframe {kf_id}: image must be [3, {camera.height}, {camera.width}], "
@@ -74,19 +81,27 @@ def make_keyframe(kf_id: int, stamp_ns: int, T_wc: np.ndarray, image: torch.Tens
     if depth_m is not None and tuple(depth_m.shape) != (camera.height, camera.width):
         raise DataError(f"keyframe {kf_id}: depth must be [{camera.height}, {camera.width}], "
                         f"got {tuple(depth_m.shape)}")
+    if valid_mask is not None and (tuple(valid_mask.shape) != (camera.height, camera.width)
+                                   or valid_mask.dtype != torch.bool):
+        raise DataError(f"keyframe {kf_id}: valid_mask must be bool [{camera.height}, {camera.width}], "
+                        f"got {valid_mask.dtype} {tuple(valid_mask.shape)}")
     T = np.asarray(T_wc, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise DataError(f"keyframe {kf_id}: T_wc must be a finite 4x4 matrix")
     levels = []
     for f in factors:
         if f == 1.0:
-            levels.append(PyramidLevel(1.0, image, depth_m, camera))
+            levels.append(PyramidLevel(1.0, image, depth_m, camera, valid_mask))
             continue
         cam = camera.scaled(f)
         img = F.interpolate(image[None], size=(cam.height, cam.width), mode="area")[0]
         dep = None if depth_m is None else _resize_depth(depth_m, cam.height, cam.width)
-        levels.append(PyramidLevel(f, img.contiguous(), dep, cam))
-    return Keyframe(int(kf_id), int(stamp_ns), T.copy(), image, depth_m, camera, tuple(levels))
+        msk = None
+        if valid_mask is not None:
+            frac = F.interpolate(valid_mask[None, None].float(), size=(cam.height, cam.width), mode="area")[0, 0]
+            msk = frac > 0.999
+        levels.append(PyramidLevel(f, img.contiguous(), dep, cam, msk))
+    return Keyframe(int(kf_id), int(stamp_ns), T.copy(), image, depth_m, camera, tuple(levels), valid_mask)
 
 
 @dataclass(frozen=True)

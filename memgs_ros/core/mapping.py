@@ -73,6 +73,7 @@ class MappingConfig:
     ssim_lambda: float = 0.2
     iso_weight: float = 1.0
     depth_weight: float = 0.1
+    mask_invalid_pixels: bool = True
     # Spherical harmonics
     max_sh_degree: int = 3
     sh_up_interval: int = 1000
@@ -184,6 +185,28 @@ def _load_merge() -> Callable[..., Any] | None:
     return getattr(merge_mod, "merge_pass", None)
 
 
+def undistortion_valid_mask(camera: PinholeCamera, resolution_scale: float = 1.0) -> np.ndarray | None:
+    """Pixels of the prepared image (``prepare_images``) that carry image content: [h, w] bool.
+
+    Undistortion samples the source image at a remapped position; pixels whose bilinear
+    sample lies outside the source are filled with black and are no observation. After the
+    resize a pixel is valid only when every full-resolution pixel it averages is. None when
+    ``camera`` has no distortion (every pixel valid).
+    """
+    import cv2
+
+    if not camera.has_distortion:
+        return None
+    K, dist = camera.K, camera.dist_coeffs
+    map1, map2 = cv2.initUndistortRectifyMap(K, dist, None, K, (camera.width, camera.height), cv2.CV_32FC1)
+    valid = ((map1 >= 0) & (map1 <= camera.width - 1) & (map2 >= 0) & (map2 <= camera.height - 1))
+    if resolution_scale != 1.0:
+        cam = camera.scaled(resolution_scale)
+        frac = cv2.resize(valid.astype(np.float32), (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+        valid = frac > 0.999
+    return np.ascontiguousarray(valid)
+
+
 def prepare_images(rgb: np.ndarray, depth_m: np.ndarray | None, camera: PinholeCamera,
                    resolution_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray | None, PinholeCamera]:
     """The images as the mapper trains on them: undistorted (when the camera has distortion;
@@ -269,13 +292,18 @@ class GaussianMapper:
                             f"got {rgb.dtype} {rgb.shape}")
         if depth_m is not None and depth_m.shape != (camera.height, camera.width):
             raise DataError(f"keyframe {kf_id}: depth must be [{camera.height}, {camera.width}], got {depth_m.shape}")
+        raw_camera = camera
         rgb, depth, camera = prepare_images(rgb, depth_m, camera, self.cfg.resolution_scale)
         image = torch.from_numpy(np.ascontiguousarray(rgb)).to(self.device).permute(2, 0, 1).float() / 255.0
         depth_t = None
         if depth is not None:
             d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
             depth_t = torch.from_numpy(d).to(self.device)
-        kf = make_keyframe(kf_id, stamp_ns, T_wc, image.contiguous(), depth_t, camera)
+        mask_t = None
+        if self.cfg.mask_invalid_pixels:
+            mask = undistortion_valid_mask(raw_camera, self.cfg.resolution_scale)
+            mask_t = None if mask is None else torch.from_numpy(mask).to(self.device)
+        kf = make_keyframe(kf_id, stamp_ns, T_wc, image.contiguous(), depth_t, camera, valid_mask=mask_t)
         with self._lock:
             self.keyframes.add(kf)
             self._newest_kf_id = max(self._newest_kf_id, int(kf_id))
@@ -336,7 +364,8 @@ class GaussianMapper:
             out = self._rasterize(view.keyframe.T_wc, level.camera)
             loss, terms = mapping_loss(out.color, level.image, self.gmap.log_scales, out.depth,
                                        level.depth_m, ssim_lambda=cfg.ssim_lambda,
-                                       iso_weight=cfg.iso_weight, depth_weight=cfg.depth_weight)
+                                       iso_weight=cfg.iso_weight, depth_weight=cfg.depth_weight,
+                                       mask=level.valid_mask)
             loss.backward()
             grad2d = out.means2d.grad if out.means2d.grad is not None else None
             self.gmap.accumulate_stats(grad2d, out.visible, out.radii, level.camera.width, level.camera.height)
