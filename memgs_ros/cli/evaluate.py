@@ -122,7 +122,8 @@ def save_plots(result: Any, out_dir: Path) -> list[Path]:
 
 
 def save_ablation_plot(results: list[Any], out_dir: Path) -> Path | None:
-    """Gaussians over time of every ablation variant on one axes (``ablation_map_size.png``)."""
+    """Gaussians against mapping iteration for every ablation variant on one axes
+    (``ablation_map_size.png``)."""
     import numpy as np
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -134,10 +135,11 @@ def save_ablation_plot(results: list[Any], out_dir: Path) -> Path | None:
     ax = fig.subplots()
     for r in results:
         if r.map_samples:
-            t = np.array([m.t_s for m in r.map_samples])
-            ax.plot(t - t[0], np.array([m.gaussians for m in r.map_samples]) / 1000.0,
+            # Against the mapping iteration, not wall time: variants run at different speeds.
+            ax.plot(np.array([m.iteration for m in r.map_samples]),
+                    np.array([m.gaussians for m in r.map_samples]) / 1000.0,
                     label=f"{r.variant} (final {r.gaussians / 1000:.1f}k)")
-    ax.set_xlabel("time since training started [s]")
+    ax.set_xlabel("mapping iteration")
     ax.set_ylabel("Gaussians [k]")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize="small")
