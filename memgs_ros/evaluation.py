@@ -78,6 +78,11 @@ class QualityResult:
     stamps_ns: tuple[int, ...] = ()
     psnr_db_per_frame: tuple[float, ...] = ()
     ssim_per_frame: tuple[float, ...] = ()
+    # PSNR over the pixels that carry image content after undistortion (the black border of an
+    # undistorted image is no observation and the mapper does not train on it); equals psnr_db
+    # for cameras without distortion.
+    psnr_db_valid: float | None = None
+    psnr_db_valid_per_frame: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -231,15 +236,34 @@ def _run_params(out_dir: Path) -> dict[str, dict[str, Any]]:
     return {key.rsplit("/", 1)[-1]: dict((v or {}).get("ros__parameters", {})) for key, v in raw.items()}
 
 
-def _quality(stamps: list[int], scores: Sequence[Any]) -> QualityResult:
+def _quality(stamps: list[int], scores: Sequence[Any], psnr_valid: Sequence[float]) -> QualityResult:
     from memgs_ros.core.metrics import summarize_scores
 
     s = summarize_scores(scores)
+    pv = np.asarray(psnr_valid, dtype=np.float64)
+    finite = np.isfinite(pv)
     return QualityResult(
         n=int(s["n"]), psnr_db=s["psnr_db"], ssim=s["ssim"], lpips=s["lpips"],
         stamps_ns=tuple(int(t) for t in stamps),
         psnr_db_per_frame=tuple(float(x.psnr_db) for x in scores),
-        ssim_per_frame=tuple(float(x.ssim) for x in scores))
+        ssim_per_frame=tuple(float(x.ssim) for x in scores),
+        psnr_db_valid=float(pv[finite].mean()) if finite.any() else None,
+        psnr_db_valid_per_frame=tuple(float(v) for v in pv))
+
+
+def _masked_psnr(render: Any, gt: Any, mask: Any) -> float:
+    """PSNR over the pixels where ``mask`` [H, W] is true; render / gt: [3, H, W] in [0, 1]."""
+    import torch
+
+    if mask is None:
+        mse = float(torch.mean((render.double() - gt.double()) ** 2))
+    else:
+        m = mask.to(render.device)
+        n = int(m.sum())
+        if n == 0:
+            return math.nan
+        mse = float(((render.double() - gt.double()) ** 2)[:, m].sum()) / (3 * n)
+    return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
 
 
 def training_rate(samples: Sequence[MapSample]) -> float | None:
@@ -260,11 +284,12 @@ def training_rate(samples: Sequence[MapSample]) -> float | None:
 
 
 def _ground_truth_images(source: str, max_frames: int, scale: float
-                         ) -> tuple[np.ndarray, list[np.ndarray], Any, Any]:
+                         ) -> tuple[np.ndarray, list[np.ndarray], Any, Any, np.ndarray | None]:
     """Undistorted ground-truth images at the mapping resolution.
 
     Returns (stamps_ns [G], images G x [h, w, 3] uint8, render camera (pinhole, scaled),
-    the source (for its ground-truth trajectory)).
+    the source (for its ground-truth trajectory), valid-pixel mask [h, w] bool or None when the
+    camera has no distortion).
     """
     import cv2
 
@@ -283,7 +308,10 @@ def _ground_truth_images(source: str, max_frames: int, scale: float
             rgb = cv2.resize(rgb, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
         stamps.append(int(frame.stamp_ns))
         images.append(np.ascontiguousarray(rgb))
-    return np.asarray(stamps, dtype=np.int64), images, cam, src
+    from memgs_ros.core.mapping import undistortion_valid_mask
+
+    mask = undistortion_valid_mask(src.camera, scale)
+    return np.asarray(stamps, dtype=np.int64), images, cam, src, mask
 
 
 def score_map(ply_path: str | os.PathLike[str],
@@ -294,9 +322,10 @@ def score_map(ply_path: str | os.PathLike[str],
               background: Sequence[float] = (0.0, 0.0, 0.0),
               device: str = "cpu", use_lpips: bool = True, progress: bool = True,
               strip_from: str | None = None, strip_frames: int = STRIP_FRAMES,
+              valid_mask: np.ndarray | None = None,  # [h, w] bool: pixels with image content
               ) -> tuple[dict[str, QualityResult], list[tuple[int, np.ndarray, np.ndarray, float]], bool]:
     """Render the saved map at every pose of each pose set that matches a ground-truth image
-    within 0.08 s and score it (PSNR, SSIM, LPIPS when available).
+    within 0.08 s and score it (PSNR, SSIM, LPIPS when available; PSNR also over ``valid_mask``).
 
     Renders are cached by stamp, so a keyframe that is also a tracked frame is rendered once.
     Returns ({name: QualityResult}, strip [(stamp_ns, render uint8 [h, w, 3], real uint8, psnr)]
@@ -327,7 +356,9 @@ def score_map(ply_path: str | os.PathLike[str],
         from tqdm import tqdm
 
         bar = tqdm(total=total, desc="rendering", unit="frame")
+    mask_t = None if valid_mask is None else torch.from_numpy(np.asarray(valid_mask, dtype=bool))
     cache: dict[tuple[int, int], Any] = {}
+    cache_valid: dict[tuple[int, int], float] = {}
     renders: dict[tuple[int, int], np.ndarray] = {}
     results: dict[str, QualityResult] = {}
     try:
@@ -347,13 +378,14 @@ def score_map(ply_path: str | os.PathLike[str],
                         color = bg.reshape(3, 1, 1).expand(3, camera.height, camera.width)
                     gt = torch.from_numpy(gt_images[gi]).to(device).permute(2, 0, 1).float() / 255.0
                     cache[key] = score_frame(stamp, color, gt, lpips_fn)
+                    cache_valid[key] = _masked_psnr(color, gt, mask_t)
                     if name == strip_from:
                         renders[key] = (color * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
                     if bar is not None:
                         bar.update(1)
                 stamps_out.append(stamp)
                 scores.append(cache[key])
-            results[name] = _quality(stamps_out, scores)
+            results[name] = _quality(stamps_out, scores, [cache_valid[(t, gi)] for t, _, gi in js])
     finally:
         if bar is not None:
             bar.close()
@@ -616,7 +648,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
         raise DataError(f"the run saved no map (ply path {summary.ply_path!r}); see {out / 'logs'}")
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
-    gt_stamps, gt_images, camera, src = _ground_truth_images(str(source), int(max_frames), scale)
+    gt_stamps, gt_images, camera, src, valid_mask = _ground_truth_images(str(source), int(max_frames), scale)
     from memgs_ros.io.tum import read_trajectory
 
     traj_stamps, traj_poses = read_trajectory(summary.trajectory_path)
@@ -626,7 +658,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
     quality, strip, lpips_ok = score_map(
         summary.ply_path, {"frames": (traj_stamps, traj_poses), "keyframes": (kf_stamps, kf_poses)},
         gt_stamps, gt_images, camera, background=background, device=device, use_lpips=use_lpips,
-        progress=progress, strip_from="frames")
+        progress=progress, strip_from="frames", valid_mask=valid_mask)
     strip_path = ""
     if strip:
         strip_path = str(out / "strip.npz")
@@ -709,9 +741,9 @@ def _fmt(v: float | None, spec: str) -> str:
     return "n/a" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
 
 
-TABLE_HEADER = ("| method | PSNR dB / Mem GB / Points k | PSNR kf dB | SSIM | LPIPS | ATE cm | rot deg "
+TABLE_HEADER = ("| method | PSNR dB / Mem GB / Points k | PSNR valid px dB | PSNR kf dB | SSIM | LPIPS | ATE cm | rot deg "
                 "| track FPS | map it/s | frames | KF |\n"
-                "|---|---|---|---|---|---|---|---|---|---|---|")
+                "|---|---|---|---|---|---|---|---|---|---|---|---|")
 TABLE_FOOTNOTE_SPEED = ("track FPS: 1 / mean tracker time per frame; map it/s: mapping iterations per second "
                         "while training (mapper stats), whole-run rate in eval.json.")
 
@@ -725,7 +757,7 @@ def markdown_row(r: EvalResult, label: str | None = None) -> str:
     ate_cm = None if r.trajectory is None else r.trajectory.rmse_m * 100.0
     rot = None if r.trajectory is None else r.trajectory.rotation_rmse_deg
     return (f"| {label or ABLATION_LABELS.get(r.variant, r.variant)} | {_fmt(q.psnr_db, '.2f')} / {mem:.3g}{star} / "
-            f"{r.gaussians / 1000:.1f} | {_fmt(k.psnr_db, '.2f')} | {_fmt(q.ssim, '.3f')} | {_fmt(q.lpips, '.3f')} "
+            f"{r.gaussians / 1000:.1f} | {_fmt(q.psnr_db_valid, '.2f')} | {_fmt(k.psnr_db, '.2f')} | {_fmt(q.ssim, '.3f')} | {_fmt(q.lpips, '.3f')} "
             f"| {_fmt(ate_cm, '.2f')} | {_fmt(rot, '.2f')} | {r.tracking_fps:.1f} "
             f"| {_fmt(r.mapping_iters_per_s_training, '.2f')} "
             f"| {q.n} | {k.n} |")
@@ -739,7 +771,8 @@ def markdown_table(results: Sequence[EvalResult], labels: Sequence[str] | None =
     if r0 is not None:
         foot = (f"\nPSNR/SSIM over every tracked frame matched to ground truth within {FRAME_MATCH_MAX_DT_S} s, "
                 f"rendered at the mapping resolution {r0.render_size[0]}x{r0.render_size[1]} "
-                f"(scale {r0.resolution_scale:g}); 'PSNR kf' on keyframes only. ATE: "
+                f"(scale {r0.resolution_scale:g}); 'PSNR valid px': only pixels with image content after "
+                "undistortion (same as the whole image without distortion); 'PSNR kf' on keyframes only. ATE: "
                 f"{'Sim(3)' if r0.mode == 'mono' else 'SE(3)'} alignment. "
                 "Mem*: CPU run, map parameters + gradients + Adam state at peak (no CUDA allocator). "
                 + TABLE_FOOTNOTE_SPEED)
