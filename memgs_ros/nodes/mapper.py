@@ -30,7 +30,7 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.map_delta import DeltaOutbox
+from memgs_ros.core.map_delta import DeltaOutbox, message_dtype
 from memgs_ros.core.mapping import GaussianMapper, MappingConfig
 from memgs_ros.core.runtime import configure_cpu_runtime
 from memgs_ros.errors import DataError, MessageError
@@ -63,9 +63,9 @@ class MapperNode(Node):
                                    "extra training iterations run by the finish service before the final flush",
                                    range=(0, 10**7))
         self.delta_rate = declare(self, "delta_rate_hz", 1.0, "map deltas per second", range=(0.01, 100.0))
-        self.max_delta_rows = declare(self, "max_delta_rows", 20000,
-                                      "Gaussians per delta message at most (the rest wait for the next)",
-                                      range=(1, 10**8))
+        self.delta_budget = declare(self, "delta_budget_kbytes_per_s", 500.0,
+                                    "link budget for map deltas; the largest changes go first, the rest wait "
+                                    "(the final flush ignores it)", range=(1.0, 1e7))
         delta_tol = declare(self, "delta_tolerance", 1e-3,
                             "send a Gaussian again only when a parameter moved more than this (m, or "
                             "pre-activation units); the final flush is exact", range=(0.0, 10.0))
@@ -217,7 +217,7 @@ class MapperNode(Node):
         """
         with self._send_lock:
             while True:
-                rows = self.outbox.next_delta(self.mapper.snapshot(), None if exact else self.max_delta_rows,
+                rows = self.outbox.next_delta(self.mapper.snapshot(), None if exact else self._rows_per_delta(),
                                               0.0 if exact else None)
                 if rows is None:
                     break
@@ -229,6 +229,10 @@ class MapperNode(Node):
                 if not exact:
                     break
             self.stats.gauges["delta_pending_rows"] = self.outbox.pending_rows
+
+    def _rows_per_delta(self) -> int:
+        row_bytes = message_dtype(self.cfg.max_sh_degree).itemsize
+        return max(1, int(self.delta_budget * 1000.0 / self.delta_rate / row_bytes))
 
     def publish_snapshot(self) -> int:
         """Publish the whole map (latched) at the current seq; returns its size."""
