@@ -55,6 +55,11 @@ class MappingConfig:
     ``max_screen_size_px`` > 0, larger on screen than that or wider than 0.1 x extent) are pruned.
     Merge (reference section 4): every ``merge_interval`` iterations in [merge_start_iter,
     merge_stop_iter] when ``merge_enabled`` and memgs_ros.core.merge is importable.
+    ``mask_invalid_pixels``: leave the border that undistortion fills with black (no source
+    pixel, see ``undistortion_valid_mask``) out of the photometric and depth losses, so the map
+    is not taught that the scene is black wherever some view's border falls; the whole-image
+    evaluation still compares that border with black. ``seed_opacity``: initial opacity of
+    keyframe seeds (3DGS and the paper: 0.1; higher makes short CPU runs converge faster).
     """
 
     # Optimiser (Adam, eps 1e-15)
@@ -74,6 +79,8 @@ class MappingConfig:
     iso_weight: float = 1.0
     depth_weight: float = 0.1
     mask_invalid_pixels: bool = True
+    # Initial opacity of keyframe seeds (3DGS: 0.1)
+    seed_opacity: float = 0.1
     # Spherical harmonics
     max_sh_degree: int = 3
     sh_up_interval: int = 1000
@@ -126,6 +133,8 @@ class MappingConfig:
                      "densify_start_iter", "merge_start_iter"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"MappingConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if not 0.0 < self.seed_opacity < 1.0:
+            raise ConfigError(f"MappingConfig.seed_opacity must be in (0, 1), got {self.seed_opacity}")
         if not 0 <= self.max_sh_degree <= 3:
             raise ConfigError(f"MappingConfig.max_sh_degree must be in 0..3, got {self.max_sh_degree}")
         if len(self.background) != 3:
@@ -312,7 +321,12 @@ class GaussianMapper:
             if points_w is not None and len(points_w):
                 if colors is None:
                     raise DataError(f"keyframe {kf_id}: points_w given without colors")
-                added = int(self.gmap.add_from_points(points_w, colors, kf_id, self.iteration).numel())
+                ids = self.gmap.add_from_points(points_w, colors, kf_id, self.iteration)
+                added = int(ids.numel())
+                if added and abs(self.cfg.seed_opacity - 0.1) > 1e-12:
+                    with torch.no_grad():
+                        logit = math.log(self.cfg.seed_opacity / (1.0 - self.cfg.seed_opacity))
+                        self.gmap.opacity_logits[self.gmap.index_of(ids)] = logit
             return added
 
     def update_keyframe_pose(self, kf_id: int, T_wc: np.ndarray) -> None:
