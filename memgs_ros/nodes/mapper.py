@@ -32,6 +32,7 @@ from std_srvs.srv import Trigger
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.map_delta import DeltaOutbox, message_dtype
 from memgs_ros.core.mapping import GaussianMapper, MappingConfig
+from memgs_ros.core.merge import MergeConfig
 from memgs_ros.core.runtime import configure_cpu_runtime
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros import qos
@@ -54,6 +55,7 @@ class MapperNode(Node):
         self.mode = declare(self, "mode", "rgbd", "camera mode (mono: keyframes carry no depth)",
                             choices=("rgbd", "mono"))
         self.cfg: MappingConfig = declare_config(self, MappingConfig, "mapping")
+        self.merge_cfg: MergeConfig = declare_config(self, MergeConfig, "merge")
         device = declare(self, "device", "auto", "torch device for the map: auto (CUDA when present), cpu, cuda, cuda:N")
         self.lockstep = declare(self, "lockstep", False,
                                 "train a fixed number of iterations per frame and acknowledge each (deterministic replay)")
@@ -80,7 +82,7 @@ class MapperNode(Node):
             device = "cuda" if torch.cuda.is_available() else "cpu"
         if device == "cpu":
             configure_cpu_runtime()
-        self.mapper = GaussianMapper(self.cfg, device=device)
+        self.mapper = GaussianMapper(self.cfg, device=device, merge_cfg=self.merge_cfg)
         self.outbox = DeltaOutbox(self.cfg.max_sh_degree, delta_tol)
         self.stats = NodeStats(self, "mapper")
         self.kf_ids: dict[int, int] = {}  # keyframe stamp -> mapper keyframe id

@@ -27,10 +27,32 @@ _FIELD = re.compile(r"^\s+(\w+)\s*:[^=]*=.*?(?:#\s*(.*))?$")
 _COMMENT = re.compile(r"^\s+#\s*(.*)$")
 
 
+_DOC_ITEM = re.compile(r"^(\w+(?:\s*,\s*\w+)*)\s*:\s*(.*)$")
+
+
+def _docstring_items(config_cls: type) -> dict[str, str]:
+    """``name: text`` items of the class docstring (continuation lines indented)."""
+    out: dict[str, str] = {}
+    current: list[str] = []
+    for line in (inspect.getdoc(config_cls) or "").splitlines():
+        m = _DOC_ITEM.match(line)
+        if m:
+            current = [n.strip() for n in m.group(1).split(",")]
+            for n in current:
+                out[n] = m.group(2).strip()
+        elif line.startswith((" ", "\t")) and current:
+            for n in current:
+                out[n] = f"{out[n]} {line.strip()}"
+        else:
+            current = []
+    return out
+
+
 @lru_cache(maxsize=None)
 def field_descriptions(config_cls: type) -> dict[str, str]:
-    """Field name -> the comment on its line (or the comment block just above it)."""
-    out: dict[str, str] = {}
+    """Field name -> the comment on its line (or the comment block just above it), else its
+    ``name: text`` item in the class docstring."""
+    out: dict[str, str] = dict(_docstring_items(config_cls))
     try:
         lines = inspect.getsource(config_cls).splitlines()
     except (OSError, TypeError):
@@ -44,7 +66,7 @@ def field_descriptions(config_cls: type) -> dict[str, str]:
                 group = " ".join(above).rstrip(".")
             own = (m.group(2) or "").strip()
             words = m.group(1).replace("_", " ")
-            out[m.group(1)] = own or (f"{group}: {words}" if group else words)
+            out[m.group(1)] = own or out.get(m.group(1)) or (f"{group}: {words}" if group else words)
             above = []
             continue
         c = _COMMENT.match(line)
