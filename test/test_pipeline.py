@@ -30,7 +30,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 SPEC = "synthetic:w=320,h=240,n=30,seed=3"
 # Short, CPU-friendly training: the assertions are about the graph, the quality bounds are
 # loose but far above what a broken map gives (an empty or misplaced map renders ~8-12 dB).
-FAST = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 150, "mapper.mapping.resolution_scale": 0.5,
+FAST = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 150,
         "mapper.mapping.merge_start_iter": 60, "mapper.mapping.merge_interval": 60}
 
 
