@@ -194,12 +194,14 @@ def _load_merge() -> Callable[..., Any] | None:
     return getattr(merge_mod, "merge_pass", None)
 
 
-def undistortion_valid_mask(camera: PinholeCamera, resolution_scale: float = 1.0) -> np.ndarray | None:
+def undistortion_valid_mask(camera: PinholeCamera, resolution_scale: float = 1.0,
+                            min_fraction: float = 0.999) -> np.ndarray | None:
     """Pixels of the prepared image (``prepare_images``) that carry image content: [h, w] bool.
 
     Undistortion samples the source image at a remapped position; pixels whose bilinear
     sample lies outside the source are filled with black and are no observation. After the
-    resize a pixel is valid only when every full-resolution pixel it averages is. None when
+    resize a pixel is valid when at least ``min_fraction`` of the full-resolution pixels it
+    averages are (default: all of them; a small value keeps any pixel with content). None when
     ``camera`` has no distortion (every pixel valid).
     """
     import cv2
@@ -212,7 +214,7 @@ def undistortion_valid_mask(camera: PinholeCamera, resolution_scale: float = 1.0
     if resolution_scale != 1.0:
         cam = camera.scaled(resolution_scale)
         frac = cv2.resize(valid.astype(np.float32), (cam.width, cam.height), interpolation=cv2.INTER_AREA)
-        valid = frac > 0.999
+        valid = frac >= min_fraction
     return np.ascontiguousarray(valid)
 
 
