@@ -107,6 +107,25 @@ def test_undistortion_mask_and_keyframe_levels() -> None:
     assert m2.keyframes.get(0).valid_mask is None
 
 
+def test_seed_opacity_applies_to_new_seeds_only() -> None:
+    cam = PinholeCamera(32, 24, 30.0, 30.0, 16.0, 12.0)
+    rgb = np.full((24, 32, 3), 100, np.uint8)
+    pts = np.random.default_rng(0).uniform(-1, 1, (20, 3)) + [0, 0, 3]
+    m = GaussianMapper(MappingConfig(min_keyframes=1, seed_opacity=0.5))
+    assert m.add_keyframe(0, 0, np.eye(4), rgb, None, cam, pts, np.full((20, 3), 0.4)) == 20
+    assert torch.allclose(m.gmap.opacities(), torch.full((20, 1), 0.5), atol=1e-6)
+    with torch.no_grad():
+        m.gmap.opacity_logits.fill_(3.0)  # trained rows keep their value when a keyframe arrives
+    m.add_keyframe(1, 1, np.eye(4), rgb, None, cam, pts + 0.5, np.full((20, 3), 0.4))
+    assert torch.allclose(m.gmap.opacity_logits[:20], torch.full((20, 1), 3.0))
+    assert torch.allclose(m.gmap.opacities()[20:], torch.full((20, 1), 0.5), atol=1e-6)
+    d = GaussianMapper(MappingConfig(min_keyframes=1))
+    d.add_keyframe(0, 0, np.eye(4), rgb, None, cam, pts, np.full((20, 3), 0.4))
+    assert torch.allclose(d.gmap.opacities(), torch.full((20, 1), 0.1), atol=1e-6)  # 3DGS default
+    with pytest.raises(ConfigError, match="seed_opacity"):
+        MappingConfig(seed_opacity=1.0)
+
+
 # ---------------------------------------------------------------------- keyframe store
 
 
