@@ -1,7 +1,7 @@
 """keyframe_sampler node: Patch-Grid sampling of each keyframe into seeds for new Gaussians.
 
 Subscribes (reliable): ``memgs/keyframe/{color,depth,camera_info,pose,keypoints}`` (one stamp per
-keyframe; depth only in RGB-D mode). Publishes ``memgs/keyframe/seeds``: PointCloud2 with
+keyframe; depth only in RGB-D mode; images as recorded, undistorted here). Publishes ``memgs/keyframe/seeds``: PointCloud2 with
 x, y, z (world, float32), rgb (float32-packed 0x00RRGGBB, the PCL/RViz convention) and
 source (uint8: 0 keypoint, 1 Patch-Grid sample), stamped like the keyframe.
 """
@@ -14,7 +14,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
-from memgs_ros.core.sampling import PatchGridConfig, seeds_mono, seeds_rgbd
+from memgs_ros.core.sampling import PatchGridConfig, Undistorter, seeds_mono, seeds_rgbd
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
@@ -40,6 +40,7 @@ class KeyframeSamplerNode(Node):
         parts = {"color", "camera_info", "pose", "keypoints"} | ({"depth"} if self.mode == "rgbd" else set())
         self.bundler = StampBundler(parts, max_pending=16)
         self.n_keyframes = 0
+        self.undistorter: Undistorter | None = None
 
         self.pub = self.create_publisher(PointCloud2, "memgs/keyframe/seeds", qos.reliable(20))
         kf = qos.reliable(20)
@@ -60,14 +61,17 @@ class KeyframeSamplerNode(Node):
     def _sample(self, stamp_ns: int, b: dict) -> None:
         try:
             cam = camera_info_to_camera(b["camera_info"])
+            if self.undistorter is None or self.undistorter.camera != cam:
+                self.undistorter = Undistorter(cam)  # remap tables cached per camera
             rgb = rgb_from_image(b["color"])
             kps = pointcloud2_to_structured(b["keypoints"], required=("u", "v", "depth"))
             T_wc = pose_to_matrix(b["pose"].pose)
             uv = np.stack([kps["u"], kps["v"]], axis=1).astype(np.float32)
             kp_depth = kps["depth"].astype(np.float32)
             kf_id = self.n_keyframes
-            if self.mode == "rgbd":
-                depth = depth_from_image(b["depth"], self.depth_scale)
+            depth = depth_from_image(b["depth"], self.depth_scale) if self.mode == "rgbd" else None
+            rgb, depth, cam = self.undistorter(rgb, depth)  # keypoint u, v are undistorted already
+            if depth is not None:
                 seeds = seeds_rgbd(rgb, depth, cam, T_wc, kf_id, uv, kp_depth, self.cfg)  # rng from (seed, kf_id)
             else:
                 seeds = seeds_mono(rgb, cam, T_wc, kf_id, uv, kp_depth, self.cfg)

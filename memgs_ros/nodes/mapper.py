@@ -156,7 +156,7 @@ class MapperNode(Node):
             self.stats.problem("bad_keyframe", f"keyframe {stamp_ns} refused: {err}")
             return
         self.kf_ids[stamp_ns] = kf_id
-        self.render_camera = self.render_camera or cam.scaled(self.cfg.resolution_scale)
+        self.render_camera = self.render_camera or cam.undistorted().scaled(self.cfg.resolution_scale)
         self.stats.counters["keyframes"] += 1
         self.stats.counters["seeded_gaussians"] += added
         if stamp_ns in self.awaiting_keyframes:

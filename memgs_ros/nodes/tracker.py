@@ -3,7 +3,8 @@
 Subscribes (sensor-data QoS): ``color_topic``, ``depth_topic`` (RGB-D only), ``camera_info_topic``.
 Publishes: ``memgs/pose`` (PoseStamped), ``memgs/odom`` (Odometry), ``memgs/path`` (Path),
 ``memgs/tracking_state`` (String), per keyframe ``memgs/keyframe/{color,depth,camera_info,pose,
-keypoints}`` sharing the frame's stamp (images undistorted), refined keyframe poses after local
+keypoints}`` sharing the frame's stamp (images as recorded with the camera's distortion in
+camera_info; keypoint u, v are undistorted pixel positions), refined keyframe poses after local
 BA on ``memgs/keyframe/refined_poses`` (Path, one PoseStamped per keyframe stamp), and
 ``memgs/tracker/processed`` (Header; frame_id "keyframe" or "frame") for every frame handled, which
 the lockstep player or the mapper waits on.
@@ -23,7 +24,6 @@ from std_msgs.msg import Header, String
 
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
-from memgs_ros.core.sampling import Undistorter
 from memgs_ros.core.tracking import TrackerConfig, TrackResult, make_tracker
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros import qos
@@ -69,7 +69,6 @@ class TrackerNode(Node):
         self.stats = NodeStats(self, "tracker")
         self.camera: PinholeCamera | None = None
         self.tracker = None
-        self.undistort: Undistorter | None = None
         self.last_stamp_ns = -1
         self.kf_stamps: dict[int, int] = {}
         self.path = Path()
@@ -115,7 +114,6 @@ class TrackerNode(Node):
         if self.camera is None:
             self.camera = cam
             self.tracker = make_tracker(self.cfg, cam)
-            self.undistort = Undistorter(cam)
             self.get_logger().info(f"camera {cam.width}x{cam.height} fx={cam.fx:.1f} fy={cam.fy:.1f}")
             while self.waiting:
                 self._handle(*self.waiting.popleft())
@@ -206,16 +204,17 @@ class TrackerNode(Node):
 
     def _publish_keyframe(self, frame: Frame, result: TrackResult, camera_frame: str) -> None:
         kf = result.keyframe
-        assert kf is not None and self.undistort is not None
+        assert kf is not None and self.camera is not None
         stamp = frame.stamp_ns
-        rgb_u, depth_u, cam_u = self.undistort(frame.rgb, frame.depth_m)
         kps = np.zeros(len(kf.keypoints_uv), dtype=KEYPOINT_DTYPE)
         kps["u"], kps["v"] = kf.keypoints_uv[:, 0], kf.keypoints_uv[:, 1]
         kps["depth"], kps["active"] = kf.keypoint_depth, kf.keypoint_active
-        self.pub_kf_info.publish(camera_to_camera_info(cam_u, stamp, camera_frame))
-        self.pub_kf_color.publish(numpy_to_image(rgb_u, "rgb8", stamp, camera_frame))
-        if depth_u is not None:
-            self.pub_kf_depth.publish(depth_to_image(depth_u, "32FC1", stamp, camera_frame))
+        # The images go out as recorded, with the camera's distortion: each consumer undistorts
+        # and so knows which pixels of the undistorted image hold real content.
+        self.pub_kf_info.publish(camera_to_camera_info(self.camera, stamp, camera_frame))
+        self.pub_kf_color.publish(numpy_to_image(frame.rgb, "rgb8", stamp, camera_frame))
+        if frame.depth_m is not None:
+            self.pub_kf_depth.publish(depth_to_image(frame.depth_m, "32FC1", stamp, camera_frame))
         self.pub_kf_kps.publish(structured_to_pointcloud2(kps, stamp, camera_frame))
         self.pub_kf_pose.publish(matrix_to_pose_stamped(kf.T_wc, stamp, self.world_frame))
         self.kf_stamps[kf.keyframe_id] = stamp

@@ -32,8 +32,7 @@ class NodeStats:
             self._node.get_logger().warning(f"{message} (further '{kind}' problems are only counted)")
 
     def message(self) -> DiagnosticArray:
-        # ru_maxrss is in KiB on Linux: the process's peak resident memory so far.
-        self.gauges["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+        self.gauges["peak_rss_mb"] = round(peak_rss_mb(), 1)
         values: Mapping[str, object] = {**self.counters, **self.gauges}
         level = DiagnosticStatus.WARN if any(k.startswith("problem.") for k in self.counters) else DiagnosticStatus.OK
         status = DiagnosticStatus(
@@ -45,6 +44,22 @@ class NodeStats:
 
     def publish(self) -> None:
         self._pub.publish(self.message())
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (MB).
+
+    VmHWM belongs to this process's own address space; ``ru_maxrss`` is carried over from the
+    parent across fork/exec on Linux, so a node started by a big process would report its size.
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux, non-/proc systems
 
 
 def stats_values(msg: DiagnosticArray) -> dict[str, str]:

@@ -257,6 +257,31 @@ class _Processes:
                 p.wait()
 
 
+def _open_context(domain_id: int | None, ros_args: list[str], probe_s: float = 1.0,
+                  tries: int = 12) -> tuple[Any, int]:
+    """An rclpy context on ``domain_id``, or on a random domain where no other node is seen.
+
+    Two graphs on one domain hear each other (another run's camera_info reached a tracker):
+    a run that picks its own domain first listens for ``probe_s`` that nobody is there.
+    """
+    import rclpy
+
+    candidates = [domain_id] if domain_id is not None else random.sample(range(1, 233), tries)
+    for domain in candidates:
+        context = rclpy.Context()
+        rclpy.init(args=ros_args, context=context, domain_id=domain)
+        if domain_id is not None:
+            return context, domain
+        probe = rclpy.create_node("memgs_run_domain_probe", context=context)
+        time.sleep(probe_s)
+        busy = [n for n in probe.get_node_names() if n != "memgs_run_domain_probe"]
+        probe.destroy_node()
+        if not busy:
+            return context, domain
+        rclpy.try_shutdown(context=context)
+    raise PipelineError(f"no free ROS domain found in {tries} tries; pass one with --domain-id")
+
+
 def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
     """Replay ``options.source`` through the graph and return what it produced."""
     import rclpy
@@ -267,15 +292,14 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
     map_path = out / "map.ply"
     params_file = out / "params.yaml"
     _write_atomic(params_file, yaml.safe_dump(build_params(options, map_path), sort_keys=False))
-    domain = options.domain_id if options.domain_id is not None else random.randrange(100, 200)
-    os.environ["ROS_DOMAIN_ID"] = str(domain)
+
     # A 50 ms heartbeat repairs lost fragments of big messages fast (see config/fastdds.xml);
     # a profile the user chose is kept.
     os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(config_path("fastdds.xml")))
     ns = options.namespace
     ros_args = ["--ros-args", "--params-file", str(params_file)] + (["-r", f"__ns:={ns}"] if ns else [])
-    context = rclpy.Context()
-    rclpy.init(args=ros_args, context=context)
+    context, domain = _open_context(options.domain_id, ros_args)
+    os.environ["ROS_DOMAIN_ID"] = str(domain)
     executor = MultiThreadedExecutor(num_threads=8, context=context)
     procs: _Processes | None = None
     in_process: list[Any] = []
