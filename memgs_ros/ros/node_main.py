@@ -26,7 +26,12 @@ def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None 
     executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
     code = 0
     try:
-        node = factory()
+        try:
+            node = factory()
+        except Exception:
+            if rclpy.ok():
+                raise
+            return code  # Ctrl-C / SIGTERM arrived while the node was still being built
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
