@@ -75,7 +75,7 @@ def _check_outputs(eval_run: Path) -> None:
     for name in ("trajectory.png", "psnr.png", "map_size.png", "strip.png"):
         assert (eval_run / name).read_bytes()[:8] == PNG_MAGIC, name
     strip = np.load(eval_run / "strip.npz")
-    assert strip["renders"].shape[1:] == (96, 128, 3) and strip["renders"].shape == strip["reals"].shape
+    assert strip["renders"].shape[1:] == (48, 64, 3) and strip["renders"].shape == strip["reals"].shape
 
 
 def _check_round_trip_and_ablation_table(eval_run: Path) -> None:
