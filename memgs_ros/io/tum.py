@@ -24,6 +24,7 @@ import numpy as np
 from memgs_ros.core.camera import TUM_CAMERAS, TUM_DEPTH_FACTORS, PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.geometry import interpolate_poses, quat_xyzw_to_rotmat
+from memgs_ros.core.trajectory import associate as associate_stamps
 from memgs_ros.errors import DataError
 
 logger = logging.getLogger(__name__)
@@ -116,35 +117,10 @@ def read_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def associate(stamps_a: np.ndarray, stamps_b: np.ndarray, max_dt_ns: int) -> list[tuple[int, int]]:
-    """One-to-one nearest-stamp matching: pairs (i, j) with |a_i - b_j| <= max_dt_ns.
-
-    Candidate pairs are taken greedily in order of increasing time difference, so each
-    stamp is used at most once. Returned in increasing order of i.
-    """
-    a = np.asarray(stamps_a, dtype=np.int64)
-    b = np.asarray(stamps_b, dtype=np.int64)
-    if len(a) == 0 or len(b) == 0:
-        return []
-    order_b = np.argsort(b, kind="stable")
-    bs = b[order_b]
-    lo = np.searchsorted(bs, a - max_dt_ns, side="left")
-    hi = np.searchsorted(bs, a + max_dt_ns, side="right")
-    cand: list[tuple[int, int, int]] = []
-    for i in range(len(a)):
-        for k in range(lo[i], hi[i]):
-            cand.append((abs(int(a[i]) - int(bs[k])), i, int(order_b[k])))
-    cand.sort()
-    used_a: set[int] = set()
-    used_b: set[int] = set()
-    pairs: list[tuple[int, int]] = []
-    for _, i, j in cand:
-        if i in used_a or j in used_b:
-            continue
-        used_a.add(i)
-        used_b.add(j)
-        pairs.append((i, j))
-    pairs.sort()
-    return pairs
+    """One-to-one nearest-stamp matching: pairs (i, j) with |a_i - b_j| <= max_dt_ns, in
+    increasing order of i (greedy by smallest difference; see ``core.trajectory.associate``)."""
+    ia, ib = associate_stamps(stamps_a, stamps_b, max_dt_ns)
+    return sorted(zip(ia.tolist(), ib.tolist()))
 
 
 def camera_from_name(name: str) -> tuple[PinholeCamera, float] | None:
