@@ -66,8 +66,12 @@ def run_one(args: argparse.Namespace) -> dict:
     merge_cfg = MergeConfig(tau=args.tau, window_keyframes=args.window, voxel_size_m=args.voxel_size)
     # "off" keeps the merge schedule with a pass that merges nothing: the mapper skips
     # densification in merge iterations, so both runs densify at exactly the same iterations
-    mapper = GaussianMapper(replace(mcfg, merge_enabled=True), merge_fn=None if merge_on else _no_merge,
-                            merge_cfg=merge_cfg)
+    if not merge_on and args.off_arm == "disabled":
+        # The system's own switch (mapping.merge_enabled=false): merge slots densify instead.
+        mapper = GaussianMapper(mcfg, merge_cfg=merge_cfg)
+    else:
+        mapper = GaussianMapper(replace(mcfg, merge_enabled=True), merge_fn=None if merge_on else _no_merge,
+                                merge_cfg=merge_cfg)
     n_kf = 0
     for k, frame in enumerate(src):
         if k % args.kf_every or frame.T_wc_gt is None or frame.depth_m is None:
@@ -125,6 +129,10 @@ def main() -> int:
     ap.add_argument("--window", type=int, default=50)
     ap.add_argument("--voxel-size", type=float, default=0.01)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--off-arm", choices=("noop", "disabled"), default="noop",
+                    help="noop: 'off' keeps the merge schedule with passes that merge nothing (densification "
+                         "identical in both arms); disabled: mapping.merge_enabled=false, the system switch "
+                         "(merge slots densify instead, as in the released code)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", type=Path, default=Path("results/bench_merge_ablation.json"))
     ap.add_argument("--input", help=argparse.SUPPRESS)
