@@ -34,6 +34,7 @@ from memgs_ros.core.gaussians import GaussianLearningRates, GaussianMap, Gaussia
 from memgs_ros.core.geometry import invert_pose, quat_wxyz_to_rotmat_torch
 from memgs_ros.core.keyframes import KeyframeStore, make_keyframe
 from memgs_ros.core.losses import mapping_loss
+from memgs_ros.core.sampling import undistorter_for
 from memgs_ros.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
@@ -206,11 +207,9 @@ def undistortion_valid_mask(camera: PinholeCamera, resolution_scale: float = 1.0
     """
     import cv2
 
-    if not camera.has_distortion:
+    valid = undistorter_for(camera).valid_mask
+    if valid is None:
         return None
-    K, dist = camera.K, camera.dist_coeffs
-    map1, map2 = cv2.initUndistortRectifyMap(K, dist, None, K, (camera.width, camera.height), cv2.CV_32FC1)
-    valid = ((map1 >= 0) & (map1 <= camera.width - 1) & (map2 >= 0) & (map2 <= camera.height - 1))
     if resolution_scale != 1.0:
         cam = camera.scaled(resolution_scale)
         frac = cv2.resize(valid.astype(np.float32), (cam.width, cam.height), interpolation=cv2.INTER_AREA)
@@ -231,14 +230,7 @@ def prepare_images(rgb: np.ndarray, depth_m: np.ndarray | None, camera: PinholeC
     import cv2
 
     depth = None if depth_m is None else np.asarray(depth_m, dtype=np.float32)
-    if camera.has_distortion:
-        K, dist = camera.K, camera.dist_coeffs
-        map1, map2 = cv2.initUndistortRectifyMap(K, dist, None, K, (camera.width, camera.height), cv2.CV_32FC1)
-        rgb = cv2.remap(rgb, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        if depth is not None:
-            depth = cv2.remap(depth, map1, map2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                              borderValue=float("nan"))
-        camera = camera.undistorted()
+    rgb, depth, camera = undistorter_for(camera)(rgb, depth)  # remap tables cached per camera
     if resolution_scale != 1.0:
         cam = camera.scaled(resolution_scale)
         rgb = cv2.resize(rgb, (cam.width, cam.height), interpolation=cv2.INTER_AREA)

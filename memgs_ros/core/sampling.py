@@ -326,9 +326,19 @@ class Undistorter:
         """Distorted pixel positions [M, 2] -> undistorted [M, 2] (float64)."""
         return undistort_uv(uv, self.camera)
 
+    @functools.cached_property
+    def valid_mask(self) -> np.ndarray | None:
+        """[H, W] bool: undistorted pixels whose source lies inside the image (the rest are the
+        black / NaN border); None without distortion (every pixel valid)."""
+        if self._maps is None:
+            return None
+        mx, my = self._maps
+        w, h = self.camera.width, self.camera.height
+        return np.ascontiguousarray((mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1))
+
 
 @functools.lru_cache(maxsize=8)
-def _undistorter_for(camera: PinholeCamera) -> Undistorter:
+def undistorter_for(camera: PinholeCamera) -> Undistorter:
     """Remap tables per camera (building them costs ~12 ms at 640x480; applying them ~7 ms)."""
     return Undistorter(camera)
 
@@ -339,7 +349,7 @@ def undistort_rgbd(rgb: np.ndarray,  # [H, W, 3] uint8
     """Undistort a keyframe's colour (bilinear) and depth (nearest) images; see
     :class:`Undistorter`. The remap tables are cached per camera.
     Returns (rgb [H, W, 3] uint8, depth_m [H, W] float32 or None, undistorted camera)."""
-    return _undistorter_for(camera)(rgb, depth_m)
+    return undistorter_for(camera)(rgb, depth_m)
 
 
 def undistort_uv(uv: np.ndarray,  # [M, 2] distorted px
