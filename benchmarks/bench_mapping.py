@@ -123,7 +123,6 @@ def dedup_seeds(points, colors, voxel: float, occupied: set):  # -> (points [K, 
 def psnr_of(mapper, frame, scale: float) -> tuple[float, float, float]:
     """(whole-image PSNR, PSNR over the pixels the undistortion fills from the source image,
     whole-image PSNR with the render set to black outside those pixels as the GT is)."""
-    import numpy as np
     import torch
 
     from memgs_ros.core.mapping import prepare_images, undistortion_valid_mask

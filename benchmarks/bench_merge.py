@@ -134,7 +134,6 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=Path("results/bench_merge.json"))
     args = ap.parse_args()
 
-    import torch
 
     from memgs_ros.core.merge import MergeConfig, merge_pass
     from memgs_ros.core.runtime import configure_cpu_runtime

@@ -296,7 +296,7 @@ def local_bundle_adjustment(prob: BAProblem, K: np.ndarray, bf: float, huber_px:
     Points are eliminated per point (3x3 blocks), so each step solves one dense [6C, 6C] system.
     Twin: ``_local_bundle_adjustment_scipy`` (same residuals, scipy TRF).
     """
-    C, P, O = len(prob.T_cw), len(prob.points_w), len(prob.obs_cam)
+    C, P = len(prob.T_cw), len(prob.points_w)
     free = np.flatnonzero(~prob.fixed)
     slot = np.full(C, -1, dtype=np.int64)
     slot[free] = np.arange(len(free))
