@@ -63,6 +63,9 @@ class TrackerNode(Node):
             "reliable (lockstep replays must not lose a frame)", choices=("best_effort", "reliable"))
         self.path_max_len = declare(self, "path_max_len", 10000, "poses kept in memgs/path (0 = all)",
                                     range=(0, 10**7))
+        path_rate = declare(self, "path_rate_hz", 1.0,
+                            "memgs/path publications per second (the whole path each time; poses go out "
+                            "per frame on memgs/pose and memgs/odom)", range=(0.01, 100.0))
         self.cfg: TrackerConfig = declare_config(self, TrackerConfig, "tracker")
         self.rgbd = self.cfg.mode == "rgbd"
 
@@ -84,6 +87,8 @@ class TrackerNode(Node):
         self.pub_pose = self.create_publisher(PoseStamped, "memgs/pose", rel)
         self.pub_odom = self.create_publisher(Odometry, "memgs/odom", rel)
         self.pub_path = self.create_publisher(Path, "memgs/path", rel)
+        self._path_changed = False
+        self.create_timer(1.0 / path_rate, self._publish_path)
         self.pub_state = self.create_publisher(String, "memgs/tracking_state", rel)
         self.pub_processed = self.create_publisher(Header, "memgs/tracker/processed", qos.reliable(100))
         kf = qos.reliable(20)
@@ -197,10 +202,15 @@ class TrackerNode(Node):
         self.pub_pose.publish(pose)
         self.pub_odom.publish(matrix_to_odometry(result.T_wc, frame.stamp_ns, self.world_frame, camera_frame))
         append_to_path(self.path, pose, self.path_max_len)
-        self.pub_path.publish(self.path)
+        self._path_changed = True
         self.stats.counters["poses_out"] += 1
         if result.keyframe is not None:
             self._publish_keyframe(frame, result, camera_frame)
+
+    def _publish_path(self) -> None:
+        if self._path_changed:
+            self._path_changed = False
+            self.pub_path.publish(self.path)
 
     def _publish_keyframe(self, frame: Frame, result: TrackResult, camera_frame: str) -> None:
         kf = result.keyframe
