@@ -293,12 +293,12 @@ def _ground_truth_images(source: str, max_frames: int, scale: float
     """
     import cv2
 
-    from memgs_ros.core.sampling import Undistorter
+    from memgs_ros.core.sampling import undistorter_for
     from memgs_ros.io.sources import open_source
 
     src = open_source(source, with_depth=False, max_frames=max_frames or None)
-    undistort = Undistorter(src.camera)
-    cam = src.camera.undistorted().scaled(scale) if scale != 1.0 else src.camera.undistorted()
+    undistort = undistorter_for(src.camera)
+    cam = undistort.camera_undistorted.scaled(scale) if scale != 1.0 else undistort.camera_undistorted
     stamps: list[int] = []
     images: list[np.ndarray] = []
     for frame in src:

@@ -12,6 +12,7 @@ import torch
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.keyframes import KeyframeStore, make_keyframe
+from memgs_ros.core.sampling import Undistorter
 from memgs_ros.core.losses import depth_l1_loss, isotropic_loss, mapping_loss, photometric_loss
 from memgs_ros.core.mapping import GaussianMapper, MappingConfig, undistortion_valid_mask
 from memgs_ros.errors import ConfigError, DataError
@@ -88,20 +89,24 @@ def test_masked_losses_ignore_invalid_pixels() -> None:
 
 def test_undistortion_mask_and_keyframe_levels() -> None:
     cam = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0, (0.3, -0.9, 0.0, 0.0, 1.1))
+    # The mapper's undistortion zooms to the region with source pixels: no border to mask.
     mask = undistortion_valid_mask(cam)
-    assert mask is not None and mask.shape == (48, 64) and mask.dtype == bool
-    assert mask[24, 32] and not mask.all()  # centre valid, some border lost
-    half = undistortion_valid_mask(cam, 0.5)
-    assert half.shape == (24, 32) and half.sum() <= mask.sum() / 4 + 1
+    assert mask is not None and mask.shape == (48, 64) and mask.dtype == bool and mask.all()
     assert undistortion_valid_mask(PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)) is None
     m = GaussianMapper(MappingConfig(min_keyframes=1))
     rgb = np.full((48, 64, 3), 128, np.uint8)
     m.add_keyframe(0, 0, np.eye(4), rgb, np.full((48, 64), 2.0, np.float32), cam)
     kf = m.keyframes.get(0)
     assert torch.equal(kf.valid_mask, torch.from_numpy(mask))
-    assert [tuple(lv.valid_mask.shape) for lv in kf.levels] == [(6, 8), (12, 16), (24, 32), (48, 64)]
-    # A coarse pixel is valid only when all the fine pixels it covers are.
-    assert int(kf.levels[2].valid_mask.sum()) <= int(mask.sum()) // 4
+    assert kf.camera == Undistorter(cam).camera_undistorted and kf.camera.fx > cam.fx
+    assert float(kf.depth_m.min()) == 2.0  # every pixel has its depth
+    # Without the zoom the corners have no source pixel; keyframe levels respect such a mask:
+    # a coarse pixel is valid only when all the fine pixels it covers are.
+    border = torch.from_numpy(Undistorter(cam, crop_to_valid=False).valid_mask)
+    assert bool(border[24, 32]) and not bool(border.all())
+    kf2 = make_keyframe(1, 0, np.eye(4), torch.full((3, 48, 64), 0.5), None, cam.undistorted(), valid_mask=border)
+    assert [tuple(lv.valid_mask.shape) for lv in kf2.levels] == [(6, 8), (12, 16), (24, 32), (48, 64)]
+    assert int(kf2.levels[2].valid_mask.sum()) <= int(border.sum()) // 4
     m2 = GaussianMapper(MappingConfig(min_keyframes=1, mask_invalid_pixels=False))
     m2.add_keyframe(0, 0, np.eye(4), rgb, None, cam)
     assert m2.keyframes.get(0).valid_mask is None
@@ -337,7 +342,7 @@ def test_distorted_keyframe_is_undistorted_and_scaled() -> None:
     m.add_keyframe(0, 0, np.eye(4), rgb, depth, cam)
     kf = m.keyframes.get(0)
     assert not kf.camera.has_distortion
-    assert (kf.camera.width, kf.camera.height) == (20, 15) and kf.camera.fx == pytest.approx(17.5)
+    assert (kf.camera.width, kf.camera.height) == (20, 15) and kf.camera == Undistorter(cam).camera_undistorted.scaled(0.5)
     assert tuple(kf.image.shape) == (3, 15, 20) and float(kf.image.max()) <= 1.0
     with pytest.raises(DataError, match="rgb must be uint8"):
         m.add_keyframe(1, 0, np.eye(4), rgb[:, :10], depth, cam)

@@ -274,24 +274,33 @@ def test_undistort_depth_is_nearest_and_agrees_with_undistort_uv() -> None:
     v, u = np.mgrid[0:h, 0:w]
     code = (v * w + u).astype(np.float32)  # exact in float32 below 2^24
     rgb = np.zeros((h, w, 3), np.uint8)
-    und = Undistorter(cam)
-    rgb_u, depth_u, cam_u = und(rgb, code)
-    assert cam_u == cam.undistorted() and depth_u is not None and rgb_u.shape == rgb.shape
-    finite = np.isfinite(depth_u)
-    assert finite.mean() > 0.9
-    # Nearest neighbour: every output value is one of the input values (no blends).
-    vals = depth_u[finite]
-    assert np.array_equal(vals, np.round(vals)) and vals.min() >= 0 and vals.max() < h * w
-    # A distorted keypoint lands where undistort_uv says: the source pixel of that output pixel
-    # is the keypoint's pixel (within one pixel of rounding).
-    pts_d = np.array([[50.0, 60.0], [320.0, 240.0], [600.0, 420.0]])
-    pts_u = undistort_uv(pts_d, cam)
-    iu, iv = np.round(pts_u).astype(int).T
-    src = depth_u[iv, iu].astype(int)
-    src_uv = np.c_[src % w, src // w]
-    assert np.abs(src_uv - pts_d).max() <= 1.5
-    assert np.abs(pts_u - pts_d).max() > 2.0  # the distortion is real at the corners
-    # The cached one-shot helper gives the same images.
+    for crop in (False, True):
+        und = Undistorter(cam, crop_to_valid=crop)
+        rgb_u, depth_u, cam_u = und(rgb, code)
+        assert depth_u is not None and rgb_u.shape == rgb.shape and not cam_u.has_distortion
+        finite = np.isfinite(depth_u)
+        if crop:
+            # The zoomed camera sees only the region every output pixel samples: no border.
+            assert cam_u.fx > cam.fx and finite.all() and und.valid_mask.all()
+        else:
+            assert cam_u == cam.undistorted() and 0.9 < finite.mean() < 0.99
+            assert (und.valid_mask == finite).mean() > 0.995  # nearest vs bilinear reach differ at the edge
+        # Nearest neighbour: every output value is one of the input values (no blends).
+        vals = depth_u[finite]
+        assert np.array_equal(vals, np.round(vals)) and vals.min() >= 0 and vals.max() < h * w
+        # A distorted keypoint lands where undistort_uv says: the source pixel of that output
+        # pixel is the keypoint's pixel (within one pixel of rounding); the tracker's keypoints
+        # (undistorted in K) map there too.
+        pts_d = np.array([[50.0, 60.0], [320.0, 240.0], [600.0, 420.0]])
+        pts_u = und.undistort_uv(pts_d)
+        assert np.allclose(und.from_pinhole_uv(undistort_uv(pts_d, cam)), pts_u, atol=1e-6)
+        iu, iv = np.round(pts_u).astype(int).T
+        src = depth_u[iv, iu].astype(int)
+        src_uv = np.c_[src % w, src // w]
+        assert np.abs(src_uv - pts_d).max() <= 1.5
+        assert np.abs(pts_u - pts_d).max() > 2.0  # the distortion is real at the corners
+    # The cached one-shot helper gives the default (cropped) images.
+    rgb_u, depth_u, cam_u = Undistorter(cam)(rgb, code)
     rgb_c, depth_c, cam_c = undistort_rgbd(rgb, code, cam)
     assert cam_c == cam_u and np.array_equal(rgb_c, rgb_u)
     assert np.array_equal(depth_c, depth_u, equal_nan=True)

@@ -70,7 +70,8 @@ class KeyframeSamplerNode(Node):
             kp_depth = kps["depth"].astype(np.float32)
             kf_id = self.n_keyframes
             depth = depth_from_image(b["depth"], self.depth_scale) if self.mode == "rgbd" else None
-            rgb, depth, cam = self.undistorter(rgb, depth)  # keypoint u, v are undistorted already
+            rgb, depth, cam = self.undistorter(rgb, depth)
+            uv = self.undistorter.from_pinhole_uv(uv).astype(np.float32)  # undistorted in K -> output camera
             if depth is not None:
                 seeds = seeds_rgbd(rgb, depth, cam, T_wc, kf_id, uv, kp_depth, self.cfg)  # rng from (seed, kf_id)
             else:
