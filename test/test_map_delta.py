@@ -143,6 +143,36 @@ def test_outbox_snapshot_then_deltas() -> None:
     assert in_step.apply(decode(encode(MessageKind.DELTA, 3, 3, _records([9]), np.zeros(0), 3))) is ApplyStatus.GAP
 
 
+def test_restarted_sender_new_epoch_resyncs_from_its_snapshot() -> None:
+    from memgs_ros.core.map_delta import DeltaOutbox
+
+    first = DeltaOutbox(sh_degree=3, epoch=7)
+    rep = MapReplica()
+    for ids in ([1, 2], [1, 2, 3], [2, 3, 4]):
+        assert rep.apply(decode(first.next_delta(_records(ids, seed=len(ids))))) is ApplyStatus.APPLIED
+    assert rep.epoch == 7 and rep.seq == 3
+    # The sender restarts from an older state with a new epoch and numbers from 1 again.
+    second = DeltaOutbox(sh_degree=3, epoch=(1 << 32) - 2)
+    restored = _records([1, 2, 3, 10], seed=5)
+    d = decode(second.next_delta(restored))
+    assert d.epoch == (1 << 32) - 2 and d.seq == 1
+    assert rep.apply(d) is ApplyStatus.NEW_EPOCH and rep.seq == 3  # untouched until the snapshot
+    snap = decode(second.snapshot(restored))
+    assert snap.seq == 2 and rep.apply(snap) is ApplyStatus.APPLIED
+    assert rep.epoch == second.epoch and _same(rep.records, restored)
+    assert rep.apply(decode(second.next_delta(restored.select(np.array([0, 3]))))) is ApplyStatus.APPLIED
+    assert rep.records.ids.tolist() == [1, 10]
+    # A snapshot of the old epoch arriving late is a new epoch too, and is taken as authoritative.
+    old = decode(first.snapshot(_records([5])))
+    assert rep.apply(old) is ApplyStatus.APPLIED and rep.epoch == 7
+    with pytest.raises(ValueError, match="epoch"):
+        encode(MessageKind.DELTA, 1, 0, _records([]), np.zeros(0), 3, epoch=1 << 32)
+    rows = encode(MessageKind.DELTA, 1, 0, _records([]), np.zeros(0), 3, epoch=3)
+    rows["x"][0] = 0.5
+    with pytest.raises(MessageError, match="epoch"):
+        decode(rows)
+
+
 # ---------------------------------------------------------------- property-based
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402

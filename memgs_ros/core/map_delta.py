@@ -15,7 +15,10 @@ op     meaning
 
 ``seq`` counts messages from 1; a snapshot takes the next number too (it may fold in
 changes no delta carried), and after it a receiver applies only deltas with a larger ``seq``. ``total``
-is the sender's Gaussian count after the message, a cheap consistency check.
+is the sender's Gaussian count after the message, a cheap consistency check. The META row's
+``x`` and ``y`` columns carry the sender's 32-bit ``epoch`` (low and high 16 bits, exact in
+float32): a sender that restarts (a mapper resumed from its checkpoint) picks a new epoch and
+numbers from 1 again, and a receiver that sees a new epoch resynchronises from a snapshot.
 A delta applies its removals first, then its upserts; ids are never reused, so the
 two sets never overlap. Only the ``f_rest`` columns of the sender's SH degree travel
 (zeros elsewhere): a degree-0 map costs 73 bytes a Gaussian instead of 253.
@@ -73,16 +76,17 @@ class MapMessage:
     total: int
     upserts: GaussianRecords
     removed_ids: np.ndarray
+    epoch: int = 0
 
 
 def encode(kind: MessageKind, seq: int, total: int, upserts: GaussianRecords,
-           removed_ids: np.ndarray, sh_degree: int) -> np.ndarray:
+           removed_ids: np.ndarray, sh_degree: int, epoch: int = 0) -> np.ndarray:
     """A delta or snapshot as a structured array (row 0 META) ready for a PointCloud2.
 
     upserts: U Gaussians; removed_ids: [R]. Returns [1 + U + R] rows of ``message_dtype``.
     """
-    if not (0 <= seq <= _U32 and 0 <= total <= _U32):
-        raise ValueError(f"seq {seq} and total {total} must fit in 32 bits")
+    if not (0 <= seq <= _U32 and 0 <= total <= _U32 and 0 <= epoch <= _U32):
+        raise ValueError(f"seq {seq}, total {total} and epoch {epoch} must fit in 32 bits")
     removed = np.asarray(removed_ids, dtype=np.int64).reshape(-1)
     if kind is MessageKind.SNAPSHOT and removed.size:
         raise ValueError("a snapshot carries no removals")
@@ -90,6 +94,7 @@ def encode(kind: MessageKind, seq: int, total: int, upserts: GaussianRecords,
     out = np.zeros(1 + u + r, dtype=message_dtype(sh_degree))
     out["id"][0] = (seq << 32) | total
     out["op"][0] = kind.value
+    out["x"][0], out["y"][0] = epoch & 0xFFFF, epoch >> 16
     rows = out[1:1 + u]
     rows["id"] = upserts.ids.astype(np.uint64)
     rows["op"] = OP_UPSERT
@@ -131,6 +136,10 @@ def decode(rows: np.ndarray) -> MapMessage:
         raise MessageError("map message has rows with an unknown op")
     kind = MessageKind(int(op[0]))
     seq, total = int(ids[0] >> np.uint64(32)), int(ids[0] & np.uint64(_U32))
+    lo, hi = float(rows["x"][0]), float(rows["y"][0])
+    if not all(np.isfinite(v) and v == int(v) and 0 <= v <= 0xFFFF for v in (lo, hi)):
+        raise MessageError(f"map message META row has a malformed epoch ({lo}, {hi})")
+    epoch = int(lo) | (int(hi) << 16)
     body = rows[1:]
     up = body[op[1:] == OP_UPSERT]
     removed = body["id"][op[1:] == OP_REMOVE].astype(np.int64)
@@ -153,13 +162,14 @@ def decode(rows: np.ndarray) -> MapMessage:
     for arr in (records.xyz, records.f_dc, records.f_rest, records.opacity, records.scale, records.rot):
         if not np.all(np.isfinite(arr)):
             raise MessageError("map message has non-finite Gaussian parameters")
-    return MapMessage(kind, seq, total, records, removed)
+    return MapMessage(kind, seq, total, records, removed, epoch)
 
 
 class ApplyStatus(enum.Enum):
     APPLIED = "applied"
     STALE = "stale"          # seq already folded in: ignored
     GAP = "gap"              # a delta is missing: resynchronise from a snapshot
+    NEW_EPOCH = "new_epoch"  # the sender restarted: resynchronise from its snapshot
     NEEDS_SNAPSHOT = "needs_snapshot"  # no snapshot yet and the delta is not seq 1
     MISMATCH = "mismatch"    # applied, but the count disagrees with the sender: resync
 
@@ -173,6 +183,7 @@ class MapReplica:
     def __init__(self) -> None:
         self._records = GaussianRecords.empty()
         self.seq = 0
+        self.epoch = 0
         self.synced = False  # True once a snapshot or delta 1 has been applied
         self.unknown_removals = 0
 
@@ -190,19 +201,24 @@ class MapReplica:
         order = np.argsort(msg.upserts.ids, kind="stable")
         self._records = msg.upserts.select(order)
         self.seq = msg.seq
+        self.epoch = msg.epoch
         self.synced = True
 
     def apply(self, msg: MapMessage) -> ApplyStatus:
         """Apply a delta (or a snapshot); says whether the replica is still in step."""
+        same_epoch = msg.epoch == self.epoch
         if msg.kind is MessageKind.SNAPSHOT:
-            if self.synced and msg.seq < self.seq:
+            if self.synced and same_epoch and msg.seq < self.seq:
                 return ApplyStatus.STALE
             self.load_snapshot(msg)
             return ApplyStatus.APPLIED
+        if self.synced and not same_epoch:
+            return ApplyStatus.NEW_EPOCH
         if not self.synced:
             if msg.seq != 1:
                 return ApplyStatus.NEEDS_SNAPSHOT
             self.synced = True
+            self.epoch = msg.epoch
         if msg.seq <= self.seq:
             return ApplyStatus.STALE
         if msg.seq != self.seq + 1:
@@ -264,9 +280,10 @@ class DeltaOutbox:
     Mirror memory: one float32 copy of the map's parameters (236 B a Gaussian at SH 3).
     """
 
-    def __init__(self, sh_degree: int, tolerance: float = 1e-3) -> None:
+    def __init__(self, sh_degree: int, tolerance: float = 1e-3, epoch: int = 0) -> None:
         self.sh_degree = sh_degree
         self.tolerance = tolerance
+        self.epoch = int(epoch)
         self.seq = 0
         self._mirror = GaussianRecords.empty()  # rows sorted by id
         self.pending_rows = 0  # rows over tolerance that the last row limit held back
@@ -301,7 +318,7 @@ class DeltaOutbox:
         keep = ~np.isin(mir.ids, np.concatenate([removed, sent.ids]), assume_unique=True)
         self._mirror = _sorted(GaussianRecords.concat([mir.select(keep), sent]))
         self.seq += 1
-        return encode(MessageKind.DELTA, self.seq, len(self._mirror), sent, removed, self.sh_degree)
+        return encode(MessageKind.DELTA, self.seq, len(self._mirror), sent, removed, self.sh_degree, self.epoch)
 
     def snapshot(self, current: GaussianRecords) -> np.ndarray:
         """The whole map as the next ``seq``; the mirror becomes the map.
@@ -313,7 +330,7 @@ class DeltaOutbox:
         self._mirror = _sorted(current)
         self.pending_rows = 0
         return encode(MessageKind.SNAPSHOT, self.seq, len(current), current, np.zeros(0, np.int64),
-                      self.sh_degree)
+                      self.sh_degree, self.epoch)
 
 
 def _sorted(r: GaussianRecords) -> GaussianRecords:

@@ -121,7 +121,8 @@ class MergerNode(Node):
         if status is not ApplyStatus.APPLIED:
             return
         self.resyncing = False
-        pending = sorted((d for d in self.buffer if d.seq > self.replica.seq), key=lambda d: d.seq)
+        pending = sorted((d for d in self.buffer if d.epoch == self.replica.epoch and d.seq > self.replica.seq),
+                         key=lambda d: d.seq)
         self.buffer.clear()
         for d in pending:
             if not self._apply(d):
@@ -189,7 +190,7 @@ class MergerNode(Node):
             return
         self._published_version = version
         rows = encode(MessageKind.SNAPSHOT, self.replica.seq, len(self.replica), self.replica.records,
-                      np.zeros(0, np.int64), sh_degree=3)
+                      np.zeros(0, np.int64), sh_degree=3, epoch=self.replica.epoch)
         self.pub_map.publish(structured_to_pointcloud2(rows, self.get_clock().now().nanoseconds, self.world_frame))
 
     def on_publish_map(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
