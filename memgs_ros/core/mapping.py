@@ -32,7 +32,7 @@ import torch
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.gaussians import GaussianLearningRates, GaussianMap, GaussianRecords
 from memgs_ros.core.geometry import invert_pose, quat_wxyz_to_rotmat_torch
-from memgs_ros.core.keyframes import KeyframeStore, make_keyframe
+from memgs_ros.core.keyframes import Keyframe, KeyframeStore, make_keyframe
 from memgs_ros.core.losses import mapping_loss
 from memgs_ros.core.sampling import undistorter_for
 from memgs_ros.errors import ConfigError, DataError
@@ -322,6 +322,13 @@ class GaussianMapper:
                         logit = math.log(self.cfg.seed_opacity / (1.0 - self.cfg.seed_opacity))
                         self.gmap.opacity_logits[self.gmap.index_of(ids)] = logit
             return added
+
+    def add_prepared_keyframe(self, kf: Keyframe) -> None:
+        """Insert a keyframe whose images are prepared already (a restored checkpoint)."""
+        with self._lock:
+            self.keyframes.add(kf)
+            self._newest_kf_id = max(self._newest_kf_id, int(kf.kf_id))
+            self._update_extent()
 
     def update_keyframe_pose(self, kf_id: int, T_wc: np.ndarray) -> None:
         """Replace a keyframe's pose (e.g. after loop closure / bundle adjustment)."""

@@ -1,0 +1,206 @@
+"""Mapper checkpoints: the Gaussian map and the keyframes it trains on, in one atomic file.
+
+A mapper that dies mid-flight (out of memory, a crash, a power cut on the vehicle) resumes
+from its last checkpoint instead of from nothing. The file is a NumPy ``.npz`` archive
+(uncompressed zip of ``.npy`` arrays, read with ``allow_pickle=False``: nothing in it is
+executable) holding:
+
+- the Gaussians: ids, parameters (PLY layout, pre-activation), creating keyframe id and
+  creation iteration;
+- every keyframe as the mapper trains on it: id, stamp, camera-to-world pose, the prepared
+  (undistorted, resized) colour image as uint8, depth, valid-pixel mask and pinhole camera;
+- a JSON header: format version, training iteration, next Gaussian id, active SH degree,
+  scene extent, the time it was written, and the caller's ``extra`` (the mapper node keeps
+  its keyframe-stamp table and delta sequence there).
+
+Adam moments are not saved (a restored map restarts them at zero, as merged Gaussians do).
+Files are written to a temporary name in the same folder, flushed to disk, then renamed over
+the old one, so a reader only ever sees a complete checkpoint.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.gaussians import PLY_F_REST, GaussianRecords
+from memgs_ros.core.keyframes import make_keyframe
+from memgs_ros.errors import DataError
+
+FORMAT_VERSION = 1
+# A resumed mapper numbers new Gaussians from the next multiple of this, above every id the
+# dead one could have handed out after its checkpoint: ids are never reused.
+ID_BLOCK = 1 << 32
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframeState:
+    """One keyframe as trained on. image: [h, w, 3] uint8; depth_m: [h, w] float32 (0 = none)
+    or None; valid_mask: [h, w] bool or None; T_wc: [4, 4] float64."""
+
+    kf_id: int
+    stamp_ns: int
+    T_wc: np.ndarray
+    image: np.ndarray
+    depth_m: np.ndarray | None
+    valid_mask: np.ndarray | None
+    camera: PinholeCamera
+
+
+@dataclass(frozen=True, eq=False)
+class MapperCheckpoint:
+    """Everything a mapper needs to resume. keyframe_ids / created_iter: [N] int64, aligned
+    with ``gaussians``."""
+
+    gaussians: GaussianRecords
+    keyframe_ids: np.ndarray
+    created_iter: np.ndarray
+    keyframes: tuple[KeyframeState, ...]
+    iteration: int
+    next_id: int
+    active_sh_degree: int
+    scene_extent: float
+    saved_at_s: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def capture(mapper: Any, extra: dict[str, Any] | None = None) -> MapperCheckpoint:
+    """Copy a ``GaussianMapper``'s state to host memory (holds its lock while copying)."""
+    with mapper.lock:
+        gmap = mapper.gmap
+        records = gmap.to_records()
+        kf_of = gmap.keyframe_ids.detach().cpu().numpy().astype(np.int64)
+        created = gmap.created_iter.detach().cpu().numpy().astype(np.int64)
+        kfs = []
+        for kf in mapper.keyframes.all():
+            image = (kf.image.detach().clamp(0, 1) * 255.0).round().to(torch.uint8)
+            kfs.append(KeyframeState(
+                int(kf.kf_id), int(kf.stamp_ns), np.array(kf.T_wc, dtype=np.float64),
+                image.permute(1, 2, 0).contiguous().cpu().numpy(),
+                None if kf.depth_m is None else kf.depth_m.detach().cpu().numpy().astype(np.float32),
+                None if kf.valid_mask is None else kf.valid_mask.detach().cpu().numpy().astype(bool),
+                kf.camera))
+        return MapperCheckpoint(records, kf_of, created, tuple(kfs), int(mapper.iteration), int(gmap.next_id),
+                                int(gmap.active_sh_degree), float(mapper.scene_extent), time.time(),
+                                dict(extra or {}))
+
+
+def restore(mapper: Any, ckpt: MapperCheckpoint) -> None:
+    """Load ``ckpt`` into a fresh ``GaussianMapper`` (no keyframes, no Gaussians yet).
+
+    New Gaussians get ids from the next ``ID_BLOCK`` boundary above the checkpoint's next id.
+    """
+    with mapper.lock:
+        if len(mapper.gmap) or len(mapper.keyframes):
+            raise DataError("a checkpoint can only be restored into an empty mapper")
+        dev = mapper.device
+        for k in ckpt.keyframes:
+            image = torch.from_numpy(np.ascontiguousarray(k.image)).to(dev).permute(2, 0, 1).float() / 255.0
+            depth = None if k.depth_m is None else torch.from_numpy(k.depth_m).to(dev)
+            mask = None if k.valid_mask is None else torch.from_numpy(k.valid_mask).to(dev)
+            mapper.add_prepared_keyframe(make_keyframe(k.kf_id, k.stamp_ns, k.T_wc, image.contiguous(), depth,
+                                                       k.camera, valid_mask=mask))
+        gmap = mapper.gmap
+        if len(ckpt.gaussians):
+            gmap.load_records(ckpt.gaussians, iteration=0)
+            gmap.keyframe_ids[:] = torch.from_numpy(ckpt.keyframe_ids).to(gmap.keyframe_ids)
+            gmap.created_iter[:] = torch.from_numpy(ckpt.created_iter).to(gmap.created_iter)
+        gmap.next_id = -(-max(ckpt.next_id, 1) // ID_BLOCK) * ID_BLOCK
+        while gmap.active_sh_degree < min(ckpt.active_sh_degree, gmap.max_sh_degree):
+            gmap.raise_sh_degree()
+        gmap.pop_changes()  # the restored map is the baseline, not a change
+        mapper.iteration = ckpt.iteration
+
+
+# ------------------------------------------------------------------------------ files
+def save(ckpt: MapperCheckpoint, path: str | os.PathLike[str]) -> Path:
+    """Write ``ckpt`` to ``path`` atomically (temporary file, fsync, rename). Returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    g = ckpt.gaussians
+    header = {"format": FORMAT_VERSION, "iteration": ckpt.iteration, "next_id": ckpt.next_id,
+              "active_sh_degree": ckpt.active_sh_degree, "scene_extent": ckpt.scene_extent,
+              "saved_at_s": ckpt.saved_at_s, "extra": ckpt.extra,
+              "keyframes": [{"kf_id": k.kf_id, "stamp_ns": k.stamp_ns, "camera": _camera_dict(k.camera),
+                             "depth": k.depth_m is not None, "mask": k.valid_mask is not None}
+                            for k in ckpt.keyframes]}
+    arrays: dict[str, np.ndarray] = {
+        "header": np.frombuffer(json.dumps(header).encode(), dtype=np.uint8),
+        "ids": g.ids.astype(np.int64), "xyz": g.xyz, "f_dc": g.f_dc, "f_rest": g.f_rest,
+        "opacity": g.opacity, "scale": g.scale, "rot": g.rot,
+        "keyframe_ids": ckpt.keyframe_ids.astype(np.int64), "created_iter": ckpt.created_iter.astype(np.int64),
+    }
+    for i, k in enumerate(ckpt.keyframes):
+        arrays[f"kf{i}_T_wc"] = k.T_wc
+        arrays[f"kf{i}_image"] = k.image
+        if k.depth_m is not None:
+            arrays[f"kf{i}_depth"] = k.depth_m
+        if k.valid_mask is not None:
+            arrays[f"kf{i}_mask"] = k.valid_mask
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def load(path: str | os.PathLike[str]) -> MapperCheckpoint:
+    """Read a checkpoint written by :func:`save`; DataError naming the file when it is not one."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            header = json.loads(bytes(z["header"]).decode())
+            if header.get("format") != FORMAT_VERSION:
+                raise DataError(f"{path}: checkpoint format {header.get('format')!r}, expected {FORMAT_VERSION}")
+            n = int(z["ids"].shape[0])
+            g = GaussianRecords.from_arrays(z["ids"], z["xyz"], z["f_dc"], z["f_rest"], z["opacity"], z["scale"],
+                                            z["rot"])
+            if g.f_rest.shape != (n, PLY_F_REST):
+                raise DataError(f"{path}: f_rest must be [{n}, {PLY_F_REST}], got {g.f_rest.shape}")
+            kf_of, created = z["keyframe_ids"], z["created_iter"]
+            if kf_of.shape != (n,) or created.shape != (n,):
+                raise DataError(f"{path}: keyframe_ids/created_iter do not match {n} Gaussians")
+            kfs = []
+            for i, k in enumerate(header["keyframes"]):
+                cam = PinholeCamera(**{**k["camera"], "dist": tuple(k["camera"]["dist"])})
+                image = z[f"kf{i}_image"]
+                if image.dtype != np.uint8 or image.shape != (cam.height, cam.width, 3):
+                    raise DataError(f"{path}: keyframe {k['kf_id']} image is {image.dtype} {image.shape}, "
+                                    f"camera {cam.width}x{cam.height}")
+                depth = z[f"kf{i}_depth"].astype(np.float32) if k["depth"] else None
+                mask = z[f"kf{i}_mask"].astype(bool) if k["mask"] else None
+                for name, a in (("depth", depth), ("mask", mask)):
+                    if a is not None and a.shape != (cam.height, cam.width):
+                        raise DataError(f"{path}: keyframe {k['kf_id']} {name} is {a.shape}")
+                T = z[f"kf{i}_T_wc"].astype(np.float64)
+                if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+                    raise DataError(f"{path}: keyframe {k['kf_id']} pose is not a finite 4x4 matrix")
+                kfs.append(KeyframeState(int(k["kf_id"]), int(k["stamp_ns"]), T, image, depth, mask, cam))
+            return MapperCheckpoint(g, kf_of.astype(np.int64), created.astype(np.int64), tuple(kfs),
+                                    int(header["iteration"]), int(header["next_id"]),
+                                    int(header["active_sh_degree"]), float(header["scene_extent"]),
+                                    float(header.get("saved_at_s", 0.0)), dict(header.get("extra", {})))
+    except DataError:
+        raise
+    except FileNotFoundError as err:
+        raise DataError(f"{path}: no such checkpoint") from err
+    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, UnicodeDecodeError) as err:
+        raise DataError(f"{path}: not a readable mapper checkpoint ({type(err).__name__}: {err})") from err
+
+
+def _camera_dict(cam: PinholeCamera) -> dict[str, Any]:
+    return {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+            "dist": list(cam.dist)}
