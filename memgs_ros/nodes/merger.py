@@ -156,6 +156,7 @@ class MergerNode(Node):
 
     def _gauges(self) -> None:
         self.stats.gauges["seq"] = self.replica.seq
+        self.stats.gauges["epoch"] = self.replica.epoch
         self.stats.gauges["gaussians"] = len(self.replica)
         self.stats.gauges["resyncing"] = int(self.resyncing)
         self.stats.gauges["unknown_removals"] = self.replica.unknown_removals
