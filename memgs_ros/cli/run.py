@@ -32,6 +32,9 @@ def add_graph_arguments(p: argparse.ArgumentParser) -> None:
                    help="override a node parameter, e.g. mapper.mapping.resolution_scale=0.25 (repeatable)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON here")
+    p.add_argument("--kill", action="append", default=[], metavar="NODE@SECONDS",
+                   help="fault injection: SIGKILL NODE (mapper, merger, ...) this many seconds after the "
+                        "player starts and restart it at once (repeatable; separate processes only)")
 
 
 def guess_config(source: str) -> str:
@@ -46,6 +49,15 @@ def options_from_args(args: argparse.Namespace, source: str):  # -> RunOptions
     from memgs_ros.errors import ConfigError
     from memgs_ros.ros.pipeline import RunOptions
 
+    kills = {}
+    for item in getattr(args, "kill", []):
+        node, sep, after = item.partition("@")
+        try:
+            kills[node.strip()] = float(after)
+        except ValueError:
+            sep = ""
+        if not sep:
+            raise ConfigError(f"--kill needs NODE@SECONDS, got '{item}'")
     overrides = {}
     for item in args.set:
         key, sep, value = item.partition("=")
@@ -56,7 +68,7 @@ def options_from_args(args: argparse.Namespace, source: str):  # -> RunOptions
         source=source, config=args.config or guess_config(source), out_dir=args.out,
         single_process=args.single_process, lockstep=not args.realtime, rate=args.rate,
         namespace=args.namespace, domain_id=args.domain_id, max_frames=args.max_frames,
-        overrides=overrides, timeout_s=args.timeout)
+        overrides=overrides, timeout_s=args.timeout, kill_after_s=kills)
 
 
 def print_summary(summary, json_path: Path | None) -> None:  # noqa: ANN001
@@ -68,6 +80,9 @@ def print_summary(summary, json_path: Path | None) -> None:  # noqa: ANN001
     print(f"tracking      {s.tracking_fps:.1f} FPS")
     print(f"map deltas    {s.delta_messages} messages, {s.delta_bytes / 1e6:.2f} MB, "
           f"{s.delta_bytes_per_s / 1e3:.1f} kB/s")
+    if s.restarts:
+        print(f"faults        restarted {s.restarts}; merger resyncs {s.merger_resyncs}; "
+              f"merger == mapper: {s.replica_identical}")
     print(f"wall time     {s.wall_s:.1f} s")
     print(f"map           {s.ply_path}")
     print(f"trajectory    {s.trajectory_path}")

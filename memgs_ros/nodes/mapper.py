@@ -9,15 +9,22 @@ Publishes: ``memgs/map/delta`` (PointCloud2, see core/map_delta.py), ``memgs/map
 ``memgs/mapper/stats``. Services: ``memgs/mapper/publish_snapshot`` and ``memgs/mapper/finish``
 (std_srvs/Trigger; finish stops training, flushes every change and answers ``seq=<n> gaussians=<n>``).
 
+With ``checkpoint_path`` set the mapper writes its map and keyframes there (core/checkpoint.py,
+atomic) every ``checkpoint_period_s``, when finished and at shutdown; a mapper started with an
+existing checkpoint resumes from it, announces a new delta epoch and publishes a snapshot, so
+the merger replaces its copy with the resumed map.
+
 Training runs in its own thread while messages arrive; in ``lockstep`` mode it instead runs a
 fixed number of iterations per frame before acknowledging it, so a lockstep replay is
 deterministic run to run.
 """
 from __future__ import annotations
 
+import secrets
 import sys
 import threading
 import time
+import pathlib
 
 import numpy as np
 import torch
@@ -29,6 +36,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
+from memgs_ros.core import checkpoint
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.map_delta import DeltaOutbox, message_dtype
 from memgs_ros.core.mapping import GaussianMapper, MappingConfig
@@ -78,15 +86,26 @@ class MapperNode(Node):
                                    range=(0.0, 60.0))
         self.world_frame = declare(self, "world_frame", "map", "frame id of published maps and poses")
         self.ack_topic = declare(self, "ack_topic", "memgs/frame_ack", "lockstep acknowledgement topic (to the player)")
+        ckpt_path = declare(self, "checkpoint_path", "",
+                            "file for map + keyframe checkpoints (.npz); empty = no checkpoints")
+        self.ckpt_period = declare(self, "checkpoint_period_s", 30.0,
+                                   "write a checkpoint this often while the map changes (0 = only at finish/shutdown)",
+                                   range=(0.0, 1e6))
+        resume = declare(self, "resume", True, "start from the checkpoint at checkpoint_path when one exists")
 
         if device == "auto":
             device = "cuda" if torch.cuda.is_available() else "cpu"
         if device == "cpu":
             configure_cpu_runtime()
         self.mapper = GaussianMapper(self.cfg, device=device, merge_cfg=self.merge_cfg)
-        self.outbox = DeltaOutbox(self.cfg.max_sh_degree, delta_tol)
+        # A new epoch every start: a merger that held the map of an earlier life resynchronises.
+        self.outbox = DeltaOutbox(self.cfg.max_sh_degree, delta_tol, epoch=secrets.randbits(32))
         self.stats = NodeStats(self, "mapper")
         self.kf_ids: dict[int, int] = {}  # keyframe stamp -> mapper keyframe id
+        self.ckpt_path = pathlib.Path(ckpt_path).expanduser() if ckpt_path else None
+        self._ckpt_lock = threading.Lock()
+        self._ckpt_version: tuple[int, int] | None = None  # (iteration, keyframes) last written
+        resumed = resume and self.ckpt_path is not None and self.ckpt_path.exists() and self._resume()
         self.render_camera: PinholeCamera | None = None
         self.latest_pose: PoseStamped | None = None
         self.awaiting_keyframes: set[int] = set()
@@ -126,6 +145,10 @@ class MapperNode(Node):
         self.create_timer(1.0 / self.delta_rate, self.send_delta)
         if self.snapshot_period > 0:
             self.create_timer(self.snapshot_period, self.publish_snapshot)
+        if self.ckpt_path is not None and self.ckpt_period > 0:
+            self.create_timer(self.ckpt_period, self.save_checkpoint, callback_group=MutuallyExclusiveCallbackGroup())
+        if resumed:
+            self.publish_snapshot()  # latched: the merger takes the resumed map and its epoch
         if self.render_rate > 0:
             self.create_timer(1.0 / self.render_rate, self.render_live)
         self.trainer: threading.Thread | None = None
@@ -134,9 +157,56 @@ class MapperNode(Node):
             self.trainer.start()
         self.get_logger().info(f"mapper on {device}, {'lockstep' if self.lockstep else 'free-running'} training")
 
+    # ------------------------------------------------------------------ checkpoints
+    def _resume(self) -> bool:
+        """Load the checkpoint; a file that cannot be read is moved aside, never overwritten."""
+        assert self.ckpt_path is not None
+        try:
+            ck = checkpoint.load(self.ckpt_path)
+            checkpoint.restore(self.mapper, ck)
+        except DataError as err:
+            aside = self.ckpt_path.with_name(f"{self.ckpt_path.name}.unreadable-{int(time.time())}")
+            self.ckpt_path.replace(aside)
+            self.get_logger().error(f"cannot resume: {err}; moved it to {aside} and starting an empty map")
+            return False
+        self.kf_ids = {int(stamp): int(kf) for stamp, kf in ck.extra.get("keyframe_stamps", {}).items()}
+        cam = ck.keyframes[-1].camera if ck.keyframes else None
+        if cam is not None:
+            self.render_camera = cam  # prepared keyframes carry the undistorted, scaled camera
+        self._ckpt_version = (self.mapper.iteration, len(self.kf_ids))
+        self.stats.counters["resumed"] += 1
+        self.get_logger().info(
+            f"resumed from {self.ckpt_path}: {len(self.mapper.gmap)} Gaussians, {len(ck.keyframes)} keyframes, "
+            f"iteration {ck.iteration} (written {time.time() - ck.saved_at_s:.0f} s ago)")
+        return True
+
+    def save_checkpoint(self, force: bool = False) -> pathlib.Path | None:
+        """Write the map and keyframes atomically when they changed since the last write."""
+        if self.ckpt_path is None:
+            return None
+        with self._ckpt_lock:
+            version = (self.mapper.iteration, len(self.kf_ids))
+            if not force and version == self._ckpt_version:
+                return None
+            t0 = time.perf_counter()
+            try:
+                ck = checkpoint.capture(self.mapper, {"keyframe_stamps": {str(k): v for k, v in self.kf_ids.items()}})
+                checkpoint.save(ck, self.ckpt_path)
+            except (OSError, DataError) as err:
+                self.stats.problem("checkpoint_failed", f"could not write checkpoint {self.ckpt_path}: {err}")
+                return None
+            self._ckpt_version = version
+            self.stats.counters["checkpoints"] += 1
+            self.stats.gauges["checkpoint_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
+            return self.ckpt_path
+
     # ------------------------------------------------------------------ keyframes
     def _part(self, part: str, msg) -> None:  # noqa: ANN001 - any bundle message type
         stamp = stamp_to_ns(msg.header.stamp)
+        if stamp in self.kf_ids:
+            # Keyframe topics replay recent samples to a (re)started mapper: keep the first copy.
+            self.stats.counters["duplicate_keyframe_parts"] += 1
+            return
         bundle = self.bundler.add(part, stamp, msg)
         self.stats.gauges["dropped_keyframe_bundles"] = self.bundler.dropped
         if bundle is not None:
@@ -264,8 +334,9 @@ class MapperNode(Node):
             self.get_logger().info(f"final {self.final_iters} iterations in {time.perf_counter() - t0:.1f} s")
         self._finished = True
         self.send_delta(exact=True)
+        self.save_checkpoint()
         res.success = True
-        res.message = f"seq={self.outbox.seq} gaussians={len(self.mapper.gmap)}"
+        res.message = f"seq={self.outbox.seq} gaussians={len(self.mapper.gmap)} epoch={self.outbox.epoch}"
         return res
 
     # ------------------------------------------------------------------ views
@@ -296,6 +367,8 @@ class MapperNode(Node):
         self._stop.set()
         if self.trainer is not None:
             self.trainer.join(timeout=10.0)
+        if self.save_checkpoint() is not None:
+            self.get_logger().info(f"checkpoint written to {self.ckpt_path} ({len(self.mapper.gmap)} Gaussians)")
 
 
 def main(args: list[str] | None = None) -> int:

@@ -56,6 +56,9 @@ class RunOptions:
     overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value
     # Start these nodes this many seconds late (a ground-station merger joining mid-run).
     start_delays_s: Mapping[str, float] = field(default_factory=dict)
+    # Fault injection (separate processes only): SIGKILL these nodes this many seconds after
+    # the player starts, and start them again at once (the mapper resumes from its checkpoint).
+    kill_after_s: Mapping[str, float] = field(default_factory=dict)
     timeout_s: float = 1800.0
 
 
@@ -82,6 +85,7 @@ class RunSummary:
     gaussians_peak: int
     peak_rss_mb: dict[str, float]  # per node process (in one process: the same figure for all)
     merger_resyncs: int  # gaps, late starts or mismatches the merger repaired from a snapshot
+    restarts: dict[str, int]  # nodes killed and restarted by fault injection
     replica_identical: bool  # merger's map == mapper's map (same ids, parameters within 1e-6)
     replica_max_abs_diff: float
     render_size: tuple[int, int]  # (width, height) of the last live render, (0, 0) if none
@@ -127,6 +131,7 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         params.setdefault("tracker", {}).setdefault("tracker.ba_threaded", False)
         params["tracker"].setdefault("input_reliability", "reliable")  # lockstep must not lose a frame
     params.setdefault("merger", {})["map_path"] = str(map_path)
+    params.setdefault("mapper", {}).setdefault("checkpoint_path", str(map_path.with_name("mapper_checkpoint.npz")))
     for key, value in options.overrides.items():
         node, _, name = key.partition(".")
         if node not in NODE_CLASSES or not name:
@@ -236,6 +241,14 @@ class _Processes:
         log = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 - owned by the child
         self.procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self._env)
 
+    def kill_and_restart(self, name: str) -> None:
+        """SIGKILL a node (no chance to save anything) and start it again."""
+        p = self.procs[name]
+        p.kill()
+        p.wait()
+        os.replace(self.log_dir / f"{name}.log", self.log_dir / f"{name}.killed-{int(time.time())}.log")
+        self.start(name)
+
     def check(self) -> None:
         for name, p in list(self.procs.items()):
             code = p.poll()
@@ -335,6 +348,8 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
             _wait_for_graph(observer, procs, [n for n in GRAPH_NODES if not options.start_delays_s.get(n)],
                             t0 + options.timeout_s)
             procs.start("bag_player")
+        elif options.kill_after_s:
+            raise ConfigError("fault injection (kill_after_s) needs separate processes")
         summary = _drive(observer, options, procs, out, t0, progress)
         return summary
     finally:
@@ -372,8 +387,21 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
     """Wait for the end of the source, finish the mapper, sync the merger, save, summarise."""
     end = t0 + options.timeout_s
     last_log = 0.0
+    play_start = time.monotonic()
+    kills = dict(options.kill_after_s)
+    restarts: dict[str, int] = {}
+    if procs is not None:
+        unknown = set(kills) - set(GRAPH_NODES)
+        if unknown:
+            raise ConfigError(f"cannot kill {sorted(unknown)}: nodes are {list(GRAPH_NODES)}")
     while not obs.done.is_set():
         if procs is not None:
+            for name, after in list(kills.items()):
+                if time.monotonic() - play_start >= after:
+                    logger.warning("fault injection: killing %s (SIGKILL) and restarting it", name)
+                    procs.kill_and_restart(name)
+                    restarts[name] = restarts.get(name, 0) + 1
+                    del kills[name]
             procs.check()
         if time.monotonic() > end:
             raise PipelineError(f"the source did not finish within {options.timeout_s:.0f} s")
@@ -388,13 +416,15 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
     logger.info("source finished after %.1f s; finishing the mapper", time.monotonic() - t0)
     final = _parse_kv(obs.call(obs.finish_client, max(60.0, end - time.monotonic())))
     final_seq, gaussians = int(final.get("seq", 0)), int(final.get("gaussians", 0))
-    while obs.stat("merger", "seq", -1) < final_seq or obs.stat("merger", "resyncing") > 0:
+    epoch = int(final.get("epoch", 0))
+    while (obs.stat("merger", "seq", -1) < final_seq or obs.stat("merger", "resyncing") > 0
+           or obs.stat("merger", "epoch", -1) != epoch):
         if procs is not None:
             procs.check()
         if time.monotonic() > end:
             raise PipelineError(f"the merger did not reach delta {final_seq} in time")
         time.sleep(0.1)
-    identical, max_diff = _compare_maps(obs, final_seq, end)
+    identical, max_diff = _compare_maps(obs, final_seq, epoch, end)
     time.sleep(1.5)  # one more round of the 1 Hz stats, so the summary sees the final counts
     saved = obs.call(obs.save_client, 120.0) if gaussians or final_seq else ""
     ply = saved.split()[0] if saved else ""
@@ -421,11 +451,12 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
         gaussians_peak=int(obs.stat("mapper", "gaussians_peak")),
         peak_rss_mb={n: obs.stat(n, "peak_rss_mb") for n in GRAPH_NODES},
         merger_resyncs=sum(int(v) for k, v in obs.stats.get("merger", {}).items() if k.startswith("resync.")),
+        restarts=restarts,
         replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render))
 
 
-def _compare_maps(obs: _Observer, final_seq: int, end: float) -> tuple[bool, float]:
-    """Ask mapper and merger for their whole maps at ``final_seq`` and compare them."""
+def _compare_maps(obs: _Observer, final_seq: int, epoch: int, end: float) -> tuple[bool, float]:
+    """Ask mapper and merger for their whole maps at ``final_seq`` of ``epoch`` and compare them."""
     from memgs_ros.core.map_delta import decode
     from memgs_ros.ros.codecs import pointcloud2_to_structured
 
@@ -436,7 +467,7 @@ def _compare_maps(obs: _Observer, final_seq: int, end: float) -> tuple[bool, flo
     while len(decoded) < 2:
         for name, msg in list(obs.maps.items()):
             m = decode(pointcloud2_to_structured(msg))
-            if m.seq >= final_seq:
+            if m.seq >= final_seq and m.epoch == epoch:
                 decoded[name] = m
         if time.monotonic() > end:
             raise PipelineError("mapper and merger maps did not arrive for the final comparison")
