@@ -92,6 +92,25 @@ def test_late_merger_with_dropped_deltas_resyncs(bag: Path, tmp_path: Path, ros_
     assert len(load_ply(s.ply_path)) == s.gaussians
 
 
+def test_killed_mapper_resumes_from_checkpoint_and_killed_merger_resyncs(bag: Path, tmp_path: Path,
+                                                                        ros_domain_id: int) -> None:
+    """SIGKILL (no chance to save) the mapper, then the merger, mid-run; both restart at once."""
+    overrides = {**FAST, "mapper.checkpoint_period_s": 1.0, "merger.save_period_s": 1.0}
+    s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path, domain_id=ros_domain_id,
+                                overrides=overrides, kill_after_s={"mapper": 6.0, "merger": 12.0}, timeout_s=600),
+                     progress=False)
+    assert s.restarts == {"mapper": 1, "merger": 1}
+    log = (tmp_path / "logs" / "mapper.log").read_text()
+    assert "resumed from" in log, log  # the second life started from the first one's checkpoint
+    resumed_n = int(log.split("resumed from")[1].split(":")[1].split()[0])
+    assert resumed_n > 1000  # Gaussians in the checkpoint
+    assert s.poses == 30 and s.lost_frames == 0
+    assert s.replica_identical, s.replica_max_abs_diff
+    assert s.gaussians > 1000 and len(load_ply(s.ply_path)) == s.gaussians
+    assert (tmp_path / "mapper_checkpoint.npz").exists()
+    assert _keyframe_psnr(Path(s.ply_path), Path(s.trajectory_path)) > 18.0
+
+
 def test_namespaced_instances_do_not_cross_talk(tmp_path: Path, ros_domain_id: int) -> None:
     """Two single-process graphs in one ROS domain, each on its own namespace and sequence."""
     procs = {}
