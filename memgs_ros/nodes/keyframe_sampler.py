@@ -4,6 +4,14 @@ Subscribes (reliable): ``memgs/keyframe/{color,depth,camera_info,pose,keypoints}
 keyframe; depth only in RGB-D mode; images as recorded, undistorted here). Publishes ``memgs/keyframe/seeds``: PointCloud2 with
 x, y, z (world, float32), rgb (float32-packed 0x00RRGGBB, the PCL/RViz convention) and
 source (uint8: 0 keypoint, 1 Patch-Grid sample), stamped like the keyframe.
+
+A keyframe that cannot be used is refused whole (nothing is published for it) and counted on
+``memgs/keyframe_sampler/stats`` as ``problem.<kind>``, with one warning per kind: ``camera_info``
+(zero/NaN focal length, a distortion other than 5 plumb_bob coefficients), ``bad_image`` (unknown
+or wrong encoding, step/size/data length disagreeing, 16UC1/32FC1 mix-ups), ``size_mismatch``
+(colour, depth and camera_info of different sizes), ``empty_depth`` (RGB-D without a single valid
+depth pixel), ``bad_pose``, ``bad_keypoints`` (missing u/v/depth fields, wrong row sizes) and
+``bad_keyframe`` (anything else the sampler refuses).
 """
 from __future__ import annotations
 
@@ -18,8 +26,8 @@ from memgs_ros.core.sampling import PatchGridConfig, Undistorter, seeds_mono, se
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
-    camera_info_to_camera, depth_from_image, pointcloud2_to_structured, pose_to_matrix, rgb_from_image,
-    stamp_to_ns, structured_to_pointcloud2,
+    camera_info_to_camera, check_image_sizes, depth_from_image, pointcloud2_to_structured, pose_to_matrix,
+    rgb_from_image, stamp_to_ns, structured_to_pointcloud2,
 )
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
@@ -27,6 +35,7 @@ from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.params import declare
 from memgs_ros.ros.seed_cloud import encode_seeds
 from memgs_ros.ros.stamp_sync import StampBundler
+
 
 class KeyframeSamplerNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
@@ -59,17 +68,28 @@ class KeyframeSamplerNode(Node):
             self._sample(stamp_to_ns(msg.header.stamp), bundle)
 
     def _sample(self, stamp_ns: int, b: dict) -> None:
+        # Each stage names the problem kind a failure in it is counted under (module docstring).
+        stage = "camera_info"
         try:
             cam = camera_info_to_camera(b["camera_info"])
-            if self.undistorter is None or self.undistorter.camera != cam:
-                self.undistorter = Undistorter(cam)  # remap tables cached per camera
+            stage = "bad_image"
             rgb = rgb_from_image(b["color"])
-            kps = pointcloud2_to_structured(b["keypoints"], required=("u", "v", "depth"))
+            depth = depth_from_image(b["depth"], self.depth_scale) if self.mode == "rgbd" else None
+            stage = "size_mismatch"
+            check_image_sizes(rgb, depth, cam)
+            if depth is not None and not np.isfinite(depth).any():
+                stage = "empty_depth"
+                raise MessageError("depth has no valid pixel (all zero, NaN, inf or negative)")
+            stage = "bad_pose"
             T_wc = pose_to_matrix(b["pose"].pose)
+            stage = "bad_keypoints"
+            kps = pointcloud2_to_structured(b["keypoints"], required=("u", "v", "depth"))
             uv = np.stack([kps["u"], kps["v"]], axis=1).astype(np.float32)
             kp_depth = kps["depth"].astype(np.float32)
+            stage = "bad_keyframe"
+            if self.undistorter is None or self.undistorter.camera != cam:
+                self.undistorter = Undistorter(cam)  # remap tables cached per camera
             kf_id = self.n_keyframes
-            depth = depth_from_image(b["depth"], self.depth_scale) if self.mode == "rgbd" else None
             rgb, depth, cam = self.undistorter(rgb, depth)
             uv = self.undistorter.from_pinhole_uv(uv).astype(np.float32)  # undistorted in K -> output camera
             if depth is not None:
@@ -77,7 +97,7 @@ class KeyframeSamplerNode(Node):
             else:
                 seeds = seeds_mono(rgb, cam, T_wc, kf_id, uv, kp_depth, self.cfg)
         except (MessageError, DataError) as err:
-            self.stats.problem("bad_keyframe", f"keyframe {stamp_ns} refused: {err}")
+            self.stats.problem(stage, f"keyframe {stamp_ns} refused: {err}")
             return
         self.n_keyframes += 1
         self.pub.publish(structured_to_pointcloud2(encode_seeds(seeds.points_w, seeds.colors, seeds.source), stamp_ns, self.world_frame))

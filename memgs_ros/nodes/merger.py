@@ -9,6 +9,10 @@ answers its path) and ``memgs/merger/publish_map``. Saves periodically and on sh
 A gap in the delta sequence, a late start or a count mismatch triggers a resync: deltas are
 buffered, a snapshot is requested from the mapper (``memgs/mapper/publish_snapshot``), loaded, and
 the buffered deltas newer than it are replayed.
+
+A map message that cannot be decoded (missing fields, rows of the wrong size, a malformed META
+row) is dropped and counted as ``problem.bad_map_message``; removals of ids the replica does not
+hold are ignored and counted as ``problem.unknown_removal`` (one warning per kind).
 """
 from __future__ import annotations
 
@@ -131,8 +135,14 @@ class MergerNode(Node):
 
     def _apply(self, m: MapMessage) -> bool:
         """Apply one delta; on a gap, late start or mismatch start a resync. True while in step."""
+        unknown = self.replica.unknown_removals
         status = self.replica.apply(m)
         self._gauges()
+        if self.replica.unknown_removals > unknown:
+            # The sender removed Gaussians this replica never had: harmless if the counts still
+            # agree (a mismatch resyncs below), but it means the two maps drifted apart once.
+            self.stats.problem("unknown_removal", f"delta {m.seq} removes {self.replica.unknown_removals - unknown} "
+                                                  "id(s) the replica does not hold; ignored")
         if status in (ApplyStatus.APPLIED, ApplyStatus.STALE):
             return True
         self.stats.counters[f"resync.{status.value}"] += 1

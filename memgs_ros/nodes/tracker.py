@@ -8,6 +8,19 @@ camera_info; keypoint u, v are undistorted pixel positions), refined keyframe po
 BA on ``memgs/keyframe/refined_poses`` (Path, one PoseStamped per keyframe stamp), and
 ``memgs/tracker/processed`` (Header; frame_id "keyframe" or "frame") for every frame handled, which
 the lockstep player or the mapper waits on.
+
+Frame stamps (a frame is the colour image and its paired depth, stamped by the colour header):
+- a stamp equal to the previous frame's is a duplicate delivery: dropped (``stamp_duplicate``);
+- a stamp up to ``time_jump_back_s`` before the previous one is a late, out-of-order frame: dropped
+  (``stamp_order``), since tracking cannot go back in time;
+- a stamp more than ``time_jump_back_s`` before the previous one is a time reset (a bag replayed in
+  a loop, a restarted sensor or sim clock): the frame is accepted, counted (``time_jump_back``),
+  and the stamp order starts again from it. The map is kept: the tracker relocalises in it, or
+  starts a new segment if it cannot;
+- a stamp more than ``max_stamp_ahead_s`` ahead of the node's clock (when that clock runs) is a
+  broken sensor clock: dropped (``stamp_future``), so one bad stamp cannot block the frames after it.
+Every dropped frame is still answered on ``memgs/tracker/processed`` so a lockstep player goes on.
+Problems are counted on ``memgs/tracker/stats`` as ``problem.<kind>`` and logged once per kind.
 """
 from __future__ import annotations
 
@@ -66,6 +79,13 @@ class TrackerNode(Node):
         path_rate = declare(self, "path_rate_hz", 1.0,
                             "memgs/path publications per second (the whole path each time; poses go out "
                             "per frame on memgs/pose and memgs/odom)", range=(0.01, 100.0))
+        self.jump_back_ns = int(1e9 * declare(
+            self, "time_jump_back_s", 1.0, "a frame stamped more than this before the previous one is a time reset "
+            "(bag loop): tracking goes on from it; a smaller step back is a late frame and is dropped",
+            range=(0.0, 1e6)))
+        self.max_ahead_ns = int(1e9 * declare(
+            self, "max_stamp_ahead_s", 3600.0, "drop frames stamped more than this ahead of the node's clock "
+            "(0 = no check)", range=(0.0, 1e9)))
         self.cfg: TrackerConfig = declare_config(self, TrackerConfig, "tracker")
         self.rgbd = self.cfg.mode == "rgbd"
 
@@ -159,9 +179,7 @@ class TrackerNode(Node):
             return
         self.stats.counters["frames_in"] += 1
         stamp = stamp_to_ns(color.header.stamp)
-        if stamp <= self.last_stamp_ns:
-            self.stats.problem("stamp_order", f"frame stamp {stamp} is not after the previous "
-                                              f"{self.last_stamp_ns}: dropped")
+        if not self._stamp_ok(stamp):
             self._processed(stamp, keyframe=False)
             return
         frame = self._frame(color, depth)
@@ -187,6 +205,27 @@ class TrackerNode(Node):
         self._publish(frame, result, color.header.frame_id or self.camera_frame)
         self._publish_refined()
         self._processed(stamp, keyframe=result.keyframe is not None)
+
+    def _stamp_ok(self, stamp: int) -> bool:
+        """Apply the stamp rules of the module docstring; False = drop the frame (counted)."""
+        now = self.get_clock().now().nanoseconds
+        if self.max_ahead_ns and now > 0 and stamp - now > self.max_ahead_ns:
+            self.stats.problem("stamp_future", f"frame stamp {stamp} is {(stamp - now) * 1e-9:.0f} s ahead of the "
+                                               "clock: dropped (sensor clock wrong?)")
+            return False
+        last = self.last_stamp_ns
+        if last < 0 or stamp > last:
+            return True
+        if stamp == last:
+            self.stats.problem("stamp_duplicate", f"frame stamp {stamp} came twice: the copy is dropped")
+            return False
+        if last - stamp <= self.jump_back_ns:
+            self.stats.problem("stamp_order", f"frame stamp {stamp} is {(last - stamp) * 1e-6:.1f} ms before the "
+                                              "previous frame: dropped (late, out of order)")
+            return False
+        self.stats.problem("time_jump_back", f"time jumped back {(last - stamp) * 1e-9:.1f} s (bag loop or clock "
+                                             f"reset): tracking goes on from stamp {stamp}, relocalising in the map")
+        return True
 
     # ------------------------------------------------------------------ outputs
     def _processed(self, stamp_ns: int, keyframe: bool) -> None:

@@ -40,6 +40,7 @@ __all__ = [
     "rgb_from_image",
     "depth_from_image",
     "depth_to_image",
+    "check_image_sizes",
     "camera_info_to_camera",
     "camera_to_camera_info",
     "pose_to_matrix",
@@ -199,8 +200,15 @@ def depth_from_image(msg: Image, depth_scale: float = 1000.0) -> np.ndarray:
         raise MessageError(f"image encoding '{msg.encoding}' is not a depth encoding ({', '.join(_DEPTH_ENCODINGS)})")
     if not (np.isfinite(depth_scale) and depth_scale > 0):
         raise MessageError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
-    a = image_to_numpy(msg)
+    try:
+        a = image_to_numpy(msg)
+    except MessageError as err:
+        raise MessageError(f"{err}{_depth_mixup_hint(msg)}") from err
     if a.dtype == np.uint16:
+        if _holds_float_metres(msg):
+            raise MessageError(
+                f"{msg.encoding} depth {msg.width}x{msg.height} with step {msg.step} holds 32-bit floats of "
+                f"plausible metres: 32FC1 data labelled {msg.encoding}? Refused rather than read as garbage")
         d = a.astype(np.float32) * np.float32(1.0 / depth_scale)
         d[a == 0] = np.nan
         return d
@@ -208,6 +216,33 @@ def depth_from_image(msg: Image, depth_scale: float = 1000.0) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         d[~(d > 0) | ~np.isfinite(d)] = np.nan
     return d
+
+
+def _depth_mixup_hint(msg: Image) -> str:
+    """' (...: is the encoding wrong?)' when the data length fits the other depth encoding."""
+    other = {"32FC1": ("16UC1", 2), "16UC1": ("32FC1", 4), "mono16": ("32FC1", 4)}.get(msg.encoding)
+    w, h = int(msg.width), int(msg.height)
+    if other is None or w <= 0 or h <= 0 or len(msg.data) != other[1] * w * h:
+        return ""
+    return f" (the data is exactly a {w}x{h} {other[0]} image: is the encoding wrong?)"
+
+
+def _holds_float_metres(msg: Image) -> bool:
+    """True when a 16-bit depth image's rows read as float32 give plausible depths (0.05..50 m).
+
+    32FC1 data labelled 16UC1 (with its step kept) decodes without any size error, as garbage.
+    Real 16-bit depth read as float32 is tiny (< 1e-3) for every depth below 15.7 m in any unit,
+    so this never refuses a real 16UC1 image. Only checked when a float row fits the step.
+    """
+    w, h, step = int(msg.width), int(msg.height), int(msg.step)
+    if step < 4 * w:
+        return False
+    f = np.ndarray(shape=(h, w), dtype=np.dtype(">f4" if msg.is_bigendian else "<f4"), buffer=_buffer(msg.data),
+                   strides=(step, 4))
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(f) & (f != 0)
+        plausible = int(np.count_nonzero(finite & (f > 0.05) & (f < 50.0)))
+    return plausible > 0 and plausible >= 0.9 * np.count_nonzero(finite)
 
 
 def depth_to_image(
@@ -232,6 +267,19 @@ def depth_to_image(
         units[units > 65535] = 0
         return numpy_to_image(units.astype(np.uint16), encoding, stamp_ns, frame_id)
     raise MessageError(f"depth encoding must be 32FC1 or 16UC1, got '{encoding}'")
+
+
+def check_image_sizes(rgb: np.ndarray, depth_m: np.ndarray | None, camera: PinholeCamera) -> None:
+    """MessageError unless colour [H, W, 3] and depth [H, W] (when given) have the camera's size.
+
+    Colour, depth and camera_info travel as separate messages: nothing else ties their sizes.
+    """
+    if rgb.shape[:2] != (camera.height, camera.width):
+        raise MessageError(f"colour image is {rgb.shape[1]}x{rgb.shape[0]} but camera_info says "
+                           f"{camera.width}x{camera.height}")
+    if depth_m is not None and depth_m.shape != rgb.shape[:2]:
+        raise MessageError(f"depth image is {depth_m.shape[1]}x{depth_m.shape[0]} but colour is "
+                           f"{rgb.shape[1]}x{rgb.shape[0]}")
 
 
 # --------------------------------------------------------------------------- camera info
@@ -260,6 +308,10 @@ def camera_info_to_camera(msg: CameraInfo) -> PinholeCamera:
     fx, fy, cx, cy = k[0], k[4], k[2], k[5]
     if not (np.isfinite(fx) and np.isfinite(fy) and fx > 0 and fy > 0):
         raise MessageError(f"CameraInfo K has invalid focal lengths fx={fx} fy={fy}")
+    if not (np.isfinite(cx) and np.isfinite(cy)):
+        raise MessageError(f"CameraInfo K has a non-finite principal point cx={cx} cy={cy}")
+    if not np.all(np.isfinite(d)):
+        raise MessageError(f"CameraInfo D has non-finite distortion coefficients {d}")
     try:
         return PinholeCamera(int(msg.width), int(msg.height), fx, fy, cx, cy, tuple(d))  # type: ignore[arg-type]
     except DataError as err:

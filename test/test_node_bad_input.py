@@ -1,0 +1,401 @@
+"""Bad input to the nodes in-process (private rclpy context, real DDS): every bad keyframe, frame
+stamp or map delta is refused and counted under one problem kind, the node keeps running, its
+state (the map) is untouched by what it refused, and good input afterwards still goes in."""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+
+from geometry_msgs.msg import PoseStamped  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
+
+from memgs_ros.core.frame import Frame  # noqa: E402
+from memgs_ros.core.gaussians import GaussianMap  # noqa: E402
+from memgs_ros.core.map_delta import DeltaOutbox, message_dtype  # noqa: E402
+from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
+from memgs_ros.nodes.tracker import KEYPOINT_DTYPE  # noqa: E402
+from memgs_ros.ros import qos  # noqa: E402
+from memgs_ros.ros.codecs import (  # noqa: E402
+    camera_to_camera_info, depth_to_image, matrix_to_pose_stamped, numpy_to_image, structured_to_pointcloud2,
+)
+from memgs_ros.ros.seed_cloud import encode_seeds  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+SPEC = "synthetic:w=64,h=48,n=6,seed=3"
+
+
+@pytest.fixture
+def context(ros_domain_id: int):
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=ros_domain_id)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[Frame]:
+    return list(generate_frames(parse_spec(SPEC)))
+
+
+def _spin_until(ex: SingleThreadedExecutor, cond: Callable[[], bool], timeout_s: float = 15.0) -> bool:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.02)
+        if cond():
+            return True
+    return False
+
+
+def _problems(counters) -> int:  # noqa: ANN001 - a Counter
+    return sum(v for k, v in counters.items() if k.startswith("problem."))
+
+
+# ----------------------------------------------------------------------------- keyframe bundles
+
+@dataclass
+class Bundle:
+    """The messages of one keyframe, all stamped ``stamp``; tests break one part at a time."""
+
+    stamp: int
+    color: Image
+    depth: Image
+    info: CameraInfo
+    pose: PoseStamped
+    keypoints: PointCloud2
+    seeds: PointCloud2
+
+
+def _bundle(f: Frame, stamp: int) -> Bundle:
+    rng = np.random.default_rng(stamp % 1000)
+    h, w = f.depth_m.shape
+    u, v = rng.integers(4, w - 4, 40), rng.integers(4, h - 4, 40)
+    kps = np.zeros(40, KEYPOINT_DTYPE)
+    kps["u"], kps["v"], kps["depth"], kps["active"] = u, v, f.depth_m[v, u], 1
+    pts = rng.uniform(-1.0, 1.0, (50, 3)) + np.array([0.0, 0.0, 2.0])
+    seeds = encode_seeds(pts, rng.uniform(0, 1, (50, 3)), np.ones(50, np.uint8))
+    return Bundle(stamp, numpy_to_image(f.rgb, "rgb8", stamp, "cam"), depth_to_image(f.depth_m, "32FC1", stamp, "cam"),
+                  camera_to_camera_info(f.camera, stamp, "cam"), matrix_to_pose_stamped(f.T_wc_gt, stamp, "map"),
+                  structured_to_pointcloud2(kps, stamp, "cam"), structured_to_pointcloud2(seeds, stamp, "map"))
+
+
+def _truncate(msg: Image) -> Image:
+    msg.data = msg.data[: len(msg.data) // 2]
+    return msg
+
+
+def _relabel(msg: Image, encoding: str) -> Image:
+    msg.encoding = encoding
+    return msg
+
+
+def _with_k(info: CameraInfo, fx: float) -> CameraInfo:
+    k = list(info.k)
+    k[0] = fx
+    info.k = k
+    return info
+
+
+def _without_field(cloud: PointCloud2, name: str) -> PointCloud2:
+    cloud.fields = [f for f in cloud.fields if f.name != name]
+    return cloud
+
+
+# (label, kind counted, what to break). Stamps and images come from the frame given.
+BAD_BUNDLES: list[tuple[str, str, Callable[[Bundle, Frame], None]]] = [
+    ("unknown colour encoding", "bad_image", lambda b, f: _relabel(b.color, "yuv422")),
+    ("depth encoding on the colour topic", "bad_image",
+     lambda b, f: setattr(b, "color", depth_to_image(f.depth_m, "32FC1", b.stamp, "cam"))),
+    ("truncated colour", "bad_image", lambda b, f: _truncate(b.color)),
+    ("colour step larger than the data", "bad_image", lambda b, f: setattr(b.color, "step", b.color.step + 8)),
+    ("truncated depth", "bad_image", lambda b, f: _truncate(b.depth)),
+    ("16UC1 depth labelled 32FC1", "bad_image",
+     lambda b, f: setattr(b, "depth", _relabel(depth_to_image(f.depth_m, "16UC1", b.stamp, "cam"), "32FC1"))),
+    ("32FC1 depth labelled 16UC1", "bad_image", lambda b, f: _relabel(b.depth, "16UC1")),
+    ("colour encoding on the depth topic", "bad_image", lambda b, f: setattr(b, "depth", b.color)),
+    ("depth smaller than colour", "size_mismatch",
+     lambda b, f: setattr(b, "depth", depth_to_image(f.depth_m[::2, ::2].copy(), "32FC1", b.stamp, "cam"))),
+    ("colour smaller than camera_info", "size_mismatch",
+     lambda b, f: setattr(b, "color", numpy_to_image(f.rgb[::2, ::2].copy(), "rgb8", b.stamp, "cam"))),
+    ("depth all NaN", "empty_depth",
+     lambda b, f: setattr(b, "depth", numpy_to_image(np.full_like(f.depth_m, np.nan), "32FC1", b.stamp, "cam"))),
+    ("depth all +inf", "empty_depth",
+     lambda b, f: setattr(b, "depth", numpy_to_image(np.full_like(f.depth_m, np.inf), "32FC1", b.stamp, "cam"))),
+    ("depth all negative", "empty_depth",
+     lambda b, f: setattr(b, "depth", numpy_to_image(-f.depth_m, "32FC1", b.stamp, "cam"))),
+    ("16UC1 depth all zero", "empty_depth",
+     lambda b, f: setattr(b, "depth", numpy_to_image(np.zeros(f.depth_m.shape, np.uint16), "16UC1", b.stamp, "cam"))),
+    ("zero focal length", "camera_info", lambda b, f: _with_k(b.info, 0.0)),
+    ("NaN focal length", "camera_info", lambda b, f: _with_k(b.info, float("nan"))),
+    ("4 distortion coefficients", "camera_info", lambda b, f: setattr(b.info, "d", [0.01, 0.0, 0.0, 0.0])),
+    ("NaN distortion coefficient", "camera_info", lambda b, f: setattr(b.info, "d", [float("nan"), 0.0, 0.0, 0.0, 0.0])),
+    ("pose with a NaN position", "bad_pose", lambda b, f: setattr(b.pose.pose.position, "x", float("nan"))),
+]
+
+
+class _Feeder:
+    """Publishes keyframe bundles on ``memgs/keyframe/*`` and spins until the node counted each."""
+
+    def __init__(self, ctx, node, parts: tuple[str, ...]) -> None:  # noqa: ANN001
+        self.node = node
+        self.peer = rclpy.create_node("bundle_feeder", context=ctx)
+        types = {"color": Image, "depth": Image, "info": CameraInfo, "pose": PoseStamped,
+                 "keypoints": PointCloud2, "seeds": PointCloud2}
+        topics = {"info": "camera_info"}
+        self.pubs = {p: self.peer.create_publisher(types[p], f"memgs/keyframe/{topics.get(p, p)}", qos.reliable(20))
+                     for p in parts}
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(node)
+        self.ex.add_node(self.peer)
+        assert _spin_until(self.ex, lambda: all(p.get_subscription_count() for p in self.pubs.values()))
+
+    def send(self, b: Bundle, done: Callable[[], bool]) -> None:
+        for part, pub in self.pubs.items():
+            pub.publish(getattr(b, part))
+        assert _spin_until(self.ex, done), f"keyframe {b.stamp} was never handled"
+
+    def close(self) -> None:
+        self.ex.shutdown()
+        self.node.destroy_node()
+        self.peer.destroy_node()
+
+
+def _feed_bad_bundles(feeder: _Feeder, frames: list[Frame], on_refused: Callable[[str], None]) -> None:
+    """One bundle per entry of BAD_BUNDLES; each must add exactly one problem of its kind."""
+    c = feeder.node.stats.counters
+    for i, (label, kind, breaker) in enumerate(BAD_BUNDLES):
+        f = frames[1 + i % (len(frames) - 1)]
+        b = _bundle(f, f.stamp_ns + 1000 * (i + 1))
+        breaker(b, f)
+        before, total = c[f"problem.{kind}"], _problems(c)
+        feeder.send(b, lambda: _problems(c) > total)
+        assert c[f"problem.{kind}"] == before + 1, f"{label}: counted as {dict(c)}"
+        on_refused(label)
+
+
+def test_keyframe_sampler_refuses_bad_bundles_by_kind_and_keeps_sampling(context, frames) -> None:  # noqa: ANN001
+    from memgs_ros.nodes.keyframe_sampler import KeyframeSamplerNode
+
+    node = KeyframeSamplerNode(context=context)
+    feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "keypoints"))
+    seeds: list[PointCloud2] = []
+    feeder.peer.create_subscription(PointCloud2, "memgs/keyframe/seeds", seeds.append, qos.reliable(50))
+    c = node.stats.counters
+    try:
+        feeder.send(_bundle(frames[0], frames[0].stamp_ns), lambda: c["keyframes"] == 1 and len(seeds) == 1)
+
+        def refused(label: str) -> None:
+            assert c["keyframes"] == 1, f"{label} was sampled"
+
+        _feed_bad_bundles(feeder, frames, refused)
+        b = _bundle(frames[0], frames[0].stamp_ns + 10**9)
+        _without_field(b.keypoints, "depth")
+        feeder.send(b, lambda: c["problem.bad_keypoints"] == 1)
+        # Keypoints outside the image or with NaN positions are the tracker's bug, not a crash here.
+        b = _bundle(frames[0], frames[0].stamp_ns + 2 * 10**9)
+        kps = np.zeros(3, KEYPOINT_DTYPE)
+        kps["u"], kps["v"], kps["depth"] = [np.nan, 1e9, -5.0], [3.0, np.inf, -5.0], [1.0, 1.0, np.nan]
+        b.keypoints = structured_to_pointcloud2(kps, b.stamp, "cam")
+        feeder.send(b, lambda: c["keyframes"] == 2 and len(seeds) == 2)
+        assert seeds[-1].width == 0  # nothing usable among them; the keyframe itself was fine
+        last = frames[-1]
+        feeder.send(_bundle(last, last.stamp_ns + 10**9), lambda: c["keyframes"] == 3 and len(seeds) == 3)
+        assert seeds[-1].width > 0
+        assert c["problem.camera_info"] == 4 and c["problem.empty_depth"] == 4
+    finally:
+        feeder.close()
+
+
+def test_mapper_refuses_bad_bundles_without_touching_the_map(context, frames) -> None:  # noqa: ANN001
+    from memgs_ros.nodes.mapper import MapperNode
+
+    node = MapperNode(context=context, parameter_overrides=[
+        Parameter("lockstep", value=True), Parameter("lockstep_iterations", value=0), Parameter("device", value="cpu"),
+        Parameter("render_rate_hz", value=0.0)])
+    feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "seeds"))
+    c = node.stats.counters
+    try:
+        feeder.send(_bundle(frames[0], frames[0].stamp_ns), lambda: c["keyframes"] == 1)
+        before = node.mapper.snapshot()
+        n_kf = len(node.mapper.keyframes)
+        assert len(before) > 0
+
+        def unchanged(label: str) -> None:
+            after = node.mapper.snapshot()
+            assert len(node.mapper.keyframes) == n_kf and c["keyframes"] == 1, f"{label} went in"
+            assert np.array_equal(after.ids, before.ids) and np.array_equal(after.xyz, before.xyz), label
+
+        _feed_bad_bundles(feeder, frames, unchanged)
+        b = _bundle(frames[0], frames[0].stamp_ns + 10**9)
+        _without_field(b.seeds, "rgb")
+        feeder.send(b, lambda: c["problem.bad_seeds"] == 1)
+        unchanged("seeds without colours")
+        # The same keyframe again (a replay of the keyframe topics): ignored, the map unchanged.
+        feeder.send(_bundle(frames[0], frames[0].stamp_ns), lambda: c["duplicate_keyframe_parts"] == 5)
+        unchanged("a keyframe stamp seen before")
+        last = frames[-1]
+        feeder.send(_bundle(last, last.stamp_ns + 10**9), lambda: c["keyframes"] == 2)
+        assert len(node.mapper.keyframes) == n_kf + 1 and len(node.mapper.snapshot()) > len(before)
+        # Refined poses: unknown stamps are ignored, a broken pose is counted, not fatal.
+        from nav_msgs.msg import Path
+
+        pub = feeder.peer.create_publisher(Path, "memgs/keyframe/refined_poses", qos.reliable(20))
+        assert _spin_until(feeder.ex, lambda: pub.get_subscription_count() > 0)
+        bad = matrix_to_pose_stamped(np.eye(4), last.stamp_ns + 10**9, "map")
+        bad.pose.orientation.w = float("nan")
+        pub.publish(Path(poses=[matrix_to_pose_stamped(np.eye(4), 12345, "map"), bad]))
+        assert _spin_until(feeder.ex, lambda: c["problem.bad_pose"] == 2)
+        assert c["keyframe_pose_updates"] == 0
+    finally:
+        node.on_shutdown()
+        feeder.close()
+
+
+# ----------------------------------------------------------------------------- tracker stamps
+
+def test_tracker_stamp_rules(context) -> None:  # noqa: ANN001
+    """Duplicate and slightly older stamps are dropped; a jump back by more than
+    ``time_jump_back_s`` (a bag replayed in a loop) restarts the stamp order and tracking goes
+    on; a frame stamped far ahead of the node's clock is dropped."""
+    from memgs_ros.nodes.tracker import TrackerNode
+
+    frames = list(generate_frames(parse_spec("synthetic:w=128,h=96,n=4,seed=2")))  # enough texture to track
+    node = TrackerNode(context=context, parameter_overrides=[
+        Parameter("color_topic", value="color/image_raw"), Parameter("depth_topic", value="depth/image_raw"),
+        Parameter("camera_info_topic", value="color/camera_info"), Parameter("sync", value="exact"),
+        Parameter("input_reliability", value="reliable")])
+    peer = rclpy.create_node("frame_feeder", context=context)
+    pc = peer.create_publisher(Image, "color/image_raw", qos.reliable(50))
+    pd = peer.create_publisher(Image, "depth/image_raw", qos.reliable(50))
+    pi = peer.create_publisher(CameraInfo, "color/camera_info", qos.reliable(50))
+    processed: list[Header] = []
+    peer.create_subscription(Header, "memgs/tracker/processed", processed.append, qos.reliable(100))
+    ex = SingleThreadedExecutor(context=context)
+    ex.add_node(node)
+    ex.add_node(peer)
+    c = node.stats.counters
+    tracked = lambda: sum(v for k, v in c.items() if k.startswith("state."))  # noqa: E731
+    try:
+        assert _spin_until(ex, lambda: pc.get_subscription_count() and pd.get_subscription_count()
+                           and pi.get_subscription_count())
+        pi.publish(camera_to_camera_info(frames[0].camera, frames[0].stamp_ns, "cam"))
+        assert _spin_until(ex, lambda: node.camera is not None)
+
+        def send(f: Frame, stamp: int) -> None:
+            n = len(processed)
+            pc.publish(numpy_to_image(f.rgb, "rgb8", stamp, "cam"))
+            pd.publish(depth_to_image(f.depth_m, "32FC1", stamp, "cam"))
+            assert _spin_until(ex, lambda: len(processed) > n), f"frame {stamp} was never handled"
+
+        shift = 60 * 10**9  # first pass 60 s later than the loop's second pass
+        for f in frames[:3]:
+            send(f, f.stamp_ns + shift)
+        assert tracked() == 3
+        send(frames[2], frames[2].stamp_ns + shift)  # the same frame twice
+        assert c["problem.stamp_duplicate"] == 1 and tracked() == 3
+        send(frames[1], frames[1].stamp_ns + shift)  # 33 ms late: out of order
+        assert c["problem.stamp_order"] == 1 and tracked() == 3
+        now_ns = node.get_clock().now().nanoseconds
+        send(frames[3], now_ns + 24 * 3600 * 10**9)  # a day ahead of the clock
+        assert c["problem.stamp_future"] == 1 and tracked() == 3
+        # The bag starts over: 60 s back. Accepted, counted once, and the order restarts from it.
+        for f in frames[:3]:
+            send(f, f.stamp_ns)
+        assert c["problem.time_jump_back"] == 1 and tracked() == 6
+        assert c["problem.stamp_order"] == 1 and c["problem.stamp_duplicate"] == 1
+        assert c["poses_out"] >= 4
+    finally:
+        node.on_shutdown()
+        ex.shutdown()
+        node.destroy_node()
+        peer.destroy_node()
+
+
+# ----------------------------------------------------------------------------- merger
+
+def test_merger_refuses_malformed_deltas_and_counts_unknown_removals(context, tmp_path) -> None:  # noqa: ANN001
+    from memgs_ros.nodes.merger import MergerNode
+
+    merger = MergerNode(context=context, parameter_overrides=[
+        Parameter("map_path", value=str(tmp_path / "m.ply")), Parameter("save_period_s", value=0.0),
+        Parameter("publish_period_s", value=0.0)])
+    peer = rclpy.create_node("delta_feeder", context=context)
+    pub = peer.create_publisher(PointCloud2, "memgs/map/delta", qos.reliable(50))
+    ex = SingleThreadedExecutor(context=context)
+    ex.add_node(merger)
+    ex.add_node(peer)
+    c = merger.stats.counters
+    rng = np.random.default_rng(0)
+    g = GaussianMap(max_sh_degree=0)
+    g.add_from_points(rng.uniform(-1, 1, (20, 3)), rng.uniform(0, 1, (20, 3)), keyframe_id=0, iteration=0)
+    outbox = DeltaOutbox(sh_degree=0)
+
+    def send(msg: PointCloud2, cond: Callable[[], bool]) -> None:
+        pub.publish(msg)
+        assert _spin_until(ex, cond)
+
+    try:
+        assert _spin_until(ex, lambda: pub.get_subscription_count() > 0)
+        send(structured_to_pointcloud2(outbox.next_delta(g.to_records()), 0, "map"), lambda: len(merger.replica) == 20)
+        ids = merger.replica.records.ids.copy()
+        g.remove(np.arange(len(g)) < 5)
+        rows = outbox.next_delta(g.to_records())  # seq 2: 5 removals
+        good = structured_to_pointcloud2(rows, 0, "map")
+
+        broken = structured_to_pointcloud2(rows, 0, "map")
+        _without_field(broken, "opacity")
+        send(broken, lambda: c["problem.bad_map_message"] == 1)
+        short = structured_to_pointcloud2(rows, 0, "map")
+        short.data = short.data[:-3]  # rows of the wrong size
+        send(short, lambda: c["problem.bad_map_message"] == 2)
+        wide = structured_to_pointcloud2(rows, 0, "map")
+        wide.point_step -= 4  # a field no longer fits its row
+        send(wide, lambda: c["problem.bad_map_message"] == 3)
+        assert np.array_equal(merger.replica.records.ids, ids) and merger.replica.seq == 1
+
+        send(good, lambda: merger.replica.seq == 2)
+        assert len(merger.replica) == 15 and not merger.resyncing
+        # seq 3 removes ids the replica never had (and that the sender's count agrees with).
+        ghost = np.zeros(3, message_dtype(0))
+        ghost["op"][0], ghost["op"][1:] = 2, 1
+        ghost["id"][0] = (3 << 32) | 15
+        ghost["id"][1:] = [10**6, 10**6 + 1]
+        send(structured_to_pointcloud2(ghost, 0, "map"), lambda: merger.replica.seq == 3)
+        assert c["problem.unknown_removal"] == 1 and len(merger.replica) == 15 and not merger.resyncing
+        assert merger.stats.gauges["unknown_removals"] == 2
+    finally:
+        ex.shutdown()
+        merger.destroy_node()
+        peer.destroy_node()
+
+
+# ----------------------------------------------------------------------------- depth mix-ups
+
+def test_depth_encoding_mixups_are_named_and_real_padded_16uc1_still_decodes(frames) -> None:  # noqa: ANN001
+    from memgs_ros.errors import MessageError
+    from memgs_ros.ros.codecs import depth_from_image
+
+    f = frames[0]
+    as16 = _relabel(depth_to_image(f.depth_m, "16UC1", 0, "cam"), "32FC1")
+    with pytest.raises(MessageError, match="exactly a 64x48 16UC1 image: is the encoding wrong"):
+        depth_from_image(as16)
+    as32 = _relabel(depth_to_image(f.depth_m, "32FC1", 0, "cam"), "16UC1")
+    with pytest.raises(MessageError, match="32FC1 data labelled 16UC1"):
+        depth_from_image(as32)
+    # Genuine 16UC1 rows padded to the width of a float row, 0.5 m .. 15 m: never taken for floats.
+    for mm in (500, 8000, 15000):
+        units = np.full(f.depth_m.shape, mm, np.uint16)
+        padded = np.zeros((units.shape[0], units.shape[1] * 2), np.uint16)
+        padded[:, : units.shape[1]] = units
+        msg = numpy_to_image(padded, "16UC1", 0, "cam")
+        msg.width, msg.step = units.shape[1], units.shape[1] * 4
+        np.testing.assert_allclose(depth_from_image(msg), mm / 1000.0)
