@@ -22,11 +22,11 @@ right after a densify step; SH degree rises every iterations/4; the coarse-to-fi
 and triples the SH DC learning rate (see PRESETS). The mapper leaves the black border that
 undistortion creates out of its loss (MappingConfig.mask_invalid_pixels).
 
-PSNR = -10 log10(MSE) in [0, 1] against the image the mapper trains on (undistorted,
-resized), three ways: whole image (the reference protocol, section 7; the undistortion border
-is black in the ground truth but the map renders scene there, which caps it near 17-18 dB on
-fr1), valid pixels only (pixels filled from the source image), and whole image with the render
-blacked out where no source pixel contributes ("kf blk"). Prints a table and writes JSON
+PSNR = -10 log10(MSE) in [0, 1] against the image the mapper trains on (undistorted to the
+valid region, resized), three ways: whole image (the reference protocol, section 7), valid
+pixels only, and whole image with the render blacked out where no source pixel contributes
+("kf blk"). Since undistortion zooms to the valid region the three agree; they differ when
+undistorting to the original K (which left a black border that capped fr1 near 17 dB). Prints a table and writes JSON
 (default results/bench_mapping.json). Run on a machine shared with other jobs: ``uptime``
 load is recorded before and after.
 
