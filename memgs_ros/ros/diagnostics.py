@@ -33,6 +33,7 @@ class NodeStats:
 
     def message(self) -> DiagnosticArray:
         self.gauges["peak_rss_mb"] = round(peak_rss_mb(), 1)
+        self.gauges["rss_mb"] = round(rss_mb(), 1)
         values: Mapping[str, object] = {**self.counters, **self.gauges}
         level = DiagnosticStatus.WARN if any(k.startswith("problem.") for k in self.counters) else DiagnosticStatus.OK
         status = DiagnosticStatus(
@@ -46,19 +47,31 @@ class NodeStats:
         self._pub.publish(self.message())
 
 
+def rss_mb() -> float:
+    """This process's resident memory now (MB); 0 where /proc is missing."""
+    return _proc_status_mb("VmRSS:")
+
+
+def _proc_status_mb(key: str) -> float:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(key):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
 def peak_rss_mb() -> float:
     """This process's peak resident memory (MB).
 
     VmHWM belongs to this process's own address space; ``ru_maxrss`` is carried over from the
     parent across fork/exec on Linux, so a node started by a big process would report its size.
     """
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
+    peak = _proc_status_mb("VmHWM:")
+    if peak > 0:
+        return peak
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux, non-/proc systems
 
 

@@ -8,6 +8,7 @@ It is what ``memgs run`` / ``memgs demo`` and the end-to-end tests call.
 """
 from __future__ import annotations
 
+import json
 import logging
 import os
 import random
@@ -100,6 +101,8 @@ def config_path(name_or_path: str) -> Path:
     p = Path(name_or_path)
     if p.suffix in (".yaml", ".yml", ".xml") and p.exists():
         return p
+    if len(p.parts) > 1:  # a path, not a name: say so rather than search the config folders
+        raise ConfigError(f"config file {p} does not exist")
     name = p.name if p.suffix in (".yaml", ".yml", ".xml") else f"{name_or_path}.yaml"
     roots = [Path(__file__).resolve().parents[2] / "config"]
     roots += [Path(prefix) / "share" / "memgs_ros" / "config"
@@ -114,14 +117,16 @@ def config_path(name_or_path: str) -> Path:
 def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
     """The run's parameter file: the config, then the run's own settings, then the overrides."""
     path = config_path(options.config)
-    try:
-        base = yaml.safe_load(path.read_text()) or {}
-    except (OSError, yaml.YAMLError) as err:
-        raise ConfigError(f"could not read config {path}: {err}") from err
+    base = _load_config(path)
     params: dict[str, dict[str, Any]] = {}
     for key, section in base.items():
-        node = key.rsplit("/", 1)[-1]
-        params[node] = dict((section or {}).get("ros__parameters", {}))
+        node = str(key).rsplit("/", 1)[-1]
+        section = {} if section is None else section
+        node_params = (section.get("ros__parameters") or {}) if isinstance(section, dict) else None
+        if not isinstance(node_params, dict):
+            raise ConfigError(f"config {path}: '{key}' must be a mapping with a 'ros__parameters' mapping, "
+                              f"got {section!r:.80}")
+        params[node] = dict(node_params)
     params.setdefault("bag_player", {}).update(
         source=str(options.source), lockstep=options.lockstep, rate=float(options.rate),
         max_frames=int(options.max_frames), ack_topic="memgs/frame_ack", world_frame_id="map")
@@ -138,6 +143,27 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
             raise ConfigError(f"override '{key}' must be <node>.<parameter> with node one of {sorted(NODE_CLASSES)}")
         params.setdefault(node, {})[name] = value
     return {f"/**/{node}": {"ros__parameters": p} for node, p in params.items()}
+
+
+def _load_config(path: Path) -> dict[Any, Any]:
+    """The YAML mapping in ``path``; ConfigError (one line, naming the file) when it is not one."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"could not read config {path}: {err}") from err
+    try:
+        base = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise ConfigError(f"config {path} is not valid YAML{where}: {problem}") from err
+    if base is None:
+        return {}
+    if not isinstance(base, dict):
+        raise ConfigError(f"config {path} must be a mapping of node names to parameters, "
+                          f"got a {type(base).__name__}")
+    return base
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -165,6 +191,8 @@ class _Observer:
         self.stats: dict[str, dict[str, str]] = {}
         self.trajectory: list[tuple[int, np.ndarray]] = []
         self.keyframes: list[tuple[int, np.ndarray]] = []
+        self.timeline: list[dict[str, Any]] = []  # every stats message: {"t_s", "node", values...}
+        self._t0 = time.monotonic()
         self._lock = threading.Lock()
 
         def on_pose(msg: PoseStamped) -> None:
@@ -172,7 +200,12 @@ class _Observer:
                 self.trajectory.append((stamp_to_ns(msg.header.stamp), pose_to_matrix(msg.pose)))
 
         def stats_cb(name: str):  # noqa: ANN202
-            return lambda msg: self.stats.__setitem__(name, stats_values(msg))
+            def cb(msg: DiagnosticArray) -> None:
+                values = stats_values(msg)
+                self.stats[name] = values
+                with self._lock:
+                    self.timeline.append({"t_s": round(time.monotonic() - self._t0, 2), "node": name, **values})
+            return cb
 
         self.node.create_subscription(Bool, "memgs/player/done", lambda m: m.data and self.done.set(), qos.latched())
         def on_keyframe(msg: PoseStamped) -> None:
@@ -181,7 +214,7 @@ class _Observer:
 
         self.node.create_subscription(PoseStamped, "memgs/pose", on_pose, qos.reliable(1000))
         self.node.create_subscription(PoseStamped, "memgs/keyframe/pose", on_keyframe, qos.reliable(1000))
-        for name in ("tracker", "keyframe_sampler", "mapper", "merger"):
+        for name in ("tracker", "keyframe_sampler", "mapper", "merger", "player"):
             self.node.create_subscription(DiagnosticArray, f"memgs/{name}/stats", stats_cb(name), qos.reliable(5))
         from sensor_msgs.msg import Image, PointCloud2
 
@@ -435,6 +468,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
     traj_path = out / "trajectory.txt"
     _write_atomic(traj_path, _tum_trajectory(traj))
     _write_atomic(out / "keyframes.txt", _tum_trajectory(kfs))  # poses at insertion
+    with obs._lock:
+        _write_atomic(out / "stats_timeline.jsonl", "".join(json.dumps(row) + "\n" for row in obs.timeline))
     frames = int(obs.stat("tracker", "frames_in"))
     track_s = obs.stat("tracker", "track_us_total") * 1e-6
     delta_bytes = int(obs.stat("merger", "delta_bytes"))

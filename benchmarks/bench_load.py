@@ -1,0 +1,159 @@
+"""Benchmark: sustained load. A 30 Hz 640x480 RGB-D stream for minutes through the whole graph.
+
+A synthetic sequence (``--unique`` frames, default 150 = 5 s) is written to an mcap bag and
+the bag player loops it in real time (stamps keep increasing) for ``--seconds`` into the four
+nodes, as separate processes over DDS (``memgs run --realtime`` with ``bag_player.loop``).
+Camera input is best effort with a depth-5 queue, so a tracker slower than the camera drops
+frames instead of queueing them. The run's 1 Hz node statistics (``stats_timeline.jsonl``)
+give frames in/out/dropped and each node's resident memory over time; memory is "flat" when
+the growth from the end of the warm-up (``--warmup-s``) to the end is small.
+
+Prints a table, writes JSON (default results/bench_load.json) and a PNG of memory and map
+size over time next to it.
+
+    python benchmarks/bench_load.py                      # 300 s at 30 Hz, 640x480
+    python benchmarks/bench_load.py --seconds 60 --unique 60
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+NODES = ("tracker", "keyframe_sampler", "mapper", "merger")
+
+
+def _num(row: dict, key: str) -> float:
+    try:
+        return float(row.get(key, "nan"))
+    except ValueError:
+        return float("nan")
+
+
+def summarise(timeline: list[dict], warmup_s: float) -> dict:
+    """Per node: RSS at the end of warm-up, at the end, peak; plus the counters' last values."""
+    out: dict = {}
+    for node in (*NODES, "player"):
+        rows = [r for r in timeline if r["node"] == node]
+        if not rows:
+            continue
+        after = [r for r in rows if r["t_s"] >= rows[0]["t_s"] + warmup_s] or rows[-1:]
+        rss = [_num(r, "rss_mb") for r in rows]
+        out[node] = {
+            "samples": len(rows), "t_first_s": rows[0]["t_s"], "t_last_s": rows[-1]["t_s"],
+            "rss_mb_start": _num(rows[0], "rss_mb"), "rss_mb_after_warmup": _num(after[0], "rss_mb"),
+            "rss_mb_end": _num(rows[-1], "rss_mb"), "rss_mb_max": max(rss),
+            "last": {k: v for k, v in rows[-1].items() if k not in ("node",)},
+            "after_warmup": {k: v for k, v in after[0].items() if k not in ("node",)},
+        }
+    return out
+
+
+def plot(timeline: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    for node in NODES:
+        rows = [r for r in timeline if r["node"] == node]
+        a.plot([r["t_s"] for r in rows], [_num(r, "rss_mb") for r in rows], label=node)
+    a.set_ylabel("resident memory (MB)")
+    a.legend(loc="upper left")
+    rows = [r for r in timeline if r["node"] == "mapper"]
+    b.plot([r["t_s"] for r in rows], [_num(r, "gaussians") for r in rows], label="Gaussians (mapper)")
+    b.set_ylabel("Gaussians")
+    b2 = b.twinx()
+    b2.plot([r["t_s"] for r in rows], [_num(r, "keyframes") for r in rows], color="tab:red", label="keyframes")
+    b2.set_ylabel("keyframes", color="tab:red")
+    b.set_xlabel("time since start (s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seconds", type=float, default=300.0, help="stream length (s of camera time)")
+    p.add_argument("--fps", type=float, default=30.0)
+    p.add_argument("--width", type=int, default=640)
+    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--unique", type=int, default=150, help="distinct frames in the looped bag")
+    p.add_argument("--warmup-s", type=float, default=60.0, help="memory growth is measured after this")
+    p.add_argument("--config", default="synthetic")
+    p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE")
+    p.add_argument("--out", type=Path, default=Path("results/bench_load.json"))
+    p.add_argument("--keep", type=Path, default=None, help="keep the run folder here (default: temporary)")
+    args = p.parse_args(argv)
+
+    import yaml
+
+    from memgs_ros.io.bag_writer import write_bag
+    from memgs_ros.io.synthetic import generate_frames, parse_spec
+    from memgs_ros.ros.pipeline import RunOptions, run_pipeline
+
+    tmp = tempfile.TemporaryDirectory(prefix="memgs_load_")
+    work = args.keep or Path(tmp.name)
+    work.mkdir(parents=True, exist_ok=True)
+    bag = Path(tmp.name) / "loop.mcap"
+    spec = f"synthetic:w={args.width},h={args.height},n={args.unique},fps={args.fps:g},seed=0"
+    t0 = time.perf_counter()
+    write_bag(generate_frames(parse_spec(spec)), bag)
+    print(f"bag {spec}: {bag.stat().st_size / 1e6:.0f} MB in {time.perf_counter() - t0:.0f} s", flush=True)
+    n_frames = int(round(args.seconds * args.fps))
+    overrides = {"bag_player.loop": True}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        overrides[key.strip()] = yaml.safe_load(value)
+    load0 = os.getloadavg()[0]
+    t1 = time.perf_counter()
+    s = run_pipeline(RunOptions(source=str(bag), config=args.config, out_dir=work / "run", lockstep=False,
+                                max_frames=n_frames, overrides=overrides,
+                                timeout_s=args.seconds * 4 + 900), progress=True)
+    wall = time.perf_counter() - t1
+    timeline = [json.loads(line) for line in (work / "run" / "stats_timeline.jsonl").read_text().splitlines()]
+    nodes = summarise(timeline, args.warmup_s)
+    tr = nodes.get("tracker", {}).get("last", {})
+    player = nodes.get("player", {}).get("last", {})
+    published = int(_num(player, "frames_published")) if player else n_frames
+    frames_in = s.frames
+    result = {
+        "spec": spec, "seconds": args.seconds, "fps": args.fps, "frames_published": published,
+        "frames_tracked": frames_in, "frames_dropped_before_tracker": published - frames_in,
+        "dropped_fraction": (published - frames_in) / max(published, 1),
+        "tracker_stamp_drops": {k: v for k, v in tr.items() if k.startswith("problem.")},
+        "poses": s.poses, "lost": s.lost_frames, "keyframes": s.keyframes, "gaussians": s.gaussians,
+        "gaussians_peak": s.gaussians_peak, "mapping_iterations": s.mapping_iterations, "wall_s": wall,
+        "delta_kbytes_per_s": s.delta_bytes_per_s / 1e3, "replica_identical": s.replica_identical,
+        "nodes": nodes, "loadavg_before": load0, "loadavg_after": os.getloadavg()[0],
+    }
+    print(f"\nframes published {published}, tracked {frames_in}, dropped before the tracker "
+          f"{published - frames_in} ({100 * result['dropped_fraction']:.1f} %), poses {s.poses}, lost {s.lost_frames}")
+    print(f"keyframes {s.keyframes}, Gaussians {s.gaussians} (peak {s.gaussians_peak}), "
+          f"deltas {result['delta_kbytes_per_s']:.0f} kB/s, merger == mapper: {s.replica_identical}")
+    print(f"{'node':18s} {'RSS start':>10s} {'after warm-up':>14s} {'end':>8s} {'max':>8s}  growth after warm-up")
+    for node in NODES:
+        n = nodes.get(node)
+        if n:
+            grow = n["rss_mb_end"] - n["rss_mb_after_warmup"]
+            print(f"{node:18s} {n['rss_mb_start']:10.0f} {n['rss_mb_after_warmup']:14.0f} {n['rss_mb_end']:8.0f} "
+                  f"{n['rss_mb_max']:8.0f}  {grow:+.0f} MB ({100 * grow / max(n['rss_mb_after_warmup'], 1):+.1f} %)")
+    print(f"wall {wall:.0f} s, load {load0:.1f} -> {result['loadavg_after']:.1f}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2))
+    png = args.out.with_suffix(".png")
+    plot(timeline, png)
+    print(f"wrote {args.out} and {png}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
