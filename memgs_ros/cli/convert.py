@@ -24,10 +24,13 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
+    from memgs_ros.errors import DataError
     from memgs_ros.io.bag_reader import BagSource
     from memgs_ros.io.bag_writer import write_bag
     from memgs_ros.io.sources import open_source
 
+    if args.out.exists():  # before reading the source, so the error is not lost behind a progress bar
+        raise DataError(f"{args.out}: already exists; refusing to overwrite")
     t0 = time.perf_counter()
     src = open_source(args.source, max_dt_s=args.max_dt, max_frames=args.max_frames)
     frames = tqdm(src, total=len(src), desc="convert", unit="frame", disable=args.no_progress)

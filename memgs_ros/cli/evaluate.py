@@ -109,7 +109,7 @@ def save_plots(result: Any, out_dir: Path) -> list[Path]:
         save(fig, "map_size.png")
 
     if result.strip_path and Path(result.strip_path).is_file():
-        data = np.load(result.strip_path)
+        data = np.load(result.strip_path, allow_pickle=False)
         t0 = q.stamps_ns[0] if q.n else int(data["stamps_ns"][0])
         titles = [f"t={(int(s) - t0) * 1e-9:.1f}s {p:.1f}dB" for s, p in zip(data["stamps_ns"], data["psnr_db"])]
         n = len(titles)
@@ -174,22 +174,25 @@ def _print_result(r: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from memgs_ros.cli.run import check_inputs, guess_config
+
+    source = str(args.source)
+    config = args.config or guess_config(source)
+    overrides = _overrides(args.set)
+    check_inputs(source, config, args.max_frames, overrides, args.out)  # before torch, rclpy or any node
+
     import matplotlib
 
     matplotlib.use("Agg")
     import torch
 
     from memgs_ros import evaluation
-    from memgs_ros.cli.run import guess_config
     from memgs_ros.core.runtime import configure_cpu_runtime
 
     if not torch.cuda.is_available():
         configure_cpu_runtime()  # this process renders every frame on CPU
-    source = str(args.source)
-    config = args.config or guess_config(source)
     kwargs = dict(max_frames=args.max_frames, domain_id=args.domain_id, timeout_s=args.timeout,
                   single_process=args.single_process, use_lpips=not args.no_lpips)
-    overrides = _overrides(args.set)
     out = Path(args.out)
     if args.ablation:
         res = evaluation.ablation(source, config, args.mode, args.scale, args.seed, out, overrides, **kwargs)

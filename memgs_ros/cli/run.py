@@ -58,6 +58,9 @@ def options_from_args(args: argparse.Namespace, source: str):  # -> RunOptions
             sep = ""
         if not sep:
             raise ConfigError(f"--kill needs NODE@SECONDS, got '{item}'")
+    if not args.rate > 0 or not args.timeout > 0 or args.max_frames < 0:
+        raise ConfigError(f"--rate and --timeout must be positive and --max-frames >= 0, got {args.rate}, "
+                          f"{args.timeout}, {args.max_frames}")
     overrides = {}
     for item in args.set:
         key, sep, value = item.partition("=")
@@ -69,6 +72,27 @@ def options_from_args(args: argparse.Namespace, source: str):  # -> RunOptions
         single_process=args.single_process, lockstep=not args.realtime, rate=args.rate,
         namespace=args.namespace, domain_id=args.domain_id, max_frames=args.max_frames,
         overrides=overrides, timeout_s=args.timeout, kill_after_s=kills)
+
+
+def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict | None = None,
+                 out_dir: Path | None = None) -> None:
+    """Fail before any node starts, with one line naming the file: the config must load, the
+    overrides name real nodes, the source must open (a bag is scanned whole, so a truncated or
+    corrupt one is found here rather than by the player in the middle of the run) and the output
+    folder must be creatable."""
+    from memgs_ros.errors import DataError
+    from memgs_ros.io.sources import open_source
+    from memgs_ros.ros.pipeline import RunOptions, build_params
+
+    build_params(RunOptions(source=source, config=config, overrides=overrides or {}), Path("map.ply"))
+    open_source(source, max_frames=max_frames or None)
+    if out_dir is not None:
+        if Path(out_dir).exists() and not Path(out_dir).is_dir():
+            raise DataError(f"output folder {out_dir}: exists and is not a folder")
+        try:
+            Path(out_dir).mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise DataError(f"output folder {out_dir}: {err.strerror or err}") from err
 
 
 def print_summary(summary, json_path: Path | None) -> None:  # noqa: ANN001
@@ -93,6 +117,8 @@ def print_summary(summary, json_path: Path | None) -> None:  # noqa: ANN001
 def run(args: argparse.Namespace) -> int:
     from memgs_ros.ros.pipeline import run_pipeline
 
-    summary = run_pipeline(options_from_args(args, args.bag))
+    options = options_from_args(args, args.bag)
+    check_inputs(options.source, options.config, options.max_frames, dict(options.overrides), options.out_dir)
+    summary = run_pipeline(options)
     print_summary(summary, args.json)
     return 0

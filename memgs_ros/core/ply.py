@@ -13,6 +13,7 @@ missing 3DGS property, a truncated body) raises ``DataError`` naming the file.
 """
 from __future__ import annotations
 
+import logging
 import os
 import tempfile
 from pathlib import Path
@@ -22,6 +23,8 @@ import numpy as np
 
 from memgs_ros.core.gaussians import PLY_F_REST, GaussianRecords
 from memgs_ros.errors import DataError
+
+logger = logging.getLogger(__name__)
 
 PLY_PROPERTIES: tuple[str, ...] = (
     ("x", "y", "z", "nx", "ny", "nz")
@@ -115,9 +118,12 @@ def _parse_header(path: Path, raw: bytes) -> tuple[int, int, np.dtype, int]:
             fmt = tok[1] if len(tok) > 1 else None
         elif tok[0] == "element" and len(tok) == 3:
             try:
-                elements.append((tok[1], int(tok[2]), []))
+                count = int(tok[2])
             except ValueError as err:
                 raise DataError(f"{path}: bad element line {line!r}") from err
+            if count < 0:
+                raise DataError(f"{path}: negative element count in {line!r}")
+            elements.append((tok[1], count, []))
         elif tok[0] == "property":
             if not elements:
                 raise DataError(f"{path}: property before any element: {line!r}")
@@ -133,6 +139,10 @@ def _parse_header(path: Path, raw: bytes) -> tuple[int, int, np.dtype, int]:
     endian = "<" if fmt == "binary_little_endian" else ">"
     offset = 0
     for name, count, props in elements:
+        names = [p for p, _ in props]
+        if len(set(names)) != len(names):
+            dup = sorted({p for p in names if names.count(p) > 1})
+            raise DataError(f"{path}: element '{name}' has property {', '.join(dup)} more than once")
         dtype = np.dtype([(p, endian + _PLY_TYPES[t]) for p, t in props])
         if name == "vertex":
             return header_len, count, dtype, offset
@@ -171,11 +181,17 @@ def load_ply(path: str | os.PathLike[str]) -> GaussianRecords:
     sidecar = ids_sidecar_path(path)
     if sidecar.exists():
         try:
-            side = np.load(sidecar)
-        except (OSError, ValueError) as err:
+            side = np.load(sidecar, allow_pickle=False)  # never unpickle a user's file
+        except (OSError, ValueError, EOFError) as err:
             raise DataError(f"Could not read Gaussian ids {sidecar}: {err}") from err
+        if not isinstance(side, np.ndarray):
+            raise DataError(f"{sidecar}: not a .npy array of Gaussian ids")
         if side.shape == (n,) and np.issubdtype(side.dtype, np.integer):
             ids = side.astype(np.int64)
+        else:
+            # A PLY edited elsewhere keeps a stale sidecar: the PLY wins, ids become 0..N-1.
+            logger.warning("%s: %s %s ids do not fit the %d vertices of %s; using 0..%d", sidecar, side.shape,
+                           side.dtype, n, path.name, n - 1)
     return GaussianRecords.from_arrays(
         ids, col("x", "y", "z"), col("f_dc_0", "f_dc_1", "f_dc_2"), f_rest,
         v["opacity"].astype(np.float32), col("scale_0", "scale_1", "scale_2"),

@@ -156,9 +156,11 @@ def depth_to_32fc1(depth_m: np.ndarray) -> np.ndarray:
 
 
 def _tmp_sibling(out: Path) -> Path:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    d = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    return d
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        return Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    except OSError as err:
+        raise DataError(f"{out}: cannot create the output there ({err.strerror or err})") from err
 
 
 @dataclass(frozen=True)
@@ -235,6 +237,8 @@ def write_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str], storage
             os.replace(produced, out)
         else:
             os.replace(bag_dir, out)
+    except OSError as err:  # disk full, permissions: the partial bag is removed below
+        raise DataError(f"{out}: cannot write bag ({err.strerror or err})") from err
     finally:
         shutil.rmtree(tmp_root, ignore_errors=True)
     return BagWriteResult(out, n, _size(out))
