@@ -399,3 +399,48 @@ def test_depth_encoding_mixups_are_named_and_real_padded_16uc1_still_decodes(fra
         msg = numpy_to_image(padded, "16UC1", 0, "cam")
         msg.width, msg.step = units.shape[1], units.shape[1] * 4
         np.testing.assert_allclose(depth_from_image(msg), mm / 1000.0)
+
+
+# ----------------------------------------------------------------------------- converters never crash
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_ENCODINGS = st.sampled_from(["rgb8", "bgr8", "rgba8", "mono8", "16UC1", "mono16", "32FC1", "yuv422", "", "64FC1"])
+
+
+@settings(max_examples=200, deadline=None)
+@given(enc=_ENCODINGS, h=st.integers(-2, 9), w=st.integers(-2, 9), step=st.integers(-4, 40),
+       n=st.integers(0, 400), big=st.booleans(), scale=st.sampled_from([1000.0, 0.0, -1.0, float("nan")]))
+def test_image_converters_return_or_raise_message_error(enc: str, h: int, w: int, step: int, n: int, big: bool,
+                                                        scale: float) -> None:
+    from memgs_ros.errors import MessageError
+    from memgs_ros.ros.codecs import depth_from_image, rgb_from_image
+
+    msg = Image(encoding=enc, is_bigendian=int(big), data=bytes(range(256)) * (n // 256) + bytes(n % 256))
+    # Negative sizes cannot be set on the message (uint32): they wrap as a sender's bug would.
+    msg.height, msg.width, msg.step = h % 2**32, w % 2**32, step % 2**32
+    for convert in (rgb_from_image, lambda m: depth_from_image(m, scale)):
+        try:
+            out = convert(msg)
+        except MessageError:
+            continue
+        assert out.shape[:2] == (msg.height, msg.width)
+
+
+@settings(max_examples=200, deadline=None)
+@given(k=st.lists(st.floats(allow_nan=True, allow_infinity=True, width=32), min_size=9, max_size=9),
+       d=st.lists(st.floats(allow_nan=True, allow_infinity=True, width=32), max_size=8),
+       model=st.sampled_from(["plumb_bob", "", "none", "equidistant"]),
+       size=st.tuples(st.integers(0, 5000), st.integers(0, 5000)), binning=st.integers(0, 3))
+def test_camera_info_converter_returns_a_valid_camera_or_raises(k, d, model, size, binning) -> None:  # noqa: ANN001
+    from memgs_ros.errors import MessageError
+    from memgs_ros.ros.codecs import camera_info_to_camera
+
+    msg = CameraInfo(width=size[0], height=size[1], distortion_model=model, d=d, k=k, binning_x=binning)
+    try:
+        cam = camera_info_to_camera(msg)
+    except MessageError:
+        return
+    assert cam.fx > 0 and cam.fy > 0 and np.all(np.isfinite([cam.fx, cam.fy, cam.cx, cam.cy, *cam.dist]))
+    assert cam.width > 0 and cam.height > 0

@@ -86,6 +86,8 @@ class KeyframeSamplerNode(Node):
             kps = pointcloud2_to_structured(b["keypoints"], required=("u", "v", "depth"))
             uv = np.stack([kps["u"], kps["v"]], axis=1).astype(np.float32)
             kp_depth = kps["depth"].astype(np.float32)
+            placed = np.isfinite(uv).all(axis=1)  # a keypoint without a position is no keypoint
+            uv, kp_depth = uv[placed], kp_depth[placed]
             stage = "bad_keyframe"
             if self.undistorter is None or self.undistorter.camera != cam:
                 self.undistorter = Undistorter(cam)  # remap tables cached per camera
