@@ -46,7 +46,7 @@ from memgs_ros.core.sampling import undistorter_for
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
-    camera_info_to_camera, camera_to_camera_info, depth_from_image, depth_to_image, make_header,
+    camera_info_to_camera, check_image_sizes, camera_to_camera_info, depth_from_image, depth_to_image, make_header,
     numpy_to_image, pointcloud2_to_structured, pose_to_matrix, rgb_from_image, stamp_to_ns,
     structured_to_pointcloud2,
 )
@@ -213,18 +213,31 @@ class MapperNode(Node):
             self._insert(stamp, bundle)
 
     def _insert(self, stamp_ns: int, b: dict) -> None:
+        """Add a keyframe bundle to the map, or refuse it whole (the map unchanged) and count the
+        problem by kind, as the keyframe_sampler does: camera_info, bad_image, size_mismatch,
+        empty_depth, bad_pose, bad_seeds, bad_keyframe."""
         if self._finished:
             return
+        stage = "camera_info"  # the problem kind a failure from here on is counted under
         try:
             cam = camera_info_to_camera(b["camera_info"])
+            stage = "bad_image"
             rgb = rgb_from_image(b["color"])
             depth = depth_from_image(b["depth"]) if "depth" in b else None
+            stage = "size_mismatch"
+            check_image_sizes(rgb, depth, cam)
+            if depth is not None and not np.isfinite(depth).any():
+                stage = "empty_depth"
+                raise MessageError("depth has no valid pixel (all zero, NaN, inf or negative)")
+            stage = "bad_pose"
             T_wc = pose_to_matrix(b["pose"].pose)
+            stage = "bad_seeds"
             points, colors = decode_seeds(pointcloud2_to_structured(b["seeds"]))
+            stage = "bad_keyframe"
             kf_id = len(self.kf_ids)
             added = self.mapper.add_keyframe(kf_id, stamp_ns, T_wc, rgb, depth, cam, points, colors)
         except (MessageError, DataError) as err:
-            self.stats.problem("bad_keyframe", f"keyframe {stamp_ns} refused: {err}")
+            self.stats.problem(stage, f"keyframe {stamp_ns} refused: {err}")
             return
         self.kf_ids[stamp_ns] = kf_id
         self.render_camera = self.render_camera or undistorter_for(cam).camera_undistorted.scaled(self.cfg.resolution_scale)
@@ -237,9 +250,15 @@ class MapperNode(Node):
     def on_refined(self, msg: Path) -> None:
         for p in msg.poses:
             kf_id = self.kf_ids.get(stamp_to_ns(p.header.stamp))
-            if kf_id is not None:
-                self.mapper.update_keyframe_pose(kf_id, pose_to_matrix(p.pose))
-                self.stats.counters["keyframe_pose_updates"] += 1
+            if kf_id is None:
+                continue
+            try:
+                T_wc = pose_to_matrix(p.pose)
+            except MessageError as err:
+                self.stats.problem("bad_pose", f"refined pose of keyframe {kf_id} ignored: {err}")
+                continue
+            self.mapper.update_keyframe_pose(kf_id, T_wc)
+            self.stats.counters["keyframe_pose_updates"] += 1
 
     # ------------------------------------------------------------------ training
     def _train_loop(self) -> None:
