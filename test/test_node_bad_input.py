@@ -151,7 +151,7 @@ class _Feeder:
         types = {"color": Image, "depth": Image, "info": CameraInfo, "pose": PoseStamped,
                  "keypoints": PointCloud2, "seeds": PointCloud2}
         topics = {"info": "camera_info"}
-        self.pubs = {p: self.peer.create_publisher(types[p], f"memgs/keyframe/{topics.get(p, p)}", qos.reliable(20))
+        self.pubs = {p: self.peer.create_publisher(types[p], f"memgs/keyframe/{topics.get(p, p)}", qos.keyframes())
                      for p in parts}
         self.ex = SingleThreadedExecutor(context=ctx)
         self.ex.add_node(node)

@@ -112,7 +112,7 @@ def test_mapper_writes_its_checkpoint_on_sigterm(tmp_path: Path, ros_domain_id: 
     try:
         frame = next(iter(generate_frames(parse_spec("synthetic:w=64,h=48,n=1,seed=4"))))
         stamp = frame.stamp_ns
-        kf = qos.reliable(20)
+        kf = qos.keyframes()
         pubs = {name: peer.node.create_publisher(t, f"memgs/keyframe/{name}", kf) for name, t in
                 (("color", Image), ("depth", Image), ("camera_info", CameraInfo), ("pose", PoseStamped),
                  ("seeds", PointCloud2))}

@@ -51,8 +51,8 @@ class KeyframeSamplerNode(Node):
         self.n_keyframes = 0
         self.undistorter: Undistorter | None = None
 
-        self.pub = self.create_publisher(PointCloud2, "memgs/keyframe/seeds", qos.reliable(20))
-        kf = qos.reliable(20)
+        self.pub = self.create_publisher(PointCloud2, "memgs/keyframe/seeds", qos.keyframes())
+        kf = qos.keyframes()  # a restarted sampler gets the latest keyframes again
         self.create_subscription(Image, "memgs/keyframe/color", lambda m: self._add("color", m), kf)
         self.create_subscription(CameraInfo, "memgs/keyframe/camera_info", lambda m: self._add("camera_info", m), kf)
         self.create_subscription(PoseStamped, "memgs/keyframe/pose", lambda m: self._add("pose", m), kf)

@@ -124,16 +124,17 @@ class MapperNode(Node):
         self.pub_ack = self.create_publisher(Header, self.ack_topic, qos.reliable(100))
 
         io_group = MutuallyExclusiveCallbackGroup()  # keyframe insertion and lockstep stay ordered
-        self.create_subscription(Image, "memgs/keyframe/color", lambda m: self._part("color", m), rel,
+        kfq = qos.keyframes()  # a resumed mapper gets the keyframes sent while it was down
+        self.create_subscription(Image, "memgs/keyframe/color", lambda m: self._part("color", m), kfq,
                                  callback_group=io_group)
         self.create_subscription(CameraInfo, "memgs/keyframe/camera_info", lambda m: self._part("camera_info", m),
-                                 rel, callback_group=io_group)
-        self.create_subscription(PoseStamped, "memgs/keyframe/pose", lambda m: self._part("pose", m), rel,
+                                 kfq, callback_group=io_group)
+        self.create_subscription(PoseStamped, "memgs/keyframe/pose", lambda m: self._part("pose", m), kfq,
                                  callback_group=io_group)
-        self.create_subscription(PointCloud2, "memgs/keyframe/seeds", lambda m: self._part("seeds", m), rel,
+        self.create_subscription(PointCloud2, "memgs/keyframe/seeds", lambda m: self._part("seeds", m), kfq,
                                  callback_group=io_group)
         if self.mode == "rgbd":
-            self.create_subscription(Image, "memgs/keyframe/depth", lambda m: self._part("depth", m), rel,
+            self.create_subscription(Image, "memgs/keyframe/depth", lambda m: self._part("depth", m), kfq,
                                      callback_group=io_group)
         self.create_subscription(Path, "memgs/keyframe/refined_poses", self.on_refined, rel, callback_group=io_group)
         self.create_subscription(Header, "memgs/tracker/processed", self.on_processed, qos.reliable(100),

@@ -111,14 +111,14 @@ class TrackerNode(Node):
         self.create_timer(1.0 / path_rate, self._publish_path)
         self.pub_state = self.create_publisher(String, "memgs/tracking_state", rel)
         self.pub_processed = self.create_publisher(Header, "memgs/tracker/processed", qos.reliable(100))
-        kf = qos.reliable(20)
+        kf = qos.keyframes()  # replayed to a restarted sampler/mapper
         self.pub_kf_color = self.create_publisher(Image, "memgs/keyframe/color", kf)
         self.pub_kf_depth = self.create_publisher(Image, "memgs/keyframe/depth", kf)
         self.pub_kf_info = self.create_publisher(CameraInfo, "memgs/keyframe/camera_info", kf)
         self.pub_kf_pose = self.create_publisher(PoseStamped, "memgs/keyframe/pose", kf)
         from sensor_msgs.msg import PointCloud2  # local: only the keypoint cloud needs it
         self.pub_kf_kps = self.create_publisher(PointCloud2, "memgs/keyframe/keypoints", kf)
-        self.pub_refined = self.create_publisher(Path, "memgs/keyframe/refined_poses", kf)
+        self.pub_refined = self.create_publisher(Path, "memgs/keyframe/refined_poses", qos.reliable(20))
 
         sensor = qos.sensor() if self.input_reliability == "best_effort" else qos.reliable(5)
         self.create_subscription(CameraInfo, self.info_topic, self.on_camera_info, sensor)

@@ -6,12 +6,12 @@ A node may define ``on_shutdown()`` (save the map, stop threads); it runs before
 """
 from __future__ import annotations
 
-import signal
 from collections.abc import Callable, Sequence
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 
 from memgs_ros.errors import MemgsError
 
@@ -19,9 +19,11 @@ from memgs_ros.errors import MemgsError
 def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None = None,
              threads: int = 1) -> int:
     """Create the node with ``factory`` after rclpy.init and spin it until shutdown."""
-    rclpy.init(args=list(args) if args is not None else None)
-    # SIGTERM (e.g. from a supervisor) shuts down like Ctrl-C, so on_shutdown still runs.
-    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    # rclpy's own handlers (SignalHandlerOptions.ALL) turn SIGINT and SIGTERM into a context
+    # shutdown that wakes the executor, which then ends the spin, so on_shutdown still runs.
+    # (A Python handler that shuts the context down could land while the executor builds its
+    # wait set, which then fails with RCLError instead of ending cleanly.)
+    rclpy.init(args=list(args) if args is not None else None, signal_handler_options=SignalHandlerOptions.ALL)
     node: Node | None = None
     executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
     code = 0

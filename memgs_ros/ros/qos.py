@@ -9,6 +9,11 @@
 - ``latched()``: RELIABLE + TRANSIENT_LOCAL, depth 1: the latest map snapshot or "done"
   flag reaches subscribers that join late. Subscribers must use it too to get the
   latched sample.
+- ``keyframes(depth)``: RELIABLE + TRANSIENT_LOCAL, keep last ``depth`` (10): the keyframe
+  topics (tracker -> sampler -> mapper). A sampler or mapper that restarts (after a crash, from
+  its checkpoint) receives the most recent keyframes again instead of losing the ones sent
+  while it was down; receivers ignore stamps they already hold. Publishers and subscribers of
+  these topics must both use it (a VOLATILE publisher cannot serve a TRANSIENT_LOCAL reader).
 """
 from __future__ import annotations
 
@@ -20,7 +25,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
-__all__ = ["sensor", "reliable", "latched"]
+__all__ = ["sensor", "reliable", "latched", "keyframes"]
 
 
 def sensor() -> QoSProfile:
@@ -46,6 +51,19 @@ def latched() -> QoSProfile:
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST,
         depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+
+
+def keyframes(depth: int = 10) -> QoSProfile:
+    """RELIABLE, TRANSIENT_LOCAL, keep last ``depth``: late or restarted readers get the latest
+    ``depth`` keyframes."""
+    if depth < 1:
+        raise ValueError(f"QoS depth must be >= 1, got {depth}")
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
         reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL,
     )
