@@ -37,6 +37,7 @@ from std_msgs.msg import Bool, Header
 from memgs_ros.core.frame import Frame
 from memgs_ros.errors import ConfigError, MemgsError
 from memgs_ros.ros import codecs, qos
+from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.params import ParamSpec, declare_all
 
 TICK_S = 0.005  # pacing resolution; lockstep frames go out from the ack callback, not the tick
@@ -100,6 +101,7 @@ class BagPlayer(Node):
         self._pub_info = self.create_publisher(CameraInfo, "color/camera_info", qos.reliable(5))
         self._pub_gt = self.create_publisher(PoseStamped, "groundtruth/pose", qos.reliable(10))
         self._pub_done = self.create_publisher(Bool, "memgs/player/done", qos.latched())
+        self.stats = NodeStats(self, "player")
         self._ack_sub = (
             self.create_subscription(Header, self.cfg.ack_topic, self._on_ack, qos.reliable(10))
             if self.cfg.lockstep
@@ -176,8 +178,12 @@ class BagPlayer(Node):
                 )
                 self._awaiting_ns = None
                 self._publish_next()
-        elif now >= self._t0 + (self._next_stamp_ns - self._stamp0_ns) * 1e-9 / self.cfg.rate:
-            self._publish_next()
+        else:
+            due = self._t0 + (self._next_stamp_ns - self._stamp0_ns) * 1e-9 / self.cfg.rate
+            if now >= due:
+                # How late the frame goes out: a reader too slow for the source shows up here.
+                self.stats.gauges["late_ms"] = round((now - due) * 1e3, 1)
+                self._publish_next()
         if now - self._last_progress >= PROGRESS_EVERY_S:
             self._last_progress = now
             self._log_progress(now)
@@ -254,6 +260,8 @@ class BagPlayer(Node):
         if frame.T_wc_gt is not None:
             self._pub_gt.publish(codecs.matrix_to_pose_stamped(frame.T_wc_gt, stamp_ns, self.cfg.world_frame_id))
         self._published += 1
+        self.stats.counters["frames_published"] += 1
+        self.stats.gauges["ack_timeouts"] = self._ack_timeouts
         self._last_sent_ns = stamp_ns
         self._sent_at = time.monotonic()
         if self.cfg.lockstep:
