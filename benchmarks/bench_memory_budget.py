@@ -32,7 +32,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import bench_mapping  # noqa: E402  (benchmarks/ is not a package)
+import bench_mapping  # benchmarks/ is not a package: found through the path above
 
 
 def mapping_args(args: argparse.Namespace, overrides: list[str]) -> argparse.Namespace:
@@ -51,7 +51,7 @@ def run_arm(name: str, args: argparse.Namespace, overrides: list[str]) -> dict:
     removed = {"budget_merged": 0, "budget_pruned": 0}
     step = mapping.GaussianMapper.step
 
-    def counting_step(self):  # noqa: ANN001, ANN202  (wraps the mapper's step to total its stats)
+    def counting_step(self):
         st = step(self)
         if st is not None:
             removed["budget_merged"] += st.budget_merged

@@ -31,9 +31,9 @@ def _seeds(f: Frame, step: int = 4) -> tuple[np.ndarray, np.ndarray]:
 
 # Densification from step 10 every 10 steps with a low gradient threshold: an unbudgeted map
 # grows, so the budget's cap on densification is exercised.
-GROWING = dict(min_keyframes=3, pyramid_uses_per_level=2, densify_start_iter=10, densify_interval=10,
-               densify_grad_threshold=2e-5, prune_min_age_iters=5, merge_enabled=True, merge_start_iter=15,
-               merge_interval=15, seed_opacity=0.5)
+GROWING = {"min_keyframes": 3, "pyramid_uses_per_level": 2, "densify_start_iter": 10, "densify_interval": 10,
+           "densify_grad_threshold": 2e-5, "prune_min_age_iters": 5, "merge_enabled": True,
+           "merge_start_iter": 15, "merge_interval": 15, "seed_opacity": 0.5}
 
 
 def _mapper(frames: list[Frame], adds: list[int] | None = None, **overrides: object) -> GaussianMapper:
@@ -65,9 +65,9 @@ def _all_ids_accounted(m: GaussianMapper, removed: set[int]) -> None:
 
 
 def test_config_validates_budget_fields() -> None:
-    for bad in (dict(max_gaussians=-1), dict(max_model_mbytes=-0.5), dict(max_model_mbytes=float("nan")),
-                dict(budget_target_fraction=0.0), dict(budget_target_fraction=1.5),
-                dict(budget_merge_voxel_scale=0.5)):
+    for bad in ({"max_gaussians": -1}, {"max_model_mbytes": -0.5}, {"max_model_mbytes": float("nan")},
+                {"budget_target_fraction": 0.0}, {"budget_target_fraction": 1.5},
+                {"budget_merge_voxel_scale": 0.5}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             MappingConfig(**bad)
     m = GaussianMapper(MappingConfig(max_gaussians=500, max_model_mbytes=1.0))
