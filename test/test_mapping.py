@@ -378,3 +378,28 @@ def test_config_refuses_bad_values() -> None:
         MappingConfig.from_dict({"lr_mean": 1.0})
     assert MappingConfig.from_dict({"background": [1, 1, 1]}).background == (1.0, 1.0, 1.0)
     assert replace(MappingConfig(), depth_weight=0.0).depth_weight == 0.0
+
+
+def test_max_keyframes_drops_the_most_redundant_never_the_newest() -> None:
+    cam = PinholeCamera(16, 12, 10.0, 10.0, 8.0, 6.0)
+    m = GaussianMapper(MappingConfig(min_keyframes=1, max_keyframes=3))
+    rgb = np.zeros((12, 16, 3), np.uint8)
+    for i, x in enumerate([0.0, 1.0, 1.01, 2.0, 3.0]):
+        T = np.eye(4)
+        T[0, 3] = x
+        m.add_keyframe(i, i, T, rgb, None, cam, np.array([[x, 0.0, 2.0]]), np.full((1, 3), 0.5))
+    # 1 and 2 sit 1 cm apart: the first goes; then 2 (0.99 m from 3) goes before 0 (1.01 m).
+    assert m.keyframes.ids() == [0, 3, 4] and m.keyframes_dropped == 2
+    assert len(m.gmap) == 5  # Gaussians of dropped keyframes stay
+    # Rotation counts too: a keyframe turned 90 degrees at the same place is not redundant.
+    m2 = GaussianMapper(MappingConfig(min_keyframes=1, max_keyframes=2))
+    turned = np.eye(4)
+    turned[:3, :3] = [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]
+    shifted = np.eye(4)
+    shifted[0, 3] = 0.2
+    for i, T in enumerate([np.eye(4), turned, shifted]):
+        m2.add_keyframe(i, i, T, rgb, None, cam)
+    assert m2.keyframes.ids() == [1, 2]
+    m2.step()  # training draws only the kept keyframes
+    with pytest.raises(ConfigError, match="max_keyframes"):
+        MappingConfig(max_keyframes=-1)

@@ -150,6 +150,14 @@ class KeyframeStore:
             self._uses[kf.kf_id] = 0
             self._pool.insert(self._rng.randrange(len(self._pool) + 1), kf.kf_id)
 
+    def remove(self, kf_id: int) -> None:
+        """Drop a keyframe from training (its Gaussians stay in the map)."""
+        with self._lock:
+            if kf_id not in self._kfs:
+                raise DataError(f"no keyframe with id {kf_id}")
+            del self._kfs[kf_id], self._budget[kf_id], self._uses[kf_id]
+            self._pool = [k for k in self._pool if k != kf_id]
+
     def get(self, kf_id: int) -> Keyframe:
         with self._lock:
             try:

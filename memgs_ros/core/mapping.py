@@ -125,6 +125,10 @@ class MappingConfig:
     # the least contributing Gaussians bring it to budget_target_fraction of it; densification
     # never grows it past the budget
     max_gaussians: int = 0  # budget on the number of Gaussians (0 = none)
+    # Keyframes kept for training (0 = all). Over it, the most redundant one (nearest pose to
+    # another keyframe; never the newest) leaves the store: its Gaussians stay in the map. Bounds
+    # the mapper's image memory on long runs that revisit places
+    max_keyframes: int = 0
     max_model_mbytes: float = 0.0  # budget in MiB of parameters + gradients + Adam moments (0 = none)
     budget_target_fraction: float = 0.95  # enforcement stops at this fraction of the budget (hysteresis)
     budget_merge: bool = True  # merge (all keyframes, no gradient gate) before pruning, when merging is on
@@ -150,7 +154,7 @@ class MappingConfig:
             if getattr(self, name) < 1:
                 raise ConfigError(f"MappingConfig.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("min_keyframes", "pyramid_uses_per_level", "prune_min_age_iters",
-                     "densify_start_iter", "merge_start_iter", "max_gaussians"):
+                     "densify_start_iter", "merge_start_iter", "max_gaussians", "max_keyframes"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"MappingConfig.{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.budget_target_fraction <= 1.0:
@@ -292,6 +296,7 @@ class GaussianMapper:
         self._merge_fn = merge_fn if merge_fn is not None else (_load_merge() if self.cfg.merge_enabled else None)
         self._merge_cfg = merge_cfg
         self.last_merge: Any = None
+        self.keyframes_dropped = 0  # by max_keyframes
         self.last_budget_merge: Any = None  # MergeResult of the budget's latest merge pass
         self._budget_pending = (0, 0)  # (merged, pruned) by the budget since the last StepStats
 
@@ -360,6 +365,7 @@ class GaussianMapper:
         with self._lock:
             self.keyframes.add(kf)
             self._newest_kf_id = max(self._newest_kf_id, int(kf_id))
+            self._drop_redundant_keyframes()
             self._update_extent()
             added = 0
             if points_w is not None and len(points_w):
@@ -373,6 +379,24 @@ class GaussianMapper:
                         self.gmap.opacity_logits[self.gmap.index_of(ids)] = logit
                 self._enforce_budget_and_record()
             return added
+
+    def _drop_redundant_keyframes(self) -> None:
+        """Keep at most ``max_keyframes``: drop the keyframe whose pose is closest to another
+        one (translation in metres + 0.5 m per radian of rotation), never the newest."""
+        cap = self.cfg.max_keyframes
+        while cap > 0 and len(self.keyframes) > cap:
+            kfs = self.keyframes.all()
+            T = np.stack([k.T_wc for k in kfs])  # [K, 4, 4]
+            trans = np.linalg.norm(T[:, None, :3, 3] - T[None, :, :3, 3], axis=-1)
+            rel = np.einsum("iba,jbc->ijac", T[:, :3, :3], T[:, :3, :3])  # R_i^T R_j
+            angle = np.arccos(np.clip((np.trace(rel, axis1=2, axis2=3) - 1.0) / 2.0, -1.0, 1.0))
+            dist = trans + 0.5 * angle
+            np.fill_diagonal(dist, np.inf)
+            nearest = dist.min(axis=1)
+            nearest[[i for i, k in enumerate(kfs) if k.kf_id == self._newest_kf_id]] = np.inf
+            victim = kfs[int(np.argmin(nearest))].kf_id
+            self.keyframes.remove(victim)
+            self.keyframes_dropped += 1
 
     def add_prepared_keyframe(self, kf: Keyframe) -> None:
         """Insert a keyframe whose images are prepared already (a restored checkpoint)."""

@@ -285,6 +285,11 @@ class MapperNode(Node):
             g["cuda_max_allocated"] = torch.cuda.max_memory_allocated(self.mapper.device)
         self.stats.counters["merged_removed"] += st.merged_removed
         self.stats.counters["merged_added"] += st.merged_added
+        self.stats.counters["budget_merged"] += st.budget_merged
+        self.stats.counters["budget_pruned"] += st.budget_pruned
+        g["keyframes_trained"] = len(self.mapper.keyframes)
+        g["keyframes_dropped"] = self.mapper.keyframes_dropped
+        g["budget_gaussians"] = self.mapper.budget_gaussians
 
     def on_processed(self, msg: Header) -> None:
         """Lockstep: acknowledge a frame once its keyframe (if any) is in and training ran."""
