@@ -35,7 +35,13 @@ def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None 
                 raise
             return code  # Ctrl-C / SIGTERM arrived while the node was still being built
         executor.add_node(node)
-        executor.spin()
+        try:
+            executor.spin()
+        except Exception:
+            if rclpy.ok():
+                raise
+            # The signal handler shut the context down while the executor was between waits
+            # (building its wait set fails with RCLError then): the same clean stop.
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except MemgsError as err:
