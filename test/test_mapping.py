@@ -401,5 +401,7 @@ def test_max_keyframes_drops_the_most_redundant_never_the_newest() -> None:
         m2.add_keyframe(i, i, T, rgb, None, cam)
     assert m2.keyframes.ids() == [1, 2]
     m2.step()  # training draws only the kept keyframes
+    assert not m2.update_keyframe_pose(0, np.eye(4))  # a dropped keyframe's refined pose is ignored
+    assert m2.update_keyframe_pose(1, np.eye(4))
     with pytest.raises(ConfigError, match="max_keyframes"):
         MappingConfig(max_keyframes=-1)

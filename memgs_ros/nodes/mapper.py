@@ -254,12 +254,11 @@ class MapperNode(Node):
             if kf_id is None:
                 continue
             try:
-                T_wc = pose_to_matrix(p.pose)
-            except MessageError as err:
+                updated = self.mapper.update_keyframe_pose(kf_id, pose_to_matrix(p.pose))
+            except (MessageError, DataError) as err:
                 self.stats.problem("bad_pose", f"refined pose of keyframe {kf_id} ignored: {err}")
                 continue
-            self.mapper.update_keyframe_pose(kf_id, T_wc)
-            self.stats.counters["keyframe_pose_updates"] += 1
+            self.stats.counters["keyframe_pose_updates" if updated else "refined_poses_of_dropped_keyframes"] += 1
 
     # ------------------------------------------------------------------ training
     def _train_loop(self) -> None:
@@ -267,7 +266,12 @@ class MapperNode(Node):
             if not self.mapper.ready:
                 self._stop.wait(0.05)
                 continue
-            self._step()
+            try:
+                self._step()
+            except (DataError, RuntimeError) as err:
+                # One bad step (a keyframe gone mid-step, a CUDA hiccup) must not end training.
+                self.stats.problem("training_step", f"training step failed: {err}")
+                self._stop.wait(0.1)
 
     def _step(self) -> None:
         st = self.mapper.step()
