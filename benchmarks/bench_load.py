@@ -87,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--unique", type=int, default=150, help="distinct frames in the looped bag")
-    p.add_argument("--warmup-s", type=float, default=60.0, help="memory growth is measured after this")
+    p.add_argument("--warmup-s", type=float, default=120.0,
+                   help="memory growth is measured after this (the map fills its budget first)")
     p.add_argument("--config", default="synthetic")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE")
     p.add_argument("--out", type=Path, default=Path("results/bench_load.json"))
