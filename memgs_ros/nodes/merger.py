@@ -75,6 +75,9 @@ class MergerNode(Node):
         self.buffer: deque[MapMessage] = deque(maxlen=self.max_buffered)
         self.resyncing = False
         self._last_request = 0.0
+        self._started = time.monotonic()
+        self._heard_delta = False
+        self._asked_at_start = False
         self._render_cache: tuple[int, int, GaussianMap] | None = None  # (seq, size, map)
         self._saved_version: tuple[int, int] | None = None
         self._published_version: tuple[int, int] | None = None
@@ -107,6 +110,7 @@ class MergerNode(Node):
         if m is None:
             return
         self.stats.counters["deltas"] += 1
+        self._heard_delta = True
         self.stats.counters["delta_bytes"] += len(msg.data)
         if self.drop_every and self.stats.counters["deltas"] % self.drop_every == 0:
             self.stats.counters["fault_dropped_deltas"] += 1
@@ -163,6 +167,14 @@ class MergerNode(Node):
     def _retry_resync(self) -> None:
         if self.resyncing:
             self._request_snapshot()
+        elif not self._heard_delta and not self._asked_at_start and time.monotonic() - self._started > 2.0:
+            # A merger (re)started after the mapper went quiet (finished, or idle) would wait
+            # for a delta that never comes: ask once for the current map.
+            if self.snapshot_client.service_is_ready():
+                self._asked_at_start = True
+                self._last_request = time.monotonic()
+                self.snapshot_client.call_async(Trigger.Request())
+                self.stats.counters["snapshot_requests"] += 1
 
     def _gauges(self) -> None:
         self.stats.gauges["seq"] = self.replica.seq
