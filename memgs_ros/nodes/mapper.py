@@ -20,11 +20,12 @@ deterministic run to run.
 """
 from __future__ import annotations
 
+import pathlib
 import secrets
 import sys
 import threading
 import time
-import pathlib
+from collections import deque
 
 import numpy as np
 import torch
@@ -46,8 +47,17 @@ from memgs_ros.core.sampling import undistorter_for
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
-    camera_info_to_camera, check_image_sizes, camera_to_camera_info, depth_from_image, depth_to_image, make_header,
-    numpy_to_image, pointcloud2_to_structured, pose_to_matrix, rgb_from_image, stamp_to_ns,
+    camera_info_to_camera,
+    camera_to_camera_info,
+    check_image_sizes,
+    depth_from_image,
+    depth_to_image,
+    make_header,
+    numpy_to_image,
+    pointcloud2_to_structured,
+    pose_to_matrix,
+    rgb_from_image,
+    stamp_to_ns,
     structured_to_pointcloud2,
 )
 from memgs_ros.ros.config_params import declare_config
@@ -109,6 +119,9 @@ class MapperNode(Node):
         self.render_camera: PinholeCamera | None = None
         self.latest_pose: PoseStamped | None = None
         self.awaiting_keyframes: set[int] = set()
+        # (arrival time, stamp) of keyframes the tracker announced: a keyframe not inserted 10 s
+        # later was lost on the way (a reader too slow for the transient-local history of 10)
+        self._announced: deque[tuple[float, int]] = deque(maxlen=10_000)
         self._send_lock = threading.Lock()  # one delta/snapshot cut at a time, in seq order
         self._stop = threading.Event()
         self._finished = False
@@ -152,6 +165,7 @@ class MapperNode(Node):
             self.publish_snapshot()  # latched: the merger takes the resumed map and its epoch
         if self.render_rate > 0:
             self.create_timer(1.0 / self.render_rate, self.render_live)
+        self.create_timer(1.0, self._count_missed_keyframes)
         self.trainer: threading.Thread | None = None
         if not self.lockstep:
             self.trainer = threading.Thread(target=self._train_loop, name="mapper-training", daemon=True)
@@ -202,7 +216,7 @@ class MapperNode(Node):
             return self.ckpt_path
 
     # ------------------------------------------------------------------ keyframes
-    def _part(self, part: str, msg) -> None:  # noqa: ANN001 - any bundle message type
+    def _part(self, part: str, msg) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
         if stamp in self.kf_ids:
             # Keyframe topics replay recent samples to a (re)started mapper: keep the first copy.
@@ -296,14 +310,24 @@ class MapperNode(Node):
         g["budget_gaussians"] = self.mapper.budget_gaussians
 
     def on_processed(self, msg: Header) -> None:
-        """Lockstep: acknowledge a frame once its keyframe (if any) is in and training ran."""
+        """Lockstep: acknowledge a frame once its keyframe (if any) is in and training ran.
+        Always: remember announced keyframes, so ones that never arrive are counted."""
+        stamp = stamp_to_ns(msg.stamp)
+        if msg.frame_id == "keyframe":
+            self._announced.append((time.monotonic(), stamp))
         if not self.lockstep:
             return
-        stamp = stamp_to_ns(msg.stamp)
         if msg.frame_id == "keyframe" and stamp not in self.kf_ids:
             self.awaiting_keyframes.add(stamp)
             return
         self._lockstep_ack(stamp)
+
+    def _count_missed_keyframes(self) -> None:
+        now = time.monotonic()
+        while self._announced and now - self._announced[0][0] > 10.0:
+            _, stamp = self._announced.popleft()
+            if stamp not in self.kf_ids:
+                self.stats.counters["keyframes_missed"] += 1
 
     def _lockstep_ack(self, stamp_ns: int) -> None:
         if self.mapper.ready:
