@@ -138,6 +138,11 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(f"\nframes published {published}, tracked {frames_in}, dropped before the tracker "
           f"{published - frames_in} ({100 * result['dropped_fraction']:.1f} %), poses {s.poses}, lost {s.lost_frames}")
+    mp = nodes.get("mapper", {}).get("last", {})
+    result["mapper_keyframes"] = {k: mp.get(k) for k in ("keyframes", "keyframes_missed", "dropped_keyframe_bundles",
+                                                         "keyframes_trained", "keyframes_dropped")}
+    print(f"tracker keyframes {s.keyframes}: mapper inserted {mp.get('keyframes')}, missed "
+          f"{mp.get('keyframes_missed', 0)}, incomplete bundles dropped {mp.get('dropped_keyframe_bundles')}")
     print(f"keyframes {s.keyframes}, Gaussians {s.gaussians} (peak {s.gaussians_peak}), "
           f"deltas {result['delta_kbytes_per_s']:.0f} kB/s, merger == mapper: {s.replica_identical}")
     print(f"{'node':18s} {'RSS start':>10s} {'after warm-up':>14s} {'end':>8s} {'max':>8s}  growth after warm-up")
