@@ -23,3 +23,13 @@ except ImportError:  # pragma: no cover - torch is a hard dependency; keep colle
 def ros_domain_id() -> int:
     """A DDS domain id of its own for each test that starts nodes, so parallel runs never hear each other."""
     return random.Random(os.getpid() ^ id(object())).randrange(100, 200)
+
+
+@pytest.fixture
+def context(ros_domain_id: int):  # -> rclpy.Context
+    """A private rclpy context on the test's own domain, for nodes run in-process."""
+    rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=ros_domain_id)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)

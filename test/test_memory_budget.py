@@ -1,7 +1,6 @@
 """The mapper's memory budget: hard cap on Gaussians / MiB, merge then prune, ids reported."""
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
@@ -10,6 +9,7 @@ import torch
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.mapping import GaussianMapper, MappingConfig
+from memgs_ros.core.metrics import psnr
 from memgs_ros.errors import ConfigError
 from memgs_ros.io.synthetic import generate_frames, parse_spec
 
@@ -51,9 +51,8 @@ def _mapper(frames: list[Frame], adds: list[int] | None = None, **overrides: obj
 def _psnr(m: GaussianMapper, frames: list[Frame]) -> float:
     vals = []
     for f in frames:
-        out = m.render(f.T_wc_gt, f.camera)
         gt = torch.from_numpy(f.rgb).permute(2, 0, 1).float() / 255.0
-        vals.append(-10.0 * math.log10(float(((out.color.clamp(0, 1) - gt) ** 2).mean())))
+        vals.append(psnr(m.render(f.T_wc_gt, f.camera).color.clamp(0, 1), gt))
     return float(np.mean(vals))
 
 

@@ -34,14 +34,6 @@ pytestmark = pytest.mark.ros
 SPEC = "synthetic:w=64,h=48,n=6,seed=3"
 
 
-@pytest.fixture
-def context(ros_domain_id: int):
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=ros_domain_id)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
 @pytest.fixture(scope="module")
 def frames() -> list[Frame]:
     return list(generate_frames(parse_spec(SPEC)))

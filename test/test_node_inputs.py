@@ -21,14 +21,6 @@ from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to
 pytestmark = pytest.mark.ros
 
 
-@pytest.fixture
-def context(ros_domain_id: int):
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=ros_domain_id)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
 def _spin_until(executor: SingleThreadedExecutor, cond, timeout_s: float = 20.0) -> bool:  # noqa: ANN001
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:

@@ -26,11 +26,13 @@ from memgs_ros.core.sampling import PatchGridConfig, Undistorter, seeds_mono, se
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
-    camera_info_to_camera, check_image_sizes, depth_from_image, pointcloud2_to_structured, pose_to_matrix,
-    rgb_from_image, stamp_to_ns, structured_to_pointcloud2,
+    pointcloud2_to_structured,
+    stamp_to_ns,
+    structured_to_pointcloud2,
 )
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.keyframe_bundle import KeyframeBundleError, decode_keyframe_images
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.params import declare
 from memgs_ros.ros.seed_cloud import encode_seeds
@@ -69,20 +71,10 @@ class KeyframeSamplerNode(Node):
 
     def _sample(self, stamp_ns: int, b: dict) -> None:
         # Each stage names the problem kind a failure in it is counted under (module docstring).
-        stage = "camera_info"
+        stage = "bad_keypoints"
         try:
-            cam = camera_info_to_camera(b["camera_info"])
-            stage = "bad_image"
-            rgb = rgb_from_image(b["color"])
-            depth = depth_from_image(b["depth"], self.depth_scale) if self.mode == "rgbd" else None
-            stage = "size_mismatch"
-            check_image_sizes(rgb, depth, cam)
-            if depth is not None and not np.isfinite(depth).any():
-                stage = "empty_depth"
-                raise MessageError("depth has no valid pixel (all zero, NaN, inf or negative)")
-            stage = "bad_pose"
-            T_wc = pose_to_matrix(b["pose"].pose)
-            stage = "bad_keypoints"
+            kf = decode_keyframe_images(b, self.depth_scale)
+            cam, rgb, depth, T_wc = kf.camera, kf.rgb, kf.depth_m, kf.T_wc
             kps = pointcloud2_to_structured(b["keypoints"], required=("u", "v", "depth"))
             uv = np.stack([kps["u"], kps["v"]], axis=1).astype(np.float32)
             kp_depth = kps["depth"].astype(np.float32)
@@ -98,6 +90,9 @@ class KeyframeSamplerNode(Node):
                 seeds = seeds_rgbd(rgb, depth, cam, T_wc, kf_id, uv, kp_depth, self.cfg)  # rng from (seed, kf_id)
             else:
                 seeds = seeds_mono(rgb, cam, T_wc, kf_id, uv, kp_depth, self.cfg)
+        except KeyframeBundleError as err:
+            self.stats.problem(err.kind, f"keyframe {stamp_ns} refused: {err}")
+            return
         except (MessageError, DataError) as err:
             self.stats.problem(stage, f"keyframe {stamp_ns} refused: {err}")
             return

@@ -47,21 +47,18 @@ from memgs_ros.core.sampling import undistorter_for
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
-    camera_info_to_camera,
     camera_to_camera_info,
-    check_image_sizes,
-    depth_from_image,
     depth_to_image,
     make_header,
     numpy_to_image,
     pointcloud2_to_structured,
     pose_to_matrix,
-    rgb_from_image,
     stamp_to_ns,
     structured_to_pointcloud2,
 )
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.keyframe_bundle import KeyframeBundleError, decode_keyframe_images
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.params import declare
 from memgs_ros.ros.seed_cloud import decode_seeds
@@ -233,24 +230,17 @@ class MapperNode(Node):
         empty_depth, bad_pose, bad_seeds, bad_keyframe."""
         if self._finished:
             return
-        stage = "camera_info"  # the problem kind a failure from here on is counted under
+        stage = "bad_seeds"  # the problem kind a failure from here on is counted under
         try:
-            cam = camera_info_to_camera(b["camera_info"])
-            stage = "bad_image"
-            rgb = rgb_from_image(b["color"])
-            depth = depth_from_image(b["depth"]) if "depth" in b else None
-            stage = "size_mismatch"
-            check_image_sizes(rgb, depth, cam)
-            if depth is not None and not np.isfinite(depth).any():
-                stage = "empty_depth"
-                raise MessageError("depth has no valid pixel (all zero, NaN, inf or negative)")
-            stage = "bad_pose"
-            T_wc = pose_to_matrix(b["pose"].pose)
-            stage = "bad_seeds"
+            kf = decode_keyframe_images(b)
+            cam, rgb, depth, T_wc = kf.camera, kf.rgb, kf.depth_m, kf.T_wc
             points, colors = decode_seeds(pointcloud2_to_structured(b["seeds"]))
             stage = "bad_keyframe"
             kf_id = len(self.kf_ids)
             added = self.mapper.add_keyframe(kf_id, stamp_ns, T_wc, rgb, depth, cam, points, colors)
+        except KeyframeBundleError as err:
+            self.stats.problem(err.kind, f"keyframe {stamp_ns} refused: {err}")
+            return
         except (MessageError, DataError) as err:
             self.stats.problem(stage, f"keyframe {stamp_ns} refused: {err}")
             return

@@ -34,36 +34,24 @@ def sensor() -> QoSProfile:
     return QoSProfile(history=p.history, depth=p.depth, reliability=p.reliability, durability=p.durability)
 
 
-def reliable(depth: int = 10) -> QoSProfile:
-    """RELIABLE, VOLATILE, keep last ``depth`` (>= 1)."""
+def _reliable(depth: int, durability: DurabilityPolicy) -> QoSProfile:
     if depth < 1:
         raise ValueError(f"QoS depth must be >= 1, got {depth}")
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=depth,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.VOLATILE,
-    )
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=durability)
+
+
+def reliable(depth: int = 10) -> QoSProfile:
+    """RELIABLE, VOLATILE, keep last ``depth`` (>= 1)."""
+    return _reliable(depth, DurabilityPolicy.VOLATILE)
 
 
 def latched() -> QoSProfile:
     """RELIABLE, TRANSIENT_LOCAL, keep last 1: late joiners get the last sample."""
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=1,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL,
-    )
+    return _reliable(1, DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def keyframes(depth: int = 10) -> QoSProfile:
     """RELIABLE, TRANSIENT_LOCAL, keep last ``depth``: late or restarted readers get the latest
     ``depth`` keyframes."""
-    if depth < 1:
-        raise ValueError(f"QoS depth must be >= 1, got {depth}")
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=depth,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL,
-    )
+    return _reliable(depth, DurabilityPolicy.TRANSIENT_LOCAL)

@@ -1,0 +1,65 @@
+"""The common part of a keyframe bundle (tracker -> sampler, mapper): camera, images and pose.
+
+Both consumers refuse a bad keyframe whole and count the problem by kind, so the decoder says
+which check failed: ``camera_info``, ``bad_image``, ``size_mismatch``, ``empty_depth`` or
+``bad_pose`` (see the nodes' docstrings).
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.errors import DataError, MessageError
+from memgs_ros.ros.codecs import (
+    camera_info_to_camera,
+    check_image_sizes,
+    depth_from_image,
+    pose_to_matrix,
+    rgb_from_image,
+)
+
+
+class KeyframeBundleError(MessageError):
+    """A keyframe bundle refused; ``kind`` is the problem kind it is counted under."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframeImages:
+    """camera: as recorded (with distortion); rgb: [H, W, 3] uint8; depth_m: [H, W] float32
+    metres (NaN invalid) or None; T_wc: [4, 4] camera-to-world."""
+
+    camera: PinholeCamera
+    rgb: np.ndarray
+    depth_m: np.ndarray | None
+    T_wc: np.ndarray
+
+
+def decode_keyframe_images(bundle: Mapping[str, Any], depth_scale: float = 1000.0) -> KeyframeImages:
+    """Decode ``camera_info``, ``color``, ``pose`` and, when present, ``depth`` of a bundle.
+
+    Raises KeyframeBundleError naming the kind of the first check that fails.
+    """
+    kind = "camera_info"
+    try:
+        camera = camera_info_to_camera(bundle["camera_info"])
+        kind = "bad_image"
+        rgb = rgb_from_image(bundle["color"])
+        depth = depth_from_image(bundle["depth"], depth_scale) if "depth" in bundle else None
+        kind = "size_mismatch"
+        check_image_sizes(rgb, depth, camera)
+        if depth is not None and not np.isfinite(depth).any():
+            kind = "empty_depth"
+            raise MessageError("depth has no valid pixel (all zero, NaN, inf or negative)")
+        kind = "bad_pose"
+        T_wc = pose_to_matrix(bundle["pose"].pose)
+    except (MessageError, DataError) as err:
+        raise KeyframeBundleError(kind, str(err)) from err
+    return KeyframeImages(camera, rgb, depth, T_wc)
