@@ -74,10 +74,12 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
         if res.T_wc is not None:
             est.append(res.T_wc)
             stamps.append(f.stamp_ns)
+    kept = len(tracker.map.keyframes) if hasattr(tracker, "map") else None
     tracker.close()
     gt_st = np.array([f.stamp_ns for f in frames if f.T_wc_gt is not None])
     gt_T = np.array([f.T_wc_gt for f in frames if f.T_wc_gt is not None])
     out: dict = {"case": name, "n_frames": len(frames), "n_keyframes": n_kf,
+                 "map_keyframes_kept": kept,
                  "n_ok": states.count("ok"), "n_recently_lost": states.count("recently_lost"),
                  "n_lost": states.count("lost"), "n_not_initialized": states.count("not_initialized"),
                  "first_ok_frame": first_ok,

@@ -258,3 +258,115 @@ def test_new_segment_after_lost_timeout(frames: list[Frame]) -> None:
     np.testing.assert_allclose(first_new.T_wc, results[9].T_wc, atol=1e-9)
     assert all(r.state == TrackingState.OK and r.segment_id == 1 for r in results[15:])
     assert first_new.keyframe.keyframe_id > max(r.keyframe.keyframe_id for r in results[:10] if r.keyframe)
+
+
+def _toy_map(n_kf: int, pts_per_kf: int, shared: int) -> "SparseMap":
+    """Keyframes each creating ``pts_per_kf`` points and observing ``shared`` of the previous one's."""
+    from memgs_ros.core.tracking.features import FrameFeatures
+    from memgs_ros.core.tracking.local_map import Keyframe, SparseMap
+
+    rng = np.random.default_rng(0)
+    m = SparseMap()
+    m_kp = pts_per_kf + shared
+    prev_ids = np.zeros(0, np.int64)
+    for k in range(n_kf):
+        feats = FrameFeatures(np.zeros((m_kp, 2), np.float32), rng.uniform(0, 100, (m_kp, 2)),
+                              np.zeros(m_kp, np.int64), rng.integers(0, 255, (m_kp, 32), dtype=np.uint8),
+                              np.ones(m_kp))
+        T = np.eye(4)
+        T[0, 3] = 0.1 * k
+        kf = Keyframe(m.new_keyframe_id(), k, T, feats, np.full(m_kp, -1, np.int64))
+        m.add_keyframe(kf)
+        if len(prev_ids):
+            m.add_observations(prev_ids[:shared], kf.keyframe_id, np.arange(pts_per_kf, m_kp))
+        prev_ids = m.add_points(rng.normal(size=(pts_per_kf, 3)), feats.desc[:pts_per_kf],
+                                np.zeros(pts_per_kf, np.int64), kf.keyframe_id, np.arange(pts_per_kf))
+    return m
+
+
+def _assert_consistent(m: "SparseMap") -> None:
+    """Every keyframe point id is a good point observed by that keyframe at that keypoint, and back."""
+    for kf_id, kf in m.keyframes.items():
+        for i, pid in enumerate(kf.point_ids.tolist()):
+            if pid >= 0:
+                assert m.good(np.array([pid]))[0]
+                assert m.observations[pid].get(kf_id) == i
+    for pid, obs in enumerate(m.observations):
+        assert int(m.n_observations(np.array([pid]))[0]) == (len(obs) if m.good(np.array([pid]))[0] else 0)
+        for kf_id, i in obs.items():
+            assert m.keyframes[kf_id].point_ids[i] == pid
+
+
+def test_sparse_map_removal_and_compaction_keep_ids_consistent() -> None:
+    m = _toy_map(n_kf=6, pts_per_kf=50, shared=20)
+    pos_before = {kf_id: m.point_arrays(kf.point_ids[kf.point_ids >= 0])[0] for kf_id, kf in m.keyframes.items()}
+    m.remove_keyframe(1)
+    assert 1 not in m.keyframes and m.keyframes_removed == 1
+    # Keyframe 1's own points were seen by keyframe 2 only in part: 20 live on, 30 turn bad.
+    assert m.n_good_points == 6 * 50 - 30
+    _assert_consistent(m)
+    assert not m.compact()  # 30 bad of 300: not worth it
+    for k in (2, 3, 4):
+        m.remove_keyframe(k)
+    assert m.compact(min_bad=1, min_fraction=0.0)
+    assert m.n_points == m.n_good_points == 50 + 50 + 20  # kf 0, kf 5, and kf 4's points kf 5 saw
+    assert m.layout_version == 1
+    _assert_consistent(m)
+    for kf_id in (0, 5):  # positions travel with the renumbering
+        kf = m.keyframes[kf_id]
+        np.testing.assert_array_equal(m.point_arrays(kf.point_ids[kf.point_ids >= 0])[0], pos_before[kf_id])
+
+
+def test_refinement_taken_before_compaction_is_renumbered_or_discarded() -> None:
+    m = _toy_map(n_kf=4, pts_per_kf=40, shared=10)
+    kf3 = m.keyframes[3]
+    snap_ids = kf3.point_ids[kf3.point_ids >= 0].copy()  # what a BA thread would hold
+    snap_layout = m.layout_version
+    m.remove_keyframe(0)
+    m.remove_keyframe(1)
+    assert m.compact(min_bad=1, min_fraction=0.0)
+    new_pos = np.full((len(snap_ids), 3), 7.0)
+    T_new = np.eye(4)[None].copy()
+    T_new[0, 1, 3] = 1.0
+    moved = m.commit_refinement([3], T_new, snap_ids, new_pos, [(int(snap_ids[0]), 3)], layout_version=snap_layout)
+    assert 3 in moved
+    now = kf3.point_ids[kf3.point_ids >= 0]
+    assert len(now) == len(snap_ids) - 1  # the outlier observation was dropped, by its new id
+    np.testing.assert_array_equal(m.point_arrays(now)[0], 7.0)
+    _assert_consistent(m)
+    # Two compactions later the snapshot's ids mean nothing: the result is dropped whole.
+    m.remove_keyframe(2)
+    assert m.compact(min_bad=1, min_fraction=0.0)
+    before = m.point_arrays(kf3.point_ids[kf3.point_ids >= 0])[0].copy()
+    assert m.renumber(snap_ids, snap_layout) is None
+    assert m.commit_refinement([3], np.eye(4)[None], snap_ids, np.zeros((len(snap_ids), 3)), [],
+                               layout_version=snap_layout) == {}
+    np.testing.assert_array_equal(m.point_arrays(kf3.point_ids[kf3.point_ids >= 0])[0], before)
+
+
+def test_keyframe_cap_bounds_the_map_on_a_long_run(frames: list[Frame]) -> None:
+    """Forward, back and forward again through the room: the map keeps at most max_keyframes,
+    the point store stays bounded, and tracking is as accurate as without the cap."""
+    seq = frames + frames[::-1] + frames
+    loop = [Frame(frames[0].stamp_ns + i * 33_000_000, f.rgb, f.depth_m, f.camera, f.T_wc_gt)
+            for i, f in enumerate(seq)]
+    cfg = TrackerConfig(ba_threaded=False, max_keyframes=8, local_map_keyframes=4, ba_window=4,
+                        keyframe_max_frames=4)
+    tracker = make_tracker(cfg, frames[0].camera)
+    try:
+        results, store = [], []
+        for f in loop:
+            results.append(tracker.track(f))
+            store.append(tracker.map.n_points)
+            assert len(tracker.map.keyframes) <= cfg.max_keyframes
+        n_kf = sum(r.keyframe is not None for r in results)
+        assert tracker.map.keyframes_removed == n_kf - len(tracker.map.keyframes) > 10
+        assert tracker.map.layout_version >= 1  # compaction ran and tracking went on
+        _assert_consistent(tracker.map)
+    finally:
+        tracker.close()
+    assert all(r.state == TrackingState.OK for r in results), [r.state.name for r in results]
+    err = _errors_m(results, loop)
+    assert err.max() < 0.05, err.max()
+    # Store size after the first pass is what the capped map needs; later passes do not add to it.
+    assert max(store[len(frames):]) <= 2 * max(store[: len(frames)]) + 1024, (max(store[:len(frames)]), max(store))

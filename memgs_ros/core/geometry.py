@@ -56,6 +56,22 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def nearest_pose_distance(T_wc: np.ndarray, rotation_weight_m: float = 0.5) -> np.ndarray:
+    """For each pose, the distance to its nearest other pose.
+
+    T_wc: [K, 4, 4]. Distance = translation in metres + ``rotation_weight_m`` per radian of
+    relative rotation. Returns [K] (inf when K == 1): the smallest value marks the most
+    redundant pose, the one a capped keyframe store can drop at least cost in coverage.
+    """
+    T = np.asarray(T_wc, dtype=np.float64)
+    trans = np.linalg.norm(T[:, None, :3, 3] - T[None, :, :3, 3], axis=-1)
+    rel = np.einsum("iba,jbc->ijac", T[:, :3, :3], T[:, :3, :3])  # R_i^T R_j
+    angle = np.arccos(np.clip((np.trace(rel, axis1=2, axis2=3) - 1.0) / 2.0, -1.0, 1.0))
+    dist = trans + rotation_weight_m * angle
+    np.fill_diagonal(dist, np.inf)
+    return dist.min(axis=1)
+
+
 def interpolate_poses(stamps_ns: np.ndarray, poses: np.ndarray, query_ns: np.ndarray,
                       max_gap_ns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Interpolate poses at query times: linear in translation, slerp in rotation.

@@ -31,7 +31,7 @@ import torch
 
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.gaussians import GaussianLearningRates, GaussianMap, GaussianRecords
-from memgs_ros.core.geometry import invert_pose, quat_wxyz_to_rotmat_torch
+from memgs_ros.core.geometry import invert_pose, nearest_pose_distance, quat_wxyz_to_rotmat_torch
 from memgs_ros.core.keyframes import Keyframe, KeyframeStore, make_keyframe
 from memgs_ros.core.losses import mapping_loss
 from memgs_ros.core.sampling import undistorter_for
@@ -386,13 +386,7 @@ class GaussianMapper:
         cap = self.cfg.max_keyframes
         while cap > 0 and len(self.keyframes) > cap:
             kfs = self.keyframes.all()
-            T = np.stack([k.T_wc for k in kfs])  # [K, 4, 4]
-            trans = np.linalg.norm(T[:, None, :3, 3] - T[None, :, :3, 3], axis=-1)
-            rel = np.einsum("iba,jbc->ijac", T[:, :3, :3], T[:, :3, :3])  # R_i^T R_j
-            angle = np.arccos(np.clip((np.trace(rel, axis1=2, axis2=3) - 1.0) / 2.0, -1.0, 1.0))
-            dist = trans + 0.5 * angle
-            np.fill_diagonal(dist, np.inf)
-            nearest = dist.min(axis=1)
+            nearest = nearest_pose_distance(np.stack([k.T_wc for k in kfs]))
             nearest[[i for i, k in enumerate(kfs) if k.kf_id == self._newest_kf_id]] = np.inf
             victim = kfs[int(np.argmin(nearest))].kf_id
             self.keyframes.remove(victim)

@@ -202,6 +202,13 @@ class TrackerNode(Node):
             self.stats.counters["ba_us_total"] += int(ba_dt * 1e6)
         self.stats.gauges["track_ms"] = round(dt * 1e3, 2)
         self.stats.counters["track_us_total"] += int(dt * 1e6)
+        smap = getattr(self.tracker, "map", None)  # the ORB-SLAM3 backend keeps its own
+        if smap is not None and result.keyframe is not None:
+            self.stats.gauges["map_keyframes"] = len(smap.keyframes)
+            self.stats.gauges["map_points"] = smap.n_good_points
+            self.stats.gauges["map_keyframes_removed"] = smap.keyframes_removed
+            if len(self.kf_stamps) > 2 * len(smap.keyframes) + 64:  # BA refines only kept keyframes
+                self.kf_stamps = {i: s for i, s in self.kf_stamps.items() if i in smap.keyframes}
         self._publish(frame, result, color.header.frame_id or self.camera_frame)
         self._publish_refined()
         self._processed(stamp, keyframe=result.keyframe is not None)

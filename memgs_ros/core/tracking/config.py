@@ -78,6 +78,10 @@ class TrackerConfig:
     ba_enabled: bool = True
     ba_threaded: bool = True
     point_min_found_ratio: float = 0.25  # cull points found in fewer than this of frames that saw them
+    # Keyframes kept in the sparse map (0 = all). Over it the most redundant one (nearest pose to
+    # another, outside the local map) is removed and points no keyframe sees are dropped, so
+    # memory stays flat on long flights; relocalisation then searches the kept keyframes.
+    max_keyframes: int = 200
     # Loss handling.
     max_recently_lost_frames: int = 3
     reloc_min_inliers: int = 50
@@ -123,6 +127,10 @@ class TrackerConfig:
         if not 0 <= self.max_descriptor_distance <= 256:
             raise ConfigError(
                 f"TrackerConfig.max_descriptor_distance must be in [0, 256], got {self.max_descriptor_distance}")
+        if self.max_keyframes != 0 and self.max_keyframes < self.local_map_keyframes + 2:
+            raise ConfigError(
+                f"TrackerConfig.max_keyframes must be 0 (keep all) or at least local_map_keyframes + 2 "
+                f"= {self.local_map_keyframes + 2}, got {self.max_keyframes}")
         if self.ba_window < 2:
             raise ConfigError(f"TrackerConfig.ba_window must be at least 2, got {self.ba_window}")
 

@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry import invert_pose, nearest_pose_distance
 from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, local_bundle_adjustment, optimize_pose,
                                                         orthonormalized)
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
@@ -380,7 +380,27 @@ class FeatureTracker:
         self.map.add_observations(outcome.point_ids, kf.keyframe_id, outcome.kp_idx)
         self._create_points(kf, frame)
         self.map.cull_points(kf.keyframe_id, self.cfg.point_min_found_ratio, self._min_point_obs())
+        self._cap_keyframes(kf.keyframe_id)
         return self._finish_keyframe(kf)
+
+    def _cap_keyframes(self, newest_id: int) -> None:
+        """Keep at most ``cfg.max_keyframes``: remove the most redundant keyframe outside the
+        local map and the newest BA window, then compact the points nobody sees any more."""
+        cap = self.cfg.max_keyframes
+        if cap <= 0 or len(self.map.keyframes) <= cap:
+            return
+        with self.map.lock:
+            ids = sorted(self.map.keyframes)
+            protected = set(self._local_kfs) | set(ids[-self.cfg.ba_window:]) | {newest_id, self._last_kf_id}
+            while len(ids) > cap:
+                T_wc = invert_pose(np.stack([self.map.keyframes[i].T_cw for i in ids]))
+                nearest = nearest_pose_distance(T_wc)
+                nearest[[j for j, i in enumerate(ids) if i in protected]] = np.inf
+                j = int(np.argmin(nearest))
+                if not np.isfinite(nearest[j]):
+                    break  # everything left is in use
+                self.map.remove_keyframe(ids.pop(j))
+            self.map.compact()
 
     def _min_point_obs(self) -> int:
         return 2
@@ -439,7 +459,10 @@ class FeatureTracker:
         t0 = time.perf_counter()
         cfg = self.cfg
         with smap.lock:
-            kf = smap.keyframes[kf_id]
+            kf = smap.keyframes.get(kf_id)
+            if kf is None:  # removed by the keyframe cap while queued
+                return
+            layout = smap.layout_version
             own = kf.point_ids[kf.point_ids >= 0]
             window = [kf_id] + smap.covisible(own, cfg.ba_window - 1, exclude=kf_id)
             pids = smap.points_of(window)
@@ -482,7 +505,7 @@ class FeatureTracker:
         free = [c for c, f in zip(cams, fixed) if not f]
         T_new = res.T_cw[~fixed]
         outliers = [(int(pids[p]), k) for p, k, ok in zip(o_pt, o_kf, res.obs_inlier) if not ok]
-        moved = smap.commit_refinement(free, T_new, pids, res.points_w, outliers)
+        moved = smap.commit_refinement(free, T_new, pids, res.points_w, outliers, layout_version=layout)
         with self._out_lock:
             if smap is self.map:
                 self._pending.append(moved)

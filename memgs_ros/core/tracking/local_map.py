@@ -2,6 +2,12 @@
 
 One lock guards every mutation, because local bundle adjustment reads a snapshot in a
 background thread and commits refined poses/points back while the tracker keeps going.
+
+Memory stays bounded on long runs: the tracker removes keyframes over its cap
+(``remove_keyframe``), points seen by no keyframe turn bad, and ``compact`` drops bad points
+once they are half the store. Point ids are array indices, so compaction renumbers them; it
+bumps ``layout_version`` and keeps the last renumbering so that a bundle adjustment that took
+its snapshot before the compaction can still commit (``commit_refinement(layout_version=...)``).
 """
 from __future__ import annotations
 
@@ -58,11 +64,20 @@ class SparseMap:
         self.observations: list[dict[int, int]] = []  # point id -> {keyframe id: keypoint index}
         self._next_kf_id = first_keyframe_id  # ids stay unique across segments
         self.version = 0  # bumped on every BA commit
+        self.layout_version = 0  # bumped when compaction renumbers the point ids
+        self._last_renumbering = np.zeros(0, np.int64)  # old id -> new id (-1 dropped) of the last compaction
+        self.keyframes_removed = 0
+        self.points_compacted = 0
 
     # -- points -------------------------------------------------------------------------
     @property
     def n_points(self) -> int:
+        """Point ids in use, bad ones included (the store's length)."""
         return self._pts.size
+
+    @property
+    def n_good_points(self) -> int:
+        return int((~self._pts.bad[: self._pts.size]).sum())
 
     def _grow(self, extra: int) -> None:
         p = self._pts
@@ -176,6 +191,69 @@ class SparseMap:
         with self.lock:
             self.keyframes[kf.keyframe_id] = kf
 
+    def remove_keyframe(self, kf_id: int) -> None:
+        """Forget keyframe ``kf_id`` and its observations; points it alone saw turn bad."""
+        with self.lock:
+            kf = self.keyframes.pop(kf_id, None)
+            if kf is None:
+                return
+            p = self._pts
+            for pid in kf.point_ids[kf.point_ids >= 0].tolist():
+                obs = self.observations[pid]
+                if obs.pop(kf_id, None) is not None:
+                    p.n_obs[pid] -= 1
+                if not obs:
+                    p.bad[pid] = True
+                    p.n_obs[pid] = 0
+            self.keyframes_removed += 1
+
+    def compact(self, min_bad: int = 1024, min_fraction: float = 0.5) -> bool:
+        """Drop bad points once there are at least ``min_bad`` and ``min_fraction`` of the store
+        (the defaults renumber rarely: each compaction at least halves the store).
+
+        Renumbers the good points 0..n-1 (keyframe point_ids and observations follow); returns
+        whether it compacted. Holders of old ids must translate them with ``renumber``.
+        """
+        with self.lock:
+            p = self._pts
+            n = p.size
+            keep = ~p.bad[:n]
+            n_keep = int(keep.sum())
+            n_bad = n - n_keep
+            if n_bad == 0 or n_bad < min_bad or n_bad < min_fraction * n:
+                return False
+            new_id = np.full(n, -1, np.int64)
+            new_id[keep] = np.arange(n_keep)
+            cap = max(1024, 2 * n_keep)
+
+            def shrink(a: np.ndarray, fill: object = 0) -> np.ndarray:
+                out = np.full((cap,) + a.shape[1:], fill, dtype=a.dtype)
+                out[:n_keep] = a[:n][keep]
+                return out
+
+            p.pos, p.desc, p.octave = shrink(p.pos), shrink(p.desc), shrink(p.octave)
+            p.n_visible, p.n_found, p.first_kf = shrink(p.n_visible), shrink(p.n_found), shrink(p.first_kf)
+            p.n_obs, p.bad = shrink(p.n_obs), shrink(p.bad, True)
+            p.size = n_keep
+            self.observations = [self.observations[i] for i in np.flatnonzero(keep).tolist()]
+            for kf in self.keyframes.values():
+                has = kf.point_ids >= 0
+                kf.point_ids[has] = new_id[kf.point_ids[has]]
+            self._last_renumbering = new_id
+            self.layout_version += 1
+            self.points_compacted += n_bad
+            return True
+
+    def renumber(self, point_ids: np.ndarray, layout_version: int) -> np.ndarray | None:
+        """Point ids [K] taken at ``layout_version`` in today's numbering (-1 for dropped ones),
+        or None when more than one compaction happened since (the ids are meaningless now)."""
+        with self.lock:
+            if layout_version == self.layout_version:
+                return np.asarray(point_ids, np.int64)
+            if layout_version == self.layout_version - 1:
+                return self._last_renumbering[np.asarray(point_ids, np.int64)]
+            return None
+
     def covisible(self, point_ids: np.ndarray, k: int, exclude: int | None = None) -> list[int]:
         """The ``k`` keyframes observing most of ``point_ids``, most first."""
         counts: dict[int, int] = {}
@@ -198,15 +276,31 @@ class SparseMap:
             return ids[~self._pts.bad[ids]]
 
     def commit_refinement(self, kf_ids: list[int], T_cw: np.ndarray, point_ids: np.ndarray,
-                          points_w: np.ndarray, outliers: list[tuple[int, int]]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-        """Write BA results; returns {kf_id: (old T_cw, new T_cw)} for the keyframes moved."""
+                          points_w: np.ndarray, outliers: list[tuple[int, int]],
+                          layout_version: int | None = None) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """Write BA results; returns {kf_id: (old T_cw, new T_cw)} for the keyframes moved.
+
+        T_cw: [F, 4, 4] for ``kf_ids``; point_ids: [P] with points_w [P, 3]; outliers: (point id,
+        keyframe id) observations to drop. ``layout_version``: the point numbering the ids were
+        taken in (None: today's); results older than the last compaction but one are discarded.
+        """
         with self.lock:
             moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+            point_ids = np.asarray(point_ids, np.int64)
+            if layout_version is not None and layout_version != self.layout_version:
+                renumbered = self.renumber(np.concatenate([point_ids, np.array([o[0] for o in outliers],
+                                                                               np.int64)]), layout_version)
+                if renumbered is None:
+                    return moved
+                point_ids, out_ids = renumbered[: len(point_ids)], renumbered[len(point_ids):]
+                outliers = [(int(i), k) for i, (_, k) in zip(out_ids.tolist(), outliers) if i >= 0]
             for kf_id, T in zip(kf_ids, T_cw):
                 kf = self.keyframes.get(kf_id)
                 if kf is not None:
                     moved[kf_id] = (kf.T_cw.copy(), T.copy())
                     kf.T_cw = T.copy()
+            live = point_ids >= 0
+            point_ids, points_w = point_ids[live], np.asarray(points_w)[live]
             ok = ~self._pts.bad[point_ids]
             self._pts.pos[point_ids[ok]] = points_w[ok]
             for pid, kf_id in outliers:
