@@ -12,7 +12,8 @@ from memgs_ros.core.tracking import TrackerConfig, TrackingState, make_tracker
 from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, _local_bundle_adjustment_scipy,
                                                        apply_left_update, local_bundle_adjustment,
                                                        optimize_pose)
-from memgs_ros.core.tracking.features import _hamming_pairs_table, hamming_pairs
+from memgs_ros.core.tracking.features import FrameFeatures, _hamming_pairs_table, hamming_pairs
+from memgs_ros.core.tracking.local_map import Keyframe, SparseMap
 from memgs_ros.core.trajectory import ate, path_length_m
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
@@ -260,11 +261,8 @@ def test_new_segment_after_lost_timeout(frames: list[Frame]) -> None:
     assert first_new.keyframe.keyframe_id > max(r.keyframe.keyframe_id for r in results[:10] if r.keyframe)
 
 
-def _toy_map(n_kf: int, pts_per_kf: int, shared: int) -> "SparseMap":
+def _toy_map(n_kf: int, pts_per_kf: int, shared: int) -> SparseMap:
     """Keyframes each creating ``pts_per_kf`` points and observing ``shared`` of the previous one's."""
-    from memgs_ros.core.tracking.features import FrameFeatures
-    from memgs_ros.core.tracking.local_map import Keyframe, SparseMap
-
     rng = np.random.default_rng(0)
     m = SparseMap()
     m_kp = pts_per_kf + shared
@@ -284,7 +282,7 @@ def _toy_map(n_kf: int, pts_per_kf: int, shared: int) -> "SparseMap":
     return m
 
 
-def _assert_consistent(m: "SparseMap") -> None:
+def _assert_consistent(m: SparseMap) -> None:
     """Every keyframe point id is a good point observed by that keyframe at that keypoint, and back."""
     for kf_id, kf in m.keyframes.items():
         for i, pid in enumerate(kf.point_ids.tolist()):
