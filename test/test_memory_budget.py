@@ -115,6 +115,20 @@ def test_overflow_merges_duplicates_first_and_is_reported_exactly(frames: list[F
     assert m.step().budget_merged == 0  # reported once
 
 
+def test_deferred_budget_is_enforced_by_the_next_step(frames: list[Frame]) -> None:
+    """An insert thread that must keep up can leave the budget to training: the map overshoots
+    by the new keyframe's seeds until the next step, which reports what it removed."""
+    m = GaussianMapper(MappingConfig(**{**GROWING, "max_gaussians": 300, "densify_start_iter": 10_000}))
+    added = 0
+    for i, f in enumerate(frames):
+        p, c = _seeds(f)
+        added += m.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c, enforce_budget=False)
+    assert added > 300 and len(m.gmap) == added  # nothing enforced yet
+    st = m.step()
+    assert st is not None and len(m.gmap) == st.num_gaussians <= 300
+    assert st.budget_merged + st.budget_pruned == added - len(m.gmap)
+
+
 def test_mbyte_budget_bounds_model_memory(frames: list[Frame]) -> None:
     mib = 250 * 944 / 2**20
     m = _mapper(frames, max_model_mbytes=mib)

@@ -237,7 +237,10 @@ class MapperNode(Node):
             points, colors = decode_seeds(pointcloud2_to_structured(b["seeds"]))
             stage = "bad_keyframe"
             kf_id = len(self.kf_ids)
-            added = self.mapper.add_keyframe(kf_id, stamp_ns, T_wc, rgb, depth, cam, points, colors)
+            # With a training thread the budget is enforced on its next step, off this callback
+            # thread, which must keep up with the keyframe topics' 10-deep history.
+            added = self.mapper.add_keyframe(kf_id, stamp_ns, T_wc, rgb, depth, cam, points, colors,
+                                             enforce_budget=self.trainer is None)
         except KeyframeBundleError as err:
             self.stats.problem(err.kind, f"keyframe {stamp_ns} refused: {err}")
             return
