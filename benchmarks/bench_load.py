@@ -143,6 +143,9 @@ def main(argv: list[str] | None = None) -> int:
                                                          "keyframes_trained", "keyframes_dropped")}
     print(f"tracker keyframes {s.keyframes}: mapper inserted {mp.get('keyframes')}, missed "
           f"{mp.get('keyframes_missed', 0)}, incomplete bundles dropped {mp.get('dropped_keyframe_bundles')}")
+    result["tracker_map"] = {k: tr.get(k) for k in ("map_keyframes", "map_points", "map_keyframes_removed")}
+    print(f"tracker sparse map at the end: {tr.get('map_keyframes')} keyframes, {tr.get('map_points')} points, "
+          f"{tr.get('map_keyframes_removed')} keyframes removed by its cap")
     print(f"keyframes {s.keyframes}, Gaussians {s.gaussians} (peak {s.gaussians_peak}), "
           f"deltas {result['delta_kbytes_per_s']:.0f} kB/s, merger == mapper: {s.replica_identical}")
     print(f"{'node':18s} {'RSS start':>10s} {'after warm-up':>14s} {'end':>8s} {'max':>8s}  growth after warm-up")
