@@ -129,6 +129,19 @@ def _records(n: int) -> GaussianRecords:
                                        f(n, PLY_F_REST), f(n), f(n, 3), f(n, 4))
 
 
+def test_operating_system_errors_are_one_line(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+    """Disk full mid-run (or permission denied, a vanished folder): one line naming the file."""
+    import memgs_ros.cli.synth as synth
+
+    def full_disk(_args: object) -> int:
+        raise OSError(28, "No space left on device", "/data/out/map.ply")
+
+    monkeypatch.setattr(synth, "run", full_disk)
+    assert main(["synth", "--out", "x.mcap"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["memgs synth: error: [Errno 28] No space left on device: '/data/out/map.ply'"], err
+
+
 def test_corrupt_ply_where_evaluation_reads_one(tmp_path: Path) -> None:
     """``memgs eval`` scores the saved map through score_map: a corrupt PLY is a DataError naming it."""
     pytest.importorskip("torch")

@@ -2,7 +2,8 @@
 
 Each subcommand module defines ``HELP: str``, ``add_arguments(parser)`` and
 ``run(args) -> int``, and keeps heavy imports inside ``run`` so ``memgs --help`` is fast.
-Known errors (``MemgsError``) print one line and exit 2; only bugs show a traceback.
+Known errors (``MemgsError``) print one line and exit 2; so do operating-system errors the user
+can fix (disk full, permission denied, a path that vanished): only bugs show a traceback.
 """
 from __future__ import annotations
 
@@ -47,6 +48,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args._run(args) or 0)
     except MemgsError as err:
+        print(f"memgs {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:  # str() names the errno text and the file
         print(f"memgs {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
