@@ -252,6 +252,59 @@ def test_mapper_refuses_bad_bundles_without_touching_the_map(context, frames) ->
         feeder.close()
 
 
+def test_free_running_mapper_drops_and_counts_keyframes_it_cannot_insert(context, frames) -> None:  # noqa: ANN001
+    """Keyframes arriving faster than the mapper inserts them: the bounded insert queue keeps the
+    newest, drops the oldest whole and counts each; the executor keeps draining the topics."""
+    import threading
+
+    from memgs_ros.nodes.mapper import MapperNode
+
+    node = MapperNode(context=context, parameter_overrides=[
+        Parameter("insert_queue", value=1), Parameter("device", value="cpu"), Parameter("render_rate_hz", value=0.0),
+        Parameter("mapping.min_keyframes", value=100)])  # no training: only insertion is exercised
+    gate = threading.Event()
+    add = node.mapper.add_keyframe
+    started: list[int] = []
+
+    def slow_add(kf_id, stamp_ns, *args, **kwargs):  # noqa: ANN001, ANN202
+        started.append(stamp_ns)
+        assert gate.wait(30.0)
+        return add(kf_id, stamp_ns, *args, **kwargs)
+
+    node.mapper.add_keyframe = slow_add
+    feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "seeds"))
+    c = node.stats.counters
+    try:
+        stamps = [frames[i].stamp_ns for i in range(4)]
+        feeder.send(_bundle(frames[0], stamps[0]), lambda: len(started) == 1)  # the insert thread holds it
+        for i in (1, 2, 3):  # queue of 1: the 3rd drops the 2nd, the 4th drops the 3rd
+            feeder.send(_bundle(frames[i], stamps[i]), lambda i=i: node.stats.gauges.get("insert_queue") == 1
+                        and c["problem.keyframe_overload"] == i - 1)
+        gate.set()
+        assert _spin_until(feeder.ex, lambda: c["keyframes"] == 2)
+        assert c["problem.keyframe_overload"] == 2
+        assert sorted(node.kf_ids) == [stamps[0], stamps[3]]  # the first and the newest
+        assert len(node.mapper.keyframes) == 2
+        # Refined poses wait for the training thread (here: the finish) instead of the map lock.
+        from nav_msgs.msg import Path
+        from std_srvs.srv import Trigger
+
+        pub = feeder.peer.create_publisher(Path, "memgs/keyframe/refined_poses", qos.reliable(20))
+        assert _spin_until(feeder.ex, lambda: pub.get_subscription_count() > 0)
+        T = frames[3].T_wc_gt.copy()
+        T[:3, 3] += 0.05
+        pub.publish(Path(poses=[matrix_to_pose_stamped(T, stamps[3], "map")]))
+        assert _spin_until(feeder.ex, lambda: len(node._pending_poses) == 1)
+        assert c["keyframe_pose_updates"] == 0
+        node.on_finish(Trigger.Request(), Trigger.Response())
+        assert c["keyframe_pose_updates"] == 1
+        np.testing.assert_allclose(node.mapper.keyframes.get(node.kf_ids[stamps[3]]).T_wc, T, atol=1e-6)
+    finally:
+        gate.set()
+        node.on_shutdown()
+        feeder.close()
+
+
 # ----------------------------------------------------------------------------- tracker stamps
 
 def test_tracker_stamp_rules(context) -> None:  # noqa: ANN001

@@ -129,3 +129,26 @@ def test_namespaced_instances_do_not_cross_talk(tmp_path: Path, ros_domain_id: i
         summary = json.loads((out / "summary.json").read_text())
         assert summary["frames"] == n and summary["poses"] == n, (ns, summary)
         assert summary["namespace"] == ns
+
+
+def test_source_failing_part_way_still_saves_the_map(tmp_path: Path, ros_domain_id: int) -> None:
+    """A TUM folder whose 11th colour image is corrupt: the run maps and saves the 10 frames
+    before it, reports the failure (exit 1, one line) and does not wait for its timeout."""
+    from memgs_ros.io.synthetic import write_tum_folder
+
+    folder = tmp_path / "seq"
+    write_tum_folder(generate_frames(parse_spec("synthetic:w=128,h=96,n=16,seed=1")), folder)
+    rgb = sorted((folder / "rgb").iterdir())
+    rgb[10].write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 40)  # a header and nothing else
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", str(folder), "--config", "synthetic",
+           "--single-process", "--domain-id", str(ros_domain_id), "--out", str(out), "--json",
+           str(tmp_path / "summary.json"), "--set", "mapper.lockstep_iterations=1",
+           "--set", "mapper.mapping.merge_enabled=false", "--timeout", "400"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 1, (p.stdout[-2000:], p.stderr[-3000:])
+    assert "failed part-way" in p.stderr and "Traceback" not in p.stderr, p.stderr[-3000:]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["source_complete"] is False
+    assert summary["frames"] == 10 and summary["poses"] == 10, summary
+    assert summary["gaussians"] > 0 and len(load_ply(Path(summary["ply_path"])).ids) == summary["gaussians"]

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import yaml
@@ -121,4 +122,8 @@ def run(args: argparse.Namespace) -> int:
     check_inputs(options.source, options.config, options.max_frames, dict(options.overrides), options.out_dir)
     summary = run_pipeline(options)
     print_summary(summary, args.json)
+    if not summary.source_complete:
+        print(f"memgs run: error: {options.source} failed part-way (see the bag_player log); the map and "
+              "trajectory above hold the frames played", file=sys.stderr)
+        return 1
     return 0

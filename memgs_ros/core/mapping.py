@@ -24,6 +24,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, fields
+from collections.abc import Mapping
 from typing import Any, Callable
 
 import numpy as np
@@ -407,12 +408,20 @@ class GaussianMapper:
     def update_keyframe_pose(self, kf_id: int, T_wc: np.ndarray) -> bool:
         """Replace a keyframe's pose (e.g. after loop closure / bundle adjustment). Returns False
         (and changes nothing) for a keyframe no longer trained on (dropped by max_keyframes)."""
+        return self.update_keyframe_poses({kf_id: T_wc}) == 1
+
+    def update_keyframe_poses(self, poses: Mapping[int, np.ndarray]) -> int:
+        """``update_keyframe_pose`` for many keyframes ({kf_id: T_wc [4, 4]}) under one lock
+        acquisition; returns how many were updated (the rest are no longer trained on)."""
         with self._lock:
-            if kf_id not in self.keyframes:
-                return False
-            self.keyframes.update_pose(kf_id, T_wc)
-            self._update_extent()
-            return True
+            updated = 0
+            for kf_id, T_wc in poses.items():
+                if kf_id in self.keyframes:
+                    self.keyframes.update_pose(kf_id, T_wc)
+                    updated += 1
+            if updated:
+                self._update_extent()
+            return updated
 
     def _update_extent(self) -> None:
         if self.cfg.scene_extent > 0:

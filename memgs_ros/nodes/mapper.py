@@ -70,6 +70,9 @@ class MapperNode(Node):
         super().__init__("mapper", **node_kwargs)
         self.mode = declare(self, "mode", "rgbd", "camera mode (mono: keyframes carry no depth)",
                             choices=("rgbd", "mono"))
+        self.depth_scale = declare(self, "depth_scale", 1000.0,
+                                   "16UC1 keyframe depth units per metre (the tracker publishes 32FC1 metres)",
+                                   range=(1e-3, 1e6))
         self.cfg: MappingConfig = declare_config(self, MappingConfig, "mapping")
         self.merge_cfg: MergeConfig = declare_config(self, MergeConfig, "merge")
         device = declare(self, "device", "auto", "torch device for the map: auto (CUDA when present), cpu, cuda, cuda:N")
@@ -99,11 +102,15 @@ class MapperNode(Node):
                                    "write a checkpoint this often while the map changes (0 = only at finish/shutdown)",
                                    range=(0.0, 1e6))
         resume = declare(self, "resume", True, "start from the checkpoint at checkpoint_path when one exists")
+        self.insert_queue = declare(self, "insert_queue", 4,
+                                    "free-running: complete keyframes waiting for insertion; when full the oldest "
+                                    "is dropped and counted (problem.keyframe_overload)", range=(1, 1000))
 
         if device == "auto":
             device = "cuda" if torch.cuda.is_available() else "cpu"
         if device == "cpu":
             configure_cpu_runtime()
+
         self.mapper = GaussianMapper(self.cfg, device=device, merge_cfg=self.merge_cfg)
         # A new epoch every start: a merger that held the map of an earlier life resynchronises.
         self.outbox = DeltaOutbox(self.cfg.max_sh_degree, delta_tol, epoch=secrets.randbits(32))
@@ -119,6 +126,17 @@ class MapperNode(Node):
         # (arrival time, stamp) of keyframes the tracker announced: a keyframe not inserted 10 s
         # later was lost on the way (a reader too slow for the transient-local history of 10)
         self._announced: deque[tuple[float, int]] = deque(maxlen=10_000)
+        # Free-running, keyframes are inserted on their own thread from a bounded queue: the
+        # executor only decodes parts, so it drains the keyframe topics' 10-deep history in
+        # time, and overload drops (and counts) whole queued keyframes instead of DDS losing parts.
+        self._inserts: deque[tuple[int, dict]] = deque()
+        self._insert_cv = threading.Condition()
+        self._inserting = False
+        self._insert_stop = threading.Event()
+        self._complete: deque[int] = deque(maxlen=512)  # stamps of recent complete bundles ...
+        self._complete_set: set[int] = set()  # ... and the same as a set (duplicate replays)
+        self._pending_poses: dict[int, np.ndarray] = {}  # refined poses for the next training step
+        self._pose_lock = threading.Lock()
         self._send_lock = threading.Lock()  # one delta/snapshot cut at a time, in seq order
         self._stop = threading.Event()
         self._finished = False
@@ -164,9 +182,12 @@ class MapperNode(Node):
             self.create_timer(1.0 / self.render_rate, self.render_live)
         self.create_timer(1.0, self._count_missed_keyframes)
         self.trainer: threading.Thread | None = None
+        self.inserter: threading.Thread | None = None
         if not self.lockstep:
             self.trainer = threading.Thread(target=self._train_loop, name="mapper-training", daemon=True)
             self.trainer.start()
+            self.inserter = threading.Thread(target=self._insert_loop, name="mapper-insert", daemon=True)
+            self.inserter.start()
         self.get_logger().info(f"mapper on {device}, {'lockstep' if self.lockstep else 'free-running'} training")
 
     # ------------------------------------------------------------------ checkpoints
@@ -215,14 +236,58 @@ class MapperNode(Node):
     # ------------------------------------------------------------------ keyframes
     def _part(self, part: str, msg) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
-        if stamp in self.kf_ids:
+        if stamp in self.kf_ids or stamp in self._complete_set:
             # Keyframe topics replay recent samples to a (re)started mapper: keep the first copy.
             self.stats.counters["duplicate_keyframe_parts"] += 1
             return
         bundle = self.bundler.add(part, stamp, msg)
         self.stats.gauges["dropped_keyframe_bundles"] = self.bundler.dropped
-        if bundle is not None:
-            self._insert(stamp, bundle)
+        if bundle is None:
+            return
+        if len(self._complete) == self._complete.maxlen:
+            self._complete_set.discard(self._complete[0])
+        self._complete.append(stamp)
+        self._complete_set.add(stamp)
+        if self.inserter is None:
+            self._insert(stamp, bundle)  # lockstep: in order, before the frame is acknowledged
+            return
+        with self._insert_cv:
+            if len(self._inserts) >= self.insert_queue:
+                old, _ = self._inserts.popleft()
+                self.stats.problem("keyframe_overload", f"mapper cannot keep up: keyframe {old} dropped from "
+                                                        "its full insert queue")
+            self._inserts.append((stamp, bundle))
+            self.stats.gauges["insert_queue"] = len(self._inserts)
+            self._insert_cv.notify()
+
+    def _insert_loop(self) -> None:
+        while not self._insert_stop.is_set():
+            with self._insert_cv:
+                if not self._inserts:
+                    self._insert_cv.wait(0.1)
+                    continue
+                stamp, bundle = self._inserts.popleft()
+                self._inserting = True
+            try:
+                t0 = time.perf_counter()
+                self._insert(stamp, bundle)
+                self.stats.gauges["insert_ms"] = round(1e3 * (time.perf_counter() - t0), 1)
+            except Exception as err:  # noqa: BLE001 - one keyframe must not end insertion
+                self.stats.problem("bad_keyframe", f"keyframe {stamp} insertion failed: {err}")
+            finally:
+                with self._insert_cv:
+                    self._inserting = False
+                    self.stats.gauges["insert_queue"] = len(self._inserts)
+                    self._insert_cv.notify_all()
+
+    def _drain_inserts(self, timeout_s: float = 120.0) -> None:
+        """Wait until every queued keyframe is inserted, then stop the insert thread."""
+        if self.inserter is None:
+            return
+        with self._insert_cv:
+            self._insert_cv.wait_for(lambda: not self._inserts and not self._inserting, timeout_s)
+        self._insert_stop.set()
+        self.inserter.join(timeout=10.0)
 
     def _insert(self, stamp_ns: int, b: dict) -> None:
         """Add a keyframe bundle to the map, or refuse it whole (the map unchanged) and count the
@@ -232,7 +297,7 @@ class MapperNode(Node):
             return
         stage = "bad_seeds"  # the problem kind a failure from here on is counted under
         try:
-            kf = decode_keyframe_images(b)
+            kf = decode_keyframe_images(b, self.depth_scale)
             cam, rgb, depth, T_wc = kf.camera, kf.rgb, kf.depth_m, kf.T_wc
             points, colors = decode_seeds(pointcloud2_to_structured(b["seeds"]))
             stage = "bad_keyframe"
@@ -256,16 +321,30 @@ class MapperNode(Node):
             self._lockstep_ack(stamp_ns)
 
     def on_refined(self, msg: Path) -> None:
+        """Refined keyframe poses from the tracker's bundle adjustment. Free-running, they wait
+        for the training thread's next step (which holds the map lock anyway): applying each
+        here waited for a running step, and that stalled every keyframe topic behind it."""
+        poses: dict[int, np.ndarray] = {}
         for p in msg.poses:
             kf_id = self.kf_ids.get(stamp_to_ns(p.header.stamp))
             if kf_id is None:
                 continue
             try:
-                updated = self.mapper.update_keyframe_pose(kf_id, pose_to_matrix(p.pose))
+                poses[kf_id] = pose_to_matrix(p.pose)
             except (MessageError, DataError) as err:
                 self.stats.problem("bad_pose", f"refined pose of keyframe {kf_id} ignored: {err}")
-                continue
-            self.stats.counters["keyframe_pose_updates" if updated else "refined_poses_of_dropped_keyframes"] += 1
+        if not poses:
+            return
+        if self.trainer is None:
+            self._apply_refined(poses)
+            return
+        with self._pose_lock:
+            self._pending_poses.update(poses)  # the newest refinement of a keyframe wins
+
+    def _apply_refined(self, poses: dict[int, np.ndarray]) -> None:
+        updated = self.mapper.update_keyframe_poses(poses)
+        self.stats.counters["keyframe_pose_updates"] += updated
+        self.stats.counters["refined_poses_of_dropped_keyframes"] += len(poses) - updated
 
     # ------------------------------------------------------------------ training
     def _train_loop(self) -> None:
@@ -280,7 +359,14 @@ class MapperNode(Node):
                 self.stats.problem("training_step", f"training step failed: {err}")
                 self._stop.wait(0.1)
 
+    def _apply_pending_poses(self) -> None:
+        with self._pose_lock:
+            poses, self._pending_poses = self._pending_poses, {}
+        if poses:
+            self._apply_refined(poses)
+
     def _step(self) -> None:
+        self._apply_pending_poses()
         st = self.mapper.step()
         if st is None:
             return
@@ -308,6 +394,7 @@ class MapperNode(Node):
         stamp = stamp_to_ns(msg.stamp)
         if msg.frame_id == "keyframe":
             self._announced.append((time.monotonic(), stamp))
+            self.stats.counters["keyframes_announced"] += 1
         if not self.lockstep:
             return
         if msg.frame_id == "keyframe" and stamp not in self.kf_ids:
@@ -319,7 +406,7 @@ class MapperNode(Node):
         now = time.monotonic()
         while self._announced and now - self._announced[0][0] > 10.0:
             _, stamp = self._announced.popleft()
-            if stamp not in self.kf_ids:
+            if stamp not in self.kf_ids and stamp not in self._complete_set:  # queued ones are counted there
                 self.stats.counters["keyframes_missed"] += 1
 
     def _lockstep_ack(self, stamp_ns: int) -> None:
@@ -369,10 +456,13 @@ class MapperNode(Node):
         return res
 
     def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        """Stop training, run the final iterations, flush every change; answer the final seq."""
+        """Insert what is queued, stop training, run the final iterations, flush every change;
+        answer the final seq."""
+        self._drain_inserts()
         self._stop.set()
         if self.trainer is not None:
             self.trainer.join()
+        self._apply_pending_poses()
         if not self._finished and self.mapper.ready:
             t0 = time.perf_counter()
             for _ in range(self.final_iters):
@@ -410,6 +500,7 @@ class MapperNode(Node):
         self.stats.counters["renders"] += 1
 
     def on_shutdown(self) -> None:
+        self._insert_stop.set()
         self._stop.set()
         if self.trainer is not None:
             self.trainer.join(timeout=10.0)

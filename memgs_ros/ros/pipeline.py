@@ -91,6 +91,7 @@ class RunSummary:
     replica_max_abs_diff: float
     render_size: tuple[int, int]  # (width, height) of the last live render, (0, 0) if none
     render_std: float  # spread of its pixel values in [0, 255]: ~0 means a blank view
+    source_complete: bool = True  # False: the source failed part-way; the map holds what was played
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -188,6 +189,7 @@ class _Observer:
 
         self.node = Node("memgs_run_observer", context=context)
         self.done = threading.Event()
+        self.source_ok = True  # False when the player reported a source that failed part-way
         self.stats: dict[str, dict[str, str]] = {}
         self.trajectory: list[tuple[int, np.ndarray]] = []
         self.keyframes: list[tuple[int, np.ndarray]] = []
@@ -207,7 +209,11 @@ class _Observer:
                     self.timeline.append({"t_s": round(time.monotonic() - self._t0, 2), "node": name, **values})
             return cb
 
-        self.node.create_subscription(Bool, "memgs/player/done", lambda m: m.data and self.done.set(), qos.latched())
+        def on_done(msg: Bool) -> None:
+            self.source_ok = bool(msg.data)
+            self.done.set()
+
+        self.node.create_subscription(Bool, "memgs/player/done", on_done, qos.latched())
         def on_keyframe(msg: PoseStamped) -> None:
             with self._lock:
                 self.keyframes.append((stamp_to_ns(msg.header.stamp), pose_to_matrix(msg.pose)))
@@ -264,6 +270,7 @@ class _Processes:
     def __init__(self, params_file: Path, namespace: str, env: dict[str, str], log_dir: Path) -> None:
         self.procs: dict[str, subprocess.Popen] = {}
         self.log_dir = log_dir
+        self.player_reported = False  # the player announced its end (done or failed): its exit code is known
         self._params_file, self._ns, self._env = params_file, namespace, env
 
     def start(self, name: str) -> None:
@@ -285,7 +292,7 @@ class _Processes:
     def check(self) -> None:
         for name, p in list(self.procs.items()):
             code = p.poll()
-            if code is not None and not (name == "bag_player" and code == 0):
+            if code is not None and not (name == "bag_player" and (code == 0 or self.player_reported)):
                 tail = (self.log_dir / f"{name}.log").read_text(errors="replace").strip().splitlines()[-15:]
                 raise PipelineError(f"node {name} exited with code {code}:\n  " + "\n  ".join(tail))
 
@@ -444,6 +451,12 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
                         obs.stat("tracker", "poses_out"), obs.stat("tracker", "keyframes"),
                         obs.stat("mapper", "gaussians"), obs.stat("mapper", "iteration"))
         time.sleep(0.1)
+    if procs is not None:
+        procs.player_reported = True
+    if not obs.source_ok:
+        # What was played is still mapped and saved; the caller reports the failure.
+        logger.error("the source failed part-way (see the bag_player log): finishing and saving the map "
+                     "of the frames played")
     if not options.lockstep:
         time.sleep(2.0)  # let the last frames drain through the graph
     logger.info("source finished after %.1f s; finishing the mapper", time.monotonic() - t0)
@@ -487,7 +500,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
         peak_rss_mb={n: obs.stat(n, "peak_rss_mb") for n in GRAPH_NODES},
         merger_resyncs=sum(int(v) for k, v in obs.stats.get("merger", {}).items() if k.startswith("resync.")),
         restarts=restarts,
-        replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render))
+        replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render),
+        source_complete=obs.source_ok)
 
 
 def _compare_maps(obs: _Observer, final_seq: int, epoch: int, end: float) -> tuple[bool, float]:
