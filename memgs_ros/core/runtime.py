@@ -20,8 +20,6 @@ import ctypes.util
 import logging
 from dataclasses import dataclass
 
-import torch
-
 _log = logging.getLogger(__name__)
 _log.addHandler(logging.NullHandler())
 
@@ -62,12 +60,35 @@ def keep_freed_memory() -> bool:
     return ok
 
 
+def release_free_memory() -> bool:
+    """Hand free heap pages of every malloc arena back to the OS (glibc ``malloc_trim(0)``).
+
+    A long-running node calls this now and then (NodeStats: every 30 s) so that its resident
+    memory tracks what it uses, not the heap's high-water mark that ``keep_freed_memory`` and
+    fragmentation leave behind; the pages are faulted in again on demand (~3 us per 4 KB).
+    Returns False where the C library has no ``malloc_trim``.
+    """
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return False
+    try:
+        trim = ctypes.CDLL(name).malloc_trim
+    except (OSError, AttributeError):
+        return False
+    trim.argtypes = [ctypes.c_size_t]
+    trim.restype = ctypes.c_int
+    trim(0)
+    return True
+
+
 def configure_cpu_runtime(torch_threads: int = 1, keep_heap: bool = True) -> CpuRuntime:
     """Tune this process for CPU tensor work; call once from an entry point.
 
     torch_threads: torch intra-op threads (1 = let the rasterizer use Python threads per chunk);
     keep_heap: apply :func:`keep_freed_memory`. Returns what was applied.
     """
+    import torch  # here, so that release_free_memory's users (every node) need not import torch
+
     if torch_threads < 1:
         raise ValueError(f"torch_threads must be >= 1, got {torch_threads}")
     torch.set_num_threads(torch_threads)

@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import resource
+import time
 from collections import Counter
 from collections.abc import Mapping
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 
+from memgs_ros.core.runtime import release_free_memory
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import make_header
 
@@ -15,8 +17,10 @@ from memgs_ros.ros.codecs import make_header
 class NodeStats:
     """Counters and gauges a node publishes once a second, plus warn-once logging per problem kind."""
 
-    def __init__(self, node: Node, name: str, period_s: float = 1.0) -> None:
+    def __init__(self, node: Node, name: str, period_s: float = 1.0, trim_period_s: float = 30.0) -> None:
         self._node = node
+        self._trim_period_s = trim_period_s  # release_free_memory this often (0 = never)
+        self._last_trim = time.monotonic()
         self._name = name
         self.counters: Counter[str] = Counter()
         self.gauges: dict[str, float | int | str] = {}
@@ -32,6 +36,9 @@ class NodeStats:
             self._node.get_logger().warning(f"{message} (further '{kind}' problems are only counted)")
 
     def message(self) -> DiagnosticArray:
+        if self._trim_period_s > 0 and time.monotonic() - self._last_trim >= self._trim_period_s:
+            self._last_trim = time.monotonic()
+            release_free_memory()  # so rss_mb is what the node uses, not its heap's high-water mark
         self.gauges["peak_rss_mb"] = round(peak_rss_mb(), 1)
         self.gauges["rss_mb"] = round(rss_mb(), 1)
         values: Mapping[str, object] = {**self.counters, **self.gauges}
