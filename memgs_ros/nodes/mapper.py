@@ -422,6 +422,7 @@ class MapperNode(Node):
         exact: tolerance 0 and no row limit, repeated until nothing differs (final flush).
         """
         with self._send_lock:
+            self.mapper.discard_changes()  # the outbox diffs snapshots: the change log only grows
             while True:
                 rows = self.outbox.next_delta(self.mapper.snapshot(), None if exact else self._rows_per_delta(),
                                               0.0 if exact else None)
