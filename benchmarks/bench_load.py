@@ -10,7 +10,8 @@ the streaming window after the warm-up (``--warmup-s``) up to the player's last 
 finish and final flush after it are not load): the median and peak RSS of its first and of its
 last minute, and the least-squares slope in MB/min over the whole window. Nodes hand free heap
 pages back every 30 s (``release_free_memory``), so the mapper's RSS is a sawtooth between its
-steady working set and its training temporaries; the peaks and the slope are what to compare.
+working set (the floor just after a trim) and its training temporaries (the peaks); the floor
+of each 30 s window and its slope say whether live memory grows.
 
 Prints a table, writes JSON (default results/bench_load.json) and a PNG of memory and map
 size over time next to it.
@@ -60,9 +61,15 @@ def memory_trend(rows: list[dict], t0: float, t1: float, window_s: float = 60.0)
     t, m = np.array(pts).T
     first, last = m[t <= t0 + window_s], m[t >= t1 - window_s]
     slope = float(np.polyfit(t / 60.0, m, 1)[0])
+    # Floors: the lowest sample of each 30 s (trim period) window.
+    edges = np.arange(t0, t1 - 30.0 + 1e-9, 30.0)  # whole windows only: each holds one trim
+    floors = [(a + 15.0, m[(t >= a) & (t < a + 30.0)].min()) for a in edges if ((t >= a) & (t < a + 30.0)).any()]
+    ft, fm = np.array(floors).T
+    floor_slope = float(np.polyfit(ft / 60.0, fm, 1)[0]) if len(floors) >= 2 else 0.0
     return {"first_min_median": float(np.median(first)), "first_min_peak": float(first.max()),
             "last_min_median": float(np.median(last)), "last_min_peak": float(last.max()),
-            "slope_mb_per_min": slope, "window_s": [float(t0), float(t1)]}
+            "slope_mb_per_min": slope, "floors_mb": [round(float(x), 1) for x in fm],
+            "floor_slope_mb_per_min": floor_slope, "window_s": [float(t0), float(t1)]}
 
 
 def summarise(timeline: list[dict], warmup_s: float) -> dict:
@@ -180,13 +187,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"keyframes {s.keyframes}, Gaussians {s.gaussians} (peak {s.gaussians_peak}), "
           f"deltas {result['delta_kbytes_per_s']:.0f} kB/s, merger == mapper: {s.replica_identical}")
     print(f"RSS MB; first / last minute of streaming after the {args.warmup_s:.0f} s warm-up: median (peak)")
-    print(f"{'node':18s} {'start':>6s} {'first minute':>14s} {'last minute':>14s} {'slope MB/min':>13s}")
+    print(f"{'node':18s} {'start':>6s} {'first minute':>14s} {'last minute':>14s} {'slope MB/min':>13s} "
+          f"{'30 s floors first/last':>23s} {'floor slope':>12s}")
     for node in NODES:
         n = nodes.get(node)
         tr_ = n.get("trend") if n else None
         if tr_:
             print(f"{node:18s} {n['rss_mb_start']:6.0f} {tr_['first_min_median']:7.0f} ({tr_['first_min_peak']:4.0f}) "
-                  f"{tr_['last_min_median']:7.0f} ({tr_['last_min_peak']:4.0f}) {tr_['slope_mb_per_min']:+13.1f}")
+                  f"{tr_['last_min_median']:7.0f} ({tr_['last_min_peak']:4.0f}) {tr_['slope_mb_per_min']:+13.1f} "
+                  f"{tr_['floors_mb'][0]:11.0f} / {tr_['floors_mb'][-1]:<9.0f} {tr_['floor_slope_mb_per_min']:+12.1f}")
     print(f"wall {wall:.0f} s, load {load0:.1f} -> {result['loadavg_after']:.1f}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))

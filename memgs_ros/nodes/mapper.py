@@ -65,6 +65,9 @@ from memgs_ros.ros.seed_cloud import decode_seeds
 from memgs_ros.ros.stamp_sync import StampBundler
 
 
+MISSED_AFTER_S = 60.0  # an announced keyframe still incomplete this long after is counted missed
+
+
 class MapperNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("mapper", **node_kwargs)
@@ -123,8 +126,9 @@ class MapperNode(Node):
         self.render_camera: PinholeCamera | None = None
         self.latest_pose: PoseStamped | None = None
         self.awaiting_keyframes: set[int] = set()
-        # (arrival time, stamp) of keyframes the tracker announced: a keyframe not inserted 10 s
-        # later was lost on the way (a reader too slow for the transient-local history of 10)
+        # (arrival time, stamp) of keyframes the tracker announced: a keyframe whose parts have not
+        # all arrived 60 s later was lost on the way (a reader too slow for the transient-local
+        # history of 10). Under CPU overload parts can arrive more than 10 s after the announcement.
         self._announced: deque[tuple[float, int]] = deque(maxlen=10_000)
         # Free-running, keyframes are inserted on their own thread from a bounded queue: the
         # executor only decodes parts, so it drains the keyframe topics' 10-deep history in
@@ -133,7 +137,7 @@ class MapperNode(Node):
         self._insert_cv = threading.Condition()
         self._inserting = False
         self._insert_stop = threading.Event()
-        self._complete: deque[int] = deque(maxlen=512)  # stamps of recent complete bundles ...
+        self._complete: deque[int] = deque(maxlen=4096)  # stamps of recent complete bundles ...
         self._complete_set: set[int] = set()  # ... and the same as a set (duplicate replays)
         self._pending_poses: dict[int, np.ndarray] = {}  # refined poses for the next training step
         self._pose_lock = threading.Lock()
@@ -404,7 +408,7 @@ class MapperNode(Node):
 
     def _count_missed_keyframes(self) -> None:
         now = time.monotonic()
-        while self._announced and now - self._announced[0][0] > 10.0:
+        while self._announced and now - self._announced[0][0] > MISSED_AFTER_S:
             _, stamp = self._announced.popleft()
             if stamp not in self.kf_ids and stamp not in self._complete_set:  # queued ones are counted there
                 self.stats.counters["keyframes_missed"] += 1
