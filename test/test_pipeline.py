@@ -34,6 +34,12 @@ FAST = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 150,
         "mapper.mapping.merge_start_iter": 60, "mapper.mapping.merge_interval": 60}
 
 
+def _own_ns() -> str:
+    """A namespace no other run on this host uses: with the random domain id, a second guard
+    against another test run that drew the same domain (the machines are shared)."""
+    return f"/memgs_test_{os.getpid()}_{os.urandom(3).hex()}"
+
+
 @pytest.fixture(scope="module")
 def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("bag") / "synthetic.mcap"
@@ -62,7 +68,7 @@ def _keyframe_psnr(ply: Path, trajectory: Path, stride: int = 5) -> float:
 
 
 def test_graph_end_to_end_in_processes(bag: Path, tmp_path: Path, ros_domain_id: int) -> None:
-    s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path,
+    s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path, namespace=_own_ns(),
                                 domain_id=ros_domain_id, overrides=FAST, timeout_s=600), progress=False)
     assert s.frames == 30 and s.poses == 30 and s.lost_frames == 0
     assert 3 <= s.keyframes < 30
@@ -85,7 +91,7 @@ def generate_stamps_and_poses() -> tuple[np.ndarray, np.ndarray]:
 def test_late_merger_with_dropped_deltas_resyncs(bag: Path, tmp_path: Path, ros_domain_id: int) -> None:
     overrides = {**FAST, "merger.fault_drop_every_nth_delta": 3, "mapper.delta_rate_hz": 4.0}
     s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path, domain_id=ros_domain_id,
-                                overrides=overrides, start_delays_s={"merger": 15.0}, timeout_s=600),
+                                namespace=_own_ns(), overrides=overrides, start_delays_s={"merger": 15.0}, timeout_s=600),
                      progress=False)
     assert s.merger_resyncs >= 1
     assert s.replica_identical, s.replica_max_abs_diff
@@ -97,7 +103,7 @@ def test_killed_mapper_resumes_from_checkpoint_and_killed_merger_resyncs(bag: Pa
     """SIGKILL (no chance to save) the mapper, then the merger, mid-run; both restart at once."""
     overrides = {**FAST, "mapper.checkpoint_period_s": 1.0, "merger.save_period_s": 1.0}
     s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path, domain_id=ros_domain_id,
-                                overrides=overrides, kill_after_s={"mapper": 6.0, "merger": 12.0}, timeout_s=600),
+                                namespace=_own_ns(), overrides=overrides, kill_after_s={"mapper": 6.0, "merger": 12.0}, timeout_s=600),
                      progress=False)
     assert s.restarts == {"mapper": 1, "merger": 1}
     log = (tmp_path / "logs" / "mapper.log").read_text()
@@ -142,7 +148,7 @@ def test_source_failing_part_way_still_saves_the_map(tmp_path: Path, ros_domain_
     rgb[10].write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 40)  # a header and nothing else
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", str(folder), "--config", "synthetic",
-           "--single-process", "--domain-id", str(ros_domain_id), "--out", str(out), "--json",
+           "--single-process", "--domain-id", str(ros_domain_id), "--namespace", _own_ns(), "--out", str(out), "--json",
            str(tmp_path / "summary.json"), "--set", "mapper.lockstep_iterations=1",
            "--set", "mapper.mapping.merge_enabled=false", "--timeout", "400"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
