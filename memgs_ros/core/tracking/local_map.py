@@ -293,7 +293,7 @@ class SparseMap:
                 if renumbered is None:
                     return moved
                 point_ids, out_ids = renumbered[: len(point_ids)], renumbered[len(point_ids):]
-                outliers = [(int(i), k) for i, (_, k) in zip(out_ids.tolist(), outliers) if i >= 0]
+                outliers = [(int(i), k) for i, (_, k) in zip(out_ids.tolist(), outliers, strict=True) if i >= 0]
             for kf_id, T in zip(kf_ids, T_cw):
                 kf = self.keyframes.get(kf_id)
                 if kf is not None:
