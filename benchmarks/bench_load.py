@@ -44,8 +44,8 @@ def _num(row: dict, key: str) -> float:
 
 def _stream_end_s(timeline: list[dict]) -> float:
     """When the player published its last frame (the first stats row showing the final count)."""
-    rows = [r for r in timeline if r["node"] == "player"]
-    if not rows:
+    rows = [r for r in timeline if r["node"] == "player" and _num(r, "frames_published") >= 0]
+    if not rows:  # NaN (a row without the counter) fails the comparison and is left out
         return max(r["t_s"] for r in timeline)
     final = max(_num(r, "frames_published") for r in rows)
     return min(r["t_s"] for r in rows if _num(r, "frames_published") == final)

@@ -19,12 +19,13 @@ densification alternate, reference section 4).
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import threading
 import time
 from dataclasses import dataclass, fields
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any, Callable
 
 import numpy as np
@@ -761,6 +762,13 @@ class GaussianMapper:
         with self._lock:
             removed, changed_idx = self.gmap.pop_changes()
             return MapChanges(removed.cpu().numpy().astype(np.int64), self.gmap.to_records(changed_idx))
+
+    @contextlib.contextmanager
+    def exclusive(self) -> Iterator[None]:
+        """Hold the map across several calls (e.g. inserting every queued keyframe): no training
+        step interleaves, and each call inside re-enters the lock without waiting for one."""
+        with self._lock:
+            yield
 
     def discard_changes(self) -> None:
         """Forget the removals and changes ``pop_changes`` would report. For users that diff
