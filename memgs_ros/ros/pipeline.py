@@ -55,7 +55,8 @@ class RunOptions:
     domain_id: int | None = None
     max_frames: int = 0
     overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value
-    # Start these nodes this many seconds late (a ground-station merger joining mid-run).
+    # Start these nodes this many seconds after the player starts (a ground-station merger
+    # joining mid-run; separate processes only).
     start_delays_s: Mapping[str, float] = field(default_factory=dict)
     # Fault injection (separate processes only): SIGKILL these nodes this many seconds after
     # the player starts, and start them again at once (the mapper resumes from its checkpoint).
@@ -377,17 +378,16 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
             for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
                 env.setdefault(var, "1")
             procs = _Processes(params_file, ns, env, out / "logs")
+            delayed = {n: float(d) for n, d in options.start_delays_s.items() if float(d) > 0}
             for name in GRAPH_NODES:
-                delay = float(options.start_delays_s.get(name, 0.0))
-                if delay > 0:
-                    timer = threading.Timer(delay, procs.start, args=(name,))
-                    timer.daemon = True
-                    timer.start()
-                else:
+                if name not in delayed:
                     procs.start(name)
-            _wait_for_graph(observer, procs, [n for n in GRAPH_NODES if not options.start_delays_s.get(n)],
-                            t0 + options.timeout_s)
+            _wait_for_graph(observer, procs, [n for n in GRAPH_NODES if n not in delayed], t0 + options.timeout_s)
             procs.start("bag_player")
+            for name, delay in delayed.items():  # counted from the start of the replay, as kills are
+                timer = threading.Timer(delay, procs.start, args=(name,))
+                timer.daemon = True
+                timer.start()
         elif options.kill_after_s:
             raise ConfigError("fault injection (kill_after_s) needs separate processes")
         summary = _drive(observer, options, procs, out, t0, progress)
