@@ -18,6 +18,8 @@ from memgs_ros.core.mapping import GaussianMapper, MappingConfig, undistortion_v
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
+from frame_seeds import grid_seeds
+
 # ----------------------------------------------------------------------------- losses
 
 
@@ -190,22 +192,12 @@ def tiny_frames() -> list[Frame]:
     return list(generate_frames(spec))[::10]  # 3 keyframes
 
 
-def _seeds(f: Frame, step: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    cam = f.camera
-    v, u = np.mgrid[step // 2: cam.height: step, step // 2: cam.width: step]
-    u, v = u.ravel(), v.ravel()
-    d = f.depth_m[v, u]
-    ok = np.isfinite(d) & (d > 0)
-    p_c = cam.backproject(u[ok], v[ok], d[ok])
-    return p_c @ f.T_wc_gt[:3, :3].T + f.T_wc_gt[:3, 3], f.rgb[v[ok], u[ok]] / 255.0
-
-
 def _mapper(frames: list[Frame], **overrides: object) -> GaussianMapper:
     cfg = MappingConfig(**{"min_keyframes": 3, "pyramid_uses_per_level": 2, "merge_enabled": False,
                            "densify_start_iter": 10_000, **overrides})
     m = GaussianMapper(cfg)
     for i, f in enumerate(frames):
-        p, c = _seeds(f)
+        p, c = grid_seeds(f)
         m.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
     return m
 
@@ -326,7 +318,7 @@ def test_merge_hook_called_on_schedule(tiny_frames: list[Frame]) -> None:
                         merge_stop_iter=4, densify_start_iter=10_000)
     m = GaussianMapper(cfg, merge_fn=fake_merge, merge_cfg="mcfg")
     for i, f in enumerate(tiny_frames):
-        p, c = _seeds(f, 8)
+        p, c = grid_seeds(f, 8)
         m.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
     stats = [m.step() for _ in range(6)]
     assert calls == [(True, "mcfg", 2, 2), (True, "mcfg", 2, 4)]
@@ -363,7 +355,7 @@ def test_keyframes_can_be_added_while_training(tiny_frames: list[Frame]) -> None
     t.start()
     f = tiny_frames[1]
     for k in range(3, 6):
-        p, c = _seeds(f, 8)
+        p, c = grid_seeds(f, 8)
         m.add_keyframe(k, f.stamp_ns + k, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
     t.join()
     assert not errors and len(m.keyframes) == 6 and m.iteration == 15

@@ -13,20 +13,12 @@ from memgs_ros.core.metrics import psnr
 from memgs_ros.errors import ConfigError
 from memgs_ros.io.synthetic import generate_frames, parse_spec
 
+from frame_seeds import grid_seeds
+
 
 @pytest.fixture(scope="module")
 def frames() -> list[Frame]:
     return list(generate_frames(parse_spec("synthetic:w=64,h=48,n=30,seed=1")))[::10]  # 3 keyframes
-
-
-def _seeds(f: Frame, step: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    cam = f.camera
-    v, u = np.mgrid[step // 2: cam.height: step, step // 2: cam.width: step]
-    u, v = u.ravel(), v.ravel()
-    d = f.depth_m[v, u]
-    ok = np.isfinite(d) & (d > 0)
-    p_c = cam.backproject(u[ok], v[ok], d[ok])
-    return p_c @ f.T_wc_gt[:3, :3].T + f.T_wc_gt[:3, 3], f.rgb[v[ok], u[ok]] / 255.0
 
 
 # Densification from step 10 every 10 steps with a low gradient threshold: an unbudgeted map
@@ -39,7 +31,7 @@ GROWING = {"min_keyframes": 3, "pyramid_uses_per_level": 2, "densify_start_iter"
 def _mapper(frames: list[Frame], adds: list[int] | None = None, **overrides: object) -> GaussianMapper:
     m = GaussianMapper(MappingConfig(**{**GROWING, **overrides}))
     for i, f in enumerate(frames):
-        p, c = _seeds(f)
+        p, c = grid_seeds(f)
         n = m.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
         if adds is not None:
             adds.append(n)
@@ -121,7 +113,7 @@ def test_deferred_budget_is_enforced_by_the_next_step(frames: list[Frame]) -> No
     m = GaussianMapper(MappingConfig(**{**GROWING, "max_gaussians": 300, "densify_start_iter": 10_000}))
     added = 0
     for i, f in enumerate(frames):
-        p, c = _seeds(f)
+        p, c = grid_seeds(f)
         added += m.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c, enforce_budget=False)
     assert added > 300 and len(m.gmap) == added  # nothing enforced yet
     st = m.step()
