@@ -64,6 +64,8 @@ def memory_trend(rows: list[dict], t0: float, t1: float, window_s: float = 60.0)
     # Floors: the lowest sample of each 30 s (trim period) window.
     edges = np.arange(t0, t1 - 30.0 + 1e-9, 30.0)  # whole windows only: each holds one trim
     floors = [(a + 15.0, m[(t >= a) & (t < a + 30.0)].min()) for a in edges if ((t >= a) & (t < a + 30.0)).any()]
+    if not floors:  # a window shorter than one trim period: its lowest sample stands in
+        floors = [(float(t[np.argmin(m)]), float(m.min()))]
     ft, fm = np.array(floors).T
     floor_slope = float(np.polyfit(ft / 60.0, fm, 1)[0]) if len(floors) >= 2 else 0.0
     return {"first_min_median": float(np.median(first)), "first_min_peak": float(first.max()),
@@ -177,10 +179,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nframes published {published}, tracked {frames_in}, dropped before the tracker "
           f"{published - frames_in} ({100 * result['dropped_fraction']:.1f} %), poses {s.poses}, lost {s.lost_frames}")
     mp = nodes.get("mapper", {}).get("last", {})
-    result["mapper_keyframes"] = {k: mp.get(k) for k in ("keyframes", "keyframes_missed", "dropped_keyframe_bundles",
-                                                         "keyframes_trained", "keyframes_dropped")}
-    print(f"tracker keyframes {s.keyframes}: mapper inserted {mp.get('keyframes')}, missed "
-          f"{mp.get('keyframes_missed', 0)}, incomplete bundles dropped {mp.get('dropped_keyframe_bundles')}")
+    result["mapper_keyframes"] = {k: mp.get(k) for k in ("keyframes", "problem.keyframe_overload", "keyframes_missed",
+                                                         "dropped_keyframe_bundles", "keyframes_trained",
+                                                         "keyframes_dropped")}
+    print(f"tracker keyframes {s.keyframes}: mapper inserted {mp.get('keyframes')}, dropped from its full insert "
+          f"queue {mp.get('problem.keyframe_overload', 0)}, missed {mp.get('keyframes_missed', 0)}, incomplete "
+          f"bundles dropped {mp.get('dropped_keyframe_bundles')}")
     result["tracker_map"] = {k: tr.get(k) for k in ("map_keyframes", "map_points", "map_keyframes_removed")}
     print(f"tracker sparse map at the end: {tr.get('map_keyframes')} keyframes, {tr.get('map_points')} points, "
           f"{tr.get('map_keyframes_removed')} keyframes removed by its cap")

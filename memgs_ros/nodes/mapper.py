@@ -113,7 +113,6 @@ class MapperNode(Node):
             device = "cuda" if torch.cuda.is_available() else "cpu"
         if device == "cpu":
             configure_cpu_runtime()
-
         self.mapper = GaussianMapper(self.cfg, device=device, merge_cfg=self.merge_cfg)
         # A new epoch every start: a merger that held the map of an earlier life resynchronises.
         self.outbox = DeltaOutbox(self.cfg.max_sh_degree, delta_tol, epoch=secrets.randbits(32))
@@ -238,7 +237,7 @@ class MapperNode(Node):
             return self.ckpt_path
 
     # ------------------------------------------------------------------ keyframes
-    def _part(self, part: str, msg) -> None:
+    def _part(self, part: str, msg) -> None:  # noqa: ANN001 - any bundle message type
         stamp = stamp_to_ns(msg.header.stamp)
         if stamp in self.kf_ids or stamp in self._complete_set:
             # Keyframe topics replay recent samples to a (re)started mapper: keep the first copy.
