@@ -46,14 +46,14 @@ def _records_equal(a, b) -> bool:  # noqa: ANN001
 def test_round_trip_restores_map_keyframes_and_training(tmp_path: Path) -> None:
     m = _trained()
     assert m.gmap.active_sh_degree == 1 and len(m.gmap) > 100
-    ck = checkpoint.capture(m, extra={"seq": 41, "stamps": {"10": 0}})
+    ck = m.state_dict({"seq": 41, "stamps": {"10": 0}})
     path = checkpoint.save(ck, tmp_path / "ck.npz")
     assert path.exists() and not list(tmp_path.glob(".*tmp"))
     back = checkpoint.load(path)
     assert back.extra == {"seq": 41, "stamps": {"10": 0}} and back.iteration == 12
 
     r = GaussianMapper(_cfg())
-    checkpoint.restore(r, back)
+    r.load_state_dict(back)
     assert _records_equal(r.snapshot(), m.snapshot())
     assert torch.equal(r.gmap.keyframe_ids, m.gmap.keyframe_ids)
     assert torch.equal(r.gmap.created_iter, m.gmap.created_iter)
@@ -76,20 +76,20 @@ def test_round_trip_restores_map_keyframes_and_training(tmp_path: Path) -> None:
     new_ids = r.gmap.ids[r.gmap.ids >= checkpoint.ID_BLOCK]
     assert new_ids.numel() > 0  # densification added Gaussians with new-block ids
     with pytest.raises(DataError, match="empty mapper"):
-        checkpoint.restore(r, back)
+        r.load_state_dict(back)
 
 
 def test_empty_mapper_round_trips(tmp_path: Path) -> None:
     m = GaussianMapper(_cfg())
-    back = checkpoint.load(checkpoint.save(checkpoint.capture(m), tmp_path / "e.npz"))
+    back = checkpoint.load(checkpoint.save(m.state_dict(), tmp_path / "e.npz"))
     r = GaussianMapper(_cfg())
-    checkpoint.restore(r, back)
+    r.load_state_dict(back)
     assert len(r.gmap) == 0 and len(r.keyframes) == 0 and r.iteration == 0
 
 
 def test_failed_write_keeps_the_previous_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     m = _trained()
-    path = checkpoint.save(checkpoint.capture(m, {"n": 1}), tmp_path / "ck.npz")
+    path = checkpoint.save(m.state_dict({"n": 1}), tmp_path / "ck.npz")
     before = path.read_bytes()
 
     def boom(*_a, **_k):  # noqa: ANN002, ANN003, ANN202
@@ -97,13 +97,13 @@ def test_failed_write_keeps_the_previous_checkpoint(tmp_path: Path, monkeypatch:
 
     monkeypatch.setattr(np, "savez", boom)
     with pytest.raises(OSError, match="disk full"):
-        checkpoint.save(checkpoint.capture(m, {"n": 2}), path)
+        checkpoint.save(m.state_dict({"n": 2}), path)
     assert path.read_bytes() == before and checkpoint.load(path).extra == {"n": 1}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ck.npz"]  # no temporary left behind
 
 
 def test_corrupt_truncated_and_foreign_files_are_data_errors(tmp_path: Path) -> None:
-    path = checkpoint.save(checkpoint.capture(_trained()), tmp_path / "ck.npz")
+    path = checkpoint.save(_trained().state_dict(), tmp_path / "ck.npz")
     data = path.read_bytes()
     cases = {
         "truncated.npz": data[: len(data) // 2],

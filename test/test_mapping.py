@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import replace
 
 import numpy as np
@@ -338,29 +337,6 @@ def test_distorted_keyframe_is_undistorted_and_scaled() -> None:
     assert tuple(kf.image.shape) == (3, 15, 20) and float(kf.image.max()) <= 1.0
     with pytest.raises(DataError, match="rgb must be uint8"):
         m.add_keyframe(1, 0, np.eye(4), rgb[:, :10], depth, cam)
-
-
-def test_keyframes_can_be_added_while_training(tiny_frames: list[Frame]) -> None:
-    m = _mapper(tiny_frames)
-    errors: list[BaseException] = []
-
-    def train() -> None:
-        try:
-            for _ in range(15):
-                m.step()
-        except BaseException as err:  # noqa: BLE001 - reported to the main thread
-            errors.append(err)
-
-    t = threading.Thread(target=train)
-    t.start()
-    f = tiny_frames[1]
-    for k in range(3, 6):
-        p, c = grid_seeds(f, 8)
-        m.add_keyframe(k, f.stamp_ns + k, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
-    t.join()
-    assert not errors and len(m.keyframes) == 6 and m.iteration == 15
-    g = m.gmap
-    assert all(int(getattr(g, n).shape[0]) == len(g) for n in ("ids", "keyframe_ids", "dirty"))
 
 
 def test_config_refuses_bad_values() -> None:

@@ -1,5 +1,9 @@
 """Mapper checkpoints: the Gaussian map and the keyframes it trains on, in one atomic file.
 
+The mapper writes its own state (``GaussianMapper.state_dict`` / ``load_state_dict``, wrapped by
+``MappingSession.state_dict`` which adds its keyframe-stamp table); this module holds the record
+types and the file format, nothing that reaches into a mapper.
+
 A mapper that dies mid-flight (out of memory, a crash, a power cut on the vehicle) resumes
 from its last checkpoint instead of from nothing. The file is a NumPy ``.npz`` archive
 (uncompressed zip of ``.npy`` arrays, read with ``allow_pickle=False``: nothing in it is
@@ -28,11 +32,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.gaussians import PLY_F_REST, GaussianRecords
-from memgs_ros.core.keyframes import make_keyframe
 from memgs_ros.errors import DataError
 
 FORMAT_VERSION = 1
@@ -70,54 +72,6 @@ class MapperCheckpoint:
     scene_extent: float
     saved_at_s: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
-
-
-def capture(mapper: Any, extra: dict[str, Any] | None = None) -> MapperCheckpoint:
-    """Copy a ``GaussianMapper``'s state to host memory (holds its lock while copying)."""
-    with mapper.lock:
-        gmap = mapper.gmap
-        records = gmap.to_records()
-        kf_of = gmap.keyframe_ids.detach().cpu().numpy().astype(np.int64)
-        created = gmap.created_iter.detach().cpu().numpy().astype(np.int64)
-        kfs = []
-        for kf in mapper.keyframes.all():
-            image = (kf.image.detach().clamp(0, 1) * 255.0).round().to(torch.uint8)
-            kfs.append(KeyframeState(
-                int(kf.kf_id), int(kf.stamp_ns), np.array(kf.T_wc, dtype=np.float64),
-                image.permute(1, 2, 0).contiguous().cpu().numpy(),
-                None if kf.depth_m is None else kf.depth_m.detach().cpu().numpy().astype(np.float32),
-                None if kf.valid_mask is None else kf.valid_mask.detach().cpu().numpy().astype(bool),
-                kf.camera))
-        return MapperCheckpoint(records, kf_of, created, tuple(kfs), int(mapper.iteration), int(gmap.next_id),
-                                int(gmap.active_sh_degree), float(mapper.scene_extent), time.time(),
-                                dict(extra or {}))
-
-
-def restore(mapper: Any, ckpt: MapperCheckpoint) -> None:
-    """Load ``ckpt`` into a fresh ``GaussianMapper`` (no keyframes, no Gaussians yet).
-
-    New Gaussians get ids from the next ``ID_BLOCK`` boundary above the checkpoint's next id.
-    """
-    with mapper.lock:
-        if len(mapper.gmap) or len(mapper.keyframes):
-            raise DataError("a checkpoint can only be restored into an empty mapper")
-        dev = mapper.device
-        for k in ckpt.keyframes:
-            image = torch.from_numpy(np.ascontiguousarray(k.image)).to(dev).permute(2, 0, 1).float() / 255.0
-            depth = None if k.depth_m is None else torch.from_numpy(k.depth_m).to(dev)
-            mask = None if k.valid_mask is None else torch.from_numpy(k.valid_mask).to(dev)
-            mapper.add_prepared_keyframe(make_keyframe(k.kf_id, k.stamp_ns, k.T_wc, image.contiguous(), depth,
-                                                       k.camera, valid_mask=mask))
-        gmap = mapper.gmap
-        if len(ckpt.gaussians):
-            gmap.load_records(ckpt.gaussians, iteration=0)
-            gmap.keyframe_ids[:] = torch.from_numpy(ckpt.keyframe_ids).to(gmap.keyframe_ids)
-            gmap.created_iter[:] = torch.from_numpy(ckpt.created_iter).to(gmap.created_iter)
-        gmap.next_id = -(-max(ckpt.next_id, 1) // ID_BLOCK) * ID_BLOCK
-        while gmap.active_sh_degree < min(ckpt.active_sh_degree, gmap.max_sh_degree):
-            gmap.raise_sh_degree()
-        gmap.pop_changes()  # the restored map is the baseline, not a change
-        mapper.iteration = ckpt.iteration
 
 
 # ------------------------------------------------------------------------------ files

@@ -345,15 +345,15 @@ class GaussianMap:
         return ids
 
     def add_from_points(self, points_w: np.ndarray | torch.Tensor, colors: np.ndarray | torch.Tensor,
-                        keyframe_id: int, iteration: int) -> torch.Tensor:
+                        keyframe_id: int, iteration: int, opacity: float = 0.1) -> torch.Tensor:
         """Initialise Gaussians at points as 3DGS does (reference section 3).
 
         points_w: [M, 3] world positions; colors: [M, 3] RGB in [0, 1].
         Scale = log(sqrt(mean squared distance to the 3 nearest neighbours)), the neighbours
         searched among the existing map's means AND the new points (so a seed dropped into an
         already covered region gets a size matching its neighbourhood, not the batch's spread);
-        squared distance clamped at 1e-7. Identity rotation, opacity logit(0.1), SH DC from the
-        colour, higher bands zero. Returns the new ids [M].
+        squared distance clamped at 1e-7. Identity rotation, opacity ``opacity`` (3DGS: 0.1), SH
+        DC from the colour, higher bands zero. Returns the new ids [M].
         """
         from scipy.spatial import cKDTree  # scipy only needed here
 
@@ -379,7 +379,9 @@ class GaussianMap:
         mean_sq = np.maximum(mean_sq, 1e-7)
         log_s = np.log(np.sqrt(mean_sq))[:, None].repeat(3, 1)
         quats = np.zeros((m, 4)); quats[:, 0] = 1.0
-        opac = np.full((m, 1), math.log(0.1 / 0.9))
+        if not 0.0 < opacity < 1.0:
+            raise DataError(f"seed opacity must be in (0, 1), got {opacity}")
+        opac = np.full((m, 1), math.log(opacity / (1.0 - opacity)))
         dc = rgb_to_sh_dc(np.clip(cols, 0.0, 1.0))
         t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=self.device)  # noqa: E731
         return self.add(t(pts), t(log_s), t(quats), t(opac), t(dc).reshape(m, 1, 3), None,

@@ -1,6 +1,6 @@
 """Keyframes for the mapper and Photo-SLAM's training-view selection (reference section 5).
 
-A ``Keyframe`` is immutable; its pose changes by replacing it in the ``KeyframeStore``
+A ``TrainingKeyframe`` is immutable; its pose changes by replacing it in the ``KeyframeStore``
 (``update_pose``), so a training step that already took a keyframe keeps a consistent view.
 
 View selection (``KeyframeStore.next_view``):
@@ -40,7 +40,7 @@ class PyramidLevel:
 
 
 @dataclass(frozen=True, eq=False)
-class Keyframe:
+class TrainingKeyframe:
     """A keyframe as the mapper trains on it.
 
     kf_id: keyframe id; stamp_ns: capture time; T_wc: [4, 4] float64 camera-to-world.
@@ -68,7 +68,7 @@ def _resize_depth(depth: torch.Tensor, h: int, w: int) -> torch.Tensor:
 def make_keyframe(kf_id: int, stamp_ns: int, T_wc: np.ndarray, image: torch.Tensor,
                   depth_m: torch.Tensor | None, camera: PinholeCamera,
                   factors: tuple[float, ...] = PYRAMID_FACTORS,
-                  valid_mask: torch.Tensor | None = None) -> Keyframe:
+                  valid_mask: torch.Tensor | None = None) -> TrainingKeyframe:
     """Build a keyframe and its pyramid (area-averaged colour, nearest depth; a coarse pixel
     of the mask is valid only when every fine pixel it averages is).
 
@@ -101,14 +101,14 @@ def make_keyframe(kf_id: int, stamp_ns: int, T_wc: np.ndarray, image: torch.Tens
             frac = F.interpolate(valid_mask[None, None].float(), size=(cam.height, cam.width), mode="area")[0, 0]
             msk = frac > 0.999
         levels.append(PyramidLevel(f, img.contiguous(), dep, cam, msk))
-    return Keyframe(int(kf_id), int(stamp_ns), T.copy(), image, depth_m, camera, tuple(levels), valid_mask)
+    return TrainingKeyframe(int(kf_id), int(stamp_ns), T.copy(), image, depth_m, camera, tuple(levels), valid_mask)
 
 
 @dataclass(frozen=True)
 class TrainingView:
     """What one iteration trains on: a keyframe and the pyramid level to render."""
 
-    keyframe: Keyframe
+    keyframe: TrainingKeyframe
     level: PyramidLevel
 
 
@@ -122,7 +122,7 @@ class KeyframeStore:
         self.new_keyframe_budget = int(new_keyframe_budget)
         self.uses_per_level = int(uses_per_level)
         self._lock = threading.RLock()
-        self._kfs: dict[int, Keyframe] = {}
+        self._kfs: dict[int, TrainingKeyframe] = {}
         self._budget: dict[int, int] = {}
         self._uses: dict[int, int] = {}  # draws so far, drives the pyramid level
         self._pool: list[int] = []
@@ -140,7 +140,7 @@ class KeyframeStore:
         with self._lock:
             return sorted(self._kfs)
 
-    def add(self, kf: Keyframe) -> None:
+    def add(self, kf: TrainingKeyframe) -> None:
         """Insert a new keyframe with the new-keyframe budget, at a random place in the list."""
         with self._lock:
             if kf.kf_id in self._kfs:
@@ -158,14 +158,14 @@ class KeyframeStore:
             del self._kfs[kf_id], self._budget[kf_id], self._uses[kf_id]
             self._pool = [k for k in self._pool if k != kf_id]
 
-    def get(self, kf_id: int) -> Keyframe:
+    def get(self, kf_id: int) -> TrainingKeyframe:
         with self._lock:
             try:
                 return self._kfs[kf_id]
             except KeyError as err:
                 raise DataError(f"no keyframe with id {kf_id}") from err
 
-    def all(self) -> list[Keyframe]:
+    def all(self) -> list[TrainingKeyframe]:
         """Every keyframe, in id order."""
         with self._lock:
             return [self._kfs[k] for k in sorted(self._kfs)]
@@ -177,6 +177,16 @@ class KeyframeStore:
             raise DataError(f"keyframe {kf_id}: T_wc must be a finite 4x4 matrix")
         with self._lock:
             self._kfs[kf_id] = replace(self.get(kf_id), T_wc=T.copy())
+
+    def prioritise(self, kf_id: int) -> None:
+        """Give keyframe ``kf_id`` a new keyframe's budget of views again and put it back in the
+        list of views to draw (a keyframe whose pose a loop closure corrected: retrain it first)."""
+        with self._lock:
+            if kf_id not in self._kfs:
+                raise DataError(f"no keyframe with id {kf_id}")
+            self._budget[kf_id] = max(self._budget[kf_id], self.new_keyframe_budget)
+            if kf_id not in self._pool:
+                self._pool.append(kf_id)  # next_view draws from the end: it comes next
 
     def level_index(self, kf_id: int) -> int:
         """Pyramid level the keyframe's next draw renders (0 = coarsest)."""

@@ -1,0 +1,482 @@
+"""The mapping session: the one owner of the live Gaussian map (an actor).
+
+A ``MappingSession`` owns a ``GaussianMapper`` (map, optimiser state, training keyframes), the
+keyframe-stamp table and the delta outbox. One worker thread executes typed commands from one
+queue, in the order they were submitted: insert a keyframe, update keyframe poses, rigidly
+correct keyframes and their Gaussians, train N steps, cut a delta or snapshot, render a view,
+capture state, finish. Every mutation happens on that worker; callers get a
+``concurrent.futures.Future`` per command and readers get immutable values (records copied to
+host memory, ``SessionStatus``). There are no locks around the map: nothing but the worker
+touches it.
+
+Free-running (``free_running=True``): between commands the worker trains, one step at a time, so
+a command waits at most for the step in progress. Lockstep: the worker trains only on ``train``
+commands ("train N steps, then acknowledge"), the same code path, so a replay is deterministic.
+
+Overload: at most ``insert_queue`` keyframe insertions wait in the queue (free-running only);
+when one more arrives, the oldest waiting insertion is dropped whole, its future resolves to None,
+and it is counted (``keyframe_overload``), as the mapper node did before.
+
+Problems the worker meets (a keyframe it refuses, a failed training step, a dropped keyframe) are
+queued as ``SessionEvent``s for the owner to report (``poll_events``): the worker never calls back
+into a ROS node.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+import torch
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.checkpoint import MapperCheckpoint
+from memgs_ros.core.gaussians import GaussianRecords
+from memgs_ros.core.map_delta import DeltaOutbox
+from memgs_ros.core.mapping import GaussianMapper, MappingConfig, StepStats
+from memgs_ros.core.sampling import undistorter_for
+from memgs_ros.errors import DataError, MemgsError
+
+logger = logging.getLogger(__name__)
+logger.addHandler(logging.NullHandler())
+
+T = TypeVar("T")
+
+# A free-running worker with nothing to train (too few keyframes) waits this long for a command.
+_IDLE_WAIT_S = 0.05
+# After a failed training step, free-running training pauses this long (one bad step, e.g. a CUDA
+# hiccup, must not spin).
+_STEP_ERROR_PAUSE_S = 0.1
+
+
+class SessionError(MemgsError):
+    """A command reached a session that is closed."""
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframeInput:
+    """A keyframe as it arrives (images as recorded, not yet prepared).
+
+    stamp_ns: capture time (the keyframe's name on the wire); T_wc: [4, 4] camera-to-world;
+    rgb: [H, W, 3] uint8; depth_m: [H, W] float32 metres (NaN invalid) or None; camera: the
+    images' intrinsics with distortion; points_w: [M, 3] world seeds; colors: [M, 3] in [0, 1].
+    """
+
+    stamp_ns: int
+    T_wc: np.ndarray
+    rgb: np.ndarray
+    depth_m: np.ndarray | None
+    camera: PinholeCamera
+    points_w: np.ndarray
+    colors: np.ndarray
+
+
+@dataclass(frozen=True)
+class SessionEvent:
+    """A problem the worker met: ``kind`` is the counter name (e.g. ``bad_keyframe``)."""
+
+    kind: str
+    message: str
+
+
+@dataclass(frozen=True, eq=False)
+class RenderedView:
+    """A render of the map: rgb [h, w, 3] uint8, depth [h, w] float32 metres, the camera used."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    camera: PinholeCamera
+
+
+@dataclass(frozen=True)
+class DeltaBatch:
+    """Delta messages as structured rows (``map_delta.encode``), the sequence number after them,
+    the outbox's epoch and the rows over tolerance still held back by the row limit."""
+
+    messages: tuple[np.ndarray, ...]
+    seq: int
+    epoch: int
+    pending_rows: int
+
+
+@dataclass(frozen=True)
+class FinishResult:
+    seq: int
+    epoch: int
+    gaussians: int
+    final_iterations: int
+    seconds: float
+
+
+@dataclass(frozen=True)
+class SessionStatus:
+    """What the session looks like after its latest command or step (immutable; replaced whole)."""
+
+    iteration: int = 0
+    gaussians: int = 0
+    keyframes: int = 0  # inserted since start (resumed ones included)
+    keyframes_trained: int = 0
+    keyframes_dropped: int = 0  # by max_keyframes
+    budget_gaussians: int = 0
+    model_bytes: int = 0
+    model_bytes_peak: int = 0
+    gaussians_peak: int = 0
+    loss: float | None = None
+    insert_queue: int = 0
+    finished: bool = False
+    render_camera: PinholeCamera | None = None
+    counters: Mapping[str, int] = field(default_factory=dict)
+
+
+class _Command(Generic[T]):
+    """A queued call: ``run`` executes on the worker; its result or exception goes to ``future``."""
+
+    __slots__ = ("name", "run", "future")
+
+    def __init__(self, name: str, run: Callable[[], T]) -> None:
+        self.name = name
+        self.run = run
+        self.future: Future[T] = Future()
+
+
+class MappingSession:
+    """The one owner of a live Gaussian map (see module docstring).
+
+    ``checkpoint``: a state to start from (``state_dict`` of an earlier session); ``delta_epoch`` /
+    ``delta_tolerance``: the delta outbox's epoch and tolerance; ``merge_cfg``: the MergeConfig.
+    """
+
+    def __init__(self, cfg: MappingConfig | None = None, device: torch.device | str = "cpu", *,
+                 merge_cfg: Any = None, free_running: bool = True, insert_queue: int = 4,
+                 delta_tolerance: float = 1e-3, delta_epoch: int = 0,
+                 checkpoint: MapperCheckpoint | None = None) -> None:
+        if insert_queue < 1:
+            raise DataError(f"insert_queue must be >= 1, got {insert_queue}")
+        self.cfg = cfg if cfg is not None else MappingConfig()
+        self.free_running = free_running
+        self.insert_queue = int(insert_queue)
+        self._mapper = GaussianMapper(self.cfg, device=device, merge_cfg=merge_cfg)
+        self._outbox = DeltaOutbox(self.cfg.max_sh_degree, delta_tolerance, epoch=delta_epoch)
+        self._stamps: dict[int, int] = {}  # keyframe stamp -> keyframe id (ids 0, 1, ... by arrival)
+        self._render_camera: PinholeCamera | None = None
+        self._finished = False
+        self._training = free_running
+        self._counters: Counter[str] = Counter()
+        self._peaks = [0, 0]  # model bytes, Gaussians
+        self._last_loss: float | None = None
+        self._captured: tuple[int, int] | None = None  # (iteration, keyframes) of the last state_dict
+        self._commands: deque[_Command[Any]] = deque()
+        self._pending_inserts = 0
+        self._cv = threading.Condition()
+        self._closed = False
+        self._events: queue.SimpleQueue[SessionEvent] = queue.SimpleQueue()
+        if checkpoint is not None:
+            self._load(checkpoint)
+        self.resumed_stamps: frozenset[int] = frozenset(self._stamps)
+        self._status = SessionStatus()
+        self._publish_status()
+        self._worker = threading.Thread(target=self._run, name="mapping-session", daemon=True)
+        self._worker.start()
+
+    # ------------------------------------------------------------------ readers
+    @property
+    def status(self) -> SessionStatus:
+        """The latest status (an immutable value; reading it needs no lock)."""
+        return self._status
+
+    @property
+    def device(self) -> torch.device:
+        return self._mapper.device
+
+    def poll_events(self) -> list[SessionEvent]:
+        """Problems met since the last call, oldest first."""
+        out = []
+        while True:
+            try:
+                out.append(self._events.get_nowait())
+            except queue.Empty:
+                return out
+
+    # ----------------------------------------------------------------- commands
+    def insert_keyframe(self, kf: KeyframeInput) -> Future[int | None]:
+        """Queue a keyframe. The future gives the Gaussians seeded, or None when the keyframe was
+        refused (counted as an event), dropped for overload, or came after ``finish``."""
+        cmd: _Command[int | None] = _Command("insert", lambda: self._insert(kf))
+        with self._cv:
+            self._check_open()
+            if self.free_running and self._pending_inserts >= self.insert_queue:
+                oldest = next(c for c in self._commands if c.name == "insert")
+                self._commands.remove(oldest)
+                self._pending_inserts -= 1
+                oldest.future.set_result(None)
+                self._counters["keyframes_overload"] += 1
+                self._event("keyframe_overload", "mapper cannot keep up: a keyframe was dropped from its full "
+                                                 "insert queue")
+            self._commands.append(cmd)
+            self._pending_inserts += 1
+            self._cv.notify()
+        self._publish_status()
+        return cmd.future
+
+    def update_poses(self, poses: Mapping[int, np.ndarray]) -> Future[int]:
+        """Replace keyframe poses ({stamp_ns: T_wc [4, 4]}, e.g. bundle adjustment); the Gaussians
+        stay. The future gives how many keyframes were updated (unknown and dropped ones are not)."""
+        return self._submit("update_poses", lambda: self._update_poses(dict(poses)))
+
+    def correct_keyframes(self, poses: Mapping[int, np.ndarray]) -> Future[tuple[int, int]]:
+        """Rigidly move keyframes ({stamp_ns: corrected T_wc}) and the Gaussians anchored to them,
+        then train them with priority (``GaussianMapper.correct_keyframes``). The future gives
+        (keyframes corrected, Gaussians moved)."""
+        return self._submit("correct", lambda: self._correct(dict(poses)))
+
+    def train(self, iterations: int) -> Future[StepStats | None]:
+        """Run ``iterations`` training steps now (nothing before ``ready``); the future gives the
+        last step's stats. Lockstep replays call this once per frame."""
+        return self._submit("train", lambda: self._train(int(iterations)))
+
+    def delta(self, max_rows: int | None, exact: bool = False) -> Future[DeltaBatch]:
+        """The next map delta for the receiver: at most ``max_rows`` rows over the tolerance, or
+        with ``exact`` every difference at tolerance 0 (repeated until nothing differs)."""
+        return self._submit("delta", lambda: self._delta(max_rows, exact))
+
+    def snapshot_message(self) -> Future[tuple[np.ndarray, int, int]]:
+        """The whole map as the next snapshot message (rows, Gaussian count, its seq)."""
+        return self._submit("snapshot", self._snapshot_message)
+
+    def snapshot(self) -> Future[GaussianRecords]:
+        """The whole map as records (host copies)."""
+        return self._submit("records", self._mapper.snapshot)
+
+    def render(self, T_wc: np.ndarray, camera: PinholeCamera | None = None) -> Future[RenderedView | None]:
+        """Render the map from camera-to-world ``T_wc`` [4, 4] with ``camera`` (default: the
+        prepared camera of the first keyframe). None before a keyframe or with an empty map."""
+        return self._submit("render", lambda: self._render(np.asarray(T_wc, dtype=np.float64), camera))
+
+    def state_dict(self, only_if_changed: bool = False) -> Future[MapperCheckpoint | None]:
+        """Everything needed to resume (the mapper's state plus the keyframe-stamp table in
+        ``extra["keyframe_stamps"]``), or None when ``only_if_changed`` and nothing changed since
+        the last capture."""
+        return self._submit("state_dict", lambda: self._state_dict(only_if_changed))
+
+    def finish(self, final_iterations: int = 0) -> Future[FinishResult]:
+        """Run what is queued, stop free-running training, run ``final_iterations`` (once), and
+        refuse keyframes from then on. Deltas, renders and state stay available."""
+        return self._submit("finish", lambda: self._finish(int(final_iterations)))
+
+    def call(self, fn: Callable[[GaussianMapper], T]) -> Future[T]:
+        """Run ``fn(mapper)`` on the worker (tests, benchmarks and tools that need the engine);
+        it must not keep references to the mapper's tensors."""
+        return self._submit("call", lambda: fn(self._mapper))
+
+    def close(self, timeout_s: float = 30.0) -> None:
+        """Stop the worker after the command or step in progress; queued commands fail with
+        SessionError. Idempotent."""
+        with self._cv:
+            self._closed = True
+            dropped = list(self._commands)
+            self._commands.clear()
+            self._pending_inserts = 0
+            self._cv.notify_all()
+        for cmd in dropped:
+            cmd.future.set_exception(SessionError(f"mapping session closed before '{cmd.name}' ran"))
+        if threading.current_thread() is not self._worker:
+            self._worker.join(timeout_s)
+
+    # ------------------------------------------------------------------- worker
+    def _submit(self, name: str, run: Callable[[], T]) -> Future[T]:
+        cmd: _Command[T] = _Command(name, run)
+        with self._cv:
+            self._check_open()
+            self._commands.append(cmd)
+            self._cv.notify()
+        return cmd.future
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise SessionError("the mapping session is closed")
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                while not self._closed and not self._commands and not self._wants_step():
+                    self._cv.wait()
+                if self._closed:
+                    return
+                cmd = self._commands.popleft() if self._commands else None
+                if cmd is not None and cmd.name == "insert":
+                    self._pending_inserts -= 1
+            if cmd is None:
+                self._free_step()
+                continue
+            if not cmd.future.set_running_or_notify_cancel():
+                continue
+            try:
+                cmd.future.set_result(cmd.run())
+            except BaseException as err:  # noqa: BLE001 - handed to the caller through its future
+                cmd.future.set_exception(err)
+            self._publish_status()
+
+    def _wants_step(self) -> bool:
+        return self._training and not self._finished
+
+    def _free_step(self) -> None:
+        try:
+            st = self._mapper.step()
+        except (DataError, RuntimeError) as err:
+            self._event("training_step", f"training step failed: {err}")
+            self._idle(_STEP_ERROR_PAUSE_S)
+            return
+        if st is None:
+            self._idle(_IDLE_WAIT_S)
+            return
+        self._after_step(st)
+
+    def _idle(self, seconds: float) -> None:
+        with self._cv:
+            if not self._commands and not self._closed:
+                self._cv.wait(seconds)
+
+    def _after_step(self, st: StepStats) -> None:
+        c = self._counters
+        c["merged_removed"] += st.merged_removed
+        c["merged_added"] += st.merged_added
+        c["budget_merged"] += st.budget_merged
+        c["budget_pruned"] += st.budget_pruned
+        self._last_loss = round(sum(st.terms.values()), 5)
+        self._publish_status()
+
+    def _publish_status(self) -> None:
+        m = self._mapper
+        model = m.gmap.memory_bytes().total
+        self._peaks = [max(self._peaks[0], model), max(self._peaks[1], len(m.gmap))]
+        self._status = SessionStatus(
+            iteration=m.iteration, gaussians=len(m.gmap), keyframes=len(self._stamps),
+            keyframes_trained=len(m.keyframes), keyframes_dropped=m.keyframes_dropped,
+            budget_gaussians=m.budget_gaussians, model_bytes=model, model_bytes_peak=self._peaks[0],
+            gaussians_peak=self._peaks[1], loss=self._last_loss, insert_queue=self._pending_inserts,
+            finished=self._finished, render_camera=self._render_camera, counters=dict(self._counters))
+
+    def _event(self, kind: str, message: str) -> None:
+        self._events.put(SessionEvent(kind, message))
+
+    # --------------------------------------------------------- command bodies
+    def _insert(self, kf: KeyframeInput) -> int | None:
+        if self._finished:
+            return None
+        if kf.stamp_ns in self._stamps:
+            self._counters["duplicate_keyframes"] += 1
+            return None
+        kf_id = len(self._stamps)
+        t0 = time.perf_counter()
+        try:
+            # Free-running, the budget is enforced by the next training step: an insertion that
+            # must keep up with the tracker pays ~35 ms instead of ~180 ms on a 60k map (CPU).
+            added = self._mapper.add_keyframe(kf_id, kf.stamp_ns, kf.T_wc, kf.rgb, kf.depth_m, kf.camera,
+                                              kf.points_w, kf.colors, enforce_budget=not self.free_running)
+        except DataError as err:
+            self._event("bad_keyframe", f"keyframe {kf.stamp_ns} refused: {err}")
+            return None
+        self._stamps[kf.stamp_ns] = kf_id
+        if self._render_camera is None:
+            self._render_camera = undistorter_for(kf.camera).camera_undistorted.scaled(self.cfg.resolution_scale)
+        self._counters["keyframes"] += 1
+        self._counters["seeded_gaussians"] += added
+        self._counters["insert_ms_total"] += round(1e3 * (time.perf_counter() - t0))
+        return added
+
+    def _ids_of(self, poses: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
+        return {self._stamps[s]: T for s, T in poses.items() if s in self._stamps}
+
+    def _update_poses(self, poses: Mapping[int, np.ndarray]) -> int:
+        updated = self._mapper.update_keyframe_poses(self._ids_of(poses))
+        self._counters["keyframe_pose_updates"] += updated
+        self._counters["refined_poses_of_dropped_keyframes"] += len(poses) - updated
+        return updated
+
+    def _correct(self, poses: Mapping[int, np.ndarray]) -> tuple[int, int]:
+        corrected, moved = self._mapper.correct_keyframes(self._ids_of(poses))
+        self._counters["keyframes_corrected"] += corrected
+        self._counters["gaussians_corrected"] += moved
+        return corrected, moved
+
+    def _train(self, iterations: int) -> StepStats | None:
+        last = None
+        for _ in range(iterations):
+            st = self._mapper.step()
+            if st is None:
+                break
+            self._after_step(st)
+            last = st
+        return last
+
+    def _delta(self, max_rows: int | None, exact: bool) -> DeltaBatch:
+        # The outbox diffs snapshots: the map's own change log is not needed and would only grow.
+        self._mapper.discard_changes()
+        records = self._mapper.snapshot()
+        messages: list[np.ndarray] = []
+        while True:
+            rows = self._outbox.next_delta(records, None if exact else max_rows, 0.0 if exact else None)
+            if rows is None:
+                break
+            messages.append(rows)
+            if not exact:
+                break
+        self._counters["delta_messages"] += len(messages)
+        self._counters["delta_bytes"] += sum(int(r.nbytes) for r in messages)
+        return DeltaBatch(tuple(messages), self._outbox.seq, self._outbox.epoch, self._outbox.pending_rows)
+
+    def _snapshot_message(self) -> tuple[np.ndarray, int, int]:
+        records = self._mapper.snapshot()
+        return self._outbox.snapshot(records), len(records), self._outbox.seq
+
+    def _render(self, T_wc: np.ndarray, camera: PinholeCamera | None) -> RenderedView | None:
+        cam = camera if camera is not None else self._render_camera
+        if cam is None or len(self._mapper.gmap) == 0:
+            return None
+        out = self._mapper.render(T_wc, cam)
+        rgb = (out.color.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+        return RenderedView(np.ascontiguousarray(rgb), out.depth.cpu().numpy().astype(np.float32), cam)
+
+    def _state_dict(self, only_if_changed: bool) -> MapperCheckpoint | None:
+        version = (self._mapper.iteration, len(self._stamps))
+        if only_if_changed and version == self._captured:
+            return None
+        ckpt = self._mapper.state_dict({"keyframe_stamps": {str(s): k for s, k in self._stamps.items()},
+                                        "delta_seq": self._outbox.seq})
+        self._captured = version
+        return ckpt
+
+    def _load(self, ckpt: MapperCheckpoint) -> None:
+        """Before the worker starts: the mapper's state and the stamp table."""
+        try:
+            stamps = {int(s): int(k) for s, k in ckpt.extra.get("keyframe_stamps", {}).items()}
+        except (TypeError, ValueError, AttributeError) as err:
+            raise DataError(f"checkpoint keyframe_stamps are not a stamp -> id table: {err}") from err
+        self._mapper.load_state_dict(ckpt)
+        self._stamps = stamps
+        if ckpt.keyframes:
+            self._render_camera = ckpt.keyframes[-1].camera  # prepared: undistorted and scaled
+        self._captured = (self._mapper.iteration, len(self._stamps))
+
+    def _finish(self, final_iterations: int) -> FinishResult:
+        t0 = time.perf_counter()
+        ran = 0
+        if not self._finished:
+            self._training = False
+            self._finished = True
+            if self._mapper.ready:
+                for _ in range(final_iterations):
+                    st = self._mapper.step()
+                    if st is None:
+                        break
+                    self._after_step(st)
+                    ran += 1
+        return FinishResult(self._outbox.seq, self._outbox.epoch, len(self._mapper.gmap), ran,
+                            time.perf_counter() - t0)

@@ -1,0 +1,202 @@
+"""MappingSession: the one owner of the live map, driven by commands from several threads."""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from memgs_ros.core.frame import Frame
+from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
+from memgs_ros.core.mapping import MappingConfig
+from memgs_ros.core.session import KeyframeInput, MappingSession, SessionError
+from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
+
+from frame_seeds import grid_seeds
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[Frame]:
+    return list(generate_frames(SyntheticSpec(width=64, height=48, n_frames=30, seed=1)))[::5]
+
+
+def _cfg(**overrides: object) -> MappingConfig:
+    return MappingConfig(**{"min_keyframes": 2, "pyramid_uses_per_level": 2, "merge_enabled": False,
+                            "densify_start_iter": 10_000, **overrides})
+
+
+def _kf(f: Frame, stamp: int, step: int = 8) -> KeyframeInput:
+    p, c = grid_seeds(f, step)
+    return KeyframeInput(stamp, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+
+
+def _consistent(ck) -> None:  # noqa: ANN001 - MapperCheckpoint
+    """A captured state is whole: each keyframe it holds is in its stamp table under its own id,
+    and every per-Gaussian array has one row per Gaussian."""
+    table = {int(s): k for s, k in ck.extra["keyframe_stamps"].items()}
+    for kf in ck.keyframes:
+        assert table.get(kf.stamp_ns) == kf.kf_id, f"keyframe {kf.kf_id} ({kf.stamp_ns}) missing from its table"
+    assert sorted(table.values()) == list(range(len(table)))
+    n = len(ck.gaussians)
+    assert ck.keyframe_ids.shape == (n,) and ck.created_iter.shape == (n,)
+    assert set(np.unique(ck.keyframe_ids)) <= set(table.values())
+
+
+def test_commands_from_many_threads_leave_map_and_keyframes_consistent(frames: list[Frame]) -> None:
+    """Stress: inserts, pose updates, deltas, renders and state captures from five threads for
+    a few seconds while the worker trains. Also the regression test for the old mapper node's
+    race, where a checkpoint's keyframe-stamp table was copied outside the map's lock while the
+    insert thread wrote it (a keyframe without its stamp, or 'dictionary changed size')."""
+    s = MappingSession(_cfg(), insert_queue=1000)
+    errors: list[BaseException] = []
+    captures: list = []
+    stop = threading.Event()
+    inserted: list[int] = []
+
+    def guard(fn):  # noqa: ANN001, ANN202
+        def run() -> None:
+            try:
+                fn()
+            except BaseException as err:  # noqa: BLE001 - reported to the test thread
+                errors.append(err)
+        return threading.Thread(target=run)
+
+    def insert() -> None:
+        for i in range(24):
+            stamp = 1_000 + i
+            s.insert_keyframe(_kf(frames[i % len(frames)], stamp))
+            inserted.append(stamp)
+            time.sleep(0.05)
+
+    def poses() -> None:
+        rng = np.random.default_rng(0)
+        while not stop.is_set():
+            if inserted:
+                stamp = inserted[int(rng.integers(len(inserted)))]
+                T = frames[0].T_wc_gt.copy()
+                T[:3, 3] += rng.normal(0, 0.01, 3)
+                s.update_poses({stamp: T, 99: T})  # 99: a stamp never inserted, ignored
+            time.sleep(0.01)
+
+    def outputs() -> None:
+        while not stop.is_set():
+            s.delta(500).result(30)
+            s.snapshot().result(30)
+            s.render(frames[1].T_wc_gt).result(30)
+
+    def capture() -> None:
+        while not stop.is_set():
+            captures.append(s.state_dict().result(30))
+
+    threads = [guard(insert), guard(poses), guard(outputs), guard(capture), guard(outputs)]
+    for t in threads:
+        t.start()
+    threads[0].join(60)
+    time.sleep(0.5)
+    stop.set()
+    for t in threads[1:]:
+        t.join(60)
+    final = s.state_dict().result(30)
+    st = s.status
+    s.close()
+    assert not errors, errors
+    assert s.poll_events() == []
+    assert len(captures) >= 3 and st.iteration > 0
+    for ck in captures + [final]:
+        _consistent(ck)
+    assert len(final.keyframes) == 24 and st.keyframes == 24 and st.counters["keyframes"] == 24
+    assert st.counters["keyframe_pose_updates"] > 0
+    assert st.gaussians == len(final.gaussians) > 0
+
+
+def test_lockstep_is_train_then_acknowledge_and_deterministic(frames: list[Frame]) -> None:
+    snaps = []
+    for _ in range(2):
+        s = MappingSession(_cfg(), free_running=False)
+        for i, f in enumerate(frames[:3]):
+            s.insert_keyframe(_kf(f, 10 + i))
+            st = s.train(4).result(60)  # FIFO: trains after the insertion above
+        assert st is not None and s.status.iteration == 8  # nothing before ready (2 keyframes)
+        time.sleep(0.2)
+        assert s.status.iteration == 8  # a lockstep worker never trains on its own
+        snaps.append(s.snapshot().result(30))
+        s.close()
+    assert np.array_equal(snaps[0].ids, snaps[1].ids) and np.array_equal(snaps[0].xyz, snaps[1].xyz)
+
+
+def test_full_insert_queue_drops_the_oldest_whole_and_counts_it(frames: list[Frame]) -> None:
+    s = MappingSession(_cfg(min_keyframes=100), insert_queue=1)
+    gate = threading.Event()
+    busy = s.call(lambda _m: gate.wait(30))  # the worker is held: insertions wait in the queue
+    futures = [s.insert_keyframe(_kf(frames[i], 100 + i)) for i in range(3)]
+    assert futures[0].result(5) is None and futures[1].result(5) is None  # dropped, resolved at once
+    assert s.status.insert_queue == 1
+    gate.set()
+    assert busy.result(30) is True and futures[2].result(30) > 0
+    events = s.poll_events()
+    assert [e.kind for e in events] == ["keyframe_overload"] * 2
+    assert s.status.counters["keyframes_overload"] == 2 and s.status.keyframes == 1
+    assert s.state_dict().result(30).extra["keyframe_stamps"] == {"102": 0}
+    s.close()
+
+
+def test_rigid_correction_moves_a_keyframe_and_its_gaussians(frames: list[Frame]) -> None:
+    s = MappingSession(_cfg(), free_running=False)
+    for i, f in enumerate(frames[:3]):
+        s.insert_keyframe(_kf(f, 10 + i))
+
+    def rows(m):  # noqa: ANN001, ANN202
+        g = m.gmap
+        return (g.keyframe_ids.clone(), g.means.detach().clone(), g.quats_wxyz.detach().clone())
+
+    kf_ids, means0, quats0 = s.call(rows).result(30)
+    c, sn = np.cos(0.2), np.sin(0.2)
+    D = np.eye(4)
+    D[:3, :3] = [[c, -sn, 0], [sn, c, 0], [0, 0, 1]]
+    D[:3, 3] = [0.1, -0.2, 0.05]
+    T_new = D @ frames[1].T_wc_gt
+    assert s.correct_keyframes({11: T_new, 12345: T_new}).result(30) == (1, int((kf_ids == 1).sum()))
+    _, means1, quats1 = s.call(rows).result(30)
+    moved = kf_ids == 1
+    Dt = torch.as_tensor(D, dtype=torch.float32)
+    torch.testing.assert_close(means1[moved], means0[moved] @ Dt[:3, :3].T + Dt[:3, 3], atol=1e-5, rtol=0)
+    torch.testing.assert_close(quat_wxyz_to_rotmat_torch(quats1[moved]),
+                               Dt[:3, :3] @ quat_wxyz_to_rotmat_torch(quats0[moved]), atol=1e-5, rtol=0)
+    assert torch.equal(means1[~moved], means0[~moved])
+    kfs = {k.kf_id: k for k in s.state_dict().result(30).keyframes}
+    np.testing.assert_allclose(kfs[1].T_wc, T_new)
+    np.testing.assert_allclose(kfs[0].T_wc, frames[0].T_wc_gt)
+    s.close()
+
+
+def test_bad_keyframe_is_an_event_and_finish_refuses_later_ones(frames: list[Frame]) -> None:
+    s = MappingSession(_cfg(), free_running=False)
+    f = frames[0]
+    bad = KeyframeInput(1, f.T_wc_gt, f.rgb[:, :10], f.depth_m, f.camera, np.zeros((0, 3)), np.zeros((0, 3)))
+    assert s.insert_keyframe(bad).result(30) is None
+    assert [e.kind for e in s.poll_events()] == ["bad_keyframe"] and s.status.keyframes == 0
+    assert s.insert_keyframe(_kf(f, 2)).result(30) > 0
+    done = s.finish(5).result(30)
+    assert done.final_iterations == 0  # not ready: one keyframe of two
+    assert s.insert_keyframe(_kf(frames[1], 3)).result(30) is None and s.status.finished
+    s.close()
+    with pytest.raises(SessionError):
+        s.train(1)
+
+
+def test_state_round_trip_through_a_new_session(frames: list[Frame]) -> None:
+    s = MappingSession(_cfg(), free_running=False)
+    for i, f in enumerate(frames[:3]):
+        s.insert_keyframe(_kf(f, 10 + i))
+    s.train(5).result(60)
+    ck = s.state_dict().result(30)
+    assert s.state_dict(only_if_changed=True).result(30) is None
+    s.close()
+    r = MappingSession(_cfg(), free_running=False, checkpoint=ck)
+    assert r.resumed_stamps == {10, 11, 12} and r.status.iteration == 5
+    assert r.insert_keyframe(_kf(frames[0], 11)).result(30) is None  # a stamp it holds already
+    assert r.insert_keyframe(_kf(frames[3], 13)).result(30) > 0
+    assert r.state_dict().result(30).extra["keyframe_stamps"]["13"] == 3
+    r.close()
