@@ -217,13 +217,13 @@ def test_mapper_refuses_bad_bundles_without_touching_the_map(context, frames) ->
     c = node.stats.counters
     try:
         feeder.send(_bundle(frames[0], frames[0].stamp_ns), lambda: c["keyframes"] == 1)
-        before = node.mapper.snapshot()
-        n_kf = len(node.mapper.keyframes)
+        before = node.session.snapshot().result(30)
+        n_kf = node.session.status.keyframes_trained
         assert len(before) > 0
 
         def unchanged(label: str) -> None:
-            after = node.mapper.snapshot()
-            assert len(node.mapper.keyframes) == n_kf and c["keyframes"] == 1, f"{label} went in"
+            after = node.session.snapshot().result(30)
+            assert node.session.status.keyframes_trained == n_kf and c["keyframes"] == 1, f"{label} went in"
             assert np.array_equal(after.ids, before.ids) and np.array_equal(after.xyz, before.xyz), label
 
         _feed_bad_bundles(feeder, frames, unchanged)
@@ -236,7 +236,8 @@ def test_mapper_refuses_bad_bundles_without_touching_the_map(context, frames) ->
         unchanged("a keyframe stamp seen before")
         last = frames[-1]
         feeder.send(_bundle(last, last.stamp_ns + 10**9), lambda: c["keyframes"] == 2)
-        assert len(node.mapper.keyframes) == n_kf + 1 and len(node.mapper.snapshot()) > len(before)
+        assert _spin_until(feeder.ex, lambda: node.session.status.keyframes_trained == n_kf + 1)
+        assert len(node.session.snapshot().result(30)) > len(before)
         # Refined poses: unknown stamps are ignored, a broken pose is counted, not fatal.
         from nav_msgs.msg import Path
 
@@ -263,15 +264,19 @@ def test_free_running_mapper_drops_and_counts_keyframes_it_cannot_insert(context
         Parameter("insert_queue", value=1), Parameter("device", value="cpu"), Parameter("render_rate_hz", value=0.0),
         Parameter("mapping.min_keyframes", value=100)])  # no training: only insertion is exercised
     gate = threading.Event()
-    add = node.mapper.add_keyframe
     started: list[int] = []
 
-    def slow_add(kf_id, stamp_ns, *args, **kwargs):  # noqa: ANN001, ANN202
-        started.append(stamp_ns)
-        assert gate.wait(30.0)
-        return add(kf_id, stamp_ns, *args, **kwargs)
+    def hold_inserts(m):  # noqa: ANN001, ANN202 - runs on the session's worker
+        add = m.add_keyframe
 
-    node.mapper.add_keyframe = slow_add
+        def slow_add(kf_id, stamp_ns, *args, **kwargs):  # noqa: ANN001, ANN202
+            started.append(stamp_ns)
+            assert gate.wait(30.0)
+            return add(kf_id, stamp_ns, *args, **kwargs)
+
+        m.add_keyframe = slow_add
+
+    node.session.call(hold_inserts).result(30)
     feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "seeds"))
     c = node.stats.counters
     try:
@@ -283,22 +288,20 @@ def test_free_running_mapper_drops_and_counts_keyframes_it_cannot_insert(context
         gate.set()
         assert _spin_until(feeder.ex, lambda: c["keyframes"] == 2)
         assert c["problem.keyframe_overload"] == 2
-        assert sorted(node.kf_ids) == [stamps[0], stamps[3]]  # the first and the newest
-        assert len(node.mapper.keyframes) == 2
-        # Refined poses wait for the training thread (here: the finish) instead of the map lock.
+        assert node.session.status.keyframes_trained == 2
+        table = node.session.state_dict().result(30).extra["keyframe_stamps"]
+        assert sorted(int(k) for k in table) == [stamps[0], stamps[3]]  # the first and the newest
+        # Refined poses are one more command in the session's queue.
         from nav_msgs.msg import Path
-        from std_srvs.srv import Trigger
 
         pub = feeder.peer.create_publisher(Path, "memgs/keyframe/refined_poses", qos.reliable(20))
         assert _spin_until(feeder.ex, lambda: pub.get_subscription_count() > 0)
         T = frames[3].T_wc_gt.copy()
         T[:3, 3] += 0.05
         pub.publish(Path(poses=[matrix_to_pose_stamped(T, stamps[3], "map")]))
-        assert _spin_until(feeder.ex, lambda: len(node._pending_poses) == 1)
-        assert c["keyframe_pose_updates"] == 0
-        node.on_finish(Trigger.Request(), Trigger.Response())
-        assert c["keyframe_pose_updates"] == 1
-        np.testing.assert_allclose(node.mapper.keyframes.get(node.kf_ids[stamps[3]]).T_wc, T, atol=1e-6)
+        assert _spin_until(feeder.ex, lambda: c["keyframe_pose_updates"] == 1)
+        kfs = node.session.state_dict().result(30).keyframes
+        np.testing.assert_allclose([k.T_wc for k in kfs if k.stamp_ns == stamps[3]][0], T, atol=1e-6)
     finally:
         gate.set()
         node.on_shutdown()

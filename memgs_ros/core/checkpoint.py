@@ -158,3 +158,30 @@ def load(path: str | os.PathLike[str]) -> MapperCheckpoint:
 def _camera_dict(cam: PinholeCamera) -> dict[str, Any]:
     return {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
             "dist": list(cam.dist)}
+
+
+@dataclass(frozen=True)
+class CheckpointFile:
+    """Where a mapper keeps its checkpoint: resumed from, set aside when unreadable (never
+    overwritten: it may be the only copy of a long flight's map), written atomically."""
+
+    path: Path
+
+    def read_or_set_aside(self) -> tuple[MapperCheckpoint | None, str | None]:
+        """(the checkpoint, None), (None, None) when there is none, or (None, what was done with
+        a file that cannot be read)."""
+        if not self.path.exists():
+            return None, None
+        try:
+            return load(self.path), None
+        except DataError as err:
+            return None, self.set_aside(err)
+
+    def set_aside(self, err: Exception) -> str:
+        """Move the file to ``<name>.unreadable-<unix time>``; returns the line to log."""
+        aside = self.path.with_name(f"{self.path.name}.unreadable-{int(time.time())}")
+        self.path.replace(aside)
+        return f"cannot resume: {err}; moved it to {aside} and starting an empty map"
+
+    def write(self, ckpt: MapperCheckpoint) -> Path:
+        return save(ckpt, self.path)

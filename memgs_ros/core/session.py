@@ -134,6 +134,17 @@ class SessionStatus:
     render_camera: PinholeCamera | None = None
     counters: Mapping[str, int] = field(default_factory=dict)
 
+    def gauges(self) -> dict[str, int | float]:
+        """The values a node reports as gauges (the counters are reported as counters)."""
+        out: dict[str, int | float] = {
+            "iteration": self.iteration, "gaussians": self.gaussians, "model_bytes": self.model_bytes,
+            "model_bytes_peak": self.model_bytes_peak, "gaussians_peak": self.gaussians_peak,
+            "insert_queue": self.insert_queue, "keyframes_trained": self.keyframes_trained,
+            "keyframes_dropped": self.keyframes_dropped, "budget_gaussians": self.budget_gaussians}
+        if self.loss is not None:
+            out["loss"] = self.loss
+        return out
+
 
 class _Command(Generic[T]):
     """A queued call: ``run`` executes on the worker; its result or exception goes to ``future``."""

@@ -80,7 +80,8 @@ def field_descriptions(config_cls: type) -> dict[str, str]:
 def declare_config(node: Node, config_cls: type[C], prefix: str,
                    ranges: Mapping[str, tuple[float, float]] | None = None,
                    defaults: Mapping[str, object] | None = None) -> C:
-    """Declare ``<prefix>.<field>`` for every plain (bool/int/float/str) field; build the config.
+    """Declare ``<prefix>.<field>`` (``<field>`` when prefix is empty) for every plain
+    (bool/int/float/str) field; build the config.
 
     defaults: per-node default overrides (e.g. mode="mono"); parameter files still win.
     Raises ConfigError naming the parameter when a value is refused.
@@ -95,7 +96,7 @@ def declare_config(node: Node, config_cls: type[C], prefix: str,
         default = defaults.get(f.name, f.default)
         if default is MISSING or not isinstance(default, (bool, int, float, str)):
             continue  # tuples and nested configs stay at their defaults
-        name = f"{prefix}.{f.name}"
+        name = f"{prefix}.{f.name}" if prefix else f.name  # no prefix: a node's own parameters
         desc = docs.get(f.name) or f"{config_cls.__name__}.{f.name}"
         rng = ranges.get(f.name)
         if rng is None and isinstance(default, (int, float)) and not isinstance(default, bool):

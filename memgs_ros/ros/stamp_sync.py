@@ -8,7 +8,8 @@ Both drop the oldest pending items when full and count what they dropped.
 """
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import OrderedDict, deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
@@ -88,3 +89,60 @@ class NearestPairer(Generic[T]):
                 self.dropped += 1
         a, b = (item, match) if a_first else (match, item)
         return (stamp_ns if a_first else best), a, b
+
+
+class KeyframeIntake:
+    """A mapper's keyframe parts by stamp: complete bundles out, replays and losses counted.
+
+    Keyframe topics replay their recent samples to a (re)started reader, so parts of a keyframe
+    already seen complete (or ``known`` from a checkpoint) are ignored and counted
+    (``duplicate_parts``). ``announce`` remembers keyframes the tracker announced; ``missed``
+    counts those whose parts have not all arrived ``missed_after_s`` later (lost on the way:
+    under CPU overload parts can arrive more than 10 s late, hence 60 s). The last
+    ``remember`` complete stamps are kept (bounded memory).
+    """
+
+    def __init__(self, parts: set[str], known: Iterable[int] = (), remember: int = 4096,
+                 missed_after_s: float = 60.0, max_pending: int = 16) -> None:
+        self._bundler = StampBundler(parts, max_pending=max_pending)
+        self._complete: deque[int] = deque(maxlen=remember)
+        self._complete_set: set[int] = set()
+        self._announced: deque[tuple[float, int]] = deque(maxlen=10_000)
+        self._missed_after_s = missed_after_s
+        self.duplicate_parts = 0
+        for stamp in sorted(known)[-remember:]:
+            self._remember(stamp)
+
+    @property
+    def dropped(self) -> int:
+        """Incomplete bundles pushed out by newer ones (``max_pending``)."""
+        return self._bundler.dropped
+
+    def seen(self, stamp_ns: int) -> bool:
+        return stamp_ns in self._complete_set
+
+    def add(self, part: str, stamp_ns: int, payload: Any) -> dict[str, Any] | None:
+        """The complete bundle once its last part arrives, else None."""
+        if stamp_ns in self._complete_set:
+            self.duplicate_parts += 1
+            return None
+        bundle = self._bundler.add(part, stamp_ns, payload)
+        if bundle is not None:
+            self._remember(stamp_ns)
+        return bundle
+
+    def announce(self, stamp_ns: int, now_s: float) -> None:
+        self._announced.append((now_s, stamp_ns))
+
+    def missed(self, now_s: float) -> int:
+        """Announced keyframes newly found incomplete ``missed_after_s`` after their announcement."""
+        n = 0
+        while self._announced and now_s - self._announced[0][0] > self._missed_after_s:
+            n += self._announced.popleft()[1] not in self._complete_set
+        return n
+
+    def _remember(self, stamp_ns: int) -> None:
+        if len(self._complete) == self._complete.maxlen:
+            self._complete_set.discard(self._complete[0])
+        self._complete.append(stamp_ns)
+        self._complete_set.add(stamp_ns)
