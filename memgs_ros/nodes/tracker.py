@@ -39,11 +39,11 @@ from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.tracking import TrackerConfig, TrackResult, make_tracker
 from memgs_ros.errors import DataError, MessageError
+from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
-    append_to_path, camera_info_to_camera, camera_to_camera_info, depth_from_image, depth_to_image,
-    make_header, matrix_to_odometry, matrix_to_pose_stamped, numpy_to_image, rgb_from_image, stamp_to_ns,
-    structured_to_pointcloud2,
+    append_to_path, camera_to_camera_info, depth_to_image, make_header, matrix_to_odometry, matrix_to_pose_stamped,
+    numpy_to_image, stamp_to_ns, structured_to_pointcloud2,
 )
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
@@ -61,7 +61,7 @@ class TrackerNode(Node):
         self.depth_topic = declare(self, "depth_topic", "camera/camera/aligned_depth_to_color/image_raw",
                                    "depth image input registered to colour (16UC1 or 32FC1); unused in mono mode")
         self.info_topic = declare(self, "camera_info_topic", "camera/camera/color/camera_info",
-                                  "camera_info of the colour camera (plumb_bob)")
+                                  "camera_info of the colour camera (plumb_bob or rational_polynomial)")
         self.depth_scale = declare(self, "depth_scale", 1000.0, "16UC1 depth units per metre (RealSense 1000, TUM 5000)",
                                    range=(1e-3, 1e6))
         self.sync = declare(self, "sync", "approximate", "colour/depth pairing", choices=("approximate", "exact"))
@@ -132,7 +132,7 @@ class TrackerNode(Node):
     # ------------------------------------------------------------------ inputs
     def on_camera_info(self, msg: CameraInfo) -> None:
         try:
-            cam = camera_info_to_camera(msg)
+            cam = decode_camera_info(msg)
         except MessageError as err:
             self.stats.problem("camera_info", f"camera_info refused: {err}")
             return
@@ -162,8 +162,8 @@ class TrackerNode(Node):
         """Messages to a Frame, or None (counted, logged once) when they cannot be used."""
         assert self.camera is not None
         try:
-            rgb = rgb_from_image(color)
-            depth_m = depth_from_image(depth, self.depth_scale) if depth is not None else None
+            rgb = decode_rgb(color)
+            depth_m = decode_depth(depth, self.depth_scale) if depth is not None else None
             return Frame(stamp_to_ns(color.header.stamp), rgb, depth_m, self.camera)
         except (MessageError, DataError) as err:
             self.stats.problem("bad_image", f"frame {stamp_to_ns(color.header.stamp)} refused: {err}")
