@@ -125,9 +125,10 @@ def _layout(msg: Any, allowed: Collection[str]) -> tuple[str, int, int, int, np.
     if h <= 0 or w <= 0:
         raise MessageError(f"{enc} image has no pixels ({w}x{h})")
     row_bytes = w * channels * dtype.itemsize
-    if step < row_bytes:
-        raise MessageError(f"{enc} image step {step} is less than width*bytes_per_pixel = {row_bytes}")
     buf = _buffer(_field(msg, "data"))
+    if step < row_bytes:
+        raise MessageError(f"{enc} image step {step} is less than width*bytes_per_pixel = {row_bytes}"
+                           f"{_depth_mixup_hint(enc, w, h, buf.size)}")
     if buf.size != step * h:
         raise MessageError(f"{enc} image data has {buf.size} bytes, expected step*height = {step}*{h} = {step * h}"
                            f"{_depth_mixup_hint(enc, w, h, buf.size)}")
