@@ -13,7 +13,7 @@ from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, _local_bundle_
                                                        apply_left_update, local_bundle_adjustment,
                                                        optimize_pose)
 from memgs_ros.core.tracking.features import FrameFeatures, _hamming_pairs_table, hamming_pairs
-from memgs_ros.core.tracking.local_map import Keyframe, SparseMap
+from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
 from memgs_ros.core.trajectory import ate, path_length_m
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
@@ -273,7 +273,7 @@ def _toy_map(n_kf: int, pts_per_kf: int, shared: int) -> SparseMap:
                               np.ones(m_kp))
         T = np.eye(4)
         T[0, 3] = 0.1 * k
-        kf = Keyframe(m.new_keyframe_id(), k, T, feats, np.full(m_kp, -1, np.int64))
+        kf = SparseKeyframe(m.new_keyframe_id(), k, T, feats, np.full(m_kp, -1, np.int64))
         m.add_keyframe(kf)
         if len(prev_ids):
             m.add_observations(prev_ids[:shared], kf.keyframe_id, np.arange(pts_per_kf, m_kp))
