@@ -8,7 +8,7 @@ import pytest
 
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.geometry import invert_pose
-from memgs_ros.core.tracking import TrackerConfig, TrackingState, make_tracker
+from memgs_ros.core.tracking import SparseMapStats, Tracker, TrackerConfig, TrackingState, make_tracker
 from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, _local_bundle_adjustment_scipy,
                                                        apply_left_update, local_bundle_adjustment,
                                                        optimize_pose)
@@ -130,6 +130,29 @@ def test_monocular_initialises_and_keeps_scale(frames: list[Frame]) -> None:
     gt = np.array([f.T_wc_gt for _, f in ok])
     res = ate(stamps, est, stamps, gt, sim3=True)
     assert res.rmse_m < 0.05 * path_length_m(gt), (res.rmse_m, path_length_m(gt))
+
+
+def test_every_backend_is_a_tracker(frames: list[Frame]) -> None:
+    import inspect
+
+    from memgs_ros.core.tracking.orbslam3_backend import OrbSlam3Tracker
+
+    # explicit subclasses with every abstract method filled in (ORB-SLAM3 cannot be built here)
+    assert Tracker in OrbSlam3Tracker.__mro__ and not inspect.isabstract(OrbSlam3Tracker)
+    mono = make_tracker(TrackerConfig(mode="mono", ba_enabled=False), frames[0].camera)
+    rgbd = make_tracker(TrackerConfig(ba_threaded=False), frames[0].camera)
+    try:
+        assert isinstance(mono, Tracker) and isinstance(rgbd, Tracker)
+        assert mono.map_stats() == SparseMapStats(frozenset(), 0, 0) and mono.ba_time_s == 0.0
+        kf_ids = {r.keyframe.keyframe_id for r in (rgbd.track(f) for f in frames[:20]) if r.keyframe is not None}
+        stats = rgbd.map_stats()
+        assert stats is not None and len(kf_ids) >= 2
+        assert stats.keyframe_ids == kf_ids and stats.keyframes == len(kf_ids)  # no cap: every keyframe kept
+        assert stats.points == rgbd.map.n_good_points > 0 and stats.keyframes_removed == 0
+        assert rgbd.ba_time_s > 0.0  # inline local BA ran after the second keyframe
+    finally:
+        mono.close()
+        rgbd.close()
 
 
 def test_rgbd_tracker_refuses_frames_without_depth(frames: list[Frame]) -> None:

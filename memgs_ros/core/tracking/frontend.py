@@ -26,6 +26,7 @@ from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, local_bundle_a
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.features import FrameFeatures, OrbExtractor, match_by_projection, match_descriptors
 from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
+from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
 from memgs_ros.core.tracking.relocalisation import relocalise
 from memgs_ros.errors import DataError
 
@@ -52,7 +53,7 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(c)))
 
 
-class FeatureTracker:
+class FeatureTracker(Tracker):
     """Common machinery; subclasses add initialisation and new map points (depth or triangulation)."""
 
     uses_depth = True
@@ -114,6 +115,11 @@ class FeatureTracker:
         with self._out_lock:
             out, self._refined = self._refined, []
         return out
+
+    def map_stats(self) -> SparseMapStats:
+        """The sparse map's keyframes and good points, read under the map lock (BA may run)."""
+        with self.map.lock:
+            return SparseMapStats(frozenset(self.map.keyframes), self.map.n_good_points, self.map.keyframes_removed)
 
     def close(self) -> None:
         """Stop the bundle adjustment thread (idempotent)."""
