@@ -77,6 +77,7 @@ def run_once(cmd: list[str], env: dict[str, str], domain: int, timeout_s: float)
     from sensor_msgs.msg import CameraInfo, Image
     from std_msgs.msg import Bool, Header
 
+    from memgs_ros.io.image_decoding import decode_depth, decode_rgb
     from memgs_ros.ros import codecs, qos
 
     proc = subprocess.Popen(cmd, env=dict(env, ROS_DOMAIN_ID=str(domain)), stdout=subprocess.PIPE,
@@ -92,11 +93,11 @@ def run_once(cmd: list[str], env: dict[str, str], domain: int, timeout_s: float)
 
     def got(kind: str, msg: object) -> None:
         if kind == "color":
-            codecs.rgb_from_image(msg)
+            decode_rgb(msg)
             if not first:
                 first.append(time.perf_counter())
         elif kind == "depth":
-            codecs.depth_from_image(msg)
+            decode_depth(msg)
         p = parts.setdefault(codecs.stamp_to_ns(msg.header.stamp), set())
         p.add(kind)
         if len(p) == 4:

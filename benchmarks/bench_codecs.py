@@ -1,7 +1,7 @@
 """Benchmark: message codecs at 640x480 (and a map-sized PointCloud2), median of many calls.
 
 encode = numpy -> message (numpy_to_image / depth_to_image / structured_to_pointcloud2),
-decode = message -> numpy (rgb_from_image / depth_from_image / pointcloud2_to_structured).
+decode = message -> numpy (image_decoding.decode_rgb / decode_depth, codecs.pointcloud2_to_structured).
 rclpy serialize/deserialize of the same messages is shown for scale (what DDS adds per hop).
 Prints a table and writes JSON (default results/bench_codecs.json). The machine is shared:
 ``uptime`` load is recorded before and after.
@@ -41,6 +41,7 @@ def main() -> int:
     from rclpy.serialization import deserialize_message, serialize_message
     from sensor_msgs.msg import Image
 
+    from memgs_ros.io import image_decoding
     from memgs_ros.ros import codecs
 
     load_before = os.getloadavg()[0]
@@ -58,12 +59,12 @@ def main() -> int:
     r, rp = args.repeats, max(5, args.repeats // 10)
     rows = [
         ("rgb8", "encode", median_ms(lambda: codecs.numpy_to_image(rgb, "rgb8", 0, "c"), r)),
-        ("rgb8", "decode", median_ms(lambda: codecs.rgb_from_image(rgb_msg), r)),
-        ("bgr8", "decode to RGB", median_ms(lambda: codecs.rgb_from_image(bgr_msg), r)),
+        ("rgb8", "decode", median_ms(lambda: image_decoding.decode_rgb(rgb_msg), r)),
+        ("bgr8", "decode to RGB", median_ms(lambda: image_decoding.decode_rgb(bgr_msg), r)),
         ("32FC1", "encode", median_ms(lambda: codecs.depth_to_image(depth, "32FC1", 0, "c"), r)),
-        ("32FC1", "decode", median_ms(lambda: codecs.depth_from_image(f32_msg), r)),
+        ("32FC1", "decode", median_ms(lambda: image_decoding.decode_depth(f32_msg), r)),
         ("16UC1 mm", "encode", median_ms(lambda: codecs.depth_to_image(depth, "16UC1", 0, "c"), r)),
-        ("16UC1 mm", "decode", median_ms(lambda: codecs.depth_from_image(u16_msg), r)),
+        ("16UC1 mm", "decode", median_ms(lambda: image_decoding.decode_depth(u16_msg), r)),
         ("rgb8", "rclpy serialize", median_ms(lambda: serialize_message(rgb_msg), r)),
         ("rgb8", "rclpy deserialize", median_ms(lambda: deserialize_message(rgb_wire, Image), r)),
         (f"PointCloud2 {args.points} x {cloud.dtype.itemsize} B", "encode",

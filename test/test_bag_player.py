@@ -25,6 +25,7 @@ from memgs_ros.core.camera import PinholeCamera  # noqa: E402
 from memgs_ros.core.frame import Frame  # noqa: E402
 from memgs_ros.core.geometry import pose_from_tq  # noqa: E402
 from memgs_ros.errors import ConfigError, DataError  # noqa: E402
+from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb, image_to_numpy  # noqa: E402
 from memgs_ros.nodes.bag_player import BagPlayer  # noqa: E402
 from memgs_ros.ros import codecs, qos  # noqa: E402
 
@@ -121,11 +122,11 @@ def play_in_process(frames: Iterable[Frame], domain_id: int, ack: bool = True, t
 def _assert_frame_equal(receiver: Receiver, i: int, frame: Frame, stamp_ns: int) -> None:
     s, img = receiver.color[i]
     assert s == stamp_ns and img.encoding == "rgb8" and img.header.frame_id == "camera_color_optical_frame"
-    np.testing.assert_array_equal(codecs.rgb_from_image(img), frame.rgb)
+    np.testing.assert_array_equal(decode_rgb(img), frame.rgb)
     s, dimg = receiver.depth[i]
     assert s == stamp_ns and dimg.encoding == "32FC1"
-    np.testing.assert_array_equal(codecs.depth_from_image(dimg), frame.depth_m)
-    assert receiver.info[i][0] == stamp_ns and codecs.camera_info_to_camera(receiver.info[i][1]) == CAM
+    np.testing.assert_array_equal(decode_depth(dimg), frame.depth_m)
+    assert receiver.info[i][0] == stamp_ns and decode_camera_info(receiver.info[i][1]) == CAM
     s, pose = receiver.gt[i]
     assert s == stamp_ns and pose.header.frame_id == "world"
     np.testing.assert_allclose(codecs.pose_to_matrix(pose.pose), frame.T_wc_gt, atol=1e-9)
@@ -178,7 +179,7 @@ def test_depth_as_16uc1_millimetres(ros_domain_id: int) -> None:
     frames = make_frames(2)
     _, rx = play_in_process(frames, ros_domain_id, lockstep=True, depth_encoding="16UC1", depth_scale=1000.0)
     assert [img.encoding for _, img in rx.depth] == ["16UC1", "16UC1"]
-    mm = codecs.image_to_numpy(rx.depth[1][1])
+    mm = image_to_numpy(rx.depth[1][1])
     np.testing.assert_array_equal(mm, np.rint(frames[1].depth_m.astype(np.float64) * 1000.0).astype(np.uint16))
 
 
@@ -289,8 +290,8 @@ def test_process_lockstep_replay_of_synthetic_source(ros_domain_id: int, tmp_pat
     assert rx.acked == stamps
     for (s, img), f in zip(rx.color, expected):
         assert img.header.frame_id == "cam"
-        np.testing.assert_array_equal(codecs.rgb_from_image(img), f.rgb)
-    np.testing.assert_array_equal(codecs.depth_from_image(rx.depth[-1][1]), expected[-1].depth_m)
+        np.testing.assert_array_equal(decode_rgb(img), f.rgb)
+    np.testing.assert_array_equal(decode_depth(rx.depth[-1][1]), expected[-1].depth_m)
     assert "done: 20 frames" in out
 
 

@@ -10,7 +10,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.errors import DataError, MessageError
-from memgs_ros.io.bag_reader import BagSource, BagTopics, camera_from_info, decode_image
+from memgs_ros.io.bag_reader import BagSource, BagTopics
 from memgs_ros.io.bag_writer import (
     DEPTH_TOPIC,
     RGB_INFO_TOPIC,
@@ -22,6 +22,7 @@ from memgs_ros.io.bag_writer import (
     write_bag,
     write_ros1_tum_bag,
 )
+from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb
 from memgs_ros.io.sources import SyntheticSource, open_source
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames, write_tum_folder
 
@@ -38,8 +39,10 @@ def assert_same_frames(expected, got, depth_atol=0.0):
     for a, b in zip(expected, got):
         assert a.stamp_ns == b.stamp_ns
         np.testing.assert_array_equal(a.rgb, b.rgb)
-        np.testing.assert_allclose(b.depth_m, a.depth_m, atol=depth_atol)
-        np.testing.assert_array_equal(b.depth_m == 0, a.depth_m == 0)
+        # bags decode invalid depth as NaN, whether the source wrote 0 or NaN
+        valid = np.isfinite(a.depth_m) & (a.depth_m > 0)
+        np.testing.assert_array_equal(np.isnan(b.depth_m), ~valid)
+        np.testing.assert_allclose(b.depth_m[valid], a.depth_m[valid], atol=depth_atol)
         np.testing.assert_allclose(b.T_wc_gt, a.T_wc_gt, atol=1e-8)
         assert b.camera == a.camera
 
@@ -207,34 +210,38 @@ def test_decode_encodings_padding_and_endianness():
     mf = MessageFactory(ros2_typestore(), ros1=False)
     rng = np.random.default_rng(0)
     rgb = rng.integers(0, 256, (5, 7, 3), dtype=np.uint8)
-    np.testing.assert_array_equal(decode_image(_image(mf, rgb, "rgb8")), rgb)
-    np.testing.assert_array_equal(decode_image(_image(mf, rgb[..., ::-1].copy(), "bgr8", step=24)), rgb)
+    np.testing.assert_array_equal(decode_rgb(_image(mf, rgb, "rgb8")), rgb)
+    np.testing.assert_array_equal(decode_rgb(_image(mf, rgb[..., ::-1].copy(), "bgr8", step=24)), rgb)
     gray = rgb[..., 0].copy()
-    np.testing.assert_array_equal(decode_image(_image(mf, gray, "mono8", step=8)), np.repeat(gray[..., None], 3, 2))
-    mm = rng.integers(0, 5000, (5, 7)).astype(np.uint16)
+    np.testing.assert_array_equal(decode_rgb(_image(mf, gray, "mono8", step=8)), np.repeat(gray[..., None], 3, 2))
+    mm = rng.integers(1, 5000, (5, 7)).astype(np.uint16)
     mm[0, 0] = 0
     for be in (False, True):
-        d = decode_image(_image(mf, mm, "16UC1", step=16, bigendian=be), depth_scale_16u=0.001)
-        assert d.dtype == np.float32
-        np.testing.assert_allclose(d, mm * 0.001, rtol=1e-6)
+        d = decode_depth(_image(mf, mm, "16UC1", step=16, bigendian=be), depth_scale=1000.0)
+        assert d.dtype == np.float32 and np.isnan(d[0, 0]) and np.isfinite(d).sum() == mm.size - 1
+        np.testing.assert_allclose(d[mm > 0], mm[mm > 0] / 1000.0, rtol=1e-6)
         metres = (mm * 0.001).astype(np.float32)
         metres[1, 1] = np.nan
-        d = decode_image(_image(mf, metres, "32FC1", step=32, bigendian=be))
-        assert d[1, 1] == 0.0 and d[0, 0] == 0.0
+        d = decode_depth(_image(mf, metres, "32FC1", step=32, bigendian=be))
+        assert np.isnan(d[1, 1]) and np.isnan(d[0, 0])
         np.testing.assert_array_equal(d[2:], metres[2:])
-    with pytest.raises(MessageError, match="unsupported encoding 'yuv422'"):
-        decode_image(_image(mf, rgb, "yuv422"))
+    with pytest.raises(MessageError, match="'yuv422' is not a colour encoding"):
+        decode_rgb(_image(mf, rgb, "yuv422"))
     short = _image(mf, rgb, "rgb8")
     short.step = 10
-    with pytest.raises(MessageError, match="step 10 smaller than a row"):
-        decode_image(short)
+    with pytest.raises(MessageError, match="step 10 is less than width"):
+        decode_rgb(short)
 
 
 def test_camera_info_both_ros_versions():
     cam = PinholeCamera(64, 48, 50.0, 51.0, 31.5, 23.5, (0.1, -0.2, 0.001, 0.002, 0.05))
+    rational = PinholeCamera(64, 48, 50.0, 51.0, 31.5, 23.5, (0.1, -0.2, 0.001, 0.002, 0.05, 0.01, 0.02, -0.03))
     for ts, ros1 in ((ros2_typestore(), False), (ros1_typestore(), True)):
         mf = MessageFactory(ts, ros1=ros1)
-        assert camera_from_info(mf.camera_info(mf.header(0, "c"), cam)) == cam
+        assert decode_camera_info(mf.camera_info(mf.header(0, "c"), cam)) == cam
+        msg = mf.camera_info(mf.header(0, "c"), rational)
+        assert msg.distortion_model == "rational_polynomial"
+        assert decode_camera_info(msg) == rational
 
 
 def test_synthetic_source_and_ground_truth():

@@ -17,6 +17,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField  # noqa: 
 from memgs_ros.core.camera import TUM_FR1, TUM_FR3, PinholeCamera  # noqa: E402
 from memgs_ros.core.geometry import pose_from_tq  # noqa: E402
 from memgs_ros.errors import MessageError  # noqa: E402
+from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb, image_to_numpy  # noqa: E402
 from memgs_ros.ros import codecs  # noqa: E402
 
 ENC_DTYPES = {"rgb8": ("u1", 3), "bgr8": ("u1", 3), "rgba8": ("u1", 4), "bgra8": ("u1", 4), "mono8": ("u1", 1),
@@ -52,7 +53,7 @@ def test_image_round_trip_every_encoding(enc: str) -> None:
     assert msg.step == 7 * arr.dtype.itemsize * ENC_DTYPES[enc][1]
     assert msg.is_bigendian == 0 and isinstance(msg.data, array.array)
     assert codecs.stamp_to_ns(msg.header.stamp) == 1_500_000_123 and msg.header.frame_id == "cam"
-    out = codecs.image_to_numpy(msg)
+    out = image_to_numpy(msg)
     assert out.dtype == arr.dtype and out.shape == arr.shape
     np.testing.assert_array_equal(out, arr)
 
@@ -61,7 +62,7 @@ def test_image_round_trip_every_encoding(enc: str) -> None:
 @pytest.mark.parametrize("big", [False, True])
 def test_image_decode_padded_rows_and_byte_order(enc: str, big: bool) -> None:
     arr = _random_image(enc, 4, 3, np.random.default_rng(2))
-    out = codecs.image_to_numpy(_hand_image(arr, enc, pad=5, big=big))
+    out = image_to_numpy(_hand_image(arr, enc, pad=5, big=big))
     assert out.dtype == arr.dtype.newbyteorder("=")
     np.testing.assert_array_equal(out, arr)
 
@@ -77,7 +78,7 @@ def test_image_decode_padded_rows_and_byte_order(enc: str, big: bool) -> None:
 )
 def test_image_decode_property(enc: str, h: int, w: int, pad: int, big: bool, seed: int) -> None:
     arr = _random_image(enc, h, w, np.random.default_rng(seed))
-    np.testing.assert_array_equal(codecs.image_to_numpy(_hand_image(arr, enc, pad, big)), arr)
+    np.testing.assert_array_equal(image_to_numpy(_hand_image(arr, enc, pad, big)), arr)
 
 
 def test_image_accepts_bytes_and_list_data() -> None:
@@ -86,10 +87,10 @@ def test_image_accepts_bytes_and_list_data() -> None:
     for data in (bytes(msg.data), list(msg.data)):
         msg2 = Image(height=2, width=3, encoding="rgb8", step=9)
         msg2.data = data
-        np.testing.assert_array_equal(codecs.image_to_numpy(msg2), arr)
+        np.testing.assert_array_equal(image_to_numpy(msg2), arr)
 
 
-def test_rgb_from_image_converts_channel_orders() -> None:
+def test_decode_rgb_converts_channel_orders() -> None:
     rgb = _random_image("rgb8", 4, 5, np.random.default_rng(4))
     rgba = np.concatenate([rgb, np.full((4, 5, 1), 7, np.uint8)], axis=2)
     cases = {
@@ -99,38 +100,38 @@ def test_rgb_from_image_converts_channel_orders() -> None:
         "bgra8": np.concatenate([rgb[:, :, ::-1], rgba[:, :, 3:]], axis=2),
     }
     for enc, arr in cases.items():
-        out = codecs.rgb_from_image(codecs.numpy_to_image(np.ascontiguousarray(arr), enc, 0, "c"))
+        out = decode_rgb(codecs.numpy_to_image(np.ascontiguousarray(arr), enc, 0, "c"))
         assert out.dtype == np.uint8 and out.shape == (4, 5, 3), enc
         np.testing.assert_array_equal(out, rgb, err_msg=enc)
     gray = rgb[:, :, 0].copy()
-    out = codecs.rgb_from_image(codecs.numpy_to_image(gray, "mono8", 0, "c"))
+    out = decode_rgb(codecs.numpy_to_image(gray, "mono8", 0, "c"))
     np.testing.assert_array_equal(out, np.stack([gray] * 3, axis=2))
 
 
 @pytest.mark.parametrize("enc,order", [("bgr8", [2, 1, 0]), ("rgba8", [0, 1, 2]), ("bgra8", [2, 1, 0])])
 def test_rgb_from_padded_image(enc: str, order: list[int]) -> None:
     arr = _random_image(enc, 3, 5, np.random.default_rng(6))
-    np.testing.assert_array_equal(codecs.rgb_from_image(_hand_image(arr, enc, pad=3, big=False)), arr[:, :, order])
+    np.testing.assert_array_equal(decode_rgb(_hand_image(arr, enc, pad=3, big=False)), arr[:, :, order])
 
 
 def test_depth_16uc1_scaled_and_zero_is_nan() -> None:
     mm = np.array([[0, 1000, 1500], [65535, 250, 0]], np.uint16)
-    d = codecs.depth_from_image(codecs.numpy_to_image(mm, "16UC1", 0, "c"), depth_scale=1000.0)
+    d = decode_depth(codecs.numpy_to_image(mm, "16UC1", 0, "c"), depth_scale=1000.0)
     assert d.dtype == np.float32
     np.testing.assert_allclose(d[0, 1:], [1.0, 1.5])
     np.testing.assert_allclose(d[1, :2], [65.535, 0.25], rtol=1e-6)
     assert np.isnan(d[0, 0]) and np.isnan(d[1, 2])
-    d5000 = codecs.depth_from_image(codecs.numpy_to_image(mm, "16UC1", 0, "c"), depth_scale=5000.0)
+    d5000 = decode_depth(codecs.numpy_to_image(mm, "16UC1", 0, "c"), depth_scale=5000.0)
     np.testing.assert_allclose(d5000[0, 1], 0.2)
 
 
 def test_depth_32fc1_invalid_values_become_nan_without_touching_the_message() -> None:
     m = np.array([[1.25, np.nan, np.inf], [-1.0, 0.0, 3.0]], np.float32)
     msg = codecs.numpy_to_image(m, "32FC1", 0, "c")
-    d = codecs.depth_from_image(msg)
+    d = decode_depth(msg)
     np.testing.assert_array_equal(d[[0, 1], [0, 2]], [1.25, 3.0])
     assert np.isnan(d[0, 1:]).all() and np.isnan(d[1, :2]).all()
-    assert codecs.image_to_numpy(msg)[1, 0] == -1.0  # the message buffer is unchanged
+    assert image_to_numpy(msg)[1, 0] == -1.0  # the message buffer is unchanged
 
 
 @pytest.mark.parametrize("enc,scale", [("32FC1", 1.0), ("16UC1", 1000.0), ("16UC1", 5000.0)])
@@ -138,7 +139,7 @@ def test_depth_round_trip(enc: str, scale: float) -> None:
     rng = np.random.default_rng(5)
     d = rng.uniform(0.3, 6.0, size=(6, 8)).astype(np.float32)
     d[0, 0], d[1, 1], d[2, 2] = np.nan, 0.0, -2.0
-    out = codecs.depth_from_image(codecs.depth_to_image(d, enc, 0, "c", depth_scale=scale), depth_scale=scale)
+    out = decode_depth(codecs.depth_to_image(d, enc, 0, "c", depth_scale=scale), depth_scale=scale)
     valid = np.isfinite(d) & (d > 0)
     np.testing.assert_array_equal(np.isnan(out), ~valid)
     np.testing.assert_allclose(out[valid], d[valid], atol=0.5 / scale + 1e-6)
@@ -146,7 +147,7 @@ def test_depth_round_trip(enc: str, scale: float) -> None:
 
 def test_depth_to_16uc1_marks_out_of_range_invalid() -> None:
     img = codecs.depth_to_image(np.array([[70.0, 1.0]], np.float32), "16UC1", 0, "c", depth_scale=1000.0)
-    np.testing.assert_array_equal(codecs.image_to_numpy(img), [[0, 1000]])
+    np.testing.assert_array_equal(image_to_numpy(img), [[0, 1000]])
 
 
 def _image(enc: str = "rgb8", h: int = 2, w: int = 3, step: int = 9, n: int = 18) -> Image:
@@ -167,16 +168,16 @@ def _image(enc: str = "rgb8", h: int = 2, w: int = 3, step: int = 9, n: int = 18
 )
 def test_image_malformed_raises_message_error(msg: Image, fragment: str) -> None:
     with pytest.raises(MessageError, match=fragment.replace("*", r"\*")):
-        codecs.image_to_numpy(msg)
+        image_to_numpy(msg)
 
 
 def test_wrong_kind_of_image_and_wrong_arrays_are_refused() -> None:
     with pytest.raises(MessageError, match="'32FC1' is not a colour encoding"):
-        codecs.rgb_from_image(_image(enc="32FC1", step=12, n=24))
+        decode_rgb(_image(enc="32FC1", step=12, n=24))
     with pytest.raises(MessageError, match="'rgb8' is not a depth encoding"):
-        codecs.depth_from_image(_image())
+        decode_depth(_image())
     with pytest.raises(MessageError, match="depth_scale"):
-        codecs.depth_from_image(_image(enc="16UC1", step=6, n=12), depth_scale=0.0)
+        decode_depth(_image(enc="16UC1", step=6, n=12), depth_scale=0.0)
     with pytest.raises(MessageError, match=r"rgb8 needs dtype uint8, got float32"):
         codecs.numpy_to_image(np.zeros((2, 2, 3), np.float32), "rgb8", 0, "c")
     with pytest.raises(MessageError, match=r"32FC1 needs an array \[H, W\], got shape \(2, 2, 3\)"):
@@ -191,7 +192,7 @@ def test_numpy_to_image_byte_swaps_big_endian_input() -> None:
     arr = np.arange(6, dtype=">u2").reshape(2, 3) * 300
     msg = codecs.numpy_to_image(arr, "16UC1", 0, "c")
     assert msg.is_bigendian == 0
-    np.testing.assert_array_equal(codecs.image_to_numpy(msg), arr.astype(np.uint16))
+    np.testing.assert_array_equal(image_to_numpy(msg), arr.astype(np.uint16))
 
 
 # ----------------------------------------------------------------------------- stamps, camera info
@@ -215,13 +216,23 @@ def test_camera_info_round_trip(cam: PinholeCamera) -> None:
     msg = codecs.camera_to_camera_info(cam, 42, "cam")
     assert msg.distortion_model == "plumb_bob" and len(msg.d) == 5
     assert list(msg.p) == [cam.fx, 0, cam.cx, 0, 0, cam.fy, cam.cy, 0, 0, 0, 1, 0]
-    assert codecs.camera_info_to_camera(msg) == cam
+    assert decode_camera_info(msg) == cam
+
+
+def test_camera_info_rational_polynomial_round_trips_in_full() -> None:
+    cam = PinholeCamera(64, 48, 50.0, 51.0, 31.5, 23.5, (0.1, -0.2, 0.001, 0.002, 0.05, 0.01, -0.02, 0.003))
+    msg = codecs.camera_to_camera_info(cam, 0, "c")
+    assert msg.distortion_model == "rational_polynomial" and list(msg.d) == list(cam.dist)
+    assert decode_camera_info(msg) == cam
+    # k4..k6 all zero is the plumb_bob camera: both spellings of one calibration compare equal
+    msg.d = [*TUM_FR1.dist, 0.0, 0.0, 0.0]
+    assert decode_camera_info(msg).dist == TUM_FR1.dist
 
 
 def test_camera_info_without_distortion_model() -> None:
     msg = codecs.camera_to_camera_info(TUM_FR3, 0, "c")
     msg.distortion_model, msg.d = "", []
-    assert codecs.camera_info_to_camera(msg) == TUM_FR3
+    assert decode_camera_info(msg) == TUM_FR3
 
 
 def _info(**changes: object) -> CameraInfo:
@@ -234,7 +245,8 @@ def _info(**changes: object) -> CameraInfo:
 @pytest.mark.parametrize(
     "msg,fragment",
     [
-        (_info(distortion_model="rational_polynomial", d=[0.0] * 8), "'rational_polynomial' with 8 coefficients"),
+        (_info(distortion_model="equidistant", d=[0.0] * 4), "'equidistant' with 4 coefficients is not supported"),
+        (_info(distortion_model="rational_polynomial", d=[0.0] * 5), "rational_polynomial distortion needs 8"),
         (_info(d=[0.1, 0.2, 0.0, 0.0]), "plumb_bob distortion needs 5 coefficients in D, got 4"),
         (_info(k=[0.0, 0, 320, 0, 500, 240, 0, 0, 1]), "invalid focal lengths fx=0.0"),
         (_info(k=[float("nan"), 0, 320, 0, 500, 240, 0, 0, 1]), "invalid focal lengths fx=nan"),
@@ -244,7 +256,7 @@ def _info(**changes: object) -> CameraInfo:
 )
 def test_camera_info_malformed(msg: CameraInfo, fragment: str) -> None:
     with pytest.raises(MessageError, match=fragment):
-        codecs.camera_info_to_camera(msg)
+        decode_camera_info(msg)
 
 
 # ----------------------------------------------------------------------------- poses

@@ -20,7 +20,8 @@ from memgs_ros.core.map_delta import DeltaOutbox  # noqa: E402
 from memgs_ros.core.ply import load_ply  # noqa: E402
 from memgs_ros.nodes.merger import MergerNode  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
-from memgs_ros.ros.codecs import image_to_numpy, matrix_to_pose_stamped, structured_to_pointcloud2  # noqa: E402
+from memgs_ros.io.image_decoding import image_to_numpy  # noqa: E402
+from memgs_ros.ros.codecs import matrix_to_pose_stamped, structured_to_pointcloud2  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

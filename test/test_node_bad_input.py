@@ -430,15 +430,15 @@ def test_merger_refuses_malformed_deltas_and_counts_unknown_removals(context, tm
 
 def test_depth_encoding_mixups_are_named_and_real_padded_16uc1_still_decodes(frames) -> None:  # noqa: ANN001
     from memgs_ros.errors import MessageError
-    from memgs_ros.ros.codecs import depth_from_image
+    from memgs_ros.io.image_decoding import decode_depth
 
     f = frames[0]
     as16 = _relabel(depth_to_image(f.depth_m, "16UC1", 0, "cam"), "32FC1")
     with pytest.raises(MessageError, match="exactly a 64x48 16UC1 image: is the encoding wrong"):
-        depth_from_image(as16)
+        decode_depth(as16)
     as32 = _relabel(depth_to_image(f.depth_m, "32FC1", 0, "cam"), "16UC1")
     with pytest.raises(MessageError, match="32FC1 data labelled 16UC1"):
-        depth_from_image(as32)
+        decode_depth(as32)
     # Genuine 16UC1 rows padded to the width of a float row, 0.5 m .. 15 m: never taken for floats.
     for mm in (500, 8000, 15000):
         units = np.full(f.depth_m.shape, mm, np.uint16)
@@ -446,7 +446,7 @@ def test_depth_encoding_mixups_are_named_and_real_padded_16uc1_still_decodes(fra
         padded[:, : units.shape[1]] = units
         msg = numpy_to_image(padded, "16UC1", 0, "cam")
         msg.width, msg.step = units.shape[1], units.shape[1] * 4
-        np.testing.assert_allclose(depth_from_image(msg), mm / 1000.0)
+        np.testing.assert_allclose(decode_depth(msg), mm / 1000.0)
 
 
 # ----------------------------------------------------------------------------- converters never crash
@@ -463,12 +463,12 @@ _ENCODINGS = st.sampled_from(["rgb8", "bgr8", "rgba8", "mono8", "16UC1", "mono16
 def test_image_converters_return_or_raise_message_error(enc: str, h: int, w: int, step: int, n: int, big: bool,
                                                         scale: float) -> None:
     from memgs_ros.errors import MessageError
-    from memgs_ros.ros.codecs import depth_from_image, rgb_from_image
+    from memgs_ros.io.image_decoding import decode_depth, decode_rgb
 
     msg = Image(encoding=enc, is_bigendian=int(big), data=bytes(range(256)) * (n // 256) + bytes(n % 256))
     # Negative sizes cannot be set on the message (uint32): they wrap as a sender's bug would.
     msg.height, msg.width, msg.step = h % 2**32, w % 2**32, step % 2**32
-    for convert in (rgb_from_image, lambda m: depth_from_image(m, scale)):
+    for convert in (decode_rgb, lambda m: decode_depth(m, scale)):
         try:
             out = convert(msg)
         except MessageError:
@@ -479,15 +479,15 @@ def test_image_converters_return_or_raise_message_error(enc: str, h: int, w: int
 @settings(max_examples=200, deadline=None)
 @given(k=st.lists(st.floats(allow_nan=True, allow_infinity=True, width=32), min_size=9, max_size=9),
        d=st.lists(st.floats(allow_nan=True, allow_infinity=True, width=32), max_size=8),
-       model=st.sampled_from(["plumb_bob", "", "none", "equidistant"]),
+       model=st.sampled_from(["plumb_bob", "rational_polynomial", "", "none", "equidistant"]),
        size=st.tuples(st.integers(0, 5000), st.integers(0, 5000)), binning=st.integers(0, 3))
 def test_camera_info_converter_returns_a_valid_camera_or_raises(k, d, model, size, binning) -> None:  # noqa: ANN001
     from memgs_ros.errors import MessageError
-    from memgs_ros.ros.codecs import camera_info_to_camera
+    from memgs_ros.io.image_decoding import decode_camera_info
 
     msg = CameraInfo(width=size[0], height=size[1], distortion_model=model, d=d, k=k, binning_x=binning)
     try:
-        cam = camera_info_to_camera(msg)
+        cam = decode_camera_info(msg)
     except MessageError:
         return
     assert cam.fx > 0 and cam.fy > 0 and np.all(np.isfinite([cam.fx, cam.fy, cam.cx, cam.cy, *cam.dist]))

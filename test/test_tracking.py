@@ -8,12 +8,12 @@ import pytest
 
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.geometry import invert_pose
-from memgs_ros.core.tracking import TrackerConfig, TrackingState, make_tracker
+from memgs_ros.core.tracking import SparseMapStats, Tracker, TrackerConfig, TrackingState, make_tracker
 from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, _local_bundle_adjustment_scipy,
                                                        apply_left_update, local_bundle_adjustment,
                                                        optimize_pose)
 from memgs_ros.core.tracking.features import FrameFeatures, _hamming_pairs_table, hamming_pairs
-from memgs_ros.core.tracking.local_map import Keyframe, SparseMap
+from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
 from memgs_ros.core.trajectory import ate, path_length_m
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
@@ -130,6 +130,29 @@ def test_monocular_initialises_and_keeps_scale(frames: list[Frame]) -> None:
     gt = np.array([f.T_wc_gt for _, f in ok])
     res = ate(stamps, est, stamps, gt, sim3=True)
     assert res.rmse_m < 0.05 * path_length_m(gt), (res.rmse_m, path_length_m(gt))
+
+
+def test_every_backend_is_a_tracker(frames: list[Frame]) -> None:
+    import inspect
+
+    from memgs_ros.core.tracking.orbslam3_backend import OrbSlam3Tracker
+
+    # explicit subclasses with every abstract method filled in (ORB-SLAM3 cannot be built here)
+    assert Tracker in OrbSlam3Tracker.__mro__ and not inspect.isabstract(OrbSlam3Tracker)
+    mono = make_tracker(TrackerConfig(mode="mono", ba_enabled=False), frames[0].camera)
+    rgbd = make_tracker(TrackerConfig(ba_threaded=False), frames[0].camera)
+    try:
+        assert isinstance(mono, Tracker) and isinstance(rgbd, Tracker)
+        assert mono.map_stats() == SparseMapStats(frozenset(), 0, 0) and mono.ba_time_s == 0.0
+        kf_ids = {r.keyframe.keyframe_id for r in (rgbd.track(f) for f in frames[:20]) if r.keyframe is not None}
+        stats = rgbd.map_stats()
+        assert stats is not None and len(kf_ids) >= 2
+        assert stats.keyframe_ids == kf_ids and stats.keyframes == len(kf_ids)  # no cap: every keyframe kept
+        assert stats.points == rgbd.map.n_good_points > 0 and stats.keyframes_removed == 0
+        assert rgbd.ba_time_s > 0.0  # inline local BA ran after the second keyframe
+    finally:
+        mono.close()
+        rgbd.close()
 
 
 def test_rgbd_tracker_refuses_frames_without_depth(frames: list[Frame]) -> None:
@@ -273,7 +296,7 @@ def _toy_map(n_kf: int, pts_per_kf: int, shared: int) -> SparseMap:
                               np.ones(m_kp))
         T = np.eye(4)
         T[0, 3] = 0.1 * k
-        kf = Keyframe(m.new_keyframe_id(), k, T, feats, np.full(m_kp, -1, np.int64))
+        kf = SparseKeyframe(m.new_keyframe_id(), k, T, feats, np.full(m_kp, -1, np.int64))
         m.add_keyframe(kf)
         if len(prev_ids):
             m.add_observations(prev_ids[:shared], kf.keyframe_id, np.arange(pts_per_kf, m_kp))

@@ -1,4 +1,5 @@
-"""Pinhole camera with plumb_bob (k1, k2, p1, p2, k3) distortion, and the TUM presets."""
+"""Pinhole camera with plumb_bob (k1, k2, p1, p2, k3) or rational_polynomial (+ k4, k5, k6)
+distortion, and the TUM presets."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -7,12 +8,15 @@ import numpy as np
 
 from memgs_ros.errors import DataError
 
-DIST_LEN = 5  # plumb_bob: k1 k2 p1 p2 k3
+# plumb_bob: k1 k2 p1 p2 k3; rational_polynomial adds k4 k5 k6. Both are OpenCV's order, so
+# dist_coeffs goes to cv2 as it is.
+DIST_LENS = (5, 8)
 
 
 @dataclass(frozen=True)
 class PinholeCamera:
-    """Intrinsics of one camera, in pixels. ``dist`` is plumb_bob (k1, k2, p1, p2, k3)."""
+    """Intrinsics of one camera, in pixels. ``dist`` is plumb_bob (k1, k2, p1, p2, k3) or
+    rational_polynomial (k1, k2, p1, p2, k3, k4, k5, k6)."""
 
     width: int
     height: int
@@ -20,7 +24,7 @@ class PinholeCamera:
     fy: float
     cx: float
     cy: float
-    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         if self.width <= 0 or self.height <= 0:
@@ -31,8 +35,9 @@ class PinholeCamera:
                 raise DataError(f"camera {name} is not finite ({v})")
         if not (self.fx > 0 and self.fy > 0):
             raise DataError(f"camera focal lengths must be positive, got fx={self.fx} fy={self.fy}")
-        if len(self.dist) != DIST_LEN:
-            raise DataError(f"plumb_bob distortion needs {DIST_LEN} coefficients, got {len(self.dist)}")
+        if len(self.dist) not in DIST_LENS:
+            raise DataError(f"distortion needs 5 (plumb_bob) or 8 (rational_polynomial) coefficients, "
+                            f"got {len(self.dist)}")
         if not all(np.isfinite(d) for d in self.dist):
             raise DataError(f"distortion coefficients must be finite, got {self.dist}")
 
@@ -43,8 +48,13 @@ class PinholeCamera:
 
     @property
     def dist_coeffs(self) -> np.ndarray:
-        """Distortion as the float64 array OpenCV expects: [5]."""
+        """Distortion as the float64 array OpenCV expects: [5] or [8]."""
         return np.asarray(self.dist, dtype=np.float64)
+
+    @property
+    def distortion_model(self) -> str:
+        """The CameraInfo name of ``dist``: plumb_bob or rational_polynomial."""
+        return "plumb_bob" if len(self.dist) == 5 else "rational_polynomial"
 
     @property
     def has_distortion(self) -> bool:

@@ -27,7 +27,7 @@ import numpy as np
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.geometry import interpolate_poses, pose_from_tq
-from memgs_ros.errors import DataError, MemgsError, MessageError
+from memgs_ros.errors import ConfigError, DataError, MemgsError, MessageError
 from memgs_ros.io.bag_writer import (
     DEPTH_INFO_TOPIC,
     DEPTH_TOPIC,
@@ -36,6 +36,15 @@ from memgs_ros.io.bag_writer import (
     RGB_TOPIC,
     TF_TOPIC,
     ros2_typestore,
+)
+from memgs_ros.io.image_decoding import (
+    COLOR_ENCODINGS,
+    DEFAULT_DEPTH_SCALE,
+    DEPTH_ENCODINGS,
+    check_image,
+    decode_camera_info,
+    decode_depth,
+    decode_rgb,
 )
 from memgs_ros.io.tum import associate
 
@@ -78,72 +87,6 @@ def _stamp_ns(header: Any) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
-_ENCODINGS: dict[str, tuple[str, int]] = {
-    # encoding -> (numpy base dtype, channels)
-    "rgb8": ("u1", 3), "bgr8": ("u1", 3), "rgba8": ("u1", 4), "bgra8": ("u1", 4), "mono8": ("u1", 1),
-    "8UC1": ("u1", 1), "8UC3": ("u1", 3), "16UC1": ("u2", 1), "mono16": ("u2", 1), "32FC1": ("f4", 1),
-}
-COLOR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1", "8UC3")
-DEPTH_ENCODINGS = ("16UC1", "mono16", "32FC1")
-
-
-def check_image(msg: Any, allowed: tuple[str, ...]) -> None:
-    """Raise MessageError unless msg is an image of an allowed encoding whose buffer fits its size."""
-    enc = str(msg.encoding)
-    if enc not in allowed:
-        raise MessageError(f"unsupported encoding {enc!r} (expected one of {', '.join(allowed)})")
-    base, ch = _ENCODINGS[enc]
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    row = w * ch * np.dtype(base).itemsize
-    if h <= 0 or w <= 0:
-        raise MessageError(f"empty image {w}x{h}")
-    if step < row:
-        raise MessageError(f"step {step} smaller than a row of {w} px {enc} ({row} bytes)")
-    if len(msg.data) < step * (h - 1) + row:
-        raise MessageError(f"data has {len(msg.data)} bytes, {w}x{h} {enc} with step {step} needs {step * (h - 1) + row}")
-
-
-def decode_image(msg: Any, depth_scale_16u: float = 0.001) -> np.ndarray:
-    """sensor_msgs/Image -> numpy, honouring step padding and is_bigendian.
-
-    Colour encodings give [H, W, 3] uint8 RGB (mono is replicated); depth encodings give
-    [H, W] float32 metres (16UC1 / mono16 times ``depth_scale_16u``), 0 where invalid.
-    """
-    enc = str(msg.encoding)
-    check_image(msg, COLOR_ENCODINGS + DEPTH_ENCODINGS)
-    base, ch = _ENCODINGS[enc]
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    dt = np.dtype(base).newbyteorder(">" if msg.is_bigendian else "<")
-    buf = np.frombuffer(np.asarray(msg.data, dtype=np.uint8), dtype=np.uint8)
-    rows = np.lib.stride_tricks.as_strided(buf, shape=(h, w * ch * dt.itemsize), strides=(step, 1))
-    img = np.ascontiguousarray(rows).view(dt).reshape(h, w, ch) if ch > 1 else np.ascontiguousarray(rows).view(dt).reshape(h, w)
-    if enc in DEPTH_ENCODINGS:
-        d = img.astype(np.float32) * np.float32(depth_scale_16u) if base == "u2" else img.astype(np.float32)
-        d[~(np.isfinite(d) & (d > 0))] = 0.0
-        return d
-    if enc in ("mono8", "8UC1"):
-        return np.repeat(img[..., None], 3, axis=2)
-    if enc in ("bgr8", "bgra8"):
-        return np.ascontiguousarray(img[..., 2::-1])
-    return np.ascontiguousarray(img[..., :3])
-
-
-def camera_from_info(msg: Any) -> PinholeCamera:
-    """sensor_msgs/CameraInfo (ROS 1 or 2 field names) -> PinholeCamera with plumb_bob distortion."""
-    K = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, dtype=np.float64).reshape(-1)
-    D = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, dtype=np.float64).reshape(-1)
-    if K.size != 9 or K[0] <= 0 or K[4] <= 0:
-        raise MessageError(f"camera_info K is not a valid intrinsic matrix: {K.tolist()}")
-    model = str(msg.distortion_model)
-    if D.size and model not in ("plumb_bob", "rational_polynomial"):
-        raise MessageError(f"camera_info distortion model {model!r} is not supported (plumb_bob only)")
-    dist = np.zeros(5)
-    # rational_polynomial starts with the same k1 k2 p1 p2 k3; its k4..k6 are dropped
-    dist[: min(5, D.size)] = D[:5]
-    return PinholeCamera(int(msg.width), int(msg.height), float(K[0]), float(K[4]), float(K[2]), float(K[5]),
-                         tuple(float(x) for x in dist))  # type: ignore[arg-type]
-
-
 def _transform_to_T(tr: Any) -> np.ndarray:
     t, q = tr.translation, tr.rotation
     return pose_from_tq(np.array([t.x, t.y, t.z]), np.array([q.x, q.y, q.z, q.w]))
@@ -174,17 +117,20 @@ class BagSource:
     """A bag as a frame source: ``.camera``, ``.name``, ``len()``, iteration, ``ground_truth()``.
 
     path: ROS 1 ``.bag`` file, ROS 2 bag directory, or a bare ``.mcap`` / ``.db3`` file.
-    depth_scale_16u: metres per unit of 16UC1 depth (RealSense 0.001; TUM PNG-style 0.0002).
+    depth_scale: 16UC1 / mono16 depth units per metre (RealSense 1000, TUM PNG-style 5000).
+    Images decode as :mod:`memgs_ros.io.image_decoding` says: RGB uint8, depth metres with NaN invalid.
     with_depth: False pairs nothing and yields every colour image with depth None.
     """
 
     def __init__(self, path: str | Path, topics: BagTopics = BagTopics(), camera: PinholeCamera | None = None,
-                 max_dt_s: float = 0.02, depth_scale_16u: float = 0.001, with_depth: bool = True,
+                 max_dt_s: float = 0.02, depth_scale: float = DEFAULT_DEPTH_SCALE, with_depth: bool = True,
                  gt_max_gap_s: float = 0.1, max_frames: int | None = None) -> None:
         self.path = Path(path)
         self.name = self.path.name
         self.topics = topics
-        self.depth_scale_16u = depth_scale_16u
+        if not (np.isfinite(depth_scale) and depth_scale > 0):
+            raise ConfigError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
+        self.depth_scale = float(depth_scale)
         self.with_depth = with_depth
         self.skipped: dict[str, int] = defaultdict(int)
         self._logged: set[str] = set()
@@ -264,7 +210,7 @@ class BagSource:
                                 depth_stamps.append((index, stamp))
                         elif topic == t.rgb_info:
                             if info is None and camera is None:
-                                info = camera_from_info(msg)
+                                info = decode_camera_info(msg)
                         elif topic == t.pose:
                             pose_st.append(_stamp_ns(msg.header) or int(bag_ns))
                             p, q = msg.pose.position, msg.pose.orientation
@@ -395,7 +341,8 @@ class BagSource:
                     if k is None:
                         continue
                     try:
-                        img = decode_image(reader.deserialize(raw, c.msgtype), self.depth_scale_16u)
+                        msg = reader.deserialize(raw, c.msgtype)
+                        img = decode_rgb(msg) if is_rgb else decode_depth(msg, self.depth_scale)
                         expected = (self.camera.height, self.camera.width)
                         if img.shape[:2] != expected:
                             raise MessageError(f"image is {img.shape[1]}x{img.shape[0]}, camera is {expected[1]}x{expected[0]}")
@@ -438,4 +385,4 @@ def _sorted_unique(stamps: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, n
     return stamps[keep], poses[keep]
 
 
-__all__ = ["BagSource", "BagTopics", "decode_image", "check_image", "camera_from_info"]
+__all__ = ["BagSource", "BagTopics"]

@@ -6,7 +6,7 @@ ROS 2 layout (TUM topic names, Jazzy types):
 | --- | --- | --- |
 | ``/camera/rgb/image_color`` | sensor_msgs/Image | rgb8 |
 | ``/camera/depth/image`` | sensor_msgs/Image | 32FC1 metres, NaN = invalid |
-| ``/camera/rgb/camera_info``, ``/camera/depth/camera_info`` | sensor_msgs/CameraInfo | plumb_bob + distortion |
+| ``/camera/rgb/camera_info``, ``/camera/depth/camera_info`` | sensor_msgs/CameraInfo | plumb_bob (or rational_polynomial) + distortion |
 | ``/tf`` | tf2_msgs/TFMessage | ``world`` -> camera optical frame (ground truth) |
 | ``/groundtruth/pose`` | geometry_msgs/PoseStamped | camera in ``world`` (ground truth) |
 
@@ -122,7 +122,7 @@ class MessageFactory:
         D = camera.dist_coeffs.astype(np.float64)
         fields = {"D": D, "K": K, "R": R, "P": P} if self.ros1 else {"d": D, "k": K, "r": R, "p": P}
         return self._t("sensor_msgs/msg/CameraInfo")(
-            header=header, height=camera.height, width=camera.width, distortion_model="plumb_bob",
+            header=header, height=camera.height, width=camera.width, distortion_model=camera.distortion_model,
             binning_x=0, binning_y=0, roi=roi, **fields)
 
     def transform_stamped(self, header: Any, child: str, T: np.ndarray) -> Any:

@@ -20,6 +20,7 @@ from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.bag_reader import BagSource, BagTopics
+from memgs_ros.io.image_decoding import DEFAULT_DEPTH_SCALE
 from memgs_ros.io.synthetic import (
     SyntheticScene,
     SyntheticSpec,
@@ -95,7 +96,7 @@ def source_kind(spec: str | os.PathLike[str]) -> str:
 
 
 def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = None, max_dt_s: float = 0.02, *,
-                depth_factor: float | None = None, depth_scale_16u: float = 0.001,
+                depth_factor: float | None = None, depth_scale: float = DEFAULT_DEPTH_SCALE,
                 topics: BagTopics = BagTopics(), with_depth: bool = True,
                 max_frames: int | None = None) -> FrameSource:
     """Open any frame input (module docstring).
@@ -103,7 +104,7 @@ def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = Non
     camera: overrides the camera from the data (TUM name/camera.json, bag CameraInfo);
       not allowed for synthetic specs, whose camera the spec defines.
     max_dt_s: colour/depth pairing tolerance. depth_factor: TUM PNG units per metre
-      (default from the folder). depth_scale_16u: metres per unit of 16UC1 bag depth.
+      (default from the folder). depth_scale: 16UC1 bag depth units per metre.
     topics: bag topic/frame names. with_depth: False = colour only (monocular).
     max_frames: keep only the first N frames.
     """
@@ -120,7 +121,7 @@ def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = Non
     if kind == "tum":
         return TumFolder(spec, camera=camera, depth_factor=depth_factor, max_dt_s=max_dt_s, with_depth=with_depth,
                          max_frames=max_frames)
-    return BagSource(spec, topics=topics, camera=camera, max_dt_s=max_dt_s, depth_scale_16u=depth_scale_16u,
+    return BagSource(spec, topics=topics, camera=camera, max_dt_s=max_dt_s, depth_scale=depth_scale,
                      with_depth=with_depth, max_frames=max_frames)
 
 

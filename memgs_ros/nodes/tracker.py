@@ -37,13 +37,13 @@ from std_msgs.msg import Header, String
 
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
-from memgs_ros.core.tracking import TrackerConfig, TrackResult, make_tracker
+from memgs_ros.core.tracking import Tracker, TrackerConfig, TrackResult, make_tracker
 from memgs_ros.errors import DataError, MessageError
+from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
-    append_to_path, camera_info_to_camera, camera_to_camera_info, depth_from_image, depth_to_image,
-    make_header, matrix_to_odometry, matrix_to_pose_stamped, numpy_to_image, rgb_from_image, stamp_to_ns,
-    structured_to_pointcloud2,
+    append_to_path, camera_to_camera_info, depth_to_image, make_header, matrix_to_odometry, matrix_to_pose_stamped,
+    numpy_to_image, stamp_to_ns, structured_to_pointcloud2,
 )
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
@@ -61,7 +61,7 @@ class TrackerNode(Node):
         self.depth_topic = declare(self, "depth_topic", "camera/camera/aligned_depth_to_color/image_raw",
                                    "depth image input registered to colour (16UC1 or 32FC1); unused in mono mode")
         self.info_topic = declare(self, "camera_info_topic", "camera/camera/color/camera_info",
-                                  "camera_info of the colour camera (plumb_bob)")
+                                  "camera_info of the colour camera (plumb_bob or rational_polynomial)")
         self.depth_scale = declare(self, "depth_scale", 1000.0, "16UC1 depth units per metre (RealSense 1000, TUM 5000)",
                                    range=(1e-3, 1e6))
         self.sync = declare(self, "sync", "approximate", "colour/depth pairing", choices=("approximate", "exact"))
@@ -91,7 +91,7 @@ class TrackerNode(Node):
 
         self.stats = NodeStats(self, "tracker")
         self.camera: PinholeCamera | None = None
-        self.tracker = None
+        self.tracker: Tracker | None = None
         self.last_stamp_ns = -1
         self.kf_stamps: dict[int, int] = {}
         self.path = Path()
@@ -132,7 +132,7 @@ class TrackerNode(Node):
     # ------------------------------------------------------------------ inputs
     def on_camera_info(self, msg: CameraInfo) -> None:
         try:
-            cam = camera_info_to_camera(msg)
+            cam = decode_camera_info(msg)
         except MessageError as err:
             self.stats.problem("camera_info", f"camera_info refused: {err}")
             return
@@ -162,8 +162,8 @@ class TrackerNode(Node):
         """Messages to a Frame, or None (counted, logged once) when they cannot be used."""
         assert self.camera is not None
         try:
-            rgb = rgb_from_image(color)
-            depth_m = depth_from_image(depth, self.depth_scale) if depth is not None else None
+            rgb = decode_rgb(color)
+            depth_m = decode_depth(depth, self.depth_scale) if depth is not None else None
             return Frame(stamp_to_ns(color.header.stamp), rgb, depth_m, self.camera)
         except (MessageError, DataError) as err:
             self.stats.problem("bad_image", f"frame {stamp_to_ns(color.header.stamp)} refused: {err}")
@@ -191,24 +191,24 @@ class TrackerNode(Node):
         self.last_stamp_ns = stamp
         t0 = time.perf_counter()
         assert self.tracker is not None
-        ba_before = getattr(self.tracker, "ba_time_s", 0.0)
+        ba_before = self.tracker.ba_time_s
         result = self.tracker.track(frame)
         dt = time.perf_counter() - t0
         if not self.cfg.ba_threaded:
             # Inline local BA (lockstep replays) is back-end work: report the front end alone,
             # as a threaded BA would leave it, and the BA time beside it.
-            ba_dt = getattr(self.tracker, "ba_time_s", 0.0) - ba_before
+            ba_dt = self.tracker.ba_time_s - ba_before
             dt -= ba_dt
             self.stats.counters["ba_us_total"] += int(ba_dt * 1e6)
         self.stats.gauges["track_ms"] = round(dt * 1e3, 2)
         self.stats.counters["track_us_total"] += int(dt * 1e6)
-        smap = getattr(self.tracker, "map", None)  # the ORB-SLAM3 backend keeps its own
-        if smap is not None and result.keyframe is not None:
-            self.stats.gauges["map_keyframes"] = len(smap.keyframes)
-            self.stats.gauges["map_points"] = smap.n_good_points
+        smap = self.tracker.map_stats() if result.keyframe is not None else None  # None: ORB-SLAM3 has no map
+        if smap is not None:
+            self.stats.gauges["map_keyframes"] = smap.keyframes
+            self.stats.gauges["map_points"] = smap.points
             self.stats.gauges["map_keyframes_removed"] = smap.keyframes_removed
-            if len(self.kf_stamps) > 2 * len(smap.keyframes) + 64:  # BA refines only kept keyframes
-                self.kf_stamps = {i: s for i, s in self.kf_stamps.items() if i in smap.keyframes}
+            if len(self.kf_stamps) > 2 * smap.keyframes + 64:  # BA refines only kept keyframes
+                self.kf_stamps = {i: s for i, s in self.kf_stamps.items() if i in smap.keyframe_ids}
         self._publish(frame, result, color.header.frame_id or self.camera_frame)
         self._publish_refined()
         self._processed(stamp, keyframe=result.keyframe is not None)

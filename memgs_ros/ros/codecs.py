@@ -2,8 +2,10 @@
 
 cv_bridge and sensor_msgs_py are not on PyPI, so image and PointCloud2 packing live
 here. Every conversion that can fail raises :class:`MessageError` naming the field,
-encoding or size that is wrong. Decoders return views on the message buffer where the
-layout allows it (no copy); treat them as read-only.
+encoding or size that is wrong. Images and CameraInfo are decoded by the one decoder in
+:mod:`memgs_ros.io.image_decoding` (shared with the bag reader); this module only encodes
+them. :func:`pointcloud2_to_structured` returns a view on the message buffer where the
+layout allows it (no copy); treat it as read-only.
 
 uint64 / int64 in PointCloud2: ``sensor_msgs/PointField`` has no 64-bit integer type, so
 a 64-bit field ``name`` travels as two 4-byte fields at adjacent offsets: ``name_lo``
@@ -18,7 +20,6 @@ import array
 import sys
 from collections.abc import Sequence
 
-import cv2
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose, PoseStamped
@@ -28,20 +29,18 @@ from std_msgs.msg import Header
 
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.geometry import pose_from_tq, pose_to_tq
-from memgs_ros.errors import DataError, MessageError
+from memgs_ros.errors import MessageError
+from memgs_ros.io.image_decoding import IMAGE_ENCODINGS
+# Decoding lives in the one decoder; ros/pipeline.py still imports image_to_numpy from here.
+from memgs_ros.io.image_decoding import image_to_numpy as image_to_numpy
 
 __all__ = [
     "IMAGE_ENCODINGS",
     "stamp_to_ns",
     "ns_to_stamp",
     "make_header",
-    "image_to_numpy",
     "numpy_to_image",
-    "rgb_from_image",
-    "depth_from_image",
     "depth_to_image",
-    "check_image_sizes",
-    "camera_info_to_camera",
     "camera_to_camera_info",
     "pose_to_matrix",
     "matrix_to_pose",
@@ -52,23 +51,6 @@ __all__ = [
     "pointcloud2_to_structured",
 ]
 
-# encoding -> (element dtype, channels). Multi-byte types are read in the byte order
-# the message declares (is_bigendian) and written little-endian.
-IMAGE_ENCODINGS: dict[str, tuple[np.dtype, int]] = {
-    "rgb8": (np.dtype(np.uint8), 3),
-    "bgr8": (np.dtype(np.uint8), 3),
-    "rgba8": (np.dtype(np.uint8), 4),
-    "bgra8": (np.dtype(np.uint8), 4),
-    "mono8": (np.dtype(np.uint8), 1),
-    "8UC1": (np.dtype(np.uint8), 1),
-    "mono16": (np.dtype(np.uint16), 1),
-    "16UC1": (np.dtype(np.uint16), 1),
-    "32FC1": (np.dtype(np.float32), 1),
-}
-_COLOR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1")
-_TO_RGB = {"bgr8": cv2.COLOR_BGR2RGB, "rgba8": cv2.COLOR_RGBA2RGB, "bgra8": cv2.COLOR_BGRA2RGB,
-           "mono8": cv2.COLOR_GRAY2RGB, "8UC1": cv2.COLOR_GRAY2RGB}
-_DEPTH_ENCODINGS = ("16UC1", "mono16", "32FC1")
 _NS_PER_S = 1_000_000_000
 _INT32_MAX = 2**31 - 1
 
@@ -115,38 +97,6 @@ def make_header(stamp_ns: int, frame_id: str) -> Header:
 # --------------------------------------------------------------------------- images
 
 
-def image_to_numpy(msg: Image) -> np.ndarray:
-    """Decode an Image without interpreting channels.
-
-    Returns [H, W] for one-channel encodings, [H, W, C] otherwise, in native byte order,
-    dtype per :data:`IMAGE_ENCODINGS`. Row padding (``step`` > width * bytes per pixel)
-    is skipped by strides; the result is a view on ``msg.data`` unless a byte swap was
-    needed.
-    """
-    enc = msg.encoding
-    if enc not in IMAGE_ENCODINGS:
-        raise MessageError(f"unsupported image encoding '{enc}' (supported: {', '.join(IMAGE_ENCODINGS)})")
-    dtype, channels = IMAGE_ENCODINGS[enc]
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    if h <= 0 or w <= 0:
-        raise MessageError(f"{enc} image has no pixels ({w}x{h})")
-    row_bytes = w * channels * dtype.itemsize
-    if step < row_bytes:
-        raise MessageError(f"{enc} image step {step} is less than width*bytes_per_pixel = {row_bytes}")
-    buf = _buffer(msg.data)
-    if buf.size != step * h:
-        raise MessageError(
-            f"{enc} image data has {buf.size} bytes, expected step*height = {step}*{h} = {step * h}"
-        )
-    wire = dtype.newbyteorder(">" if msg.is_bigendian else "<") if dtype.itemsize > 1 else dtype
-    arr = np.ndarray(
-        shape=(h, w, channels), dtype=wire, buffer=buf, strides=(step, channels * dtype.itemsize, dtype.itemsize)
-    )
-    if wire != dtype.newbyteorder("="):
-        arr = arr.astype(dtype.newbyteorder("="))
-    return arr[:, :, 0] if channels == 1 else arr
-
-
 def numpy_to_image(arr: np.ndarray, encoding: str, stamp_ns: int, frame_id: str) -> Image:
     """Encode an array as an Image (little-endian, no row padding).
 
@@ -177,74 +127,6 @@ def numpy_to_image(arr: np.ndarray, encoding: str, stamp_ns: int, frame_id: str)
     return msg
 
 
-def rgb_from_image(msg: Image) -> np.ndarray:
-    """Colour image -> [H, W, 3] uint8 RGB, from rgb8, bgr8, rgba8, bgra8 or mono8."""
-    if msg.encoding not in _COLOR_ENCODINGS:
-        raise MessageError(
-            f"image encoding '{msg.encoding}' is not a colour encoding ({', '.join(_COLOR_ENCODINGS)})"
-        )
-    a = image_to_numpy(msg)
-    if msg.encoding == "rgb8":
-        return a
-    # cv2 swizzles ~40x faster than a numpy strided copy (0.15 vs 6 ms at 640x480).
-    return cv2.cvtColor(a, _TO_RGB[msg.encoding])
-
-
-def depth_from_image(msg: Image, depth_scale: float = 1000.0) -> np.ndarray:
-    """Depth image -> [H, W] float32 metres, NaN where invalid.
-
-    16UC1 / mono16 hold integer units with ``depth_scale`` units per metre (RealSense 1000,
-    TUM PNG 5000); 32FC1 holds metres. Zero, negative and non-finite values become NaN.
-    """
-    if msg.encoding not in _DEPTH_ENCODINGS:
-        raise MessageError(f"image encoding '{msg.encoding}' is not a depth encoding ({', '.join(_DEPTH_ENCODINGS)})")
-    if not (np.isfinite(depth_scale) and depth_scale > 0):
-        raise MessageError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
-    try:
-        a = image_to_numpy(msg)
-    except MessageError as err:
-        raise MessageError(f"{err}{_depth_mixup_hint(msg)}") from err
-    if a.dtype == np.uint16:
-        if _holds_float_metres(msg):
-            raise MessageError(
-                f"{msg.encoding} depth {msg.width}x{msg.height} with step {msg.step} holds 32-bit floats of "
-                f"plausible metres: 32FC1 data labelled {msg.encoding}? Refused rather than read as garbage")
-        d = a.astype(np.float32) * np.float32(1.0 / depth_scale)
-        d[a == 0] = np.nan
-        return d
-    d = np.array(a, dtype=np.float32)  # copy: never edit the message buffer
-    with np.errstate(invalid="ignore"):
-        d[~(d > 0) | ~np.isfinite(d)] = np.nan
-    return d
-
-
-def _depth_mixup_hint(msg: Image) -> str:
-    """' (...: is the encoding wrong?)' when the data length fits the other depth encoding."""
-    other = {"32FC1": ("16UC1", 2), "16UC1": ("32FC1", 4), "mono16": ("32FC1", 4)}.get(msg.encoding)
-    w, h = int(msg.width), int(msg.height)
-    if other is None or w <= 0 or h <= 0 or len(msg.data) != other[1] * w * h:
-        return ""
-    return f" (the data is exactly a {w}x{h} {other[0]} image: is the encoding wrong?)"
-
-
-def _holds_float_metres(msg: Image) -> bool:
-    """True when a 16-bit depth image's rows read as float32 give plausible depths (0.05..50 m).
-
-    32FC1 data labelled 16UC1 (with its step kept) decodes without any size error, as garbage.
-    Real 16-bit depth read as float32 is tiny (< 1e-3) for every depth below 15.7 m in any unit,
-    so this never refuses a real 16UC1 image. Only checked when a float row fits the step.
-    """
-    w, h, step = int(msg.width), int(msg.height), int(msg.step)
-    if step < 4 * w:
-        return False
-    f = np.ndarray(shape=(h, w), dtype=np.dtype(">f4" if msg.is_bigendian else "<f4"), buffer=_buffer(msg.data),
-                   strides=(step, 4))
-    with np.errstate(invalid="ignore"):
-        finite = np.isfinite(f) & (f != 0)
-        plausible = int(np.count_nonzero(finite & (f > 0.05) & (f < 50.0)))
-    return plausible > 0 and plausible >= 0.9 * np.count_nonzero(finite)
-
-
 def depth_to_image(
     depth_m: np.ndarray, encoding: str, stamp_ns: int, frame_id: str, depth_scale: float = 1000.0
 ) -> Image:
@@ -269,61 +151,15 @@ def depth_to_image(
     raise MessageError(f"depth encoding must be 32FC1 or 16UC1, got '{encoding}'")
 
 
-def check_image_sizes(rgb: np.ndarray, depth_m: np.ndarray | None, camera: PinholeCamera) -> None:
-    """MessageError unless colour [H, W, 3] and depth [H, W] (when given) have the camera's size.
-
-    Colour, depth and camera_info travel as separate messages: nothing else ties their sizes.
-    """
-    if rgb.shape[:2] != (camera.height, camera.width):
-        raise MessageError(f"colour image is {rgb.shape[1]}x{rgb.shape[0]} but camera_info says "
-                           f"{camera.width}x{camera.height}")
-    if depth_m is not None and depth_m.shape != rgb.shape[:2]:
-        raise MessageError(f"depth image is {depth_m.shape[1]}x{depth_m.shape[0]} but colour is "
-                           f"{rgb.shape[1]}x{rgb.shape[0]}")
-
-
 # --------------------------------------------------------------------------- camera info
 
 
-def camera_info_to_camera(msg: CameraInfo) -> PinholeCamera:
-    """CameraInfo -> PinholeCamera from K and plumb_bob D.
-
-    An empty distortion model with empty D means no distortion. Other models
-    (rational_polynomial, equidistant) and binning are refused rather than approximated.
-    """
-    model = msg.distortion_model
-    d = [float(x) for x in msg.d]
-    if model == "plumb_bob":
-        if len(d) != 5:
-            raise MessageError(f"CameraInfo plumb_bob distortion needs 5 coefficients in D, got {len(d)}")
-    elif model in ("", "none") and len(d) == 0:
-        d = [0.0] * 5
-    else:
-        raise MessageError(
-            f"CameraInfo distortion_model '{model}' with {len(d)} coefficients is not supported (only plumb_bob)"
-        )
-    if msg.binning_x > 1 or msg.binning_y > 1:
-        raise MessageError(f"CameraInfo binning {msg.binning_x}x{msg.binning_y} is not supported")
-    k = [float(x) for x in msg.k]
-    fx, fy, cx, cy = k[0], k[4], k[2], k[5]
-    if not (np.isfinite(fx) and np.isfinite(fy) and fx > 0 and fy > 0):
-        raise MessageError(f"CameraInfo K has invalid focal lengths fx={fx} fy={fy}")
-    if not (np.isfinite(cx) and np.isfinite(cy)):
-        raise MessageError(f"CameraInfo K has a non-finite principal point cx={cx} cy={cy}")
-    if not np.all(np.isfinite(d)):
-        raise MessageError(f"CameraInfo D has non-finite distortion coefficients {d}")
-    try:
-        return PinholeCamera(int(msg.width), int(msg.height), fx, fy, cx, cy, tuple(d))  # type: ignore[arg-type]
-    except DataError as err:
-        raise MessageError(f"CameraInfo is not a valid camera: {err}") from err
-
-
 def camera_to_camera_info(cam: PinholeCamera, stamp_ns: int, frame_id: str) -> CameraInfo:
-    """PinholeCamera -> CameraInfo (plumb_bob, R identity, P = [K | 0])."""
+    """PinholeCamera -> CameraInfo (plumb_bob or rational_polynomial, R identity, P = [K | 0])."""
     msg = CameraInfo()
     msg.header = make_header(stamp_ns, frame_id)
     msg.width, msg.height = int(cam.width), int(cam.height)
-    msg.distortion_model = "plumb_bob"
+    msg.distortion_model = cam.distortion_model
     msg.d = [float(x) for x in cam.dist]
     msg.k = [float(cam.fx), 0.0, float(cam.cx), 0.0, float(cam.fy), float(cam.cy), 0.0, 0.0, 1.0]
     msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]

@@ -14,13 +14,14 @@ import numpy as np
 
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.errors import DataError, MessageError
-from memgs_ros.ros.codecs import (
-    camera_info_to_camera,
+from memgs_ros.io.image_decoding import (
+    DEFAULT_DEPTH_SCALE,
     check_image_sizes,
-    depth_from_image,
-    pose_to_matrix,
-    rgb_from_image,
+    decode_camera_info,
+    decode_depth,
+    decode_rgb,
 )
+from memgs_ros.ros.codecs import pose_to_matrix
 
 
 class KeyframeBundleError(MessageError):
@@ -42,17 +43,17 @@ class KeyframeImages:
     T_wc: np.ndarray
 
 
-def decode_keyframe_images(bundle: Mapping[str, Any], depth_scale: float = 1000.0) -> KeyframeImages:
+def decode_keyframe_images(bundle: Mapping[str, Any], depth_scale: float = DEFAULT_DEPTH_SCALE) -> KeyframeImages:
     """Decode ``camera_info``, ``color``, ``pose`` and, when present, ``depth`` of a bundle.
 
     Raises KeyframeBundleError naming the kind of the first check that fails.
     """
     kind = "camera_info"
     try:
-        camera = camera_info_to_camera(bundle["camera_info"])
+        camera = decode_camera_info(bundle["camera_info"])
         kind = "bad_image"
-        rgb = rgb_from_image(bundle["color"])
-        depth = depth_from_image(bundle["depth"], depth_scale) if "depth" in bundle else None
+        rgb = decode_rgb(bundle["color"])
+        depth = decode_depth(bundle["depth"], depth_scale) if "depth" in bundle else None
         kind = "size_mismatch"
         check_image_sizes(rgb, depth, camera)
         if depth is not None and not np.isfinite(depth).any():

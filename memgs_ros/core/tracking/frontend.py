@@ -25,7 +25,8 @@ from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, local_bundle_a
                                                         orthonormalized)
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.features import FrameFeatures, OrbExtractor, match_by_projection, match_descriptors
-from memgs_ros.core.tracking.local_map import Keyframe, SparseMap
+from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
+from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
 from memgs_ros.core.tracking.relocalisation import relocalise
 from memgs_ros.errors import DataError
 
@@ -52,7 +53,7 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(c)))
 
 
-class FeatureTracker:
+class FeatureTracker(Tracker):
     """Common machinery; subclasses add initialisation and new map points (depth or triangulation)."""
 
     uses_depth = True
@@ -115,6 +116,11 @@ class FeatureTracker:
             out, self._refined = self._refined, []
         return out
 
+    def map_stats(self) -> SparseMapStats:
+        """The sparse map's keyframes and good points, read under the map lock (BA may run)."""
+        with self.map.lock:
+            return SparseMapStats(frozenset(self.map.keyframes), self.map.n_good_points, self.map.keyframes_removed)
+
     def close(self) -> None:
         """Stop the bundle adjustment thread (idempotent)."""
         self._stop.set()
@@ -141,7 +147,7 @@ class FeatureTracker:
                     ) -> tuple[np.ndarray | None, KeyframeInfo | None, int, int]:
         raise NotImplementedError
 
-    def _create_points(self, kf: Keyframe, frame: Frame) -> None:
+    def _create_points(self, kf: SparseKeyframe, frame: Frame) -> None:
         raise NotImplementedError
 
     def _need_close_points(self, feats: FrameFeatures, kp_idx: np.ndarray) -> bool:
@@ -362,14 +368,14 @@ class FeatureTracker:
     def _keyframe_ratio(self) -> float:
         return self.cfg.keyframe_tracked_ratio
 
-    def _reference_tracked(self, ref: Keyframe) -> int:
+    def _reference_tracked(self, ref: SparseKeyframe) -> int:
         """Points of the reference keyframe seen by enough keyframes (ORB-SLAM's nMinObs)."""
         min_obs = 3 if len(self.map.keyframes) > 2 else 2
         ids = ref.point_ids[ref.point_ids >= 0]
         return int((self.map.n_observations(ids) >= min_obs).sum())
 
-    def _make_keyframe(self, frame: Frame, feats: FrameFeatures, T_cw: np.ndarray) -> Keyframe:
-        kf = Keyframe(self.map.new_keyframe_id(), frame.stamp_ns, T_cw.copy(), feats,
+    def _make_keyframe(self, frame: Frame, feats: FrameFeatures, T_cw: np.ndarray) -> SparseKeyframe:
+        kf = SparseKeyframe(self.map.new_keyframe_id(), frame.stamp_ns, T_cw.copy(), feats,
                       np.full(len(feats), -1, dtype=np.int64), self.segment_id)
         self.map.add_keyframe(kf)
         return kf
@@ -405,7 +411,7 @@ class FeatureTracker:
     def _min_point_obs(self) -> int:
         return 2
 
-    def _finish_keyframe(self, kf: Keyframe) -> KeyframeInfo:
+    def _finish_keyframe(self, kf: SparseKeyframe) -> KeyframeInfo:
         self._last_kf_id = kf.keyframe_id
         self._frames_since_kf = 0
         if kf.keyframe_id not in self._local_kfs:
@@ -419,7 +425,7 @@ class FeatureTracker:
         self._last_kf_info = info
         return info
 
-    def _keyframe_info(self, kf: Keyframe) -> KeyframeInfo:
+    def _keyframe_info(self, kf: SparseKeyframe) -> KeyframeInfo:
         active = kf.point_ids >= 0
         depth = np.full(len(kf.point_ids), np.nan, dtype=np.float32)
         if active.any():

@@ -21,8 +21,9 @@ from memgs_ros.core.tracking.features import FrameFeatures
 
 
 @dataclass(eq=False)
-class Keyframe:
-    """A keyframe inside the map (mutable: BA refines ``T_cw``; points attach to keypoints).
+class SparseKeyframe:
+    """The tracker's keyframe inside its sparse map: pose, ORB keypoints and the map point of each
+    (mutable: BA refines ``T_cw``; points attach to keypoints). Not the mapper's keyframe.
 
     feats: its ORB features; point_ids: [M] int64 map point per keypoint, -1 where none.
     """
@@ -59,7 +60,7 @@ class SparseMap:
 
     def __init__(self, first_keyframe_id: int = 0) -> None:
         self.lock = threading.RLock()
-        self.keyframes: dict[int, Keyframe] = {}
+        self.keyframes: dict[int, SparseKeyframe] = {}
         self._pts = _PointStore()
         self.observations: list[dict[int, int]] = []  # point id -> {keyframe id: keypoint index}
         self._next_kf_id = first_keyframe_id  # ids stay unique across segments
@@ -187,7 +188,7 @@ class SparseMap:
         self._next_kf_id += 1
         return self._next_kf_id - 1
 
-    def add_keyframe(self, kf: Keyframe) -> None:
+    def add_keyframe(self, kf: SparseKeyframe) -> None:
         with self.lock:
             self.keyframes[kf.keyframe_id] = kf
 

@@ -13,7 +13,7 @@ from memgs_ros.core.tracking.bundle_adjustment import CHI2_MONO, BAProblem, loca
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackingState
 from memgs_ros.core.tracking.features import FrameFeatures, match_descriptors
 from memgs_ros.core.tracking.frontend import FeatureTracker
-from memgs_ros.core.tracking.local_map import Keyframe, SparseMap
+from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
 
 _MAX_INIT_AGE_FRAMES = 30  # restart from a new reference frame when initialisation takes longer
 _MIN_COS_PARALLAX = 0.9998  # rays closer than ~1.1 deg give depth too uncertain to keep
@@ -168,7 +168,7 @@ class MonocularTracker(FeatureTracker):
         return info
 
     # -- new points by triangulation -------------------------------------------------------
-    def _create_points(self, kf: Keyframe, frame: Frame) -> None:
+    def _create_points(self, kf: SparseKeyframe, frame: Frame) -> None:
         own = kf.point_ids[kf.point_ids >= 0]
         neighbours = self.map.covisible(own, _TRIANGULATION_NEIGHBOURS, exclude=kf.keyframe_id)
         P_kf = self.K @ kf.T_cw[:3]

@@ -23,6 +23,7 @@ from memgs_ros.core.frame import Frame
 from memgs_ros.core.geometry import invert_pose
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.features import OrbExtractor
+from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
 from memgs_ros.errors import ConfigError
 
 
@@ -33,8 +34,8 @@ def _method(obj: Any, *names: str) -> Any:
     raise ConfigError(f"pyorbslam3.System has none of {names}; this binding is not supported")
 
 
-class OrbSlam3Tracker:
-    """``track`` / ``poll_refined_keyframes`` / ``close`` over ORB-SLAM3 (see module docstring)."""
+class OrbSlam3Tracker(Tracker):
+    """The :class:`Tracker` interface over ORB-SLAM3 (see module docstring)."""
 
     def __init__(self, cfg: TrackerConfig, camera: PinholeCamera) -> None:
         try:
@@ -59,6 +60,7 @@ class OrbSlam3Tracker:
         self._since_kf = cfg.keyframe_max_frames
         self._next_kf_id = 0
         self._closed = False
+        self.ba_time_s = 0.0  # ORB-SLAM3 runs its BA inside the binding, out of our sight
 
     def track(self, frame: Frame) -> TrackResult:
         t0 = time.perf_counter()
@@ -87,6 +89,10 @@ class OrbSlam3Tracker:
     def poll_refined_keyframes(self) -> list[tuple[int, np.ndarray]]:
         """ORB-SLAM3 refines internally; the bindings do not report which keyframes moved."""
         return []
+
+    def map_stats(self) -> SparseMapStats | None:
+        """The bindings expose no map."""
+        return None
 
     def close(self) -> None:
         if not self._closed:

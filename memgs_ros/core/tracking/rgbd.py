@@ -8,7 +8,7 @@ from memgs_ros.core.geometry import invert_pose
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackingState
 from memgs_ros.core.tracking.features import FrameFeatures
 from memgs_ros.core.tracking.frontend import FeatureTracker
-from memgs_ros.core.tracking.local_map import Keyframe, SparseMap
+from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
 
 _MIN_INIT_POINTS = 100  # keypoints with depth needed to start a map
 _CLOSE_TRACKED = 100  # ORB-SLAM: insert a keyframe when few close points are tracked ...
@@ -42,7 +42,7 @@ class RGBDTracker(FeatureTracker):
         self._local_kfs = [kf.keyframe_id]
         return self._finish_keyframe(kf)
 
-    def _create_points(self, kf: Keyframe, frame: Frame) -> None:
+    def _create_points(self, kf: SparseKeyframe, frame: Frame) -> None:
         f = kf.feats
         new = np.flatnonzero((kf.point_ids < 0) & np.isfinite(f.depth_m))
         if len(new) == 0:

@@ -1,0 +1,64 @@
+"""What the tracker node needs from a tracking backend: one explicit interface.
+
+Every backend (the RGB-D and monocular feature trackers, the ORB-SLAM3 adapter) subclasses
+:class:`Tracker`, so a missing method is an error at construction (abstract) rather than an
+``AttributeError`` in the middle of a run, and the node never probes with ``getattr``.
+"""
+from __future__ import annotations
+
+from abc import abstractmethod
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from memgs_ros.core.frame import Frame
+    from memgs_ros.core.tracking.config import TrackResult
+
+
+@dataclass(frozen=True)
+class SparseMapStats:
+    """A snapshot of a backend's sparse map, for diagnostics and bookkeeping.
+
+    keyframe_ids: the keyframes the map still holds (bounded maps remove old ones; only
+    these can still be refined by BA). points: good map points. keyframes_removed: in total.
+    """
+
+    keyframe_ids: frozenset[int]
+    points: int
+    keyframes_removed: int
+
+    @property
+    def keyframes(self) -> int:
+        return len(self.keyframe_ids)
+
+
+@runtime_checkable
+class Tracker(Protocol):
+    """A tracking backend.
+
+    ba_time_s: seconds spent in local bundle adjustment so far, inline or threaded; 0.0 for a
+    backend that does its own BA out of sight. The node subtracts inline BA from front-end time.
+    """
+
+    ba_time_s: float
+
+    @abstractmethod
+    def track(self, frame: Frame) -> TrackResult:
+        """Estimate the pose of ``frame``."""
+
+    @abstractmethod
+    def poll_refined_keyframes(self) -> list[tuple[int, np.ndarray]]:
+        """(keyframe_id, refined T_wc [4, 4]) since the last poll, oldest first."""
+
+    @abstractmethod
+    def map_stats(self) -> SparseMapStats | None:
+        """The sparse map's stats, or None for a backend that exposes no map."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release threads and native resources (idempotent)."""
+
+
+__all__ = ["SparseMapStats", "Tracker"]

@@ -1,0 +1,284 @@
+"""The one decoder of ``sensor_msgs/Image`` and ``sensor_msgs/CameraInfo``, for the wire and for bags.
+
+Messages are duck-typed: rclpy messages and rosbags messages (ROS 1 ``K``/``D`` or ROS 2
+``k``/``d`` field names) decode the same way, so a stream gives the same arrays whether it
+comes from a bag or from a topic. No rclpy import: the bag reader uses this without ROS.
+
+One convention:
+
+- colour -> [H, W, 3] uint8 RGB from rgb8, bgr8, rgba8, bgra8 (alpha dropped), mono8 and
+  8UC1 (grey replicated). ``8UC3`` is refused: it names no channel order (OpenCV writes BGR,
+  others RGB), and guessing swaps red and blue without any error.
+- depth -> [H, W] float32 metres, NaN where invalid: 16UC1 / mono16 hold integer units with
+  ``depth_scale`` units per metre (RealSense 1000, TUM 5000); 32FC1 holds metres. Zero,
+  negative and non-finite depths become NaN.
+- CameraInfo -> :class:`PinholeCamera`: ``plumb_bob`` (5 coefficients) and
+  ``rational_polynomial`` (8) are kept in full; an empty D means no distortion.
+- layout is checked exactly: ``step >= width * bytes_per_pixel`` and
+  ``len(data) == step * height`` (a short *or* long buffer is refused: either means the size
+  fields and the data disagree); big-endian 16/32-bit data is byte-swapped.
+
+Every refusal is a :class:`MessageError` naming the field, encoding or size that is wrong;
+nothing else escapes. Colour and depth results never alias the message buffer.
+"""
+from __future__ import annotations
+
+import array
+from collections.abc import Collection, Sequence
+from typing import Any
+
+import cv2
+import numpy as np
+
+from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.errors import DataError, MessageError
+
+__all__ = [
+    "IMAGE_ENCODINGS",
+    "COLOR_ENCODINGS",
+    "DEPTH_ENCODINGS",
+    "DEFAULT_DEPTH_SCALE",
+    "check_image",
+    "image_to_numpy",
+    "decode_rgb",
+    "decode_depth",
+    "decode_camera_info",
+    "check_image_sizes",
+]
+
+# encoding -> (element dtype, channels), native byte order; the wire order is is_bigendian's.
+IMAGE_ENCODINGS: dict[str, tuple[np.dtype, int]] = {
+    "rgb8": (np.dtype(np.uint8), 3),
+    "bgr8": (np.dtype(np.uint8), 3),
+    "rgba8": (np.dtype(np.uint8), 4),
+    "bgra8": (np.dtype(np.uint8), 4),
+    "mono8": (np.dtype(np.uint8), 1),
+    "8UC1": (np.dtype(np.uint8), 1),
+    "mono16": (np.dtype(np.uint16), 1),
+    "16UC1": (np.dtype(np.uint16), 1),
+    "32FC1": (np.dtype(np.float32), 1),
+}
+COLOR_ENCODINGS: tuple[str, ...] = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1")
+DEPTH_ENCODINGS: tuple[str, ...] = ("16UC1", "mono16", "32FC1")
+DEFAULT_DEPTH_SCALE = 1000.0  # 16-bit depth units per metre (millimetres)
+
+# cv2 swizzles ~40x faster than a numpy strided copy (0.15 vs 6 ms at 640x480).
+_TO_RGB = {"bgr8": cv2.COLOR_BGR2RGB, "rgba8": cv2.COLOR_RGBA2RGB, "bgra8": cv2.COLOR_BGRA2RGB,
+           "mono8": cv2.COLOR_GRAY2RGB, "8UC1": cv2.COLOR_GRAY2RGB}
+_DIST_LENS = {"plumb_bob": 5, "rational_polynomial": 8}
+
+
+# --------------------------------------------------------------------------- fields
+
+
+def _field(msg: Any, *names: str) -> Any:
+    """The first of ``names`` that ``msg`` has (ROS 1 and ROS 2 spell some fields differently)."""
+    for name in names:
+        if hasattr(msg, name):
+            return getattr(msg, name)
+    raise MessageError(f"{type(msg).__name__} has no field {' / '.join(names)}")
+
+
+def _int_field(msg: Any, name: str) -> int:
+    value = _field(msg, name)
+    try:
+        return int(value)
+    except (TypeError, ValueError, OverflowError) as err:
+        raise MessageError(f"field {name} is not an integer: {value!r}") from err
+
+
+def _buffer(data: object) -> np.ndarray:
+    """[N] uint8 view of a data field: array('B') (rclpy), uint8 ndarray (rosbags), bytes or a list."""
+    if isinstance(data, np.ndarray):
+        if data.dtype != np.uint8:
+            raise MessageError(f"image data must be uint8 bytes, got an array of {data.dtype}")
+        return data.reshape(-1)
+    if isinstance(data, (bytes, bytearray, memoryview)) or (isinstance(data, array.array) and data.itemsize == 1):
+        return np.frombuffer(data, dtype=np.uint8)
+    try:
+        return np.asarray(data, dtype=np.uint8).reshape(-1)
+    except (TypeError, ValueError, OverflowError) as err:
+        raise MessageError(f"image data is not a byte buffer ({type(data).__name__}: {err})") from err
+
+
+# --------------------------------------------------------------------------- images
+
+
+def check_image(msg: Any, allowed: Collection[str] = tuple(IMAGE_ENCODINGS)) -> None:
+    """MessageError unless ``msg`` is an image of an ``allowed`` encoding whose layout is exact.
+
+    Reads only the header fields and the buffer length, so it is cheap enough to screen every
+    message of a bag before decoding any.
+    """
+    _layout(msg, allowed)
+
+
+def _layout(msg: Any, allowed: Collection[str]) -> tuple[str, int, int, int, np.ndarray]:
+    """Checked (encoding, height, width, step, uint8 buffer) of an image message."""
+    enc = str(_field(msg, "encoding"))
+    if enc not in allowed:
+        raise MessageError(f"unsupported image encoding '{enc}' (supported here: {', '.join(allowed)})")
+    if enc not in IMAGE_ENCODINGS:
+        raise MessageError(f"unsupported image encoding '{enc}' (supported: {', '.join(IMAGE_ENCODINGS)})")
+    dtype, channels = IMAGE_ENCODINGS[enc]
+    h, w, step = _int_field(msg, "height"), _int_field(msg, "width"), _int_field(msg, "step")
+    if h <= 0 or w <= 0:
+        raise MessageError(f"{enc} image has no pixels ({w}x{h})")
+    row_bytes = w * channels * dtype.itemsize
+    buf = _buffer(_field(msg, "data"))
+    if step < row_bytes:
+        raise MessageError(f"{enc} image step {step} is less than width*bytes_per_pixel = {row_bytes}"
+                           f"{_depth_mixup_hint(enc, w, h, buf.size)}")
+    if buf.size != step * h:
+        raise MessageError(f"{enc} image data has {buf.size} bytes, expected step*height = {step}*{h} = {step * h}"
+                           f"{_depth_mixup_hint(enc, w, h, buf.size)}")
+    return enc, h, w, step, buf
+
+
+def image_to_numpy(msg: Any, allowed: Collection[str] = tuple(IMAGE_ENCODINGS)) -> np.ndarray:
+    """Pixels of an Image without interpreting channels.
+
+    Returns [H, W] for one-channel encodings, [H, W, C] otherwise, native byte order, dtype per
+    :data:`IMAGE_ENCODINGS`. Row padding is skipped by strides: the result is a view on the
+    message buffer unless a byte swap was needed, so treat it as read-only.
+    """
+    enc, h, w, step, buf = _layout(msg, allowed)
+    dtype, channels = IMAGE_ENCODINGS[enc]
+    big = bool(_field(msg, "is_bigendian"))
+    wire = dtype.newbyteorder(">" if big else "<") if dtype.itemsize > 1 else dtype
+    arr = np.ndarray(shape=(h, w, channels), dtype=wire, buffer=buf,
+                     strides=(step, channels * dtype.itemsize, dtype.itemsize))
+    if wire != dtype.newbyteorder("="):
+        arr = arr.astype(dtype.newbyteorder("="))
+    return arr[:, :, 0] if channels == 1 else arr
+
+
+def decode_rgb(msg: Any) -> np.ndarray:
+    """Colour image (one of :data:`COLOR_ENCODINGS`) -> [H, W, 3] uint8 RGB, a new array."""
+    enc = str(_field(msg, "encoding"))
+    if enc not in COLOR_ENCODINGS:
+        why = " (no channel order: publish rgb8 or bgr8)" if enc == "8UC3" else ""
+        raise MessageError(f"image encoding '{enc}' is not a colour encoding ({', '.join(COLOR_ENCODINGS)}){why}")
+    a = image_to_numpy(msg, COLOR_ENCODINGS)
+    if enc == "rgb8":
+        return np.array(a, copy=True, order="C")  # never hand out a view on the message
+    return cv2.cvtColor(a, _TO_RGB[enc])
+
+
+def decode_depth(msg: Any, depth_scale: float = DEFAULT_DEPTH_SCALE) -> np.ndarray:
+    """Depth image -> [H, W] float32 metres, NaN where invalid, a new array.
+
+    16UC1 / mono16: integer units, ``depth_scale`` units per metre (RealSense 1000, TUM 5000),
+    0 = no measurement. 32FC1: metres. Zero, negative and non-finite values become NaN.
+    """
+    enc = str(_field(msg, "encoding"))
+    if enc not in DEPTH_ENCODINGS:
+        raise MessageError(f"image encoding '{enc}' is not a depth encoding ({', '.join(DEPTH_ENCODINGS)})")
+    if not (np.isfinite(depth_scale) and depth_scale > 0):
+        raise MessageError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
+    a = image_to_numpy(msg, DEPTH_ENCODINGS)
+    if a.dtype == np.uint16:
+        if _holds_float_metres(msg):
+            raise MessageError(
+                f"{enc} depth {a.shape[1]}x{a.shape[0]} with step {int(msg.step)} holds 32-bit floats of "
+                f"plausible metres: 32FC1 data labelled {enc}? Refused rather than read as garbage")
+        d = a.astype(np.float32) / np.float32(depth_scale)
+        d[a == 0] = np.nan
+        return d
+    d = np.array(a, dtype=np.float32)  # copy: never edit the message buffer
+    with np.errstate(invalid="ignore"):
+        d[~(d > 0) | ~np.isfinite(d)] = np.nan
+    return d
+
+
+def _depth_mixup_hint(enc: str, w: int, h: int, n_bytes: int) -> str:
+    """' (...: is the encoding wrong?)' when the data length fits the other depth encoding."""
+    other = {"32FC1": ("16UC1", 2), "16UC1": ("32FC1", 4), "mono16": ("32FC1", 4)}.get(enc)
+    if other is None or n_bytes != other[1] * w * h:
+        return ""
+    return f" (the data is exactly a {w}x{h} {other[0]} image: is the encoding wrong?)"
+
+
+def _holds_float_metres(msg: Any) -> bool:
+    """True when a 16-bit depth image's rows read as float32 give plausible depths (0.05..50 m).
+
+    32FC1 data labelled 16UC1 (with its step kept) decodes without any size error, as garbage.
+    Real 16-bit depth read as float32 is tiny (< 1e-3) for every depth below 15.7 m in any unit,
+    so this never refuses a real 16UC1 image. Only checked when a float row fits the step.
+    Called after :func:`_layout`, so the fields are known to be sound.
+    """
+    w, h, step = int(msg.width), int(msg.height), int(msg.step)
+    if step < 4 * w:
+        return False
+    f = np.ndarray(shape=(h, w), dtype=np.dtype(">f4" if msg.is_bigendian else "<f4"), buffer=_buffer(msg.data),
+                   strides=(step, 4))
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(f) & (f != 0)
+        plausible = int(np.count_nonzero(finite & (f > 0.05) & (f < 50.0)))
+    return plausible > 0 and plausible >= 0.9 * np.count_nonzero(finite)
+
+
+# --------------------------------------------------------------------------- camera info
+
+
+def _floats(msg: Any, names: Sequence[str]) -> np.ndarray:
+    value = _field(msg, *names)
+    try:
+        return np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as err:
+        raise MessageError(f"CameraInfo {names[0]} is not a list of numbers: {value!r}") from err
+
+
+def decode_camera_info(msg: Any) -> PinholeCamera:
+    """CameraInfo -> PinholeCamera from K and D.
+
+    ``plumb_bob`` needs 5 coefficients, ``rational_polynomial`` 8 (k1 k2 p1 p2 k3 k4 k5 k6, the
+    order OpenCV takes); a rational_polynomial whose k4..k6 are zero becomes the equal plumb_bob
+    camera, so both spellings of one calibration compare equal. An empty D (any of these models,
+    or none) means no distortion. Other models, binning and non-finite or non-positive
+    intrinsics are refused.
+    """
+    model = str(_field(msg, "distortion_model"))
+    d = _floats(msg, ("d", "D"))
+    if d.size == 0 and model in ("", "none", *_DIST_LENS):
+        d = np.zeros(5)
+    elif model not in _DIST_LENS:
+        raise MessageError(f"CameraInfo distortion_model '{model}' with {d.size} coefficients is not supported "
+                           f"(only {' and '.join(_DIST_LENS)})")
+    elif d.size != _DIST_LENS[model]:
+        raise MessageError(f"CameraInfo {model} distortion needs {_DIST_LENS[model]} coefficients in D, "
+                           f"got {d.size}")
+    if d.size == 8 and not np.any(d[5:]):
+        d = d[:5]
+    if not np.all(np.isfinite(d)):
+        raise MessageError(f"CameraInfo D has non-finite distortion coefficients {d.tolist()}")
+    bx = _int_field(msg, "binning_x") if hasattr(msg, "binning_x") else 0
+    by = _int_field(msg, "binning_y") if hasattr(msg, "binning_y") else 0
+    if bx > 1 or by > 1:
+        raise MessageError(f"CameraInfo binning {bx}x{by} is not supported")
+    k = _floats(msg, ("k", "K"))
+    if k.size != 9:
+        raise MessageError(f"CameraInfo K needs 9 values, got {k.size}")
+    fx, fy, cx, cy = float(k[0]), float(k[4]), float(k[2]), float(k[5])
+    if not (np.isfinite(fx) and np.isfinite(fy) and fx > 0 and fy > 0):
+        raise MessageError(f"CameraInfo K has invalid focal lengths fx={fx} fy={fy}")
+    if not (np.isfinite(cx) and np.isfinite(cy)):
+        raise MessageError(f"CameraInfo K has a non-finite principal point cx={cx} cy={cy}")
+    try:
+        return PinholeCamera(_int_field(msg, "width"), _int_field(msg, "height"), fx, fy, cx, cy,
+                             tuple(float(x) for x in d))
+    except DataError as err:
+        raise MessageError(f"CameraInfo is not a valid camera: {err}") from err
+
+
+def check_image_sizes(rgb: np.ndarray, depth_m: np.ndarray | None, camera: PinholeCamera) -> None:
+    """MessageError unless colour [H, W, 3] and depth [H, W] (when given) have the camera's size.
+
+    Colour, depth and camera_info travel as separate messages: nothing else ties their sizes.
+    """
+    if rgb.shape[:2] != (camera.height, camera.width):
+        raise MessageError(f"colour image is {rgb.shape[1]}x{rgb.shape[0]} but camera_info says "
+                           f"{camera.width}x{camera.height}")
+    if depth_m is not None and depth_m.shape != rgb.shape[:2]:
+        raise MessageError(f"depth image is {depth_m.shape[1]}x{depth_m.shape[0]} but colour is "
+                           f"{rgb.shape[1]}x{rgb.shape[0]}")
