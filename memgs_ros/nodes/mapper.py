@@ -112,11 +112,9 @@ class MapperNode(Node):
 
     def save_checkpoint(self, force: bool = False) -> pathlib.Path | None:
         """Write the session's state atomically when it changed since the last write."""
-        if self.ckpt is None:
-            return None
         t0 = time.perf_counter()
         try:
-            ck = self.session.state_dict(only_if_changed=not force).result()
+            ck = self.session.state_dict(only_if_changed=not force).result() if self.ckpt is not None else None
             if ck is None:
                 return None
             self.ckpt.write(ck)
