@@ -21,10 +21,9 @@ densification alternate, reference section 4).
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -32,159 +31,17 @@ import torch
 
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.checkpoint import ID_BLOCK, KeyframeState, MapperCheckpoint
-from memgs_ros.core.gaussians import GaussianLearningRates, GaussianMap, GaussianRecords
+from memgs_ros.core.gaussians import GaussianMap, GaussianRecords
 from memgs_ros.core.geometry import invert_pose, nearest_pose_distance, rotmat_to_quat_wxyz_torch
 from memgs_ros.core.keyframes import KeyframeStore, TrainingKeyframe, make_keyframe
 from memgs_ros.core.losses import mapping_loss
+from memgs_ros.core.mapping_config import MappingConfig
 from memgs_ros.core.strategies import BudgetStrategy, DensifyStrategy, MergeFn, MergeSchedule
 from memgs_ros.core.sampling import undistorter_for
 from memgs_ros.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
-
-
-@dataclass(frozen=True)
-class MappingConfig:
-    """Every mapping parameter (reference section 5); defaults are the paper's RGB-D TUM values.
-
-    Learning rates: ``lr_means`` is multiplied by the scene extent; with ``lr_means_decay`` it
-    decays log-linearly to ``lr_means_final`` over ``lr_means_decay_steps`` (3DGS schedule).
-    ``scene_extent`` <= 0 means automatic: max(1.1 x radius of the keyframe camera centres,
-    ``min_scene_extent``) (the floor matters for a camera that mostly rotates in place).
-    Densification: every ``densify_interval`` iterations in [densify_start_iter,
-    densify_stop_iter], Gaussians whose mean NDC 2D gradient exceeds ``densify_grad_threshold``
-    are cloned (max scale <= percent_dense x extent) or split into ``split_children`` scaled by
-    1/``split_scale_factor``; then Gaussians with opacity < ``prune_opacity`` (and, when
-    ``max_screen_size_px`` > 0, larger on screen than that or wider than 0.1 x extent) are pruned.
-    Merge (reference section 4): every ``merge_interval`` iterations in [merge_start_iter,
-    merge_stop_iter] when ``merge_enabled`` and memgs_ros.core.merge is importable.
-    ``mask_invalid_pixels``: leave the border that undistortion fills with black (no source
-    pixel, see ``undistortion_valid_mask``) out of the photometric and depth losses, so the map
-    is not taught that the scene is black wherever some view's border falls; the whole-image
-    evaluation still compares that border with black. ``seed_opacity``: initial opacity of
-    keyframe seeds (3DGS and the paper: 0.1; higher makes short CPU runs converge faster).
-    Memory budget (``max_gaussians`` / ``max_model_mbytes``, 0 = none; both set: the tighter
-    wins): see ``memgs_ros.core.strategies.BudgetStrategy``. The MiB budget is converted to a Gaussian
-    count at a trained map's cost per Gaussian (parameters + gradients + both Adam moments,
-    944 B at SH degree 3, ``GaussianMap.memory_bytes``), so seeds inserted before training
-    already respect it.
-    """
-
-    # Optimiser (Adam, eps 1e-15)
-    lr_means: float = 1.6e-4
-    lr_means_final: float = 1.6e-6
-    lr_means_decay: bool = False
-    lr_means_decay_steps: int = 30_000
-    lr_sh_dc: float = 0.0025
-    lr_sh_rest: float = 0.0025 / 20.0
-    lr_opacity: float = 0.05
-    lr_scaling: float = 0.005
-    lr_rotation: float = 0.001
-    scene_extent: float = 0.0
-    min_scene_extent: float = 1.0
-    # Loss
-    ssim_lambda: float = 0.2
-    iso_weight: float = 1.0
-    depth_weight: float = 0.1
-    mask_invalid_pixels: bool = True
-    # Initial opacity of keyframe seeds (3DGS: 0.1)
-    seed_opacity: float = 0.1
-    # Spherical harmonics
-    max_sh_degree: int = 3
-    sh_up_interval: int = 1000
-    # Densify / prune
-    densify_start_iter: int = 500
-    densify_stop_iter: int = 15_000
-    densify_interval: int = 100
-    densify_grad_threshold: float = 0.001
-    percent_dense: float = 0.01
-    split_children: int = 2
-    split_scale_factor: float = 1.6
-    prune_opacity: float = 0.1
-    prune_min_age_iters: int = 200
-    max_screen_size_px: float = 0.0
-    # Training views
-    min_keyframes: int = 10
-    new_keyframe_budget: int = 2
-    pyramid_uses_per_level: int = 8
-    resolution_scale: float = 1.0
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    raster_backend: str = "auto"
-    near_m: float = 0.01
-    # Merge schedule (the merge itself: memgs_ros.core.merge.merge_pass)
-    merge_enabled: bool = True
-    merge_start_iter: int = 1000
-    merge_interval: int = 1000
-    merge_stop_iter: int = 15_000
-    seed: int = 0
-    # Memory budget (0 = none): when the map exceeds it, relaxed merge passes then pruning of
-    # the least contributing Gaussians bring it to budget_target_fraction of it; densification
-    # never grows it past the budget
-    max_gaussians: int = 0  # budget on the number of Gaussians (0 = none)
-    # Keyframes kept for training (0 = all). Over it, the most redundant one (nearest pose to
-    # another keyframe; never the newest) leaves the store: its Gaussians stay in the map. Bounds
-    # the mapper's image memory on long runs that revisit places
-    max_keyframes: int = 0
-    max_model_mbytes: float = 0.0  # budget in MiB of parameters + gradients + Adam moments (0 = none)
-    budget_target_fraction: float = 0.95  # enforcement stops at this fraction of the budget (hysteresis)
-    budget_merge: bool = True  # merge (all keyframes, no gradient gate) before pruning, when merging is on
-    budget_merge_voxel_scale: float = 1.0  # voxel of the budget merge = merge voxel x this
-
-    def __post_init__(self) -> None:
-        for name in ("lr_means", "lr_means_final", "lr_sh_dc", "lr_sh_rest", "lr_opacity",
-                     "lr_scaling", "lr_rotation", "min_scene_extent", "split_scale_factor",
-                     "resolution_scale"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ConfigError(f"MappingConfig.{name} must be positive, got {v}")
-        for name in ("ssim_lambda",):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ConfigError(f"MappingConfig.{name} must be in [0, 1], got {getattr(self, name)}")
-        for name in ("iso_weight", "depth_weight", "densify_grad_threshold", "percent_dense",
-                     "prune_opacity", "max_screen_size_px", "near_m", "max_model_mbytes"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ConfigError(f"MappingConfig.{name} must be >= 0, got {v}")
-        for name in ("sh_up_interval", "densify_interval", "merge_interval", "split_children",
-                     "new_keyframe_budget", "lr_means_decay_steps"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"MappingConfig.{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("min_keyframes", "pyramid_uses_per_level", "prune_min_age_iters",
-                     "densify_start_iter", "merge_start_iter", "max_gaussians", "max_keyframes"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"MappingConfig.{name} must be >= 0, got {getattr(self, name)}")
-        if not 0.0 < self.budget_target_fraction <= 1.0:
-            raise ConfigError("MappingConfig.budget_target_fraction must be in (0, 1], "
-                              f"got {self.budget_target_fraction}")
-        if not (math.isfinite(self.budget_merge_voxel_scale) and self.budget_merge_voxel_scale >= 1.0):
-            raise ConfigError("MappingConfig.budget_merge_voxel_scale must be >= 1, "
-                              f"got {self.budget_merge_voxel_scale}")
-        if not 0.0 < self.seed_opacity < 1.0:
-            raise ConfigError(f"MappingConfig.seed_opacity must be in (0, 1), got {self.seed_opacity}")
-        if not 0 <= self.max_sh_degree <= 3:
-            raise ConfigError(f"MappingConfig.max_sh_degree must be in 0..3, got {self.max_sh_degree}")
-        if len(self.background) != 3:
-            raise ConfigError(f"MappingConfig.background must have 3 values, got {self.background}")
-
-    def learning_rates(self) -> GaussianLearningRates:
-        return GaussianLearningRates(
-            means=self.lr_means, means_final=self.lr_means_final,
-            means_decay_steps=self.lr_means_decay_steps, means_decay=self.lr_means_decay,
-            sh_dc=self.lr_sh_dc, sh_rest=self.lr_sh_rest, opacity=self.lr_opacity,
-            scaling=self.lr_scaling, rotation=self.lr_rotation)
-
-    @staticmethod
-    def from_dict(values: dict[str, Any]) -> "MappingConfig":
-        """Build from a flat dict (e.g. ROS parameters), refusing unknown names."""
-        known = {f.name for f in fields(MappingConfig)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ConfigError(f"unknown mapping parameter(s): {', '.join(unknown)}")
-        v = dict(values)
-        if "background" in v:
-            v["background"] = tuple(float(x) for x in v["background"])
-        return MappingConfig(**v)
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
 
 if TYPE_CHECKING:
     from memgs_ros.core.gaussians import GaussianMap
-    from memgs_ros.core.mapping import MappingConfig
+    from memgs_ros.core.mapping_config import MappingConfig
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
