@@ -291,26 +291,17 @@ def _ground_truth_images(source: str, max_frames: int, scale: float
     the source (for its ground-truth trajectory), valid-pixel mask [h, w] bool or None when the
     camera has no distortion).
     """
-    import cv2
-
-    from memgs_ros.core.sampling import undistorter_for
+    from memgs_ros.core.view import view_preparation
     from memgs_ros.io.sources import open_source
 
     src = open_source(source, with_depth=False, max_frames=max_frames or None)
-    undistort = undistorter_for(src.camera)
-    cam = undistort.camera_undistorted.scaled(scale) if scale != 1.0 else undistort.camera_undistorted
+    view = view_preparation(src.camera, scale)  # the mapper's own preparation of its keyframes
     stamps: list[int] = []
     images: list[np.ndarray] = []
     for frame in src:
-        rgb, _, _ = undistort(frame.rgb)
-        if (cam.width, cam.height) != (rgb.shape[1], rgb.shape[0]):
-            # Same resampling as the mapper applies to its keyframes.
-            rgb = cv2.resize(rgb, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
         stamps.append(int(frame.stamp_ns))
-        images.append(np.ascontiguousarray(rgb))
-    from memgs_ros.core.mapping import undistortion_valid_mask
-
-    mask = undistortion_valid_mask(src.camera, scale)
+        images.append(view(frame.rgb)[0])
+    cam, mask = view.camera, view.valid_mask
     return np.asarray(stamps, dtype=np.int64), images, cam, src, mask
 
 

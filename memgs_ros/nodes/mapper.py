@@ -43,7 +43,7 @@ from memgs_ros.core.map_delta import DeltaOutbox, message_dtype
 from memgs_ros.core.mapping import GaussianMapper, MappingConfig
 from memgs_ros.core.merge import MergeConfig
 from memgs_ros.core.runtime import configure_cpu_runtime
-from memgs_ros.core.sampling import undistorter_for
+from memgs_ros.core.view import view_preparation
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
@@ -323,7 +323,7 @@ class MapperNode(Node):
             self.stats.problem(stage, f"keyframe {stamp_ns} refused: {err}")
             return
         self.kf_ids[stamp_ns] = kf_id
-        self.render_camera = self.render_camera or undistorter_for(cam).camera_undistorted.scaled(self.cfg.resolution_scale)
+        self.render_camera = self.render_camera or view_preparation(cam, self.cfg.resolution_scale).camera
         self.stats.counters["keyframes"] += 1
         self.stats.counters["seeded_gaussians"] += added
         if stamp_ns in self.awaiting_keyframes:
