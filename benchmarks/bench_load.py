@@ -139,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from memgs_ros.io.bag_writer import write_bag
     from memgs_ros.io.synthetic import generate_frames, parse_spec
-    from memgs_ros.ros.pipeline import RunOptions, run_pipeline
+    from memgs_ros.orchestration.pipeline import RunOptions, run_pipeline
 
     tmp = tempfile.TemporaryDirectory(prefix="memgs_load_")
     work = args.keep or Path(tmp.name)

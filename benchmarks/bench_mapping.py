@@ -125,20 +125,22 @@ def psnr_of(mapper, frame, scale: float) -> tuple[float, float, float]:
     whole-image PSNR with the render set to black outside those pixels as the GT is)."""
     import torch
 
-    from memgs_ros.core.mapping import prepare_images, undistortion_valid_mask
+    from memgs_ros.core.view import valid_pixel_mask, view_preparation
 
-    rgb, _, cam = prepare_images(frame.rgb, None, frame.camera, scale)
+    view = view_preparation(frame.camera, scale)
+    rgb, _ = view(frame.rgb)
+    cam = view.camera
     out = mapper.render(frame.T_wc_gt, cam)
     gt = torch.from_numpy(rgb).to(out.color.device).permute(2, 0, 1).float() / 255.0
     se = ((out.color.clamp(0, 1) - gt) ** 2).mean(0)  # [H, W]
-    mask = undistortion_valid_mask(frame.camera, scale)
+    mask = view.valid_mask
     if mask is None:
         mse_valid = mse_black = float(se.mean())
     else:
         m = torch.from_numpy(mask).to(se.device)
         mse_valid = float(se[m].mean())
         # Black only where no source pixel contributes at all (partial pixels keep the render).
-        any_px = torch.from_numpy(undistortion_valid_mask(frame.camera, scale, min_fraction=1e-3)).to(se.device)
+        any_px = torch.from_numpy(valid_pixel_mask(frame.camera, scale, min_fraction=1e-3)).to(se.device)
         mse_black = float(torch.where(any_px, se, (gt ** 2).mean(0)).mean())
     to_db = lambda mse: -10.0 * math.log10(max(mse, 1e-12))  # noqa: E731
     return to_db(float(se.mean())), to_db(mse_valid), to_db(mse_black)

@@ -49,13 +49,15 @@ def run_one(args: argparse.Namespace) -> dict:
     from memgs_ros.core.merge import MergeConfig
     from memgs_ros.core.metrics import psnr
     from memgs_ros.core.runtime import configure_cpu_runtime
-    from memgs_ros.core.sampling import Undistorter, seeds_rgbd
+    from memgs_ros.core.sampling import seeds_rgbd
+    from memgs_ros.core.view import view_preparation
     from memgs_ros.io.sources import open_source
 
     configure_cpu_runtime(torch_threads=args.threads)
     torch.manual_seed(args.seed)
     src = open_source(args.input, max_frames=args.max_frames)
-    undist = Undistorter(src.camera)
+    view = view_preparation(src.camera)  # full size: seeds back-project at source resolution
+    cam_u = view.camera
     orb = cv2.ORB_create(500)
     merge_on = args.merge == "on"
     mcfg = MappingConfig(
@@ -76,7 +78,7 @@ def run_one(args: argparse.Namespace) -> dict:
     for k, frame in enumerate(src):
         if k % args.kf_every or frame.T_wc_gt is None or frame.depth_m is None:
             continue
-        rgb_u, depth_u, cam_u = undist(frame.rgb, frame.depth_m)
+        rgb_u, depth_u = view(frame.rgb, frame.depth_m)
         gray = cv2.cvtColor(rgb_u, cv2.COLOR_RGB2GRAY)
         kps = orb.detect(gray, None)
         uv = np.array([kp.pt for kp in kps], dtype=np.float64).reshape(-1, 2)

@@ -21,7 +21,8 @@ import cv2
 import numpy as np
 
 from memgs_ros.core.camera import TUM_CAMERAS, TUM_DEPTH_FACTORS
-from memgs_ros.core.sampling import PatchGridConfig, patch_grid_uv, seeds_mono, seeds_rgbd, undistort_rgbd, undistort_uv
+from memgs_ros.core.sampling import PatchGridConfig, patch_grid_uv, seeds_mono, seeds_rgbd
+from memgs_ros.core.view import undistort_uv, undistorter_for, view_preparation
 
 RADII_PX = (1.0, 20.0, 30.0, 50.0, 80.0)
 
@@ -50,8 +51,11 @@ def main() -> int:
         rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         depth = cv2.imread(str(args.tum / f_d[j]), cv2.IMREAD_UNCHANGED).astype(np.float32) / factor
         kps = orb.detect(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), None)
-        uv = undistort_uv(np.array([k.pt for k in kps]).reshape(-1, 2), cam)
-        rgb_u, depth_u, cam_u = undistort_rgbd(rgb, depth, cam)
+        # Undistorted in K, then into the prepared (cropped) view, as the sampler node does.
+        uv = undistorter_for(cam).from_pinhole_uv(undistort_uv(np.array([k.pt for k in kps]).reshape(-1, 2), cam))
+        view = view_preparation(cam)
+        rgb_u, depth_u = view(rgb, depth)
+        cam_u = view.camera
         pix = np.floor(uv + 0.5).astype(int)
         ok = (pix[:, 0] >= 0) & (pix[:, 0] < cam.width) & (pix[:, 1] >= 0) & (pix[:, 1] < cam.height)
         kd = np.full(len(uv), np.nan)

@@ -20,3 +20,7 @@ class MessageError(MemgsError):
 
 class ConfigError(MemgsError):
     """A parameter value is out of range or inconsistent with another."""
+
+
+class PipelineError(MemgsError):
+    """A run of the node graph failed: a node died or timed out, or the run could not finish."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 import random
 
-# Before numpy/torch load their thread pools: two shared cores (see memgs_ros/ros/pipeline.py).
+# Before numpy/torch load their thread pools: two shared cores (see memgs_ros/orchestration/pipeline.py).
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 

@@ -18,6 +18,7 @@ pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install
 
 from memgs_ros import evaluation  # noqa: E402
 from memgs_ros.cli import main  # noqa: E402
+from memgs_ros.cli.eval_tables import ablation_table  # noqa: E402
 from memgs_ros.core.ply import load_ply  # noqa: E402
 from memgs_ros.io.tum import read_trajectory  # noqa: E402
 
@@ -57,8 +58,12 @@ def _check_outputs(eval_run: Path) -> None:
     mem = d["memory"]
     assert mem["mapper_device"] == "cpu" and mem["cuda_max_allocated_bytes"] is None
     assert mem["headline_bytes"] == mem["model_bytes_peak"] > 0
-    # Peak RSS per node process, measured from /proc (the nodes' own ru_maxrss includes the parent's).
+    # Peak RSS per node process: VmHWM, the peak each node reported in the run's stats timeline.
     assert {"tracker", "keyframe_sampler", "mapper", "merger"} <= set(mem["peak_rss_mb"])
+    timeline = [json.loads(line) for line in (eval_run / "stats_timeline.jsonl").read_text().splitlines()]
+    assert mem["peak_rss_mb"]["mapper"] == max(float(r["peak_rss_mb"]) for r in timeline if r["node"] == "mapper")
+    assert len(d["map_samples"]) == sum(1 for r in timeline if r["node"] == "mapper" and "gaussians" in r)
+    assert json.loads((eval_run / "summary.json").read_text())["poses"] == d["poses"]
     assert "VmHWM" in mem["peak_rss_source"] and all(v > 20.0 for v in mem["peak_rss_mb"].values())
     # ATE against the synthetic ground truth, SE(3), every pose matched.
     tr = d["trajectory"]
@@ -87,7 +92,7 @@ def _check_round_trip_and_ablation_table(eval_run: Path) -> None:
                     memory=replace(full.memory, model_bytes_peak=full.memory.model_bytes_peak // 2),
                     frames_quality=replace(full.frames_quality, psnr_db=full.frames_quality.psnr_db - 1.0),
                     trajectory=replace(full.trajectory, rmse_m=full.trajectory.rmse_m + 0.02))
-    table = evaluation.ablation_table([full, other])
+    table = ablation_table([full, other])
     last = table.strip().splitlines()[-1]
     cells = [c.strip() for c in last.strip("|").split("|")]
     assert cells[0] == "w/o merging"

@@ -11,9 +11,9 @@ import torch
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.keyframes import KeyframeStore, make_keyframe
-from memgs_ros.core.sampling import Undistorter
 from memgs_ros.core.losses import depth_l1_loss, isotropic_loss, mapping_loss, photometric_loss
-from memgs_ros.core.mapping import GaussianMapper, MappingConfig, undistortion_valid_mask
+from memgs_ros.core.mapping import GaussianMapper, MappingConfig
+from memgs_ros.core.view import Undistorter, view_preparation
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
@@ -91,9 +91,9 @@ def test_masked_losses_ignore_invalid_pixels() -> None:
 def test_undistortion_mask_and_keyframe_levels() -> None:
     cam = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0, (0.3, -0.9, 0.0, 0.0, 1.1))
     # The mapper's undistortion zooms to the region with source pixels: no border to mask.
-    mask = undistortion_valid_mask(cam)
+    mask = view_preparation(cam).valid_mask
     assert mask is not None and mask.shape == (48, 64) and mask.dtype == bool and mask.all()
-    assert undistortion_valid_mask(PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)) is None
+    assert view_preparation(PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)).valid_mask is None
     m = GaussianMapper(MappingConfig(min_keyframes=1))
     rgb = np.full((48, 64, 3), 128, np.uint8)
     m.add_keyframe(0, 0, np.eye(4), rgb, np.full((48, 64), 2.0, np.float32), cam)

@@ -23,7 +23,7 @@ from memgs_ros.core.trajectory import ate  # noqa: E402
 from memgs_ros.io.bag_writer import write_bag  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.io.tum import read_trajectory  # noqa: E402
-from memgs_ros.ros.pipeline import RunOptions, run_pipeline  # noqa: E402
+from memgs_ros.orchestration.pipeline import RunOptions, run_pipeline  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

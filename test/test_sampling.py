@@ -8,9 +8,10 @@ import pytest
 from memgs_ros.core.camera import TUM_FR1, PinholeCamera
 from memgs_ros.core.geometry import invert_pose
 from memgs_ros.core.sampling import (
-    PG_RGBD, SOURCE_KEYPOINT, SOURCE_PATCH_GRID, PatchGridConfig, SeedPoints, Undistorter,
-    patch_grid_uv, seeds_mono, seeds_rgbd, undistort_rgbd, undistort_uv,
+    PG_RGBD, SOURCE_KEYPOINT, SOURCE_PATCH_GRID, PatchGridConfig, SeedPoints, patch_grid_uv,
+    seeds_mono, seeds_rgbd,
 )
+from memgs_ros.core.view import Undistorter, undistort_uv, view_preparation
 from memgs_ros.errors import ConfigError, DataError
 
 
@@ -299,9 +300,11 @@ def test_undistort_depth_is_nearest_and_agrees_with_undistort_uv() -> None:
         src_uv = np.c_[src % w, src // w]
         assert np.abs(src_uv - pts_d).max() <= 1.5
         assert np.abs(pts_u - pts_d).max() > 2.0  # the distortion is real at the corners
-    # The cached one-shot helper gives the default (cropped) images.
+    # The shared view preparation at full size gives the default (cropped) images.
     rgb_u, depth_u, cam_u = Undistorter(cam)(rgb, code)
-    rgb_c, depth_c, cam_c = undistort_rgbd(rgb, code, cam)
+    view = view_preparation(cam)
+    rgb_c, depth_c = view(rgb, code)
+    cam_c = view.camera
     assert cam_c == cam_u and np.array_equal(rgb_c, rgb_u)
     assert np.array_equal(depth_c, depth_u, equal_nan=True)
 

@@ -22,7 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from memgs_ros.io.bag_writer import write_bag
     from memgs_ros.io.synthetic import generate_frames, parse_spec
-    from memgs_ros.ros.pipeline import run_pipeline
+    from memgs_ros.orchestration.pipeline import run_pipeline
 
     args.out.mkdir(parents=True, exist_ok=True)
     bag = args.out / "synthetic.mcap"

@@ -8,6 +8,9 @@ from pathlib import Path
 
 import yaml
 
+from memgs_ros.errors import ConfigError, DataError
+from memgs_ros.orchestration.run_files import RunOptions, RunSummary, build_params
+
 HELP = "replay a bag, TUM folder or synthetic spec through tracker, sampler, mapper and merger"
 
 
@@ -46,10 +49,7 @@ def guess_config(source: str) -> str:
     return "synthetic"
 
 
-def options_from_args(args: argparse.Namespace, source: str):  # -> RunOptions
-    from memgs_ros.errors import ConfigError
-    from memgs_ros.ros.pipeline import RunOptions
-
+def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
     kills = {}
     for item in getattr(args, "kill", []):
         node, sep, after = item.partition("@")
@@ -81,9 +81,7 @@ def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict 
     overrides name real nodes, the source must open (a bag is scanned whole, so a truncated or
     corrupt one is found here rather than by the player in the middle of the run) and the output
     folder must be creatable."""
-    from memgs_ros.errors import DataError
-    from memgs_ros.io.sources import open_source
-    from memgs_ros.ros.pipeline import RunOptions, build_params
+    from memgs_ros.io.sources import open_source  # opening a source loads the bag readers
 
     build_params(RunOptions(source=source, config=config, overrides=overrides or {}), Path("map.ply"))
     open_source(source, max_frames=max_frames or None)
@@ -96,7 +94,7 @@ def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict 
             raise DataError(f"output folder {out_dir}: {err.strerror or err}") from err
 
 
-def print_summary(summary, json_path: Path | None) -> None:  # noqa: ANN001
+def print_summary(summary: RunSummary, json_path: Path | None) -> None:
     s = summary
     print(f"source        {s.source}")
     print(f"frames        {s.frames} in, {s.poses} poses, {s.lost_frames} lost")
@@ -116,7 +114,8 @@ def print_summary(summary, json_path: Path | None) -> None:  # noqa: ANN001
 
 
 def run(args: argparse.Namespace) -> int:
-    from memgs_ros.ros.pipeline import run_pipeline
+    # The runner imports every node (rclpy, torch): only when a run starts, not for `memgs --help`.
+    from memgs_ros.orchestration.pipeline import run_pipeline
 
     options = options_from_args(args, args.bag)
     check_inputs(options.source, options.config, options.max_frames, dict(options.overrides), options.out_dir)

@@ -37,7 +37,7 @@ from memgs_ros.core.keyframes import KeyframeStore, TrainingKeyframe, make_keyfr
 from memgs_ros.core.losses import mapping_loss
 from memgs_ros.core.mapping_config import MappingConfig
 from memgs_ros.core.strategies import BudgetStrategy, DensifyStrategy, MergeFn, MergeSchedule
-from memgs_ros.core.sampling import undistorter_for
+from memgs_ros.core.view import view_preparation
 from memgs_ros.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
@@ -75,51 +75,6 @@ class MapChanges:
 
     removed_ids: np.ndarray
     changed: GaussianRecords
-
-
-def undistortion_valid_mask(camera: PinholeCamera, resolution_scale: float = 1.0,
-                            min_fraction: float = 0.999) -> np.ndarray | None:
-    """Pixels of the prepared image (``prepare_images``) that carry image content: [h, w] bool.
-
-    Undistortion samples the source image at a remapped position; pixels whose bilinear
-    sample lies outside the source are filled with black and are no observation. After the
-    resize a pixel is valid when at least ``min_fraction`` of the full-resolution pixels it
-    averages are (default: all of them; a small value keeps any pixel with content). None when
-    ``camera`` has no distortion (every pixel valid).
-    """
-    import cv2
-
-    valid = undistorter_for(camera).valid_mask
-    if valid is None:
-        return None
-    if resolution_scale != 1.0:
-        cam = camera.scaled(resolution_scale)
-        frac = cv2.resize(valid.astype(np.float32), (cam.width, cam.height), interpolation=cv2.INTER_AREA)
-        valid = frac >= min_fraction
-    return np.ascontiguousarray(valid)
-
-
-def prepare_images(rgb: np.ndarray, depth_m: np.ndarray | None, camera: PinholeCamera,
-                   resolution_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray | None, PinholeCamera]:
-    """The images as the mapper trains on them: undistorted (when the camera has distortion;
-    colour bilinear, depth nearest so no depth is invented across edges; same K) then resized by
-    ``resolution_scale`` (colour area-averaged, depth nearest).
-
-    rgb: [H, W, 3] uint8; depth_m: [H, W] float32 metres or None. Returns (rgb [h, w, 3] uint8,
-    depth [h, w] float32 or None, undistorted camera of size w x h). Use it to prepare
-    evaluation images so they match the rendered views.
-    """
-    import cv2
-
-    depth = None if depth_m is None else np.asarray(depth_m, dtype=np.float32)
-    rgb, depth, camera = undistorter_for(camera)(rgb, depth)  # remap tables cached per camera
-    if resolution_scale != 1.0:
-        cam = camera.scaled(resolution_scale)
-        rgb = cv2.resize(rgb, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
-        if depth is not None:
-            depth = cv2.resize(depth, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
-        camera = cam
-    return np.ascontiguousarray(rgb), depth, camera
 
 
 class GaussianMapper:
@@ -199,8 +154,9 @@ class GaussianMapper:
             raise DataError(f"keyframe {kf_id}: depth must be [{camera.height}, {camera.width}], got {depth_m.shape}")
         if points_w is not None and len(points_w) and colors is None:
             raise DataError(f"keyframe {kf_id}: points_w given without colors")
-        raw_camera = camera
-        rgb, depth, camera = prepare_images(rgb, depth_m, camera, self.cfg.resolution_scale)
+        prep = view_preparation(camera, self.cfg.resolution_scale)
+        rgb, depth = prep(rgb, depth_m)
+        camera = prep.camera
         image = torch.from_numpy(np.ascontiguousarray(rgb)).to(self.device).permute(2, 0, 1).float() / 255.0
         depth_t = None
         if depth is not None:
@@ -208,7 +164,7 @@ class GaussianMapper:
             depth_t = torch.from_numpy(d).to(self.device)
         mask_t = None
         if self.cfg.mask_invalid_pixels:
-            mask = undistortion_valid_mask(raw_camera, self.cfg.resolution_scale)
+            mask = prep.valid_mask
             mask_t = None if mask is None else torch.from_numpy(mask).to(self.device)
         self._insert(make_keyframe(kf_id, stamp_ns, T_wc, image.contiguous(), depth_t, camera, valid_mask=mask_t))
         self._drop_redundant_keyframes()

@@ -26,7 +26,7 @@ class MappingConfig:
     Merge (reference section 4): every ``merge_interval`` iterations in [merge_start_iter,
     merge_stop_iter] when ``merge_enabled`` and memgs_ros.core.merge is importable.
     ``mask_invalid_pixels``: leave the border that undistortion fills with black (no source
-    pixel, see ``undistortion_valid_mask``) out of the photometric and depth losses, so the map
+    pixel, see ``memgs_ros.core.view.ViewPreparation.valid_mask``) out of the photometric and depth losses, so the map
     is not taught that the scene is black wherever some view's border falls; the whole-image
     evaluation still compares that border with black. ``seed_opacity``: initial opacity of
     keyframe seeds (3DGS and the paper: 0.1; higher makes short CPU runs converge faster).

@@ -11,14 +11,13 @@ get one: from the depth image (RGB-D) or from the nearest keypoint with a depth 
 Pixel convention (OpenCV): pixel (u, v) with integer u, v has its centre at (u, v), so a
 sub-pixel keypoint lies in pixel ``round(u), round(v)``. Samples are drawn on integer pixels,
 so their depth and colour are read exactly at the pixel they back-project from.
-All images here are undistorted: :func:`undistort_rgbd` / :class:`Undistorter` make them so.
+All images here are undistorted: :func:`memgs_ros.core.view.view_preparation` makes them so, and
+:meth:`memgs_ros.core.view.Undistorter.from_pinhole_uv` puts the tracker's keypoints into them.
 """
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -27,8 +26,7 @@ from memgs_ros.errors import ConfigError, DataError
 
 __all__ = [
     "PG_MONO_TUM", "PG_RGBD", "PatchGridConfig", "SOURCE_KEYPOINT", "SOURCE_PATCH_GRID",
-    "SeedPoints", "Undistorter", "patch_grid_uv", "seeds_mono", "seeds_rgbd", "undistort_rgbd",
-    "undistort_uv",
+    "SeedPoints", "patch_grid_uv", "seeds_mono", "seeds_rgbd",
 ]
 
 SOURCE_KEYPOINT = 0
@@ -193,7 +191,8 @@ def _check_keyframe(rgb: np.ndarray, camera: PinholeCamera, T_wc: np.ndarray,
     if rgb.dtype != np.uint8 or rgb.shape != (h, w, 3):
         raise DataError(f"keyframe rgb must be uint8 [{h}, {w}, 3] to match the camera, got {rgb.dtype} {rgb.shape}")
     if camera.has_distortion:
-        raise DataError("Patch-Grid seeds need an undistorted camera and images; undistort the keyframe first")
+        raise DataError("Patch-Grid seeds need an undistorted camera and images; prepare the keyframe with "
+                        "memgs_ros.core.view.view_preparation first")
     T = np.asarray(T_wc, dtype=np.float64)
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise DataError(f"keyframe T_wc must be a finite 4x4 matrix, got shape {T.shape}")
@@ -284,107 +283,3 @@ def seeds_mono(rgb: np.ndarray,  # [H, W, 3] uint8, undistorted
             parts.append((s_uv[near].astype(np.int64), kp_d[idx[near]], SOURCE_PATCH_GRID))
     return _assemble(rgb, camera, T, keyframe_id, parts)
 
-
-class Undistorter:
-    """Undistorts colour (bilinear) and depth (nearest neighbour, so no depth is ever a blend of
-    two surfaces) images of one camera to a pinhole camera of the same size without distortion.
-
-    With ``crop_to_valid`` (default) the output camera is OpenCV's optimal new camera matrix at
-    alpha 0: a slight zoom (fr1: fx 517 -> 547) chosen so that every output pixel samples the
-    source image. Without it the output keeps K, and the corners and edges that no source pixel
-    reaches stay black (colour) / NaN (depth): on fr1 that border is 6 % of the image, no
-    observation at all, yet a map renders scene there, which costs whole-image PSNR several dB.
-    The remap tables are built once per camera; ``camera_undistorted`` is the output camera.
-    """
-
-    def __init__(self, camera: PinholeCamera, crop_to_valid: bool = True) -> None:
-        self.camera = camera
-        self.camera_undistorted = camera.undistorted()
-        self._maps: tuple[np.ndarray, np.ndarray] | None = None
-        if camera.has_distortion:
-            K = camera.K
-            size = (camera.width, camera.height)
-            K_out = K
-            if crop_to_valid:
-                K_out, _ = cv2.getOptimalNewCameraMatrix(K, camera.dist_coeffs, size, 0.0, size)
-                if not np.all(np.isfinite(K_out)) or K_out[0, 0] <= 0 or K_out[1, 1] <= 0:
-                    raise DataError(f"distortion {camera.dist} has no valid undistorted region")
-                self.camera_undistorted = PinholeCamera(
-                    camera.width, camera.height, float(K_out[0, 0]), float(K_out[1, 1]),
-                    float(K_out[0, 2]), float(K_out[1, 2]))
-            self._maps = cv2.initUndistortRectifyMap(
-                K, camera.dist_coeffs, None, K_out, size, cv2.CV_32FC1)
-
-    def __call__(self, rgb: np.ndarray,  # [H, W, 3] uint8
-                 depth_m: np.ndarray | None = None,  # [H, W] float32 metres, or None
-                 ) -> tuple[np.ndarray, np.ndarray | None, PinholeCamera]:
-        """Returns (rgb [H, W, 3] uint8, depth_m [H, W] float32 or None, undistorted camera)."""
-        h, w = self.camera.height, self.camera.width
-        if rgb.shape[:2] != (h, w):
-            raise DataError(f"image is {rgb.shape[1]}x{rgb.shape[0]} but the camera is {w}x{h}")
-        if depth_m is not None and depth_m.shape != (h, w):
-            raise DataError(f"depth is {depth_m.shape[1]}x{depth_m.shape[0]} but the camera is {w}x{h}")
-        if self._maps is None:
-            return rgb, depth_m, self.camera_undistorted
-        mx, my = self._maps
-        rgb_u = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        depth_u = None
-        if depth_m is not None:
-            depth_u = cv2.remap(np.ascontiguousarray(depth_m, dtype=np.float32), mx, my,
-                                cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                                borderValue=float("nan"))
-        return rgb_u, depth_u, self.camera_undistorted
-
-    def undistort_uv(self, uv: np.ndarray) -> np.ndarray:
-        """Distorted pixel positions [M, 2] -> [M, 2] float64 in the output image."""
-        pts = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
-        if not self.camera.has_distortion or pts.shape[0] == 0:
-            return pts.reshape(-1, 2).copy()
-        out = cv2.undistortPoints(pts, self.camera.K, self.camera.dist_coeffs, P=self.camera_undistorted.K)
-        return out.reshape(-1, 2).astype(np.float64)
-
-    def from_pinhole_uv(self, uv: np.ndarray) -> np.ndarray:
-        """Undistorted pixel positions [M, 2] in the source camera's own K (what
-        :func:`undistort_uv` and the tracker's keypoints give) -> [M, 2] float64 in the output
-        image (``camera_undistorted``)."""
-        src, dst = self.camera, self.camera_undistorted
-        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        scale = np.array([dst.fx / src.fx, dst.fy / src.fy])
-        return (uv - np.array([src.cx, src.cy])) * scale + np.array([dst.cx, dst.cy])
-
-    @functools.cached_property
-    def valid_mask(self) -> np.ndarray | None:
-        """[H, W] bool: undistorted pixels whose source lies inside the image (the rest are the
-        black / NaN border); None without distortion (every pixel valid)."""
-        if self._maps is None:
-            return None
-        mx, my = self._maps
-        w, h = self.camera.width, self.camera.height
-        return np.ascontiguousarray((mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1))
-
-
-@functools.lru_cache(maxsize=8)
-def undistorter_for(camera: PinholeCamera) -> Undistorter:
-    """Remap tables per camera (building them costs ~12 ms at 640x480; applying them ~7 ms)."""
-    return Undistorter(camera)
-
-
-def undistort_rgbd(rgb: np.ndarray,  # [H, W, 3] uint8
-                   depth_m: np.ndarray | None,  # [H, W] float32 metres, or None
-                   camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray | None, PinholeCamera]:
-    """Undistort a keyframe's colour (bilinear) and depth (nearest) images; see
-    :class:`Undistorter`. The remap tables are cached per camera.
-    Returns (rgb [H, W, 3] uint8, depth_m [H, W] float32 or None, undistorted camera)."""
-    return undistorter_for(camera)(rgb, depth_m)
-
-
-def undistort_uv(uv: np.ndarray,  # [M, 2] distorted px
-                 camera: PinholeCamera) -> np.ndarray:
-    """Keypoint positions [M, 2] in the distorted image -> [M, 2] float64 undistorted with the
-    camera's own K (the tracker's frame; :meth:`Undistorter.from_pinhole_uv` maps them into the
-    undistorted images)."""
-    pts = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
-    if not camera.has_distortion or pts.shape[0] == 0:
-        return pts.reshape(-1, 2).copy()
-    out = cv2.undistortPoints(pts, camera.K, camera.dist_coeffs, P=camera.K)
-    return out.reshape(-1, 2).astype(np.float64)

@@ -41,7 +41,7 @@ from memgs_ros.core.checkpoint import MapperCheckpoint
 from memgs_ros.core.gaussians import GaussianRecords
 from memgs_ros.core.map_delta import DeltaOutbox
 from memgs_ros.core.mapping import GaussianMapper, MappingConfig, StepStats
-from memgs_ros.core.sampling import undistorter_for
+from memgs_ros.core.view import view_preparation
 from memgs_ros.errors import DataError, MemgsError
 
 logger = logging.getLogger(__name__)
@@ -396,7 +396,7 @@ class MappingSession:
             return None
         self._stamps[kf.stamp_ns] = kf_id
         if self._render_camera is None:
-            self._render_camera = undistorter_for(kf.camera).camera_undistorted.scaled(self.cfg.resolution_scale)
+            self._render_camera = view_preparation(kf.camera, self.cfg.resolution_scale).camera
         self._counters["keyframes"] += 1
         self._counters["seeded_gaussians"] += added
         self._counters["insert_ms_total"] += round(1e3 * (time.perf_counter() - t0))

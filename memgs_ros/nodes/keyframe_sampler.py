@@ -22,7 +22,8 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
-from memgs_ros.core.sampling import PatchGridConfig, Undistorter, seeds_mono, seeds_rgbd
+from memgs_ros.core.sampling import PatchGridConfig, seeds_mono, seeds_rgbd
+from memgs_ros.core.view import undistorter_for, view_preparation
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
@@ -51,7 +52,6 @@ class KeyframeSamplerNode(Node):
         parts = {"color", "camera_info", "pose", "keypoints"} | ({"depth"} if self.mode == "rgbd" else set())
         self.bundler = StampBundler(parts, max_pending=16)
         self.n_keyframes = 0
-        self.undistorter: Undistorter | None = None
 
         self.pub = self.create_publisher(PointCloud2, "memgs/keyframe/seeds", qos.keyframes())
         kf = qos.keyframes()  # a restarted sampler gets the latest keyframes again
@@ -81,11 +81,12 @@ class KeyframeSamplerNode(Node):
             placed = np.isfinite(uv).all(axis=1)  # a keypoint without a position is no keypoint
             uv, kp_depth = uv[placed], kp_depth[placed]
             stage = "bad_keyframe"
-            if self.undistorter is None or self.undistorter.camera != cam:
-                self.undistorter = Undistorter(cam)  # remap tables cached per camera
             kf_id = self.n_keyframes
-            rgb, depth, cam = self.undistorter(rgb, depth)
-            uv = self.undistorter.from_pinhole_uv(uv).astype(np.float32)  # undistorted in K -> output camera
+            view = view_preparation(cam)  # full size: seeds are back-projected at source resolution
+            rgb, depth = view(rgb, depth)
+            # Keypoints come undistorted in the source K; move them into the prepared view.
+            uv = undistorter_for(cam).from_pinhole_uv(uv).astype(np.float32)
+            cam = view.camera
             if depth is not None:
                 seeds = seeds_rgbd(rgb, depth, cam, T_wc, kf_id, uv, kp_depth, self.cfg)  # rng from (seed, kf_id)
             else:

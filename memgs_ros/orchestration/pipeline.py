@@ -17,177 +17,58 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
+import rclpy
 import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import Image, PointCloud2
+from std_msgs.msg import Bool
+from std_srvs.srv import Trigger
 
-from memgs_ros.errors import ConfigError, MemgsError
+from memgs_ros.core.geometry import pose_to_tq
+from memgs_ros.core.map_delta import decode
+from memgs_ros.core.ply import _atomic_write
+from memgs_ros.errors import ConfigError, PipelineError
+from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, tracker
+from memgs_ros.orchestration.run_files import (
+    KEYFRAMES_FILE, LOGS_DIR, MAP_FILE, PARAMS_FILE, STATS_TIMELINE_FILE, SUMMARY_FILE, TRAJECTORY_FILE,
+    RunOptions, RunSummary, build_params, config_path,
+)
+from memgs_ros.ros import qos
+from memgs_ros.ros.codecs import image_to_numpy, pointcloud2_to_structured, pose_to_matrix, stamp_to_ns
+from memgs_ros.ros.diagnostics import stats_values
 
 logger = logging.getLogger(__name__)
+logger.addHandler(logging.NullHandler())
 
-GRAPH_NODES = ("merger", "mapper", "keyframe_sampler", "tracker")
-NODE_CLASSES = {
-    "tracker": ("memgs_ros.nodes.tracker", "TrackerNode"),
-    "keyframe_sampler": ("memgs_ros.nodes.keyframe_sampler", "KeyframeSamplerNode"),
-    "mapper": ("memgs_ros.nodes.mapper", "MapperNode"),
-    "merger": ("memgs_ros.nodes.merger", "MergerNode"),
-    "bag_player": ("memgs_ros.nodes.bag_player", "BagPlayer"),
-}
+__all__ = ["GRAPH_NODES", "NODE_MODULES", "PipelineError", "RunOptions", "RunSummary", "run_pipeline"]
 
-
-class PipelineError(MemgsError):
-    """A node died, timed out or the run could not finish."""
-
-
-@dataclass(frozen=True)
-class RunOptions:
-    source: str
-    config: str = "synthetic"
-    out_dir: Path = Path("memgs_out")
-    single_process: bool = False
-    lockstep: bool = True
-    rate: float = 1.0
-    namespace: str = ""
-    domain_id: int | None = None
-    max_frames: int = 0
-    overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value
-    # Start these nodes this many seconds after the player starts (a ground-station merger
-    # joining mid-run; separate processes only).
-    start_delays_s: Mapping[str, float] = field(default_factory=dict)
-    # Fault injection (separate processes only): SIGKILL these nodes this many seconds after
-    # the player starts, and start them again at once (the mapper resumes from its checkpoint).
-    kill_after_s: Mapping[str, float] = field(default_factory=dict)
-    timeout_s: float = 1800.0
+# The graph, by module: a process runs ``python -m <module.__name__>`` (its ``main``); in one
+# process the module's Node class is built on a shared executor.
+NODE_MODULES: dict[str, ModuleType] = {
+    m.__name__.rsplit(".", 1)[-1]: m for m in (tracker, keyframe_sampler, mapper, merger, bag_player)}
+_NODE_FACTORIES: dict[str, Callable[..., Any]] = {
+    "tracker": tracker.TrackerNode, "keyframe_sampler": keyframe_sampler.KeyframeSamplerNode,
+    "mapper": mapper.MapperNode, "merger": merger.MergerNode, "bag_player": bag_player.BagPlayer}
+GRAPH_NODES = ("merger", "mapper", "keyframe_sampler", "tracker")  # start order; the player last
 
 
-@dataclass(frozen=True)
-class RunSummary:
-    source: str
-    frames: int
-    poses: int
-    keyframes: int
-    gaussians: int
-    tracking_fps: float
-    wall_s: float
-    ply_path: str
-    trajectory_path: str
-    delta_messages: int
-    delta_bytes: int
-    delta_bytes_per_s: float
-    lost_frames: int
-    merger_seq: int
-    namespace: str
-    domain_id: int
-    mapping_iterations: int
-    model_bytes_peak: int  # the map's parameters + gradients + Adam state, peak over the run
-    gaussians_peak: int
-    peak_rss_mb: dict[str, float]  # per node process (in one process: the same figure for all)
-    merger_resyncs: int  # gaps, late starts or mismatches the merger repaired from a snapshot
-    restarts: dict[str, int]  # nodes killed and restarted by fault injection
-    replica_identical: bool  # merger's map == mapper's map (same ids, parameters within 1e-6)
-    replica_max_abs_diff: float
-    render_size: tuple[int, int]  # (width, height) of the last live render, (0, 0) if none
-    render_std: float  # spread of its pixel values in [0, 255]: ~0 means a blank view
-    source_complete: bool = True  # False: the source failed part-way; the map holds what was played
-
-    def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-def config_path(name_or_path: str) -> Path:
-    """A config name (``tum_fr1``) or path to the YAML file; searches the source tree and ``share/``."""
-    p = Path(name_or_path)
-    if p.suffix in (".yaml", ".yml", ".xml") and p.exists():
-        return p
-    if len(p.parts) > 1:  # a path, not a name: say so rather than search the config folders
-        raise ConfigError(f"config file {p} does not exist")
-    name = p.name if p.suffix in (".yaml", ".yml", ".xml") else f"{name_or_path}.yaml"
-    roots = [Path(__file__).resolve().parents[2] / "config"]
-    roots += [Path(prefix) / "share" / "memgs_ros" / "config"
-              for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if prefix]
-    roots.append(Path(sys.prefix) / "share" / "memgs_ros" / "config")
-    for root in roots:
-        if (root / name).exists():
-            return root / name
-    raise ConfigError(f"no config '{name_or_path}' (looked for {name} in {', '.join(map(str, roots))})")
-
-
-def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
-    """The run's parameter file: the config, then the run's own settings, then the overrides."""
-    path = config_path(options.config)
-    base = _load_config(path)
-    params: dict[str, dict[str, Any]] = {}
-    for key, section in base.items():
-        node = str(key).rsplit("/", 1)[-1]
-        section = {} if section is None else section
-        node_params = (section.get("ros__parameters") or {}) if isinstance(section, dict) else None
-        if not isinstance(node_params, dict):
-            raise ConfigError(f"config {path}: '{key}' must be a mapping with a 'ros__parameters' mapping, "
-                              f"got {section!r:.80}")
-        params[node] = dict(node_params)
-    params.setdefault("bag_player", {}).update(
-        source=str(options.source), lockstep=options.lockstep, rate=float(options.rate),
-        max_frames=int(options.max_frames), ack_topic="memgs/frame_ack", world_frame_id="map")
-    params.setdefault("mapper", {})["lockstep"] = options.lockstep
-    if options.lockstep:
-        # Background BA would refine poses at timing-dependent moments: run it in step instead.
-        params.setdefault("tracker", {}).setdefault("tracker.ba_threaded", False)
-        params["tracker"].setdefault("input_reliability", "reliable")  # lockstep must not lose a frame
-    params.setdefault("merger", {})["map_path"] = str(map_path)
-    params.setdefault("mapper", {}).setdefault("checkpoint_path", str(map_path.with_name("mapper_checkpoint.npz")))
-    for key, value in options.overrides.items():
-        node, _, name = key.partition(".")
-        if node not in NODE_CLASSES or not name:
-            raise ConfigError(f"override '{key}' must be <node>.<parameter> with node one of {sorted(NODE_CLASSES)}")
-        params.setdefault(node, {})[name] = value
-    return {f"/**/{node}": {"ros__parameters": p} for node, p in params.items()}
-
-
-def _load_config(path: Path) -> dict[Any, Any]:
-    """The YAML mapping in ``path``; ConfigError (one line, naming the file) when it is not one."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"could not read config {path}: {err}") from err
-    try:
-        base = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
-        raise ConfigError(f"config {path} is not valid YAML{where}: {problem}") from err
-    if base is None:
-        return {}
-    if not isinstance(base, dict):
-        raise ConfigError(f"config {path} must be a mapping of node names to parameters, "
-                          f"got a {type(base).__name__}")
-    return base
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+def _write_text(path: Path, text: str) -> None:
+    _atomic_write(path, lambda f: f.write(text.encode("utf-8")))
 
 
 class _Observer:
     """An rclpy node that watches the graph and drives its end (created after rclpy.init)."""
 
     def __init__(self, context: Any) -> None:
-        from geometry_msgs.msg import PoseStamped
-        from rclpy.node import Node
-        from std_msgs.msg import Bool
-        from std_srvs.srv import Trigger
-        from diagnostic_msgs.msg import DiagnosticArray
-
-        from memgs_ros.ros import qos
-        from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
-        from memgs_ros.ros.diagnostics import stats_values
-
         self.node = Node("memgs_run_observer", context=context)
         self.done = threading.Event()
         self.source_ok = True  # False when the player reported a source that failed part-way
@@ -223,7 +104,6 @@ class _Observer:
         self.node.create_subscription(PoseStamped, "memgs/keyframe/pose", on_keyframe, qos.reliable(1000))
         for name in ("tracker", "keyframe_sampler", "mapper", "merger", "player"):
             self.node.create_subscription(DiagnosticArray, f"memgs/{name}/stats", stats_cb(name), qos.reliable(5))
-        from sensor_msgs.msg import Image, PointCloud2
 
         self.maps: dict[str, Any] = {}
         self.render: Any = None
@@ -275,8 +155,7 @@ class _Processes:
         self._params_file, self._ns, self._env = params_file, namespace, env
 
     def start(self, name: str) -> None:
-        module = NODE_CLASSES[name][0]
-        cmd = [sys.executable, "-m", module, "--ros-args", "--params-file", str(self._params_file)]
+        cmd = [sys.executable, "-m", NODE_MODULES[name].__name__, "--ros-args", "--params-file", str(self._params_file)]
         if self._ns:
             cmd += ["-r", f"__ns:={self._ns}"]
         log = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 - owned by the child
@@ -318,7 +197,6 @@ def _open_context(domain_id: int | None, ros_args: list[str], probe_s: float = 1
     Two graphs on one domain hear each other (another run's camera_info reached a tracker):
     a run that picks its own domain first listens for ``probe_s`` that nobody is there.
     """
-    import rclpy
 
     candidates = [domain_id] if domain_id is not None else random.sample(range(1, 233), tries)
     for domain in candidates:
@@ -338,14 +216,12 @@ def _open_context(domain_id: int | None, ros_args: list[str], probe_s: float = 1
 
 def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
     """Replay ``options.source`` through the graph and return what it produced."""
-    import rclpy
-    from rclpy.executors import MultiThreadedExecutor
 
     out = Path(options.out_dir).resolve()
-    (out / "logs").mkdir(parents=True, exist_ok=True)
-    map_path = out / "map.ply"
-    params_file = out / "params.yaml"
-    _write_atomic(params_file, yaml.safe_dump(build_params(options, map_path), sort_keys=False))
+    (out / LOGS_DIR).mkdir(parents=True, exist_ok=True)
+    map_path = out / MAP_FILE
+    params_file = out / PARAMS_FILE
+    _write_text(params_file, yaml.safe_dump(build_params(options, map_path), sort_keys=False))
 
     # A 50 ms heartbeat repairs lost fragments of big messages fast (see config/fastdds.xml);
     # a profile the user chose is kept.
@@ -362,11 +238,8 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
         observer = _Observer(context)
         executor.add_node(observer.node)
         if options.single_process:
-            import importlib
-
             for name in (*GRAPH_NODES, "bag_player"):
-                module, cls = NODE_CLASSES[name]
-                node = getattr(importlib.import_module(module), cls)(context=context)
+                node = _NODE_FACTORIES[name](context=context)
                 in_process.append(node)
                 executor.add_node(node)
         spin = threading.Thread(target=executor.spin, daemon=True)
@@ -377,7 +250,7 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
             # 460 ms under load): one thread per node unless the user asked otherwise.
             for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
                 env.setdefault(var, "1")
-            procs = _Processes(params_file, ns, env, out / "logs")
+            procs = _Processes(params_file, ns, env, out / LOGS_DIR)
             delayed = {n: float(d) for n, d in options.start_delays_s.items() if float(d) > 0}
             for name in GRAPH_NODES:
                 if name not in delayed:
@@ -478,15 +351,15 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
     with obs._lock:
         traj = sorted(obs.trajectory, key=lambda p: p[0])
         kfs = sorted(obs.keyframes, key=lambda p: p[0])
-    traj_path = out / "trajectory.txt"
-    _write_atomic(traj_path, _tum_trajectory(traj))
-    _write_atomic(out / "keyframes.txt", _tum_trajectory(kfs))  # poses at insertion
+    traj_path = out / TRAJECTORY_FILE
+    _write_text(traj_path, _tum_trajectory(traj))
+    _write_text(out / KEYFRAMES_FILE, _tum_trajectory(kfs))  # poses at insertion
     with obs._lock:
-        _write_atomic(out / "stats_timeline.jsonl", "".join(json.dumps(row) + "\n" for row in obs.timeline))
+        _write_text(out / STATS_TIMELINE_FILE, "".join(json.dumps(row) + "\n" for row in obs.timeline))
     frames = int(obs.stat("tracker", "frames_in"))
     track_s = obs.stat("tracker", "track_us_total") * 1e-6
     delta_bytes = int(obs.stat("merger", "delta_bytes"))
-    return RunSummary(
+    summary = RunSummary(
         source=str(options.source), frames=frames, poses=len(traj),
         keyframes=int(obs.stat("tracker", "keyframes")), gaussians=gaussians,
         tracking_fps=(frames / track_s) if track_s > 0 else 0.0, wall_s=wall, ply_path=ply,
@@ -502,12 +375,13 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
         restarts=restarts,
         replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render),
         source_complete=obs.source_ok)
+    # The summary is a file of the run, so evaluation reads a finished run instead of watching it.
+    _write_text(out / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2) + "\n")
+    return summary
 
 
 def _compare_maps(obs: _Observer, final_seq: int, epoch: int, end: float) -> tuple[bool, float]:
     """Ask mapper and merger for their whole maps at ``final_seq`` of ``epoch`` and compare them."""
-    from memgs_ros.core.map_delta import decode
-    from memgs_ros.ros.codecs import pointcloud2_to_structured
 
     obs.maps.clear()
     obs.call(obs.snapshot_client, 120.0)
@@ -533,14 +407,12 @@ def _compare_maps(obs: _Observer, final_seq: int, epoch: int, end: float) -> tup
 def _render_info(msg: Any) -> dict[str, Any]:
     if msg is None:
         return {"render_size": (0, 0), "render_std": 0.0}
-    from memgs_ros.ros.codecs import image_to_numpy
 
     img = image_to_numpy(msg)
     return {"render_size": (int(msg.width), int(msg.height)), "render_std": float(img.std())}
 
 
 def _tum_trajectory(traj: list[tuple[int, np.ndarray]]) -> str:
-    from memgs_ros.core.geometry import pose_to_tq
 
     lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world, memgs_ros tracker)"]
     for stamp, T in traj:

@@ -1,0 +1,2 @@
+"""Running the node graph: the tier above the nodes (``run_files``: options, parameters and the
+files a run leaves; ``pipeline``: starts the nodes and drives a run to its end)."""

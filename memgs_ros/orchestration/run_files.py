@@ -1,0 +1,205 @@
+"""What a run is given and what it leaves behind: options, the parameter file, the summary, and
+the names of the files in a run's output folder.
+
+Writers (:mod:`memgs_ros.orchestration.pipeline`) and readers (:mod:`memgs_ros.evaluation`)
+share these names. Importing this module loads no node, rclpy or torch, so the CLI can check
+its inputs quickly before anything starts.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from memgs_ros.errors import ConfigError, DataError
+
+__all__ = [
+    "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE", "STATS_TIMELINE_FILE",
+    "SUMMARY_FILE", "TRAJECTORY_FILE", "RunOptions", "RunSummary", "build_params", "config_path",
+    "read_params", "read_stats_timeline", "read_summary",
+]
+
+# The nodes a parameter override may name; the pipeline starts one module per name.
+NODE_NAMES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player")
+
+# Files in a run's output folder.
+PARAMS_FILE = "params.yaml"  # the effective per-node parameters
+MAP_FILE = "map.ply"
+TRAJECTORY_FILE = "trajectory.txt"  # every tracked pose, TUM format
+KEYFRAMES_FILE = "keyframes.txt"  # keyframe poses at insertion, TUM format
+STATS_TIMELINE_FILE = "stats_timeline.jsonl"  # every node stats message: {"t_s", "node", key: value}
+SUMMARY_FILE = "summary.json"  # RunSummary.as_dict()
+LOGS_DIR = "logs"
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    source: str
+    config: str = "synthetic"
+    out_dir: Path = Path("memgs_out")
+    single_process: bool = False
+    lockstep: bool = True
+    rate: float = 1.0
+    namespace: str = ""
+    domain_id: int | None = None
+    max_frames: int = 0
+    overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value
+    # Start these nodes this many seconds after the player starts (a ground-station merger
+    # joining mid-run; separate processes only).
+    start_delays_s: Mapping[str, float] = field(default_factory=dict)
+    # Fault injection (separate processes only): SIGKILL these nodes this many seconds after
+    # the player starts, and start them again at once (the mapper resumes from its checkpoint).
+    kill_after_s: Mapping[str, float] = field(default_factory=dict)
+    timeout_s: float = 1800.0
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    source: str
+    frames: int
+    poses: int
+    keyframes: int
+    gaussians: int
+    tracking_fps: float
+    wall_s: float
+    ply_path: str
+    trajectory_path: str
+    delta_messages: int
+    delta_bytes: int
+    delta_bytes_per_s: float
+    lost_frames: int
+    merger_seq: int
+    namespace: str
+    domain_id: int
+    mapping_iterations: int
+    model_bytes_peak: int  # the map's parameters + gradients + Adam state, peak over the run
+    gaussians_peak: int
+    peak_rss_mb: dict[str, float]  # per node process (in one process: the same figure for all)
+    merger_resyncs: int  # gaps, late starts or mismatches the merger repaired from a snapshot
+    restarts: dict[str, int]  # nodes killed and restarted by fault injection
+    replica_identical: bool  # merger's map == mapper's map (same ids, parameters within 1e-6)
+    replica_max_abs_diff: float
+    render_size: tuple[int, int]  # (width, height) of the last live render, (0, 0) if none
+    render_std: float  # spread of its pixel values in [0, 255]: ~0 means a blank view
+    source_complete: bool = True  # False: the source failed part-way; the map holds what was played
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def config_path(name_or_path: str) -> Path:
+    """A config name (``tum_fr1``) or path to the YAML file; searches the source tree and ``share/``."""
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml", ".xml") and p.exists():
+        return p
+    if len(p.parts) > 1:  # a path, not a name: say so rather than search the config folders
+        raise ConfigError(f"config file {p} does not exist")
+    name = p.name if p.suffix in (".yaml", ".yml", ".xml") else f"{name_or_path}.yaml"
+    roots = [Path(__file__).resolve().parents[2] / "config"]
+    roots += [Path(prefix) / "share" / "memgs_ros" / "config"
+              for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if prefix]
+    roots.append(Path(sys.prefix) / "share" / "memgs_ros" / "config")
+    for root in roots:
+        if (root / name).exists():
+            return root / name
+    raise ConfigError(f"no config '{name_or_path}' (looked for {name} in {', '.join(map(str, roots))})")
+
+
+def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
+    """The run's parameter file: the config, then the run's own settings, then the overrides."""
+    path = config_path(options.config)
+    base = _load_config(path)
+    params: dict[str, dict[str, Any]] = {}
+    for key, section in base.items():
+        node = str(key).rsplit("/", 1)[-1]
+        section = {} if section is None else section
+        node_params = (section.get("ros__parameters") or {}) if isinstance(section, dict) else None
+        if not isinstance(node_params, dict):
+            raise ConfigError(f"config {path}: '{key}' must be a mapping with a 'ros__parameters' mapping, "
+                              f"got {section!r:.80}")
+        params[node] = dict(node_params)
+    params.setdefault("bag_player", {}).update(
+        source=str(options.source), lockstep=options.lockstep, rate=float(options.rate),
+        max_frames=int(options.max_frames), ack_topic="memgs/frame_ack", world_frame_id="map")
+    params.setdefault("mapper", {})["lockstep"] = options.lockstep
+    if options.lockstep:
+        # Background BA would refine poses at timing-dependent moments: run it in step instead.
+        params.setdefault("tracker", {}).setdefault("tracker.ba_threaded", False)
+        params["tracker"].setdefault("input_reliability", "reliable")  # lockstep must not lose a frame
+    params.setdefault("merger", {})["map_path"] = str(map_path)
+    params.setdefault("mapper", {}).setdefault("checkpoint_path", str(map_path.with_name("mapper_checkpoint.npz")))
+    for key, value in options.overrides.items():
+        node, _, name = key.partition(".")
+        if node not in NODE_NAMES or not name:
+            raise ConfigError(f"override '{key}' must be <node>.<parameter> with node one of {sorted(NODE_NAMES)}")
+        params.setdefault(node, {})[name] = value
+    return {f"/**/{node}": {"ros__parameters": p} for node, p in params.items()}
+
+
+def _load_config(path: Path) -> dict[Any, Any]:
+    """The YAML mapping in ``path``; ConfigError (one line, naming the file) when it is not one."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"could not read config {path}: {err}") from err
+    try:
+        base = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise ConfigError(f"config {path} is not valid YAML{where}: {problem}") from err
+    if base is None:
+        return {}
+    if not isinstance(base, dict):
+        raise ConfigError(f"config {path} must be a mapping of node names to parameters, "
+                          f"got a {type(base).__name__}")
+    return base
+
+
+def read_summary(out_dir: str | os.PathLike[str]) -> RunSummary:
+    """The RunSummary a finished run wrote to ``out_dir/summary.json``."""
+    path = Path(out_dir) / SUMMARY_FILE
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+        known = {f.name for f in fields(RunSummary)}
+        data = {k: v for k, v in raw.items() if k in known}
+        data["render_size"] = tuple(data.get("render_size", (0, 0)))
+        return RunSummary(**data)
+    except (OSError, ValueError, TypeError, AttributeError) as err:
+        raise DataError(f"could not read the run summary {path}: {err}") from err
+
+
+def read_params(out_dir: str | os.PathLike[str]) -> dict[str, dict[str, Any]]:
+    """The effective per-node parameters a run used (``params.yaml``), by node name."""
+    path = Path(out_dir) / PARAMS_FILE
+    try:
+        raw = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        return {str(key).rsplit("/", 1)[-1]: dict((v or {}).get("ros__parameters", {})) for key, v in raw.items()}
+    except (OSError, yaml.YAMLError, AttributeError, TypeError, ValueError) as err:
+        raise DataError(f"could not read the run's parameters {path}: {err}") from err
+
+
+def read_stats_timeline(out_dir: str | os.PathLike[str]) -> list[dict[str, Any]]:
+    """Every stats message the run recorded, in arrival order: {"t_s": float, "node": str,
+    key: value (strings, as the nodes publish them)}. [] when the run recorded none."""
+    path = Path(out_dir) / STATS_TIMELINE_FILE
+    if not path.is_file():
+        return []
+    rows: list[dict[str, Any]] = []
+    try:
+        for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            if line.strip():
+                row = json.loads(line)
+                if not isinstance(row, dict) or "node" not in row or "t_s" not in row:
+                    raise ValueError(f"line {n} is not a stats row")
+                rows.append(row)
+    except (OSError, ValueError) as err:
+        raise DataError(f"could not read the stats timeline {path}: {err}") from err
+    return rows

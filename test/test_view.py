@@ -1,0 +1,117 @@
+"""The one view preparation (undistort, resize, valid mask) that mapper, sampler and evaluation share."""
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from memgs_ros.core.camera import TUM_FR1, PinholeCamera
+from memgs_ros.core.view import Undistorter, valid_pixel_mask, view_preparation
+from memgs_ros.errors import ConfigError, DataError
+
+PLAIN = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+# Barrel distortion whose cropped undistortion still leaves a few edge pixels without a full
+# bilinear source (14 of 64x48): the mask has something to say.
+BARREL = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0, (-0.4, 0.2, 0.01, -0.01, 0.0))
+
+
+def _coded(cam: PinholeCamera) -> np.ndarray:
+    """[H, W] float32 whose value is the pixel's linear index (exact in float32)."""
+    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    return (v * cam.width + u).astype(np.float32)
+
+
+def test_no_distortion_full_size_is_identity() -> None:
+    rgb = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    depth = np.random.default_rng(1).random((48, 64)) * 4.0  # float64 in: float32 out
+    view = view_preparation(PLAIN)
+    out_rgb, out_depth = view(rgb, depth)
+    assert view.camera == PLAIN and view.source == PLAIN and view.valid_mask is None
+    assert np.array_equal(out_rgb, rgb) and out_depth is not None and out_depth.dtype == np.float32
+    assert np.array_equal(out_depth, depth.astype(np.float32))
+    assert view(rgb)[1] is None
+
+
+def test_resize_is_area_for_colour_and_nearest_for_depth() -> None:
+    # 2x2 blocks of one colour: an area-averaged half-size image keeps each block's colour
+    # exactly; nearest depth takes one of the block's four values, so blocks of one depth too.
+    rng = np.random.default_rng(2)
+    blocks = rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)
+    rgb = np.repeat(np.repeat(blocks, 2, axis=0), 2, axis=1)
+    depth = np.repeat(np.repeat(rng.random((24, 32)).astype(np.float32), 2, axis=0), 2, axis=1)
+    depth[0, 0] = np.nan  # no blending: a NaN stays within its block's single pixel
+    view = view_preparation(PLAIN, 0.5)
+    out_rgb, out_depth = view(rgb, depth)
+    assert (view.camera.width, view.camera.height) == (32, 24) and view.camera == PLAIN.scaled(0.5)
+    assert out_rgb.shape == (24, 32, 3) and out_rgb.dtype == np.uint8 and np.array_equal(out_rgb, blocks)
+    assert out_depth is not None and out_depth.shape == (24, 32)
+    finite = np.isfinite(out_depth)
+    assert np.array_equal(out_depth[finite], depth[::2, ::2][finite])
+    assert view.valid_mask is None
+
+
+def test_distorted_pixels_come_from_where_the_camera_model_says() -> None:
+    cam = TUM_FR1
+    view = view_preparation(cam)
+    assert not view.camera.has_distortion and view.camera == Undistorter(cam).camera_undistorted
+    assert view.camera.fx > cam.fx  # cropped to the region every output pixel samples
+    _, code = view(np.zeros((cam.height, cam.width, 3), np.uint8), _coded(cam))
+    assert code is not None
+    # Output pixels -> rays of the output camera -> distorted source pixels (OpenCV's model).
+    v, u = np.mgrid[0:cam.height:37, 0:cam.width:41]
+    rays = np.stack([(u - view.camera.cx) / view.camera.fx, (v - view.camera.cy) / view.camera.fy,
+                     np.ones(u.shape)], axis=-1).reshape(-1, 1, 3)
+    src, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), cam.K, cam.dist_coeffs)
+    got = code[v.ravel(), u.ravel()].astype(int)
+    got_uv = np.c_[got % cam.width, got // cam.width]
+    assert np.abs(got_uv - src.reshape(-1, 2)).max() <= 0.5 + 1e-6  # nearest neighbour
+    assert np.abs(src.reshape(-1, 2) - np.c_[u.ravel(), v.ravel()]).max() > 5.0  # distortion is real
+
+
+def test_valid_mask_marks_pixels_with_full_source_content() -> None:
+    white = np.full((48, 64, 3), 255, np.uint8)
+    full = view_preparation(BARREL)
+    mask = full.valid_mask
+    assert mask is not None and mask.shape == (48, 64) and mask.dtype == bool
+    assert 0 < int((~mask).sum()) < 48 * 64 // 50  # a thin border, not nothing, not everything
+    rgb, depth = full(white, _coded(BARREL))
+    assert (rgb[mask] == 255).all()  # every valid pixel is a blend of source pixels only
+    assert depth is not None and np.isfinite(depth[mask]).all()
+    # Half size: a pixel is valid when all four full-size pixels it averages are.
+    half = view_preparation(BARREL, 0.5)
+    assert half.valid_mask is not None and half.valid_mask.shape == (24, 32)
+    blocks_valid = mask.reshape(24, 2, 32, 2).all(axis=(1, 3))
+    assert np.array_equal(half.valid_mask, blocks_valid)
+    assert (half(white)[0][half.valid_mask] == 255).all()
+    # A lower threshold keeps pixels with any content; the default is the view's mask.
+    assert np.array_equal(valid_pixel_mask(BARREL, 0.5), half.valid_mask)
+    loose = valid_pixel_mask(BARREL, 0.5, min_fraction=1e-3)
+    assert loose is not None and loose.sum() >= half.valid_mask.sum() and (loose | ~half.valid_mask).all()
+
+
+def test_one_shared_preparation_per_camera_and_scale() -> None:
+    a = view_preparation(BARREL)
+    assert view_preparation(BARREL, 1.0) is a and view_preparation(BARREL, resolution_scale=1) is a
+    assert view_preparation(dataclasses.replace(BARREL), 1.0) is a  # equal camera, same entry
+    b = view_preparation(BARREL, 0.5)
+    assert b is not a and b.resolution_scale == 0.5 and b.camera == a.camera.scaled(0.5)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        a.camera = PLAIN  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("scale", [0.0, -0.5, float("nan"), float("inf")])
+def test_bad_scale_is_a_config_error(scale: float) -> None:
+    with pytest.raises(ConfigError, match="resolution_scale must be a positive finite number"):
+        view_preparation(PLAIN, scale)
+
+
+def test_wrong_image_is_a_data_error() -> None:
+    view = view_preparation(PLAIN)
+    with pytest.raises(DataError, match=r"image must be uint8 \[48, 64, 3\].*got uint8 \[10, 10, 3\]"):
+        view(np.zeros((10, 10, 3), np.uint8))
+    with pytest.raises(DataError, match="got float32"):
+        view(np.zeros((48, 64, 3), np.float32))
+    with pytest.raises(DataError, match="depth is 10x48 but the camera is 64x48"):
+        view(np.zeros((48, 64, 3), np.uint8), np.zeros((48, 10), np.float32))
