@@ -135,12 +135,14 @@ class SessionStatus:
     counters: Mapping[str, int] = field(default_factory=dict)
 
     def gauges(self) -> dict[str, int | float]:
-        """The values a node reports as gauges (the counters are reported as counters)."""
-        out: dict[str, int | float] = {
-            "iteration": self.iteration, "gaussians": self.gaussians, "model_bytes": self.model_bytes,
-            "model_bytes_peak": self.model_bytes_peak, "gaussians_peak": self.gaussians_peak,
-            "insert_queue": self.insert_queue, "keyframes_trained": self.keyframes_trained,
-            "keyframes_dropped": self.keyframes_dropped, "budget_gaussians": self.budget_gaussians}
+        """The values a node reports as gauges (the counters are reported as counters); the map's
+        figures once training has begun, so a time series of them starts at the first step."""
+        out: dict[str, int | float] = {"insert_queue": self.insert_queue}
+        if self.iteration > 0:
+            out.update(iteration=self.iteration, gaussians=self.gaussians, model_bytes=self.model_bytes,
+                       model_bytes_peak=self.model_bytes_peak, gaussians_peak=self.gaussians_peak,
+                       keyframes_trained=self.keyframes_trained, keyframes_dropped=self.keyframes_dropped,
+                       budget_gaussians=self.budget_gaussians)
         if self.loss is not None:
             out["loss"] = self.loss
         return out

@@ -72,7 +72,8 @@ class MapperNode(Node):
             self.get_logger().error(why)
         elif resumed is not None:
             self.stats.counters["resumed"] += 1
-            self.get_logger().info(f"resumed from {self.ckpt.path}: iteration {resumed.iteration}")
+            self.get_logger().info(f"resumed from {self.ckpt.path}: {len(resumed.gaussians)} Gaussians, "
+                                   f"{len(resumed.keyframes)} keyframes, iteration {resumed.iteration}")
         self.latest_pose: PoseStamped | None = None
         self.awaiting_keyframes: set[int] = set()  # lockstep: announced, not yet complete
         topics = {"color": Image, "camera_info": CameraInfo, "pose": PoseStamped, "seeds": PointCloud2,
