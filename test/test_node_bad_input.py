@@ -492,3 +492,52 @@ def test_camera_info_converter_returns_a_valid_camera_or_raises(k, d, model, siz
         return
     assert cam.fx > 0 and cam.fy > 0 and np.all(np.isfinite([cam.fx, cam.fy, cam.cx, cam.cy, *cam.dist]))
     assert cam.width > 0 and cam.height > 0
+
+
+def test_mapper_checkpoints_written_while_keyframes_arrive_are_whole(context, frames, tmp_path) -> None:  # noqa: ANN001
+    """Regression: the free-running mapper used to copy its keyframe-stamp table for a checkpoint
+    outside the map's lock while its insert thread added keyframes, so a checkpoint could hold a
+    keyframe without its stamp (resumed, that keyframe's replay went in twice) or the copy could
+    raise 'dictionary changed size during iteration'. Every checkpoint written while keyframes
+    arrive must name each of its keyframes' stamps."""
+    import threading
+
+    from memgs_ros.core import checkpoint
+    from memgs_ros.nodes.mapper import MapperNode
+
+    path = tmp_path / "ck.npz"
+    node = MapperNode(context=context, parameter_overrides=[
+        Parameter("device", value="cpu"), Parameter("render_rate_hz", value=0.0),
+        Parameter("checkpoint_path", value=str(path)), Parameter("checkpoint_period_s", value=0.0),
+        Parameter("mapping.min_keyframes", value=100)])  # no training: insertions back to back
+    feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "seeds"))
+    c = node.stats.counters
+    stop = threading.Event()
+    written: list[checkpoint.MapperCheckpoint] = []
+    errors: list[BaseException] = []
+
+    def save_while_inserting() -> None:
+        while not stop.is_set():
+            try:
+                if node.save_checkpoint(force=True) is not None:
+                    written.append(checkpoint.load(path))
+            except BaseException as err:  # noqa: BLE001 - reported to the test thread
+                errors.append(err)
+
+    saver = threading.Thread(target=save_while_inserting)
+    saver.start()
+    try:
+        for i in range(12):
+            f = frames[i % len(frames)]
+            feeder.send(_bundle(f, f.stamp_ns + i * 10**9), lambda i=i: c["keyframes"] == i + 1)
+    finally:
+        stop.set()
+        saver.join(60)
+        node.on_shutdown()
+        feeder.close()
+    assert not errors and c["problem.checkpoint_failed"] == 0, (errors, dict(c))
+    assert len(written) >= 3
+    for ck in written:
+        table = {int(s): int(k) for s, k in ck.extra["keyframe_stamps"].items()}
+        assert all(table.get(kf.stamp_ns) == kf.kf_id for kf in ck.keyframes), (
+            f"a checkpoint holds keyframes {[kf.stamp_ns for kf in ck.keyframes]} but stamps {sorted(table)}")

@@ -15,7 +15,7 @@ commands ("train N steps, then acknowledge"), the same code path, so a replay is
 
 Overload: at most ``insert_queue`` keyframe insertions wait in the queue (free-running only);
 when one more arrives, the oldest waiting insertion is dropped whole, its future resolves to None,
-and it is counted (``keyframe_overload``), as the mapper node did before.
+and a ``keyframe_overload`` event reports it, as the mapper node did before.
 
 Problems the worker meets (a keyframe it refuses, a failed training step, a dropped keyframe) are
 queued as ``SessionEvent``s for the owner to report (``poll_events``): the worker never calls back
@@ -129,7 +129,10 @@ class SessionStatus:
     model_bytes_peak: int = 0
     gaussians_peak: int = 0
     loss: float | None = None
+    cuda_max_allocated: int | None = None
     insert_queue: int = 0
+    delta_seq: int = 0
+    delta_pending_rows: int = 0
     finished: bool = False
     render_camera: PinholeCamera | None = None
     counters: Mapping[str, int] = field(default_factory=dict)
@@ -137,7 +140,8 @@ class SessionStatus:
     def gauges(self) -> dict[str, int | float]:
         """The values a node reports as gauges (the counters are reported as counters); the map's
         figures once training has begun, so a time series of them starts at the first step."""
-        out: dict[str, int | float] = {"insert_queue": self.insert_queue}
+        out: dict[str, int | float] = {"insert_queue": self.insert_queue, "seq": self.delta_seq,
+                                       "delta_pending_rows": self.delta_pending_rows}
         if self.iteration > 0:
             out.update(iteration=self.iteration, gaussians=self.gaussians, model_bytes=self.model_bytes,
                        model_bytes_peak=self.model_bytes_peak, gaussians_peak=self.gaussians_peak,
@@ -145,6 +149,8 @@ class SessionStatus:
                        budget_gaussians=self.budget_gaussians)
         if self.loss is not None:
             out["loss"] = self.loss
+        if self.cuda_max_allocated is not None:
+            out["cuda_max_allocated"] = self.cuda_max_allocated
         return out
 
 
@@ -229,7 +235,6 @@ class MappingSession:
                 self._commands.remove(oldest)
                 self._pending_inserts -= 1
                 oldest.future.set_result(None)
-                self._counters["keyframes_overload"] += 1
                 self._event("keyframe_overload", "mapper cannot keep up: a keyframe was dropped from its full "
                                                  "insert queue")
             self._commands.append(cmd)
@@ -254,23 +259,33 @@ class MappingSession:
         last step's stats. Lockstep replays call this once per frame."""
         return self._submit("train", lambda: self._train(int(iterations)))
 
-    def delta(self, max_rows: int | None, exact: bool = False) -> Future[DeltaBatch]:
+    def delta(self, max_rows: int | None, exact: bool = False,
+              publish: Callable[[np.ndarray], None] | None = None) -> Future[DeltaBatch]:
         """The next map delta for the receiver: at most ``max_rows`` rows over the tolerance, or
-        with ``exact`` every difference at tolerance 0 (repeated until nothing differs)."""
-        return self._submit("delta", lambda: self._delta(max_rows, exact))
+        with ``exact`` every difference at tolerance 0 (repeated until nothing differs).
 
-    def snapshot_message(self) -> Future[tuple[np.ndarray, int, int]]:
-        """The whole map as the next snapshot message (rows, Gaussian count, its seq)."""
-        return self._submit("snapshot", self._snapshot_message)
+        ``publish(rows)`` is called on the worker for each message, inside the command: messages
+        leave in sequence order whichever threads asked for them (a receiver that sees a gap
+        resynchronises)."""
+        return self._submit("delta", lambda: self._delta(max_rows, exact, publish))
+
+    def snapshot_message(self, publish: Callable[[np.ndarray], None] | None = None
+                         ) -> Future[tuple[np.ndarray, int, int]]:
+        """The whole map as the next snapshot message (rows, Gaussian count, its seq); ``publish``
+        as for ``delta``."""
+        return self._submit("snapshot", lambda: self._snapshot_message(publish))
 
     def snapshot(self) -> Future[GaussianRecords]:
         """The whole map as records (host copies)."""
         return self._submit("records", self._mapper.snapshot)
 
-    def render(self, T_wc: np.ndarray, camera: PinholeCamera | None = None) -> Future[RenderedView | None]:
+    def render(self, T_wc: np.ndarray, camera: PinholeCamera | None = None,
+               publish: Callable[[RenderedView], None] | None = None) -> Future[RenderedView | None]:
         """Render the map from camera-to-world ``T_wc`` [4, 4] with ``camera`` (default: the
-        prepared camera of the first keyframe). None before a keyframe or with an empty map."""
-        return self._submit("render", lambda: self._render(np.asarray(T_wc, dtype=np.float64), camera))
+        prepared camera of the first keyframe). None before a keyframe or with an empty map.
+        ``publish(view)`` is called on the worker when there is a view."""
+        T = np.asarray(T_wc, dtype=np.float64)
+        return self._submit("render", lambda: self._render(T, camera, publish))
 
     def state_dict(self, only_if_changed: bool = False) -> Future[MapperCheckpoint | None]:
         """Everything needed to resume (the mapper's state plus the keyframe-stamp table in
@@ -368,13 +383,14 @@ class MappingSession:
     def _publish_status(self) -> None:
         m = self._mapper
         model = m.gmap.memory_bytes().total
+        cuda = torch.cuda.max_memory_allocated(m.device) if m.device.type == "cuda" else None
         self._peaks = [max(self._peaks[0], model), max(self._peaks[1], len(m.gmap))]
         self._status = SessionStatus(
             iteration=m.iteration, gaussians=len(m.gmap), keyframes=len(self._stamps),
             keyframes_trained=len(m.keyframes), keyframes_dropped=m.keyframes_dropped,
             budget_gaussians=m.budget_gaussians, model_bytes=model, model_bytes_peak=self._peaks[0],
-            gaussians_peak=self._peaks[1], loss=self._last_loss, insert_queue=self._pending_inserts,
-            finished=self._finished, render_camera=self._render_camera, counters=dict(self._counters))
+            gaussians_peak=self._peaks[1], loss=self._last_loss, cuda_max_allocated=cuda, insert_queue=self._pending_inserts,
+            delta_seq=self._outbox.seq, delta_pending_rows=self._outbox.pending_rows, finished=self._finished, render_camera=self._render_camera, counters=dict(self._counters))
 
     def _event(self, kind: str, message: str) -> None:
         self._events.put(SessionEvent(kind, message))
@@ -429,7 +445,8 @@ class MappingSession:
             last = st
         return last
 
-    def _delta(self, max_rows: int | None, exact: bool) -> DeltaBatch:
+    def _delta(self, max_rows: int | None, exact: bool,
+               publish: Callable[[np.ndarray], None] | None) -> DeltaBatch:
         # The outbox diffs snapshots: the map's own change log is not needed and would only grow.
         self._mapper.discard_changes()
         records = self._mapper.snapshot()
@@ -439,23 +456,34 @@ class MappingSession:
             if rows is None:
                 break
             messages.append(rows)
+            if publish is not None:
+                publish(rows)
             if not exact:
                 break
         self._counters["delta_messages"] += len(messages)
         self._counters["delta_bytes"] += sum(int(r.nbytes) for r in messages)
         return DeltaBatch(tuple(messages), self._outbox.seq, self._outbox.epoch, self._outbox.pending_rows)
 
-    def _snapshot_message(self) -> tuple[np.ndarray, int, int]:
+    def _snapshot_message(self, publish: Callable[[np.ndarray], None] | None) -> tuple[np.ndarray, int, int]:
         records = self._mapper.snapshot()
-        return self._outbox.snapshot(records), len(records), self._outbox.seq
+        rows = self._outbox.snapshot(records)
+        if publish is not None:
+            publish(rows)
+        self._counters["snapshots"] += 1
+        return rows, len(records), self._outbox.seq
 
-    def _render(self, T_wc: np.ndarray, camera: PinholeCamera | None) -> RenderedView | None:
+    def _render(self, T_wc: np.ndarray, camera: PinholeCamera | None,
+                publish: Callable[[RenderedView], None] | None) -> RenderedView | None:
         cam = camera if camera is not None else self._render_camera
         if cam is None or len(self._mapper.gmap) == 0:
             return None
         out = self._mapper.render(T_wc, cam)
         rgb = (out.color.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
-        return RenderedView(np.ascontiguousarray(rgb), out.depth.cpu().numpy().astype(np.float32), cam)
+        view = RenderedView(np.ascontiguousarray(rgb), out.depth.cpu().numpy().astype(np.float32), cam)
+        if publish is not None:
+            publish(view)
+        self._counters["renders"] += 1
+        return view
 
     def _state_dict(self, only_if_changed: bool) -> MapperCheckpoint | None:
         version = (self._mapper.iteration, len(self._stamps))

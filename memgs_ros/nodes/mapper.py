@@ -17,6 +17,7 @@ import pathlib
 import secrets
 import sys
 import time
+from concurrent.futures import Future
 
 import numpy as np
 import torch
@@ -75,6 +76,8 @@ class MapperNode(Node):
             self.get_logger().info(f"resumed from {self.ckpt.path}: {len(resumed.gaussians)} Gaussians, "
                                    f"{len(resumed.keyframes)} keyframes, iteration {resumed.iteration}")
         self.latest_pose: PoseStamped | None = None
+        self._delta_pending: Future | None = None  # touched by the outputs' callback group only
+        self._render_pending: Future | None = None  # touched by the default callback group only
         self.awaiting_keyframes: set[int] = set()  # lockstep: announced, not yet complete
         topics = {"color": Image, "camera_info": CameraInfo, "pose": PoseStamped, "seeds": PointCloud2,
                   **({"depth": Image} if p.mode == "rgbd" else {})}
@@ -95,10 +98,10 @@ class MapperNode(Node):
         self.create_subscription(Header, "memgs/tracker/processed", self.on_processed, qos.reliable(100),
                                  callback_group=io)
         self.create_subscription(PoseStamped, "memgs/pose", lambda m: setattr(self, "latest_pose", m), qos.reliable(5))
-        self.create_subscription(PoseStamped, "memgs/render/view_pose", self._render, qos.reliable(5))
+        self.create_subscription(PoseStamped, "memgs/render/view_pose", lambda m: self._render(m, True), qos.reliable(5))
         out = MutuallyExclusiveCallbackGroup()  # deltas, snapshots and the final flush leave in seq order
         self.create_service(Trigger, "memgs/mapper/publish_snapshot", self.on_snapshot_request, callback_group=out)
-        self.create_service(Trigger, "memgs/mapper/finish", self.on_finish, callback_group=out)
+        self.create_service(Trigger, "memgs/mapper/finish", self.on_finish, callback_group=MutuallyExclusiveCallbackGroup())
         self.create_timer(1.0 / p.delta_rate_hz, self.send_delta, callback_group=out)
         if p.snapshot_period_s > 0:
             self.create_timer(p.snapshot_period_s, self.publish_snapshot, callback_group=out)
@@ -107,7 +110,7 @@ class MapperNode(Node):
         if resumed is not None:
             self.publish_snapshot()  # latched: the merger takes the resumed map and its epoch
         if p.render_rate_hz > 0:
-            self.create_timer(1.0 / p.render_rate_hz, lambda: self.latest_pose and self._render(self.latest_pose))
+            self.create_timer(1.0 / p.render_rate_hz, lambda: self._render(self.latest_pose))
         self.create_timer(0.1, self._sync_stats)
         self.get_logger().info(f"mapper on {device}, {'lockstep' if p.lockstep else 'free-running'} training")
 
@@ -127,8 +130,7 @@ class MapperNode(Node):
         return self.ckpt.path
 
     def _part(self, part: str, msg) -> None:  # noqa: ANN001 - any bundle message type
-        """A complete bundle is decoded and queued for insertion, or refused whole and counted by
-        kind (camera_info, bad_image, size_mismatch, empty_depth, bad_pose, bad_seeds)."""
+        """A complete bundle is decoded and queued, or refused whole and counted by kind (bad_seeds...)."""
         stamp = stamp_to_ns(msg.header.stamp)
         b = self.intake.add(part, stamp, msg)
         self.stats.counters["duplicate_keyframe_parts"] = self.intake.duplicate_parts
@@ -184,34 +186,30 @@ class MapperNode(Node):
             self.stats.problem(ev.kind, ev.message)
         st = self.session.status
         for k, v in st.counters.items():  # assigned, not added: the session's counts are totals
-            if k != "keyframes_overload":  # counted as problem.keyframe_overload by its event
-                self.stats.counters[k] = v
+            self.stats.counters[k] = v
         self.stats.gauges.update(st.gauges())
-        if self.session.device.type == "cuda":
-            self.stats.gauges["cuda_max_allocated"] = torch.cuda.max_memory_allocated(self.session.device)
 
-    def send_delta(self, exact: bool = False) -> None:
-        """Publish the next map delta (exact: every difference, tolerance 0, no row limit)."""
-        p = self.params
-        rows_per_delta = max(1, int(p.delta_budget_kbytes_per_s * 1000.0 / p.delta_rate_hz
-                                    / message_dtype(self.cfg.max_sh_degree).itemsize))
-        batch = self.session.delta(rows_per_delta, exact).result()
-        for rows in batch.messages:
-            self.pub_delta.publish(structured_to_pointcloud2(rows, self.get_clock().now().nanoseconds,
-                                                             self.params.world_frame))
-        self.stats.gauges["seq"] = batch.seq
-        self.stats.gauges["delta_pending_rows"] = batch.pending_rows
+    def send_delta(self, exact: bool = False) -> Future:
+        """Queue a delta (exact: all, tolerance 0), published by the session in seq order. A timer never
+        waits for the worker (it would starve the finish service): one periodic delta at a time."""
+        p, publish = self.params, lambda r: self.pub_delta.publish(self._cloud(r))
+        if exact:
+            return self.session.delta(None, True, publish)
+        if self._delta_pending is None or self._delta_pending.done():
+            row_bytes = message_dtype(self.cfg.max_sh_degree).itemsize
+            rows = max(1, int(p.delta_budget_kbytes_per_s * 1000.0 / p.delta_rate_hz / row_bytes))
+            self._delta_pending = self.session.delta(rows, False, publish)
+        return self._delta_pending
 
-    def publish_snapshot(self) -> tuple[int, int]:
-        """Publish the whole map (latched) at the next seq; returns (its size, its seq)."""
-        rows, n, seq = self.session.snapshot_message().result()
-        self.pub_snapshot.publish(structured_to_pointcloud2(rows, self.get_clock().now().nanoseconds, self.params.world_frame))
-        self.stats.counters["snapshots"] += 1
-        self.stats.gauges["seq"] = seq
-        return n, seq
+    def _cloud(self, rows: np.ndarray) -> PointCloud2:
+        return structured_to_pointcloud2(rows, self.get_clock().now().nanoseconds, self.params.world_frame)
+
+    def publish_snapshot(self) -> Future:
+        """Queue the whole map as a (latched) snapshot at the next seq: (size, seq)."""
+        return self.session.snapshot_message(lambda r: self.pub_snapshot.publish(self._cloud(r)))
 
     def on_snapshot_request(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        n, seq = self.publish_snapshot()
+        _, n, seq = self.publish_snapshot().result()
         res.success, res.message = True, f"seq={seq} gaussians={n}"
         return res
 
@@ -220,21 +218,23 @@ class MapperNode(Node):
         done = self.session.finish(self.params.final_iterations).result()
         if done.final_iterations:
             self.get_logger().info(f"final {done.final_iterations} iterations in {done.seconds:.1f} s")
-        self.send_delta(exact=True)
+        seq = self.send_delta(exact=True).result().seq
         self.save_checkpoint()
         res.success = True
-        res.message = f"seq={self.stats.gauges['seq']} gaussians={self.session.status.gaussians} epoch={done.epoch}"
+        res.message = f"seq={seq} gaussians={self.session.status.gaussians} epoch={done.epoch}"
         return res
 
-    def _render(self, pose: PoseStamped) -> None:
-        view = self.session.render(pose_to_matrix(pose.pose)).result()
-        if view is None:
+    def _render(self, pose: PoseStamped | None, requested: bool = False) -> None:
+        """Queue a render at ``pose`` (the live view skips a tick while its last one waits)."""
+        if pose is None or (not requested and self._render_pending is not None and not self._render_pending.done()):
             return
         stamp = stamp_to_ns(pose.header.stamp)
-        self.pub_color.publish(numpy_to_image(view.rgb, "rgb8", stamp, "render_camera"))
-        self.pub_depth.publish(depth_to_image(view.depth, "32FC1", stamp, "render_camera"))
-        self.pub_info.publish(camera_to_camera_info(view.camera, stamp, "render_camera"))
-        self.stats.counters["renders"] += 1
+        def publish(view) -> None:  # noqa: ANN001 - RenderedView, on the session's worker
+            self.pub_color.publish(numpy_to_image(view.rgb, "rgb8", stamp, "render_camera"))
+            self.pub_depth.publish(depth_to_image(view.depth, "32FC1", stamp, "render_camera"))
+            self.pub_info.publish(camera_to_camera_info(view.camera, stamp, "render_camera"))
+        future = self.session.render(pose_to_matrix(pose.pose), publish=publish)
+        self._render_pending = self._render_pending if requested else future
 
     def on_shutdown(self) -> None:
         if self.save_checkpoint() is not None:
