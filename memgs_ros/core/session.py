@@ -30,7 +30,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Generic, TypeVar
 
 import numpy as np
@@ -207,8 +207,10 @@ class MappingSession:
     # ------------------------------------------------------------------ readers
     @property
     def status(self) -> SessionStatus:
-        """The latest status (an immutable value; reading it needs no lock)."""
-        return self._status
+        """The latest status (an immutable value the worker replaces; only the worker reads the
+        map: a caller reading tensors the worker resizes can crash the process) with the insert
+        queue's length now."""
+        return replace(self._status, insert_queue=self._pending_inserts)
 
     @property
     def device(self) -> torch.device:
@@ -240,7 +242,6 @@ class MappingSession:
             self._commands.append(cmd)
             self._pending_inserts += 1
             self._cv.notify()
-        self._publish_status()
         return cmd.future
 
     def update_poses(self, poses: Mapping[int, np.ndarray]) -> Future[int]:
