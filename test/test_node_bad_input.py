@@ -267,14 +267,14 @@ def test_free_running_mapper_drops_and_counts_keyframes_it_cannot_insert(context
     started: list[int] = []
 
     def hold_inserts(m):  # noqa: ANN001, ANN202 - runs on the session's worker
-        add = m.add_keyframe
+        add = m.add_prepared_keyframe
 
-        def slow_add(kf_id, stamp_ns, *args, **kwargs):  # noqa: ANN001, ANN202
-            started.append(stamp_ns)
+        def slow_add(kf, *args, **kwargs):  # noqa: ANN001, ANN202
+            started.append(kf.stamp_ns)
             assert gate.wait(30.0)
-            return add(kf_id, stamp_ns, *args, **kwargs)
+            return add(kf, *args, **kwargs)
 
-        m.add_keyframe = slow_add
+        m.add_prepared_keyframe = slow_add
 
     node.session.call(hold_inserts).result(30)
     feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "seeds"))

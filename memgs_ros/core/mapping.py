@@ -137,50 +137,60 @@ class GaussianMapper:
                      depth_m: np.ndarray | None, camera: PinholeCamera,
                      points_w: np.ndarray | None = None, colors: np.ndarray | None = None,
                      enforce_budget: bool = True) -> int:
-        """Insert a keyframe and seed Gaussians at its points.
+        """Insert a keyframe and seed Gaussians at its points: ``prepare_keyframe`` then
+        ``add_prepared_keyframe`` (see both). Returns the number of Gaussians added."""
+        kf = self.prepare_keyframe(kf_id, stamp_ns, T_wc, rgb, depth_m, camera)
+        return self.add_prepared_keyframe(kf, points_w, colors, enforce_budget)
+
+    def prepare_keyframe(self, kf_id: int, stamp_ns: int, T_wc: np.ndarray, rgb: np.ndarray,
+                         depth_m: np.ndarray | None, camera: PinholeCamera) -> TrainingKeyframe:
+        """The keyframe as it is trained on: undistorted, resized to ``resolution_scale``, with its
+        valid-pixel mask and pyramid (``core/view.py``, ``make_keyframe``). Reads only the config:
+        safe to call from any thread while another one trains.
 
         T_wc: [4, 4] camera-to-world; rgb: [H, W, 3] uint8; depth_m: [H, W] float32 metres
-        (NaN/0 invalid) or None; camera: intrinsics of rgb (distorted images are undistorted
-        here); points_w: [M, 3] world seeds (from undistorted pixels); colors: [M, 3] in [0, 1].
-        enforce_budget: False leaves the memory budget to the next ``step`` (the map may exceed
-        it by this keyframe's seeds until then): a worker that must keep up with the tracker
-        then pays ~35 ms instead of ~180 ms on a 60k map at 320x240 (CPU).
-        Returns the number of Gaussians added.
+        (NaN/0 invalid) or None; camera: intrinsics of rgb (with its distortion).
         """
         if rgb.dtype != np.uint8 or rgb.shape != (camera.height, camera.width, 3):
             raise DataError(f"keyframe {kf_id}: rgb must be uint8 [{camera.height}, {camera.width}, 3], "
                             f"got {rgb.dtype} {rgb.shape}")
         if depth_m is not None and depth_m.shape != (camera.height, camera.width):
             raise DataError(f"keyframe {kf_id}: depth must be [{camera.height}, {camera.width}], got {depth_m.shape}")
-        if points_w is not None and len(points_w) and colors is None:
-            raise DataError(f"keyframe {kf_id}: points_w given without colors")
         prep = view_preparation(camera, self.cfg.resolution_scale)
         rgb, depth = prep(rgb, depth_m)
-        camera = prep.camera
         image = torch.from_numpy(np.ascontiguousarray(rgb)).to(self.device).permute(2, 0, 1).float() / 255.0
         depth_t = None
         if depth is not None:
             d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
             depth_t = torch.from_numpy(d).to(self.device)
         mask_t = None
-        if self.cfg.mask_invalid_pixels:
-            mask = prep.valid_mask
-            mask_t = None if mask is None else torch.from_numpy(mask).to(self.device)
-        self._insert(make_keyframe(kf_id, stamp_ns, T_wc, image.contiguous(), depth_t, camera, valid_mask=mask_t))
+        if self.cfg.mask_invalid_pixels and prep.valid_mask is not None:
+            mask_t = torch.from_numpy(prep.valid_mask).to(self.device)
+        return make_keyframe(kf_id, stamp_ns, T_wc, image.contiguous(), depth_t, prep.camera, valid_mask=mask_t)
+
+    def add_prepared_keyframe(self, kf: TrainingKeyframe, points_w: np.ndarray | None = None,
+                              colors: np.ndarray | None = None, enforce_budget: bool = True) -> int:
+        """Insert a prepared keyframe (``prepare_keyframe``, or a restored checkpoint's) and seed
+        Gaussians at its points.
+
+        points_w: [M, 3] world seeds (from undistorted pixels); colors: [M, 3] in [0, 1].
+        enforce_budget: False leaves the memory budget to the next ``step`` (the map may exceed
+        it by this keyframe's seeds until then): a worker that must keep up with the tracker
+        then pays ~35 ms instead of ~180 ms on a 60k map at 320x240 (CPU).
+        Returns the number of Gaussians added.
+        """
+        if points_w is not None and len(points_w) and colors is None:
+            raise DataError(f"keyframe {kf.kf_id}: points_w given without colors")
+        self._insert(kf)
         self._drop_redundant_keyframes()
         self._update_extent()
         added = 0
         if points_w is not None and len(points_w):
-            ids = self.gmap.add_from_points(points_w, colors, kf_id, self.iteration, opacity=self.cfg.seed_opacity)
+            ids = self.gmap.add_from_points(points_w, colors, kf.kf_id, self.iteration, opacity=self.cfg.seed_opacity)
             added = int(ids.numel())
             if enforce_budget:
                 self._enforce_budget()
         return added
-
-    def add_prepared_keyframe(self, kf: TrainingKeyframe) -> None:
-        """Insert a keyframe whose images are prepared already (a restored checkpoint)."""
-        self._insert(kf)
-        self._update_extent()
 
     def _insert(self, kf: TrainingKeyframe) -> None:
         self.keyframes.add(kf)

@@ -7,7 +7,10 @@ correct keyframes and their Gaussians, train N steps, cut a delta or snapshot, r
 capture state, finish. Every mutation happens on that worker; callers get a
 ``concurrent.futures.Future`` per command and readers get immutable values (records copied to
 host memory, ``SessionStatus``). There are no locks around the map: nothing but the worker
-touches it.
+touches it. Two jobs that need no map state leave the worker, so they overlap a training step on
+another core: a keyframe's images are prepared (undistorted, resized, pyramid) in the caller's
+thread, and map snapshots the worker cut are diffed against what the receiver holds, encoded and
+published by the outbox thread, which owns the delta outbox and sends in the order cut.
 
 Free-running (``free_running=True``): between commands the worker trains, one step at a time, so
 a command waits at most for the step in progress. Lockstep: the worker trains only on ``train``
@@ -39,6 +42,7 @@ import torch
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.checkpoint import MapperCheckpoint
 from memgs_ros.core.gaussians import GaussianRecords
+from memgs_ros.core.keyframes import TrainingKeyframe
 from memgs_ros.core.map_delta import DeltaOutbox
 from memgs_ros.core.mapping import GaussianMapper, MappingConfig, StepStats
 from memgs_ros.core.view import view_preparation
@@ -108,7 +112,6 @@ class DeltaBatch:
 
 @dataclass(frozen=True)
 class FinishResult:
-    seq: int
     epoch: int
     gaussians: int
     final_iterations: int
@@ -154,6 +157,27 @@ class SessionStatus:
         return out
 
 
+@dataclass(frozen=True)
+class _Sent:
+    """What the outbox thread has sent (replaced whole, so readers see one consistent value)."""
+
+    seq: int = 0
+    pending_rows: int = 0
+    messages: int = 0
+    bytes: int = 0
+    snapshots: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class _OutboxJob:
+    kind: str  # "delta" or "snapshot"
+    records: GaussianRecords
+    max_rows: int | None
+    exact: bool
+    publish: Callable[[np.ndarray], None] | None
+    out: Future[Any]
+
+
 class _Command(Generic[T]):
     """A queued call: ``run`` executes on the worker; its result or exception goes to ``future``."""
 
@@ -182,7 +206,10 @@ class MappingSession:
         self.free_running = free_running
         self.insert_queue = int(insert_queue)
         self._mapper = GaussianMapper(self.cfg, device=device, merge_cfg=merge_cfg)
-        self._outbox = DeltaOutbox(self.cfg.max_sh_degree, delta_tolerance, epoch=delta_epoch)
+        self._outbox = DeltaOutbox(self.cfg.max_sh_degree, delta_tolerance, epoch=delta_epoch)  # outbox thread's
+        self._epoch = int(delta_epoch)
+        self._sent = _Sent()  # replaced whole by the outbox thread
+        self._outbox_queue: queue.SimpleQueue[_OutboxJob | None] = queue.SimpleQueue()
         self._stamps: dict[int, int] = {}  # keyframe stamp -> keyframe id (ids 0, 1, ... by arrival)
         self._render_camera: PinholeCamera | None = None
         self._finished = False
@@ -203,6 +230,8 @@ class MappingSession:
         self._publish_status()
         self._worker = threading.Thread(target=self._run, name="mapping-session", daemon=True)
         self._worker.start()
+        self._outbox_thread = threading.Thread(target=self._send_loop, name="mapping-session-outbox", daemon=True)
+        self._outbox_thread.start()
 
     # ------------------------------------------------------------------ readers
     @property
@@ -210,7 +239,11 @@ class MappingSession:
         """The latest status (an immutable value the worker replaces; only the worker reads the
         map: a caller reading tensors the worker resizes can crash the process) with the insert
         queue's length now."""
-        return replace(self._status, insert_queue=self._pending_inserts)
+        sent = self._sent
+        return replace(self._status, insert_queue=self._pending_inserts, delta_seq=sent.seq,
+                       delta_pending_rows=sent.pending_rows,
+                       counters={**self._status.counters, "delta_messages": sent.messages,
+                                 "delta_bytes": sent.bytes, "snapshots": sent.snapshots})
 
     @property
     def device(self) -> torch.device:
@@ -229,7 +262,14 @@ class MappingSession:
     def insert_keyframe(self, kf: KeyframeInput) -> Future[int | None]:
         """Queue a keyframe. The future gives the Gaussians seeded, or None when the keyframe was
         refused (counted as an event), dropped for overload, or came after ``finish``."""
-        cmd: _Command[int | None] = _Command("insert", lambda: self._insert(kf))
+        try:  # no map state: prepared here, overlapping the worker's training step
+            prepared = self._mapper.prepare_keyframe(-1, kf.stamp_ns, kf.T_wc, kf.rgb, kf.depth_m, kf.camera)
+        except DataError as err:
+            self._event("bad_keyframe", f"keyframe {kf.stamp_ns} refused: {err}")
+            refused: Future[int | None] = Future()
+            refused.set_result(None)
+            return refused
+        cmd: _Command[int | None] = _Command("insert", lambda: self._insert(kf, prepared))
         with self._cv:
             self._check_open()
             if self.free_running and self._pending_inserts >= self.insert_queue:
@@ -265,16 +305,30 @@ class MappingSession:
         """The next map delta for the receiver: at most ``max_rows`` rows over the tolerance, or
         with ``exact`` every difference at tolerance 0 (repeated until nothing differs).
 
-        ``publish(rows)`` is called on the worker for each message, inside the command: messages
-        leave in sequence order whichever threads asked for them (a receiver that sees a gap
-        resynchronises)."""
-        return self._submit("delta", lambda: self._delta(max_rows, exact, publish))
+        The worker cuts a snapshot of the map; the outbox thread diffs it and calls
+        ``publish(rows)`` for each message, in the order the snapshots were cut: messages leave in
+        sequence order whichever threads asked for them."""
+        return self._to_outbox("delta", max_rows, exact, publish)
 
     def snapshot_message(self, publish: Callable[[np.ndarray], None] | None = None
                          ) -> Future[tuple[np.ndarray, int, int]]:
         """The whole map as the next snapshot message (rows, Gaussian count, its seq); ``publish``
         as for ``delta``."""
-        return self._submit("snapshot", lambda: self._snapshot_message(publish))
+        return self._to_outbox("snapshot", None, False, publish)
+
+    def _to_outbox(self, kind: str, max_rows: int | None, exact: bool,
+                   publish: Callable[[np.ndarray], None] | None) -> Future[Any]:
+        out: Future[Any] = Future()
+
+        def cut() -> None:  # on the worker: the snapshot is the only part that reads the map
+            try:
+                self._mapper.discard_changes()  # the outbox diffs snapshots; the change log would only grow
+                self._outbox_queue.put(_OutboxJob(kind, self._mapper.snapshot(), max_rows, exact, publish, out))
+            except BaseException as err:  # noqa: BLE001 - handed to the caller
+                out.set_exception(err)
+
+        self._submit(kind, cut)
+        return out
 
     def snapshot(self) -> Future[GaussianRecords]:
         """The whole map as records (host copies)."""
@@ -317,6 +371,7 @@ class MappingSession:
             cmd.future.set_exception(SessionError(f"mapping session closed before '{cmd.name}' ran"))
         if threading.current_thread() is not self._worker:
             self._worker.join(timeout_s)
+        self._outbox_queue.put(None)  # after the worker: every snapshot it cut is still sent
 
     # ------------------------------------------------------------------- worker
     def _submit(self, name: str, run: Callable[[], T]) -> Future[T]:
@@ -391,13 +446,13 @@ class MappingSession:
             keyframes_trained=len(m.keyframes), keyframes_dropped=m.keyframes_dropped,
             budget_gaussians=m.budget_gaussians, model_bytes=model, model_bytes_peak=self._peaks[0],
             gaussians_peak=self._peaks[1], loss=self._last_loss, cuda_max_allocated=cuda, insert_queue=self._pending_inserts,
-            delta_seq=self._outbox.seq, delta_pending_rows=self._outbox.pending_rows, finished=self._finished, render_camera=self._render_camera, counters=dict(self._counters))
+            finished=self._finished, render_camera=self._render_camera, counters=dict(self._counters))
 
     def _event(self, kind: str, message: str) -> None:
         self._events.put(SessionEvent(kind, message))
 
     # --------------------------------------------------------- command bodies
-    def _insert(self, kf: KeyframeInput) -> int | None:
+    def _insert(self, kf: KeyframeInput, prepared: TrainingKeyframe) -> int | None:
         if self._finished:
             return None
         if kf.stamp_ns in self._stamps:
@@ -408,8 +463,8 @@ class MappingSession:
         try:
             # Free-running, the budget is enforced by the next training step: an insertion that
             # must keep up with the tracker pays ~35 ms instead of ~180 ms on a 60k map (CPU).
-            added = self._mapper.add_keyframe(kf_id, kf.stamp_ns, kf.T_wc, kf.rgb, kf.depth_m, kf.camera,
-                                              kf.points_w, kf.colors, enforce_budget=not self.free_running)
+            added = self._mapper.add_prepared_keyframe(replace(prepared, kf_id=kf_id), kf.points_w, kf.colors,
+                                                       enforce_budget=not self.free_running)
         except DataError as err:
             self._event("bad_keyframe", f"keyframe {kf.stamp_ns} refused: {err}")
             return None
@@ -446,32 +501,33 @@ class MappingSession:
             last = st
         return last
 
-    def _delta(self, max_rows: int | None, exact: bool,
-               publish: Callable[[np.ndarray], None] | None) -> DeltaBatch:
-        # The outbox diffs snapshots: the map's own change log is not needed and would only grow.
-        self._mapper.discard_changes()
-        records = self._mapper.snapshot()
-        messages: list[np.ndarray] = []
-        while True:
-            rows = self._outbox.next_delta(records, None if exact else max_rows, 0.0 if exact else None)
-            if rows is None:
-                break
-            messages.append(rows)
-            if publish is not None:
-                publish(rows)
-            if not exact:
-                break
-        self._counters["delta_messages"] += len(messages)
-        self._counters["delta_bytes"] += sum(int(r.nbytes) for r in messages)
-        return DeltaBatch(tuple(messages), self._outbox.seq, self._outbox.epoch, self._outbox.pending_rows)
+    def _send_loop(self) -> None:
+        """The outbox thread: diff, encode and publish snapshots in the order the worker cut them."""
+        while (job := self._outbox_queue.get()) is not None:
+            try:
+                job.out.set_result(self._send(job))
+            except BaseException as err:  # noqa: BLE001 - handed to the caller
+                job.out.set_exception(err)
 
-    def _snapshot_message(self, publish: Callable[[np.ndarray], None] | None) -> tuple[np.ndarray, int, int]:
-        records = self._mapper.snapshot()
-        rows = self._outbox.snapshot(records)
-        if publish is not None:
-            publish(rows)
-        self._counters["snapshots"] += 1
-        return rows, len(records), self._outbox.seq
+    def _send(self, job: _OutboxJob) -> Any:
+        box, sent = self._outbox, self._sent
+        if job.kind == "snapshot":
+            rows = box.snapshot(job.records)
+            if job.publish is not None:
+                job.publish(rows)
+            self._sent = replace(sent, seq=box.seq, pending_rows=0, snapshots=sent.snapshots + 1)
+            return rows, len(job.records), box.seq
+        messages: list[np.ndarray] = []
+        while (rows := box.next_delta(job.records, None if job.exact else job.max_rows,
+                                      0.0 if job.exact else None)) is not None:
+            messages.append(rows)
+            if job.publish is not None:
+                job.publish(rows)
+            if not job.exact:
+                break
+        self._sent = replace(sent, seq=box.seq, pending_rows=box.pending_rows, messages=sent.messages + len(messages),
+                             bytes=sent.bytes + sum(int(r.nbytes) for r in messages))
+        return DeltaBatch(tuple(messages), box.seq, box.epoch, box.pending_rows)
 
     def _render(self, T_wc: np.ndarray, camera: PinholeCamera | None,
                 publish: Callable[[RenderedView], None] | None) -> RenderedView | None:
@@ -490,8 +546,7 @@ class MappingSession:
         version = (self._mapper.iteration, len(self._stamps))
         if only_if_changed and version == self._captured:
             return None
-        ckpt = self._mapper.state_dict({"keyframe_stamps": {str(s): k for s, k in self._stamps.items()},
-                                        "delta_seq": self._outbox.seq})
+        ckpt = self._mapper.state_dict({"keyframe_stamps": {str(s): k for s, k in self._stamps.items()}})
         self._captured = version
         return ckpt
 
@@ -520,5 +575,5 @@ class MappingSession:
                         break
                     self._after_step(st)
                     ran += 1
-        return FinishResult(self._outbox.seq, self._outbox.epoch, len(self._mapper.gmap), ran,
+        return FinishResult(self._epoch, len(self._mapper.gmap), ran,
                             time.perf_counter() - t0)
