@@ -105,8 +105,11 @@ def test_late_merger_with_dropped_deltas_resyncs(bag: Path, tmp_path: Path, ros_
 
 def test_killed_mapper_resumes_from_checkpoint_and_killed_merger_resyncs(bag: Path, tmp_path: Path,
                                                                         ros_domain_id: int) -> None:
-    """SIGKILL (no chance to save) the mapper, then the merger, mid-run; both restart at once."""
-    overrides = {**FAST, "mapper.checkpoint_period_s": 1.0, "merger.save_period_s": 1.0}
+    """SIGKILL (no chance to save) the mapper, then the merger, mid-run; both restart at once.
+    (More iterations per frame than FAST: the replay must outlast both kills, and with FAST's 3 it
+    could end before 12 s on an idle machine, leaving nothing killed.)"""
+    overrides = {**FAST, "mapper.lockstep_iterations": 12, "mapper.checkpoint_period_s": 1.0,
+                 "merger.save_period_s": 1.0}
     s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path, domain_id=ros_domain_id,
                                 namespace=_own_ns(), overrides=overrides, kill_after_s={"mapper": 6.0, "merger": 12.0}, timeout_s=600),
                      progress=False)

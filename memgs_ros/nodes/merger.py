@@ -54,7 +54,7 @@ class MergerNode(Node):
         self.publish_period = declare(self, "publish_period_s", 30.0,
                                       "publish the full map on memgs/map/gaussians this often (0 = only on request)",
                                       range=(0.0, 1e6))
-        self.resync_interval = declare(self, "resync_interval_s", 1.0, "least time between snapshot requests",
+        self.resync_interval = declare(self, "resync_interval_s", 1.0, "least time between snapshot requests (doubles, up to 8x, while unanswered)",
                                        range=(0.0, 3600.0))
         self.max_buffered = declare(self, "max_buffered_deltas", 200, "deltas kept while resynchronising",
                                     range=(1, 100000))
@@ -75,6 +75,7 @@ class MergerNode(Node):
         self.buffer: deque[MapMessage] = deque(maxlen=self.max_buffered)
         self.resyncing = False
         self._last_request = 0.0
+        self._requests_unanswered = 0  # snapshot requests since the last snapshot applied (backoff)
         self._started = time.monotonic()
         self._heard_delta = False
         self._asked_at_start = False
@@ -129,6 +130,7 @@ class MergerNode(Node):
         if status is not ApplyStatus.APPLIED:
             return
         self.resyncing = False
+        self._requests_unanswered = 0
         pending = sorted((d for d in self.buffer if d.epoch == self.replica.epoch and d.seq > self.replica.seq),
                          key=lambda d: d.seq)
         self.buffer.clear()
@@ -158,9 +160,14 @@ class MergerNode(Node):
 
     def _request_snapshot(self) -> None:
         now = time.monotonic()
-        if now - self._last_request < self.resync_interval or not self.snapshot_client.service_is_ready():
+        # Backoff: a snapshot is megabytes, and each request makes the mapper publish a new one into
+        # its one-deep latched history, replacing one still on its way; asking every second while
+        # a busy mapper answers late could keep replacing it before it ever arrives whole.
+        wait = self.resync_interval * min(2 ** self._requests_unanswered, 8)
+        if now - self._last_request < wait or not self.snapshot_client.service_is_ready():
             return
         self._last_request = now
+        self._requests_unanswered += 1
         self.snapshot_client.call_async(Trigger.Request())
         self.stats.counters["snapshot_requests"] += 1
 
