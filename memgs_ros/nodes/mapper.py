@@ -185,8 +185,7 @@ class MapperNode(Node):
         for ev in self.session.poll_events():
             self.stats.problem(ev.kind, ev.message)
         st = self.session.status
-        for k, v in st.counters.items():  # assigned, not added: the session's counts are totals
-            self.stats.counters[k] = v
+        dict.update(self.stats.counters, st.counters)  # assigned, not added (Counter.update): totals
         self.stats.gauges.update(st.gauges())
 
     def send_delta(self, exact: bool = False) -> Future:
@@ -209,16 +208,17 @@ class MapperNode(Node):
         return self.session.snapshot_message(lambda r: self.pub_snapshot.publish(self._cloud(r)))
 
     def on_snapshot_request(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        _, n, seq = self.publish_snapshot().result()
-        res.success, res.message = True, f"seq={seq} gaussians={n}"
+        res.success, res.message = True, "seq={2} gaussians={1}".format(*self.publish_snapshot().result())
         return res
 
     def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         """Insert what is queued, stop training, run the final iterations, flush every change."""
         done = self.session.finish(self.params.final_iterations).result()
-        if done.final_iterations:
-            self.get_logger().info(f"final {done.final_iterations} iterations in {done.seconds:.1f} s")
-        seq = self.send_delta(exact=True).result().seq
+        self.get_logger().info(f"final {done.final_iterations} iterations in {done.seconds:.1f} s")
+        self.send_delta(exact=True)
+        # A receiver cannot see that the last delta was lost (no later seq shows the gap): the
+        # latched snapshot after it lets every receiver end on the final map.
+        _, _, seq = self.publish_snapshot().result()
         self.save_checkpoint()
         res.success = True
         res.message = f"seq={seq} gaussians={self.session.status.gaussians} epoch={done.epoch}"
