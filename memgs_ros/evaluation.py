@@ -44,7 +44,8 @@ from tqdm import tqdm
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.gaussians import GaussianMap
 from memgs_ros.core.metrics import make_lpips
-from memgs_ros.core.ply import _atomic_write, load_ply
+from memgs_ros.core.atomic import atomic_write
+from memgs_ros.core.ply import load_ply
 from memgs_ros.core.scoring import (
     ATE_MAX_DT_S, FRAME_MATCH_MAX_DT_S, STRIP_FRAMES, QualityResult, StripFrame, TrajectoryResult,
 )
@@ -174,7 +175,7 @@ def write_json(path: str | os.PathLike[str], obj: Any) -> Path:
     floats become null."""
     p = Path(path)
     text = json.dumps(_finite(obj), indent=2)
-    _atomic_write(p, lambda f: f.write(text.encode("utf-8")))
+    atomic_write(p, lambda f: f.write(text.encode("utf-8")))
     return p
 
 

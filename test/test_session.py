@@ -157,14 +157,20 @@ def test_rigid_correction_moves_a_keyframe_and_its_gaussians(frames: list[Frame]
     D[:3, :3] = [[c, -sn, 0], [sn, c, 0], [0, 0, 1]]
     D[:3, 3] = [0.1, -0.2, 0.05]
     T_new = D @ frames[1].T_wc_gt
-    assert s.correct_keyframes({11: T_new, 12345: T_new}).result(30) == (1, int((kf_ids == 1).sum()))
+    T_shift = frames[2].T_wc_gt.copy()
+    T_shift[:3, 3] += [0.0, 0.3, 0.0]  # keyframe 2: a pure translation, in the same command
+    n_moved = int(((kf_ids == 1) | (kf_ids == 2)).sum())
+    assert s.correct_keyframes({11: T_new, 12: T_shift, 12345: T_new}).result(30) == (2, n_moved)
     _, means1, quats1 = s.call(rows).result(30)
     moved = kf_ids == 1
     Dt = torch.as_tensor(D, dtype=torch.float32)
     torch.testing.assert_close(means1[moved], means0[moved] @ Dt[:3, :3].T + Dt[:3, 3], atol=1e-5, rtol=0)
     torch.testing.assert_close(quat_wxyz_to_rotmat_torch(quats1[moved]),
                                Dt[:3, :3] @ quat_wxyz_to_rotmat_torch(quats0[moved]), atol=1e-5, rtol=0)
-    assert torch.equal(means1[~moved], means0[~moved])
+    shifted = kf_ids == 2
+    torch.testing.assert_close(means1[shifted], means0[shifted] + torch.tensor([0.0, 0.3, 0.0]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(quats1[shifted], quats0[shifted], atol=1e-6, rtol=0)
+    assert torch.equal(means1[kf_ids == 0], means0[kf_ids == 0])
     kfs = {k.kf_id: k for k in s.state_dict().result(30).keyframes}
     np.testing.assert_allclose(kfs[1].T_wc, T_new)
     np.testing.assert_allclose(kfs[0].T_wc, frames[0].T_wc_gt)

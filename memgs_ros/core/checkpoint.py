@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from memgs_ros.core.atomic import atomic_write
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.gaussians import PLY_F_REST, GaussianRecords
 from memgs_ros.errors import DataError
@@ -78,7 +79,6 @@ class MapperCheckpoint:
 def save(ckpt: MapperCheckpoint, path: str | os.PathLike[str]) -> Path:
     """Write ``ckpt`` to ``path`` atomically (temporary file, fsync, rename). Returns the path."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     g = ckpt.gaussians
     header = {"format": FORMAT_VERSION, "iteration": ckpt.iteration, "next_id": ckpt.next_id,
               "active_sh_degree": ckpt.active_sh_degree, "scene_extent": ckpt.scene_extent,
@@ -99,15 +99,7 @@ def save(ckpt: MapperCheckpoint, path: str | os.PathLike[str]) -> Path:
             arrays[f"kf{i}_depth"] = k.depth_m
         if k.valid_mask is not None:
             arrays[f"kf{i}_mask"] = k.valid_mask
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    atomic_write(path, lambda f: np.savez(f, **arrays))
     return path
 
 

@@ -237,36 +237,40 @@ class GaussianMapper:
         keyframes still trained on get a fresh new-keyframe budget of training views (priority).
         Returns (keyframes corrected, Gaussians moved).
         """
-        g = self.gmap
-        moved_rows = 0
-        corrected = 0
+        todo: list[tuple[int, np.ndarray, np.ndarray]] = []  # (kf_id, T_new, D), validated before any change
         for kf_id, T_new in poses.items():
             T_new = np.asarray(T_new, dtype=np.float64)
             if T_new.shape != (4, 4) or not np.all(np.isfinite(T_new)):
                 raise DataError(f"keyframe {kf_id}: corrected T_wc must be a finite 4x4 matrix")
             T_old = self._anchor_poses.get(int(kf_id))
-            if T_old is None:
-                continue
-            D = torch.as_tensor(T_new @ invert_pose(T_old), dtype=torch.float32, device=self.device)
-            rows = torch.nonzero(g.keyframe_ids == int(kf_id)).reshape(-1)
-            if rows.numel():
-                with torch.no_grad():
-                    R, t = D[:3, :3], D[:3, 3]
-                    g.means[rows] = g.means[rows] @ R.T + t
-                    g.quats_wxyz[rows] = _quat_multiply_wxyz(rotmat_to_quat_wxyz_torch(R[None])[0],
-                                                             g.quats_wxyz[rows])
-                g.reset_rows(rows, moments=True, accumulators=False)
-                g.dirty[rows] = True
-                moved_rows += int(rows.numel())
-            self._anchor_poses[int(kf_id)] = T_new.copy()
+            if T_old is not None:
+                todo.append((int(kf_id), T_new, T_new @ invert_pose(T_old)))
+        if not todo:
+            return 0, 0
+        todo.sort(key=lambda c: c[0])
+        g = self.gmap
+        ids = torch.tensor([c[0] for c in todo], dtype=torch.int64, device=self.device)  # [K] sorted
+        D = torch.as_tensor(np.stack([c[2] for c in todo]), dtype=torch.float32, device=self.device)  # [K, 4, 4]
+        # One pass over the map: each Gaussian finds its keyframe's correction (or none).
+        pos = torch.searchsorted(ids, g.keyframe_ids).clamp_max(len(ids) - 1)  # [N]
+        rows = torch.nonzero(ids[pos] == g.keyframe_ids).reshape(-1)  # [M]
+        which = pos[rows]  # [M] index into the corrections
+        if rows.numel():
+            with torch.no_grad():
+                R, t = D[which, :3, :3], D[which, :3, 3]  # [M, 3, 3], [M, 3]
+                g.means[rows] = (R @ g.means[rows][..., None])[..., 0] + t
+                q_D = rotmat_to_quat_wxyz_torch(D[:, :3, :3])  # [K, 4]
+                g.quats_wxyz[rows] = _quat_multiply_wxyz(q_D[which], g.quats_wxyz[rows])
+            g.reset_rows(rows, moments=True, accumulators=False)
+            g.dirty[rows] = True
+        for kf_id, T_new, _ in todo:
+            self._anchor_poses[kf_id] = T_new.copy()
             if kf_id in self.keyframes:
                 self.keyframes.update_pose(kf_id, T_new)
                 if retrain:
                     self.keyframes.prioritise(kf_id)
-            corrected += 1
-        if corrected:
-            self._update_extent()
-        return corrected, moved_rows
+        self._update_extent()
+        return len(todo), int(rows.numel())
 
     def _update_extent(self) -> None:
         if self.cfg.scene_extent > 0 or len(self.keyframes) == 0:
@@ -449,7 +453,7 @@ class GaussianMapper:
         self.iteration = ckpt.iteration
 
 
-def _quat_multiply_wxyz(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # [4], [N, 4] -> [N, 4]
+def _quat_multiply_wxyz(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # [N, 4] or [4], [N, 4] -> [N, 4]
     """Hamilton product a * b of unit quaternions (w, x, y, z): rotation b, then a."""
     aw, ax, ay, az = a.unbind(-1)
     bw, bx, by, bz = b.unbind(-1)

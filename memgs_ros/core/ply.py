@@ -15,13 +15,12 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 from pathlib import Path
-from typing import BinaryIO, Callable
 
 import numpy as np
 
 from memgs_ros.core.gaussians import PLY_F_REST, GaussianRecords
+from memgs_ros.core.atomic import atomic_write
 from memgs_ros.errors import DataError
 
 logger = logging.getLogger(__name__)
@@ -45,24 +44,6 @@ _MAX_HEADER_BYTES = 1 << 20
 def ids_sidecar_path(path: str | os.PathLike[str]) -> Path:
     """Where the ids of the Gaussians in ``path`` are kept: ``<path>.ids.npy``."""
     return Path(str(path) + ".ids.npy")
-
-
-def _atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
-    """Write through a temp file in the same folder, fsync, then os.replace onto ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
 
 
 def records_to_vertex_array(records: GaussianRecords) -> np.ndarray:
@@ -93,9 +74,9 @@ def save_ply(records: GaussianRecords, path: str | os.PathLike[str], write_ids: 
         + ["end_header"]
     ) + "\n"
     if write_ids:
-        _atomic_write(ids_sidecar_path(path),
+        atomic_write(ids_sidecar_path(path),
                       lambda f: np.save(f, np.ascontiguousarray(records.ids, dtype=np.int64)))
-    _atomic_write(path, lambda f: (f.write(header.encode("ascii")), f.write(body.tobytes())))
+    atomic_write(path, lambda f: (f.write(header.encode("ascii")), f.write(body.tobytes())))
     return path
 
 

@@ -101,10 +101,11 @@ class RenderedView:
 
 @dataclass(frozen=True)
 class DeltaBatch:
-    """Delta messages as structured rows (``map_delta.encode``), the sequence number after them,
-    the outbox's epoch and the rows over tolerance still held back by the row limit."""
+    """How many delta messages were sent (each handed to ``publish``), the sequence number after
+    them, the outbox's epoch and the rows over tolerance still held back by the row limit. The rows
+    themselves are not kept: a caller holding the future would hold megabytes after a final flush."""
 
-    messages: tuple[np.ndarray, ...]
+    messages: int
     seq: int
     epoch: int
     pending_rows: int
@@ -517,17 +518,17 @@ class MappingSession:
                 job.publish(rows)
             self._sent = replace(sent, seq=box.seq, pending_rows=0, snapshots=sent.snapshots + 1)
             return rows, len(job.records), box.seq
-        messages: list[np.ndarray] = []
+        n = n_bytes = 0
         while (rows := box.next_delta(job.records, None if job.exact else job.max_rows,
                                       0.0 if job.exact else None)) is not None:
-            messages.append(rows)
+            n, n_bytes = n + 1, n_bytes + int(rows.nbytes)
             if job.publish is not None:
                 job.publish(rows)
             if not job.exact:
                 break
-        self._sent = replace(sent, seq=box.seq, pending_rows=box.pending_rows, messages=sent.messages + len(messages),
-                             bytes=sent.bytes + sum(int(r.nbytes) for r in messages))
-        return DeltaBatch(tuple(messages), box.seq, box.epoch, box.pending_rows)
+        self._sent = replace(sent, seq=box.seq, pending_rows=box.pending_rows, messages=sent.messages + n,
+                             bytes=sent.bytes + n_bytes)
+        return DeltaBatch(n, box.seq, box.epoch, box.pending_rows)
 
     def _render(self, T_wc: np.ndarray, camera: PinholeCamera | None,
                 publish: Callable[[RenderedView], None] | None) -> RenderedView | None:

@@ -35,7 +35,7 @@ from std_srvs.srv import Trigger
 
 from memgs_ros.core.geometry import pose_to_tq
 from memgs_ros.core.map_delta import decode
-from memgs_ros.core.ply import _atomic_write
+from memgs_ros.core.atomic import atomic_write
 from memgs_ros.errors import ConfigError, PipelineError
 from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, tracker
 from memgs_ros.orchestration.run_files import (
@@ -62,7 +62,7 @@ GRAPH_NODES = ("merger", "mapper", "keyframe_sampler", "tracker")  # start order
 
 
 def _write_text(path: Path, text: str) -> None:
-    _atomic_write(path, lambda f: f.write(text.encode("utf-8")))
+    atomic_write(path, lambda f: f.write(text.encode("utf-8")))
 
 
 class _Observer:
