@@ -65,6 +65,8 @@ def test_round_trip_restores_map_keyframes_and_training(tmp_path: Path) -> None:
         assert (a.depth_m is None) == (b.depth_m is None) and (a.depth_m is None or torch.equal(a.depth_m, b.depth_m))
         assert (a.valid_mask is None) == (b.valid_mask is None)
         assert len(a.levels) == len(b.levels)
+        assert r.exposure.get(a.kf_id) == pytest.approx(m.exposure.get(a.kf_id), abs=1e-7)
+    assert any(v != 0.0 for v in m.exposure.get(0))  # training moved the corrections; they travel
     # Same renders, and training goes on; new ids start in a fresh block above every old id.
     T = m.keyframes.get(0).T_wc
     assert torch.allclose(m.render(T, m.keyframes.get(0).camera).color, r.render(T, r.keyframes.get(0).camera).color)

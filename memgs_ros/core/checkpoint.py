@@ -12,7 +12,8 @@ executable) holding:
 - the Gaussians: ids, parameters (PLY layout, pre-activation), creating keyframe id and
   creation iteration;
 - every keyframe as the mapper trains on it: id, stamp, camera-to-world pose, the prepared
-  (undistorted, resized) colour image as uint8, depth, valid-pixel mask and pinhole camera;
+  (undistorted, resized) colour image as uint8, depth, valid-pixel mask, pinhole camera and
+  exposure correction;
 - a JSON header: format version, training iteration, next Gaussian id, active SH degree,
   scene extent, the time it was written, and the caller's ``extra`` (the mapper node keeps
   its keyframe-stamp table and delta sequence there).
@@ -56,6 +57,7 @@ class KeyframeState:
     depth_m: np.ndarray | None
     valid_mask: np.ndarray | None
     camera: PinholeCamera
+    exposure: tuple[float, ...] | None = None  # (gain offsets rgb, biases rgb), core/exposure.py
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,7 +86,8 @@ def save(ckpt: MapperCheckpoint, path: str | os.PathLike[str]) -> Path:
               "active_sh_degree": ckpt.active_sh_degree, "scene_extent": ckpt.scene_extent,
               "saved_at_s": ckpt.saved_at_s, "extra": ckpt.extra,
               "keyframes": [{"kf_id": k.kf_id, "stamp_ns": k.stamp_ns, "camera": _camera_dict(k.camera),
-                             "depth": k.depth_m is not None, "mask": k.valid_mask is not None}
+                             "depth": k.depth_m is not None, "mask": k.valid_mask is not None,
+                             "exposure": None if k.exposure is None else [float(x) for x in k.exposure]}
                             for k in ckpt.keyframes]}
     arrays: dict[str, np.ndarray] = {
         "header": np.frombuffer(json.dumps(header).encode(), dtype=np.uint8),
@@ -134,7 +137,13 @@ def load(path: str | os.PathLike[str]) -> MapperCheckpoint:
                 T = z[f"kf{i}_T_wc"].astype(np.float64)
                 if T.shape != (4, 4) or not np.all(np.isfinite(T)):
                     raise DataError(f"{path}: keyframe {k['kf_id']} pose is not a finite 4x4 matrix")
-                kfs.append(KeyframeState(int(k["kf_id"]), int(k["stamp_ns"]), T, image, depth, mask, cam))
+                exposure = k.get("exposure")
+                if exposure is not None:
+                    exposure = tuple(float(x) for x in exposure)
+                    if len(exposure) != 6 or not all(np.isfinite(exposure)):
+                        raise DataError(f"{path}: keyframe {k['kf_id']} exposure is not 6 finite numbers")
+                kfs.append(KeyframeState(int(k["kf_id"]), int(k["stamp_ns"]), T, image, depth, mask, cam,
+                                         exposure))
             return MapperCheckpoint(g, kf_of.astype(np.int64), created.astype(np.int64), tuple(kfs),
                                     int(header["iteration"]), int(header["next_id"]),
                                     int(header["active_sh_degree"]), float(header["scene_extent"]),

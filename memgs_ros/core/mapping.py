@@ -31,6 +31,7 @@ import torch
 
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.checkpoint import ID_BLOCK, KeyframeState, MapperCheckpoint
+from memgs_ros.core.exposure import ExposureCompensation
 from memgs_ros.core.gaussians import GaussianMap, GaussianRecords
 from memgs_ros.core.geometry import invert_pose, nearest_pose_distance, rotmat_to_quat_wxyz_torch
 from memgs_ros.core.keyframes import KeyframeStore, TrainingKeyframe, make_keyframe
@@ -98,6 +99,8 @@ class GaussianMapper:
         # Pose of every keyframe ever inserted, also those max_keyframes dropped from training:
         # a rigid correction moves their Gaussians too (~130 B a keyframe).
         self._anchor_poses: dict[int, np.ndarray] = {}
+        self.exposure = ExposureCompensation(self.cfg.exposure_lr, self.cfg.exposure_reg, self.device) \
+            if self.cfg.exposure_compensation else None
         self._background = torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
         generator = torch.Generator(device="cpu").manual_seed(self.cfg.seed)
         self.merge = MergeSchedule(self.cfg, merge_fn, merge_cfg)
@@ -205,7 +208,10 @@ class GaussianMapper:
             kfs = self.keyframes.all()
             nearest = nearest_pose_distance(np.stack([k.T_wc for k in kfs]))
             nearest[[i for i, k in enumerate(kfs) if k.kf_id == self._newest_kf_id]] = np.inf
-            self.keyframes.remove(kfs[int(np.argmin(nearest))].kf_id)
+            dropped = kfs[int(np.argmin(nearest))].kf_id
+            self.keyframes.remove(dropped)
+            if self.exposure is not None:
+                self.exposure.remove(dropped)
             self.keyframes_dropped += 1
 
     def update_keyframe_pose(self, kf_id: int, T_wc: np.ndarray) -> bool:
@@ -316,15 +322,22 @@ class GaussianMapper:
             return None
         level = view.level
         out = self._rasterize(view.keyframe.T_wc, level.camera)
-        loss, terms = mapping_loss(out.color, level.image, self.gmap.log_scales, out.depth,
+        color, exposure_reg = out.color, None
+        if self.exposure is not None:
+            color, exposure_reg = self.exposure.apply(view.keyframe.kf_id, color)
+        loss, terms = mapping_loss(color, level.image, self.gmap.log_scales, out.depth,
                                    level.depth_m, ssim_lambda=cfg.ssim_lambda,
                                    iso_weight=cfg.iso_weight, depth_weight=cfg.depth_weight,
                                    mask=level.valid_mask)
+        if exposure_reg is not None:
+            loss = loss + exposure_reg
         loss.backward()
         grad2d = out.means2d.grad if out.means2d.grad is not None else None
         self.gmap.accumulate_stats(grad2d, out.visible, out.radii, level.camera.width, level.camera.height)
         self.gmap.update_learning_rate(self.iteration)
         self.gmap.optimizer_step()
+        if self.exposure is not None:
+            self.exposure.step()
         self.iteration += 1
         it = self.iteration
         if it % cfg.sh_up_interval == 0:
@@ -420,7 +433,7 @@ class GaussianMapper:
                 image.permute(1, 2, 0).contiguous().cpu().numpy(),
                 None if kf.depth_m is None else kf.depth_m.detach().cpu().numpy().astype(np.float32),
                 None if kf.valid_mask is None else kf.valid_mask.detach().cpu().numpy().astype(bool),
-                kf.camera))
+                kf.camera, None if self.exposure is None else self.exposure.get(kf.kf_id)))
         return MapperCheckpoint(gmap.to_records(), gmap.keyframe_ids.detach().cpu().numpy().astype(np.int64),
                                 gmap.created_iter.detach().cpu().numpy().astype(np.int64), tuple(kfs),
                                 int(self.iteration), int(gmap.next_id), int(gmap.active_sh_degree),
@@ -441,6 +454,8 @@ class GaussianMapper:
             mask = None if k.valid_mask is None else torch.from_numpy(k.valid_mask).to(dev)
             self.add_prepared_keyframe(make_keyframe(k.kf_id, k.stamp_ns, k.T_wc, image.contiguous(), depth,
                                                      k.camera, valid_mask=mask))
+            if self.exposure is not None and k.exposure is not None:
+                self.exposure.set(k.kf_id, k.exposure)
         gmap = self.gmap
         if len(ckpt.gaussians):
             gmap.load_records(ckpt.gaussians, iteration=0)

@@ -56,6 +56,11 @@ class MappingConfig:
     mask_invalid_pixels: bool = True
     # Initial opacity of keyframe seeds (3DGS: 0.1)
     seed_opacity: float = 0.1
+    # Per-keyframe affine colour correction trained with the map (core/exposure.py); renders
+    # for evaluation and the rendered-view topics never use it
+    exposure_compensation: bool = True
+    exposure_lr: float = 0.005
+    exposure_reg: float = 0.01  # weight of the pull towards identity (gain 1, bias 0)
     # Spherical harmonics
     max_sh_degree: int = 3
     sh_up_interval: int = 1000
@@ -100,7 +105,7 @@ class MappingConfig:
     def __post_init__(self) -> None:
         for name in ("lr_means", "lr_means_final", "lr_sh_dc", "lr_sh_rest", "lr_opacity",
                      "lr_scaling", "lr_rotation", "min_scene_extent", "split_scale_factor",
-                     "resolution_scale"):
+                     "resolution_scale", "exposure_lr"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"MappingConfig.{name} must be positive, got {v}")
@@ -108,7 +113,7 @@ class MappingConfig:
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"MappingConfig.{name} must be in [0, 1], got {getattr(self, name)}")
         for name in ("iso_weight", "depth_weight", "densify_grad_threshold", "percent_dense",
-                     "prune_opacity", "max_screen_size_px", "near_m", "max_model_mbytes"):
+                     "prune_opacity", "max_screen_size_px", "near_m", "max_model_mbytes", "exposure_reg"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"MappingConfig.{name} must be >= 0, got {v}")
