@@ -19,7 +19,7 @@ CAM_DIST = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0, (0.1, -0.05, 0.0, 0.0, 
 
 def _cfg() -> MappingConfig:
     return MappingConfig(min_keyframes=2, pyramid_uses_per_level=1, densify_start_iter=4, densify_interval=4,
-                         merge_enabled=False, sh_up_interval=5, max_sh_degree=1, seed=3)
+                         merge_enabled=False, sh_up_interval=5, max_sh_degree=1, seed=3, exposure_compensation=True)
 
 
 def _trained() -> GaussianMapper:

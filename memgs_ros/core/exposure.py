@@ -13,14 +13,13 @@ keyframe's gain shrinks). Only training sees the correction: renders for evaluat
 rendered-view topics are the map alone (the paper's protocol: nothing is fitted to the frames
 being scored).
 
-Each keyframe's six numbers have their own Adam moments (a shared tensor would keep moving
-rows whose keyframe was not drawn). ~100 B per keyframe.
+Each keyframe's six numbers have their own Adam moments (one Adam over the whole table would
+keep moving rows whose keyframe was not drawn), and after each step the corrections are
+re-centred on zero mean. ~100 B per keyframe.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import torch
 
 from memgs_ros.errors import DataError
@@ -29,21 +28,13 @@ ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-15  # as the Gaussians' optimiser
 
 
-@dataclass
-class _Affine:
-    """One keyframe's correction: params [2, 3] (row 0 gain offset a, row 1 bias b) and Adam state."""
-
-    params: torch.Tensor
-    exp_avg: torch.Tensor
-    exp_avg_sq: torch.Tensor
-    steps: int = 0
-
-
 class ExposureCompensation:
     """The per-keyframe affine corrections of one mapper (see module docstring).
 
     lr: Adam learning rate; reg_weight: weight of the pull towards identity. Not thread-safe
-    (the mapper's one training thread uses it).
+    (the mapper's one training thread uses it). The corrections live in one table
+    ([K, 2, 3]: row 0 gain offsets a, row 1 biases b) with per-row Adam moments, so a step moves
+    only the keyframe that was drawn, and re-centring all of them is one op.
     """
 
     def __init__(self, lr: float = 0.005, reg_weight: float = 0.01, device: torch.device | str = "cpu") -> None:
@@ -52,67 +43,99 @@ class ExposureCompensation:
         self.lr = float(lr)
         self.reg_weight = float(reg_weight)
         self.device = torch.device(device)
-        self._kfs: dict[int, _Affine] = {}
-        self._pending: _Affine | None = None  # applied since the last step()
+        self._rows: dict[int, int] = {}  # kf_id -> row of the tables
+        self._table = torch.zeros(0, 2, 3, device=self.device, requires_grad=True)
+        self._exp_avg = torch.zeros(0, 2, 3, device=self.device)
+        self._exp_avg_sq = torch.zeros(0, 2, 3, device=self.device)
+        self._steps: list[int] = []
+        self._pending: int | None = None  # row trained since the last step()
 
     def __len__(self) -> int:
-        return len(self._kfs)
+        return len(self._rows)
 
     def __contains__(self, kf_id: int) -> bool:
-        return kf_id in self._kfs
+        return kf_id in self._rows
 
-    def _get(self, kf_id: int) -> _Affine:
-        aff = self._kfs.get(kf_id)
-        if aff is None:
-            zeros = torch.zeros(2, 3, device=self.device)
-            aff = _Affine(zeros.clone().requires_grad_(True), zeros.clone(), zeros.clone())
-            self._kfs[kf_id] = aff
-        return aff
+    def _row(self, kf_id: int) -> int:
+        row = self._rows.get(kf_id)
+        if row is None:
+            row = len(self._rows)
+            self._rows[kf_id] = row
+            zero = torch.zeros(1, 2, 3, device=self.device)
+            with torch.no_grad():
+                self._table = torch.cat([self._table.detach(), zero]).requires_grad_(True)
+            self._exp_avg = torch.cat([self._exp_avg, zero])
+            self._exp_avg_sq = torch.cat([self._exp_avg_sq, zero])
+            self._steps.append(0)
+        return row
 
-    def apply(self, kf_id: int, color: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def apply(self, kf_id: int, color: torch.Tensor, train: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
         """Correct render ``color`` [3, H, W] of keyframe ``kf_id`` for training.
 
-        Returns (corrected colour [3, H, W], regularisation loss []); ``step`` after backward
-        updates this keyframe's correction.
+        Returns (corrected colour [3, H, W], regularisation loss []). ``train``: the correction
+        takes part in the backward pass and ``step`` updates it; otherwise it is applied as a
+        constant (the mapper trains it only on full-resolution views: on coarse, blurry levels
+        of a keyframe whose region the map has barely learned it would fit the map's misfit).
         """
-        aff = self._get(int(kf_id))
-        self._pending = aff
-        a, b = aff.params[0], aff.params[1]
-        corrected = color * (1.0 + a).view(3, 1, 1) + b.view(3, 1, 1)
-        reg = self.reg_weight * (aff.params * aff.params).sum()
+        row = self._row(int(kf_id))
+        params = self._table[row] if train else self._table[row].detach()
+        if train:
+            self._pending = row
+        corrected = color * (1.0 + params[0]).view(3, 1, 1) + params[1].view(3, 1, 1)
+        reg = self.reg_weight * (params * params).sum()
         return corrected, reg
 
     @torch.no_grad()
     def step(self) -> None:
-        """One Adam step of the correction used since the last call (nothing when none was)."""
-        aff, self._pending = self._pending, None
-        if aff is None or aff.params.grad is None:
+        """One Adam step of the correction trained since the last call (nothing when none was),
+        then re-centre all of them on zero mean: the map keeps the keyframes' average exposure
+        (without it the corrections drift together and the map, rendered alone, with them)."""
+        row, self._pending = self._pending, None
+        grad = self._table.grad
+        if row is None or grad is None:
             return
-        g = aff.params.grad
+        g = grad[row]
         b1, b2 = ADAM_BETAS
-        aff.steps += 1
-        aff.exp_avg.mul_(b1).add_(g, alpha=1 - b1)
-        aff.exp_avg_sq.mul_(b2).addcmul_(g, g, value=1 - b2)
-        step = self.lr / (1 - b1 ** aff.steps)
-        denom = (aff.exp_avg_sq / (1 - b2 ** aff.steps)).sqrt_().add_(ADAM_EPS)
-        aff.params.addcdiv_(aff.exp_avg, denom, value=-step)
-        aff.params.grad = None
+        self._steps[row] += 1
+        t = self._steps[row]
+        m, v = self._exp_avg[row], self._exp_avg_sq[row]
+        m.mul_(b1).add_(g, alpha=1 - b1)
+        v.mul_(b2).addcmul_(g, g, value=1 - b2)
+        denom = (v / (1 - b2 ** t)).sqrt_().add_(ADAM_EPS)
+        self._table[row].addcdiv_(m, denom, value=-self.lr / (1 - b1 ** t))
+        if len(self._rows) > 1:
+            self._table.sub_(self._table.mean(0, keepdim=True))
+        self._table.grad = None
 
     def remove(self, kf_id: int) -> None:
         """Forget keyframe ``kf_id``'s correction (it left training)."""
-        self._kfs.pop(int(kf_id), None)
+        row = self._rows.pop(int(kf_id), None)
+        if row is None:
+            return
+        keep = [r for r in range(self._table.shape[0]) if r != row]
+        idx = torch.tensor(keep, dtype=torch.long, device=self.device)
+        with torch.no_grad():
+            self._table = self._table.detach().index_select(0, idx).requires_grad_(True)
+        self._exp_avg = self._exp_avg.index_select(0, idx)
+        self._exp_avg_sq = self._exp_avg_sq.index_select(0, idx)
+        del self._steps[row]
+        self._rows = {k: (r if r < row else r - 1) for k, r in self._rows.items()}
+        if self._pending == row:
+            self._pending = None
+        elif self._pending is not None and self._pending > row:
+            self._pending -= 1
 
     def get(self, kf_id: int) -> tuple[float, ...]:
         """(a_r, a_g, a_b, b_r, b_g, b_b) of keyframe ``kf_id``; identity (zeros) when it has none."""
-        aff = self._kfs.get(int(kf_id))
-        if aff is None:
+        row = self._rows.get(int(kf_id))
+        if row is None:
             return (0.0,) * 6
-        return tuple(float(x) for x in aff.params.detach().reshape(-1).cpu())
+        return tuple(float(x) for x in self._table[row].detach().reshape(-1).cpu())
 
     def set(self, kf_id: int, values: tuple[float, ...]) -> None:
         """Restore a keyframe's correction (a checkpoint); its Adam moments restart at zero."""
         if len(values) != 6 or not all(math.isfinite(float(v)) for v in values):
             raise DataError(f"keyframe {kf_id}: exposure needs 6 finite numbers, got {values}")
-        aff = self._get(int(kf_id))
+        row = self._row(int(kf_id))
         with torch.no_grad():
-            aff.params.copy_(torch.tensor(values, dtype=aff.params.dtype).view(2, 3))
+            self._table[row] = torch.tensor(values, dtype=self._table.dtype).view(2, 3)

@@ -324,7 +324,7 @@ class GaussianMapper:
         out = self._rasterize(view.keyframe.T_wc, level.camera)
         color, exposure_reg = out.color, None
         if self.exposure is not None:
-            color, exposure_reg = self.exposure.apply(view.keyframe.kf_id, color)
+            color, exposure_reg = self.exposure.apply(view.keyframe.kf_id, color, train=level.factor == 1.0)
         loss, terms = mapping_loss(color, level.image, self.gmap.log_scales, out.depth,
                                    level.depth_m, ssim_lambda=cfg.ssim_lambda,
                                    iso_weight=cfg.iso_weight, depth_weight=cfg.depth_weight,
