@@ -55,7 +55,8 @@ from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.sources import open_source
 from memgs_ros.io.tum import read_trajectory
 from memgs_ros.orchestration.run_files import (
-    KEYFRAMES_FILE, LOGS_DIR, RunOptions, RunSummary, read_params, read_stats_timeline, read_summary,
+    KEYFRAMES_FILE, LOGS_DIR, ConfiguredCamera, RunOptions, RunSummary, configured_camera, read_params,
+    read_stats_timeline, read_summary,
 )
 
 logger = logging.getLogger(__name__)
@@ -256,16 +257,21 @@ def node_peak_rss_mb(timeline: Sequence[Mapping[str, Any]]) -> dict[str, float]:
 # ----------------------------------------------------------------------------- scoring
 
 
-def _ground_truth_images(source: str, max_frames: int, scale: float
+def _ground_truth_images(source: str, max_frames: int, scale: float,
+                         configured: ConfiguredCamera = ConfiguredCamera(None, False),
                          ) -> tuple[np.ndarray, list[np.ndarray], PinholeCamera, Any, np.ndarray | None]:
-    """Ground-truth images prepared as the mapper prepares its keyframes.
+    """Ground-truth images prepared as the mapper prepares its keyframes, with the camera the
+    run's tracker used: the configured calibration when it overrode camera_info, else the source's.
 
     Returns (stamps_ns [G], images G x [h, w, 3] uint8, render camera (pinhole, scaled),
     the source (for its ground-truth trajectory), valid-pixel mask [h, w] bool or None when the
     camera has no distortion).
     """
-    src = open_source(source, with_depth=False, max_frames=max_frames or None)
-    view = view_preparation(src.camera, scale)
+    src = open_source(source, with_depth=False, max_frames=max_frames or None, default_camera=configured.camera)
+    camera = src.camera
+    if configured.override and configured.camera is not None:
+        camera = configured.camera.fitted(camera.width, camera.height)
+    view = view_preparation(camera, scale)
     stamps: list[int] = []
     images: list[np.ndarray] = []
     for frame in src:
@@ -343,7 +349,8 @@ def evaluate_run(out_dir: str | os.PathLike[str], source: str | None = None, mod
     out = Path(out_dir).resolve()
     summary: RunSummary = read_summary(out)
     source = summary.source if source is None else str(source)
-    mapper_params = read_params(out).get("mapper", {})
+    run_params = read_params(out)
+    mapper_params = run_params.get("mapper", {})
     scale = float(mapper_params.get("mapping.resolution_scale", 1.0))
     background = tuple(float(v) for v in mapper_params.get("mapping.background", (0.0, 0.0, 0.0)))
     timeline = read_stats_timeline(out)
@@ -352,7 +359,8 @@ def evaluate_run(out_dir: str | os.PathLike[str], source: str | None = None, mod
         raise DataError(f"the run saved no map (ply path {summary.ply_path!r}); see {out / LOGS_DIR}")
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
-    gt_stamps, gt_images, camera, src, valid_mask = _ground_truth_images(source, int(max_frames), scale)
+    gt_stamps, gt_images, camera, src, valid_mask = _ground_truth_images(
+        source, int(max_frames), scale, configured_camera(run_params))
     traj_stamps, traj_poses = read_trajectory(summary.trajectory_path)
     kf_path = out / KEYFRAMES_FILE
     kf_stamps, kf_poses = (read_trajectory(kf_path) if kf_path.is_file()

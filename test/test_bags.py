@@ -78,6 +78,22 @@ def test_tum_folder_to_bag_to_frames(tmp_path, frames):
     assert_same_frames(frames, list(open_source(tmp_path / "conv.mcap")), depth_atol=0.5 / 5000 + 1e-6)
 
 
+def test_convert_writes_a_tum_layout_ros1_bag(tmp_path, frames, capsys):
+    """``memgs convert FOLDER X.bag``: TUM's ROS 1 layout, read back frame for frame."""
+    from memgs_ros.cli import main
+
+    folder = tmp_path / "tum"
+    write_tum_folder(frames, folder, depth_factor=5000.0)
+    out = tmp_path / "tum.bag"
+    assert main(["convert", str(folder), str(out), "--no-progress"]) == 0
+    assert out.read_bytes()[:13] == b"#ROSBAG V2.0\n"
+    src = open_source(out)
+    assert src.gt_source == "tf world -> openni_rgb_optical_frame"
+    assert_same_frames(frames, list(src), depth_atol=1e-4)
+    assert main(["convert", str(folder), str(tmp_path / "b.bag"), "--storage", "mcap", "--no-progress"]) == 2
+    assert "--storage is for ROS 2 bags" in capsys.readouterr().err
+
+
 def test_ros1_tum_layout_gives_composed_ground_truth(tmp_path, frames, caplog):
     # the static chain is not the identity, so an uncomposed /world -> /kinect would be wrong
     assert np.abs(chain_T_kinect_optical() - np.eye(4)).max() > 0.5

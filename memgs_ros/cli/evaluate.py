@@ -9,13 +9,16 @@ each in ``--out/<variant>``, and ``ablation.md`` / ``ablation.json`` put them si
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from memgs_ros.cli.run import check_inputs, guess_config
+from memgs_ros.cli.run import check_inputs, guess_config, run_log
 from memgs_ros.errors import ConfigError
+
+logger = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from memgs_ros.evaluation import EvalResult
@@ -83,8 +86,14 @@ def run(args: argparse.Namespace) -> int:
     source = str(args.source)
     config = args.config or guess_config(source)
     overrides = _overrides(args.set)
-    check_inputs(source, config, args.max_frames, overrides, args.out)  # before torch, rclpy or any node
+    warnings = check_inputs(source, config, args.max_frames, overrides, args.out)  # before torch, rclpy, nodes
+    with run_log(args.out):
+        for warning in warnings:
+            logger.warning(warning)
+        return _evaluate(args, source, config, overrides)
 
+
+def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dict[str, Any]) -> int:
     # Loaded here, not at the top: every subcommand module is imported to build the parser, and
     # these pull in torch and matplotlib (seconds), which `memgs --help` and `memgs run` never need.
     import matplotlib

@@ -3,13 +3,23 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import yaml
 
+from memgs_ros.core.camera import PinholeCamera, calibration_differences, describe_camera
 from memgs_ros.errors import ConfigError, DataError
-from memgs_ros.orchestration.run_files import RunOptions, RunSummary, build_params
+from memgs_ros.orchestration.run_files import (
+    LOGS_DIR, ConfiguredCamera, RunOptions, RunSummary, build_params, configured_camera, node_params,
+)
+
+logger = logging.getLogger(__name__)
+
+RUN_LOG = "memgs.log"  # the command's own log, beside the nodes' logs in OUT/logs
 
 HELP = "replay a bag, TUM folder or synthetic spec through tracker, sampler, mapper and merger"
 
@@ -76,15 +86,26 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
 
 
 def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict | None = None,
-                 out_dir: Path | None = None) -> None:
+                 out_dir: Path | None = None) -> list[str]:
     """Fail before any node starts, with one line naming the file: the config must load, the
     overrides name real nodes, the source must open (a bag is scanned whole, so a truncated or
-    corrupt one is found here rather than by the player in the middle of the run) and the output
-    folder must be creatable."""
-    from memgs_ros.io.sources import open_source  # opening a source loads the bag readers
+    corrupt one is found here rather than by the player in the middle of the run), a TUM folder's
+    camera must be known and the output folder must be creatable.
 
-    build_params(RunOptions(source=source, config=config, overrides=overrides or {}), Path("map.ply"))
-    open_source(source, max_frames=max_frames or None)
+    Returns the warnings to show before the run: the source's camera_info against the config's
+    calibration (:func:`calibration_warning`)."""
+    from memgs_ros.io.sources import open_source  # opening a source loads the bag readers
+    from memgs_ros.io.tum import CAMERA_JSON, TumFolder
+
+    params = node_params(build_params(RunOptions(source=source, config=config, overrides=overrides or {}),
+                                      Path("map.ply")))
+    configured = configured_camera(params)
+    src = open_source(source, max_frames=max_frames or None, default_camera=configured.camera)
+    if isinstance(src, TumFolder) and not src.camera_origin:
+        raise ConfigError(f"{src.name}: cannot tell the camera: no {CAMERA_JSON}, folder name has no "
+                          f"freiburg1/2/3 and the config ({config}) gives no calibration; pass --config tum_fr1 "
+                          f"(tum_fr2, tum_fr3) or write {CAMERA_JSON} (see README)")
+    warning = calibration_warning(str(source), src.camera, configured, config)
     if out_dir is not None:
         if Path(out_dir).exists() and not Path(out_dir).is_dir():
             raise DataError(f"output folder {out_dir}: exists and is not a folder")
@@ -92,6 +113,59 @@ def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict 
             Path(out_dir).mkdir(parents=True, exist_ok=True)
         except OSError as err:
             raise DataError(f"output folder {out_dir}: {err.strerror or err}") from err
+    return [warning] if warning else []
+
+
+def calibration_warning(source: str, source_camera: PinholeCamera, configured: ConfiguredCamera,
+                        config: str) -> str | None:
+    """One line when the source's camera_info departs from the config's calibration by more than
+    1 % (fx, fy, cx, cy) or in having distortion; None when they agree or the config has none.
+    ConfigError when the calibration replaces camera_info but cannot fit the source's images."""
+    calib = configured.camera
+    if calib is None:
+        return None
+    try:
+        fitted = calib.fitted(source_camera.width, source_camera.height)
+    except DataError as err:
+        if configured.override:
+            raise ConfigError(f"config {config}: its calibration cannot be used for {source}: {err}") from err
+        fitted = calib  # unused by the nodes; the comparison below names the size mismatch
+    diffs = calibration_differences(source_camera, calib)
+    if not diffs:
+        return None
+    rescaled = f" rescaled from {calib.width}x{calib.height}" if fitted is not calib else ""
+    action = ("the nodes use the config's (camera_info_override)" if configured.override else
+              "the nodes use the source's camera_info; --set tracker.camera_info_override=true uses the config's")
+    return (f"{source}: camera_info ({describe_camera(source_camera)}) differs from the calibration in config "
+            f"{config} ({describe_camera(fitted)}{rescaled}) by more than 1 %: {'; '.join(diffs)}; {action}")
+
+
+@contextmanager
+def run_log(out_dir: Path) -> Iterator[Path]:
+    """Copy this process's log records into ``OUT/logs/memgs.log`` while a run lasts, so what the
+    console said (warnings included) stays beside the nodes' logs."""
+    path = Path(out_dir) / LOGS_DIR / RUN_LOG
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(path, encoding="utf-8")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.addHandler(handler)
+    try:
+        yield path
+    finally:
+        root.removeHandler(handler)
+        handler.close()
+
+
+def player_error(out_dir: Path) -> str:
+    """The last error the bag player logged (its log's ERROR/FATAL line without the prefix), or ''."""
+    path = Path(out_dir) / LOGS_DIR / "bag_player.log"
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    errors = [line for line in lines if line.startswith(("[ERROR]", "[FATAL]"))]
+    return errors[-1].split("]: ", 1)[-1].strip() if errors else ""
 
 
 def print_summary(summary: RunSummary, json_path: Path | None) -> None:
@@ -118,11 +192,17 @@ def run(args: argparse.Namespace) -> int:
     from memgs_ros.orchestration.pipeline import run_pipeline
 
     options = options_from_args(args, args.bag)
-    check_inputs(options.source, options.config, options.max_frames, dict(options.overrides), options.out_dir)
-    summary = run_pipeline(options)
+    warnings = check_inputs(options.source, options.config, options.max_frames, dict(options.overrides),
+                            options.out_dir)
+    with run_log(options.out_dir):
+        for warning in warnings:
+            logger.warning(warning)
+        summary = run_pipeline(options)
     print_summary(summary, args.json)
     if not summary.source_complete:
-        print(f"memgs run: error: {options.source} failed part-way (see the bag_player log); the map and "
-              "trajectory above hold the frames played", file=sys.stderr)
+        cause = player_error(options.out_dir)
+        print(f"memgs run: error: {options.source} failed part-way{f': {cause}' if cause else ''} (see "
+              f"{Path(options.out_dir) / LOGS_DIR / 'bag_player.log'}); the map and trajectory above hold "
+              "the frames played", file=sys.stderr)
         return 1
     return 0

@@ -2,11 +2,12 @@
 distortion, and the TUM presets."""
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from memgs_ros.errors import DataError
+from memgs_ros.errors import ConfigError, DataError
 
 # plumb_bob: k1 k2 p1 p2 k3; rational_polynomial adds k4 k5 k6. Both are OpenCV's order, so
 # dist_coeffs goes to cv2 as it is.
@@ -75,6 +76,17 @@ class PinholeCamera:
             cy=(self.cy + 0.5) * sy - 0.5,
         )
 
+    def fitted(self, width: int, height: int) -> "PinholeCamera":
+        """This camera for images of ``width`` x ``height``: itself when the size matches, rescaled
+        when only the resolution differs (same aspect ratio within a pixel); DataError otherwise."""
+        if (width, height) == (self.width, self.height):
+            return self
+        f = width / self.width
+        if abs(height - self.height * f) > 1.0:
+            raise DataError(f"images are {width}x{height}, the camera is {self.width}x{self.height} "
+                            "with another aspect ratio")
+        return self.scaled(f)
+
     def undistorted(self) -> "PinholeCamera":
         """The same intrinsics with zero distortion (after undistorting the images)."""
         return replace(self, dist=(0.0, 0.0, 0.0, 0.0, 0.0))
@@ -94,6 +106,111 @@ class PinholeCamera:
         p = np.asarray(p_c, dtype=np.float64)
         z = p[:, 2]
         return self.fx * p[:, 0] / z + self.cx, self.fy * p[:, 1] / z + self.cy
+
+
+def calibration_differences(measured: PinholeCamera, reference: PinholeCamera,
+                            rel_tol: float = 0.01) -> list[str]:
+    """Where ``measured`` (a camera_info) departs from ``reference`` (a calibration) by more than
+    ``rel_tol`` in fx, fy, cx or cy, or where one has distortion and the other none; [] when
+    they agree. ``reference`` is first fitted to ``measured``'s image size, so a calibration of
+    the full-size sensor compares with a camera_info of scaled images."""
+    try:
+        ref = reference.fitted(measured.width, measured.height)
+    except DataError:
+        return [f"image size {measured.width}x{measured.height} vs {reference.width}x{reference.height}"]
+    out = []
+    for name in ("fx", "fy", "cx", "cy"):
+        m, r = float(getattr(measured, name)), float(getattr(ref, name))
+        if abs(m - r) > rel_tol * abs(r):
+            out.append(f"{name} {m:.1f} vs {r:.1f} ({(m - r) / abs(r) * 100:+.1f} %)")
+    if measured.has_distortion != ref.has_distortion:
+        out.append("distortion " + ("present vs none" if measured.has_distortion else "none vs present"))
+    return out
+
+
+def describe_camera(camera: PinholeCamera) -> str:
+    """One line for messages: 'fx 525.0, fy 525.0, cx 319.5, cy 239.5, no distortion (640x480)'."""
+    dist = (f"{camera.distortion_model} distortion" if camera.has_distortion else "no distortion")
+    return (f"fx {camera.fx:.1f}, fy {camera.fy:.1f}, cx {camera.cx:.1f}, cy {camera.cy:.1f}, {dist} "
+            f"({camera.width}x{camera.height})")
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    """A calibration given as parameters (``camera.<field>``), used instead of camera_info.
+
+    Every field 0 means no calibration is given. width and height are the image size the
+    intrinsics belong to: images of another size with the same aspect ratio get them rescaled.
+    Distortion is plumb_bob (k1 k2 p1 p2 k3), or rational_polynomial when k4..k6 are not all 0.
+    """
+
+    width: int = 0  # image width the intrinsics belong to, px (0: no calibration given)
+    height: int = 0  # image height the intrinsics belong to, px
+    fx: float = 0.0  # focal length x, px
+    fy: float = 0.0  # focal length y, px
+    cx: float = 0.0  # principal point x, px
+    cy: float = 0.0  # principal point y, px
+    k1: float = 0.0  # radial distortion (OpenCV order k1 k2 p1 p2 k3 k4 k5 k6)
+    k2: float = 0.0  # radial distortion
+    p1: float = 0.0  # tangential distortion
+    p2: float = 0.0  # tangential distortion
+    k3: float = 0.0  # radial distortion
+    k4: float = 0.0  # rational_polynomial numerator (0 for plumb_bob)
+    k5: float = 0.0  # rational_polynomial numerator (0 for plumb_bob)
+    k6: float = 0.0  # rational_polynomial numerator (0 for plumb_bob)
+
+    def __post_init__(self) -> None:
+        if not self.given:
+            if any(getattr(self, f.name) for f in fields(self)):
+                raise ConfigError("a camera calibration needs camera.width, height, fx, fy, cx and cy; "
+                                  f"only some are set ({self._set_names()})")
+            return
+        missing = [n for n in ("width", "height", "fx", "fy", "cx", "cy") if not getattr(self, n)]
+        if missing:
+            raise ConfigError(f"camera calibration: camera.{', camera.'.join(missing)} missing or 0")
+        try:
+            self.camera()
+        except DataError as err:
+            raise ConfigError(f"camera calibration: {err}") from err
+
+    @property
+    def given(self) -> bool:
+        """True when a calibration is set (fx > 0); all-zero fields mean none."""
+        return self.fx != 0.0
+
+    def _set_names(self) -> str:
+        return ", ".join(f.name for f in fields(self) if getattr(self, f.name))
+
+    def camera(self) -> PinholeCamera | None:
+        """The calibrated camera, or None when no calibration is given."""
+        if not self.given:
+            return None
+        dist = (self.k1, self.k2, self.p1, self.p2, self.k3)
+        if self.k4 or self.k5 or self.k6:
+            dist = (*dist, self.k4, self.k5, self.k6)
+        return PinholeCamera(int(self.width), int(self.height), float(self.fx), float(self.fy),
+                             float(self.cx), float(self.cy), tuple(float(d) for d in dist))
+
+    @classmethod
+    def from_camera(cls, camera: PinholeCamera) -> "CameraCalibration":
+        d = tuple(camera.dist) + (0.0,) * (8 - len(camera.dist))
+        return cls(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
+                   k1=d[0], k2=d[1], p1=d[2], p2=d[3], k3=d[4], k4=d[5], k5=d[6], k6=d[7])
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, object], prefix: str = "camera.") -> "CameraCalibration":
+        """From a node's parameter dict (``camera.fx`` ...); other keys are ignored. ConfigError
+        names a value that is not a number."""
+        values: dict[str, object] = {}
+        for f in fields(cls):
+            key = prefix + f.name
+            if key not in params:
+                continue
+            v = params[key]
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ConfigError(f"parameter '{key}' must be a number, got {v!r}")
+            values[f.name] = int(v) if f.type in (int, "int") else float(v)
+        return cls(**values)  # type: ignore[arg-type]
 
 
 # TUM RGB-D calibrations (reference section 6), 640x480.

@@ -98,11 +98,13 @@ def source_kind(spec: str | os.PathLike[str]) -> str:
 def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = None, max_dt_s: float = 0.02, *,
                 depth_factor: float | None = None, depth_scale: float = DEFAULT_DEPTH_SCALE,
                 topics: BagTopics = BagTopics(), with_depth: bool = True,
-                max_frames: int | None = None) -> FrameSource:
+                max_frames: int | None = None, default_camera: PinholeCamera | None = None) -> FrameSource:
     """Open any frame input (module docstring).
 
     camera: overrides the camera from the data (TUM name/camera.json, bag CameraInfo);
       not allowed for synthetic specs, whose camera the spec defines.
+    default_camera: the camera of a TUM folder that names none (no camera.json, no
+      freiburg1/2/3 in its name), e.g. a configured calibration; ignored by other sources.
     max_dt_s: colour/depth pairing tolerance. depth_factor: TUM PNG units per metre
       (default from the folder). depth_scale: 16UC1 bag depth units per metre.
     topics: bag topic/frame names. with_depth: False = colour only (monocular).
@@ -120,7 +122,7 @@ def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = Non
         return SyntheticSource(s, with_depth=with_depth)
     if kind == "tum":
         return TumFolder(spec, camera=camera, depth_factor=depth_factor, max_dt_s=max_dt_s, with_depth=with_depth,
-                         max_frames=max_frames)
+                         max_frames=max_frames, default_camera=default_camera)
     return BagSource(spec, topics=topics, camera=camera, max_dt_s=max_dt_s, depth_scale=depth_scale,
                      with_depth=with_depth, max_frames=max_frames)
 

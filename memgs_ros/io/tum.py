@@ -6,8 +6,10 @@ optical frame), '#' starts a comment. Depth PNGs are uint16, value / depth_facto
 0 = no measurement (kept as 0, which ``Frame`` treats as invalid).
 
 The camera comes from, in order: the ``camera`` argument, a ``camera.json`` beside the lists
-(written by ``memgs_ros.io.synthetic.write_tum_folder``), the folder name (``freiburg1/2/3``
--> ``TUM_CAMERAS``). The depth factor likewise: argument, camera.json, folder name, 5000.
+(written by ``memgs_ros.io.synthetic.write_tum_folder``; format in ``write_camera_json``), the
+folder name (``freiburg1/2/3`` -> ``TUM_CAMERAS``), the ``default_camera`` argument (a
+configured calibration). A camera of another resolution than the images is rescaled to them
+(same aspect ratio). The depth factor: argument, camera.json, folder name, 5000.
 """
 from __future__ import annotations
 
@@ -133,6 +135,10 @@ def camera_from_name(name: str) -> tuple[PinholeCamera, float] | None:
 
 
 def write_camera_json(path: Path, camera: PinholeCamera, depth_factor: float) -> None:
+    """``camera.json``: one JSON object with ``width``, ``height`` (px), ``fx``, ``fy``, ``cx``,
+    ``cy`` (px), ``dist`` (5 plumb_bob or 8 rational_polynomial coefficients, OpenCV order
+    k1 k2 p1 p2 k3 [k4 k5 k6]) and ``depth_factor`` (depth PNG units per metre; optional when
+    read, default 5000)."""
     data = {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
             "cx": camera.cx, "cy": camera.cy, "dist": list(camera.dist), "depth_factor": depth_factor}
     path.write_text(json.dumps(data, indent=1) + "\n")
@@ -187,7 +193,7 @@ class TumFolder:
 
     def __init__(self, path: str | Path, camera: PinholeCamera | None = None, depth_factor: float | None = None,
                  max_dt_s: float = 0.02, with_depth: bool = True, gt_max_gap_s: float = 0.1,
-                 max_frames: int | None = None) -> None:
+                 max_frames: int | None = None, default_camera: PinholeCamera | None = None) -> None:
         self.path = Path(path)
         if not self.path.is_dir():
             raise DataError(f"{self.path}: not a directory (expected a TUM RGB-D folder)")
@@ -199,7 +205,10 @@ class TumFolder:
         self.depth_factor = float(depth_factor if depth_factor is not None else guess[1] if guess else DEFAULT_DEPTH_FACTOR)
         if not self.depth_factor > 0:
             raise DataError(f"{self.path}: depth factor must be positive, got {self.depth_factor}")
-        self._camera = camera if camera is not None else guess[0] if guess else None
+        # Where the camera comes from ("" = nowhere: iterating raises DataError).
+        self.camera_origin = ("argument" if camera is not None else CAMERA_JSON if from_file
+                              else "folder name" if from_name else "default" if default_camera is not None else "")
+        self._camera = camera if camera is not None else guess[0] if guess else default_camera
         self._camera_checked = camera is not None
 
         rgb_stamps, rgb_names = read_file_list(self.path / "rgb.txt")
@@ -233,14 +242,12 @@ class TumFolder:
             img = load_rgb(self.path / self.entries[0].rgb_path)
             h, w = img.shape[:2]
             if self._camera is None:
-                raise DataError(f"{self.path}: cannot tell the camera (no camera.json, folder name has no "
-                                "freiburg1/2/3); pass a camera explicitly")
-            if (w, h) != (self._camera.width, self._camera.height):
-                f = w / self._camera.width
-                if abs(h - self._camera.height * f) > 1.0:
-                    raise DataError(f"{self.path}: images are {w}x{h}, the camera preset is "
-                                    f"{self._camera.width}x{self._camera.height} with another aspect ratio")
-                self._camera = self._camera.scaled(f)
+                raise DataError(f"{self.path}: cannot tell the camera: no {CAMERA_JSON}, folder name has no "
+                                "freiburg1/2/3 and no camera was given")
+            try:
+                self._camera = self._camera.fitted(w, h)
+            except DataError as err:
+                raise DataError(f"{self.path}: {err} ({self.camera_origin})") from err
             self._camera_checked = True
         assert self._camera is not None
         return self._camera

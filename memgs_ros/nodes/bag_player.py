@@ -17,6 +17,11 @@ Two pacings:
 When looping, each pass is shifted by the length of the sequence plus one frame period,
 so stamps downstream never go backwards.
 
+camera_info is the source's own (a bag's CameraInfo, a TUM folder's camera.json or
+freiburg1/2/3 name); the ``camera.*`` calibration parameters give the camera of a TUM folder
+that names none. Replacing a source's camera_info is the tracker's job (``camera_info_override``),
+so it happens once for every source, live cameras included.
+
     python -m memgs_ros.nodes.bag_player --ros-args -p source:=synthetic:w=64,h=48,n=20 -p lockstep:=true
 """
 from __future__ import annotations
@@ -37,6 +42,7 @@ from std_msgs.msg import Bool, Header
 from memgs_ros.core.frame import Frame
 from memgs_ros.errors import ConfigError, MemgsError
 from memgs_ros.ros import codecs, qos
+from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.params import ParamSpec, declare_all
 
@@ -86,12 +92,15 @@ class BagPlayer(Node):
     def __init__(self, frames: Iterable[Frame] | None = None, **node_kwargs: object) -> None:
         super().__init__("bag_player", **node_kwargs)
         self.cfg = PlayerConfig(**declare_all(self, PARAMS))
+        folder_camera = declare_calibration(self)  # for a TUM folder that names no camera
         if frames is None:
             if not self.cfg.source:
                 raise ConfigError("parameter 'source' is empty: give a TUM folder, bag or 'synthetic:...' spec")
             from memgs_ros.io.sources import open_source  # heavy readers only when replaying files
 
-            frames = open_source(self.cfg.source)
+            source = open_source(self.cfg.source, default_camera=folder_camera)
+            _ = source.camera  # a TUM folder with no camera fails here, before the first frame
+            frames = source
         self._source = frames
         self.finished: Future = Future()
         self.ok = True

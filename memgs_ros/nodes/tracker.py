@@ -21,6 +21,12 @@ Frame stamps (a frame is the colour image and its paired depth, stamped by the c
   broken sensor clock: dropped (``stamp_future``), so one bad stamp cannot block the frames after it.
 Every dropped frame is still answered on ``memgs/tracker/processed`` so a lockstep player goes on.
 Problems are counted on ``memgs/tracker/stats`` as ``problem.<kind>`` and logged once per kind.
+
+Calibration: the camera comes from the first valid camera_info, or, with ``camera_info_override``,
+from the ``camera.*`` parameters (fitted to the image size; camera_info is then only compared
+with it, one warning when they differ by more than 1 %). The tracker is the one entry point of
+the camera into the graph: sampler and mapper take the keyframe camera_info it republishes, so
+the override applies once, to every source.
 """
 from __future__ import annotations
 
@@ -35,12 +41,13 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header, String
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.camera import PinholeCamera, calibration_differences, describe_camera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.tracking import Tracker, TrackerConfig, TrackResult, make_tracker
-from memgs_ros.errors import DataError, MessageError
+from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb
 from memgs_ros.ros import qos
+from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.codecs import (
     append_to_path, camera_to_camera_info, depth_to_image, make_header, matrix_to_odometry, matrix_to_pose_stamped,
     numpy_to_image, stamp_to_ns, structured_to_pointcloud2,
@@ -87,6 +94,16 @@ class TrackerNode(Node):
             self, "max_stamp_ahead_s", 3600.0, "drop frames stamped more than this ahead of the node's clock "
             "(0 = no check)", range=(0.0, 1e9)))
         self.cfg: TrackerConfig = declare_config(self, TrackerConfig, "tracker")
+        override = declare(self, "camera_info_override", False,
+                           "use the camera.* calibration instead of camera_info (whose intrinsics and "
+                           "distortion are then ignored; TUM's bags carry placeholder ones)")
+        calibration = declare_calibration(self)
+        if override and calibration is None:
+            raise ConfigError("camera_info_override is true but no calibration is set: give camera.width, "
+                              "camera.height, camera.fx, camera.fy, camera.cx, camera.cy (and distortion)")
+        # The configured camera when it replaces camera_info, else None.
+        self.calibration: PinholeCamera | None = calibration if override else None
+        self._info_compared = False
         self.rgbd = self.cfg.mode == "rgbd"
 
         self.stats = NodeStats(self, "tracker")
@@ -136,14 +153,45 @@ class TrackerNode(Node):
         except MessageError as err:
             self.stats.problem("camera_info", f"camera_info refused: {err}")
             return
-        if self.camera is None:
-            self.camera = cam
-            self.tracker = make_tracker(self.cfg, cam)
-            self.get_logger().info(f"camera {cam.width}x{cam.height} fx={cam.fx:.1f} fy={cam.fy:.1f}")
+        if self.calibration is not None:
+            self._compare_camera_info(cam)
+        elif self.camera is None:
+            self._set_camera(cam, "camera_info")
             while self.waiting:
                 self._handle(*self.waiting.popleft())
         elif cam != self.camera:
             self.stats.problem("camera_changed", "camera_info changed after tracking started; keeping the first")
+
+    def _set_camera(self, cam: PinholeCamera, origin: str) -> None:
+        self.camera = cam
+        self.tracker = make_tracker(self.cfg, cam)
+        self.get_logger().info(f"camera from {origin}: {describe_camera(cam)}")
+
+    def _compare_camera_info(self, cam: PinholeCamera) -> None:
+        """Override mode: say once when camera_info disagrees with the configured calibration."""
+        if self._info_compared:
+            return
+        self._info_compared = True
+        assert self.calibration is not None
+        diffs = calibration_differences(cam, self.calibration)
+        if diffs:
+            self.stats.counters["camera_info_differs"] += 1
+            self.get_logger().warning(
+                f"camera_info on {self.resolve_topic_name(self.info_topic)} ({describe_camera(cam)}) differs "
+                f"from the configured calibration by more than 1 % ({'; '.join(diffs)}): using the "
+                "configured one (camera_info_override)")
+
+    def _calibrated_camera(self, color: Image) -> bool:
+        """Override mode, first frame: fit the configured camera to the image size. False (counted,
+        logged once) when the images have another aspect ratio than the calibration."""
+        assert self.calibration is not None
+        try:
+            cam = self.calibration.fitted(int(color.width), int(color.height))
+        except DataError as err:
+            self.stats.problem("camera_info", f"the configured calibration does not fit the images: {err}")
+            return False
+        self._set_camera(cam, "the configured calibration (camera_info_override)")
+        return True
 
     def on_color(self, msg: Image) -> None:
         if not self.rgbd:
@@ -170,6 +218,10 @@ class TrackerNode(Node):
             return None
 
     def _handle(self, color: Image, depth: Image | None) -> None:
+        if self.camera is None and self.calibration is not None and not self._calibrated_camera(color):
+            self.stats.counters["frames_in"] += 1
+            self._processed(stamp_to_ns(color.header.stamp), keyframe=False)
+            return
         if self.camera is None:
             if len(self.waiting) == self.waiting.maxlen:
                 self.stats.problem("no_camera_info", f"no valid camera_info on {self.info_topic} yet: "

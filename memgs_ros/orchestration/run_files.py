@@ -13,16 +13,17 @@ import sys
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import yaml
 
+from memgs_ros.core.camera import CameraCalibration, PinholeCamera
 from memgs_ros.errors import ConfigError, DataError
 
 __all__ = [
     "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE", "STATS_TIMELINE_FILE",
-    "SUMMARY_FILE", "TRAJECTORY_FILE", "RunOptions", "RunSummary", "build_params", "config_path",
-    "read_params", "read_stats_timeline", "read_summary",
+    "SUMMARY_FILE", "TRAJECTORY_FILE", "ConfiguredCamera", "RunOptions", "RunSummary", "build_params",
+    "config_path", "configured_camera", "node_params", "read_params", "read_stats_timeline", "read_summary",
 ]
 
 # The nodes a parameter override may name; the pipeline starts one module per name.
@@ -139,7 +140,45 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         if node not in NODE_NAMES or not name:
             raise ConfigError(f"override '{key}' must be <node>.<parameter> with node one of {sorted(NODE_NAMES)}")
         params.setdefault(node, {})[name] = value
+    try:
+        configured_camera(params)  # a half-given calibration fails here, naming the config
+    except ConfigError as err:
+        raise ConfigError(f"config {path}: {err}") from err
+    # The config's calibration (tracker section) is also the camera of a TUM folder that names
+    # none, which only the player can attach to the frames it publishes.
+    for name, value in params.get("tracker", {}).items():
+        if name.startswith(CALIBRATION_PREFIX):
+            params.setdefault("bag_player", {}).setdefault(name, value)
     return {f"/**/{node}": {"ros__parameters": p} for node, p in params.items()}
+
+
+CALIBRATION_PREFIX = "camera."  # tracker parameters camera.width ... camera.k6 (CameraCalibration)
+
+
+class ConfiguredCamera(NamedTuple):
+    """The calibration a run's parameters carry (tracker ``camera.*``)."""
+
+    camera: PinholeCamera | None  # None: the config gives no calibration
+    override: bool  # tracker.camera_info_override: the nodes use ``camera`` instead of camera_info
+
+
+def configured_camera(params: Mapping[str, Mapping[str, Any]]) -> ConfiguredCamera:
+    """The calibration in per-node parameters ({node: {param: value}}, as :func:`read_params` or
+    :func:`node_params` give them). ConfigError when it is given only in part or not numbers."""
+    tracker = params.get("tracker", {})
+    override = tracker.get("camera_info_override", False)
+    if not isinstance(override, bool):
+        raise ConfigError(f"tracker.camera_info_override must be true or false, got {override!r}")
+    camera = CameraCalibration.from_params(tracker, CALIBRATION_PREFIX).camera()
+    if override and camera is None:
+        raise ConfigError("tracker.camera_info_override is true but the tracker has no camera.* calibration")
+    return ConfiguredCamera(camera, override)
+
+
+def node_params(params_file: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """{node: {param: value}} of a parameter file's mapping (:func:`build_params`' result)."""
+    return {str(key).rsplit("/", 1)[-1]: dict((v or {}).get("ros__parameters", {}) or {})
+            for key, v in params_file.items()}
 
 
 def _load_config(path: Path) -> dict[Any, Any]:
@@ -181,7 +220,7 @@ def read_params(out_dir: str | os.PathLike[str]) -> dict[str, dict[str, Any]]:
     path = Path(out_dir) / PARAMS_FILE
     try:
         raw = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-        return {str(key).rsplit("/", 1)[-1]: dict((v or {}).get("ros__parameters", {})) for key, v in raw.items()}
+        return node_params(raw)
     except (OSError, yaml.YAMLError, AttributeError, TypeError, ValueError) as err:
         raise DataError(f"could not read the run's parameters {path}: {err}") from err
 

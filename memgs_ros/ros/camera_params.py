@@ -1,0 +1,25 @@
+"""The ``camera.*`` parameters: a calibration given in the config instead of camera_info.
+
+TUM's ROS 1 bags (and many drivers) publish a placeholder camera_info, so the configs carry the
+published calibration (:class:`memgs_ros.core.camera.CameraCalibration`). The tracker uses it in
+place of camera_info when ``camera_info_override`` is true; the bag player uses it as the camera of
+a TUM folder that names none.
+"""
+from __future__ import annotations
+
+from rclpy.node import Node
+
+from memgs_ros.core.camera import CameraCalibration, PinholeCamera
+from memgs_ros.ros.config_params import declare_config
+
+__all__ = ["CAMERA_PREFIX", "declare_calibration"]
+
+CAMERA_PREFIX = "camera"
+# Distortion coefficients take either sign; the intrinsics keep the default non-negative range.
+_RANGES = {name: (-1e6, 1e6) for name in ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")}
+
+
+def declare_calibration(node: Node) -> PinholeCamera | None:
+    """Declare ``camera.width`` ... ``camera.k6``; the configured camera, or None when none is set.
+    ConfigError (naming the parameters) when only part of a calibration is set."""
+    return declare_config(node, CameraCalibration, CAMERA_PREFIX, ranges=_RANGES).camera()
