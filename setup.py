@@ -34,6 +34,9 @@ setup(
         # Pinned range that the CPU wheel on these machines satisfies; users with CUDA
         # install their own torch first and pip keeps it.
         "torch>=2.1",
+        # The compiled CPU compositor and binning (rasterize's default on CPU); the package
+        # still works without it (pure torch compositor).
+        "numba>=0.60",
         "rosbags>=0.10",
         "mcap>=1.1",
         "tqdm>=4.60",

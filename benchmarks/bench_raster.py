@@ -1,4 +1,4 @@
-"""Benchmark: forward + backward of the torch rasterizer on a synthetic room scene.
+"""Benchmark: forward + backward of the CPU rasterizer on a synthetic room scene.
 
 Scene (deterministic, seed 0): the camera looks into a 4 m x 2.7 m room (back wall at z = 4 m,
 floor, ceiling, side walls) with three spheres between 1.8 m and 3 m. Gaussians are placed
@@ -10,7 +10,8 @@ logits ~ N(1.5, 1.5), SH degree 3 with small random higher bands. Scales do not 
 count, so 50k and 100k are 2.5x and 5x denser than 20k (about 20 Gaussians per pixel within
 3 sigma at 20k, 320x240). Loss: L1 to a fixed random target colour + 0.1 x L1 depth.
 
-Each count runs in its own subprocess (clean peak RSS); per count: ``--warmup`` untimed
+``--backend`` picks the CPU compositor as ``rasterize(backend=...)`` does (auto: the compiled
+numba one when numba imports, else torch). Each count runs in its own subprocess (clean peak RSS); per count: ``--warmup`` untimed
 iterations, then the median of ``--runs`` timed ones. Prints a table and writes JSON
 (default results/bench_raster.json).
 
@@ -129,7 +130,30 @@ def _rss_mb() -> tuple[float, float]:
     return cur, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def run_one(n: int, width: int, height: int, runs: int, warmup: int, threads: int, keep_heap: bool) -> dict:
+def resolve_backend(backend: str) -> str:
+    """The CPU compositor that rasterize(..., backend=backend) uses: "torch" or "numba"."""
+    from memgs_ros.core.raster.numba_backend import numba_available
+
+    if backend == "auto":
+        return "numba" if numba_available() else "torch"
+    return backend
+
+
+def _compositor(backend: str, threads: int | None):  # -> (composite function, tile size)
+    """The composite function and tile size rasterize() uses for ``backend`` on the CPU, pinned to
+    ``threads`` threads (None: its default)."""
+    from memgs_ros.core.raster.composite import composite
+    from memgs_ros.core.raster.numba_backend import NUMBA_TILE_SIZE, composite_numba
+    from memgs_ros.core.raster.tiles import TILE_SIZE
+
+    if resolve_backend(backend) == "numba":
+        return (lambda *a: composite_numba(*a, threads=threads)), NUMBA_TILE_SIZE
+    return (lambda *a: composite(*a, workers=threads)), TILE_SIZE
+
+
+def run_one(
+    n: int, width: int, height: int, runs: int, warmup: int, threads: int, keep_heap: bool, backend: str
+) -> dict:
     """Time forward/backward for one Gaussian count in this process; returns a result row."""
     import torch
 
@@ -138,6 +162,8 @@ def run_one(n: int, width: int, height: int, runs: int, warmup: int, threads: in
     from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
     from memgs_ros.core.raster.tiles import build_tile_plan
     from memgs_ros.core.runtime import configure_cpu_runtime
+
+    composite_fn, tile_size = _compositor(backend, None)
 
     rt = configure_cpu_runtime(torch_threads=threads, keep_heap=keep_heap)
     params, T_cw, cam = build_scene(n, width, height)
@@ -155,11 +181,12 @@ def run_one(n: int, width: int, height: int, runs: int, warmup: int, threads: in
         )
         coverage = float((9 * math.pi * det.sqrt())[on_img].sum()) / (width * height)
         plan = build_tile_plan(
-            proj.means2d, proj.cov2d, alpha_cutoff_sq(proj.opacities, MIN_ALPHA), proj.depths, proj.in_front, width, height
+            proj.means2d, proj.cov2d, alpha_cutoff_sq(proj.opacities, MIN_ALPHA), proj.depths, proj.in_front, width, height,
+            tile_size,
         )
         p = plan.tile_size ** 2
         pairs = plan.num_pairs * p
-        padded = sum(int(c.tiles.numel()) * p * c.k for c in plan.chunks)
+        padded = sum(int(c.tiles.numel()) * p * c.k for c in plan.chunks) if resolve_backend(backend) == "torch" else 0
 
     rss_before, _ = _rss_mb()
     fwd, bwd, tot, cpu = [], [], [], []
@@ -168,7 +195,7 @@ def run_one(n: int, width: int, height: int, runs: int, warmup: int, threads: in
             q.grad = None
         c0 = time.process_time()
         t0 = time.perf_counter()
-        out = rasterize(*params, T_cw, cam, 3, backend="torch")
+        out = rasterize(*params, T_cw, cam, 3, backend=backend)
         t1 = time.perf_counter()
         loss = (out.color - target).abs().mean() + 0.1 * (out.depth - target_depth).abs().mean()
         loss.backward()
@@ -180,8 +207,22 @@ def run_one(n: int, width: int, height: int, runs: int, warmup: int, threads: in
             bwd.append(t2 - t1)
             tot.append(t2 - t0)
     rss_after, peak = _rss_mb()
+
+    # The compositor alone (forward + backward, default threads): CPU ns per pixel-Gaussian pair.
+    proj = project_gaussians(*params, T_cw, cam, 3, 0.01)
+    inputs = [proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, torch.zeros(3)]
+    cot = [torch.rand(3, height, width, generator=g), torch.rand(height, width, generator=g), torch.rand(height, width, generator=g)]
+    comp = []
+    for it in range(warmup + runs):
+        c0 = time.process_time()
+        outs = composite_fn(*inputs, plan)
+        torch.autograd.grad(outs, inputs[:5], cot, retain_graph=True)
+        if it >= warmup:
+            comp.append(time.process_time() - c0)
     return {
         "gaussians": n,
+        "backend": resolve_backend(backend),
+        "tile_size": plan.tile_size,
         "width": width,
         "height": height,
         "torch_threads": rt.torch_threads,
@@ -195,6 +236,8 @@ def run_one(n: int, width: int, height: int, runs: int, warmup: int, threads: in
         "total_ms_median": 1e3 * statistics.median(tot),
         "total_ms_min": 1e3 * min(tot),
         "cpu_ms_median": 1e3 * statistics.median(cpu),
+        "composite_cpu_ms_median": 1e3 * statistics.median(comp),
+        "composite_ns_per_pair": 1e9 * statistics.median(comp) / max(pairs, 1),
         "total_ms_all": [round(1e3 * t, 1) for t in tot],
         "rss_mb_before_loop": round(rss_before, 1),
         "rss_mb_after_loop": round(rss_after, 1),
@@ -203,16 +246,17 @@ def run_one(n: int, width: int, height: int, runs: int, warmup: int, threads: in
     }
 
 
-def stage_breakdown(n: int, width: int, height: int, runs: int) -> dict[str, float]:
-    """CPU ms per stage (min over ``runs``), compositing on this thread only (workers = 1)."""
+def stage_breakdown(n: int, width: int, height: int, runs: int, backend: str) -> dict[str, float]:
+    """CPU ms per stage (min over ``runs``), compositing on this thread only (one thread)."""
     import torch
 
-    from memgs_ros.core.raster.composite import MIN_ALPHA, composite
+    from memgs_ros.core.raster.composite import MIN_ALPHA
     from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
     from memgs_ros.core.raster.tiles import build_tile_plan
     from memgs_ros.core.runtime import configure_cpu_runtime
 
     configure_cpu_runtime(torch_threads=1)
+    composite, tile_size = _compositor(backend, 1)
     params, T_cw, cam = build_scene(n, width, height)
     target = torch.rand(3, height, width, generator=torch.Generator().manual_seed(1))
     times: dict[str, list[float]] = {}
@@ -224,11 +268,11 @@ def stage_breakdown(n: int, width: int, height: int, runs: int) -> dict[str, flo
         proj.means2d.retain_grad()
         marks.append(("project", time.thread_time()))
         cut = alpha_cutoff_sq(proj.opacities.detach(), MIN_ALPHA)
-        plan = build_tile_plan(proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, width, height)
+        plan = build_tile_plan(proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, width, height, tile_size)
         marks.append(("bin", time.thread_time()))
         bg = torch.zeros(3)
         inputs = [proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths]
-        color, depth, _ = composite(*inputs, bg, plan, workers=1)
+        color, depth, _ = composite(*inputs, bg, plan)
         marks.append(("composite fwd", time.thread_time()))
         loss = (color - target).abs().mean() + 0.1 * depth.abs().mean()
         v_color, v_depth = torch.autograd.grad(loss, [color, depth], retain_graph=True)
@@ -250,6 +294,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads (1 = Python threads per chunk)")
+    ap.add_argument("--backend", choices=("auto", "torch", "numba"), default="auto",
+                    help="CPU compositor (auto: numba when importable)")
     ap.add_argument("--no-keep-heap", action="store_true", help="skip the mallopt tuning")
     ap.add_argument("--out", type=Path, default=Path("results/bench_raster.json"))
     ap.add_argument("--stages", action="store_true", help="also print a CPU-time breakdown per stage (one thread)")
@@ -257,7 +303,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     if args.worker is not None:
-        row = run_one(args.worker, args.width, args.height, args.runs, args.warmup, args.threads, not args.no_keep_heap)
+        row = run_one(
+            args.worker, args.width, args.height, args.runs, args.warmup, args.threads, not args.no_keep_heap, args.backend
+        )
         print(json.dumps(row))
         return 0
 
@@ -267,6 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         cmd = [
             sys.executable, __file__, "--worker", str(n), "--width", str(args.width), "--height", str(args.height),
             "--runs", str(args.runs), "--warmup", str(args.warmup), "--threads", str(args.threads),
+            "--backend", args.backend,
         ] + (["--no-keep-heap"] if args.no_keep_heap else [])
         res = subprocess.run(cmd, capture_output=True, text=True, check=False)
         if res.returncode != 0:
@@ -275,16 +324,26 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
     load_after = os.getloadavg()
 
-    head = f"{'N':>7} {'cover/px':>8} {'pairs/px':>8} {'fwd ms':>8} {'bwd ms':>8} {'total ms':>9} {'min ms':>7} {'cpu ms':>7} {'peak RSS MB':>11} {'saved MB':>8}"
-    print(f"rasterizer fwd+bwd, {args.width}x{args.height}, torch threads {args.threads}, median of {args.runs}")
+    head = f"{'N':>7} {'cover/px':>8} {'pairs/px':>8} {'ns/pair':>7} {'fwd ms':>8} {'bwd ms':>8} {'total ms':>9} {'min ms':>7} {'cpu ms':>7} {'peak RSS MB':>11} {'saved MB':>8}"
+    backend = resolve_backend(args.backend)
+    tile = rows[0]["tile_size"] if rows else "-"
+    print(
+        f"rasterizer fwd+bwd, {args.width}x{args.height}, compositor {backend} ({tile} px tiles), "
+        f"torch threads {args.threads}, median of {args.runs}"
+    )
     print(head)
     for r in rows:
         print(
-            f"{r['gaussians']:>7} {r['coverage_3sigma_per_px']:>8} {r['pixel_pairs_per_px']:>8} {r['fwd_ms_median']:>8.1f}"
+            f"{r['gaussians']:>7} {r['coverage_3sigma_per_px']:>8} {r['pixel_pairs_per_px']:>8}"
+            f" {r['composite_ns_per_pair']:>7.2f} {r['fwd_ms_median']:>8.1f}"
             f" {r['bwd_ms_median']:>8.1f} {r['total_ms_median']:>9.1f} {r['total_ms_min']:>7.1f} {r['cpu_ms_median']:>7.1f} {r['peak_rss_mb']:>11.1f}"
             f" {r['saved_pair_mb']:>8.1f}"
         )
     print("cpu ms = process CPU time (all threads) per iteration: what the work costs regardless of load")
+    print(
+        "pairs/px = pixel-Gaussian pairs of the tile plan per pixel (tile pairs x tile pixels); ns/pair = CPU ns "
+        "of the compositor alone (forward + backward) per such pair"
+    )
     print(f"load average before {load_before[0]:.2f}, after {load_after[0]:.2f} (1 min), cpus {os.cpu_count()}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(
@@ -292,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     if args.stages:
         print(f"CPU ms per stage, one thread, min of {args.runs} (N = {args.counts[0]}):")
-        stages = stage_breakdown(args.counts[0], args.width, args.height, args.runs)
+        stages = stage_breakdown(args.counts[0], args.width, args.height, args.runs, args.backend)
         for name, ms in stages.items():
             print(f"  {name:14s} {ms:7.1f}")
         print(f"  {'total':14s} {sum(stages.values()):7.1f}")

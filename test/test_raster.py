@@ -72,8 +72,10 @@ CAM_OFFCENTRE = PinholeCamera(48, 40, 45.0, 40.0, 12.0, 31.0)
 CAM_32 = PinholeCamera(32, 24, 30.0, 30.0, 15.5, 11.5)
 
 
-def _compare(params, T_cw, cam, deg, background=None, atol_fwd=1e-10, rtol_grad=1e-8, seed=7) -> RenderOutput:
-    out = rasterize(*params, T_cw, cam, deg, background=background, backend="torch")
+def _compare(
+    params, T_cw, cam, deg, background=None, atol_fwd=1e-10, rtol_grad=1e-8, seed=7, backend="torch"
+) -> RenderOutput:
+    out = rasterize(*params, T_cw, cam, deg, background=background, backend=backend)
     ref = _rasterize_reference(*params, T_cw, cam, deg, background=background)
     for name in ("color", "depth", "alpha"):
         a, b = getattr(out, name), getattr(ref, name)
@@ -349,7 +351,7 @@ def test_gsplat_backend_refused_without_gsplat() -> None:
     params, T = _scene(5, 161)
     with pytest.raises(ConfigError, match="gsplat package is not installed"):
         rasterize(*params, T, CAM_32, 1, backend="gsplat")
-    # "auto" on CPU falls back to the torch backend.
+    # "auto" on CPU falls back to a CPU compositor.
     assert rasterize(*params, T, CAM_32, 1, backend="auto").color.shape == (3, 24, 32)
 
 
@@ -372,3 +374,160 @@ def test_opaque_front_gaussian_terminates() -> None:
     g = torch.autograd.grad(out.color.sum(), dc)[0]
     assert g[-1].abs().max() == 0  # the hidden Gaussian gets no gradient
     assert out.alpha.min() > 0.998
+
+
+# ------------------------------------------------------------------ numba compositor
+def _numba() -> None:
+    pytest.importorskip("numba")
+    from memgs_ros.core.raster.numba_backend import numba_available
+
+    if not numba_available():
+        pytest.skip("numba is disabled here (MEMGS_DISABLE_NUMBA)")
+
+
+def _opaque_stack(dtype: torch.dtype = torch.float64) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """Three layers of near-opaque Gaussians (opacity 0.9997: alpha clamps at 0.99) over one hidden
+    Gaussian: nearly every pixel terminates early."""
+    ys, xs = torch.meshgrid(
+        torch.linspace(-1.0, 1.0, 6, dtype=dtype), torch.linspace(-1.3, 1.3, 7, dtype=dtype), indexing="ij"
+    )
+    layer = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)
+    wall = torch.cat([torch.cat([layer, torch.full((42, 1), z, dtype=dtype)], -1) for z in (2.0, 2.1, 2.2)])
+    means = torch.cat([wall, torch.tensor([[0.0, 0.0, 3.0]], dtype=dtype)])
+    n = means.shape[0]
+    g = torch.Generator().manual_seed(0)
+    quats = torch.tensor([[1.0, 0, 0, 0]], dtype=dtype).repeat(n, 1) + 0.1 * torch.randn(n, 4, generator=g, dtype=dtype)
+    log_scales = torch.full((n, 3), math.log(0.3), dtype=dtype) + 0.2 * torch.randn(n, 3, generator=g, dtype=dtype)
+    opac = torch.full((n, 1), 8.0, dtype=dtype)
+    dc = torch.randn(n, 1, 3, dtype=dtype, generator=g)
+    rest = 0.3 * torch.randn(n, 3, 3, dtype=dtype, generator=g)
+    params = [p.requires_grad_() for p in (means, quats, log_scales, opac, dc, rest)]
+    return params, torch.eye(4, dtype=dtype)
+
+
+@pytest.mark.parametrize(
+    "n,cam,deg,seed",
+    [(5, CAM_32, 0, 1), (200, CAM_64, 3, 3), (120, CAM_OFFCENTRE, 2, 4)],
+)
+def test_numba_matches_reference_float64(n: int, cam: PinholeCamera, deg: int, seed: int) -> None:
+    _numba()
+    params, T = _scene(n, seed, sh_deg_max=3)
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    out = _compare(params, T, cam, deg, background=bg, backend="numba")
+    assert out.alpha.max() > 0.5
+
+
+def test_numba_matches_reference_opaque_stack() -> None:
+    """Early termination everywhere, alpha clamped at 0.99, a hidden Gaussian without gradient."""
+    _numba()
+    params, T = _opaque_stack()
+    out = _compare(params, T, CAM_32, 1, background=torch.tensor([0.3, 0.1, 0.7], dtype=torch.float64), backend="numba")
+    assert out.alpha.min() > 0.998
+    assert torch.autograd.grad(out.color.sum(), params[4])[0][-1].abs().max() == 0
+
+
+def test_numba_matches_reference_float32() -> None:
+    _numba()
+    params, T = _scene(150, 11, dtype=torch.float32, sh_deg_max=2)
+    _compare(params, T, CAM_64, 2, atol_fwd=1e-4, rtol_grad=1e-3, backend="numba")
+
+
+def test_numba_offscreen_large_and_odd_sizes() -> None:
+    _numba()
+    params, T = _scene(150, 21, spread=3.0, depth=2.0)
+    with torch.no_grad():
+        params[2][:20] += 1.5
+    _compare(params, T, CAM_OFFCENTRE, 1, backend="numba")
+    cam = PinholeCamera(33, 17, 30.0, 30.0, 16.2, 8.7)
+    params, T = _scene(40, 204)
+    _compare(params, T, cam, 1, backend="numba")
+
+
+@pytest.mark.parametrize("scene", ["random", "opaque"])
+@pytest.mark.parametrize("tile", [4, 16])
+def test_numba_compositor_matches_torch_compositor(scene: str, tile: int) -> None:
+    """Same plan, both compositors: every output and the gradient of every input, background included."""
+    _numba()
+    from memgs_ros.core.raster.numba_backend import composite_numba
+
+    params, T = _scene(150, 301) if scene == "random" else _opaque_stack()
+    cam = CAM_64 if scene == "random" else CAM_32
+    proj = project_gaussians(*params, T, cam, 1, 0.01)
+    cut = alpha_cutoff_sq(proj.opacities.detach(), MIN_ALPHA)
+    plan = build_tile_plan(proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, cam.width, cam.height, tile)
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64, requires_grad=True)
+    inputs = (proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, bg)
+    g = torch.Generator().manual_seed(5)
+    results = []
+    for fn in (composite_numba, composite):
+        outs = fn(*inputs, plan)
+        cot = [torch.randn(o.shape, generator=g, dtype=o.dtype) for o in outs]
+        g.manual_seed(5)
+        results.append((outs, torch.autograd.grad(outs, inputs, cot, retain_graph=True)))
+    (fast, v_fast), (ref, v_ref) = results
+    for a, b in zip(fast, ref):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+    for name, a, b in zip(("means2d", "conics", "opacities", "colors", "depths", "background"), v_fast, v_ref):
+        scale = max(1.0, b.abs().max().item())
+        assert (a - b).abs().max().item() <= 1e-10 * scale, name
+
+
+def test_numba_threads_and_binning_are_deterministic(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Binning gives the torch expansion's plan exactly; results do not depend on the thread count."""
+    _numba()
+    import memgs_ros.core.raster.tiles as tiles_mod
+    from memgs_ros.core.raster.numba_backend import composite_numba
+
+    params, T = _scene(300, 311, spread=2.0)
+    proj = project_gaussians(*params, T, CAM_64, 1, 0.01)
+    cut = alpha_cutoff_sq(proj.opacities.detach(), MIN_ALPHA)
+    args = (proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, 64, 48)
+    for tile in (4, 16):
+        plan = build_tile_plan(*args, tile)
+        with monkeypatch.context() as m:
+            m.setattr(tiles_mod, "_numba_binning", lambda device: False)
+            plan_torch = build_tile_plan(*args, tile)
+        assert plan.num_pairs > 0
+        for field in ("pair_gid", "pair_tile", "tile_start", "tile_count", "gaussian_hit"):
+            assert torch.equal(getattr(plan, field), getattr(plan_torch, field)), field
+    inputs = (proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
+    bg = torch.zeros(3, dtype=torch.float64)
+    results = []
+    for threads in (1, 3):
+        color, depth, alpha = composite_numba(*inputs, bg, plan, threads=threads)
+        loss = (color * color).sum() + depth.sum() + alpha.sum()
+        results.append((color, depth, alpha) + torch.autograd.grad(loss, inputs, retain_graph=True))
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
+
+
+def test_numba_edge_cases() -> None:
+    _numba()
+    params, T = _scene(0, 1)
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    out = rasterize(*params, T, CAM_32, 1, background=bg, backend="numba")
+    assert torch.allclose(out.color, bg[:, None, None].expand(3, 24, 32))
+    assert (out.alpha == 0).all() and torch.autograd.grad(out.color.sum(), params[0])[0].shape == (0, 3)
+    params, T = _scene(30, 81, depth=-3.0)
+    out = rasterize(*params, T, CAM_32, 1, backend="numba")
+    assert (out.color == 0).all() and not out.visible.any()
+    params, T = _scene(60, 151)
+    with torch.no_grad():
+        no_grad = rasterize(*params, T, CAM_64, 1, backend="numba")
+    with_grad = rasterize(*params, T, CAM_64, 1, backend="numba")
+    for name in ("color", "depth", "alpha"):
+        assert torch.equal(getattr(with_grad, name).detach(), getattr(no_grad, name))
+
+
+def test_backend_selection_without_numba(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without numba, "auto" renders with the torch compositor and "numba" is refused by name."""
+    import memgs_ros.core.raster as raster_mod
+    from memgs_ros.errors import ConfigError
+
+    params, T = _scene(20, 321)
+    monkeypatch.setattr(raster_mod, "numba_available", lambda: False)
+    auto = rasterize(*params, T, CAM_32, 1)
+    torch_out = rasterize(*params, T, CAM_32, 1, backend="torch")
+    assert torch.equal(auto.color, torch_out.color)
+    with pytest.raises(ConfigError, match="backend 'numba' was asked for but numba is not importable"):
+        rasterize(*params, T, CAM_32, 1, backend="numba")

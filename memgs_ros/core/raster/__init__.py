@@ -22,13 +22,14 @@ from memgs_ros.errors import ConfigError
 from memgs_ros.core.raster.composite import MIN_ALPHA
 from memgs_ros.core.raster.composite import composite as _composite  # keep the submodule name free
 from memgs_ros.core.raster.gsplat_backend import gsplat_available, rasterize_gsplat
+from memgs_ros.core.raster.numba_backend import NUMBA_TILE_SIZE, composite_numba, numba_available
 from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians, screen_radii
 from memgs_ros.core.raster.reference import _rasterize_reference
-from memgs_ros.core.raster.tiles import build_tile_plan
+from memgs_ros.core.raster.tiles import TILE_SIZE, build_tile_plan
 
 __all__ = ["RenderOutput", "rasterize", "_rasterize_reference"]
 
-BACKENDS = ("auto", "torch", "gsplat")
+BACKENDS = ("auto", "torch", "numba", "gsplat")
 
 
 @dataclass(frozen=True)
@@ -109,7 +110,10 @@ def rasterize(
     opacity_logits: [N, 1]; sh_dc: [N, 1, 3]; sh_rest: [N, K, 3], K = (deg_max + 1)^2 - 1
     (may be 0); T_cw: [4, 4] world-to-camera; sh_degree: active degree (bands above it are
     ignored); background: [3] (black when None); near: camera-z culling plane in metres;
-    backend: "torch", "gsplat", or "auto" (gsplat when importable and the tensors are on CUDA).
+    backend: "auto" (gsplat when importable and the tensors are on CUDA, else numba when
+    importable and they are on the CPU, else torch), "torch" (the pure torch compositor),
+    "numba" (the compiled per-pixel CPU compositor) or "gsplat". The environment variable
+    MEMGS_DISABLE_NUMBA=1 makes numba count as not importable.
 
     Returns a :class:`RenderOutput` (color [3, H, W], depth [H, W], alpha [H, W], means2d [N, 2],
     radii [N], visible [N]). Differentiable w.r.t. means, quats, log_scales, opacity_logits,
@@ -127,6 +131,11 @@ def rasterize(
             means, quats_wxyz, log_scales, opacity_logits, sh_dc, sh_rest, T_cw, camera, sh_degree, background, near
         )
 
+    use_numba = backend == "numba" or (backend == "auto" and not means.is_cuda and numba_available())
+    if backend == "numba" and (means.is_cuda or not numba_available()):
+        why = "the tensors are on CUDA" if means.is_cuda else "numba is not importable (or MEMGS_DISABLE_NUMBA is set)"
+        raise ConfigError(f"rasterize: backend 'numba' was asked for but {why}")
+
     proj = project_gaussians(
         means, quats_wxyz, log_scales, opacity_logits, sh_dc, sh_rest, T_cw, camera, sh_degree, near
     )
@@ -140,10 +149,12 @@ def rasterize(
         proj.in_front,
         camera.width,
         camera.height,
+        NUMBA_TILE_SIZE if use_numba else TILE_SIZE,
     )
     if background is None:
         background = torch.zeros(3, dtype=means.dtype, device=means.device)
-    color, depth, alpha = _composite(
+    composite_fn = composite_numba if use_numba else _composite
+    color, depth, alpha = composite_fn(
         proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, background, plan
     )
     visible = plan.gaussian_hit
