@@ -589,9 +589,9 @@ def merge_pass(gmap: "GaussianMap", cfg: MergeConfig, newest_keyframe_id: int, i
         remove[mi] = True
         remove[mj] = True
         pair_ids = torch.stack([gmap.ids[mi], gmap.ids[mj]], 1).reshape(-1)  # [2P'] older, newer
-        gmap.remove(remove)
         added = gmap.add(new_rows["means"], new_rows["log_scales"], new_rows["quats_wxyz"],
-                         new_rows["opacity_logits"], new_rows["sh_dc"], new_rows["sh_rest"], kf, iteration)
+                         new_rows["opacity_logits"], new_rows["sh_dc"], new_rows["sh_rest"], kf, iteration,
+                         remove=remove)
         lap("surgery", t)
     timings["total"] = time.perf_counter() - t0
     return MergeResult(pair_ids, added, int(cand.shape[0]), pairs.n_voxels, int(d2.shape[0]), n_merged,
