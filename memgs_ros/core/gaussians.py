@@ -492,12 +492,15 @@ class GaussianMap:
         """Adam step, then mark every row the step moved as dirty, then drop gradients.
 
         A row moves iff its first moment is non-zero in any parameter (Adam's update is
-        lr * m_hat / (sqrt(v_hat) + eps)), which also covers rows carried by momentum.
+        lr * m_hat / (sqrt(v_hat) + eps)), which also covers rows carried by momentum. Only
+        means, opacity and SH DC are checked (0.4 ms instead of 4 ms at 31k rows): a Gaussian
+        gets an SH-rest gradient only with a colour weight, which gives SH DC one, and a
+        scale or rotation gradient only through its alpha, which gives opacity one.
         """
         self.optimizer.step()
         with torch.no_grad():
             moved = torch.zeros(len(self), dtype=torch.bool, device=self.device)
-            for p in self.params().values():
+            for p in (self.means, self.opacity_logits, self.sh_dc):
                 state = self.optimizer.state.get(p)
                 if state and "exp_avg" in state:
                     moved |= state["exp_avg"].reshape(len(self), -1).ne(0).any(dim=1)
