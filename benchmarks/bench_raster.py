@@ -257,6 +257,11 @@ def stage_breakdown(n: int, width: int, height: int, runs: int, backend: str) ->
 
     configure_cpu_runtime(torch_threads=1)
     composite, tile_size = _compositor(backend, 1)
+    if resolve_backend(backend) == "numba":  # rasterize() projects with the compiled twin then
+        from memgs_ros.core.raster.projection_numba import project_gaussians_numba
+
+        def project_gaussians(*a):  # noqa: F811
+            return project_gaussians_numba(*a, threads=1)
     params, T_cw, cam = build_scene(n, width, height)
     target = torch.rand(3, height, width, generator=torch.Generator().manual_seed(1))
     times: dict[str, list[float]] = {}

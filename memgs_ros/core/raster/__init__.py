@@ -4,7 +4,9 @@
 users without gsplat): projection and SH are plain autograd (O(N)); compositing is a custom
 autograd Function over small tiles (:mod:`.composite`) whose memory is 8 B per pixel-Gaussian
 pair. ``_rasterize_reference`` (:mod:`.reference`) is its brute-force twin for tests; gsplat
-(:mod:`.gsplat_backend`) is an optional CUDA backend behind the same signature.
+(:mod:`.gsplat_backend`) is an optional CUDA backend behind the same signature. With the
+numba compositor, projection and SH run compiled as well (:mod:`.projection_numba`, twin of
+:func:`.projection.project_gaussians`).
 
 On a small shared CPU call :func:`memgs_ros.core.runtime.configure_cpu_runtime` once from the
 entry point: it keeps freed memory in the heap and sets torch to one intra-op thread, which
@@ -24,6 +26,7 @@ from memgs_ros.core.raster.composite import composite as _composite  # keep the 
 from memgs_ros.core.raster.gsplat_backend import gsplat_available, rasterize_gsplat
 from memgs_ros.core.raster.numba_backend import NUMBA_TILE_SIZE, composite_numba, numba_available
 from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians, screen_radii
+from memgs_ros.core.raster.projection_numba import project_gaussians_numba
 from memgs_ros.core.raster.reference import _rasterize_reference
 from memgs_ros.core.raster.tiles import TILE_SIZE, build_tile_plan
 
@@ -136,7 +139,9 @@ def rasterize(
         why = "the tensors are on CUDA" if means.is_cuda else "numba is not importable (or MEMGS_DISABLE_NUMBA is set)"
         raise ConfigError(f"rasterize: backend 'numba' was asked for but {why}")
 
-    proj = project_gaussians(
+    # The compiled projection goes with the compiled compositor (same CPU, same dependency).
+    project_fn = project_gaussians_numba if use_numba else project_gaussians
+    proj = project_fn(
         means, quats_wxyz, log_scales, opacity_logits, sh_dc, sh_rest, T_cw, camera, sh_degree, near
     )
     if proj.means2d.requires_grad:
