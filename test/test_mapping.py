@@ -144,8 +144,35 @@ def test_keyframe_pyramid_levels() -> None:
     kf = _kf(0)
     assert [lv.factor for lv in kf.levels] == [0.125, 0.25, 0.5, 1.0]
     assert [tuple(lv.image.shape) for lv in kf.levels] == [(3, 6, 8), (3, 12, 16), (3, 24, 32), (3, 48, 64)]
-    assert kf.levels[0].camera.width == 8 and kf.levels[-1].image is kf.image
+    assert kf.levels[0].camera.width == 8 and torch.equal(kf.levels[-1].image, kf.image)
     assert tuple(kf.levels[1].depth_m.shape) == (12, 16)
+
+
+def test_keyframe_storage_is_compact_and_exact() -> None:
+    # Colour is kept as uint8 (what it came from), depth as float16, the pyramid made per draw:
+    # the levels equal those of the float32 image, and 320x240 costs < 0.5 MB (issue: 1.5 MB).
+    h, w = 240, 320
+    cam = PinholeCamera(w, h, 260.0, 260.0, w / 2, h / 2)
+    rgb = torch.randint(0, 256, (3, h, w), dtype=torch.uint8)
+    depth = torch.rand(h, w) * 4.0 + 0.5
+    depth[:10] = float("nan")
+    mask = torch.ones(h, w, dtype=torch.bool)
+    mask[:, :3] = False
+    kf = make_keyframe(0, 0, np.eye(4), rgb, depth, cam, valid_mask=mask)
+    assert kf.rgb.dtype == torch.uint8 and kf.depth_half.dtype == torch.float16
+    assert kf.nbytes == 3 * h * w + 2 * h * w + h * w <= 1.5e6
+    image = rgb.float() / 255.0
+    assert torch.equal(kf.image, image)
+    d = kf.depth_m
+    assert float(d[:10].abs().max()) == 0.0  # invalid depth is stored as 0
+    assert torch.allclose(d[10:], depth[10:], rtol=1e-3)  # float16: 11 significant bits
+    lv = kf.level(1)
+    ref = torch.nn.functional.interpolate(image[None], size=(60, 80), mode="area")[0]
+    assert torch.equal(lv.image, ref) and lv.valid_mask is not None and not bool(lv.valid_mask[:, 0].any())
+    assert kf.level(kf.n_levels - 1).camera == cam
+    # A float image in [0, 1] is stored rounded to uint8.
+    kf2 = make_keyframe(1, 0, np.eye(4), image, None, cam)
+    assert torch.equal(kf2.rgb, rgb) and kf2.depth_m is None
     with pytest.raises(DataError, match="image must be"):
         make_keyframe(1, 0, np.eye(4), torch.rand(3, 10, 10), None, kf.camera)
 

@@ -212,3 +212,31 @@ def test_zero_budget_and_unbinding_budget_change_nothing(frames: list[Frame]) ->
     for name, p in a.gmap.params().items():
         assert torch.equal(p, b.gmap.params()[name]), name
     assert torch.equal(a.gmap.ids, b.gmap.ids)
+
+
+def test_mapper_memory_cap_drops_keyframes_then_shrinks_the_map() -> None:
+    # 8 keyframes at 64x48 (9.2 KB each as uint8 colour + float16 depth) and their seeds. The cap
+    # is set between "every keyframe and a smaller map" and the unbounded account, so the
+    # mapper drops redundant keyframes first (down to min_keyframes) and then holds the map
+    # below what is left; the accounted total stays under the cap after every insert and step.
+    many = list(generate_frames(parse_spec("synthetic:w=64,h=48,n=40,seed=1")))[::5]
+    base = {**GROWING, "min_keyframes": 3}
+    free = _mapper(many, **base)
+    acc = free.memory_account()
+    assert acc.keyframes == 8 * (3 + 2) * 64 * 48 and acc.total == acc.model + acc.keyframes + acc.step_buffers
+    per_g = free.trained_bytes_per_gaussian()
+    cap_bytes = acc.total - acc.keyframes // 2 - 100 * per_g  # needs both levers
+    cfg = {**base, "max_mapper_mbytes": cap_bytes / 2**20}
+    m = GaussianMapper(MappingConfig(**cfg))
+    for i, f in enumerate(many):
+        p, c = grid_seeds(f)
+        m.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+        assert m.memory_account().total <= cap_bytes, i
+    assert 3 <= len(m.keyframes) < 8 and m.keyframes_dropped == 8 - len(m.keyframes)
+    assert len(m.gmap) < len(free.gmap)
+    for _ in range(40):
+        m.step()
+        assert m.memory_account().total <= cap_bytes
+    assert m.budget_gaussians > 0
+    with pytest.raises(ConfigError, match="max_mapper_mbytes"):
+        MappingConfig(max_mapper_mbytes=-1.0)

@@ -13,9 +13,9 @@ from memgs_ros.evaluation import ABLATION_LABELS, FRAME_MATCH_MAX_DT_S, Ablation
 
 __all__ = ["TABLE_HEADER", "ablation_json", "ablation_table", "markdown_row", "markdown_table"]
 
-TABLE_HEADER = ("| method | PSNR dB / Mem GB / Points k | PSNR valid px dB | PSNR kf dB | SSIM | LPIPS | ATE cm | rot deg "
-                "| track FPS | map it/s | frames | KF |\n"
-                "|---|---|---|---|---|---|---|---|---|---|---|---|")
+TABLE_HEADER = ("| method | PSNR dB / Mem GB / Points k | model MB | PSNR valid px dB | PSNR kf dB | SSIM | LPIPS | ATE cm "
+                "| rot deg | track FPS | map it/s | frames | KF |\n"
+                "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 TABLE_FOOTNOTE_SPEED = ("track FPS: 1 / mean tracker time per frame; map it/s: mapping iterations per second "
                         "while training (mapper stats), whole-run rate in eval.json.")
 
@@ -28,16 +28,28 @@ def _pct(a: float, b: float) -> float | None:
     return None if b == 0 else 100.0 * (a - b) / b
 
 
+def _memory_footnote(r: EvalResult) -> str:
+    m = r.memory
+    if m.cuda_max_allocated_bytes is not None:
+        return "Mem: the mapper's torch.cuda.max_memory_allocated."
+    if m.mapper_working_peak_bytes is not None:
+        base = "" if m.mapper_rss_baseline_mb is None else f" of {m.mapper_rss_baseline_mb:.0f} MB"
+        return ("Mem*: CPU run, the mapper's peak resident memory above its start-up baseline"
+                f"{base} (imports, node and compiled kernels), VmHWM read 10 times a second.")
+    return "Mem*: CPU run, map parameters + gradients + Adam state at peak (no CUDA allocator)."
+
+
 def markdown_row(r: EvalResult, label: str | None = None) -> str:
-    """One row in the paper's layout (PSNR / Mem / Points) plus SSIM, ATE and speeds. Memory is
-    the CUDA peak when the mapper had a GPU, else the CPU model peak (marked ``*``)."""
+    """One row in the paper's layout (PSNR / Mem / Points) plus model MB, SSIM, ATE and speeds.
+    Mem is the CUDA peak when the mapper had a GPU, else its peak RSS above the start-up
+    baseline (marked ``*``; ``MemoryResult.headline_bytes``)."""
     mem = r.memory.headline_bytes / 1e9
     star = "" if r.memory.cuda_max_allocated_bytes is not None else "*"
     q, k = r.frames_quality, r.keyframes_quality
     ate_cm = None if r.trajectory is None else r.trajectory.rmse_m * 100.0
     rot = None if r.trajectory is None else r.trajectory.rotation_rmse_deg
     return (f"| {label or ABLATION_LABELS.get(r.variant, r.variant)} | {_fmt(q.psnr_db, '.2f')} / {mem:.3g}{star} / "
-            f"{r.gaussians / 1000:.1f} | {_fmt(q.psnr_db_valid, '.2f')} | {_fmt(k.psnr_db, '.2f')} | {_fmt(q.ssim, '.3f')} | {_fmt(q.lpips, '.3f')} "
+            f"{r.gaussians / 1000:.1f} | {r.memory.model_bytes_peak / 1e6:.1f} | {_fmt(q.psnr_db_valid, '.2f')} | {_fmt(k.psnr_db, '.2f')} | {_fmt(q.ssim, '.3f')} | {_fmt(q.lpips, '.3f')} "
             f"| {_fmt(ate_cm, '.2f')} | {_fmt(rot, '.2f')} | {r.tracking_fps:.1f} "
             f"| {_fmt(r.mapping_iters_per_s_training, '.2f')} "
             f"| {q.n} | {k.n} |")
@@ -54,7 +66,7 @@ def markdown_table(results: Sequence[EvalResult], labels: Sequence[str] | None =
                 f"(scale {r0.resolution_scale:g}); 'PSNR valid px': only pixels with image content after "
                 "undistortion (same as the whole image without distortion); 'PSNR kf' on keyframes only. ATE: "
                 f"{'Sim(3)' if r0.mode == 'mono' else 'SE(3)'} alignment. "
-                "Mem*: CPU run, map parameters + gradients + Adam state at peak (no CUDA allocator). "
+                + _memory_footnote(r0) + " model MB: map parameters + gradients + Adam state at peak. "
                 + TABLE_FOOTNOTE_SPEED)
     return TABLE_HEADER + "\n" + "\n".join(rows) + "\n" + foot + "\n"
 

@@ -30,7 +30,10 @@ PYRAMID_FACTORS: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)  # coarse to fine
 @dataclass(frozen=True, eq=False)
 class PyramidLevel:
     """One resolution of a keyframe. image: [3, h, w] float in [0, 1]; depth_m: [h, w] or None;
-    valid_mask: [h, w] bool (pixels with real image content) or None (all valid)."""
+    valid_mask: [h, w] bool (pixels with real image content) or None (all valid).
+
+    Made on demand from the keyframe's compact storage (``TrainingKeyframe.level``) and dropped
+    after the step that uses it."""
 
     factor: float
     image: torch.Tensor
@@ -41,23 +44,70 @@ class PyramidLevel:
 
 @dataclass(frozen=True, eq=False)
 class TrainingKeyframe:
-    """A keyframe as the mapper trains on it.
+    """A keyframe as the mapper trains on it, stored compactly (issue: memory per keyframe).
 
     kf_id: keyframe id; stamp_ns: capture time; T_wc: [4, 4] float64 camera-to-world.
-    image: [3, H, W] float32 in [0, 1]; depth_m: [H, W] float32 metres (NaN/0 invalid) or None;
-    camera: undistorted intrinsics of ``image``; levels: coarse-to-fine pyramid, the last
-    level is the full-resolution image itself; valid_mask: [H, W] bool, the pixels that carry
-    image content (undistortion leaves a border that maps outside the source image), or None.
+    rgb: [3, H, W] uint8 (the undistorted, resized colour: exactly what the float image was,
+    at a quarter of its bytes); depth_half: [H, W] float16 metres, 0 where invalid, or None
+    (float16 keeps 11 significant bits: 1 mm at 2 m, below the sensor's noise); camera:
+    undistorted intrinsics of ``rgb``; valid_mask: [H, W] bool, the pixels that carry image
+    content (undistortion leaves a border that maps outside the source image), or None;
+    factors: the coarse-to-fine pyramid, made per draw by ``level`` instead of being stored.
+    At 320x240 this is 230 KB + 154 KB + 77 KB = 461 KB a keyframe (1.65 MB as float32 with
+    a stored pyramid).
     """
 
     kf_id: int
     stamp_ns: int
     T_wc: np.ndarray
-    image: torch.Tensor
-    depth_m: torch.Tensor | None
+    rgb: torch.Tensor
+    depth_half: torch.Tensor | None
     camera: PinholeCamera
-    levels: tuple[PyramidLevel, ...]
     valid_mask: torch.Tensor | None = None
+    factors: tuple[float, ...] = PYRAMID_FACTORS
+
+    @property
+    def image(self) -> torch.Tensor:
+        """[3, H, W] float32 in [0, 1] (decoded per call)."""
+        return self.rgb.float().div_(255.0)
+
+    @property
+    def depth_m(self) -> torch.Tensor | None:
+        """[H, W] float32 metres, 0 where invalid (decoded per call), or None."""
+        return None if self.depth_half is None else self.depth_half.float()
+
+    @property
+    def n_levels(self) -> int:
+        return len(self.factors)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the keyframe holds in tensors (colour, depth, mask); the pose and camera are
+        a few hundred bytes of Python objects."""
+        return sum(t.numel() * t.element_size() for t in (self.rgb, self.depth_half, self.valid_mask)
+                   if t is not None)
+
+    def level(self, index: int) -> PyramidLevel:
+        """Pyramid level ``index`` (0 = coarsest), made now: area-averaged colour, nearest depth,
+        and a coarse pixel of the mask is valid only when every fine pixel it averages is."""
+        f = self.factors[index]
+        image, depth = self.image, self.depth_m
+        if f == 1.0:
+            return PyramidLevel(1.0, image, depth, self.camera, self.valid_mask)
+        cam = self.camera.scaled(f)
+        img = F.interpolate(image[None], size=(cam.height, cam.width), mode="area")[0].contiguous()
+        dep = None if depth is None else _resize_depth(depth, cam.height, cam.width)
+        msk = None
+        if self.valid_mask is not None:
+            frac = F.interpolate(self.valid_mask[None, None].float(), size=(cam.height, cam.width),
+                                 mode="area")[0, 0]
+            msk = frac > 0.999
+        return PyramidLevel(f, img, dep, cam, msk)
+
+    @property
+    def levels(self) -> tuple[PyramidLevel, ...]:
+        """Every pyramid level, coarse to fine (made now; training uses ``level``)."""
+        return tuple(self.level(i) for i in range(self.n_levels))
 
 
 def _resize_depth(depth: torch.Tensor, h: int, w: int) -> torch.Tensor:
@@ -69,11 +119,10 @@ def make_keyframe(kf_id: int, stamp_ns: int, T_wc: np.ndarray, image: torch.Tens
                   depth_m: torch.Tensor | None, camera: PinholeCamera,
                   factors: tuple[float, ...] = PYRAMID_FACTORS,
                   valid_mask: torch.Tensor | None = None) -> TrainingKeyframe:
-    """Build a keyframe and its pyramid (area-averaged colour, nearest depth; a coarse pixel
-    of the mask is valid only when every fine pixel it averages is).
+    """Build a keyframe in its compact storage (see ``TrainingKeyframe``).
 
-    image: [3, H, W] float in [0, 1] matching ``camera``; depth_m: [H, W] or None;
-    valid_mask: [H, W] bool or None.
+    image: [3, H, W] uint8, or float in [0, 1] (stored rounded to uint8) matching ``camera``;
+    depth_m: [H, W] metres (NaN/0 invalid, stored as 0) or None; valid_mask: [H, W] bool or None.
     """
     if image.dim() != 3 or image.shape[0] != 3 or tuple(image.shape[1:]) != (camera.height, camera.width):
         raise DataError(f"keyframe {kf_id}: image must be [3, {camera.height}, {camera.width}], "
@@ -88,20 +137,18 @@ def make_keyframe(kf_id: int, stamp_ns: int, T_wc: np.ndarray, image: torch.Tens
     T = np.asarray(T_wc, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise DataError(f"keyframe {kf_id}: T_wc must be a finite 4x4 matrix")
-    levels = []
-    for f in factors:
-        if f == 1.0:
-            levels.append(PyramidLevel(1.0, image, depth_m, camera, valid_mask))
-            continue
-        cam = camera.scaled(f)
-        img = F.interpolate(image[None], size=(cam.height, cam.width), mode="area")[0]
-        dep = None if depth_m is None else _resize_depth(depth_m, cam.height, cam.width)
-        msk = None
-        if valid_mask is not None:
-            frac = F.interpolate(valid_mask[None, None].float(), size=(cam.height, cam.width), mode="area")[0, 0]
-            msk = frac > 0.999
-        levels.append(PyramidLevel(f, img.contiguous(), dep, cam, msk))
-    return TrainingKeyframe(int(kf_id), int(stamp_ns), T.copy(), image, depth_m, camera, tuple(levels), valid_mask)
+    if not factors or factors[-1] != 1.0:
+        raise DataError(f"keyframe {kf_id}: pyramid factors must end at full resolution, got {factors}")
+    if image.dtype == torch.uint8:
+        rgb = image.contiguous()
+    else:
+        rgb = (image.detach().float().clamp(0.0, 1.0) * 255.0).round_().to(torch.uint8).contiguous()
+    depth_half = None
+    if depth_m is not None:
+        d = depth_m.detach().float()
+        depth_half = torch.where(torch.isfinite(d) & (d > 0), d, torch.zeros_like(d)).to(torch.float16)
+    mask = None if valid_mask is None else valid_mask.contiguous()
+    return TrainingKeyframe(int(kf_id), int(stamp_ns), T.copy(), rgb, depth_half, camera, mask, tuple(factors))
 
 
 @dataclass(frozen=True)
@@ -165,6 +212,11 @@ class KeyframeStore:
             except KeyError as err:
                 raise DataError(f"no keyframe with id {kf_id}") from err
 
+    def nbytes(self) -> int:
+        """Bytes of every stored keyframe's tensors (``TrainingKeyframe.nbytes``)."""
+        with self._lock:
+            return sum(kf.nbytes for kf in self._kfs.values())
+
     def all(self) -> list[TrainingKeyframe]:
         """Every keyframe, in id order."""
         with self._lock:
@@ -191,7 +243,7 @@ class KeyframeStore:
     def level_index(self, kf_id: int) -> int:
         """Pyramid level the keyframe's next draw renders (0 = coarsest)."""
         with self._lock:
-            n_levels = len(self._kfs[kf_id].levels)
+            n_levels = self._kfs[kf_id].n_levels
             if self.uses_per_level == 0:
                 return n_levels - 1
             return min(self._uses[kf_id] // self.uses_per_level, n_levels - 1)
@@ -207,7 +259,7 @@ class KeyframeStore:
                 self._pool = list(self._kfs)
                 self._rng.shuffle(self._pool)
             kf_id = self._pool[-1]
-            level = self._kfs[kf_id].levels[self.level_index(kf_id)]
+            level_index = self.level_index(kf_id)
             self._budget[kf_id] -= 1
             self._uses[kf_id] += 1
             if self._budget[kf_id] <= 0:
@@ -216,4 +268,5 @@ class KeyframeStore:
                 # Move it to a random place so one keyframe's uses are not consecutive.
                 self._pool.pop()
                 self._pool.insert(self._rng.randrange(len(self._pool) + 1), kf_id)
-            return TrainingView(self._kfs[kf_id], level)
+            kf = self._kfs[kf_id]
+        return TrainingView(kf, kf.level(level_index))  # made outside the lock

@@ -37,7 +37,8 @@ from memgs_ros.core.geometry import invert_pose, nearest_pose_distance, rotmat_t
 from memgs_ros.core.keyframes import KeyframeStore, TrainingKeyframe, make_keyframe
 from memgs_ros.core.losses import mapping_loss
 from memgs_ros.core.mapping_config import MappingConfig
-from memgs_ros.core.strategies import BudgetStrategy, DensifyStrategy, MergeFn, MergeSchedule
+from memgs_ros.core.strategies import (BudgetStrategy, DensifyStrategy, MemoryAccount, MergeFn, MergeSchedule,
+                                      step_buffer_bytes)
 from memgs_ros.core.view import view_preparation
 from memgs_ros.errors import ConfigError, DataError
 
@@ -130,7 +131,26 @@ class GaussianMapper:
     @property
     def budget_gaussians(self) -> int:
         """The memory budget as a Gaussian count (0 = none), see ``BudgetStrategy.limit``."""
-        return self.budget.limit(self.gmap)
+        return self.budget.limit(self.gmap, self._fixed_bytes())
+
+    def _training_pixels(self) -> int:
+        """Pixels of the largest full-resolution training view (0 without keyframes)."""
+        return max((kf.camera.width * kf.camera.height for kf in self.keyframes.all()), default=0)
+
+    def _fixed_bytes(self) -> int:
+        """The accounted memory that does not scale with the Gaussians: keyframes and the
+        per-pixel step buffers (only needed when ``max_mapper_mbytes`` is set)."""
+        if self.cfg.max_mapper_mbytes <= 0:
+            return 0
+        return self.keyframes.nbytes() + step_buffer_bytes(0, self._training_pixels())
+
+    def memory_account(self) -> MemoryAccount:
+        """The accounted working memory now (``mapping.max_mapper_mbytes`` bounds its total): the
+        model at its trained cost (gradients and Adam moments counted before they exist, as the
+        budget does), the stored keyframes, and the step buffers."""
+        n = len(self.gmap)
+        return MemoryAccount(model=n * self.trained_bytes_per_gaussian(), keyframes=self.keyframes.nbytes(),
+                             step_buffers=step_buffer_bytes(n, self._training_pixels()))
 
     def trained_bytes_per_gaussian(self) -> int:
         return self.budget.trained_bytes_per_gaussian(self.gmap)
@@ -161,7 +181,7 @@ class GaussianMapper:
             raise DataError(f"keyframe {kf_id}: depth must be [{camera.height}, {camera.width}], got {depth_m.shape}")
         prep = view_preparation(camera, self.cfg.resolution_scale)
         rgb, depth = prep(rgb, depth_m)
-        image = torch.from_numpy(np.ascontiguousarray(rgb)).to(self.device).permute(2, 0, 1).float() / 255.0
+        image = torch.from_numpy(np.ascontiguousarray(rgb)).to(self.device).permute(2, 0, 1)  # uint8, stored as is
         depth_t = None
         if depth is not None:
             d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
@@ -200,11 +220,20 @@ class GaussianMapper:
         self._anchor_poses[int(kf.kf_id)] = np.array(kf.T_wc, dtype=np.float64)
         self._newest_kf_id = max(self._newest_kf_id, int(kf.kf_id))
 
+    def _over_memory_cap(self) -> bool:
+        """The accounted memory is over ``max_mapper_mbytes`` and keyframes may still go (more
+        than ``min_keyframes``, at least 2: training needs views)."""
+        cap = self.cfg.max_mapper_mbytes
+        return (cap > 0 and len(self.keyframes) > max(self.cfg.min_keyframes, 2)
+                and self.memory_account().total > cap * 2**20)
+
     def _drop_redundant_keyframes(self) -> None:
-        """Keep at most ``max_keyframes``: drop the keyframe whose pose is closest to another
-        one (translation in metres + 0.5 m per radian of rotation), never the newest."""
+        """Keep at most ``max_keyframes``, and drop keyframes while the accounted memory is over
+        ``max_mapper_mbytes`` (before the map is merged or pruned for it): each time the keyframe
+        whose pose is closest to another one (translation in metres + 0.5 m per radian of
+        rotation), never the newest."""
         cap = self.cfg.max_keyframes
-        while cap > 0 and len(self.keyframes) > cap:
+        while (cap > 0 and len(self.keyframes) > cap) or self._over_memory_cap():
             kfs = self.keyframes.all()
             nearest = nearest_pose_distance(np.stack([k.T_wc for k in kfs]))
             nearest[[i for i, k in enumerate(kfs) if k.kf_id == self._newest_kf_id]] = np.inf
@@ -347,7 +376,7 @@ class GaussianMapper:
             merged_removed, merged_added = self.merge.run(self.gmap, self._newest_kf_id, it)
         elif self.densify.due(it):
             self._record_budget(*self.budget.make_room_for_densification(self.gmap, self.densify, it,
-                                                                          self._newest_kf_id))
+                                                                          self._newest_kf_id, self._fixed_bytes()))
             densified, pruned = self.densify.densify_and_prune(self.gmap, it, self.budget_gaussians)
         self._enforce_budget()
         (budget_merged, budget_pruned), self._budget_pending = self._budget_pending, (0, 0)
@@ -361,9 +390,11 @@ class GaussianMapper:
 
     def enforce_budget(self) -> tuple[int, int]:
         """Apply the memory budget now (``BudgetStrategy.enforce``). Returns (merged, pruned)."""
-        return self.budget.enforce(self.gmap, self.iteration, self._newest_kf_id)
+        return self.budget.enforce(self.gmap, self.iteration, self._newest_kf_id, self._fixed_bytes())
 
     def _enforce_budget(self) -> None:
+        if self.cfg.max_mapper_mbytes > 0:
+            self._drop_redundant_keyframes()  # over the memory cap keyframes go first, then Gaussians
         self._record_budget(*self.enforce_budget())
 
     def _record_budget(self, merged: int, pruned: int) -> None:
@@ -427,10 +458,9 @@ class GaussianMapper:
         gmap = self.gmap
         kfs = []
         for kf in self.keyframes.all():
-            image = (kf.image.detach().clamp(0, 1) * 255.0).round().to(torch.uint8)
             kfs.append(KeyframeState(
                 int(kf.kf_id), int(kf.stamp_ns), np.array(kf.T_wc, dtype=np.float64),
-                image.permute(1, 2, 0).contiguous().cpu().numpy(),
+                kf.rgb.permute(1, 2, 0).contiguous().cpu().numpy(),
                 None if kf.depth_m is None else kf.depth_m.detach().cpu().numpy().astype(np.float32),
                 None if kf.valid_mask is None else kf.valid_mask.detach().cpu().numpy().astype(bool),
                 kf.camera, None if self.exposure is None else self.exposure.get(kf.kf_id)))
@@ -449,7 +479,7 @@ class GaussianMapper:
             raise DataError("a checkpoint can only be restored into an empty mapper")
         dev = self.device
         for k in ckpt.keyframes:
-            image = torch.from_numpy(np.ascontiguousarray(k.image)).to(dev).permute(2, 0, 1).float() / 255.0
+            image = torch.from_numpy(np.ascontiguousarray(k.image)).to(dev).permute(2, 0, 1)  # uint8
             depth = None if k.depth_m is None else torch.from_numpy(k.depth_m).to(dev)
             mask = None if k.valid_mask is None else torch.from_numpy(k.valid_mask).to(dev)
             self.add_prepared_keyframe(make_keyframe(k.kf_id, k.stamp_ns, k.T_wc, image.contiguous(), depth,

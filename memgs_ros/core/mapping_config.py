@@ -99,6 +99,11 @@ class MappingConfig:
     # the mapper's image memory on long runs that revisit places
     max_keyframes: int = 0
     max_model_mbytes: float = 0.0  # budget in MiB of parameters + gradients + Adam moments (0 = none)
+    # Cap in MiB on the mapper's accounted working memory (0 = none): model (as above) + stored
+    # keyframes + the training step's buffers (core/strategies.py, MemoryAccount). Over it the
+    # mapper first drops redundant keyframes (the max_keyframes rule, down to min_keyframes),
+    # then merges/prunes the map like max_model_mbytes. Imports and code are not in it
+    max_mapper_mbytes: float = 0.0
     budget_target_fraction: float = 0.95  # enforcement stops at this fraction of the budget (hysteresis)
     budget_merge: bool = True  # merge (all keyframes, no gradient gate) before pruning, when merging is on
     budget_merge_voxel_scale: float = 1.0  # voxel of the budget merge = merge voxel x this
@@ -114,7 +119,8 @@ class MappingConfig:
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"MappingConfig.{name} must be in [0, 1], got {getattr(self, name)}")
         for name in ("iso_weight", "depth_weight", "densify_grad_threshold", "percent_dense",
-                     "prune_opacity", "max_screen_size_px", "near_m", "max_model_mbytes", "exposure_reg"):
+                     "prune_opacity", "max_screen_size_px", "near_m", "max_model_mbytes", "exposure_reg",
+                     "max_mapper_mbytes"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"MappingConfig.{name} must be >= 0, got {v}")

@@ -131,6 +131,9 @@ class SessionStatus:
     budget_gaussians: int = 0
     model_bytes: int = 0
     model_bytes_peak: int = 0
+    keyframe_bytes: int = 0  # the stored training keyframes' tensors
+    accounted_bytes: int = 0  # model + keyframes + step buffers (GaussianMapper.memory_account)
+    accounted_bytes_peak: int = 0
     gaussians_peak: int = 0
     loss: float | None = None
     cuda_max_allocated: int | None = None
@@ -150,7 +153,8 @@ class SessionStatus:
             out.update(iteration=self.iteration, gaussians=self.gaussians, model_bytes=self.model_bytes,
                        model_bytes_peak=self.model_bytes_peak, gaussians_peak=self.gaussians_peak,
                        keyframes_trained=self.keyframes_trained, keyframes_dropped=self.keyframes_dropped,
-                       budget_gaussians=self.budget_gaussians)
+                       budget_gaussians=self.budget_gaussians, keyframe_bytes=self.keyframe_bytes,
+                       accounted_bytes=self.accounted_bytes, accounted_bytes_peak=self.accounted_bytes_peak)
         if self.loss is not None:
             out["loss"] = self.loss
         if self.cuda_max_allocated is not None:
@@ -216,7 +220,7 @@ class MappingSession:
         self._finished = False
         self._training = free_running
         self._counters: Counter[str] = Counter()
-        self._peaks = [0, 0]  # model bytes, Gaussians
+        self._peaks = [0, 0, 0]  # model bytes, Gaussians, accounted bytes
         self._last_loss: float | None = None
         self._captured: tuple[int, int] | None = None  # (iteration, keyframes) of the last state_dict
         self._commands: deque[_Command[Any]] = deque()
@@ -440,12 +444,15 @@ class MappingSession:
     def _publish_status(self) -> None:
         m = self._mapper
         model = m.gmap.memory_bytes().total
+        account = m.memory_account()
         cuda = torch.cuda.max_memory_allocated(m.device) if m.device.type == "cuda" else None
-        self._peaks = [max(self._peaks[0], model), max(self._peaks[1], len(m.gmap))]
+        self._peaks = [max(self._peaks[0], model), max(self._peaks[1], len(m.gmap)),
+                       max(self._peaks[2], account.total)]
         self._status = SessionStatus(
             iteration=m.iteration, gaussians=len(m.gmap), keyframes=len(self._stamps),
             keyframes_trained=len(m.keyframes), keyframes_dropped=m.keyframes_dropped,
             budget_gaussians=m.budget_gaussians, model_bytes=model, model_bytes_peak=self._peaks[0],
+            keyframe_bytes=account.keyframes, accounted_bytes=account.total, accounted_bytes_peak=self._peaks[2],
             gaussians_peak=self._peaks[1], loss=self._last_loss, cuda_max_allocated=cuda, insert_queue=self._pending_inserts,
             finished=self._finished, render_camera=self._render_camera, counters=dict(self._counters))
 

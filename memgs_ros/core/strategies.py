@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Callable
 
 import torch
@@ -34,6 +34,12 @@ logger.addHandler(logging.NullHandler())
 # Budget merge passes per enforcement: each pass merges at most one pair per voxel, so a map far
 # over budget may need several; the rest is pruned.
 BUDGET_MERGE_PASSES = 3
+# Training-step buffers beyond the model, per Gaussian (projection outputs, their gradients,
+# tile lists) and per training pixel (render, depth, transmittance, loss and SSIM maps, their
+# gradients): the peak RSS growth of one forward + backward over the model's own bytes in
+# benchmarks/bench_raster.py (numba, 320x240): 26 MB at 20k, 81 MB at 100k Gaussians
+STEP_BYTES_PER_GAUSSIAN = 512
+STEP_BYTES_PER_PIXEL = 192
 # MergeConfig.tau must be finite: a bound no mean positional gradient reaches turns the gate off.
 _NO_GRADIENT_GATE = 1e30
 
@@ -107,6 +113,26 @@ class MergeSchedule:
                        voxel_size_m=base.voxel_size_m * self.cfg.budget_merge_voxel_scale)
 
 
+@dataclass(frozen=True)
+class MemoryAccount:
+    """The mapper's accounted working memory in bytes (``mapping.max_mapper_mbytes`` bounds
+    ``total``): the model (parameters, gradients, Adam moments), the stored keyframes and the
+    training step's buffers (estimated from the Gaussian count and the full-resolution pixels)."""
+
+    model: int
+    keyframes: int
+    step_buffers: int
+
+    @property
+    def total(self) -> int:
+        return self.model + self.keyframes + self.step_buffers
+
+
+def step_buffer_bytes(n_gaussians: int, n_pixels: int) -> int:
+    """Estimated bytes of one training step's buffers beyond the model (see the constants)."""
+    return STEP_BYTES_PER_GAUSSIAN * int(n_gaussians) + STEP_BYTES_PER_PIXEL * int(n_pixels)
+
+
 class BudgetStrategy:
     """The memory budget (``max_gaussians`` / ``max_model_mbytes``, 0 = none; both set: the tighter).
 
@@ -127,17 +153,23 @@ class BudgetStrategy:
         every parameter row four times (value, gradient, Adam exp_avg and exp_avg_sq)."""
         return 4 * sum(math.prod(p.shape[1:]) * p.element_size() for p in gmap.params().values())
 
-    def limit(self, gmap: GaussianMap) -> int:
-        """The budget as a Gaussian count (0 = none): the tighter of ``max_gaussians`` and
-        ``max_model_mbytes`` at a trained map's bytes per Gaussian (at least 1 when set). The MiB
-        budget is converted at the trained cost, so seeds inserted before training respect it."""
+    def limit(self, gmap: GaussianMap, fixed_bytes: int = 0) -> int:
+        """The budget as a Gaussian count (0 = none): the tightest of ``max_gaussians``,
+        ``max_model_mbytes`` at a trained map's bytes per Gaussian, and ``max_mapper_mbytes``
+        less ``fixed_bytes`` (the keyframes and the per-pixel step buffers) at a trained
+        Gaussian's bytes plus its step buffers; at least 1 when set. The MiB budgets are
+        converted at the trained cost, so seeds inserted before training respect them."""
         cfg = self.cfg
         limits = [cfg.max_gaussians] if cfg.max_gaussians > 0 else []
+        per_gaussian = self.trained_bytes_per_gaussian(gmap)
         if cfg.max_model_mbytes > 0:
-            limits.append(max(int(cfg.max_model_mbytes * 2**20 // self.trained_bytes_per_gaussian(gmap)), 1))
+            limits.append(max(int(cfg.max_model_mbytes * 2**20 // per_gaussian), 1))
+        if cfg.max_mapper_mbytes > 0:
+            free = cfg.max_mapper_mbytes * 2**20 - fixed_bytes
+            limits.append(max(int(free // (per_gaussian + STEP_BYTES_PER_GAUSSIAN)), 1))
         return min(limits) if limits else 0
 
-    def enforce(self, gmap: GaussianMap, iteration: int, newest_kf_id: int) -> tuple[int, int]:
+    def enforce(self, gmap: GaussianMap, iteration: int, newest_kf_id: int, fixed_bytes: int = 0) -> tuple[int, int]:
         """Bring a map over the limit down to ``budget_target_fraction`` of it (hysteresis).
 
         1. Relaxed merge passes (``MergeSchedule.budget_config``), when merging is on: merging
@@ -145,7 +177,7 @@ class BudgetStrategy:
         2. If still above the target: prune the smallest ``contribution`` down to the target.
         Returns (merged pairs, pruned Gaussians); (0, 0) without a budget or within it.
         """
-        limit = self.limit(gmap)
+        limit = self.limit(gmap, fixed_bytes)
         if limit == 0 or len(gmap) <= limit:
             return 0, 0
         return self.shrink_to(gmap, max(int(limit * self.cfg.budget_target_fraction), 1), iteration,
@@ -197,7 +229,7 @@ class BudgetStrategy:
         return score
 
     def make_room_for_densification(self, gmap: GaussianMap, densify: DensifyStrategy, iteration: int,
-                                    newest_kf_id: int) -> tuple[int, int]:
+                                    newest_kf_id: int, fixed_bytes: int = 0) -> tuple[int, int]:
         """At budget, trade weak Gaussians for densification: when the clone/split candidates want
         more room than the budget leaves, shrink the map (merge, then prune the lowest
         ``contribution``, never a candidate) by up to the hysteresis margin,
@@ -207,7 +239,7 @@ class BudgetStrategy:
         Returns (merged, pruned).
         """
         cfg = self.cfg
-        limit = self.limit(gmap)
+        limit = self.limit(gmap, fixed_bytes)
         if limit == 0:
             return 0, 0
         with torch.no_grad():

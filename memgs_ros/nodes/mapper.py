@@ -33,6 +33,7 @@ from memgs_ros.core import checkpoint
 from memgs_ros.core.map_delta import message_dtype
 from memgs_ros.core.mapping import MappingConfig
 from memgs_ros.core.merge import MergeConfig
+from memgs_ros.core.raster import warm_up
 from memgs_ros.core.runtime import configure_cpu_runtime
 from memgs_ros.core.session import KeyframeInput, MappingSession
 from memgs_ros.nodes.mapper_params import RANGES, MapperParams
@@ -41,7 +42,7 @@ from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (camera_to_camera_info, depth_to_image, make_header, numpy_to_image,
                                   pointcloud2_to_structured, pose_to_matrix, stamp_to_ns, structured_to_pointcloud2)
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.diagnostics import NodeStats, peak_rss_mb, rss_mb
 from memgs_ros.ros.keyframe_bundle import KeyframeBundleError, decode_keyframe_images
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.seed_cloud import decode_seeds
@@ -111,6 +112,11 @@ class MapperNode(Node):
             self.publish_snapshot()  # latched: the merger takes the resumed map and its epoch
         if p.render_rate_hz > 0:
             self.create_timer(1.0 / p.render_rate_hz, lambda: self._render(self.latest_pose))
+        # The memory baseline: imports, node, session and the rasterizer's compiled kernels
+        # (loaded now, not inside the first training step); the working memory is above it.
+        warm_up(device, self.cfg.raster_backend, self.cfg.max_sh_degree)
+        self._rss_baseline_mb = rss_mb()
+        self.stats.gauges["rss_baseline_mb"] = round(self._rss_baseline_mb, 1)
         self.create_timer(0.1, self._sync_stats)
         self.get_logger().info(f"mapper on {device}, {'lockstep' if p.lockstep else 'free-running'} training")
 
@@ -187,6 +193,8 @@ class MapperNode(Node):
         st = self.session.status
         dict.update(self.stats.counters, st.counters)  # assigned, not added (Counter.update): totals
         self.stats.gauges.update(st.gauges())
+        # Peak resident memory above the start-up baseline (VmHWM, read 10 times a second).
+        self.stats.gauges["working_peak_mb"] = round(max(peak_rss_mb() - self._rss_baseline_mb, 0.0), 1)
 
     def send_delta(self, exact: bool = False) -> Future:
         """Queue a delta (exact: all, tolerance 0), published by the session in seq order. A timer never

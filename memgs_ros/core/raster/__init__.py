@@ -30,7 +30,7 @@ from memgs_ros.core.raster.projection_numba import project_gaussians_numba
 from memgs_ros.core.raster.reference import _rasterize_reference
 from memgs_ros.core.raster.tiles import TILE_SIZE, build_tile_plan
 
-__all__ = ["RenderOutput", "rasterize", "_rasterize_reference"]
+__all__ = ["RenderOutput", "rasterize", "warm_up", "_rasterize_reference"]
 
 BACKENDS = ("auto", "torch", "numba", "gsplat")
 
@@ -165,3 +165,21 @@ def rasterize(
     visible = plan.gaussian_hit
     radii = torch.where(visible, screen_radii(proj.cov2d), torch.zeros_like(visible, dtype=torch.int32))
     return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=proj.means2d, radii=radii, visible=visible)
+
+
+def warm_up(device: torch.device | str = "cpu", backend: str = "auto", sh_degree: int = 3) -> None:
+    """Render a tiny scene forward and backward once, so that the compiled kernels are loaded
+    (numba: ~0.5 s from its cache, ~7 s when compiling) before the first real step, and a
+    process's memory after start-up includes its code (the mapper's memory baseline)."""
+    dev = torch.device(device)
+    n, k = 8, (sh_degree + 1) ** 2 - 1
+    gen = torch.Generator().manual_seed(0)
+    means = (torch.randn(n, 3, generator=gen) * 0.2 + torch.tensor([0.0, 0.0, 2.0])).to(dev)
+    params = [means, torch.randn(n, 4, generator=gen).to(dev), torch.full((n, 3), -2.5, device=dev),
+              torch.zeros(n, 1, device=dev), torch.rand(n, 1, 3, generator=gen).to(dev),
+              torch.zeros(n, k, 3, device=dev)]
+    for t in params:
+        t.requires_grad_(True)
+    cam = PinholeCamera(32, 24, 30.0, 30.0, 16.0, 12.0)
+    out = rasterize(*params, torch.eye(4, device=dev), cam, sh_degree, backend=backend)
+    (out.color.sum() + out.depth.sum()).backward()
