@@ -185,6 +185,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"tracker keyframes {s.keyframes}: mapper inserted {mp.get('keyframes')}, dropped from its full insert "
           f"queue {mp.get('problem.keyframe_overload', 0)}, missed {mp.get('keyframes_missed', 0)}, incomplete "
           f"bundles dropped {mp.get('dropped_keyframe_bundles')}")
+    acc = [_num(r, "accounted_bytes") for r in timeline if r["node"] == "mapper" and "accounted_bytes" in r]
+    cap = next((float(v.split("=", 1)[1]) for v in args.set if v.startswith("mapper.mapping.max_mapper_mbytes=")), 0.0)
+    result["mapper_accounted_mb_max"] = max(acc) / 2**20 if acc else None
+    result["mapper_max_mapper_mbytes"] = cap
+    if acc:
+        print(f"mapper accounted memory (model + keyframes + step buffers): max {max(acc) / 2**20:.1f} MiB, "
+              f"end {acc[-1] / 2**20:.1f} MiB (cap {cap:g} MiB; 0 = none), keyframes trained at the end "
+              f"{mp.get('keyframes_trained')}, dropped {mp.get('keyframes_dropped')}")
     result["tracker_map"] = {k: tr.get(k) for k in ("map_keyframes", "map_points", "map_keyframes_removed")}
     print(f"tracker sparse map at the end: {tr.get('map_keyframes')} keyframes, {tr.get('map_points')} points, "
           f"{tr.get('map_keyframes_removed')} keyframes removed by its cap")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from memgs_ros.core.gaussians import (
+from memgs_ros.core.gaussians import (render_tensors, 
     PARAM_NAMES, SH_C0, SIDE_NAMES, GaussianMap, GaussianRecords, num_sh_rest,
 )
 from memgs_ros.errors import DataError
@@ -207,3 +207,19 @@ def test_pop_changes_tracks_adds_removals_and_moved_rows() -> None:
     g.remove(torch.tensor([True, False, False, False, False, False]))
     removed, changed = g.pop_changes()
     assert removed.tolist() == [0]
+
+
+def test_render_tensors_match_a_map_built_from_the_records() -> None:
+    # The merger renders from records without a GaussianMap (no gradients or Adam state): the
+    # inputs must equal the map's own tensors row for row, SH layout included.
+    g = _map_with_points(50, seed=3)
+    with torch.no_grad():
+        g.sh_rest.normal_(0, 0.1)  # non-zero higher bands, so a wrong SH layout shows
+    rec = g.to_records()
+    ref = GaussianMap.from_records(rec, max_sh_degree=3)
+    got = render_tensors(rec)
+    want = (ref.means, ref.quats_wxyz, ref.log_scales, ref.opacity_logits, ref.sh_dc, ref.sh_rest)
+    for a, b in zip(got, want):
+        assert a.shape == b.shape and torch.equal(a, b.detach())
+        assert not a.requires_grad
+    assert rec.nbytes == 50 * (8 + 4 * (3 + 3 + 45 + 1 + 3 + 4))

@@ -98,6 +98,11 @@ class GaussianRecords:
     def __len__(self) -> int:
         return int(self.ids.shape[0])
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays (236 B a Gaussian with the ids)."""
+        return sum(getattr(self, f.name).nbytes for f in fields(self))
+
     @staticmethod
     def empty() -> "GaussianRecords":
         """Zero Gaussians."""
@@ -124,6 +129,18 @@ class GaussianRecords:
             return GaussianRecords.empty()
         return GaussianRecords(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])
                                   for f in fields(GaussianRecords)})
+
+
+def render_tensors(records: GaussianRecords, device: torch.device | str = "cpu") -> tuple[torch.Tensor, ...]:
+    """The rasterizer's map inputs from records, without a ``GaussianMap`` (no gradients, no
+    optimiser state): (means [N, 3], quats_wxyz [N, 4], log_scales [N, 3], opacity_logits [N, 1],
+    sh_dc [N, 1, 3], sh_rest [N, 15, 3]); positions, rotations and scales share the records'
+    memory on the CPU."""
+    n = len(records)
+    t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
+    sh_rest = t(records.f_rest).reshape(n, 3, 15).transpose(1, 2).contiguous()
+    return (t(records.xyz), t(records.rot), t(records.scale), t(records.opacity).reshape(n, 1),
+            t(records.f_dc).reshape(n, 1, 3), sh_rest)
 
 
 @dataclass(frozen=True)

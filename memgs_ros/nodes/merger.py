@@ -29,7 +29,7 @@ from sensor_msgs.msg import Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.gaussians import GaussianMap
+from memgs_ros.core.gaussians import render_tensors
 from memgs_ros.core.map_delta import ApplyStatus, MapMessage, MapReplica, MessageKind, decode, encode
 from memgs_ros.core.ply import save_ply
 from memgs_ros.core.raster import rasterize
@@ -79,7 +79,8 @@ class MergerNode(Node):
         self._started = time.monotonic()
         self._heard_delta = False
         self._asked_at_start = False
-        self._render_cache: tuple[int, int, GaussianMap] | None = None  # (seq, size, map)
+        # (seq, size, tensors to render): the map's rows as rasterizer inputs, no training state
+        self._render_cache: tuple[int, int, tuple[torch.Tensor, ...]] | None = None
         self._saved_version: tuple[int, int] | None = None
         self._published_version: tuple[int, int] | None = None
 
@@ -189,6 +190,13 @@ class MergerNode(Node):
         self.stats.gauges["gaussians"] = len(self.replica)
         self.stats.gauges["resyncing"] = int(self.resyncing)
         self.stats.gauges["unknown_removals"] = self.replica.unknown_removals
+        # What the merger holds: the replica's rows, deltas buffered during a resync, and the
+        # render inputs of the last view request (no training state: no gradients, no Adam).
+        self.stats.gauges["map_bytes"] = self.replica.records.nbytes if len(self.replica) else 0
+        self.stats.gauges["buffered_deltas"] = len(self.buffer)
+        cache = self._render_cache
+        self.stats.gauges["render_cache_bytes"] = 0 if cache is None else sum(
+            t.numel() * t.element_size() for t in cache[2])
 
     # ------------------------------------------------------------------ outputs
     def save(self) -> Path | None:
@@ -233,12 +241,10 @@ class MergerNode(Node):
             return
         key = (self.replica.seq, len(self.replica))
         if self._render_cache is None or self._render_cache[:2] != key:
-            self._render_cache = (*key, GaussianMap.from_records(self.replica.records, max_sh_degree=3))
-        g = self._render_cache[2]
+            self._render_cache = (*key, render_tensors(self.replica.records))
         T_cw = torch.from_numpy(np.linalg.inv(pose_to_matrix(msg.pose))).float()
         with torch.no_grad():
-            out = rasterize(g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh_dc, g.sh_rest,
-                            T_cw, self.render_camera, sh_degree=3)
+            out = rasterize(*self._render_cache[2], T_cw, self.render_camera, sh_degree=3)
         stamp = stamp_to_ns(msg.header.stamp)
         rgb = (out.color.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
         self.pub_color.publish(numpy_to_image(np.ascontiguousarray(rgb), "rgb8", stamp, "render_camera"))
