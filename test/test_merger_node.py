@@ -88,6 +88,11 @@ def test_merger_applies_deltas_resyncs_renders_and_saves(tmp_path: Path, ros_dom
         assert spin_until(lambda: renders)
         img = image_to_numpy(renders[0])
         assert img.shape == (48, 64, 3) and img.std() > 5.0
+        # Its stats say what it holds: the replica's rows and the render inputs, no training state.
+        merger._gauges()
+        gauges = merger.stats.gauges
+        assert gauges["map_bytes"] == merger.replica.records.nbytes > 0
+        assert 0 < gauges["render_cache_bytes"] <= 2 * gauges["map_bytes"] and gauges["buffered_deltas"] == 0
         future = save.call_async(Trigger.Request())
         assert spin_until(future.done)
         assert future.result().success and str(path) in future.result().message

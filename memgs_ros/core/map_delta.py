@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from memgs_ros.core.gaussians import PLY_F_REST, GaussianRecords
+from memgs_ros.core.records import PLY_F_REST, GaussianRecords
 from memgs_ros.errors import MessageError
 
 OP_UPSERT = 0

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from memgs_ros.core.gaussians import PLY_F_REST, GaussianRecords
+from memgs_ros.core.records import PLY_F_REST, GaussianRecords
 from memgs_ros.core.atomic import atomic_write
 from memgs_ros.errors import DataError
 

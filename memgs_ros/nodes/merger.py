@@ -13,6 +13,10 @@ the buffered deltas newer than it are replayed.
 A map message that cannot be decoded (missing fields, rows of the wrong size, a malformed META
 row) is dropped and counted as ``problem.bad_map_message``; removals of ids the replica does not
 hold are ignored and counted as ``problem.unknown_removal`` (one warning per kind).
+
+The merger holds the map as numpy records (no training state) and loads torch and the rasterizer
+only on its first view request; its stats report ``map_bytes``, ``render_cache_bytes`` and
+``buffered_deltas``.
 """
 from __future__ import annotations
 
@@ -20,19 +24,17 @@ import sys
 import time
 from collections import deque
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.gaussians import render_tensors
 from memgs_ros.core.map_delta import ApplyStatus, MapMessage, MapReplica, MessageKind, decode, encode
 from memgs_ros.core.ply import save_ply
-from memgs_ros.core.raster import rasterize
 from memgs_ros.errors import MemgsError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
@@ -42,6 +44,9 @@ from memgs_ros.ros.codecs import (
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.params import declare
+
+if TYPE_CHECKING:
+    import torch
 
 
 class MergerNode(Node):
@@ -80,7 +85,7 @@ class MergerNode(Node):
         self._heard_delta = False
         self._asked_at_start = False
         # (seq, size, tensors to render): the map's rows as rasterizer inputs, no training state
-        self._render_cache: tuple[int, int, tuple[torch.Tensor, ...]] | None = None
+        self._render_cache: tuple[int, int, tuple[torch.Tensor, ...]] | None = None  # torch: loaded lazily
         self._saved_version: tuple[int, int] | None = None
         self._published_version: tuple[int, int] | None = None
 
@@ -239,6 +244,13 @@ class MergerNode(Node):
     def on_view_request(self, msg: PoseStamped) -> None:
         if len(self.replica) == 0:
             return
+        # torch and the rasterizer load on the first view request: a merger that only holds,
+        # publishes and saves the map stays without them (~200 MB less resident memory).
+        import torch
+
+        from memgs_ros.core.gaussians import render_tensors
+        from memgs_ros.core.raster import rasterize
+
         key = (self.replica.seq, len(self.replica))
         if self._render_cache is None or self._render_cache[:2] != key:
             self._render_cache = (*key, render_tensors(self.replica.records))
