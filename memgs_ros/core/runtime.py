@@ -26,6 +26,10 @@ _log.addHandler(logging.NullHandler())
 # glibc <malloc.h> parameter numbers.
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
+_M_ARENA_MAX = -8
+# malloc arenas per process (glibc's default is 8 per core): threads that allocate and free
+# big blocks in arenas of their own keep them out of each other's reach, so RSS grows
+MALLOC_ARENAS = 2
 # glibc refuses mmap thresholds above HEAP_MAX_SIZE / 2 (32 MiB on 64-bit); blocks up to that
 # size are then served from, and returned to, the heap.
 MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024
@@ -41,7 +45,8 @@ class CpuRuntime:
 
 
 def keep_freed_memory() -> bool:
-    """Ask glibc malloc to keep freed blocks (<= 32 MiB) instead of returning them to the OS.
+    """Ask glibc malloc to keep freed blocks (<= 32 MiB) instead of returning them to the OS,
+    in at most ``MALLOC_ARENAS`` arenas (node processes also get MALLOC_ARENA_MAX from the CLI).
 
     Returns False (and changes nothing) where the C library is not glibc.
     """
@@ -57,6 +62,7 @@ def keep_freed_memory() -> bool:
     mallopt.restype = ctypes.c_int
     ok = mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES) == 1
     ok = mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES) == 1 and ok
+    ok = mallopt(_M_ARENA_MAX, MALLOC_ARENAS) == 1 and ok  # for threads started from now on
     return ok
 
 
