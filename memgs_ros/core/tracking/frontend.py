@@ -496,9 +496,11 @@ class FeatureTracker(Tracker):
         if self.vocabulary is not None:
             if self._place_thread is not None:
                 self._place_queue.put((self.map, kf.keyframe_id))
-            else:
+            else:  # inline (lockstep): counted with the inline BA as back-end time, not front end
+                t_pr = time.perf_counter()
                 self._place_recognition(self.map, kf.keyframe_id)
                 self._apply_loop_corrections()
+                self.ba_time_s += time.perf_counter() - t_pr
         info = self._keyframe_info(kf)
         self._last_kf_info = info
         return info
