@@ -33,12 +33,12 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from memgs_ros.core.tracking import TrackerConfig, make_tracker  # noqa: E402
-from memgs_ros.core.tracking.anchored_path import AnchoredPath  # noqa: E402
-from memgs_ros.core.trajectory import ate, path_length_m  # noqa: E402
-from memgs_ros.io.synthetic import generate_frames, loop_revisit_frames, parse_spec  # noqa: E402
+from memgs_ros.core.tracking import TrackerConfig, make_tracker
+from memgs_ros.core.tracking.anchored_path import AnchoredPath
+from memgs_ros.core.trajectory import ate, path_length_m
+from memgs_ros.io.synthetic import generate_frames, loop_revisit_frames, parse_spec
 
 DEFAULT_SPEC = "synthetic:w=320,h=240,n=240,path=loop,noise=0.01,holes=0.05"
 

@@ -11,8 +11,18 @@ from memgs_ros.core.tracking.anchored_path import AnchoredPath
 from memgs_ros.core.tracking.bundle_adjustment import apply_left_update
 from memgs_ros.core.tracking.features import OrbExtractor
 from memgs_ros.core.tracking.loop_closing import LoopDetector, optimise_pose_graph
-from memgs_ros.core.tracking.vocabulary import KeyframeDatabase, bow_score, build_vocabulary, default_vocabulary
-from memgs_ros.io.synthetic import generate_frames, loop_revisit_frames, parse_spec, trajectory
+from memgs_ros.core.tracking.vocabulary import (
+    KeyframeDatabase,
+    bow_score,
+    build_vocabulary,
+    default_vocabulary,
+)
+from memgs_ros.io.synthetic import (
+    generate_frames,
+    loop_revisit_frames,
+    parse_spec,
+    trajectory,
+)
 
 LOOP_SPEC = "synthetic:w=160,h=120,n=160,path=loop,noise=0.01,holes=0.05"
 
@@ -78,7 +88,6 @@ def test_consistency_needs_three_consecutive_agreeing_queries() -> None:
 
 
 def test_pose_graph_closes_a_toy_loop() -> None:
-    rng = np.random.default_rng(0)
     n = 40
     gt = np.tile(np.eye(4), (n, 1, 1))
     for k in range(n):
@@ -97,7 +106,7 @@ def test_pose_graph_closes_a_toy_loop() -> None:
     fixed = np.zeros(n, bool)
     fixed[0] = True
     res = optimise_pose_graph(odo, ei, ej, np.stack(Z), np.ones(len(ei)), fixed)
-    err = lambda T: np.linalg.norm(T[:, :3, 3] - gt[:, :3, 3], axis=1)  # noqa: E731
+    err = lambda T: np.linalg.norm(T[:, :3, 3] - gt[:, :3, 3], axis=1)
     assert res.final_cost < 0.01 * res.initial_cost
     assert err(res.T_wc)[-1] < 0.1 * err(odo)[-1]
     assert err(res.T_wc).mean() < 0.5 * err(odo).mean()

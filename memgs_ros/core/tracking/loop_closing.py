@@ -27,9 +27,16 @@ import scipy.sparse.linalg as spla
 from scipy.spatial.transform import Rotation
 
 from memgs_ros.core.geometry import invert_pose
-from memgs_ros.core.tracking.bundle_adjustment import apply_left_update, optimize_pose, orthonormalized
-from memgs_ros.core.tracking.features import FrameFeatures, match_by_projection, match_descriptors
-
+from memgs_ros.core.tracking.bundle_adjustment import (
+    apply_left_update,
+    optimize_pose,
+    orthonormalized,
+)
+from memgs_ros.core.tracking.features import (
+    FrameFeatures,
+    match_by_projection,
+    match_descriptors,
+)
 
 # ------------------------------------------------------------------------------ detection
 
