@@ -52,18 +52,18 @@ def track(frames: list, camera: object, cfg: TrackerConfig) -> dict:
         c0 = time.thread_time()
         res = tracker.track(f)
         cpu.append(time.thread_time() - c0)
-        path.update(res, tracker.poll_refined_keyframes())
+        path.update(res, tracker.poll_loop_corrections())
         if res.keyframe is not None:
             kf_stamps[res.keyframe.keyframe_id] = f.stamp_ns
     tracker.wait_for_ba()
     tracker.wait_for_loop_closing()
-    for kf_id, T in tracker.poll_refined_keyframes():
-        path.set_keyframe(kf_id, T)
+    for c in tracker.poll_loop_corrections():
+        path.correct(c)
+    kf_T = {kf_stamps[k]: tracker.map.keyframes[k].T_wc for k in kf_stamps if k in tracker.map.keyframes}
     st = tracker.loop_stats
     tracker.close()
     stamps, T_wc = path.poses()
-    kf_poses = {kf_stamps[k]: path.keyframe_pose(k) for k in kf_stamps if path.keyframe_pose(k) is not None}
-    return {"stamps": stamps, "T_wc": T_wc, "kf_poses": kf_poses, "cpu": np.array(cpu),
+    return {"stamps": stamps, "T_wc": T_wc, "kf_poses": kf_T, "cpu": np.array(cpu),
             "loops_detected": st.loops_detected, "loops_accepted": st.loops_accepted,
             "loops_rejected": st.loops_rejected, "pose_graph_time_s": st.pose_graph_time_s}
 

@@ -120,7 +120,7 @@ def _track(frames: list, loop_closure: bool) -> tuple[np.ndarray, object]:
         path = AnchoredPath()
         for f in frames:
             res = tracker.track(f)
-            path.update(res, tracker.poll_refined_keyframes())
+            path.update(res, tracker.poll_loop_corrections())
         stats = tracker.loop_stats
     _, T = path.poses()
     return frames[0].T_wc_gt @ T, stats

@@ -11,8 +11,9 @@ loop correction sends every keyframe of the map), and
 the lockstep player or the mapper waits on.
 
 ``memgs/pose`` and ``memgs/odom`` are per-frame odometry, published once and never revised.
-``memgs/path`` is the corrected trajectory: each pose is kept relative to the keyframe it was
-tracked against and re-expressed when bundle adjustment or a loop closure moves that keyframe.
+``memgs/path`` is the corrected trajectory: each pose moves with the keyframe it was tracked
+against when a loop closure corrects that keyframe (``AnchoredPath``; local BA refinements go
+only to the mapper).
 
 Frame stamps (a frame is the colour image and its paired depth, stamped by the colour header):
 - a stamp equal to the previous frame's is a duplicate delivery: dropped (``stamp_duplicate``);
@@ -119,7 +120,7 @@ class TrackerNode(Node):
         self.kf_stamps: dict[int, int] = {}
         self.path = Path()
         self.path.header.frame_id = self.world_frame
-        # Every published pose anchored to its reference keyframe: memgs/path shows them corrected.
+        # Every published pose anchored to its reference keyframe: memgs/path shows them loop-corrected.
         self.anchored = AnchoredPath(self.path_max_len)
         self._path_stale: set[int] = set()  # keyframes moved since the last path publication
         self.kf_path = Path()
@@ -273,8 +274,10 @@ class TrackerNode(Node):
         refined = self.tracker.poll_refined_keyframes()
         self._publish(frame, result, color.header.frame_id or self.camera_frame)
         self._publish_refined(refined)
-        if self.anchored.update(result, refined):
-            self._path_stale.update(k for k, _ in refined)  # re-expressed at the next path publication
+        loops = getattr(self.tracker, "poll_loop_corrections", list)()
+        moved = self.anchored.update(result, loops)
+        if moved:
+            self._path_stale |= moved  # re-expressed at the next path publication
             self._path_changed = True
         self._processed(stamp, keyframe=result.keyframe is not None)
 

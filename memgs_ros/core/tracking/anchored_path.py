@@ -1,86 +1,78 @@
-"""A trajectory re-expressed when keyframes move: each pose kept relative to its reference keyframe.
+"""A trajectory that follows loop corrections: each pose moves with its reference keyframe.
 
-The tracker publishes every frame's pose once, as odometry. When local bundle adjustment or a
-loop correction later moves keyframes, the best estimate of a past frame is its keyframe's new
-pose times the relative pose it was tracked with: T_wc(frame) = T_wc(kf) T_kf_frame. ``memgs/path``
-and the saved ``trajectory.txt`` show these corrected poses; ``memgs/pose`` / ``memgs/odom``
-stay as published.
+The tracker publishes every frame's pose once, as odometry. When a loop closure later moves
+keyframes, the best estimate of a past frame is its reference keyframe's correction applied to
+it: T_wc(frame) <- D_kf T_wc(frame), with D_kf = T_wc_new(kf) T_wc_old(kf)^-1 the keyframe's
+world-frame correction (``FeatureTracker.poll_loop_corrections``). ``memgs/path`` and the saved
+``trajectory.txt`` show these corrected poses; ``memgs/pose`` / ``memgs/odom`` stay as published.
+
+Local bundle-adjustment refinements are not applied here: re-expressing the frames relative to
+BA-refined keyframes made the fr1/rpy trajectory worse (ATE 2.9 -> 3.3-4.0 cm), so they only
+go to the mapper (``memgs/keyframe/refined_poses``).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
-from memgs_ros.core.geometry import invert_pose
 from memgs_ros.core.tracking.config import TrackResult
 
 
 class AnchoredPath:
-    """Frames (stamp_ns, T_wc [4, 4]) anchored to reference keyframes; ``max_len`` = 0 keeps all."""
+    """Frames (stamp_ns, T_wc [4, 4], reference keyframe id); ``max_len`` = 0 keeps all."""
 
     def __init__(self, max_len: int = 0) -> None:
         self.max_len = max_len
         self._stamps: list[int] = []
         self._ref: list[int] = []
-        self._T_rel: list[np.ndarray] = []  # T_kf_frame, or T_wc when the frame has no keyframe
-        self._kf_T_wc: dict[int, np.ndarray] = {}
+        self._T_wc: list[np.ndarray] = []
 
     def __len__(self) -> int:
         return len(self._stamps)
 
-    def add(self, stamp_ns: int, T_wc: np.ndarray, ref_kf_id: int, ref_T_wc: np.ndarray | None) -> None:
-        """A frame's pose [4, 4] and its reference keyframe (id, current T_wc [4, 4]; -1/None: none)."""
-        if ref_kf_id >= 0 and ref_T_wc is not None:
-            self._kf_T_wc.setdefault(ref_kf_id, np.array(ref_T_wc, dtype=np.float64))
-            rel = invert_pose(self._kf_T_wc[ref_kf_id]) @ T_wc
-        else:
-            ref_kf_id, rel = -1, np.array(T_wc, dtype=np.float64)
+    def add(self, stamp_ns: int, T_wc: np.ndarray, ref_kf_id: int) -> None:
+        """A frame's pose [4, 4] and the keyframe it was tracked against (-1: none)."""
         self._stamps.append(int(stamp_ns))
         self._ref.append(int(ref_kf_id))
-        self._T_rel.append(rel)
+        self._T_wc.append(np.array(T_wc, dtype=np.float64))
         if self.max_len and len(self._stamps) > self.max_len:
             drop = len(self._stamps) - self.max_len
-            del self._stamps[:drop], self._ref[:drop], self._T_rel[:drop]
-            live = set(self._ref)
-            self._kf_T_wc = {k: v for k, v in self._kf_T_wc.items() if k in live}
+            del self._stamps[:drop], self._ref[:drop], self._T_wc[:drop]
 
-    def set_keyframe(self, kf_id: int, T_wc: np.ndarray) -> bool:
-        """Move keyframe ``kf_id`` to T_wc [4, 4]; True when frames of the path follow it."""
-        if kf_id not in self._kf_T_wc:
-            return False
-        self._kf_T_wc[kf_id] = np.array(T_wc, dtype=np.float64)
-        return True
+    def correct(self, corrections: Mapping[int, np.ndarray]) -> set[int]:
+        """Apply world-frame corrections {kf_id: D [4, 4]} to the frames anchored to those
+        keyframes; returns the keyframes that had frames here."""
+        hit: set[int] = set()
+        for i, r in enumerate(self._ref):
+            D = corrections.get(r)
+            if D is not None:
+                self._T_wc[i] = D @ self._T_wc[i]
+                hit.add(r)
+        return hit
 
-    def update(self, result: TrackResult, refined: list[tuple[int, np.ndarray]]) -> bool:
-        """One tracked frame and the refined keyframe poses (id, T_wc [4, 4]) polled after it;
-        True when earlier poses of the path moved."""
-        moved = False
-        for kf_id, T_wc in refined:
-            moved |= self.set_keyframe(kf_id, T_wc)
-        if result.keyframe is not None:
-            self._kf_T_wc[result.keyframe.keyframe_id] = np.array(result.keyframe.T_wc, dtype=np.float64)
+    def update(self, result: TrackResult, corrections: list[Mapping[int, np.ndarray]]) -> set[int]:
+        """The loop corrections committed during ``track()`` (oldest first), then the frame;
+        returns the keyframes whose earlier frames moved."""
+        moved: set[int] = set()
+        for c in corrections:
+            moved |= self.correct(c)
         if result.T_wc is not None:
-            ref = result.reference_keyframe_id
-            self.add(result.stamp_ns, result.T_wc, ref, self._kf_T_wc.get(ref))
+            self.add(result.stamp_ns, result.T_wc, result.reference_keyframe_id)
         return moved
-
-    def keyframe_pose(self, kf_id: int) -> np.ndarray | None:
-        return self._kf_T_wc.get(kf_id)
 
     def poses_following(self, kf_ids: set[int]) -> tuple[np.ndarray, np.ndarray]:
         """(index [K] into the path, T_wc [K, 4, 4]) of the frames anchored to ``kf_ids``."""
         idx = np.flatnonzero(np.isin(np.array(self._ref, np.int64), np.fromiter(kf_ids, np.int64)))
         if len(idx) == 0:
             return idx, np.zeros((0, 4, 4))
-        base = np.stack([self._kf_T_wc[self._ref[i]] for i in idx.tolist()])
-        return idx, base @ np.stack([self._T_rel[i] for i in idx.tolist()])
+        return idx, np.stack([self._T_wc[i] for i in idx.tolist()])
 
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
-        """(stamps_ns [N] int64, T_wc [N, 4, 4]) with every keyframe correction applied."""
+        """(stamps_ns [N] int64, T_wc [N, 4, 4]) with every correction applied."""
         if not self._stamps:
             return np.zeros(0, np.int64), np.zeros((0, 4, 4))
-        eye = np.eye(4)
-        base = np.stack([self._kf_T_wc[r] if r >= 0 else eye for r in self._ref])
-        return np.array(self._stamps, np.int64), base @ np.stack(self._T_rel)
+        return np.array(self._stamps, np.int64), np.stack(self._T_wc)
 
 
 __all__ = ["AnchoredPath"]

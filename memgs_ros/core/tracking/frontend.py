@@ -124,6 +124,7 @@ class FeatureTracker(Tracker):
         self._db_lock = threading.Lock()
         self._loop_detector = LoopDetector(cfg.loop_consistency)
         self._loop_pending: list[LoopCorrection] = []
+        self._loop_done: list[dict[int, np.ndarray]] = []  # committed corrections, for poll_loop_corrections
         self._last_loop_query = -(10**9)
         self.loop_stats = LoopStats()
         self._stats_lock = threading.Lock()
@@ -160,6 +161,13 @@ class FeatureTracker(Tracker):
         of the map) since the last poll, oldest first."""
         with self._out_lock:
             out, self._refined = self._refined, []
+        return out
+
+    def poll_loop_corrections(self) -> list[dict[int, np.ndarray]]:
+        """Loop corrections committed since the last poll, oldest first: {keyframe_id: D [4, 4]}
+        with D = T_wc_new T_wc_old^-1 the keyframe's world-frame correction (``AnchoredPath``)."""
+        with self._out_lock:
+            out, self._loop_done = self._loop_done, []
         return out
 
     def map_stats(self) -> SparseMapStats:
@@ -764,8 +772,10 @@ class FeatureTracker(Tracker):
                 if T is not None and self._last_kf_id in moved:
                     old, new = moved[self._last_kf_id]
                     setattr(self, T_attr, orthonormalized(T @ invert_pose(old) @ new))
+            D_wc = {k: invert_pose(new) @ old for k, (old, new) in moved.items()}  # T_wc_new T_cw_old
             with self._out_lock:
                 self._refined.extend(refined)
+                self._loop_done.append(D_wc)
             self._bump(loops_accepted=1,
                                              last_loop=(c.query_id, c.candidate_id))
 
