@@ -206,3 +206,26 @@ def test_state_round_trip_through_a_new_session(frames: list[Frame]) -> None:
     assert r.insert_keyframe(_kf(frames[3], 13)).result(30) > 0
     assert r.state_dict().result(30).extra["keyframe_stamps"]["13"] == 3
     r.close()
+
+
+def test_refined_poses_move_gaussians_only_for_a_large_change(frames: list[Frame]) -> None:
+    """The tracker's refined poses: a loop-sized change corrects the keyframe and its Gaussians, a
+    bundle-adjustment-sized one only updates the training pose."""
+    s = MappingSession(_cfg(), free_running=False)
+    for i, f in enumerate(frames[:3]):
+        s.insert_keyframe(_kf(f, 10 + i))
+    rows = lambda m: (m.gmap.keyframe_ids.clone(), m.gmap.means.detach().clone())  # noqa: E731
+    kf_ids, means0 = s.call(rows).result(30)
+    T_loop = frames[1].T_wc_gt.copy()
+    T_loop[:3, 3] += [0.2, 0.0, 0.0]  # 20 cm: a loop correction
+    T_ba = frames[2].T_wc_gt.copy()
+    T_ba[:3, 3] += [0.002, 0.0, 0.0]  # 2 mm: local BA
+    assert s.refine_poses({11: T_loop, 12: T_ba}).result(30) == (1, 1, int((kf_ids == 1).sum()))
+    _, means1 = s.call(rows).result(30)
+    torch.testing.assert_close(means1[kf_ids == 1], means0[kf_ids == 1] + torch.tensor([0.2, 0.0, 0.0]),
+                               atol=1e-5, rtol=0)
+    assert torch.equal(means1[kf_ids != 1], means0[kf_ids != 1])
+    kfs = {k.kf_id: k for k in s.state_dict().result(30).keyframes}
+    np.testing.assert_allclose(kfs[2].T_wc, T_ba)
+    assert s.status.counters["keyframes_corrected"] == 1
+    s.close()

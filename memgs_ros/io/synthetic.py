@@ -19,10 +19,14 @@ Spec strings for the CLIs (``parse_spec``)::
     synthetic:w=160,h=120,n=60,seed=0,noise=0.01,holes=0.05
 
 keys: w, h (image size, px), n (frames), fps, seed, noise (depth noise std, m),
-holes (fraction of depth pixels zeroed in random blobs), amp (path translation scale,
+holes (fraction of depth pixels zeroed in random blobs), path (wobble or loop), amp (path translation scale,
 1 = about 1.9 m of travel), rot (path rotation scale, 1 = yaw +-35 deg, pitch +-8 deg,
 roll +-8 deg), aa (colour supersampling factor; 0 = auto: 2 up to 320x240, else 1).
-Defaults: 640x480, 120 frames at 30 fps, seed 0, no noise, no holes.
+Defaults: 640x480, 120 frames at 30 fps, seed 0, no noise, no holes, path=wobble.
+
+``path=loop`` is a loop-closure sequence: the camera goes once round the room (about 10 m,
+looking out at the walls and furniture) and then retraces the first ``LOOP_OVERLAP`` of the
+round, so the last frames revisit the start views (``loop_revisit_frames``).
 
 The room geometry (6 x 5 x 2.7 m, six boxes) is fixed; the seed changes the textures and
 the phases of the camera path. The camera is TUM fr3-like without distortion, scaled to
@@ -64,8 +68,9 @@ BOXES: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...]
 SPEC_KEYS = {
     "w": "width", "h": "height", "n": "n_frames", "fps": "fps", "seed": "seed",
     "noise": "depth_noise_std_m", "holes": "hole_fraction", "amp": "path_amp", "rot": "path_rot",
-    "aa": "supersample",
+    "aa": "supersample", "path": "path",
 }
+PATH_KINDS = ("wobble", "loop")
 
 
 @dataclass(frozen=True)
@@ -82,6 +87,7 @@ class SyntheticSpec:
     path_amp: float = 1.0  # translation scale of the camera path
     path_rot: float = 1.0  # rotation scale of the camera path
     supersample: int = 0  # colour rays per pixel per axis; 0 = auto
+    path: str = "wobble"  # "wobble": small closed path near x = -1.3; "loop": round the room and back
 
     def __post_init__(self) -> None:
         if self.width < 8 or self.height < 8:
@@ -96,6 +102,8 @@ class SyntheticSpec:
             raise ConfigError(f"synthetic hole fraction must be in [0, 1), got {self.hole_fraction}")
         if not (0.0 <= self.path_amp <= 1.5 and 0.0 <= self.path_rot <= 2.0):
             raise ConfigError(f"synthetic path scales amp in [0, 1.5], rot in [0, 2]; got {self.path_amp}, {self.path_rot}")
+        if self.path not in PATH_KINDS:
+            raise ConfigError(f"synthetic path must be one of {PATH_KINDS}, got {self.path!r}")
         if not 0 <= self.supersample <= 4:
             raise ConfigError(f"synthetic supersample must be 0 (auto) .. 4, got {self.supersample}")
 
@@ -113,7 +121,8 @@ class SyntheticSpec:
 
     def to_string(self) -> str:
         """The spec string that ``parse_spec`` turns back into this spec."""
-        parts = [f"{k}={getattr(self, f)}" for k, f in SPEC_KEYS.items()]
+        # path only when not the default, so default specs keep their old names
+        parts = [f"{k}={getattr(self, f)}" for k, f in SPEC_KEYS.items() if k != "path" or self.path != "wobble"]
         return "synthetic:" + ",".join(parts)
 
 
@@ -133,6 +142,9 @@ def parse_spec(text: str) -> SyntheticSpec:
         if not sep or key.strip() not in SPEC_KEYS:
             raise ConfigError(f"synthetic spec {text!r}: bad item {item!r}; keys are {', '.join(SPEC_KEYS)}")
         name = SPEC_KEYS[key.strip()]
+        if types[name] in ("str", str):
+            kwargs[name] = value.strip()
+            continue
         try:
             kwargs[name] = int(value) if types[name] in ("int", int) else float(value)
         except ValueError as err:
@@ -545,14 +557,55 @@ def _look_pose(position: np.ndarray, yaw: float, pitch: float, roll: float) -> n
     return T
 
 
+LOOP_OVERLAP = 0.12  # fraction of the round the loop path retraces after coming back to its start
+_LOOP_CENTRE = (-0.2, 0.0)  # ellipse round the room's free floor (boxes stay outside or below)
+_LOOP_RADII = (1.9, 1.3)
+
+
+def loop_revisit_frames(spec: SyntheticSpec) -> np.ndarray:
+    """Indices [K] of the frames of a ``path=loop`` sequence that revisit the start (after one round)."""
+    if spec.path != "loop":
+        return np.zeros(0, np.int64)
+    s = _loop_phase(spec.n_frames)
+    return np.flatnonzero(s >= 1.0)
+
+
+def _loop_phase(n: int) -> np.ndarray:
+    """Phase [n] of each frame along the loop: 0 .. 1 + LOOP_OVERLAP (1 = back at the start)."""
+    return np.arange(n) / max(n - 1, 1) * (1.0 + LOOP_OVERLAP)
+
+
+def _loop_trajectory(spec: SyntheticSpec) -> np.ndarray:
+    """T_wc [N, 4, 4] of the loop path: an ellipse round the room at 1.35 m, looking outwards
+    (yaw = polar angle + 135 deg: inwards and ahead), small seeded height/pitch/roll wobble."""
+    rng = np.random.default_rng([spec.seed, 4])
+    ph = rng.uniform(0, 2 * np.pi, 3)
+    s = _loop_phase(spec.n_frames)
+    a, r = spec.path_amp, spec.path_rot * np.pi / 180
+    poses = np.empty((spec.n_frames, 4, 4))
+    for k, sk in enumerate(s):
+        th = 2 * np.pi * sk
+        pos = np.array([_LOOP_CENTRE[0] + _LOOP_RADII[0] * math.cos(th),
+                        _LOOP_CENTRE[1] + _LOOP_RADII[1] * math.sin(th),
+                        1.35 + a * 0.05 * math.sin(3 * th + ph[0])])
+        yaw = th + 0.75 * np.pi
+        pitch = -15 * np.pi / 180 + 4 * r * math.sin(2 * th + ph[1])
+        roll = 4 * r * math.sin(3 * th + ph[2])
+        poses[k] = _look_pose(pos, yaw, pitch, roll)
+    return poses
+
+
 def trajectory(spec: SyntheticSpec) -> tuple[np.ndarray, np.ndarray]:
     """The camera path: (stamps_ns [N] int64, T_wc [N, 4, 4] float64).
 
-    One smooth closed loop over the sequence (so total travel does not depend on n):
+    ``path=wobble`` (default): one smooth closed loop over the sequence (so total travel does not depend on n):
     position an ellipse-like loop around (-1.3, 0, 1.35) with a vertical wobble, yaw +-35 deg
     around +x, pitch -12 +- 8 deg, roll +-8 deg, phases seeded. Stamps are whole microseconds
-    so TUM text files round-trip exactly.
+    so TUM text files round-trip exactly. ``path=loop``: see ``_loop_trajectory``.
     """
+    stamps = SYNTH_START_NS + np.round(np.arange(spec.n_frames) * 1e6 / spec.fps).astype(np.int64) * 1000
+    if spec.path == "loop":
+        return stamps, _loop_trajectory(spec)
     rng = np.random.default_rng([spec.seed, 2])
     ph = rng.uniform(0, 2 * np.pi, 6)
     n = spec.n_frames
@@ -568,7 +621,6 @@ def trajectory(spec: SyntheticSpec) -> tuple[np.ndarray, np.ndarray]:
         pitch = -12 * np.pi / 180 + 8 * r * math.sin(2 * two_pi * s[k] + ph[4])
         roll = 8 * r * math.sin(two_pi * s[k] + ph[5])
         poses[k] = _look_pose(pos, yaw, pitch, roll)
-    stamps = SYNTH_START_NS + np.round(np.arange(n) * 1e6 / spec.fps).astype(np.int64) * 1000
     return stamps, poses
 
 
@@ -657,5 +709,5 @@ def write_tum_folder(frames: Iterable[Frame], path: str | os.PathLike[str], dept
 
 __all__ = [
     "SyntheticSpec", "SyntheticScene", "Surface", "parse_spec", "is_spec_string", "build_scene",
-    "render", "trajectory", "generate_frames", "write_tum_folder", "SYNTH_START_NS",
+    "render", "trajectory", "loop_revisit_frames", "generate_frames", "write_tum_folder", "SYNTH_START_NS",
 ]

@@ -159,7 +159,8 @@ class MapperNode(Node):
             self._lockstep_ack(stamp)
 
     def on_refined(self, msg: Path) -> None:
-        """Refined keyframe poses from bundle adjustment (the session ignores unknown stamps)."""
+        """Refined keyframe poses from bundle adjustment or a loop closure (the session ignores
+        unknown stamps; a large change moves the keyframe's Gaussians and retrains it first)."""
         poses: dict[int, np.ndarray] = {}
         for p in msg.poses:
             try:
@@ -167,7 +168,7 @@ class MapperNode(Node):
             except (MessageError, DataError) as err:
                 self.stats.problem("bad_pose", f"refined pose of keyframe {stamp_to_ns(p.header.stamp)} ignored: {err}")
         if poses:
-            self.session.update_poses(poses)
+            self.session.refine_poses(poses)
 
     def on_processed(self, msg: Header) -> None:
         """Lockstep: acknowledge a frame once its keyframe (if any) is queued and training ran.

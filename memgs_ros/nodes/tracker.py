@@ -5,9 +5,15 @@ Publishes: ``memgs/pose`` (PoseStamped), ``memgs/odom`` (Odometry), ``memgs/path
 ``memgs/tracking_state`` (String), per keyframe ``memgs/keyframe/{color,depth,camera_info,pose,
 keypoints}`` sharing the frame's stamp (images as recorded with the camera's distortion in
 camera_info; keypoint u, v are undistorted pixel positions), refined keyframe poses after local
-BA on ``memgs/keyframe/refined_poses`` (Path, one PoseStamped per keyframe stamp), and
+BA and loop closure on ``memgs/keyframe/refined_poses`` (Path, one PoseStamped per keyframe stamp; a
+loop correction sends every keyframe of the map), and
 ``memgs/tracker/processed`` (Header; frame_id "keyframe" or "frame") for every frame handled, which
 the lockstep player or the mapper waits on.
+
+``memgs/pose`` and ``memgs/odom`` are per-frame odometry, published once and never revised.
+``memgs/path`` is the corrected trajectory: each pose moves with the keyframe it was tracked
+against when a loop closure corrects that keyframe (``AnchoredPath``; local BA refinements go
+only to the mapper).
 
 Frame stamps (a frame is the colour image and its paired depth, stamped by the colour header):
 - a stamp equal to the previous frame's is a duplicate delivery: dropped (``stamp_duplicate``);
@@ -44,6 +50,7 @@ from std_msgs.msg import Header, String
 from memgs_ros.core.camera import PinholeCamera, calibration_differences, describe_camera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.tracking import Tracker, TrackerConfig, TrackResult, make_tracker
+from memgs_ros.core.tracking.anchored_path import AnchoredPath
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb
 from memgs_ros.ros import qos
@@ -113,6 +120,9 @@ class TrackerNode(Node):
         self.kf_stamps: dict[int, int] = {}
         self.path = Path()
         self.path.header.frame_id = self.world_frame
+        # Every published pose anchored to its reference keyframe: memgs/path shows them loop-corrected.
+        self.anchored = AnchoredPath(self.path_max_len)
+        self._path_stale: set[int] = set()  # keyframes moved since the last path publication
         self.kf_path = Path()
         self.kf_path.header.frame_id = self.world_frame
         # Frames that arrive before the first camera_info wait here (camera topics race at start).
@@ -261,8 +271,14 @@ class TrackerNode(Node):
             self.stats.gauges["map_keyframes_removed"] = smap.keyframes_removed
             if len(self.kf_stamps) > 2 * smap.keyframes + 64:  # BA refines only kept keyframes
                 self.kf_stamps = {i: s for i, s in self.kf_stamps.items() if i in smap.keyframe_ids}
+        refined = self.tracker.poll_refined_keyframes()
         self._publish(frame, result, color.header.frame_id or self.camera_frame)
-        self._publish_refined()
+        self._publish_refined(refined)
+        loops = getattr(self.tracker, "poll_loop_corrections", list)()
+        moved = self.anchored.update(result, loops)
+        if moved:
+            self._path_stale |= moved  # re-expressed at the next path publication
+            self._path_changed = True
         self._processed(stamp, keyframe=result.keyframe is not None)
 
     def _stamp_ok(self, stamp: int) -> bool:
@@ -308,6 +324,12 @@ class TrackerNode(Node):
     def _publish_path(self) -> None:
         if self._path_changed:
             self._path_changed = False
+            if self._path_stale:
+                idx, T_wc = self.anchored.poses_following(self._path_stale)
+                self._path_stale = set()
+                for i, T in zip(idx.tolist(), T_wc):  # anchored path and memgs/path hold the same frames
+                    old = self.path.poses[i]
+                    self.path.poses[i] = matrix_to_pose_stamped(T, stamp_to_ns(old.header.stamp), self.world_frame)
             self.pub_path.publish(self.path)
 
     def _publish_keyframe(self, frame: Frame, result: TrackResult, camera_frame: str) -> None:
@@ -328,8 +350,7 @@ class TrackerNode(Node):
         self.kf_stamps[kf.keyframe_id] = stamp
         self.stats.counters["keyframes"] += 1
 
-    def _publish_refined(self) -> None:
-        refined = self.tracker.poll_refined_keyframes() if self.tracker is not None else []
+    def _publish_refined(self, refined: list[tuple[int, np.ndarray]]) -> None:
         poses = [matrix_to_pose_stamped(T, self.kf_stamps[i], self.world_frame)
                  for i, T in refined if i in self.kf_stamps]
         if poses:

@@ -27,6 +27,7 @@ import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path as NavPath
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
@@ -75,6 +76,7 @@ class _Observer:
         self.source_ok = True  # False when the player reported a source that failed part-way
         self.stats: dict[str, dict[str, str]] = {}
         self.trajectory: list[tuple[int, np.ndarray]] = []
+        self.corrected: dict[int, np.ndarray] = {}  # memgs/path: poses re-expressed after BA / loop closure
         self.keyframes: list[tuple[int, np.ndarray]] = []
         self.timeline: list[dict[str, Any]] = []  # every stats message: {"t_s", "node", values...}
         self._t0 = time.monotonic()
@@ -101,7 +103,13 @@ class _Observer:
             with self._lock:
                 self.keyframes.append((stamp_to_ns(msg.header.stamp), pose_to_matrix(msg.pose)))
 
+        def on_path(msg: NavPath) -> None:
+            poses = {stamp_to_ns(p.header.stamp): pose_to_matrix(p.pose) for p in msg.poses}
+            with self._lock:
+                self.corrected.update(poses)
+
         self.node.create_subscription(PoseStamped, "memgs/pose", on_pose, qos.reliable(1000))
+        self.node.create_subscription(NavPath, "memgs/path", on_path, qos.reliable(5))
         self.node.create_subscription(PoseStamped, "memgs/keyframe/pose", on_keyframe, qos.reliable(1000))
         for name in ("tracker", "keyframe_sampler", "mapper", "merger", "player"):
             self.node.create_subscription(DiagnosticArray, f"memgs/{name}/stats", stats_cb(name), qos.reliable(5))
@@ -354,7 +362,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
     ply = saved.split()[0] if saved else ""
     wall = time.monotonic() - t0
     with obs._lock:
-        traj = sorted(obs.trajectory, key=lambda p: p[0])
+        # Corrected poses (memgs/path) where the path has them, the per-frame odometry elsewhere.
+        traj = sorted(((s, obs.corrected.get(s, T)) for s, T in obs.trajectory), key=lambda p: p[0])
         kfs = sorted(obs.keyframes, key=lambda p: p[0])
     traj_path = out / TRAJECTORY_FILE
     _write_text(traj_path, _tum_trajectory(traj))

@@ -87,6 +87,15 @@ class TrackerConfig:
     reloc_min_inliers: int = 50
     reloc_max_keyframes: int = 30
     new_segment_after_lost_frames: int = 30  # RGB-D: start a new map anchored at the last good pose
+    # Place recognition (the shipped ORB vocabulary; relocalisation asks it too) and loop closure
+    # (RGB-D only): consistent candidates outside the local map, PnP RANSAC verification, then a
+    # pose graph on the place-recognition thread; corrected keyframes go out as refined poses.
+    loop_closure: bool = True
+    loop_min_keyframe_gap: int = 20  # loop candidates are at least this many keyframes older than the query
+    loop_consistency: int = 3  # consecutive keyframes whose candidates must agree (ORB-SLAM: 3)
+    loop_min_inliers: int = 40  # PnP RANSAC and refinement inliers needed to accept a loop
+    loop_covisibility_edge_points: int = 50  # shared points that make a covisibility edge of the pose graph
+    loop_cooldown_keyframes: int = 10  # no new loop search for this many keyframes after a correction
     # Monocular initialisation.
     mono_min_init_matches: int = 100
     mono_min_parallax_deg: float = 2.0  # median ray angle of the two-view reconstruction
@@ -107,7 +116,9 @@ class TrackerConfig:
                     "refine_radius_px", "max_reprojection_px", "min_inliers", "ransac_iterations",
                     "ransac_reprojection_px", "virtual_baseline_m", "keyframe_max_frames",
                     "local_map_keyframes", "ba_window", "ba_max_iterations", "ba_huber_px",
-                    "reloc_min_inliers", "max_translation_jump_m", "max_rotation_jump_deg")
+                    "reloc_min_inliers", "max_translation_jump_m", "max_rotation_jump_deg",
+                    "loop_min_keyframe_gap", "loop_consistency", "loop_min_inliers",
+                    "loop_covisibility_edge_points")
         for f in fields(self):
             v = getattr(self, f.name)
             if f.name in positive and not (np.isfinite(v) and v > 0):
@@ -161,6 +172,9 @@ class TrackResult:
     keyframe: set when this frame became a keyframe.
     segment_id: increases when the tracker gave up relocalising and started a new map; poses of
       different segments share a frame only through the anchor (the last good pose).
+    reference_keyframe_id: the keyframe this pose was tracked against (the last inserted one), -1
+      when none: when bundle adjustment or a loop correction moves that keyframe, the frame's
+      corrected pose is the keyframe's new pose times the same relative pose (``AnchoredPath``).
     """
 
     stamp_ns: int
@@ -171,3 +185,4 @@ class TrackResult:
     n_inliers: int
     time_s: float
     segment_id: int = 0
+    reference_keyframe_id: int = -1

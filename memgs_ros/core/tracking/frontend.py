@@ -5,6 +5,13 @@ match in a radius -> robust motion-only optimisation -> re-project with the opti
 in a tight radius -> optimise again -> gate the pose change -> keyframe decision. New
 keyframes go to a background local bundle adjustment whose refined poses are committed
 under the map lock and applied to the tracker's last pose at the next frame.
+
+Place recognition runs on a second background thread: each new keyframe gets a bag-of-words
+vector in the keyframe database (relocalisation queries it), and, with ``loop_closure`` (RGB-D),
+is checked for a loop: consistent candidates outside the local map, PnP verification, then a
+pose graph over all keyframes (``loop_closing``). The correction is committed under the map
+lock at the start of the next ``track()`` (keyframes, points, the last pose move together), so
+tracking never waits for the optimisation and never sees half a correction.
 """
 from __future__ import annotations
 
@@ -12,7 +19,7 @@ import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -26,8 +33,11 @@ from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, local_bundle_a
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.features import FrameFeatures, OrbExtractor, match_by_projection, match_descriptors
 from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
+from memgs_ros.core.tracking.loop_closing import (LoopCorrection, LoopDetector, optimise_pose_graph,
+                                                  verify_loop)
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
 from memgs_ros.core.tracking.relocalisation import relocalise
+from memgs_ros.core.tracking.vocabulary import KeyframeDatabase, Vocabulary, bow_score, default_vocabulary
 from memgs_ros.errors import DataError
 
 logger = logging.getLogger(__name__)
@@ -35,6 +45,22 @@ logger.addHandler(logging.NullHandler())
 
 _MIN_PROJECTION_MATCHES = 30  # below this the first pass is retried with a wider radius
 _WIDE_RADIUS_FACTOR = 3.0
+_LOOP_CANDIDATES = 3  # best BoW candidates per query that enter the consistency check
+_LOOP_GROUP = 10  # covisible keyframes forming a candidate's group
+_LOOP_EDGE_WEIGHT = 10.0  # loop edges against the identity-weighted odometry edges
+
+
+@dataclass(frozen=True)
+class LoopStats:
+    """Place recognition counters: queries, consistent candidates, verified+committed loops,
+    rejected by verification, pose-graph time in total (s)."""
+
+    keyframes_indexed: int = 0
+    loops_detected: int = 0
+    loops_accepted: int = 0
+    loops_rejected: int = 0
+    pose_graph_time_s: float = 0.0
+    last_loop: tuple[int, int] | None = None  # (query keyframe, matched keyframe)
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,6 +114,25 @@ class FeatureTracker(Tracker):
             self._ba_thread.start()
         self.ba_runs = 0
         self.ba_time_s = 0.0
+        # Place recognition: vocabulary, database and its own thread.
+        self.vocabulary: Vocabulary | None = None
+        try:
+            self.vocabulary = default_vocabulary()
+        except DataError as err:  # relocalisation falls back to keyframes spread over the map
+            logger.warning("place recognition off: %s", err)
+        self.keyframe_db = KeyframeDatabase()
+        self._db_lock = threading.Lock()
+        self._loop_detector = LoopDetector(cfg.loop_consistency)
+        self._loop_pending: list[LoopCorrection] = []
+        self._loop_done: list[dict[int, np.ndarray]] = []  # committed corrections, for poll_loop_corrections
+        self._last_loop_query = -(10**9)
+        self.loop_stats = LoopStats()
+        self._stats_lock = threading.Lock()
+        self._place_queue: queue.Queue[tuple[SparseMap, int]] = queue.Queue()
+        self._place_thread: threading.Thread | None = None
+        if self.vocabulary is not None and cfg.ba_threaded:
+            self._place_thread = threading.Thread(target=self._place_loop, name="memgs-loop-closing", daemon=True)
+            self._place_thread.start()
 
     # -- public -------------------------------------------------------------------------
     def track(self, frame: Frame) -> TrackResult:
@@ -100,6 +145,7 @@ class FeatureTracker(Tracker):
         if self.uses_depth and frame.depth_m is None:
             raise DataError("the RGB-D tracker needs frame.depth_m; use mode='mono' for colour-only input")
         self._apply_ba_corrections()
+        self._apply_loop_corrections()
         gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
         feats = self.extractor.extract(gray, self.camera, frame.depth_m if self.uses_depth else None)
         if self.state == TrackingState.NOT_INITIALIZED:
@@ -108,12 +154,20 @@ class FeatureTracker(Tracker):
             T_cw, kf, n_m, n_i = self._track_frame(frame, feats)
         T_wc = None if T_cw is None else invert_pose(T_cw)
         return TrackResult(frame.stamp_ns, T_wc, self.state, kf, n_m, n_i, time.perf_counter() - t0,
-                           self.segment_id)
+                           self.segment_id, self._last_kf_id if T_wc is not None else -1)
 
     def poll_refined_keyframes(self) -> list[tuple[int, np.ndarray]]:
-        """(keyframe_id, refined T_wc [4, 4]) from local BA since the last poll, oldest first."""
+        """(keyframe_id, refined T_wc [4, 4]) from local BA and loop corrections (every keyframe
+        of the map) since the last poll, oldest first."""
         with self._out_lock:
             out, self._refined = self._refined, []
+        return out
+
+    def poll_loop_corrections(self) -> list[dict[int, np.ndarray]]:
+        """Loop corrections committed since the last poll, oldest first: {keyframe_id: D [4, 4]}
+        with D = T_wc_new T_wc_old^-1 the keyframe's world-frame correction (``AnchoredPath``)."""
+        with self._out_lock:
+            out, self._loop_done = self._loop_done, []
         return out
 
     def map_stats(self) -> SparseMapStats:
@@ -122,11 +176,23 @@ class FeatureTracker(Tracker):
             return SparseMapStats(frozenset(self.map.keyframes), self.map.n_good_points, self.map.keyframes_removed)
 
     def close(self) -> None:
-        """Stop the bundle adjustment thread (idempotent)."""
+        """Stop the bundle adjustment and place recognition threads (idempotent)."""
         self._stop.set()
-        if self._ba_thread is not None:
-            self._ba_thread.join(timeout=10.0)
-            self._ba_thread = None
+        for name in ("_ba_thread", "_place_thread"):
+            th = getattr(self, name)
+            if th is not None:
+                th.join(timeout=10.0)
+                setattr(self, name, None)
+
+    def wait_for_loop_closing(self, timeout_s: float = 60.0) -> None:
+        """Block until queued keyframes are indexed and checked for loops, then commit a pending
+        correction (for tests and offline evaluation; call from the tracking thread)."""
+        deadline = time.monotonic() + timeout_s
+        while self._place_thread is not None and time.monotonic() < deadline:
+            if self._place_queue.unfinished_tasks == 0:
+                break
+            time.sleep(0.005)
+        self._apply_loop_corrections()
 
     def wait_for_ba(self, timeout_s: float = 30.0) -> None:
         """Block until queued local BA jobs are done (for tests and offline evaluation)."""
@@ -317,8 +383,22 @@ class FeatureTracker(Tracker):
                 return T_new, self._last_kf_info, 0, 0
         return None, None, 0, 0
 
+    def _relocalisation_candidates(self, feats: FrameFeatures) -> list[int] | None:
+        """Keyframes to try, best BoW score first, plus the newest ones not indexed yet; None
+        without a vocabulary (relocalise then spreads its candidates over the map)."""
+        if self.vocabulary is None or len(feats) == 0:
+            return None
+        bow = self.vocabulary.transform(feats.desc)
+        with self.map.lock:
+            ids = sorted(self.map.keyframes, reverse=True)
+        with self._db_lock:
+            hits = [k for k, _ in self.keyframe_db.query(bow) if k in self.map.keyframes]
+            unindexed = [k for k in ids if k not in self.keyframe_db][:5]
+        return list(dict.fromkeys(unindexed + hits[: self.cfg.reloc_max_keyframes]))
+
     def _relocalise(self, feats: FrameFeatures) -> _TrackOutcome | None:
-        found = relocalise(self.map, feats, self.K, self.bf, self.cfg, self.inv_sigma_levels)
+        found = relocalise(self.map, feats, self.K, self.bf, self.cfg, self.inv_sigma_levels,
+                           candidates=self._relocalisation_candidates(feats))
         if found is None:
             return None
         T, _ = found
@@ -421,6 +501,14 @@ class FeatureTracker(Tracker):
                 self._ba_queue.put((self.map, kf.keyframe_id))
             else:
                 self._run_local_ba(self.map, kf.keyframe_id)
+        if self.vocabulary is not None:
+            if self._place_thread is not None:
+                self._place_queue.put((self.map, kf.keyframe_id))
+            else:  # inline (lockstep): counted with the inline BA as back-end time, not front end
+                t_pr = time.perf_counter()
+                self._place_recognition(self.map, kf.keyframe_id)
+                self._apply_loop_corrections()
+                self.ba_time_s += time.perf_counter() - t_pr
         info = self._keyframe_info(kf)
         self._last_kf_info = info
         return info
@@ -469,6 +557,7 @@ class FeatureTracker(Tracker):
             if kf is None:  # removed by the keyframe cap while queued
                 return
             layout = smap.layout_version
+            epoch = smap.pose_epoch
             own = kf.point_ids[kf.point_ids >= 0]
             window = [kf_id] + smap.covisible(own, cfg.ba_window - 1, exclude=kf_id)
             pids = smap.points_of(window)
@@ -511,7 +600,10 @@ class FeatureTracker(Tracker):
         free = [c for c, f in zip(cams, fixed) if not f]
         T_new = res.T_cw[~fixed]
         outliers = [(int(pids[p]), k) for p, k, ok in zip(o_pt, o_kf, res.obs_inlier) if not ok]
-        moved = smap.commit_refinement(free, T_new, pids, res.points_w, outliers, layout_version=layout)
+        moved = smap.commit_refinement(free, T_new, pids, res.points_w, outliers, layout_version=layout,
+                                       pose_epoch=epoch)
+        if not moved:
+            return  # a loop correction came in between: this result is stale
         with self._out_lock:
             if smap is self.map:
                 self._pending.append(moved)
@@ -529,3 +621,168 @@ class FeatureTracker(Tracker):
             if self._last_kf_id in moved:
                 old, new = moved[self._last_kf_id]
                 self._T_cw_last = orthonormalized(self._T_cw_last @ invert_pose(old) @ new)
+
+    # -- place recognition and loop closing ------------------------------------------------
+    def _bump(self, last_loop: tuple[int, int] | None = None, **add: float) -> None:
+        with self._stats_lock:
+            self.loop_stats = _replace_stats(self.loop_stats, last_loop, **add)
+
+    def _place_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                job = self._place_queue.get(timeout=0.05)
+            except queue.Empty:
+                continue
+            try:
+                self._place_recognition(*job)  # every keyframe: the consistency check wants consecutive ones
+            except Exception:  # a failed loop search must not kill tracking
+                logger.exception("place recognition failed")
+            finally:
+                self._place_queue.task_done()
+
+    def _place_recognition(self, smap: SparseMap, kf_id: int) -> None:
+        """Index keyframe ``kf_id``; with loop closure, look for a loop and prepare its correction."""
+        assert self.vocabulary is not None
+        cfg = self.cfg
+        with smap.lock:
+            kf = smap.keyframes.get(kf_id)
+            if kf is None:
+                return
+            desc = kf.feats.desc
+            own = kf.point_ids[kf.point_ids >= 0]
+            connected = smap.covisible(own, 10**6, exclude=kf_id)
+        bow = self.vocabulary.transform(desc)
+        looking = (cfg.loop_closure and self.uses_depth and smap is self.map
+                   and kf_id - self._last_loop_query > cfg.loop_cooldown_keyframes)
+        candidates: list[tuple[int, float]] = []
+        with self._db_lock:
+            if looking:
+                near = [self.keyframe_db.vector(c) for c in connected[: cfg.local_map_keyframes]]
+                scores = [bow_score(bow, v) for v in near if v is not None]
+                if scores:
+                    skip = set(connected) | set(range(kf_id - cfg.loop_min_keyframe_gap, kf_id + 1))
+                    candidates = self.keyframe_db.query(bow, skip, min_score=min(scores),
+                                                        max_results=_LOOP_CANDIDATES)
+            self.keyframe_db.add(kf_id, bow)
+        self._bump(keyframes_indexed=1)
+        if not looking:
+            return
+        with smap.lock:
+            grouped = []
+            for c, score in candidates:
+                ck = smap.keyframes.get(c)
+                if ck is None:
+                    continue
+                group = smap.covisible(ck.point_ids[ck.point_ids >= 0], _LOOP_GROUP, exclude=c)
+                grouped.append((c, score, frozenset([c, *group])))
+        found = self._loop_detector.update(kf_id, grouped)
+        if found is None:
+            return
+        self._bump(loops_detected=1)
+        correction = self._close_loop(smap, kf_id, found.candidate_id, found.group)
+        if correction is None:
+            self._bump(loops_rejected=1)
+            return
+        self._loop_detector.reset()
+        self._last_loop_query = kf_id
+        with self._out_lock:
+            self._loop_pending.append(correction)
+
+    def _close_loop(self, smap: SparseMap, kf_id: int, cand_id: int, group: frozenset[int]) -> LoopCorrection | None:
+        """Verify the loop ``kf_id`` -> ``cand_id`` and optimise the pose graph; None if it fails."""
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        with smap.lock:
+            kf = smap.keyframes.get(kf_id)
+            if kf is None:
+                return None
+            pids = smap.points_of(sorted(group))
+            p_w, p_desc, _ = smap.point_arrays(pids)
+            f = kf.feats
+        match = verify_loop(f, self._inv_sigma(f.octave), pids, p_w, p_desc, self.K, self.bf,
+                            (self.camera.width, self.camera.height), cfg.loop_min_inliers, cfg.max_descriptor_distance,
+                            cfg.ransac_reprojection_px, iterations=cfg.ransac_iterations * 2)
+        if match is None:
+            return None
+        # Snapshot the graph: poses, ordered ids, covisibility from the observations.
+        with smap.lock:
+            ids = np.array(sorted(smap.keyframes), np.int64)
+            T_wc = invert_pose(np.stack([smap.keyframes[int(i)].T_cw for i in ids]))
+            obs = [tuple(d) for d in smap.observations if len(d) > 1]
+            layout = smap.layout_version
+        index = {int(k): n for n, k in enumerate(ids.tolist())}
+        pairs: dict[tuple[int, int], int] = {}
+        for o in obs:
+            js = sorted(index[k] for k in o if k in index)
+            for a in range(len(js)):
+                for b in range(a + 1, len(js)):
+                    pairs[(js[a], js[b])] = pairs.get((js[a], js[b]), 0) + 1
+        ei = list(range(len(ids) - 1))  # spanning tree: consecutive keyframes
+        ej = list(range(1, len(ids)))
+        for (a, b), w in pairs.items():
+            if w >= cfg.loop_covisibility_edge_points and b != a + 1:
+                ei.append(a)
+                ej.append(b)
+        weights = [1.0] * len(ei)
+        Z = [invert_pose(T_wc[a]) @ T_wc[b] for a, b in zip(ei, ej)]
+        q = index.get(kf_id)
+        if q is None:
+            return None
+        T_wc_q = invert_pose(match.T_cw)
+        for c in sorted(group):
+            if c in index and c != kf_id:
+                ei.append(index[c])
+                ej.append(q)
+                weights.append(_LOOP_EDGE_WEIGHT)
+                Z.append(invert_pose(T_wc[index[c]]) @ T_wc_q)
+        fixed = np.zeros(len(ids), bool)
+        fixed[0] = True  # the oldest keyframe holds the gauge
+        res = optimise_pose_graph(T_wc, np.array(ei), np.array(ej), np.stack(Z), np.array(weights), fixed)
+        D = res.T_wc @ invert_pose(T_wc)
+        dt = time.perf_counter() - t0
+        self._bump(pose_graph_time_s=dt)
+        logger.info("loop %d -> %d: %d inliers, pose graph %d keyframes %d edges in %.2f s",
+                    kf_id, cand_id, match.n_inliers, len(ids), len(ei), dt)
+        return LoopCorrection(ids, D, kf_id, cand_id, match.kp_idx, match.point_ids, layout, match.n_inliers, dt)
+
+    def _apply_loop_corrections(self) -> None:
+        """Commit prepared loop corrections (tracking thread, under the map lock): keyframes and
+        points move, the loop's duplicate points fuse, the last pose moves with its keyframe."""
+        with self._out_lock:
+            pending, self._loop_pending = self._loop_pending, []
+        for c in pending:
+            smap = self.map
+            with smap.lock:
+                q = int(np.flatnonzero(c.kf_ids == c.query_id)[0])
+                moved = smap.apply_loop_correction(c.kf_ids, c.D, c.D[q], newer_than=c.query_id)
+                qkf = smap.keyframes.get(c.query_id)
+                olds = smap.renumber(c.fuse_points, c.layout_version)
+                if qkf is not None and olds is not None:
+                    for kp, old in zip(c.fuse_kp.tolist(), olds.tolist()):
+                        if old < 0 or not smap.good(np.array([old]))[0]:
+                            continue
+                        cur = int(qkf.point_ids[kp])
+                        if cur >= 0 and cur != old:
+                            smap.merge_point(cur, old)
+                        elif cur < 0:
+                            smap.add_observations(np.array([old]), c.query_id, np.array([kp]))
+                refined = [(k, invert_pose(new)) for k, (_, new) in sorted(moved.items())]
+            for T_attr in ("_T_cw_last", "_last_good_T_cw"):
+                T = getattr(self, T_attr)
+                if T is not None and self._last_kf_id in moved:
+                    old, new = moved[self._last_kf_id]
+                    setattr(self, T_attr, orthonormalized(T @ invert_pose(old) @ new))
+            D_wc = {k: invert_pose(new) @ old for k, (old, new) in moved.items()}  # T_wc_new T_cw_old
+            with self._out_lock:
+                self._refined.extend(refined)
+                self._loop_done.append(D_wc)
+            self._bump(loops_accepted=1,
+                                             last_loop=(c.query_id, c.candidate_id))
+
+
+def _replace_stats(st: LoopStats, last_loop: tuple[int, int] | None = None, **add: float) -> LoopStats:
+    """``st`` with the counters in ``add`` added and ``last_loop`` set when given."""
+    vals = {k: getattr(st, k) + v for k, v in add.items()}
+    if last_loop is not None:
+        vals["last_loop"] = last_loop
+    return replace(st, **vals)

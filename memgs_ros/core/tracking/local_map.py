@@ -66,6 +66,7 @@ class SparseMap:
         self._next_kf_id = first_keyframe_id  # ids stay unique across segments
         self.version = 0  # bumped on every BA commit
         self.layout_version = 0  # bumped when compaction renumbers the point ids
+        self.pose_epoch = 0  # bumped by loop corrections: BA results from an older epoch are stale
         self._last_renumbering = np.zeros(0, np.int64)  # old id -> new id (-1 dropped) of the last compaction
         self.keyframes_removed = 0
         self.points_compacted = 0
@@ -155,6 +156,10 @@ class SparseMap:
     def n_observations(self, ids: np.ndarray) -> np.ndarray:
         """[K] number of keyframes observing each point id (0 for bad points)."""
         return self._pts.n_obs[ids]
+
+    def reference_keyframes(self, ids: np.ndarray) -> np.ndarray:
+        """[K] the keyframe that created each point id (it may have been removed since)."""
+        return self._pts.first_kf[np.asarray(ids, np.int64)].copy()
 
     def good(self, ids: np.ndarray) -> np.ndarray:
         return ~self._pts.bad[ids]
@@ -276,17 +281,82 @@ class SparseMap:
             ids = ids[ids >= 0]
             return ids[~self._pts.bad[ids]]
 
+    def merge_point(self, src: int, dst: int) -> None:
+        """Fuse point ``src`` into ``dst`` (a loop's duplicate): its observations move to ``dst``
+        where the keyframe does not see ``dst`` yet, then ``src`` turns bad."""
+        with self.lock:
+            if src == dst or self._pts.bad[dst]:
+                return
+            for kf_id, i in list(self.observations[src].items()):
+                kf = self.keyframes.get(kf_id)
+                if kf is not None and kf_id not in self.observations[dst] and kf.point_ids[i] == src:
+                    self.observations[dst][kf_id] = i
+                    self._pts.n_obs[dst] += 1
+                    kf.point_ids[i] = dst
+            self._pts.n_visible[dst] += self._pts.n_visible[src]
+            self._pts.n_found[dst] += self._pts.n_found[src]
+            self.set_bad(np.array([src]))
+
+    def apply_loop_correction(self, kf_ids: np.ndarray, D: np.ndarray, newer_D: np.ndarray,
+                              newer_than: int) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """Move keyframes ``kf_ids`` [N] by their world-frame corrections ``D`` [N, 4, 4]
+        (T_wc <- D T_wc); keyframes newer than ``newer_than`` that are not listed move by
+        ``newer_D`` [4, 4]; every point moves with the keyframe that created it (or, when that
+        one is gone, with a keyframe observing it). Bumps ``pose_epoch`` so that bundle
+        adjustments snapshotted before are discarded. Returns {kf_id: (old T_cw, new T_cw)}.
+        """
+        with self.lock:
+            table = {int(k): Dk for k, Dk in zip(np.asarray(kf_ids).tolist(), D)}
+            eye = np.eye(4)
+
+            def correction(kf_id: int) -> np.ndarray | None:
+                c = table.get(kf_id)
+                if c is None and kf_id > newer_than:
+                    c = newer_D
+                return c
+
+            moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+            for kf_id, kf in self.keyframes.items():
+                c = correction(kf_id)
+                if c is None:
+                    continue
+                T_new = kf.T_cw @ invert_pose(c)  # (D T_wc)^-1
+                moved[kf_id] = (kf.T_cw.copy(), T_new)
+                kf.T_cw = T_new
+            p = self._pts
+            ids = np.flatnonzero(~p.bad[: p.size])
+            refs = p.first_kf[ids]
+            uniq, inv = np.unique(refs, return_inverse=True)
+            per_ref = [correction(int(r)) for r in uniq.tolist()]
+            Dp = np.stack([eye if c is None else c for c in per_ref])[inv]  # [P, 4, 4]
+            missing = np.array([c is None for c in per_ref], bool)[inv]
+            for j in np.flatnonzero(missing).tolist():  # creator gone: follow an observing keyframe
+                for kf_id in self.observations[int(ids[j])]:
+                    c = correction(kf_id)
+                    if c is not None:
+                        Dp[j] = c
+                        break
+            pos = p.pos[ids]
+            p.pos[ids] = np.einsum("pij,pj->pi", Dp[:, :3, :3], pos) + Dp[:, :3, 3]
+            self.pose_epoch += 1
+            self.version += 1
+            return moved
+
     def commit_refinement(self, kf_ids: list[int], T_cw: np.ndarray, point_ids: np.ndarray,
                           points_w: np.ndarray, outliers: list[tuple[int, int]],
-                          layout_version: int | None = None) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+                          layout_version: int | None = None,
+                          pose_epoch: int | None = None) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Write BA results; returns {kf_id: (old T_cw, new T_cw)} for the keyframes moved.
 
         T_cw: [F, 4, 4] for ``kf_ids``; point_ids: [P] with points_w [P, 3]; outliers: (point id,
         keyframe id) observations to drop. ``layout_version``: the point numbering the ids were
         taken in (None: today's); results older than the last compaction but one are discarded.
+        ``pose_epoch``: the epoch of the snapshot; results from before a loop correction are discarded.
         """
         with self.lock:
             moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+            if pose_epoch is not None and pose_epoch != self.pose_epoch:
+                return moved
             point_ids = np.asarray(point_ids, np.int64)
             if layout_version is not None and layout_version != self.layout_version:
                 renumbered = self.renumber(np.concatenate([point_ids, np.array([o[0] for o in outliers],

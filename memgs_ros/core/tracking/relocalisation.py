@@ -1,4 +1,8 @@
-"""Relocalisation against stored keyframes: descriptor matching + PnP RANSAC + robust refinement."""
+"""Relocalisation against stored keyframes: descriptor matching + PnP RANSAC + robust refinement.
+
+The keyframes to try come from place recognition (the tracker's BoW keyframe database, best
+score first); without a vocabulary, keyframes spread over the whole map.
+"""
 from __future__ import annotations
 
 import cv2
@@ -23,17 +27,20 @@ def candidate_keyframes(kf_ids: list[int], max_count: int) -> list[int]:
 
 
 def relocalise(smap: SparseMap, feats: FrameFeatures, K: np.ndarray, bf: float, cfg: TrackerConfig,
-               inv_sigma_levels: np.ndarray) -> tuple[np.ndarray, int] | None:
+               inv_sigma_levels: np.ndarray, candidates: list[int] | None = None) -> tuple[np.ndarray, int] | None:
     """A pose T_cw [4, 4] for ``feats`` from the best-matching keyframe, with its inlier count.
 
     Strict on purpose (a wrong relocalisation is worse than staying lost): Lowe ratio 0.75,
     PnP RANSAC at ``ransac_reprojection_px``, then robust refinement must keep at least
-    half of ``reloc_min_inliers``; the caller confirms against the local map.
+    half of ``reloc_min_inliers``; the caller confirms against the local map. ``candidates``:
+    keyframe ids to try (place recognition's answer); None = ``reloc_max_keyframes`` spread out.
     """
     if len(feats) < _MIN_CANDIDATE_MATCHES:
         return None
     with smap.lock:
-        kfs = [smap.keyframes[i] for i in candidate_keyframes(list(smap.keyframes), cfg.reloc_max_keyframes)]
+        if candidates is None:
+            candidates = candidate_keyframes(list(smap.keyframes), cfg.reloc_max_keyframes)
+        kfs = [smap.keyframes[i] for i in candidates if i in smap.keyframes]
         per_kf = []
         for kf in kfs:
             has = np.flatnonzero(kf.point_ids >= 0)

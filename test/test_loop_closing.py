@@ -1,0 +1,145 @@
+"""Place recognition and loop closure: vocabulary, keyframe database, consistency, pose graph, tracker."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.tracking import TrackerConfig, make_tracker
+from memgs_ros.core.tracking.anchored_path import AnchoredPath
+from memgs_ros.core.tracking.bundle_adjustment import apply_left_update
+from memgs_ros.core.tracking.features import OrbExtractor
+from memgs_ros.core.tracking.loop_closing import LoopDetector, optimise_pose_graph
+from memgs_ros.core.tracking.vocabulary import (
+    KeyframeDatabase,
+    bow_score,
+    build_vocabulary,
+    default_vocabulary,
+)
+from memgs_ros.io.synthetic import (
+    generate_frames,
+    loop_revisit_frames,
+    parse_spec,
+    trajectory,
+)
+
+LOOP_SPEC = "synthetic:w=160,h=120,n=160,path=loop,noise=0.01,holes=0.05"
+
+
+@pytest.fixture(scope="module")
+def loop_frames() -> list:
+    return list(generate_frames(parse_spec(LOOP_SPEC)))
+
+
+def test_loop_path_travels_round_the_room_and_returns_to_the_start() -> None:
+    spec = parse_spec(LOOP_SPEC)
+    _, T = trajectory(spec)
+    steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
+    assert steps.sum() >= 8.0
+    rev = loop_revisit_frames(spec)
+    assert len(rev) >= 5 and rev[-1] == spec.n_frames - 1
+    # the first revisit frame is the start view again
+    np.testing.assert_allclose(T[rev[0], :3, 3], T[0, :3, 3], atol=0.1)
+    assert np.degrees(np.arccos(np.clip((np.trace(T[rev[0], :3, :3].T @ T[0, :3, :3]) - 1) / 2, -1, 1))) < 5
+    assert parse_spec(spec.to_string()) == spec
+    assert "path" not in parse_spec("synthetic:n=3").to_string()  # default spec strings unchanged
+
+
+def test_vocabulary_scores_identical_images_highest(loop_frames: list) -> None:
+    vocab = default_vocabulary()
+    assert vocab.n_words >= 1000
+    ex = OrbExtractor(TrackerConfig(n_features=300))
+    descs = [ex.extract(cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY), f.camera, None).desc for f in loop_frames[::20]]
+    db = KeyframeDatabase()
+    bows = [vocab.transform(d) for d in descs]
+    for i, b in enumerate(bows):
+        db.add(i, b)
+    for i, b in enumerate(bows):
+        assert bow_score(b, b) == pytest.approx(1.0)
+        hits = db.query(b)
+        assert hits[0] == (i, pytest.approx(1.0))
+        assert all(s < 0.99 for k, s in hits[1:])
+        assert all(k != i for k, _ in db.query(b, exclude=[i]))  # the local map is left out
+    db.remove(0)
+    assert 0 not in db and all(k != 0 for k, _ in db.query(bows[0]))
+
+
+def test_vocabulary_builder_makes_a_usable_tree() -> None:
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (50, 32), dtype=np.uint8) for _ in range(6)]
+    vocab = build_vocabulary(images, branching=3, depth=2, iterations=3)
+    assert vocab.n_words == 9 and vocab.idf.shape == (9,)
+    w = vocab.words(images[0])
+    assert w.shape == (50,) and w.min() >= 0 and w.max() < 9
+
+
+def test_consistency_needs_three_consecutive_agreeing_queries() -> None:
+    det = LoopDetector(consistency=3)
+    g = frozenset({1, 2, 3})
+    assert det.update(50, [(2, 0.3, g)]) is None
+    assert det.update(51, [(3, 0.3, frozenset({3, 4}))]) is None
+    found = det.update(52, [(1, 0.3, frozenset({0, 1}) | g)])
+    assert found is not None and found.candidate_id == 1
+    det.reset()
+    assert det.update(53, [(2, 0.3, g)]) is None
+    assert det.update(54, []) is None  # a query without candidates breaks the chain
+    assert det.update(55, [(2, 0.3, g)]) is None
+
+
+def test_pose_graph_closes_a_toy_loop() -> None:
+    n = 40
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    for k in range(n):
+        th = 2 * np.pi * k / n
+        gt[k, :3, :3] = [[np.cos(th), -np.sin(th), 0], [np.sin(th), np.cos(th), 0], [0, 0, 1]]
+        gt[k, :3, 3] = [2 * np.cos(th), 2 * np.sin(th), 0.0]
+    odo = [gt[0]]
+    for k in range(1, n):  # odometry with a systematic bias: drift
+        step = invert_pose(gt[k - 1]) @ gt[k]
+        odo.append(odo[-1] @ apply_left_update(step, np.array([0.0, 0.0, 0.004, 0.01, 0.0, 0.0])))
+    odo = np.stack(odo)
+    ei, ej = np.arange(n - 1), np.arange(1, n)
+    Z = [invert_pose(odo[i]) @ odo[j] for i, j in zip(ei, ej)]
+    ei, ej = np.r_[ei, 0], np.r_[ej, n - 1]
+    Z.append(invert_pose(gt[0]) @ gt[n - 1])  # the loop edge
+    fixed = np.zeros(n, bool)
+    fixed[0] = True
+    res = optimise_pose_graph(odo, ei, ej, np.stack(Z), np.ones(len(ei)), fixed)
+    err = lambda T: np.linalg.norm(T[:, :3, 3] - gt[:, :3, 3], axis=1)
+    assert res.final_cost < 0.01 * res.initial_cost
+    assert err(res.T_wc)[-1] < 0.1 * err(odo)[-1]
+    assert err(res.T_wc).mean() < 0.5 * err(odo).mean()
+    np.testing.assert_allclose(res.T_wc[0], gt[0], atol=1e-9)  # the gauge stays
+
+
+def _track(frames: list, loop_closure: bool) -> tuple[np.ndarray, object]:
+    """Corrected trajectory [N, 4, 4] in the ground-truth frame and the loop stats (inline threads)."""
+    cfg = TrackerConfig(n_features=300, ba_threaded=False, loop_closure=loop_closure)
+    with make_tracker(cfg, frames[0].camera) as tracker:
+        path = AnchoredPath()
+        for f in frames:
+            res = tracker.track(f)
+            path.update(res, tracker.poll_loop_corrections())
+        stats = tracker.loop_stats
+    _, T = path.poses()
+    return frames[0].T_wc_gt @ T, stats
+
+
+def test_tracker_closes_the_loop_and_corrects_the_revisit_drift(loop_frames: list) -> None:
+    rev = loop_revisit_frames(parse_spec(LOOP_SPEC))
+    gt = np.stack([f.T_wc_gt for f in loop_frames])
+    drift = {}
+    for on in (True, False):
+        T, stats = _track(loop_frames, on)
+        assert len(T) == len(loop_frames)  # no frame lost
+        drift[on] = float(np.median(np.linalg.norm(T[rev, :3, 3] - gt[rev, :3, 3], axis=1)))
+        if on:
+            assert stats.loops_accepted >= 1
+            query, matched = stats.last_loop
+            assert matched <= 3  # the start keyframes
+            assert query - matched >= TrackerConfig().loop_min_keyframe_gap  # never inside the local map
+        else:
+            assert stats.loops_detected == 0
+    assert drift[False] > 0.2  # the sequence makes the uncorrected tracker drift
+    assert drift[True] < 0.5 * drift[False]
