@@ -34,6 +34,8 @@ from memgs_ros.core.trajectory import ate, path_length_m, rpe  # noqa: E402
 from memgs_ros.core.tracking import TrackerConfig, TrackingState, make_tracker  # noqa: E402
 
 DEFAULT_TUM = "/work/shared/data/tum/rgbd_dataset_freiburg1_rpy_head"
+# The Kinect v1 colour camera's rolling shutter, as config/tum_fr*.yaml sets it for the node.
+TUM_READOUT_S = 0.02
 
 
 def _frames(source: str, n_frames: int | None, noise: float = 0.0, holes: float = 0.0) -> tuple[list, object]:
@@ -135,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
         overrides[key] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
 
     def config(**kw: object) -> TrackerConfig:
-        return TrackerConfig(**{**overrides, **kw})  # type: ignore[arg-type]
+        return TrackerConfig(**{**kw, **overrides})  # type: ignore[arg-type]
 
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     results = []
@@ -157,13 +159,14 @@ def main(argv: list[str] | None = None) -> int:
             results.append(run_case(case, fr, cam, config()))
         elif case == "tum":
             fr, cam = get("tum", args.tum, args.n_frames)
-            results.append(run_case(case, fr, cam, config()))
+            results.append(run_case(case, fr, cam, config(rolling_shutter_readout_s=TUM_READOUT_S)))
         elif case == "tum_nothread":
             fr, cam = get("tum", args.tum, args.n_frames)
-            results.append(run_case(case, fr, cam, config(ba_threaded=False), pure_timing=True))
+            results.append(run_case(case, fr, cam, config(ba_threaded=False, rolling_shutter_readout_s=TUM_READOUT_S),
+                                    pure_timing=True))
         elif case == "tum_noba":
             fr, cam = get("tum", args.tum, args.n_frames)
-            results.append(run_case(case, fr, cam, config(ba_enabled=False)))
+            results.append(run_case(case, fr, cam, config(ba_enabled=False, rolling_shutter_readout_s=TUM_READOUT_S)))
         elif case == "mono":
             fr, cam = get("synth", "synthetic", args.n_frames)
             mono = [type(f)(f.stamp_ns, f.rgb, None, f.camera, f.T_wc_gt) for f in fr]

@@ -5,7 +5,7 @@ undistorted, so every downstream step uses a plain pinhole model with ``camera.K
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -122,6 +122,34 @@ def undistort_points(uv_raw: np.ndarray, camera: PinholeCamera) -> np.ndarray:
     out = cv2.undistortPoints(np.asarray(uv_raw, np.float64).reshape(-1, 1, 2), camera.K,
                               camera.dist_coeffs, P=camera.K)
     return out.reshape(-1, 2)
+
+
+def unroll_rolling_shutter(feats: FrameFeatures, K: np.ndarray, omega_c: np.ndarray, readout_s: float,
+                           height: int) -> FrameFeatures:
+    """Keypoints moved to where a global shutter at the centre row's time would have seen them.
+
+    A rolling shutter exposes row v at ``(v - (height - 1) / 2) / height * readout_s`` after the
+    centre row; while the camera turns at ``omega_c`` [3] (rad/s, camera frame) a keypoint seen at
+    time s lies on the ray ``Exp(omega_c s) K^-1 (u, v, 1)`` of the centre-row camera. Rotation
+    only: the camera's translation in one readout (about a millimetre) is far below pixel noise.
+    K: [3, 3]; returns a copy with ``uv`` [M, 2] corrected (``uv_raw``, depth and the rest kept).
+    """
+    if len(feats) == 0 or readout_s == 0.0 or not np.any(omega_c):
+        return feats
+    s = (feats.uv_raw[:, 1].astype(np.float64) - 0.5 * (height - 1)) / height * readout_s  # [M] s
+    rv = s[:, None] * np.asarray(omega_c, dtype=np.float64)[None, :]  # [M, 3] rotation vectors
+    theta2 = np.einsum("ij,ij->i", rv, rv)
+    # Rodrigues with series coefficients: angles here are a few hundredths of a radian at most.
+    a = 1.0 - theta2 / 6.0 + theta2 ** 2 / 120.0  # sin(t) / t
+    b = 0.5 - theta2 / 24.0 + theta2 ** 2 / 720.0  # (1 - cos(t)) / t^2
+    x = np.empty((len(feats), 3))
+    x[:, 0] = (feats.uv[:, 0] - K[0, 2]) / K[0, 0]
+    x[:, 1] = (feats.uv[:, 1] - K[1, 2]) / K[1, 1]
+    x[:, 2] = 1.0
+    c = np.cross(rv, x)
+    y = x + a[:, None] * c + b[:, None] * np.cross(rv, c)  # [M, 3] Exp(rv) x
+    uv = np.column_stack([K[0, 0] * y[:, 0] / y[:, 2] + K[0, 2], K[1, 1] * y[:, 1] / y[:, 2] + K[1, 2]])
+    return replace(feats, uv=uv)
 
 
 def hamming_pairs(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
