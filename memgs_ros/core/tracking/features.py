@@ -12,6 +12,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.tracking._compiled import (
+    match_by_projection_kernel,
+    numba_available,
+)
 from memgs_ros.core.tracking.config import TrackerConfig
 
 DESCRIPTOR_BYTES = 32
@@ -165,11 +169,44 @@ def _hamming_pairs_table(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
     return _POPCOUNT[x].sum(axis=1, dtype=np.int64)
 
 
+# Grid cell of the compiled matcher, px: about the search radius, so a query visits 4-9 cells.
+MATCH_CELL_PX = 16.0
+
+
 def match_by_projection(proj_uv: np.ndarray, point_desc: np.ndarray, feats: FrameFeatures,
                         radius_px: np.ndarray | float, max_distance: int, ratio: float,
                         available: np.ndarray | None = None, max_candidates: int = 12,
                         kp_tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Match projected map points to keypoints within a pixel radius.
+
+    proj_uv: [P, 2] predicted undistorted pixels; point_desc: [P, 32]; radius_px: scalar or [P].
+    available: [M] bool, keypoints that may still take a match (default all).
+    max_candidates: nearest keypoints examined per point; kp_tree: a cKDTree of ``feats.uv``
+    (used by the plain path only).
+    Returns (point_index [K], keypoint_index [K], hamming [K]) sorted by keypoint index; one
+    keypoint per point and one point per keypoint (the lower distance wins, then the lower point).
+    Runs the numba kernel (``_compiled.match_by_projection_kernel``) when numba is available,
+    else its plain twin ``_match_by_projection``.
+    """
+    if len(proj_uv) == 0 or len(feats) == 0 or not numba_available():
+        return _match_by_projection(proj_uv, point_desc, feats, radius_px, max_distance, ratio, available,
+                                    max_candidates, kp_tree)
+    radius = np.broadcast_to(np.asarray(radius_px, dtype=np.float64), (len(proj_uv),))
+    avail = np.ones(len(feats), dtype=bool) if available is None else available
+    # Cells must cover the keypoints' extent; undistorted keypoints can leave the image a little.
+    width = float(max(feats.uv[:, 0].max(), proj_uv[:, 0].max())) + 1.0
+    height = float(max(feats.uv[:, 1].max(), proj_uv[:, 1].max())) + 1.0
+    return match_by_projection_kernel(proj_uv, radius, point_desc, feats.uv, feats.desc, avail, max_distance,
+                                      ratio, min(max_candidates, len(feats)), MATCH_CELL_PX,
+                                      int(np.ceil(max(width, 1.0))), int(np.ceil(max(height, 1.0))))
+
+
+def _match_by_projection(proj_uv: np.ndarray, point_desc: np.ndarray, feats: FrameFeatures,
+                         radius_px: np.ndarray | float, max_distance: int, ratio: float,
+                         available: np.ndarray | None = None, max_candidates: int = 12,
+                         kp_tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plain twin of ``match_by_projection`` (k-d tree and numpy): match projected map points to
+    keypoints within a pixel radius.
 
     proj_uv: [P, 2] predicted undistorted pixels; point_desc: [P, 32]; radius_px: scalar or [P].
     available: [M] bool, keypoints that may still take a match (default all).

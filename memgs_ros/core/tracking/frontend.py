@@ -358,10 +358,9 @@ class FeatureTracker(Tracker):
                     outcome = alt
             if outcome is not None:
                 self._count_local_map(outcome)
-        if predicting:
-            if outcome is not None and not self._pose_is_plausible(outcome.T_cw, T_pred):
-                logger.debug("frame %d: pose jump rejected", frame.stamp_ns)
-                outcome = None
+        if predicting and outcome is not None and not self._pose_is_plausible(outcome.T_cw, T_pred):
+            logger.debug("frame %d: pose jump rejected", frame.stamp_ns)
+            outcome = None
         relocalised = False
         if outcome is None and self.state != TrackingState.OK:
             outcome = self._relocalise(feats)
