@@ -190,9 +190,17 @@ class FeatureTracker(Tracker):
                                 ) -> tuple[FrameFeatures, _TrackOutcome]:
         """Re-correct the keypoints with this frame's own angular velocity and re-optimise the pose
         on the same matches (the first correction used the previous frame's; on fr1/rpy the
-        rotation speed changes by up to 50 % from one frame to the next)."""
+        rotation speed changes by up to 50 % from one frame to the next).
+
+        The angular velocity is the mean over this interval and the previous one: one interval's
+        estimate carries the pose noise of both its ends, and the correction feeds it back into
+        this pose (fr1/rpy head, readout 20 ms: RPE1 1.09 -> 1.00 cm; at 30 ms one interval
+        went unstable, RPE1 2.7 cm, two stayed at 1.6 cm).
+        """
         assert self._T_cw_last is not None
         omega = self._angular_velocity(outcome.T_cw @ invert_pose(self._T_cw_last), dt_s)
+        if self._velocity_known:
+            omega = 0.5 * (omega + self._angular_velocity(self._velocity, self._velocity_dt_s))
         feats = self._unrolled(raw, omega)
         p_w, _, _ = self.map.point_arrays(outcome.point_ids)
         ki = outcome.kp_idx
