@@ -52,14 +52,24 @@ def _frames(source: str, n_frames: int | None, noise: float = 0.0, holes: float 
 
 
 def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: bool = False,
-             pure_timing: bool = False) -> dict:
-    """Track every frame; returns the numbers for the JSON (and the trajectories for a plot)."""
+             pure_timing: bool = False, pace: bool = False) -> dict:
+    """Track every frame; returns the numbers for the JSON (and the trajectories for a plot).
+
+    pace: hand frames over no faster than their stamps, as a live camera would; otherwise the
+    next frame follows at once, and the threaded local BA lands more frames late the faster
+    track() is (a monocular run depends on that).
+    """
     tracker = make_tracker(cfg, camera)
     times, cpu, proc, states, est, stamps, n_inl = [], [], [], [], [], [], []
     n_kf = 0
     first_ok = None
     ba_inline_s = 0.0
+    wall0, stamp0 = time.perf_counter(), frames[0].stamp_ns if frames else 0
     for k, f in enumerate(frames):
+        if pace:
+            wait = (f.stamp_ns - stamp0) * 1e-9 - (time.perf_counter() - wall0)
+            if wait > 0:
+                time.sleep(wait)
         t0, c0, p0 = time.perf_counter(), time.thread_time(), time.process_time()
         res = tracker.track(f)
         dt, dc, dp = time.perf_counter() - t0, time.thread_time() - c0, time.process_time() - p0
@@ -100,7 +110,7 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
                  "proc_cpu_ms_median": 1e3 * float(np.median(proc)) if pure_timing else None,
                  "proc_cpu_ms_p95": 1e3 * float(np.percentile(proc, 95)) if pure_timing else None,
                  "inliers_median": float(np.median(n_inl)), "ba_runs": tracker.ba_runs,
-                 "ba_time_s": tracker.ba_time_s, "pure_track_timing": pure_timing}
+                 "ba_time_s": tracker.ba_time_s, "pure_track_timing": pure_timing, "paced": pace}
     if len(est) >= 3:
         r = ate(np.array(stamps), np.array(est), gt_st, gt_T, sim3=sim3)
         out.update(ate_rmse_m=r.rmse_m, ate_max_m=r.max_m, ate_rot_rmse_deg=r.rotation_rmse_deg,
@@ -126,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tum", default=DEFAULT_TUM)
     ap.add_argument("--cases", default="synth,synth_noisy,tum,tum_nothread,mono")
     ap.add_argument("--n-frames", type=int, default=None, help="limit every sequence (default: all / 120 synthetic)")
+    ap.add_argument("--pace", action="store_true",
+                    help="feed frames at their recorded rate (live camera) instead of back to back")
     ap.add_argument("--plot", default=None, help="save a trajectory PNG (top view) here")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a TrackerConfig field for every case (repeatable)")
@@ -153,13 +165,14 @@ def main(argv: list[str] | None = None) -> int:
     for case in cases:
         if case == "synth":
             fr, cam = get("synth", "synthetic", args.n_frames)
-            results.append(run_case(case, fr, cam, config()))
+            results.append(run_case(case, fr, cam, config(), pace=args.pace))
         elif case == "synth_noisy":
             fr, cam = get("synth_noisy", "synthetic", args.n_frames, 0.01, 0.05)
-            results.append(run_case(case, fr, cam, config()))
+            results.append(run_case(case, fr, cam, config(), pace=args.pace))
         elif case == "tum":
             fr, cam = get("tum", args.tum, args.n_frames)
-            results.append(run_case(case, fr, cam, config(rolling_shutter_readout_s=TUM_READOUT_S)))
+            results.append(run_case(case, fr, cam, config(rolling_shutter_readout_s=TUM_READOUT_S),
+                                    pace=args.pace))
         elif case == "tum_nothread":
             fr, cam = get("tum", args.tum, args.n_frames)
             results.append(run_case(case, fr, cam, config(ba_threaded=False, rolling_shutter_readout_s=TUM_READOUT_S),
@@ -170,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         elif case == "mono":
             fr, cam = get("synth", "synthetic", args.n_frames)
             mono = [type(f)(f.stamp_ns, f.rgb, None, f.camera, f.T_wc_gt) for f in fr]
-            results.append(run_case(case, mono, cam, config(mode="mono"), sim3=True))
+            results.append(run_case(case, mono, cam, config(mode="mono"), sim3=True, pace=args.pace))
         else:
             print(f"unknown case {case!r}", file=sys.stderr)
             return 2
