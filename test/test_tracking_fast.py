@@ -10,17 +10,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from memgs_ros.core.tracking import TrackerConfig
-from memgs_ros.core.tracking.bundle_adjustment import (
-    _optimize_pose,
-    apply_left_update,
-    optimize_pose,
-)
-from memgs_ros.core.tracking.features import (
-    FrameFeatures,
-    _match_by_projection,
-    match_by_projection,
-    unroll_rolling_shutter,
-)
+from memgs_ros.core.tracking.bundle_adjustment import _optimize_pose, apply_left_update, optimize_pose
+from memgs_ros.core.tracking.features import (FrameFeatures, _match_by_projection, match_by_projection,
+                                              unroll_rolling_shutter)
 from memgs_ros.errors import ConfigError
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])

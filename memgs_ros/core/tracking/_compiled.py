@@ -19,7 +19,7 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["match_by_projection_kernel", "numba_available", "optimize_pose_kernel"]
+__all__ = ["match_by_projection_kernel", "numba_available", "optimize_pose_kernel", "warm_up"]
 
 
 @lru_cache(maxsize=1)
@@ -351,3 +351,17 @@ def optimize_pose_kernel(T_cw: np.ndarray, p_w: np.ndarray, obs_uvr: np.ndarray,
                                   np.ascontiguousarray(w2, np.float64), float(K[0, 0]), float(K[1, 1]),
                                   float(K[0, 2]), float(K[1, 2]), float(bf), float(th_mono), float(th_stereo),
                                   int(rounds), int(iterations))
+
+
+def warm_up() -> None:
+    """Compile (or load from the disk cache) both kernels on tiny inputs, so that the first
+    tracked frame does not pay for it (~10 s of compilation on first use, ~0.2 s from the cache)."""
+    if not numba_available():
+        return
+    uv = np.array([[10.0, 10.0], [20.0, 20.0]])
+    desc = np.zeros((2, 32), np.uint8)
+    match_by_projection_kernel(uv, np.full(2, 5.0), desc, uv, desc, np.ones(2, bool), 80, 0.85, 2, 16.0, 32, 32)
+    p_w = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 2.0], [1.0, 1.0, 3.0]])
+    obs = np.column_stack([p_w[:, :2] / p_w[:, 2:] * 500.0 + 320.0, np.zeros(4)])
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 320.0], [0.0, 0.0, 1.0]])
+    optimize_pose_kernel(np.eye(4), p_w, obs, np.zeros(4, bool), np.ones(4), K, 40.0, 5.991, 7.815, 1, 1)

@@ -12,10 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.tracking._compiled import (
-    match_by_projection_kernel,
-    numba_available,
-)
+from memgs_ros.core.tracking._compiled import match_by_projection_kernel, numba_available
 from memgs_ros.core.tracking.config import TrackerConfig
 
 DESCRIPTOR_BYTES = 32

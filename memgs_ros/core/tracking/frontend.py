@@ -23,6 +23,7 @@ from scipy.spatial.transform import Rotation
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.geometry import invert_pose, nearest_pose_distance
+from memgs_ros.core.tracking._compiled import warm_up
 from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, local_bundle_adjustment, optimize_pose,
                                                         orthonormalized)
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
@@ -69,6 +70,7 @@ class FeatureTracker(Tracker):
         self.K = camera.K
         self.bf = camera.fx * cfg.virtual_baseline_m
         self.extractor = OrbExtractor(cfg)
+        warm_up()  # compile the numba kernels now rather than in the first frames
         self.inv_sigma_levels = cfg.scale_factor ** -np.arange(cfg.n_levels, dtype=np.float64)
         self.map = SparseMap()
         self.state = TrackingState.NOT_INITIALIZED
