@@ -114,6 +114,7 @@ class FeatureTracker(Tracker):
         self._last_kf_info: KeyframeInfo | None = None
         self._kp_tree: tuple[FrameFeatures, cKDTree] | None = None
         self._refined: list[tuple[int, np.ndarray]] = []
+        self._loop_refined: list[tuple[int, np.ndarray]] = []  # keyframe poses a loop closure corrected
         self._pending: list[dict[int, tuple[np.ndarray, np.ndarray]]] = []
         self._out_lock = threading.Lock()
         self._ba_queue: queue.Queue[tuple[SparseMap, int]] = queue.Queue()
@@ -168,10 +169,17 @@ class FeatureTracker(Tracker):
                            self.segment_id, self._last_kf_id if T_wc is not None else -1)
 
     def poll_refined_keyframes(self) -> list[tuple[int, np.ndarray]]:
-        """(keyframe_id, refined T_wc [4, 4]) from local BA and loop corrections (every keyframe
-        of the map) since the last poll, oldest first."""
+        """(keyframe_id, refined T_wc [4, 4]) from local BA since the last poll, oldest first:
+        small refinements the mapper takes as new training poses (its Gaussians stay)."""
         with self._out_lock:
             out, self._refined = self._refined, []
+        return out
+
+    def poll_loop_corrected_keyframes(self) -> list[tuple[int, np.ndarray]]:
+        """(keyframe_id, corrected T_wc [4, 4]) of every keyframe a loop closure moved, since the
+        last poll, oldest first: the mapper moves each keyframe's Gaussians with it."""
+        with self._out_lock:
+            out, self._loop_refined = self._loop_refined, []
         return out
 
     def poll_loop_corrections(self) -> list[dict[int, np.ndarray]]:
@@ -867,7 +875,7 @@ class FeatureTracker(Tracker):
                     setattr(self, T_attr, orthonormalized(T @ invert_pose(old) @ new))
             D_wc = {k: invert_pose(new) @ old for k, (old, new) in moved.items()}  # T_wc_new T_cw_old
             with self._out_lock:
-                self._refined.extend(refined)
+                self._loop_refined.extend(refined)
                 self._loop_done.append(D_wc)
             self._bump(loops_accepted=1,
                                              last_loop=(c.query_id, c.candidate_id))
