@@ -4,7 +4,11 @@ from __future__ import annotations
 import numpy as np
 
 from memgs_ros.core.geometry import invert_pose
-from memgs_ros.core.tracking.bundle_adjustment import BAProblem, apply_left_update, local_bundle_adjustment
+from memgs_ros.core.tracking.bundle_adjustment import (
+    BAProblem,
+    apply_left_update,
+    local_bundle_adjustment,
+)
 from memgs_ros.core.tracking.global_ba import global_bundle_adjustment
 
 K = np.array([[200.0, 0, 160], [0, 200.0, 120], [0, 0, 1]])

@@ -32,6 +32,7 @@ from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, local_bundle_a
                                                         orthonormalized)
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.features import FrameFeatures, OrbExtractor, match_by_projection, match_descriptors
+from memgs_ros.core.tracking.global_ba import global_bundle_adjustment
 from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
 from memgs_ros.core.tracking.loop_closing import (LoopCorrection, LoopDetector, optimise_pose_graph,
                                                   verify_loop)
@@ -53,13 +54,16 @@ _LOOP_EDGE_WEIGHT = 10.0  # loop edges against the identity-weighted odometry ed
 @dataclass(frozen=True)
 class LoopStats:
     """Place recognition counters: queries, consistent candidates, verified+committed loops,
-    rejected by verification, pose-graph time in total (s)."""
+    rejected by verification, pose-graph time in total (s), global bundle adjustments."""
 
     keyframes_indexed: int = 0
     loops_detected: int = 0
     loops_accepted: int = 0
     loops_rejected: int = 0
     pose_graph_time_s: float = 0.0
+    global_ba_runs: int = 0  # committed global bundle adjustments
+    global_ba_discarded: int = 0  # stale (another correction came first) or not improving
+    global_ba_time_s: float = 0.0
     last_loop: tuple[int, int] | None = None  # (query keyframe, matched keyframe)
 
 
@@ -188,11 +192,14 @@ class FeatureTracker(Tracker):
         """Block until queued keyframes are indexed and checked for loops, then commit a pending
         correction (for tests and offline evaluation; call from the tracking thread)."""
         deadline = time.monotonic() + timeout_s
-        while self._place_thread is not None and time.monotonic() < deadline:
-            if self._place_queue.unfinished_tasks == 0:
+        while True:
+            while self._place_thread is not None and time.monotonic() < deadline:
+                if self._place_queue.unfinished_tasks == 0:
+                    break
+                time.sleep(0.005)
+            # A committed loop queues a global BA on the same thread: wait for that one too.
+            if self._apply_loop_corrections() == 0 or time.monotonic() >= deadline:
                 break
-            time.sleep(0.005)
-        self._apply_loop_corrections()
 
     def wait_for_ba(self, timeout_s: float = 30.0) -> None:
         """Block until queued local BA jobs are done (for tests and offline evaluation)."""
@@ -634,7 +641,10 @@ class FeatureTracker(Tracker):
             except queue.Empty:
                 continue
             try:
-                self._place_recognition(*job)  # every keyframe: the consistency check wants consecutive ones
+                if job[1] < 0:
+                    self._global_ba(job[0])
+                else:
+                    self._place_recognition(*job)  # every keyframe: the consistency check wants consecutive ones
             except Exception:  # a failed loop search must not kill tracking
                 logger.exception("place recognition failed")
             finally:
@@ -745,16 +755,71 @@ class FeatureTracker(Tracker):
                     kf_id, cand_id, match.n_inliers, len(ids), len(ei), dt)
         return LoopCorrection(ids, D, kf_id, cand_id, match.kp_idx, match.point_ids, layout, match.n_inliers, dt)
 
-    def _apply_loop_corrections(self) -> None:
-        """Commit prepared loop corrections (tracking thread, under the map lock): keyframes and
-        points move, the loop's duplicate points fuse, the last pose moves with its keyframe."""
+    def _global_ba(self, smap: SparseMap) -> None:
+        """Bundle-adjust the whole map after a loop correction (loop-closing thread): every keyframe
+        but the oldest (the gauge) and every point seen by two keyframes; the result goes to
+        ``_loop_pending`` as a correction (D per keyframe plus point positions)."""
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        with smap.lock:
+            if smap is not self.map or len(smap.keyframes) < 3:
+                return
+            epoch, layout = smap.pose_epoch, smap.layout_version
+            ids = sorted(smap.keyframes)
+            cam_index = {k: i for i, k in enumerate(ids)}
+            pids = np.array([p for p in smap.points_of(ids).tolist() if len(smap.observations[p]) >= 2], np.int64)
+            o_cam, o_pt, o_uv, o_depth, o_oct, o_kf = [], [], [], [], [], []
+            for j, pid in enumerate(pids.tolist()):
+                for k, i in smap.observations[pid].items():
+                    f = smap.keyframes[k].feats
+                    o_cam.append(cam_index[k])
+                    o_pt.append(j)
+                    o_uv.append(f.uv[i])
+                    o_depth.append(f.depth_m[i])
+                    o_oct.append(f.octave[i])
+                    o_kf.append(k)
+            T_cw = np.stack([smap.keyframes[k].T_cw for k in ids])
+            p_w, _, _ = smap.point_arrays(pids)
+        if len(o_cam) < 20:
+            return
+        fixed = np.zeros(len(ids), bool)
+        fixed[0] = True
+        prob = BAProblem(T_cw, fixed, p_w, np.array(o_cam), np.array(o_pt), np.array(o_uv),
+                         np.array(o_depth, dtype=np.float64), self._inv_sigma(np.array(o_oct)))
+        res = global_bundle_adjustment(prob, self.K, self.bf, cfg.ba_huber_px, cfg.loop_global_ba_iterations,
+                                       cfg.loop_global_ba_budget_s)
+        dt = time.perf_counter() - t0
+        if not np.isfinite(res.final_cost) or res.final_cost >= res.initial_cost:
+            self._bump(global_ba_discarded=1, global_ba_time_s=dt)
+            return
+        D = invert_pose(res.T_cw) @ T_cw  # T_wc_new T_cw_old: world-frame corrections
+        outliers = tuple((int(pids[p]), k) for p, k, ok in zip(o_pt, o_kf, res.obs_inlier) if not ok)
+        logger.info("global BA: %d keyframes %d points %d observations, cost %.0f -> %.0f in %.2f s",
+                    len(ids), len(pids), len(o_cam), res.initial_cost, res.final_cost, dt)
+        with self._out_lock:
+            self._loop_pending.append(LoopCorrection(
+                np.array(ids, np.int64), D, ids[-1], -1, np.zeros(0, np.int64), np.zeros(0, np.int64), layout,
+                0, dt, pids, res.points_w, outliers, epoch))
+        self._bump(global_ba_time_s=dt)
+
+    def _apply_loop_corrections(self) -> int:
+        """Commit prepared loop corrections and global BAs (tracking thread, under the map lock):
+        keyframes and points move, the loop's duplicate points fuse, the last pose moves with its
+        keyframe; each committed loop queues a global BA. Returns how many were committed."""
         with self._out_lock:
             pending, self._loop_pending = self._loop_pending, []
+        committed = 0
         for c in pending:
             smap = self.map
             with smap.lock:
+                if c.pose_epoch is not None and c.pose_epoch != smap.pose_epoch:
+                    self._bump(global_ba_discarded=1)  # another correction came in between: stale
+                    continue
                 q = int(np.flatnonzero(c.kf_ids == c.query_id)[0])
                 moved = smap.apply_loop_correction(c.kf_ids, c.D, c.D[q], newer_than=c.query_id)
+                if c.point_ids is not None:  # global BA: its point positions, then drop its outliers
+                    smap.commit_refinement([], np.zeros((0, 4, 4)), c.point_ids, c.points_w, list(c.outliers),
+                                           layout_version=c.layout_version)
                 qkf = smap.keyframes.get(c.query_id)
                 olds = smap.renumber(c.fuse_points, c.layout_version)
                 if qkf is not None and olds is not None:
@@ -776,8 +841,18 @@ class FeatureTracker(Tracker):
             with self._out_lock:
                 self._refined.extend(refined)
                 self._loop_done.append(D_wc)
-            self._bump(loops_accepted=1,
-                                             last_loop=(c.query_id, c.candidate_id))
+            committed += 1
+            if c.is_global_ba:
+                self._bump(global_ba_runs=1)
+                continue
+            self._bump(loops_accepted=1, last_loop=(c.query_id, c.candidate_id))
+            if self.cfg.loop_global_ba:
+                if self._place_thread is not None:
+                    self._place_queue.put((smap, -1))
+                else:  # inline (lockstep)
+                    self._global_ba(smap)
+                    committed += self._apply_loop_corrections()
+        return committed
 
 
 def _replace_stats(st: LoopStats, last_loop: tuple[int, int] | None = None, **add: float) -> LoopStats:

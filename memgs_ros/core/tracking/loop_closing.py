@@ -245,6 +245,11 @@ class LoopCorrection:
     T_wc_new inv(T_wc_old); query_id: the loop keyframe (keyframes newer than the snapshot move
     with it); fuse_kp / fuse_points: [K] query keypoints and the loop map points they matched
     (point ids at ``layout_version``), merged after the correction.
+
+    A global bundle adjustment commits through the same path (``candidate_id`` -1): its point_ids
+    [P] / points_w [P, 3] (numbered at ``layout_version``) overwrite those points after the
+    keyframes moved, outliers [(point id, keyframe id)] lose that observation, and ``pose_epoch``
+    (the snapshot's) discards it when another correction came in between.
     """
 
     kf_ids: np.ndarray
@@ -256,6 +261,14 @@ class LoopCorrection:
     layout_version: int
     n_inliers: int
     time_s: float
+    point_ids: np.ndarray | None = None
+    points_w: np.ndarray | None = None
+    outliers: tuple[tuple[int, int], ...] = ()
+    pose_epoch: int | None = None
+
+    @property
+    def is_global_ba(self) -> bool:
+        return self.candidate_id < 0
 
 
 __all__ = ["LoopCandidate", "LoopCorrection", "LoopDetector", "LoopMatch", "PoseGraphResult",
