@@ -106,6 +106,10 @@ class FeatureTracker(Tracker):
         self._frames_since_kf = 0
         self._local_kfs: list[int] = []
         self._last_kf_info: KeyframeInfo | None = None
+        # Keyframe poses T_cw as the corrected path last saw them (creation, then each loop commit):
+        # loop corrections are expressed against these, so the path also takes the local BA
+        # refinements made since (frames were tracked near the keyframe's first pose).
+        self._path_T_cw: dict[int, np.ndarray] = {}
         self._kp_tree: tuple[FrameFeatures, cKDTree] | None = None
         self._refined: list[tuple[int, np.ndarray]] = []
         self._pending: list[dict[int, tuple[np.ndarray, np.ndarray]]] = []
@@ -500,6 +504,7 @@ class FeatureTracker(Tracker):
 
     def _finish_keyframe(self, kf: SparseKeyframe) -> KeyframeInfo:
         self._last_kf_id = kf.keyframe_id
+        self._path_T_cw[kf.keyframe_id] = kf.T_cw.copy()
         self._frames_since_kf = 0
         if kf.keyframe_id not in self._local_kfs:
             self._local_kfs.append(kf.keyframe_id)
@@ -792,15 +797,47 @@ class FeatureTracker(Tracker):
         if not np.isfinite(res.final_cost) or res.final_cost >= res.initial_cost:
             self._bump(global_ba_discarded=1, global_ba_time_s=dt)
             return
-        D = invert_pose(res.T_cw) @ T_cw  # T_wc_new T_cw_old: world-frame corrections
+        D = invert_pose(res.T_cw) @ T_cw  # T_wc_new T_cw_old: world-frame corrections (snapshot)
         outliers = tuple((int(pids[p]), k) for p, k, ok in zip(o_pt, o_kf, res.obs_inlier) if not ok)
         logger.info("global BA: %d keyframes %d points %d observations, cost %.0f -> %.0f in %.2f s",
                     len(ids), len(pids), len(o_cam), res.initial_cost, res.final_cost, dt)
         with self._out_lock:
             self._loop_pending.append(LoopCorrection(
                 np.array(ids, np.int64), D, ids[-1], -1, np.zeros(0, np.int64), np.zeros(0, np.int64), layout,
-                0, dt, pids, res.points_w, outliers, epoch))
+                0, dt, pids, res.points_w, outliers, epoch, invert_pose(res.T_cw)))
         self._bump(global_ba_time_s=dt)
+
+    @staticmethod
+    def _correction_table(smap: SparseMap, c: LoopCorrection) -> tuple[np.ndarray, np.ndarray]:
+        """World-frame corrections (ids [M], D [M, 4, 4]) for ``c`` at commit time (map lock held).
+
+        A global BA's poses replace the current ones (local BA results since its snapshot are
+        superseded). Keyframes made after the snapshot take the correction of the snapshot keyframe
+        they share most points with: after a loop they track against the old map, which a
+        correction barely moves, not against the query keyframe.
+        """
+        ids, D = c.kf_ids, c.D
+        if c.T_wc_new is not None:
+            cur = np.stack([smap.keyframes[k].T_cw if k in smap.keyframes else invert_pose(T)
+                            for k, T in zip(ids.tolist(), c.T_wc_new)])
+            D = c.T_wc_new @ cur
+        table = {k: n for n, k in enumerate(ids.tolist())}
+        extra_ids, extra_D = [], []
+        for k, kf in smap.keyframes.items():
+            if k in table or k <= c.query_id:
+                continue
+            counts: dict[int, int] = {}
+            for pid in kf.point_ids[kf.point_ids >= 0].tolist():
+                for o in smap.observations[pid]:
+                    if o in table:
+                        counts[o] = counts.get(o, 0) + 1
+            if counts:
+                extra_ids.append(k)
+                extra_D.append(D[table[max(counts, key=counts.__getitem__)]])
+        if extra_ids:
+            ids = np.concatenate([ids, np.array(extra_ids, np.int64)])
+            D = np.concatenate([D, np.stack(extra_D)])
+        return ids, D
 
     def _apply_loop_corrections(self) -> int:
         """Commit prepared loop corrections and global BAs (tracking thread, under the map lock):
@@ -815,8 +852,9 @@ class FeatureTracker(Tracker):
                 if c.pose_epoch is not None and c.pose_epoch != smap.pose_epoch:
                     self._bump(global_ba_discarded=1)  # another correction came in between: stale
                     continue
+                kf_ids, D = self._correction_table(smap, c)
                 q = int(np.flatnonzero(c.kf_ids == c.query_id)[0])
-                moved = smap.apply_loop_correction(c.kf_ids, c.D, c.D[q], newer_than=c.query_id)
+                moved = smap.apply_loop_correction(kf_ids, D, c.D[q], newer_than=c.query_id)
                 if c.point_ids is not None:  # global BA: its point positions, then drop its outliers
                     smap.commit_refinement([], np.zeros((0, 4, 4)), c.point_ids, c.points_w, list(c.outliers),
                                            layout_version=c.layout_version)
@@ -837,7 +875,9 @@ class FeatureTracker(Tracker):
                 if T is not None and self._last_kf_id in moved:
                     old, new = moved[self._last_kf_id]
                     setattr(self, T_attr, orthonormalized(T @ invert_pose(old) @ new))
-            D_wc = {k: invert_pose(new) @ old for k, (old, new) in moved.items()}  # T_wc_new T_cw_old
+            # T_wc_new T_cw_path: the path's frames move with their keyframe, BA refinements included.
+            D_wc = {k: invert_pose(new) @ self._path_T_cw.get(k, old) for k, (old, new) in moved.items()}
+            self._path_T_cw = {k: new.copy() for k, (_, new) in moved.items()}
             with self._out_lock:
                 self._refined.extend(refined)
                 self._loop_done.append(D_wc)

@@ -249,7 +249,8 @@ class LoopCorrection:
     A global bundle adjustment commits through the same path (``candidate_id`` -1): its point_ids
     [P] / points_w [P, 3] (numbered at ``layout_version``) overwrite those points after the
     keyframes moved, outliers [(point id, keyframe id)] lose that observation, and ``pose_epoch``
-    (the snapshot's) discards it when another correction came in between.
+    (the snapshot's) discards it when another correction came in between; its T_wc_new replace the
+    keyframe poses (D is then recomputed at commit).
     """
 
     kf_ids: np.ndarray
@@ -265,6 +266,7 @@ class LoopCorrection:
     points_w: np.ndarray | None = None
     outliers: tuple[tuple[int, int], ...] = ()
     pose_epoch: int | None = None
+    T_wc_new: np.ndarray | None = None  # [N, 4, 4] global BA: poses that replace the current ones
 
     @property
     def is_global_ba(self) -> bool:
