@@ -101,6 +101,7 @@ class TrackerConfig:
     loop_global_ba: bool = True
     loop_global_ba_iterations: int = 10
     loop_global_ba_budget_s: float = 2.0
+    loop_global_ba_followup_keyframes: int = 5  # one more global BA this many keyframes after (0: none)
     # Monocular initialisation.
     mono_min_init_matches: int = 100
     mono_min_parallax_deg: float = 2.0  # median ray angle of the two-view reconstruction

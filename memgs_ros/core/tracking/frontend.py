@@ -134,6 +134,7 @@ class FeatureTracker(Tracker):
         self._loop_pending: list[LoopCorrection] = []
         self._loop_done: list[dict[int, np.ndarray]] = []  # committed corrections, for poll_loop_corrections
         self._last_loop_query = -(10**9)
+        self._gba_followup_at: int | None = None  # keyframe id that triggers the follow-up global BA
         self.loop_stats = LoopStats()
         self._stats_lock = threading.Lock()
         self._place_queue: queue.Queue[tuple[SparseMap, int]] = queue.Queue()
@@ -680,6 +681,13 @@ class FeatureTracker(Tracker):
                                                         max_results=_LOOP_CANDIDATES)
             self.keyframe_db.add(kf_id, bow)
         self._bump(keyframes_indexed=1)
+        with self._out_lock:  # not before the last global BA is committed (it would be stale)
+            gba_pending = any(c.is_global_ba for c in self._loop_pending)
+        if self._gba_followup_at is not None and kf_id >= self._gba_followup_at and not gba_pending:
+            # The keyframes made since the loop track against the old map: one more global BA
+            # ties them (and the loop) in. Once per loop.
+            self._gba_followup_at = None
+            self._global_ba(smap, followup=True)
         if not looking:
             return
         with smap.lock:
@@ -760,7 +768,7 @@ class FeatureTracker(Tracker):
                     kf_id, cand_id, match.n_inliers, len(ids), len(ei), dt)
         return LoopCorrection(ids, D, kf_id, cand_id, match.kp_idx, match.point_ids, layout, match.n_inliers, dt)
 
-    def _global_ba(self, smap: SparseMap) -> None:
+    def _global_ba(self, smap: SparseMap, followup: bool = False) -> None:
         """Bundle-adjust the whole map after a loop correction (loop-closing thread): every keyframe
         but the oldest (the gauge) and every point seen by two keyframes; the result goes to
         ``_loop_pending`` as a correction (D per keyframe plus point positions)."""
@@ -771,6 +779,8 @@ class FeatureTracker(Tracker):
                 return
             epoch, layout = smap.pose_epoch, smap.layout_version
             ids = sorted(smap.keyframes)
+            if cfg.loop_global_ba_followup_keyframes > 0 and self._gba_followup_at is None and not followup:
+                self._gba_followup_at = ids[-1] + cfg.loop_global_ba_followup_keyframes
             cam_index = {k: i for i, k in enumerate(ids)}
             pids = np.array([p for p in smap.points_of(ids).tolist() if len(smap.observations[p]) >= 2], np.int64)
             o_cam, o_pt, o_uv, o_depth, o_oct, o_kf = [], [], [], [], [], []
