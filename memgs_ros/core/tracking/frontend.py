@@ -733,6 +733,11 @@ class FeatureTracker(Tracker):
             T_wc = invert_pose(np.stack([smap.keyframes[int(i)].T_cw for i in ids]))
             obs = [tuple(d) for d in smap.observations if len(d) > 1]
             layout = smap.layout_version
+            # The current group (the query's covisible keyframes and newer ones) for loop fusion.
+            own = kf.point_ids[kf.point_ids >= 0]
+            near = set(smap.covisible(own, _LOOP_GROUP, exclude=kf_id)) - set(group)
+            cur_group = {k: smap.keyframes[k].feats for k in ids.tolist()
+                         if k != kf_id and (k in near or k > kf_id)}
         index = {int(k): n for n, k in enumerate(ids.tolist())}
         pairs: dict[tuple[int, int], int] = {}
         for o in obs:
@@ -762,11 +767,45 @@ class FeatureTracker(Tracker):
         fixed[0] = True  # the oldest keyframe holds the gauge
         res = optimise_pose_graph(T_wc, np.array(ei), np.array(ej), np.stack(Z), np.array(weights), fixed)
         D = res.T_wc @ invert_pose(T_wc)
+        D_cand = D[index[cand_id]] if cand_id in index else np.eye(4)  # the loop group barely moves
+        fuse_kf, fuse_kp, fuse_pt = self._loop_fusion(cur_group, index, res.T_wc,
+                                                      D_cand @ np.r_[p_w.T, np.ones((1, len(p_w)))], pids, p_desc)
         dt = time.perf_counter() - t0
         self._bump(pose_graph_time_s=dt)
-        logger.info("loop %d -> %d: %d inliers, pose graph %d keyframes %d edges in %.2f s",
-                    kf_id, cand_id, match.n_inliers, len(ids), len(ei), dt)
-        return LoopCorrection(ids, D, kf_id, cand_id, match.kp_idx, match.point_ids, layout, match.n_inliers, dt)
+        logger.info("loop %d -> %d: %d inliers, pose graph %d keyframes %d edges in %.2f s, %d fused in %d keyframes",
+                    kf_id, cand_id, match.n_inliers, len(ids), len(ei), dt, len(fuse_kf), len(cur_group))
+        return LoopCorrection(ids, D, kf_id, cand_id, np.r_[match.kp_idx, fuse_kp], np.r_[match.point_ids, fuse_pt],
+                              layout, match.n_inliers, dt,
+                              fuse_kf=np.r_[np.full(len(match.kp_idx), kf_id, np.int64), fuse_kf])
+
+    def _loop_fusion(self, cur_group: dict[int, FrameFeatures], index: dict[int, int], T_wc_new: np.ndarray,
+                     p_h: np.ndarray, pids: np.ndarray, p_desc: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Matches of the loop group's points (ids [P], corrected homogeneous positions p_h [4, P],
+        desc [P, 32]) in the current group's keyframes at their pose-graph poses: (keyframe [K],
+        keypoint [K], point id [K]) to fuse at commit. One loop link per keyframe of the seam
+        instead of the query's alone (ORB-SLAM's loop fusion), which the global BA then uses."""
+        cfg = self.cfg
+        out_kf, out_kp, out_pt = [], [], []
+        for k, f in cur_group.items():
+            T_cw = invert_pose(T_wc_new[index[k]])
+            p_c = (T_cw @ p_h)[:3].T
+            z = np.where(p_c[:, 2] > 1e-3, p_c[:, 2], 1.0)
+            uv = np.column_stack([self.K[0, 0] * p_c[:, 0] / z + self.K[0, 2], self.K[1, 1] * p_c[:, 1] / z + self.K[1, 2]])
+            vis = np.flatnonzero((p_c[:, 2] > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < self.camera.width)
+                                 & (uv[:, 1] >= 0) & (uv[:, 1] < self.camera.height))
+            if len(vis) == 0:
+                continue
+            pi, ki, _ = match_by_projection(uv[vis], p_desc[vis], f, 3.0, cfg.max_descriptor_distance, 0.9)
+            # Depth must agree too: a wrong fusion would tie the seam to a wrong point.
+            d = f.depth_m[ki]
+            ok = ~np.isfinite(d) | (np.abs(d - p_c[vis[pi], 2]) < 0.05 + 0.03 * p_c[vis[pi], 2])
+            out_kf.append(np.full(int(ok.sum()), k, np.int64))
+            out_kp.append(ki[ok])
+            out_pt.append(pids[vis[pi[ok]]])
+        if not out_kf:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return np.concatenate(out_kf), np.concatenate(out_kp), np.concatenate(out_pt)
 
     def _global_ba(self, smap: SparseMap, followup: bool = False) -> None:
         """Bundle-adjust the whole map after a loop correction (loop-closing thread): every keyframe
@@ -868,17 +907,18 @@ class FeatureTracker(Tracker):
                 if c.point_ids is not None:  # global BA: its point positions, then drop its outliers
                     smap.commit_refinement([], np.zeros((0, 4, 4)), c.point_ids, c.points_w, list(c.outliers),
                                            layout_version=c.layout_version)
-                qkf = smap.keyframes.get(c.query_id)
                 olds = smap.renumber(c.fuse_points, c.layout_version)
-                if qkf is not None and olds is not None:
-                    for kp, old in zip(c.fuse_kp.tolist(), olds.tolist()):
-                        if old < 0 or not smap.good(np.array([old]))[0]:
+                fuse_kf = c.fuse_kf if c.fuse_kf is not None else np.full(len(c.fuse_kp), c.query_id, np.int64)
+                if olds is not None:
+                    for k, kp, old in zip(fuse_kf.tolist(), c.fuse_kp.tolist(), olds.tolist()):
+                        fkf = smap.keyframes.get(k)
+                        if fkf is None or old < 0 or not smap.good(np.array([old]))[0]:
                             continue
-                        cur = int(qkf.point_ids[kp])
+                        cur = int(fkf.point_ids[kp])
                         if cur >= 0 and cur != old:
                             smap.merge_point(cur, old)
-                        elif cur < 0:
-                            smap.add_observations(np.array([old]), c.query_id, np.array([kp]))
+                        elif cur < 0 and k not in smap.observations[old]:
+                            smap.add_observations(np.array([old]), k, np.array([kp]))
                 refined = [(k, invert_pose(new)) for k, (_, new) in sorted(moved.items())]
             for T_attr in ("_T_cw_last", "_last_good_T_cw"):
                 T = getattr(self, T_attr)
