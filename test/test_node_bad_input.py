@@ -297,11 +297,23 @@ def test_free_running_mapper_drops_and_counts_keyframes_it_cannot_insert(context
         pub = feeder.peer.create_publisher(Path, "memgs/keyframe/refined_poses", qos.reliable(20))
         assert _spin_until(feeder.ex, lambda: pub.get_subscription_count() > 0)
         T = frames[3].T_wc_gt.copy()
-        T[:3, 3] += 0.002  # a bundle-adjustment-sized change (a larger one is a rigid loop correction)
+        T[:3, 3] += 0.03  # bundle adjustment: the training pose only, the Gaussians stay
         pub.publish(Path(poses=[matrix_to_pose_stamped(T, stamps[3], "map")]))
         assert _spin_until(feeder.ex, lambda: c["keyframe_pose_updates"] == 1)
         kfs = node.session.state_dict().result(30).keyframes
         np.testing.assert_allclose([k.T_wc for k in kfs if k.stamp_ns == stamps[3]][0], T, atol=1e-6)
+        assert c["keyframes_corrected"] == 0
+        # A loop correction of the same keyframe moves its Gaussians with it (its own topic).
+        means = lambda m: m.gmap.means.detach().numpy().copy()  # noqa: E731 - runs on the session's worker
+        before = node.session.call(means).result(30)
+        loop = feeder.peer.create_publisher(Path, "memgs/keyframe/loop_corrected_poses", qos.reliable(20))
+        assert _spin_until(feeder.ex, lambda: loop.get_subscription_count() > 0)
+        T2 = T.copy()
+        T2[:3, 3] += [0.1, 0.0, 0.0]
+        loop.publish(Path(poses=[matrix_to_pose_stamped(T2, stamps[3], "map")]))
+        assert _spin_until(feeder.ex, lambda: c["keyframes_corrected"] == 1)
+        moved = np.linalg.norm(node.session.call(means).result(30) - before, axis=1)
+        assert c["gaussians_corrected"] > 0 and int((np.abs(moved - 0.1) < 1e-4).sum()) == c["gaussians_corrected"]
     finally:
         gate.set()
         node.on_shutdown()

@@ -208,9 +208,10 @@ def test_state_round_trip_through_a_new_session(frames: list[Frame]) -> None:
     r.close()
 
 
-def test_refined_poses_move_gaussians_only_for_a_large_change(frames: list[Frame]) -> None:
-    """The tracker's refined poses: a loop-sized change corrects the keyframe and its Gaussians, a
-    bundle-adjustment-sized one only updates the training pose."""
+def test_bundle_adjustment_and_loop_poses_take_separate_paths(frames: list[Frame]) -> None:
+    """Bundle adjustment's refined poses only replace the training pose, however large; a loop
+    correction moves the keyframe's Gaussians with it (memgs/keyframe/refined_poses vs
+    memgs/keyframe/loop_corrected_poses)."""
     s = MappingSession(_cfg(), free_running=False)
     for i, f in enumerate(frames[:3]):
         s.insert_keyframe(_kf(f, 10 + i))
@@ -219,8 +220,9 @@ def test_refined_poses_move_gaussians_only_for_a_large_change(frames: list[Frame
     T_loop = frames[1].T_wc_gt.copy()
     T_loop[:3, 3] += [0.2, 0.0, 0.0]  # 20 cm: a loop correction
     T_ba = frames[2].T_wc_gt.copy()
-    T_ba[:3, 3] += [0.002, 0.0, 0.0]  # 2 mm: local BA
-    assert s.refine_poses({11: T_loop, 12: T_ba}).result(30) == (1, 1, int((kf_ids == 1).sum()))
+    T_ba[:3, 3] += [0.03, 0.0, 0.0]  # 3 cm from bundle adjustment: still only the training pose
+    assert s.update_poses({12: T_ba}).result(30) == 1
+    assert s.correct_keyframes({11: T_loop}).result(30) == (1, int((kf_ids == 1).sum()))
     _, means1 = s.call(rows).result(30)
     torch.testing.assert_close(means1[kf_ids == 1], means0[kf_ids == 1] + torch.tensor([0.2, 0.0, 0.0]),
                                atol=1e-5, rtol=0)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from memgs_ros.core.trajectory import align_umeyama, associate, ate, path_length_m
+from memgs_ros.core.trajectory import align_umeyama, associate, ate, path_length_m, rpe
 from memgs_ros.errors import DataError
 
 MS = 1_000_000
@@ -166,6 +166,58 @@ def test_ate_too_few_matches_names_the_problem() -> None:
     with pytest.raises(DataError, match=r"only 0 of 3 .* within 0.1 s"):
         ate(np.array([0, 1, 2]) * 10**9, _poses(np.zeros((3, 3))),
             np.array([10, 11, 12]) * 10**9, _poses(np.zeros((3, 3))))
+
+
+def _smooth_gt(n: int) -> np.ndarray:
+    k = np.arange(n)[:, None]
+    return _poses(np.hstack([0.01 * k, 0.02 * np.sin(0.1 * k), 0.005 * k]),
+                  np.hstack([0.02 * k, 0.01 * k, np.zeros((n, 1))]))
+
+
+def test_rpe_of_one_displaced_frame_matches_hand_computation() -> None:
+    n, k = 20, 7
+    gt_T = _smooth_gt(n)
+    stamps = np.arange(n) * 33 * MS
+    # The estimate lives in another world frame (RPE needs no alignment); frame k is off by d in
+    # its own camera frame, and one pose later is rotated by 1.5 degrees about its own axis.
+    G = _rigid((0.3, -0.2, 0.5), (2.0, 1.0, -1.0))
+    est_T = np.einsum("ij,njk->nik", G, gt_T)
+    d = np.array([0.006, -0.008, 0.0])  # |d| = 1 cm
+    est_T[k] = est_T[k] @ _rigid((0.0, 0.0, 0.0), tuple(d))
+    est_T[k + 5] = est_T[k + 5] @ _rigid((0.0, 0.0, np.radians(1.5)), (0.0, 0.0, 0.0))
+    res = rpe(stamps + 2 * MS, est_T, stamps, gt_T)
+    assert res.n_pairs == n - 1 and res.delta == 1
+    expected_t = np.zeros(n - 1)
+    expected_t[[k - 1, k]] = 0.01  # the pairs into and out of frame k
+    assert np.allclose(res.trans_errors_m[:k + 3], expected_t[:k + 3], atol=1e-12)
+    expected_r = np.zeros(n - 1)
+    expected_r[[k + 4, k + 5]] = 1.5
+    assert np.allclose(res.rot_errors_deg, expected_r, atol=1e-6)
+    assert res.rot_rmse_deg == pytest.approx(np.sqrt(2 * 1.5 ** 2 / (n - 1)), abs=1e-6)
+    assert res.stamps_ns[0] == 2 * MS
+    assert res.to_dict()["n_pairs"] == n - 1
+
+
+def test_rpe_skips_lost_poses_applies_scale_and_delta() -> None:
+    n = 12
+    gt_T = _smooth_gt(n)
+    stamps = np.arange(n) * 33 * MS
+    est_T = gt_T.copy()
+    est_T[:, :3, 3] *= 0.5  # a monocular estimate at half scale
+    est_T[4] = np.nan  # lost
+    res = rpe(stamps, est_T, stamps, gt_T, scale=2.0)
+    assert res.n_pairs == n - 2  # 11 matched poses
+    assert res.trans_rmse_m == pytest.approx(0.0, abs=1e-12)
+    assert rpe(stamps, est_T, stamps, gt_T).trans_rmse_m > 1e-3  # without the scale
+    res2 = rpe(stamps, est_T, stamps, gt_T, delta=3, scale=2.0)
+    assert res2.n_pairs == n - 1 - 3 and res2.delta == 3
+
+
+def test_rpe_needs_two_matched_poses() -> None:
+    with pytest.raises(DataError, match=r"RPE: 1 of 1 .* need more than delta = 1"):
+        rpe(np.array([0]), _poses(np.zeros((1, 3))), np.array([0]), _poses(np.zeros((1, 3))))
+    with pytest.raises(ValueError, match="delta"):
+        rpe(np.array([0, 1]), _poses(np.zeros((2, 3))), np.array([0, 1]), _poses(np.zeros((2, 3))), delta=0)
 
 
 def test_path_length() -> None:

@@ -261,29 +261,6 @@ class GaussianMapper:
             self._update_extent()
         return updated
 
-    def apply_refined_poses(self, poses: Mapping[int, np.ndarray]) -> tuple[int, int, int]:
-        """Refined keyframe poses ({kf_id: T_wc [4, 4]}) from the tracker: keyframes that moved more
-        than ``correction_min_translation_m`` / ``correction_min_rotation_deg`` from their anchor
-        pose (a loop closure) are corrected rigidly with their Gaussians and retrained with
-        priority (``correct_keyframes``); the others only get the new training pose
-        (``update_keyframe_poses``). Returns (updated, corrected, Gaussians moved)."""
-        small: dict[int, np.ndarray] = {}
-        large: dict[int, np.ndarray] = {}
-        for kf_id, T_new in poses.items():
-            T_new = np.asarray(T_new, dtype=np.float64)
-            T_old = self._anchor_poses.get(int(kf_id))
-            if T_old is None or T_new.shape != (4, 4) or not np.all(np.isfinite(T_new)):
-                small[kf_id] = T_new
-                continue
-            D = T_new @ invert_pose(T_old)
-            angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-            big = (np.linalg.norm(D[:3, 3]) > self.cfg.correction_min_translation_m
-                   or angle > self.cfg.correction_min_rotation_deg)
-            (large if big else small)[kf_id] = T_new
-        updated = self.update_keyframe_poses(small) if small else 0
-        corrected, moved = self.correct_keyframes(large) if large else (0, 0)
-        return updated, corrected, moved
-
     def correct_keyframes(self, poses: Mapping[int, np.ndarray], retrain: bool = True) -> tuple[int, int]:
         """Rigidly move keyframes and the Gaussians anchored to them (a loop closure).
 

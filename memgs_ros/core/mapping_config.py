@@ -107,11 +107,6 @@ class MappingConfig:
     budget_target_fraction: float = 0.95  # enforcement stops at this fraction of the budget (hysteresis)
     budget_merge: bool = True  # merge (all keyframes, no gradient gate) before pruning, when merging is on
     budget_merge_voxel_scale: float = 1.0  # voxel of the budget merge = merge voxel x this
-    # Refined keyframe poses (memgs/keyframe/refined_poses) that move a keyframe by more than this
-    # (a loop closure) move its Gaussians rigidly with it and retrain it with priority; smaller
-    # changes (local bundle adjustment) only update the training pose.
-    correction_min_translation_m: float = 0.01
-    correction_min_rotation_deg: float = 0.5  # ... or turn it by more than this
 
     def __post_init__(self) -> None:
         for name in ("lr_means", "lr_means_final", "lr_sh_dc", "lr_sh_rest", "lr_opacity",

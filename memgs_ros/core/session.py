@@ -294,13 +294,6 @@ class MappingSession:
         stay. The future gives how many keyframes were updated (unknown and dropped ones are not)."""
         return self._submit("update_poses", lambda: self._update_poses(dict(poses)))
 
-    def refine_poses(self, poses: Mapping[int, np.ndarray]) -> Future[tuple[int, int, int]]:
-        """The tracker's refined keyframe poses ({stamp_ns: T_wc [4, 4]}): small changes update the
-        training pose, large ones (a loop closure) move the keyframe's Gaussians with it and train
-        it with priority (``GaussianMapper.apply_refined_poses``). The future gives (updated,
-        corrected, Gaussians moved)."""
-        return self._submit("refine_poses", lambda: self._refine(dict(poses)))
-
     def correct_keyframes(self, poses: Mapping[int, np.ndarray]) -> Future[tuple[int, int]]:
         """Rigidly move keyframes ({stamp_ns: corrected T_wc}) and the Gaussians anchored to them,
         then train them with priority (``GaussianMapper.correct_keyframes``). The future gives
@@ -499,15 +492,6 @@ class MappingSession:
         self._counters["keyframe_pose_updates"] += updated
         self._counters["refined_poses_of_dropped_keyframes"] += len(poses) - updated
         return updated
-
-    def _refine(self, poses: Mapping[int, np.ndarray]) -> tuple[int, int, int]:
-        ids = self._ids_of(poses)
-        updated, corrected, moved = self._mapper.apply_refined_poses(ids)
-        self._counters["keyframe_pose_updates"] += updated
-        self._counters["refined_poses_of_dropped_keyframes"] += len(poses) - len(ids)
-        self._counters["keyframes_corrected"] += corrected
-        self._counters["gaussians_corrected"] += moved
-        return updated, corrected, moved
 
     def _correct(self, poses: Mapping[int, np.ndarray]) -> tuple[int, int]:
         corrected, moved = self._mapper.correct_keyframes(self._ids_of(poses))

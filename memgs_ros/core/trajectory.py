@@ -1,9 +1,12 @@
-"""Trajectory evaluation: timestamp association, Umeyama alignment, ATE (reference sec. 7).
+"""Trajectory evaluation: timestamp association, Umeyama alignment, ATE, RPE (reference sec. 7).
 
 All poses are ``T_wc`` (camera-to-world) 4x4 float64; stamps are integer nanoseconds.
 The ATE is the RMSE of camera positions after aligning the estimate to the ground truth with
 the least-squares rigid (SE(3)) or similarity (Sim(3), monocular) transform of Umeyama (1991),
 over pairs associated one-to-one within ``max_dt_s`` (0.1 s as in the TUM tools).
+The RPE compares the relative motion between matched frames ``delta`` apart with the ground
+truth's (Sturm et al. 2012); it needs no alignment and shows frame-to-frame jitter that the
+ATE averages away.
 """
 from __future__ import annotations
 
@@ -14,7 +17,8 @@ import numpy as np
 
 from memgs_ros.errors import DataError
 
-__all__ = ["AteResult", "Sim3Alignment", "align_umeyama", "associate", "ate", "path_length_m"]
+__all__ = ["AteResult", "RpeResult", "Sim3Alignment", "align_umeyama", "associate", "ate", "path_length_m",
+           "rpe"]
 
 _MIN_ALIGN_POINTS = 3  # a rotation is not determined by fewer non-collinear points
 
@@ -78,6 +82,32 @@ class AteResult:
             "stamps_ns": [int(s) for s in self.stamps_ns],
             "errors_m": [float(e) for e in self.errors_m],
         }
+
+
+@dataclass(frozen=True, eq=False)
+class RpeResult:
+    """Relative pose error over ``delta`` matched frames.
+
+    trans_errors_m: [n] translation error of each pair's relative motion; rot_errors_deg: [n]
+    its rotation angle; stamps_ns: [n] the estimate's stamp at the start of each pair.
+    """
+
+    trans_rmse_m: float
+    rot_rmse_deg: float
+    trans_median_m: float
+    n_pairs: int
+    delta: int
+    trans_errors_m: np.ndarray
+    rot_errors_deg: np.ndarray
+    stamps_ns: np.ndarray
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (scalars and per-pair errors)."""
+        return {"trans_rmse_m": self.trans_rmse_m, "rot_rmse_deg": self.rot_rmse_deg,
+                "trans_median_m": self.trans_median_m, "n_pairs": self.n_pairs, "delta": self.delta,
+                "stamps_ns": [int(s) for s in self.stamps_ns],
+                "trans_errors_m": [float(e) for e in self.trans_errors_m],
+                "rot_errors_deg": [float(e) for e in self.rot_errors_deg]}
 
 
 def associate(stamps_a_ns: np.ndarray, stamps_b_ns: np.ndarray,
@@ -204,6 +234,58 @@ def ate(est_stamps_ns: np.ndarray,  # [M]
         median_m=float(np.median(err)), max_m=float(err.max()), n_matched=n, alignment=align,
         errors_m=err, rotation_rmse_deg=float(np.sqrt(np.mean(ang_deg ** 2))),
         stamps_ns=est_s[ia], est_index=ia, gt_index=ib)
+
+
+def rpe(est_stamps_ns: np.ndarray,  # [M]
+        est_T_wc: np.ndarray,  # [M, 4, 4]
+        gt_stamps_ns: np.ndarray,  # [K]
+        gt_T_wc: np.ndarray,  # [K, 4, 4]
+        delta: int = 1, max_dt_s: float = 0.1, scale: float = 1.0) -> RpeResult:
+    """Relative pose error between matched frames ``delta`` apart (translation and rotation RMSE).
+
+    Poses are associated with the ground truth as in ``ate`` (non-finite ones left out first) and
+    ordered by the estimate's stamp; each pair (i, i + delta) of that matched list gives
+    ``E = (G_i^-1 G_j)^-1 (P_i^-1 P_j)`` with P the estimate and G the ground truth, and the
+    errors are ``|t(E)|`` and the angle of ``R(E)``. A pair spans a lost frame when one was left
+    out. ``scale`` multiplies the estimate's translations (monocular: the Sim(3) scale of ``ate``).
+    Raises DataError when no pair is left.
+    """
+    if delta < 1:
+        raise ValueError(f"rpe: delta must be >= 1, got {delta}")
+    est_T = np.asarray(est_T_wc, dtype=np.float64)
+    gt_T = np.asarray(gt_T_wc, dtype=np.float64)
+    est_s = np.asarray(est_stamps_ns, dtype=np.int64)
+    gt_s = np.asarray(gt_stamps_ns, dtype=np.int64)
+    assert est_T.ndim == 3 and est_T.shape[1:] == (4, 4) and est_T.shape[0] == est_s.shape[0], (
+        f"rpe: est_T_wc {est_T.shape} must be [M, 4, 4] with M = len(est_stamps_ns) = {est_s.shape[0]}")
+    assert gt_T.ndim == 3 and gt_T.shape[1:] == (4, 4) and gt_T.shape[0] == gt_s.shape[0], (
+        f"rpe: gt_T_wc {gt_T.shape} must be [K, 4, 4] with K = len(gt_stamps_ns) = {gt_s.shape[0]}")
+    keep = np.flatnonzero(np.isfinite(est_T).all(axis=(1, 2)))
+    ia, ib = associate(est_s[keep], gt_s, int(round(max_dt_s * 1e9)))
+    ia = keep[ia]
+    order = np.argsort(est_s[ia], kind="stable")
+    ia, ib = ia[order], ib[order]
+    n = int(ia.size) - delta
+    if n < 1:
+        raise DataError(
+            f"RPE: {ia.size} of {est_s.size} estimated poses match ground truth within {max_dt_s} s; "
+            f"need more than delta = {delta}")
+    P = est_T[ia].copy()
+    P[:, :3, 3] *= scale
+    G = gt_T[ib]
+    rel_est = np.linalg.inv(P[:-delta]) @ P[delta:]  # [n, 4, 4]
+    rel_gt = np.linalg.inv(G[:-delta]) @ G[delta:]
+    E = np.linalg.inv(rel_gt) @ rel_est
+    t_err = np.linalg.norm(E[:, :3, 3], axis=1)
+    R = E[:, :3, :3]
+    # atan2 of (sin, cos) keeps small angles exact (arccos near 1 loses half the digits).
+    sin = 0.5 * np.linalg.norm(np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0],
+                                         R[:, 1, 0] - R[:, 0, 1]], axis=1), axis=1)
+    r_err = np.degrees(np.arctan2(sin, (np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0))
+    return RpeResult(trans_rmse_m=float(np.sqrt(np.mean(t_err ** 2))),
+                     rot_rmse_deg=float(np.sqrt(np.mean(r_err ** 2))),
+                     trans_median_m=float(np.median(t_err)), n_pairs=n, delta=delta,
+                     trans_errors_m=t_err, rot_errors_deg=r_err, stamps_ns=est_s[ia[:-delta]])
 
 
 def path_length_m(T_wc: np.ndarray) -> float:

@@ -2,7 +2,7 @@
 (core/session.py, the one owner of the Gaussian map) and publishes what it returns.
 
 In: ``memgs/keyframe/{color,depth,camera_info,pose,seeds}`` (one stamp per keyframe),
-``memgs/keyframe/refined_poses``, ``memgs/pose`` (live view), ``memgs/render/view_pose``,
+``memgs/keyframe/refined_poses`` (bundle adjustment), ``memgs/keyframe/loop_corrected_poses``, ``memgs/pose`` (live view), ``memgs/render/view_pose``,
 ``memgs/tracker/processed`` (lockstep). Out: ``memgs/map/delta`` (core/map_delta.py),
 ``memgs/mapper/snapshot`` (latched), ``memgs/render/{color,depth,camera_info}``, ``memgs/frame_ack``,
 ``memgs/mapper/stats``; services ``memgs/mapper/publish_snapshot`` and ``memgs/mapper/finish``
@@ -98,6 +98,8 @@ class MapperNode(Node):
                                      callback_group=io)
         self.create_subscription(Path, "memgs/keyframe/refined_poses", self.on_refined, qos.reliable(20),
                                  callback_group=io)
+        self.create_subscription(Path, "memgs/keyframe/loop_corrected_poses", self.on_loop_corrected,
+                                 qos.reliable(20), callback_group=io)
         self.create_subscription(Header, "memgs/tracker/processed", self.on_processed, qos.reliable(100),
                                  callback_group=io)
         self.create_subscription(PoseStamped, "memgs/pose", lambda m: setattr(self, "latest_pose", m), qos.reliable(5))
@@ -158,17 +160,28 @@ class MapperNode(Node):
             self.awaiting_keyframes.discard(stamp)
             self._lockstep_ack(stamp)
 
-    def on_refined(self, msg: Path) -> None:
-        """Refined keyframe poses from bundle adjustment or a loop closure (the session ignores
-        unknown stamps; a large change moves the keyframe's Gaussians and retrains it first)."""
+    def _keyframe_poses(self, msg: Path) -> dict[int, np.ndarray]:
         poses: dict[int, np.ndarray] = {}
         for p in msg.poses:
             try:
                 poses[stamp_to_ns(p.header.stamp)] = pose_to_matrix(p.pose)
             except (MessageError, DataError) as err:
                 self.stats.problem("bad_pose", f"refined pose of keyframe {stamp_to_ns(p.header.stamp)} ignored: {err}")
+        return poses
+
+    def on_refined(self, msg: Path) -> None:
+        """Keyframe poses refined by bundle adjustment: new training poses, the Gaussians stay
+        (the session ignores unknown stamps)."""
+        poses = self._keyframe_poses(msg)
         if poses:
-            self.session.refine_poses(poses)
+            self.session.update_poses(poses)
+
+    def on_loop_corrected(self, msg: Path) -> None:
+        """Keyframe poses a loop closure corrected: each keyframe's Gaussians move with it and
+        it is retrained first (``MappingSession.correct_keyframes``)."""
+        poses = self._keyframe_poses(msg)
+        if poses:
+            self.session.correct_keyframes(poses)
 
     def on_processed(self, msg: Header) -> None:
         """Lockstep: acknowledge a frame once its keyframe (if any) is queued and training ran.

@@ -5,8 +5,9 @@ Publishes: ``memgs/pose`` (PoseStamped), ``memgs/odom`` (Odometry), ``memgs/path
 ``memgs/tracking_state`` (String), per keyframe ``memgs/keyframe/{color,depth,camera_info,pose,
 keypoints}`` sharing the frame's stamp (images as recorded with the camera's distortion in
 camera_info; keypoint u, v are undistorted pixel positions), refined keyframe poses after local
-BA and loop closure on ``memgs/keyframe/refined_poses`` (Path, one PoseStamped per keyframe stamp; a
-loop correction sends every keyframe of the map), and
+BA on ``memgs/keyframe/refined_poses`` and the keyframes a loop closure corrected on
+``memgs/keyframe/loop_corrected_poses`` (Path each, one PoseStamped per keyframe stamp: the mapper
+takes the first as new training poses and moves each keyframe's Gaussians with the second), and
 ``memgs/tracker/processed`` (Header; frame_id "keyframe" or "frame") for every frame handled, which
 the lockstep player or the mapper waits on.
 
@@ -146,6 +147,7 @@ class TrackerNode(Node):
         from sensor_msgs.msg import PointCloud2  # local: only the keypoint cloud needs it
         self.pub_kf_kps = self.create_publisher(PointCloud2, "memgs/keyframe/keypoints", kf)
         self.pub_refined = self.create_publisher(Path, "memgs/keyframe/refined_poses", qos.reliable(20))
+        self.pub_loop = self.create_publisher(Path, "memgs/keyframe/loop_corrected_poses", qos.reliable(20))
 
         sensor = qos.sensor() if self.input_reliability == "best_effort" else qos.reliable(5)
         self.create_subscription(CameraInfo, self.info_topic, self.on_camera_info, sensor)
@@ -272,8 +274,10 @@ class TrackerNode(Node):
             if len(self.kf_stamps) > 2 * smap.keyframes + 64:  # BA refines only kept keyframes
                 self.kf_stamps = {i: s for i, s in self.kf_stamps.items() if i in smap.keyframe_ids}
         refined = self.tracker.poll_refined_keyframes()
+        corrected = getattr(self.tracker, "poll_loop_corrected_keyframes", list)()
         self._publish(frame, result, color.header.frame_id or self.camera_frame)
-        self._publish_refined(refined)
+        self._publish_refined(refined, self.pub_refined, "refined_keyframe_poses")
+        self._publish_refined(corrected, self.pub_loop, "loop_corrected_keyframe_poses")
         loops = getattr(self.tracker, "poll_loop_corrections", list)()
         moved = self.anchored.update(result, loops)
         if moved:
@@ -350,13 +354,13 @@ class TrackerNode(Node):
         self.kf_stamps[kf.keyframe_id] = stamp
         self.stats.counters["keyframes"] += 1
 
-    def _publish_refined(self, refined: list[tuple[int, np.ndarray]]) -> None:
+    def _publish_refined(self, refined: list[tuple[int, np.ndarray]], pub, counter: str) -> None:  # noqa: ANN001
         poses = [matrix_to_pose_stamped(T, self.kf_stamps[i], self.world_frame)
                  for i, T in refined if i in self.kf_stamps]
         if poses:
             self.kf_path.poses = poses
-            self.pub_refined.publish(self.kf_path)
-            self.stats.counters["refined_keyframe_poses"] += len(poses)
+            pub.publish(self.kf_path)
+            self.stats.counters[counter] += len(poses)
 
     def on_shutdown(self) -> None:
         if self.tracker is not None:

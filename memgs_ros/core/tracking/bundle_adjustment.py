@@ -18,6 +18,8 @@ import scipy.sparse as sp
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from memgs_ros.core.tracking._compiled import numba_available, optimize_pose_kernel
+
 CHI2_MONO = 5.991  # chi-square 95 %, 2 dof
 CHI2_STEREO = 7.815  # chi-square 95 %, 3 dof
 
@@ -96,6 +98,27 @@ def optimize_pose(T_cw: np.ndarray, p_w: np.ndarray, uv: np.ndarray, depth_m: np
                   inv_sigma: np.ndarray, K: np.ndarray, bf: float, chi2_scale: float = 1.0,
                   rounds: int = 4, iterations: int = 6) -> tuple[np.ndarray, np.ndarray]:
     """Motion-only robust pose refinement (Gauss-Newton, Huber, outlier rounds as in ORB-SLAM).
+
+    T_cw: [4, 4] initial pose; p_w: [N, 3] map points; uv: [N, 2] undistorted observations;
+    depth_m: [N] (NaN where none); inv_sigma: [N] 1 / scale^octave.
+    ``chi2_scale`` multiplies the chi-square inlier bounds (1.0 = 95 %).
+    Returns (T_cw [4, 4], inlier [N] bool). Runs the numba kernel
+    (``_compiled.optimize_pose_kernel``, ~10x faster) when numba is available, else its plain
+    twin ``_optimize_pose``.
+    """
+    n = len(p_w)
+    if n < 4 or not numba_available():
+        return _optimize_pose(T_cw, p_w, uv, depth_m, inv_sigma, K, bf, chi2_scale, rounds, iterations)
+    obs, has_depth = observed_uvr(uv, depth_m, bf)
+    T, inlier = optimize_pose_kernel(T_cw, p_w, obs, has_depth, inv_sigma ** 2, K, bf,
+                                     CHI2_MONO * chi2_scale, CHI2_STEREO * chi2_scale, rounds, iterations)
+    return orthonormalized(T), inlier
+
+
+def _optimize_pose(T_cw: np.ndarray, p_w: np.ndarray, uv: np.ndarray, depth_m: np.ndarray,
+                   inv_sigma: np.ndarray, K: np.ndarray, bf: float, chi2_scale: float = 1.0,
+                   rounds: int = 4, iterations: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Plain twin of ``optimize_pose`` (numpy): motion-only robust pose refinement.
 
     T_cw: [4, 4] initial pose; p_w: [N, 3] map points; uv: [N, 2] undistorted observations;
     depth_m: [N] (NaN where none); inv_sigma: [N] 1 / scale^octave.

@@ -51,6 +51,10 @@ class TrackerConfig:
     virtual_baseline_m: float = 0.08
     # Use the current frame's depth in per-frame pose refinement (map points always use depth).
     track_with_depth: bool = True
+    # Rolling shutter: seconds from the first to the last image row of the colour camera (0 = global
+    # shutter, e.g. rendered images). Keypoints are moved to the centre row's time with the
+    # tracker's angular velocity. The Kinect v1 of TUM RGB-D rolls over about 25 ms (config/tum_*.yaml).
+    rolling_shutter_readout_s: float = 0.0
     # Matching.
     search_radius_px: float = 15.0  # first projection pass around the velocity-predicted pose
     refine_radius_px: float = 4.0  # second pass around the optimised pose
@@ -135,6 +139,9 @@ class TrackerConfig:
             raise ConfigError(
                 f"TrackerConfig.fast_min_threshold ({self.fast_min_threshold}) must be in "
                 f"[0, fast_threshold={self.fast_threshold}]")
+        if not (np.isfinite(self.rolling_shutter_readout_s) and 0 <= self.rolling_shutter_readout_s < 1):
+            raise ConfigError(f"TrackerConfig.rolling_shutter_readout_s must be in [0, 1) s, "
+                              f"got {self.rolling_shutter_readout_s}")
         if not 0 < self.min_depth_m < self.max_depth_m:
             raise ConfigError(
                 f"TrackerConfig depth range must satisfy 0 < min_depth_m < max_depth_m, "

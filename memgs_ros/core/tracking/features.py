@@ -5,13 +5,14 @@ undistorted, so every downstream step uses a plain pinhole model with ``camera.K
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
 from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.tracking._compiled import match_by_projection_kernel, numba_available
 from memgs_ros.core.tracking.config import TrackerConfig
 
 DESCRIPTOR_BYTES = 32
@@ -124,6 +125,34 @@ def undistort_points(uv_raw: np.ndarray, camera: PinholeCamera) -> np.ndarray:
     return out.reshape(-1, 2)
 
 
+def unroll_rolling_shutter(feats: FrameFeatures, K: np.ndarray, omega_c: np.ndarray, readout_s: float,
+                           height: int) -> FrameFeatures:
+    """Keypoints moved to where a global shutter at the centre row's time would have seen them.
+
+    A rolling shutter exposes row v at ``(v - (height - 1) / 2) / height * readout_s`` after the
+    centre row; while the camera turns at ``omega_c`` [3] (rad/s, camera frame) a keypoint seen at
+    time s lies on the ray ``Exp(omega_c s) K^-1 (u, v, 1)`` of the centre-row camera. Rotation
+    only: the camera's translation in one readout (about a millimetre) is far below pixel noise.
+    K: [3, 3]; returns a copy with ``uv`` [M, 2] corrected (``uv_raw``, depth and the rest kept).
+    """
+    if len(feats) == 0 or readout_s == 0.0 or not np.any(omega_c):
+        return feats
+    s = (feats.uv_raw[:, 1].astype(np.float64) - 0.5 * (height - 1)) / height * readout_s  # [M] s
+    rv = s[:, None] * np.asarray(omega_c, dtype=np.float64)[None, :]  # [M, 3] rotation vectors
+    theta2 = np.einsum("ij,ij->i", rv, rv)
+    # Rodrigues with series coefficients: angles here are a few hundredths of a radian at most.
+    a = 1.0 - theta2 / 6.0 + theta2 ** 2 / 120.0  # sin(t) / t
+    b = 0.5 - theta2 / 24.0 + theta2 ** 2 / 720.0  # (1 - cos(t)) / t^2
+    x = np.empty((len(feats), 3))
+    x[:, 0] = (feats.uv[:, 0] - K[0, 2]) / K[0, 0]
+    x[:, 1] = (feats.uv[:, 1] - K[1, 2]) / K[1, 1]
+    x[:, 2] = 1.0
+    c = np.cross(rv, x)
+    y = x + a[:, None] * c + b[:, None] * np.cross(rv, c)  # [M, 3] Exp(rv) x
+    uv = np.column_stack([K[0, 0] * y[:, 0] / y[:, 2] + K[0, 2], K[1, 1] * y[:, 1] / y[:, 2] + K[1, 2]])
+    return replace(feats, uv=uv)
+
+
 def hamming_pairs(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
     """Row-wise Hamming distance of two packed descriptor arrays [P, 32] -> [P] int."""
     a = np.ascontiguousarray(desc_a).view(np.uint64)  # [P, 4]
@@ -137,11 +166,44 @@ def _hamming_pairs_table(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
     return _POPCOUNT[x].sum(axis=1, dtype=np.int64)
 
 
+# Grid cell of the compiled matcher, px: about the search radius, so a query visits 4-9 cells.
+MATCH_CELL_PX = 16.0
+
+
 def match_by_projection(proj_uv: np.ndarray, point_desc: np.ndarray, feats: FrameFeatures,
                         radius_px: np.ndarray | float, max_distance: int, ratio: float,
                         available: np.ndarray | None = None, max_candidates: int = 12,
                         kp_tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Match projected map points to keypoints within a pixel radius.
+
+    proj_uv: [P, 2] predicted undistorted pixels; point_desc: [P, 32]; radius_px: scalar or [P].
+    available: [M] bool, keypoints that may still take a match (default all).
+    max_candidates: nearest keypoints examined per point; kp_tree: a cKDTree of ``feats.uv``
+    (used by the plain path only).
+    Returns (point_index [K], keypoint_index [K], hamming [K]) sorted by keypoint index; one
+    keypoint per point and one point per keypoint (the lower distance wins, then the lower point).
+    Runs the numba kernel (``_compiled.match_by_projection_kernel``) when numba is available,
+    else its plain twin ``_match_by_projection``.
+    """
+    if len(proj_uv) == 0 or len(feats) == 0 or not numba_available():
+        return _match_by_projection(proj_uv, point_desc, feats, radius_px, max_distance, ratio, available,
+                                    max_candidates, kp_tree)
+    radius = np.broadcast_to(np.asarray(radius_px, dtype=np.float64), (len(proj_uv),))
+    avail = np.ones(len(feats), dtype=bool) if available is None else available
+    # Cells must cover the keypoints' extent; undistorted keypoints can leave the image a little.
+    width = float(max(feats.uv[:, 0].max(), proj_uv[:, 0].max())) + 1.0
+    height = float(max(feats.uv[:, 1].max(), proj_uv[:, 1].max())) + 1.0
+    return match_by_projection_kernel(proj_uv, radius, point_desc, feats.uv, feats.desc, avail, max_distance,
+                                      ratio, min(max_candidates, len(feats)), MATCH_CELL_PX,
+                                      int(np.ceil(max(width, 1.0))), int(np.ceil(max(height, 1.0))))
+
+
+def _match_by_projection(proj_uv: np.ndarray, point_desc: np.ndarray, feats: FrameFeatures,
+                         radius_px: np.ndarray | float, max_distance: int, ratio: float,
+                         available: np.ndarray | None = None, max_candidates: int = 12,
+                         kp_tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plain twin of ``match_by_projection`` (k-d tree and numpy): match projected map points to
+    keypoints within a pixel radius.
 
     proj_uv: [P, 2] predicted undistorted pixels; point_desc: [P, 32]; radius_px: scalar or [P].
     available: [M] bool, keypoints that may still take a match (default all).

@@ -158,6 +158,7 @@ class MonocularTracker(FeatureTracker):
         self._T_cw_last = kf1.T_cw.copy()
         self._last_good_T_cw = kf1.T_cw.copy()
         self._velocity = np.eye(4)
+        self._velocity_known = False
         self._lost_frames = 0
         self._local_kfs = [kf0.keyframe_id, kf1.keyframe_id]
         self._init_ref = None

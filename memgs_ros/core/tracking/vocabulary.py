@@ -127,7 +127,7 @@ class Vocabulary:
     @classmethod
     def load(cls, path: str | Path) -> Vocabulary:
         try:
-            with np.load(path) as z:
+            with np.load(path, allow_pickle=False) as z:
                 depth = int(z["depth"])
                 return cls(int(z["branching"]), depth, tuple(z[f"level{i}"] for i in range(depth)),
                            z["idf"].astype(np.float64))

@@ -1,0 +1,147 @@
+"""Compiled tracking kernels against their plain twins, and the rolling-shutter correction."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from memgs_ros.core.tracking import TrackerConfig
+from memgs_ros.core.tracking.bundle_adjustment import _optimize_pose, apply_left_update, optimize_pose
+from memgs_ros.core.tracking.features import (FrameFeatures, _match_by_projection, match_by_projection,
+                                              unroll_rolling_shutter)
+from memgs_ros.errors import ConfigError
+
+K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+BF = 500.0 * 0.08
+
+
+def _needs_numba() -> None:
+    pytest.importorskip("numba")
+    from memgs_ros.core.tracking._compiled import numba_available
+
+    if not numba_available():
+        pytest.skip("numba is disabled here (MEMGS_DISABLE_NUMBA)")
+
+
+def _features(rng: np.random.Generator, m: int) -> FrameFeatures:
+    # Keypoints a little beyond the image too: undistortion pushes corner keypoints outside.
+    uv = np.column_stack([rng.uniform(-15.0, 655.0, m), rng.uniform(-15.0, 495.0, m)])
+    desc = rng.integers(0, 256, (m, 32), dtype=np.uint8)
+    return FrameFeatures(uv.astype(np.float32), uv, rng.integers(0, 8, m), desc, np.full(m, np.nan))
+
+
+def _map_points(rng: np.random.Generator, feats: FrameFeatures, p: int) -> tuple[np.ndarray, np.ndarray]:
+    """Projections near keypoints with descriptors a few bits off theirs (plus pure noise when M = 0)."""
+    if len(feats) == 0:
+        return rng.uniform(0.0, 480.0, (p, 2)), rng.integers(0, 256, (p, 32), dtype=np.uint8)
+    src = rng.integers(0, len(feats), p)
+    flips = [rng.integers(0, 256, (p, 32), dtype=np.uint8) for _ in range(3)]
+    return feats.uv[src] + rng.normal(0.0, 3.0, (p, 2)), feats.desc[src] ^ (flips[0] & flips[1] & flips[2])
+
+
+@pytest.mark.parametrize("m,p", [(0, 50), (50, 0), (1, 1), (300, 200), (1000, 1500)])
+def test_match_by_projection_matches_reference(m: int, p: int) -> None:
+    _needs_numba()
+    rng = np.random.default_rng(m + 7 * p)
+    feats = _features(rng, m)
+    proj, desc = _map_points(rng, feats, p)
+    for radius, available, k in [(rng.uniform(2.0, 40.0, p), None, 12),
+                                 (15.0, rng.random(m) > 0.2, 12),
+                                 (rng.uniform(2.0, 160.0, p), None, 3)]:
+        fast = match_by_projection(proj, desc, feats, radius, 80, 0.85, available=available, max_candidates=k)
+        ref = _match_by_projection(proj, desc, feats, radius, 80, 0.85, available=available, max_candidates=k)
+        for a, b in zip(fast, ref, strict=True):
+            assert a.dtype == np.int64 and np.array_equal(a, b)
+    if m >= 300:
+        assert len(fast[0]) > 0.3 * min(m, p)  # the case exercises real matches
+
+
+def _pose_problem(rng: np.random.Generator, n: int) -> tuple:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, 0.1, 3)).as_matrix()
+    T[:3, 3] = rng.normal(0.0, 0.1, 3)
+    p_c = np.column_stack([rng.uniform(-1.5, 1.5, (n, 2)), rng.uniform(0.8, 4.0, n)])
+    p_w = (p_c - T[:3, 3]) @ T[:3, :3]  # R^T (p_c - t)
+    uv = p_c[:, :2] / p_c[:, 2:] * 500.0 + [320.0, 240.0] + rng.normal(0.0, 0.5, (n, 2))
+    uv[: n // 10] += rng.uniform(10.0, 40.0, (n // 10, 2))  # gross outliers
+    depth = p_c[:, 2] + rng.normal(0.0, 0.01, n)
+    depth[rng.random(n) < 0.3] = np.nan
+    inv_sigma = 1.2 ** -rng.integers(0, 8, n).astype(np.float64)
+    T0 = apply_left_update(T, rng.normal(0.0, 0.02, 6))
+    return T, T0, p_w, uv, depth, inv_sigma
+
+
+@pytest.mark.parametrize("n,rounds,chi2_scale", [(4, 4, 1.0), (12, 1, 1.0), (200, 4, 1.0), (500, 3, 2.0),
+                                                 (500, 2, 0.5)])
+def test_optimize_pose_matches_reference(n: int, rounds: int, chi2_scale: float) -> None:
+    _needs_numba()
+    rng = np.random.default_rng(n + rounds)
+    T, T0, p_w, uv, depth, inv_sigma = _pose_problem(rng, n)
+    fast_T, fast_inl = optimize_pose(T0, p_w, uv, depth, inv_sigma, K, BF, chi2_scale=chi2_scale, rounds=rounds)
+    ref_T, ref_inl = _optimize_pose(T0, p_w, uv, depth, inv_sigma, K, BF, chi2_scale=chi2_scale, rounds=rounds)
+    assert np.allclose(fast_T, ref_T, atol=1e-9, rtol=0.0)
+    assert np.array_equal(fast_inl, ref_inl)
+    if n >= 200:
+        assert np.linalg.norm(fast_T[:3, 3] - T[:3, 3]) < 0.01
+        assert not fast_inl[: n // 10].any()
+
+
+def test_optimize_pose_degenerate_inputs_match_reference() -> None:
+    _needs_numba()
+    rng = np.random.default_rng(3)
+    _, T0, p_w, uv, depth, inv_sigma = _pose_problem(rng, 50)
+    p_w[:] = p_w[0]  # every observation of one point: rank-deficient normal equations
+    fast = optimize_pose(T0, p_w, uv, depth, inv_sigma, K, BF)
+    ref = _optimize_pose(T0, p_w, uv, depth, inv_sigma, K, BF)
+    assert np.isfinite(fast[0]).all() and fast[0].shape == (4, 4)
+    assert fast[1].shape == ref[1].shape == (50,)
+    few = optimize_pose(T0, p_w[:3], uv[:3], depth[:3], inv_sigma[:3], K, BF)
+    assert np.array_equal(few[0], T0) and not few[1].any()
+
+
+def test_disabled_numba_falls_back_to_the_plain_path() -> None:
+    code = ("import numpy as np\n"
+            "from memgs_ros.core.tracking import _compiled, bundle_adjustment as ba\n"
+            "assert not _compiled.numba_available()\n"
+            "assert not hasattr(_compiled._match, 'signatures')  # never compiled\n"
+            "T, inl = ba.optimize_pose(np.eye(4), np.array([[0, 0, 2.0], [1, 0, 2], [0, 1, 2], [1, 1, 3]]),\n"
+            "    np.array([[320, 240.0], [570, 240], [320, 490], [320 + 500 / 3, 240 + 500 / 3]]), np.full(4, np.nan),\n"
+            "    np.ones(4), np.array([[500, 0, 320], [0, 500, 240], [0, 0, 1.0]]), 40.0)\n"
+            "assert inl.all() and np.allclose(T, np.eye(4), atol=1e-6), T\n")
+    env = {**os.environ, "MEMGS_DISABLE_NUMBA": "1"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120, check=False)
+    assert out.returncode == 0, out.stderr
+
+
+def test_unroll_rolling_shutter_recovers_the_centre_row_view() -> None:
+    rng = np.random.default_rng(5)
+    h, readout = 480, 0.03
+    omega = np.array([0.4, -2.5, 0.8])  # rad/s in the camera frame: a fast turn (150 deg/s)
+    p_c0 = np.column_stack([rng.uniform(-1.0, 1.0, (400, 2)), rng.uniform(1.0, 3.0, 400)])
+    centre = p_c0[:, :2] / p_c0[:, 2:] * 500.0 + [320.0, 240.0]
+
+    # The rolling-shutter image: row v is exposed at s(v), when p_c = Exp(-omega s) p_c0.
+    uv = centre.copy()
+    for _ in range(20):  # fixed point: the row decides the time, the time decides the row
+        s = (uv[:, 1] - 0.5 * (h - 1)) / h * readout
+        p = np.einsum("nij,nj->ni", Rotation.from_rotvec(-s[:, None] * omega).as_matrix(), p_c0)
+        uv = p[:, :2] / p[:, 2:] * 500.0 + [320.0, 240.0]
+    assert np.abs(uv - centre).max() > 5.0  # the shutter does move the keypoints
+    feats = FrameFeatures(uv.astype(np.float32), uv, np.zeros(400, np.int64),
+                          np.zeros((400, 32), np.uint8), np.full(400, np.nan))
+    # uv_raw is float32 (as detected): its row decides the time, an error of ~1e-5 px here.
+    fixed = unroll_rolling_shutter(feats, K, omega, readout, h)
+    assert np.abs(fixed.uv - centre).max() < 1e-3
+    assert fixed.uv_raw is feats.uv_raw and fixed.desc is feats.desc
+    assert unroll_rolling_shutter(feats, K, np.zeros(3), readout, h) is feats
+    assert unroll_rolling_shutter(feats, K, omega, 0.0, h) is feats
+
+
+def test_rolling_shutter_readout_is_validated() -> None:
+    with pytest.raises(ConfigError, match="rolling_shutter_readout_s"):
+        TrackerConfig(rolling_shutter_readout_s=-0.01)
+    assert TrackerConfig().rolling_shutter_readout_s == 0.0  # global shutter unless a camera says otherwise
