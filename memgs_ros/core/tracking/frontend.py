@@ -816,9 +816,12 @@ class FeatureTracker(Tracker):
         """Verify the loop ``kf_id`` -> ``cand_id`` and optimise the pose graph; None if it fails."""
         t0 = time.perf_counter()
         cfg = self.cfg
+        # Only the old map is the loop's reference: recent keyframes covisible with the candidate
+        # (they may already see a few start points) carry the drift the loop is to remove.
+        group = frozenset(c for c in group if c <= kf_id - cfg.loop_min_keyframe_gap)
         with smap.lock:
             kf = smap.keyframes.get(kf_id)
-            if kf is None:
+            if kf is None or cand_id not in group:
                 return None
             pids = smap.points_of(sorted(group))
             p_w, p_desc, _ = smap.point_arrays(pids)
