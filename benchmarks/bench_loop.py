@@ -65,7 +65,8 @@ def track(frames: list, camera: object, cfg: TrackerConfig) -> dict:
     stamps, T_wc = path.poses()
     return {"stamps": stamps, "T_wc": T_wc, "kf_poses": kf_T, "cpu": np.array(cpu),
             "loops_detected": st.loops_detected, "loops_accepted": st.loops_accepted,
-            "loops_rejected": st.loops_rejected, "pose_graph_time_s": st.pose_graph_time_s}
+            "loops_rejected": st.loops_rejected, "pose_graph_time_s": st.pose_graph_time_s,
+            "global_ba_runs": st.global_ba_runs, "global_ba_time_s": st.global_ba_time_s}
 
 
 def map_psnr(frames: list, kf_poses: dict, T_first: np.ndarray, eval_idx: np.ndarray, eval_T: np.ndarray,
@@ -105,7 +106,8 @@ def evaluate(frames: list, spec: object, out: dict, with_map: bool, iterations: 
     res = {"ate_cm": 100 * r.rmse_m, "revisit_drift_cm": 100 * float(np.median(err)) if len(err) else None,
            "tracked": len(out["stamps"]), "loops_detected": out["loops_detected"],
            "loops_accepted": out["loops_accepted"], "loops_rejected": out["loops_rejected"],
-           "pose_graph_s": out["pose_graph_time_s"],
+           "pose_graph_s": out["pose_graph_time_s"], "global_ba_runs": out["global_ba_runs"],
+           "global_ba_s": out["global_ba_time_s"],
            "track_cpu_ms_median": 1e3 * float(np.median(out["cpu"])),
            "track_cpu_ms_p95": 1e3 * float(np.percentile(out["cpu"], 95))}
     if with_map:

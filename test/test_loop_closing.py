@@ -136,6 +136,7 @@ def test_tracker_closes_the_loop_and_corrects_the_revisit_drift(loop_frames: lis
         drift[on] = float(np.median(np.linalg.norm(T[rev, :3, 3] - gt[rev, :3, 3], axis=1)))
         if on:
             assert stats.loops_accepted >= 1
+            assert stats.global_ba_runs >= 1  # the global BA after the pose graph was committed
             query, matched = stats.last_loop
             assert matched <= 3  # the start keyframes
             assert query - matched >= TrackerConfig().loop_min_keyframe_gap  # never inside the local map
@@ -143,3 +144,17 @@ def test_tracker_closes_the_loop_and_corrects_the_revisit_drift(loop_frames: lis
             assert stats.loops_detected == 0
     assert drift[False] > 0.2  # the sequence makes the uncorrected tracker drift
     assert drift[True] < 0.5 * drift[False]
+
+
+def test_anchored_path_interpolates_corrections_between_keyframes() -> None:
+    path = AnchoredPath()
+    for i in range(6):  # keyframe 0 on frames 0-2, keyframe 1 on frames 3-5
+        path.add(i, np.eye(4), 0 if i < 3 else 1)
+    D0, D1 = np.eye(4), np.eye(4)
+    D1[:3, 3] = (0.3, 0.0, 0.0)
+    assert path.correct({0: D0, 1: D1}) == {0, 1}
+    _, T = path.poses()
+    np.testing.assert_allclose(T[:, 0, 3], [0.0, 0.1, 0.2, 0.3, 0.3, 0.3], atol=1e-12)
+    path.correct({1: D1})  # keyframe 0 not corrected: its frames stay
+    _, T = path.poses()
+    np.testing.assert_allclose(T[:, 0, 3], [0.0, 0.1, 0.2, 0.6, 0.6, 0.6], atol=1e-12)

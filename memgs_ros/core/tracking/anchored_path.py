@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from memgs_ros.core.tracking.config import TrackResult
 
@@ -42,13 +43,30 @@ class AnchoredPath:
 
     def correct(self, corrections: Mapping[int, np.ndarray]) -> set[int]:
         """Apply world-frame corrections {kf_id: D [4, 4]} to the frames anchored to those
-        keyframes; returns the keyframes that had frames here."""
+        keyframes; returns the keyframes that had frames here.
+
+        A frame between its keyframe's first frame and the next keyframe's takes the correction
+        interpolated between the two keyframes' (rotation on the geodesic, translation linearly),
+        by frame count: the frame just before the next keyframe was tracked almost where that
+        keyframe was made, so its correction is nearly that keyframe's; this keeps the corrected
+        path continuous across keyframes.
+        """
         hit: set[int] = set()
-        for i, r in enumerate(self._ref):
+        n = len(self._ref)
+        i = 0
+        while i < n:
+            r = self._ref[i]
+            j = i
+            while j < n and self._ref[j] == r:
+                j += 1  # frames i..j-1 follow keyframe r; frame j starts the next run
             D = corrections.get(r)
             if D is not None:
-                self._T_wc[i] = D @ self._T_wc[i]
                 hit.add(r)
+                D_next = corrections.get(self._ref[j]) if j < n and self._ref[j] > r else None
+                for m in range(i, j):
+                    Dm = D if D_next is None else _interpolate(D, D_next, (m - i) / (j - i))
+                    self._T_wc[m] = Dm @ self._T_wc[m]
+            i = j
         return hit
 
     def update(self, result: TrackResult, corrections: list[Mapping[int, np.ndarray]]) -> set[int]:
@@ -73,6 +91,17 @@ class AnchoredPath:
         if not self._stamps:
             return np.zeros(0, np.int64), np.zeros((0, 4, 4))
         return np.array(self._stamps, np.int64), np.stack(self._T_wc)
+
+
+def _interpolate(A: np.ndarray, B: np.ndarray, t: float) -> np.ndarray:
+    """The pose [4, 4] a fraction ``t`` of the way from A to B (rotation slerp, translation lerp)."""
+    if t <= 0.0:
+        return A
+    out = np.eye(4)
+    out[:3, :3] = A[:3, :3] @ Rotation.from_rotvec(
+        t * Rotation.from_matrix(A[:3, :3].T @ B[:3, :3]).as_rotvec()).as_matrix()
+    out[:3, 3] = (1.0 - t) * A[:3, 3] + t * B[:3, 3]
+    return out
 
 
 __all__ = ["AnchoredPath"]

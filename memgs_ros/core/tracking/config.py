@@ -100,6 +100,12 @@ class TrackerConfig:
     loop_min_inliers: int = 40  # PnP RANSAC and refinement inliers needed to accept a loop
     loop_covisibility_edge_points: int = 50  # shared points that make a covisibility edge of the pose graph
     loop_cooldown_keyframes: int = 10  # no new loop search for this many keyframes after a correction
+    # Global BA after each loop correction (same thread, tracking never waits): every keyframe but
+    # the first and every point seen twice, stopped after the iterations or the time budget.
+    loop_global_ba: bool = True
+    loop_global_ba_iterations: int = 10
+    loop_global_ba_budget_s: float = 2.0
+    loop_global_ba_followup_keyframes: int = 5  # one more global BA this many keyframes after (0: none)
     # Monocular initialisation.
     mono_min_init_matches: int = 100
     mono_min_parallax_deg: float = 2.0  # median ray angle of the two-view reconstruction
@@ -122,7 +128,7 @@ class TrackerConfig:
                     "local_map_keyframes", "ba_window", "ba_max_iterations", "ba_huber_px",
                     "reloc_min_inliers", "max_translation_jump_m", "max_rotation_jump_deg",
                     "loop_min_keyframe_gap", "loop_consistency", "loop_min_inliers",
-                    "loop_covisibility_edge_points")
+                    "loop_covisibility_edge_points", "loop_global_ba_iterations", "loop_global_ba_budget_s")
         for f in fields(self):
             v = getattr(self, f.name)
             if f.name in positive and not (np.isfinite(v) and v > 0):

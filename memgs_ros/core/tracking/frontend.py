@@ -36,6 +36,7 @@ from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, local_bundle_a
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.features import (FrameFeatures, OrbExtractor, match_by_projection, match_descriptors,
                                               unroll_rolling_shutter)
+from memgs_ros.core.tracking.global_ba import global_bundle_adjustment
 from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
 from memgs_ros.core.tracking.loop_closing import (LoopCorrection, LoopDetector, optimise_pose_graph,
                                                   verify_loop)
@@ -59,13 +60,16 @@ _MAX_FRAME_DT_S = 0.5  # longer gaps: the velocity says nothing about the motion
 @dataclass(frozen=True)
 class LoopStats:
     """Place recognition counters: queries, consistent candidates, verified+committed loops,
-    rejected by verification, pose-graph time in total (s)."""
+    rejected by verification, pose-graph time in total (s), global bundle adjustments."""
 
     keyframes_indexed: int = 0
     loops_detected: int = 0
     loops_accepted: int = 0
     loops_rejected: int = 0
     pose_graph_time_s: float = 0.0
+    global_ba_runs: int = 0  # committed global bundle adjustments
+    global_ba_discarded: int = 0  # stale (another correction came first) or not improving
+    global_ba_time_s: float = 0.0
     last_loop: tuple[int, int] | None = None  # (query keyframe, matched keyframe)
 
 
@@ -112,6 +116,10 @@ class FeatureTracker(Tracker):
         self._frames_since_kf = 0
         self._local_kfs: list[int] = []
         self._last_kf_info: KeyframeInfo | None = None
+        # Keyframe poses T_cw as the corrected path last saw them (creation, then each loop commit):
+        # loop corrections are expressed against these, so the path also takes the local BA
+        # refinements made since (frames were tracked near the keyframe's first pose).
+        self._path_T_cw: dict[int, np.ndarray] = {}
         self._kp_tree: tuple[FrameFeatures, cKDTree] | None = None
         self._refined: list[tuple[int, np.ndarray]] = []
         self._loop_refined: list[tuple[int, np.ndarray]] = []  # keyframe poses a loop closure corrected
@@ -137,6 +145,7 @@ class FeatureTracker(Tracker):
         self._loop_pending: list[LoopCorrection] = []
         self._loop_done: list[dict[int, np.ndarray]] = []  # committed corrections, for poll_loop_corrections
         self._last_loop_query = -(10**9)
+        self._gba_followup_at: int | None = None  # keyframe id that triggers the follow-up global BA
         self.loop_stats = LoopStats()
         self._stats_lock = threading.Lock()
         self._place_queue: queue.Queue[tuple[SparseMap, int]] = queue.Queue()
@@ -207,11 +216,14 @@ class FeatureTracker(Tracker):
         """Block until queued keyframes are indexed and checked for loops, then commit a pending
         correction (for tests and offline evaluation; call from the tracking thread)."""
         deadline = time.monotonic() + timeout_s
-        while self._place_thread is not None and time.monotonic() < deadline:
-            if self._place_queue.unfinished_tasks == 0:
+        while True:
+            while self._place_thread is not None and time.monotonic() < deadline:
+                if self._place_queue.unfinished_tasks == 0:
+                    break
+                time.sleep(0.005)
+            # A committed loop queues a global BA on the same thread: wait for that one too.
+            if self._apply_loop_corrections() == 0 or time.monotonic() >= deadline:
                 break
-            time.sleep(0.005)
-        self._apply_loop_corrections()
 
     def wait_for_ba(self, timeout_s: float = 30.0) -> None:
         """Block until queued local BA jobs are done (for tests and offline evaluation)."""
@@ -594,6 +606,7 @@ class FeatureTracker(Tracker):
 
     def _finish_keyframe(self, kf: SparseKeyframe) -> KeyframeInfo:
         self._last_kf_id = kf.keyframe_id
+        self._path_T_cw[kf.keyframe_id] = kf.T_cw.copy()
         self._frames_since_kf = 0
         if kf.keyframe_id not in self._local_kfs:
             self._local_kfs.append(kf.keyframe_id)
@@ -735,7 +748,10 @@ class FeatureTracker(Tracker):
             except queue.Empty:
                 continue
             try:
-                self._place_recognition(*job)  # every keyframe: the consistency check wants consecutive ones
+                if job[1] < 0:
+                    self._global_ba(job[0])
+                else:
+                    self._place_recognition(*job)  # every keyframe: the consistency check wants consecutive ones
             except Exception:  # a failed loop search must not kill tracking
                 logger.exception("place recognition failed")
             finally:
@@ -766,6 +782,13 @@ class FeatureTracker(Tracker):
                                                         max_results=_LOOP_CANDIDATES)
             self.keyframe_db.add(kf_id, bow)
         self._bump(keyframes_indexed=1)
+        with self._out_lock:  # not before the last global BA is committed (it would be stale)
+            gba_pending = any(c.is_global_ba for c in self._loop_pending)
+        if self._gba_followup_at is not None and kf_id >= self._gba_followup_at and not gba_pending:
+            # The keyframes made since the loop track against the old map: one more global BA
+            # ties them (and the loop) in. Once per loop.
+            self._gba_followup_at = None
+            self._global_ba(smap, followup=True)
         if not looking:
             return
         with smap.lock:
@@ -793,9 +816,12 @@ class FeatureTracker(Tracker):
         """Verify the loop ``kf_id`` -> ``cand_id`` and optimise the pose graph; None if it fails."""
         t0 = time.perf_counter()
         cfg = self.cfg
+        # Only the old map is the loop's reference: recent keyframes covisible with the candidate
+        # (they may already see a few start points) carry the drift the loop is to remove.
+        group = frozenset(c for c in group if c <= kf_id - cfg.loop_min_keyframe_gap)
         with smap.lock:
             kf = smap.keyframes.get(kf_id)
-            if kf is None:
+            if kf is None or cand_id not in group:
                 return None
             pids = smap.points_of(sorted(group))
             p_w, p_desc, _ = smap.point_arrays(pids)
@@ -811,6 +837,11 @@ class FeatureTracker(Tracker):
             T_wc = invert_pose(np.stack([smap.keyframes[int(i)].T_cw for i in ids]))
             obs = [tuple(d) for d in smap.observations if len(d) > 1]
             layout = smap.layout_version
+            # The current group (the query's covisible keyframes and newer ones) for loop fusion.
+            own = kf.point_ids[kf.point_ids >= 0]
+            near = set(smap.covisible(own, _LOOP_GROUP, exclude=kf_id)) - set(group)
+            cur_group = {k: smap.keyframes[k].feats for k in ids.tolist()
+                         if k != kf_id and (k in near or k > kf_id)}
         index = {int(k): n for n, k in enumerate(ids.tolist())}
         pairs: dict[tuple[int, int], int] = {}
         for o in obs:
@@ -840,45 +871,184 @@ class FeatureTracker(Tracker):
         fixed[0] = True  # the oldest keyframe holds the gauge
         res = optimise_pose_graph(T_wc, np.array(ei), np.array(ej), np.stack(Z), np.array(weights), fixed)
         D = res.T_wc @ invert_pose(T_wc)
+        D_cand = D[index[cand_id]] if cand_id in index else np.eye(4)  # the loop group barely moves
+        fuse_kf, fuse_kp, fuse_pt = self._loop_fusion(cur_group, index, res.T_wc,
+                                                      D_cand @ np.r_[p_w.T, np.ones((1, len(p_w)))], pids, p_desc)
         dt = time.perf_counter() - t0
         self._bump(pose_graph_time_s=dt)
-        logger.info("loop %d -> %d: %d inliers, pose graph %d keyframes %d edges in %.2f s",
-                    kf_id, cand_id, match.n_inliers, len(ids), len(ei), dt)
-        return LoopCorrection(ids, D, kf_id, cand_id, match.kp_idx, match.point_ids, layout, match.n_inliers, dt)
+        logger.info("loop %d -> %d: %d inliers, pose graph %d keyframes %d edges in %.2f s, %d fused in %d keyframes",
+                    kf_id, cand_id, match.n_inliers, len(ids), len(ei), dt, len(fuse_kf), len(cur_group))
+        return LoopCorrection(ids, D, kf_id, cand_id, np.r_[match.kp_idx, fuse_kp], np.r_[match.point_ids, fuse_pt],
+                              layout, match.n_inliers, dt,
+                              fuse_kf=np.r_[np.full(len(match.kp_idx), kf_id, np.int64), fuse_kf])
 
-    def _apply_loop_corrections(self) -> None:
-        """Commit prepared loop corrections (tracking thread, under the map lock): keyframes and
-        points move, the loop's duplicate points fuse, the last pose moves with its keyframe."""
+    def _loop_fusion(self, cur_group: dict[int, FrameFeatures], index: dict[int, int], T_wc_new: np.ndarray,
+                     p_h: np.ndarray, pids: np.ndarray, p_desc: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Matches of the loop group's points (ids [P], corrected homogeneous positions p_h [4, P],
+        desc [P, 32]) in the current group's keyframes at their pose-graph poses: (keyframe [K],
+        keypoint [K], point id [K]) to fuse at commit. One loop link per keyframe of the seam
+        instead of the query's alone (ORB-SLAM's loop fusion), which the global BA then uses."""
+        cfg = self.cfg
+        out_kf, out_kp, out_pt = [], [], []
+        for k, f in cur_group.items():
+            T_cw = invert_pose(T_wc_new[index[k]])
+            p_c = (T_cw @ p_h)[:3].T
+            z = np.where(p_c[:, 2] > 1e-3, p_c[:, 2], 1.0)
+            uv = np.column_stack([self.K[0, 0] * p_c[:, 0] / z + self.K[0, 2], self.K[1, 1] * p_c[:, 1] / z + self.K[1, 2]])
+            vis = np.flatnonzero((p_c[:, 2] > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < self.camera.width)
+                                 & (uv[:, 1] >= 0) & (uv[:, 1] < self.camera.height))
+            if len(vis) == 0:
+                continue
+            pi, ki, _ = match_by_projection(uv[vis], p_desc[vis], f, 3.0, cfg.max_descriptor_distance, 0.9)
+            # Depth must agree too: a wrong fusion would tie the seam to a wrong point.
+            d = f.depth_m[ki]
+            ok = ~np.isfinite(d) | (np.abs(d - p_c[vis[pi], 2]) < 0.05 + 0.03 * p_c[vis[pi], 2])
+            out_kf.append(np.full(int(ok.sum()), k, np.int64))
+            out_kp.append(ki[ok])
+            out_pt.append(pids[vis[pi[ok]]])
+        if not out_kf:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return np.concatenate(out_kf), np.concatenate(out_kp), np.concatenate(out_pt)
+
+    def _global_ba(self, smap: SparseMap, followup: bool = False) -> None:
+        """Bundle-adjust the whole map after a loop correction (loop-closing thread): every keyframe
+        but the oldest (the gauge) and every point seen by two keyframes; the result goes to
+        ``_loop_pending`` as a correction (D per keyframe plus point positions)."""
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        with smap.lock:
+            if smap is not self.map or len(smap.keyframes) < 3:
+                return
+            epoch, layout = smap.pose_epoch, smap.layout_version
+            ids = sorted(smap.keyframes)
+            if cfg.loop_global_ba_followup_keyframes > 0 and self._gba_followup_at is None and not followup:
+                self._gba_followup_at = ids[-1] + cfg.loop_global_ba_followup_keyframes
+            cam_index = {k: i for i, k in enumerate(ids)}
+            pids = np.array([p for p in smap.points_of(ids).tolist() if len(smap.observations[p]) >= 2], np.int64)
+            o_cam, o_pt, o_uv, o_depth, o_oct, o_kf = [], [], [], [], [], []
+            for j, pid in enumerate(pids.tolist()):
+                for k, i in smap.observations[pid].items():
+                    f = smap.keyframes[k].feats
+                    o_cam.append(cam_index[k])
+                    o_pt.append(j)
+                    o_uv.append(f.uv[i])
+                    o_depth.append(f.depth_m[i])
+                    o_oct.append(f.octave[i])
+                    o_kf.append(k)
+            T_cw = np.stack([smap.keyframes[k].T_cw for k in ids])
+            p_w, _, _ = smap.point_arrays(pids)
+        if len(o_cam) < 20:
+            return
+        fixed = np.zeros(len(ids), bool)
+        fixed[0] = True
+        prob = BAProblem(T_cw, fixed, p_w, np.array(o_cam), np.array(o_pt), np.array(o_uv),
+                         np.array(o_depth, dtype=np.float64), self._inv_sigma(np.array(o_oct)))
+        res = global_bundle_adjustment(prob, self.K, self.bf, cfg.ba_huber_px, cfg.loop_global_ba_iterations,
+                                       cfg.loop_global_ba_budget_s)
+        dt = time.perf_counter() - t0
+        if not np.isfinite(res.final_cost) or res.final_cost >= res.initial_cost:
+            self._bump(global_ba_discarded=1, global_ba_time_s=dt)
+            return
+        D = invert_pose(res.T_cw) @ T_cw  # T_wc_new T_cw_old: world-frame corrections (snapshot)
+        outliers = tuple((int(pids[p]), k) for p, k, ok in zip(o_pt, o_kf, res.obs_inlier) if not ok)
+        logger.info("global BA: %d keyframes %d points %d observations, cost %.0f -> %.0f in %.2f s",
+                    len(ids), len(pids), len(o_cam), res.initial_cost, res.final_cost, dt)
+        with self._out_lock:
+            self._loop_pending.append(LoopCorrection(
+                np.array(ids, np.int64), D, ids[-1], -1, np.zeros(0, np.int64), np.zeros(0, np.int64), layout,
+                0, dt, pids, res.points_w, outliers, epoch, invert_pose(res.T_cw)))
+        self._bump(global_ba_time_s=dt)
+
+    @staticmethod
+    def _correction_table(smap: SparseMap, c: LoopCorrection) -> tuple[np.ndarray, np.ndarray]:
+        """World-frame corrections (ids [M], D [M, 4, 4]) for ``c`` at commit time (map lock held).
+
+        A global BA's poses replace the current ones (local BA results since its snapshot are
+        superseded). Keyframes made after the snapshot take the correction of the snapshot keyframe
+        they share most points with: after a loop they track against the old map, which a
+        correction barely moves, not against the query keyframe.
+        """
+        ids, D = c.kf_ids, c.D
+        if c.T_wc_new is not None:
+            cur = np.stack([smap.keyframes[k].T_cw if k in smap.keyframes else invert_pose(T)
+                            for k, T in zip(ids.tolist(), c.T_wc_new)])
+            D = c.T_wc_new @ cur
+        table = {k: n for n, k in enumerate(ids.tolist())}
+        extra_ids, extra_D = [], []
+        for k, kf in smap.keyframes.items():
+            if k in table or k <= c.query_id:
+                continue
+            counts: dict[int, int] = {}
+            for pid in kf.point_ids[kf.point_ids >= 0].tolist():
+                for o in smap.observations[pid]:
+                    if o in table:
+                        counts[o] = counts.get(o, 0) + 1
+            if counts:
+                extra_ids.append(k)
+                extra_D.append(D[table[max(counts, key=counts.__getitem__)]])
+        if extra_ids:
+            ids = np.concatenate([ids, np.array(extra_ids, np.int64)])
+            D = np.concatenate([D, np.stack(extra_D)])
+        return ids, D
+
+    def _apply_loop_corrections(self) -> int:
+        """Commit prepared loop corrections and global BAs (tracking thread, under the map lock):
+        keyframes and points move, the loop's duplicate points fuse, the last pose moves with its
+        keyframe; each committed loop queues a global BA. Returns how many were committed."""
         with self._out_lock:
             pending, self._loop_pending = self._loop_pending, []
+        committed = 0
         for c in pending:
             smap = self.map
             with smap.lock:
+                if c.pose_epoch is not None and c.pose_epoch != smap.pose_epoch:
+                    self._bump(global_ba_discarded=1)  # another correction came in between: stale
+                    continue
+                kf_ids, D = self._correction_table(smap, c)
                 q = int(np.flatnonzero(c.kf_ids == c.query_id)[0])
-                moved = smap.apply_loop_correction(c.kf_ids, c.D, c.D[q], newer_than=c.query_id)
-                qkf = smap.keyframes.get(c.query_id)
+                moved = smap.apply_loop_correction(kf_ids, D, c.D[q], newer_than=c.query_id)
+                if c.point_ids is not None:  # global BA: its point positions, then drop its outliers
+                    smap.commit_refinement([], np.zeros((0, 4, 4)), c.point_ids, c.points_w, list(c.outliers),
+                                           layout_version=c.layout_version)
                 olds = smap.renumber(c.fuse_points, c.layout_version)
-                if qkf is not None and olds is not None:
-                    for kp, old in zip(c.fuse_kp.tolist(), olds.tolist()):
-                        if old < 0 or not smap.good(np.array([old]))[0]:
+                fuse_kf = c.fuse_kf if c.fuse_kf is not None else np.full(len(c.fuse_kp), c.query_id, np.int64)
+                if olds is not None:
+                    for k, kp, old in zip(fuse_kf.tolist(), c.fuse_kp.tolist(), olds.tolist()):
+                        fkf = smap.keyframes.get(k)
+                        if fkf is None or old < 0 or not smap.good(np.array([old]))[0]:
                             continue
-                        cur = int(qkf.point_ids[kp])
+                        cur = int(fkf.point_ids[kp])
                         if cur >= 0 and cur != old:
                             smap.merge_point(cur, old)
-                        elif cur < 0:
-                            smap.add_observations(np.array([old]), c.query_id, np.array([kp]))
+                        elif cur < 0 and k not in smap.observations[old]:
+                            smap.add_observations(np.array([old]), k, np.array([kp]))
                 refined = [(k, invert_pose(new)) for k, (_, new) in sorted(moved.items())]
             for T_attr in ("_T_cw_last", "_last_good_T_cw"):
                 T = getattr(self, T_attr)
                 if T is not None and self._last_kf_id in moved:
                     old, new = moved[self._last_kf_id]
                     setattr(self, T_attr, orthonormalized(T @ invert_pose(old) @ new))
-            D_wc = {k: invert_pose(new) @ old for k, (old, new) in moved.items()}  # T_wc_new T_cw_old
+            # T_wc_new T_cw_path: the path's frames move with their keyframe, BA refinements included.
+            D_wc = {k: invert_pose(new) @ self._path_T_cw.get(k, old) for k, (old, new) in moved.items()}
+            self._path_T_cw.update((k, new.copy()) for k, (_, new) in moved.items())
+            with smap.lock:
+                self._path_T_cw = {k: T for k, T in self._path_T_cw.items() if k in smap.keyframes}
             with self._out_lock:
                 self._loop_refined.extend(refined)
                 self._loop_done.append(D_wc)
-            self._bump(loops_accepted=1,
-                                             last_loop=(c.query_id, c.candidate_id))
+            committed += 1
+            if c.is_global_ba:
+                self._bump(global_ba_runs=1)
+                continue
+            self._bump(loops_accepted=1, last_loop=(c.query_id, c.candidate_id))
+            if self.cfg.loop_global_ba:
+                if self._place_thread is not None:
+                    self._place_queue.put((smap, -1))
+                else:  # inline (lockstep)
+                    self._global_ba(smap)
+                    committed += self._apply_loop_corrections()
+        return committed
 
 
 def _replace_stats(st: LoopStats, last_loop: tuple[int, int] | None = None, **add: float) -> LoopStats:

@@ -243,8 +243,15 @@ class LoopCorrection:
 
     kf_ids: [N] keyframes of the snapshot; D: [N, 4, 4] each one's world-frame correction
     T_wc_new inv(T_wc_old); query_id: the loop keyframe (keyframes newer than the snapshot move
-    with it); fuse_kp / fuse_points: [K] query keypoints and the loop map points they matched
-    (point ids at ``layout_version``), merged after the correction.
+    with it); fuse_kp / fuse_points: [K] keypoints of keyframes ``fuse_kf`` (default the query)
+    and the loop map points they matched (point ids at ``layout_version``), merged after the
+    correction.
+
+    A global bundle adjustment commits through the same path (``candidate_id`` -1): its point_ids
+    [P] / points_w [P, 3] (numbered at ``layout_version``) overwrite those points after the
+    keyframes moved, outliers [(point id, keyframe id)] lose that observation, and ``pose_epoch``
+    (the snapshot's) discards it when another correction came in between; its T_wc_new replace the
+    keyframe poses (D is then recomputed at commit).
     """
 
     kf_ids: np.ndarray
@@ -256,6 +263,16 @@ class LoopCorrection:
     layout_version: int
     n_inliers: int
     time_s: float
+    point_ids: np.ndarray | None = None
+    points_w: np.ndarray | None = None
+    outliers: tuple[tuple[int, int], ...] = ()
+    pose_epoch: int | None = None
+    T_wc_new: np.ndarray | None = None  # [N, 4, 4] global BA: poses that replace the current ones
+    fuse_kf: np.ndarray | None = None  # [K] keyframe of each fuse entry (None: all the query's)
+
+    @property
+    def is_global_ba(self) -> bool:
+        return self.candidate_id < 0
 
 
 __all__ = ["LoopCandidate", "LoopCorrection", "LoopDetector", "LoopMatch", "PoseGraphResult",
