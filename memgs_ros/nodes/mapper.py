@@ -58,9 +58,9 @@ class MapperNode(Node):
         device = p.device if p.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
         if device == "cpu":
             configure_cpu_runtime()
-        # Free heap pages go back every 5 s (each trim ~5 ms): training leaves ~30-50 MB of
+        # Free heap pages go back every 2 s (each trim ~5 ms): training leaves ~30-50 MB of
         # freed step buffers a step, and at the default 30 s they piled up into the peak RSS.
-        self.stats = NodeStats(self, "mapper", trim_period_s=5.0)
+        self.stats = NodeStats(self, "mapper", trim_period_s=2.0)
         self.ckpt = checkpoint.CheckpointFile(pathlib.Path(p.checkpoint_path).expanduser()) if p.checkpoint_path else None
         resumed, why = self.ckpt.read_or_set_aside() if p.resume and self.ckpt else (None, None)
         # A new delta epoch every start: a merger that held the map of an earlier life resynchronises.
