@@ -18,7 +18,9 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import logging
+import os
 from dataclasses import dataclass
+from functools import lru_cache
 
 _log = logging.getLogger(__name__)
 _log.addHandler(logging.NullHandler())
@@ -102,3 +104,16 @@ def configure_cpu_runtime(torch_threads: int = 1, keep_heap: bool = True) -> Cpu
     if keep_heap and not kept:
         _log.info("mallopt unavailable (not glibc?): freed memory goes back to the OS")
     return CpuRuntime(torch_threads=torch.get_num_threads(), heap_kept=kept)
+
+
+@lru_cache(maxsize=1)
+def numba_available() -> bool:
+    """True when numba imports and MEMGS_DISABLE_NUMBA is unset or 0: the one switch of every
+    compiled fast path (rasterizer, tracker kernels); their plain twins run otherwise."""
+    if os.environ.get("MEMGS_DISABLE_NUMBA", "") not in ("", "0"):
+        return False
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        return False
+    return True

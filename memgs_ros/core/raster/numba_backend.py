@@ -21,7 +21,6 @@ Python threads have neither problem.
 from __future__ import annotations
 
 import os
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -32,6 +31,7 @@ from torch.autograd.function import once_differentiable
 
 from memgs_ros.core.raster.composite import MIN_ALPHA, _map
 from memgs_ros.core.raster.tiles import BIN_MARGIN, TilePlan
+from memgs_ros.core.runtime import numba_available  # noqa: F401 - one switch for every compiled path
 from memgs_ros.errors import ConfigError
 
 __all__ = ["NUMBA_TILE_SIZE", "composite_numba", "cpu_threads", "numba_available"]
@@ -46,16 +46,6 @@ NUMBA_TILE_SIZE = 16
 JOBS_PER_THREAD = 4
 
 
-@lru_cache(maxsize=1)
-def numba_available() -> bool:
-    """True when numba can be imported (the compiled CPU compositor is usable)."""
-    if os.environ.get("MEMGS_DISABLE_NUMBA", "") not in ("", "0"):
-        return False
-    try:
-        import numba  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
 def cpu_threads() -> int:

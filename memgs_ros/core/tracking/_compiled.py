@@ -14,24 +14,12 @@ path runs. Compiled on first use and cached on disk (``cache=True``).
 """
 from __future__ import annotations
 
-import os
-from functools import lru_cache
 
 import numpy as np
 
+from memgs_ros.core.runtime import numba_available  # noqa: F401 - re-exported
+
 __all__ = ["match_by_projection_kernel", "numba_available", "optimize_pose_kernel", "warm_up"]
-
-
-@lru_cache(maxsize=1)
-def numba_available() -> bool:
-    """True when numba imports and MEMGS_DISABLE_NUMBA is unset or 0 (as the rasterizer decides)."""
-    if os.environ.get("MEMGS_DISABLE_NUMBA", "") not in ("", "0"):
-        return False
-    try:
-        import numba  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
 def _popcount64(x):
