@@ -223,14 +223,17 @@ def test_mapper_memory_cap_drops_keyframes_then_shrinks_the_map() -> None:
     base = {**GROWING, "min_keyframes": 3}
     free = _mapper(many, **base)
     acc = free.memory_account()
-    assert acc.keyframes == 8 * (3 + 2) * 64 * 48 and acc.total == acc.model + acc.keyframes + acc.step_buffers
+    assert acc.keyframes == 8 * (3 + 2) * 64 * 48 and acc.total == acc.model + acc.keyframes + acc.step_buffers + acc.delta
+    assert acc.delta == len(free.gmap) * 3 * 236  # the delta mirror and one full-map message
     per_g = free.trained_bytes_per_gaussian()
     cap_bytes = acc.total - acc.keyframes // 2 - 100 * per_g  # needs both levers
+    # Free-running inserts defer the Gaussian budget to the next step, but not the memory cap.
     cfg = {**base, "max_mapper_mbytes": cap_bytes / 2**20}
     m = GaussianMapper(MappingConfig(**cfg))
     for i, f in enumerate(many):
         p, c = grid_seeds(f)
-        m.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+        m.add_prepared_keyframe(m.prepare_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera), p, c,
+                                enforce_budget=False)
         assert m.memory_account().total <= cap_bytes, i
     assert 3 <= len(m.keyframes) < 8 and m.keyframes_dropped == 8 - len(m.keyframes)
     assert len(m.gmap) < len(free.gmap)

@@ -37,8 +37,8 @@ from memgs_ros.core.geometry import invert_pose, nearest_pose_distance, rotmat_t
 from memgs_ros.core.keyframes import KeyframeStore, TrainingKeyframe, make_keyframe
 from memgs_ros.core.losses import mapping_loss
 from memgs_ros.core.mapping_config import MappingConfig
-from memgs_ros.core.strategies import (BudgetStrategy, DensifyStrategy, MemoryAccount, MergeFn, MergeSchedule,
-                                      step_buffer_bytes)
+from memgs_ros.core.strategies import (DELTA_BYTES_PER_GAUSSIAN, BudgetStrategy, DensifyStrategy, MemoryAccount,
+                                      MergeFn, MergeSchedule, step_buffer_bytes)
 from memgs_ros.core.view import view_preparation
 from memgs_ros.errors import ConfigError, DataError
 
@@ -147,10 +147,11 @@ class GaussianMapper:
     def memory_account(self) -> MemoryAccount:
         """The accounted working memory now (``mapping.max_mapper_mbytes`` bounds its total): the
         model at its trained cost (gradients and Adam moments counted before they exist, as the
-        budget does), the stored keyframes, and the step buffers."""
+        budget does), the stored keyframes, the step buffers and the delta bytes."""
         n = len(self.gmap)
         return MemoryAccount(model=n * self.trained_bytes_per_gaussian(), keyframes=self.keyframes.nbytes(),
-                             step_buffers=step_buffer_bytes(n, self._training_pixels()))
+                             step_buffers=step_buffer_bytes(n, self._training_pixels()),
+                             delta=n * DELTA_BYTES_PER_GAUSSIAN)
 
     def trained_bytes_per_gaussian(self) -> int:
         return self.budget.trained_bytes_per_gaussian(self.gmap)
@@ -211,7 +212,9 @@ class GaussianMapper:
         if points_w is not None and len(points_w):
             ids = self.gmap.add_from_points(points_w, colors, kf.kf_id, self.iteration, opacity=self.cfg.seed_opacity)
             added = int(ids.numel())
-            if enforce_budget:
+            # A memory cap is a promise about every moment, not about the next step: keep it here
+            # even when the caller leaves the Gaussian budget to the step (free-running inserts).
+            if enforce_budget or self.cfg.max_mapper_mbytes > 0:
                 self._enforce_budget()
         return added
 

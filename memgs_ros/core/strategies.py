@@ -40,6 +40,10 @@ BUDGET_MERGE_PASSES = 3
 # benchmarks/bench_raster.py (numba, 320x240): 26 MB at 20k, 81 MB at 100k Gaussians
 STEP_BYTES_PER_GAUSSIAN = 512
 STEP_BYTES_PER_PIXEL = 192
+# The map's way out, per Gaussian: the session's delta mirror keeps every row as GaussianRecords
+# (236 B: PLY fields with 45 SH-rest floats at any degree), and a delta or snapshot that carries
+# every row is built once more as message rows and again as the message's bytes
+DELTA_BYTES_PER_GAUSSIAN = 3 * 236
 # MergeConfig.tau must be finite: a bound no mean positional gradient reaches turns the gate off.
 _NO_GRADIENT_GATE = 1e30
 
@@ -116,16 +120,18 @@ class MergeSchedule:
 @dataclass(frozen=True)
 class MemoryAccount:
     """The mapper's accounted working memory in bytes (``mapping.max_mapper_mbytes`` bounds
-    ``total``): the model (parameters, gradients, Adam moments), the stored keyframes and the
-    training step's buffers (estimated from the Gaussian count and the full-resolution pixels)."""
+    ``total``): the model (parameters, gradients, Adam moments), the stored keyframes, the
+    training step's buffers (estimated from the Gaussian count and the full-resolution pixels)
+    and the map's delta mirror with one full-map message in flight (``DELTA_BYTES_PER_GAUSSIAN``)."""
 
     model: int
     keyframes: int
     step_buffers: int
+    delta: int = 0
 
     @property
     def total(self) -> int:
-        return self.model + self.keyframes + self.step_buffers
+        return self.model + self.keyframes + self.step_buffers + self.delta
 
 
 def step_buffer_bytes(n_gaussians: int, n_pixels: int) -> int:
@@ -157,7 +163,7 @@ class BudgetStrategy:
         """The budget as a Gaussian count (0 = none): the tightest of ``max_gaussians``,
         ``max_model_mbytes`` at a trained map's bytes per Gaussian, and ``max_mapper_mbytes``
         less ``fixed_bytes`` (the keyframes and the per-pixel step buffers) at a trained
-        Gaussian's bytes plus its step buffers; at least 1 when set. The MiB budgets are
+        Gaussian's bytes plus its step buffers and delta bytes; at least 1 when set. The MiB budgets are
         converted at the trained cost, so seeds inserted before training respect them."""
         cfg = self.cfg
         limits = [cfg.max_gaussians] if cfg.max_gaussians > 0 else []
@@ -166,7 +172,7 @@ class BudgetStrategy:
             limits.append(max(int(cfg.max_model_mbytes * 2**20 // per_gaussian), 1))
         if cfg.max_mapper_mbytes > 0:
             free = cfg.max_mapper_mbytes * 2**20 - fixed_bytes
-            limits.append(max(int(free // (per_gaussian + STEP_BYTES_PER_GAUSSIAN)), 1))
+            limits.append(max(int(free // (per_gaussian + STEP_BYTES_PER_GAUSSIAN + DELTA_BYTES_PER_GAUSSIAN)), 1))
         return min(limits) if limits else 0
 
     def enforce(self, gmap: GaussianMap, iteration: int, newest_kf_id: int, fixed_bytes: int = 0) -> tuple[int, int]:
