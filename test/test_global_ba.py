@@ -84,3 +84,13 @@ def test_global_ba_time_budget_returns_the_best_so_far() -> None:
     _, _, prob = _ring(n_cams=12, n_pts=400)
     res = global_bundle_adjustment(prob, K, BF, huber_px=2.45, max_iterations=50, time_budget_s=0.0)
     assert res.n_evaluations == 1 and res.final_cost == res.initial_cost
+
+
+def test_global_ba_observations_per_point_are_bounded() -> None:
+    # A place seen again and again gives points with a hundred observations: the global BA keeps
+    # few enough per point that its observation pairs stay bounded; ordinary maps keep them all.
+    from memgs_ros.core.tracking.frontend import _GLOBAL_BA_MAX_PAIRS, _max_observations_per_point
+
+    assert _max_observations_per_point([2, 3, 5]) == 5
+    m = _max_observations_per_point([100] * 23000)
+    assert 2 <= m < 100 and 23000 * m * m <= _GLOBAL_BA_MAX_PAIRS

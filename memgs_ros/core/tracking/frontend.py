@@ -53,6 +53,7 @@ _WIDE_RADIUS_FACTOR = 3.0
 _LOOP_CANDIDATES = 3  # best BoW candidates per query that enter the consistency check
 _LOOP_GROUP = 10  # covisible keyframes forming a candidate's group
 _LOOP_EDGE_WEIGHT = 10.0  # loop edges against the identity-weighted odometry edges
+_GLOBAL_BA_MAX_PAIRS = 250_000  # observation pairs of one global BA (~150 MB of blocks and indices)
 _NOMINAL_FRAME_DT_S = 1.0 / 30.0  # frame interval assumed until two stamps are known
 _MAX_FRAME_DT_S = 0.5  # longer gaps: the velocity says nothing about the motion inside a frame
 
@@ -926,9 +927,13 @@ class FeatureTracker(Tracker):
                 self._gba_followup_at = ids[-1] + cfg.loop_global_ba_followup_keyframes
             cam_index = {k: i for i, k in enumerate(ids)}
             pids = np.array([p for p in smap.points_of(ids).tolist() if len(smap.observations[p]) >= 2], np.int64)
+            per_point = _max_observations_per_point([len(smap.observations[p]) for p in pids.tolist()])
             o_cam, o_pt, o_uv, o_depth, o_oct, o_kf = [], [], [], [], [], []
             for j, pid in enumerate(pids.tolist()):
-                for k, i in smap.observations[pid].items():
+                seen = sorted(smap.observations[pid].items())
+                if len(seen) > per_point:  # evenly spread over the keyframes that see it
+                    seen = [seen[int(i)] for i in np.linspace(0, len(seen) - 1, per_point).round()]
+                for k, i in seen:
                     f = smap.keyframes[k].feats
                     o_cam.append(cam_index[k])
                     o_pt.append(j)
@@ -1049,6 +1054,20 @@ class FeatureTracker(Tracker):
                     self._global_ba(smap)
                     committed += self._apply_loop_corrections()
         return committed
+
+
+def _max_observations_per_point(counts: list[int]) -> int:
+    """Observations kept per point in the global BA so that its observation pairs (the sum of
+    n_obs^2, ~600 B each in the reduced system) stay under ``_GLOBAL_BA_MAX_PAIRS``: a place seen
+    again and again (a robot circling a room) gives points with a hundred observations, and the
+    unbounded system took the tracker to 2 GB resident on bench_load's looped sequence."""
+    c = np.asarray(counts, dtype=np.int64)
+    if len(c) == 0 or int((c * c).sum()) <= _GLOBAL_BA_MAX_PAIRS:
+        return int(c.max(initial=2))
+    m = int(c.max())
+    while m > 2 and int((np.minimum(c, m) ** 2).sum()) > _GLOBAL_BA_MAX_PAIRS:
+        m -= 1
+    return m
 
 
 def _replace_stats(st: LoopStats, last_loop: tuple[int, int] | None = None, **add: float) -> LoopStats:
