@@ -190,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     result["mapper_accounted_mb_max"] = max(acc) / 2**20 if acc else None
     result["mapper_max_mapper_mbytes"] = cap
     if acc:
-        print(f"mapper accounted memory (model + keyframes + step buffers): max {max(acc) / 2**20:.1f} MiB, "
+        print(f"mapper accounted memory (model + keyframes + step buffers + delta): max {max(acc) / 2**20:.1f} MiB, "
               f"end {acc[-1] / 2**20:.1f} MiB (cap {cap:g} MiB; 0 = none), keyframes trained at the end "
               f"{mp.get('keyframes_trained')}, dropped {mp.get('keyframes_dropped')}")
     result["tracker_map"] = {k: tr.get(k) for k in ("map_keyframes", "map_points", "map_keyframes_removed")}

@@ -100,7 +100,8 @@ class MappingConfig:
     max_keyframes: int = 0
     max_model_mbytes: float = 0.0  # budget in MiB of parameters + gradients + Adam moments (0 = none)
     # Cap in MiB on the mapper's accounted working memory (0 = none): model (as above) + stored
-    # keyframes + the training step's buffers (core/strategies.py, MemoryAccount). Over it the
+    # keyframes + the training step's buffers + the delta mirror and one full-map message
+    # (core/strategies.py, MemoryAccount). Over it the
     # mapper first drops redundant keyframes (the max_keyframes rule, down to min_keyframes),
     # then merges/prunes the map like max_model_mbytes. Imports and code are not in it
     max_mapper_mbytes: float = 0.0

@@ -45,6 +45,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
+from rclpy.publisher import Publisher
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header, String
 
@@ -274,11 +275,11 @@ class TrackerNode(Node):
             if len(self.kf_stamps) > 2 * smap.keyframes + 64:  # BA refines only kept keyframes
                 self.kf_stamps = {i: s for i, s in self.kf_stamps.items() if i in smap.keyframe_ids}
         refined = self.tracker.poll_refined_keyframes()
-        corrected = getattr(self.tracker, "poll_loop_corrected_keyframes", list)()
+        corrected = self.tracker.poll_loop_corrected_keyframes()
         self._publish(frame, result, color.header.frame_id or self.camera_frame)
         self._publish_refined(refined, self.pub_refined, "refined_keyframe_poses")
         self._publish_refined(corrected, self.pub_loop, "loop_corrected_keyframe_poses")
-        loops = getattr(self.tracker, "poll_loop_corrections", list)()
+        loops = self.tracker.poll_loop_corrections()
         moved = self.anchored.update(result, loops)
         if moved:
             self._path_stale |= moved  # re-expressed at the next path publication
@@ -354,7 +355,7 @@ class TrackerNode(Node):
         self.kf_stamps[kf.keyframe_id] = stamp
         self.stats.counters["keyframes"] += 1
 
-    def _publish_refined(self, refined: list[tuple[int, np.ndarray]], pub, counter: str) -> None:  # noqa: ANN001
+    def _publish_refined(self, refined: list[tuple[int, np.ndarray]], pub: Publisher, counter: str) -> None:
         poses = [matrix_to_pose_stamped(T, self.kf_stamps[i], self.world_frame)
                  for i, T in refined if i in self.kf_stamps]
         if poses:

@@ -297,6 +297,22 @@ def _huber_cost(r: np.ndarray, delta: float) -> float:
     return float(np.sum(np.where(a <= delta, 0.5 * a * a, delta * (a - 0.5 * delta))))
 
 
+def _huber_residuals(T: np.ndarray, X: np.ndarray, cam: np.ndarray, pt: np.ndarray, obs: np.ndarray,
+                     has_depth: np.ndarray, inv_sigma: np.ndarray, K: np.ndarray, bf: float,
+                     huber_px: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Camera-frame points, whitened residuals and Huber cost of a BA state (local and global BA).
+
+    T: [C, 4, 4] T_cw; X: [P, 3]; cam, pt: [O] observation camera / point; obs: [O, 3] (u, v,
+    u_right); has_depth: [O]; inv_sigma: [O]. Returns (p_c [O, 3], r [O, 3], cost).
+    """
+    p_c = np.einsum("oij,oj->oi", T[cam, :3, :3], X[pt]) + T[cam, :3, 3]
+    p_c[:, 2] = np.maximum(p_c[:, 2], 1e-4)
+    r = _residuals(p_c, obs, has_depth, K, bf) * inv_sigma[:, None]
+    e = np.sqrt(np.einsum("ij,ij->i", r, r))
+    cost = float(np.sum(np.where(e <= huber_px, 0.5 * e * e, huber_px * (e - 0.5 * huber_px))))
+    return p_c, r, cost
+
+
 def _obs_pairs(obs_point: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
     """All ordered pairs (o1, o2) of observations of the same point, [Q] each (o1 == o2 included)."""
     order = np.argsort(obs_point, kind="stable")
@@ -342,12 +358,7 @@ def local_bundle_adjustment(prob: BAProblem, K: np.ndarray, bf: float, huber_px:
         return out
 
     def evaluate(T: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        p_c = np.einsum("oij,oj->oi", T[cam, :3, :3], X[pt]) + T[cam, :3, 3]
-        p_c[:, 2] = np.maximum(p_c[:, 2], 1e-4)
-        r = _residuals(p_c, obs, has_depth, K, bf) * s[:, None]
-        e = np.sqrt(np.einsum("ij,ij->i", r, r))
-        cost = float(np.sum(np.where(e <= huber_px, 0.5 * e * e, huber_px * (e - 0.5 * huber_px))))
-        return p_c, r, cost
+        return _huber_residuals(T, X, cam, pt, obs, has_depth, s, K, bf, huber_px)
 
     p_c, r, cost = evaluate(T, X)
     cost0 = cost

@@ -20,9 +20,9 @@ from memgs_ros.core.tracking.bundle_adjustment import (
     CHI2_STEREO,
     BAProblem,
     BAResult,
+    _huber_residuals,
     _obs_pairs,
     _projection_jacobian,
-    _residuals,
     _skew,
     apply_left_update,
     observed_uvr,
@@ -69,12 +69,7 @@ def global_bundle_adjustment(prob: BAProblem, K: np.ndarray, bf: float, huber_px
         return out
 
     def evaluate(T: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        p_c = np.einsum("oij,oj->oi", T[cam, :3, :3], X[pt]) + T[cam, :3, 3]
-        p_c[:, 2] = np.maximum(p_c[:, 2], 1e-4)
-        r = _residuals(p_c, obs, has_depth, K, bf) * s[:, None]
-        e = np.sqrt(np.einsum("ij,ij->i", r, r))
-        cost = float(np.sum(np.where(e <= huber_px, 0.5 * e * e, huber_px * (e - 0.5 * huber_px))))
-        return p_c, r, cost
+        return _huber_residuals(T, X, cam, pt, obs, has_depth, s, K, bf, huber_px)
 
     p_c, r, cost = evaluate(T, X)
     cost0 = cost

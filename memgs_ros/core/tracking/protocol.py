@@ -52,6 +52,16 @@ class Tracker(Protocol):
     def poll_refined_keyframes(self) -> list[tuple[int, np.ndarray]]:
         """(keyframe_id, refined T_wc [4, 4]) since the last poll, oldest first."""
 
+    def poll_loop_corrected_keyframes(self) -> list[tuple[int, np.ndarray]]:
+        """(keyframe_id, corrected T_wc [4, 4]) of keyframes a loop closure moved since the last
+        poll; a backend without loop closure has none."""
+        return []
+
+    def poll_loop_corrections(self) -> list[dict[int, np.ndarray]]:
+        """Loop corrections committed since the last poll ({keyframe_id: D [4, 4]}, world frame);
+        a backend without loop closure has none."""
+        return []
+
     @abstractmethod
     def map_stats(self) -> SparseMapStats | None:
         """The sparse map's stats, or None for a backend that exposes no map."""
