@@ -22,6 +22,13 @@ numbers from 1 again, and a receiver that sees a new epoch resynchronises from a
 A delta applies its removals first, then its upserts; ids are never reused, so the
 two sets never overlap. Only the ``f_rest`` columns of the sender's SH degree travel
 (zeros elsewhere): a degree-0 map costs 73 bytes a Gaussian instead of 253.
+
+Whole-map messages (snapshots, the merger's full map) also carry ``rgb``: the SH DC colour
+``0.5 + C0 * f_dc`` clipped to [0, 1], as uint8 r, g, b packed into a FLOAT32 the way PCL, RViz
+and Foxglove read it (``0x00RRGGBB``: bytes b, g, r, 0 little-endian; the zero top byte keeps
+the float finite), so viewers colour the cloud. It costs 4 bytes a Gaussian; deltas, the stream
+a real link carries all the time, go without it. Receivers ignore it: :func:`decode` reads the
+parameters only.
 """
 from __future__ import annotations
 
@@ -39,6 +46,8 @@ OP_META_DELTA = 2
 OP_META_SNAPSHOT = 3
 _F_REST_PER_CHANNEL = PLY_F_REST // 3
 _U32 = (1 << 32) - 1
+# Zeroth real spherical harmonic (= core.gaussians.SH_C0; that module loads torch, this one must not).
+_SH_C0 = 0.28209479177387814
 
 
 def f_rest_columns(sh_degree: int) -> list[int]:
@@ -49,9 +58,10 @@ def f_rest_columns(sh_degree: int) -> list[int]:
     return [c * _F_REST_PER_CHANNEL + i for c in range(3) for i in range(k)]
 
 
-def message_dtype(sh_degree: int) -> np.dtype:
-    """Structured dtype of one row for a map of the given SH degree."""
-    names = ["id", "op", "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"]
+def message_dtype(sh_degree: int, rgb: bool = False) -> np.dtype:
+    """Structured dtype of one row for a map of the given SH degree; ``rgb`` adds the packed
+    colour after ``z`` (4 bytes, see the module docstring)."""
+    names = ["id", "op", "x", "y", "z", *(["rgb"] if rgb else []), "f_dc_0", "f_dc_1", "f_dc_2"]
     names += [f"f_rest_{i}" for i in f_rest_columns(sh_degree)]
     names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     formats = [np.uint64, np.uint8] + [np.float32] * (len(names) - 2)
@@ -79,11 +89,31 @@ class MapMessage:
     epoch: int = 0
 
 
+def packed_rgb(f_dc: np.ndarray) -> np.ndarray:  # [N, 3] -> [N]
+    """The SH DC colour of N Gaussians as PointCloud2 ``rgb`` values.
+
+    f_dc: [N, 3] SH DC coefficients. Returns [N] float32 whose bits are ``0x00RRGGBB``, with
+    each channel ``round(255 * clip(0.5 + C0 * f_dc, 0, 1))``.
+    """
+    f_dc = np.asarray(f_dc, dtype=np.float32)
+    if f_dc.ndim != 2 or f_dc.shape[1] != 3:
+        raise ValueError(f"f_dc must be [N, 3], got shape {f_dc.shape}")
+    c = np.rint(np.clip(0.5 + _SH_C0 * f_dc, 0.0, 1.0) * 255.0).astype(np.uint32)  # [N, 3]
+    return ((c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]).view(np.float32)
+
+
+def unpack_rgb(rgb: np.ndarray) -> np.ndarray:  # [N] -> [N, 3]
+    """[N] packed ``rgb`` values (float32 bits ``0x00RRGGBB``) -> [N, 3] uint8 r, g, b."""
+    bits = np.ascontiguousarray(rgb, dtype=np.float32).view(np.uint32)
+    return np.stack([(bits >> 16) & 0xFF, (bits >> 8) & 0xFF, bits & 0xFF], axis=-1).astype(np.uint8)
+
+
 def encode(kind: MessageKind, seq: int, total: int, upserts: GaussianRecords,
-           removed_ids: np.ndarray, sh_degree: int, epoch: int = 0) -> np.ndarray:
+           removed_ids: np.ndarray, sh_degree: int, epoch: int = 0, rgb: bool = False) -> np.ndarray:
     """A delta or snapshot as a structured array (row 0 META) ready for a PointCloud2.
 
-    upserts: U Gaussians; removed_ids: [R]. Returns [1 + U + R] rows of ``message_dtype``.
+    upserts: U Gaussians; removed_ids: [R]. ``rgb``: add the packed colour column (viewers;
+    META and removal rows hold 0). Returns [1 + U + R] rows of ``message_dtype(sh_degree, rgb)``.
     """
     if not (0 <= seq <= _U32 and 0 <= total <= _U32 and 0 <= epoch <= _U32):
         raise ValueError(f"seq {seq}, total {total} and epoch {epoch} must fit in 32 bits")
@@ -91,7 +121,7 @@ def encode(kind: MessageKind, seq: int, total: int, upserts: GaussianRecords,
     if kind is MessageKind.SNAPSHOT and removed.size:
         raise ValueError("a snapshot carries no removals")
     u, r = len(upserts), removed.size
-    out = np.zeros(1 + u + r, dtype=message_dtype(sh_degree))
+    out = np.zeros(1 + u + r, dtype=message_dtype(sh_degree, rgb))
     out["id"][0] = (seq << 32) | total
     out["op"][0] = kind.value
     out["x"][0], out["y"][0] = epoch & 0xFFFF, epoch >> 16
@@ -100,6 +130,8 @@ def encode(kind: MessageKind, seq: int, total: int, upserts: GaussianRecords,
     rows["op"] = OP_UPSERT
     for i, name in enumerate("xyz"):
         rows[name] = upserts.xyz[:, i]
+    if rgb:
+        rows["rgb"] = packed_rgb(upserts.f_dc)
     for i in range(3):
         rows[f"f_dc_{i}"] = upserts.f_dc[:, i]
         rows[f"scale_{i}"] = upserts.scale[:, i]
@@ -330,7 +362,7 @@ class DeltaOutbox:
         self._mirror = _sorted(current)
         self.pending_rows = 0
         return encode(MessageKind.SNAPSHOT, self.seq, len(current), current, np.zeros(0, np.int64),
-                      self.sh_degree, self.epoch)
+                      self.sh_degree, self.epoch, rgb=True)
 
 
 def _sorted(r: GaussianRecords) -> GaussianRecords:

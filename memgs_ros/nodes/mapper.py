@@ -4,7 +4,7 @@
 In: ``memgs/keyframe/{color,depth,camera_info,pose,seeds}`` (one stamp per keyframe),
 ``memgs/keyframe/refined_poses`` (bundle adjustment), ``memgs/keyframe/loop_corrected_poses``, ``memgs/pose`` (live view), ``memgs/render/view_pose``,
 ``memgs/tracker/processed`` (lockstep). Out: ``memgs/map/delta`` (core/map_delta.py),
-``memgs/mapper/snapshot`` (latched), ``memgs/render/{color,depth,camera_info}``, ``memgs/frame_ack``,
+``memgs/mapper/snapshot`` (latched, with a packed ``rgb`` colour), ``memgs/render/{color,depth,camera_info}``, ``memgs/frame_ack``,
 ``memgs/mapper/stats``; services ``memgs/mapper/publish_snapshot`` and ``memgs/mapper/finish``
 (answers ``seq=<n> gaussians=<n> epoch=<n>``). With ``checkpoint_path`` the session's state is
 written there atomically (periodically, at finish and shutdown) and a restarted mapper resumes

@@ -2,7 +2,7 @@
 
 Subscribes: ``memgs/map/delta`` (reliable) and ``memgs/mapper/snapshot`` (latched) from the mapper,
 ``memgs/merger/view_pose`` (PoseStamped render requests). Publishes ``memgs/map/gaussians`` (latched
-full map, on request and every ``publish_period_s``), ``memgs/merger/render/{color,depth}`` and
+full map with a packed ``rgb`` colour field for viewers, on request and every ``publish_period_s``), ``memgs/merger/render/{color,depth}`` and
 ``memgs/merger/stats``. Services: ``memgs/save_map`` (std_srvs/Trigger: write the PLY atomically,
 answers its path) and ``memgs/merger/publish_map``. Saves periodically and on shutdown.
 
@@ -233,7 +233,7 @@ class MergerNode(Node):
             return
         self._published_version = version
         rows = encode(MessageKind.SNAPSHOT, self.replica.seq, len(self.replica), self.replica.records,
-                      np.zeros(0, np.int64), sh_degree=3, epoch=self.replica.epoch)
+                      np.zeros(0, np.int64), sh_degree=3, epoch=self.replica.epoch, rgb=True)
         self.pub_map.publish(structured_to_pointcloud2(rows, self.get_clock().now().nanoseconds, self.world_frame))
 
     def on_publish_map(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
