@@ -15,6 +15,7 @@ NODES = {
     "mapper": "memgs_ros.nodes.mapper:main",
     "merger": "memgs_ros.nodes.merger:main",
     "bag_player": "memgs_ros.nodes.bag_player:main",
+    "recorder": "memgs_ros.nodes.recorder:main",
 }
 
 setup(

@@ -456,13 +456,14 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
              overrides: Mapping[str, Any] | None = None, *, max_frames: int = 0,
              domain_id: int | None = None, namespace: str = "", timeout_s: float = 3600.0,
              single_process: bool = False, variant: str = "full", use_lpips: bool = True,
-             device: str | None = None, progress: bool = True) -> EvalResult:
+             device: str | None = None, progress: bool = True, record: Path | None = None) -> EvalResult:
     """Run the graph on ``source`` in lockstep, then :func:`evaluate_run` on its output.
 
     resolution_scale: mapping resolution (``mapper.mapping.resolution_scale``); None keeps the
     config's. seed: seeds the mapper and the Patch-Grid sampler (and the tracker's RANSAC).
     overrides: "node.param" -> value, applied after mode/scale/seed. domain_id: DDS domain of
-    the run; None lets the run pick a free one. device: where the evaluation renders. On CPU,
+    the run; None lets the run pick a free one. record: also record the run's output topics into
+    this .mcap file. device: where the evaluation renders. On CPU,
     call :func:`memgs_ros.core.runtime.configure_cpu_runtime` first (the CLI does): with OpenMP
     threads on a shared machine each render is ~30x slower.
     """
@@ -481,7 +482,8 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
     run_overrides.update(dict(overrides or {}))
     options = RunOptions(source=str(source), config=config, out_dir=out, single_process=single_process,
                          lockstep=True, namespace=namespace, domain_id=domain_id,
-                         max_frames=int(max_frames), overrides=run_overrides, timeout_s=timeout_s)
+                         max_frames=int(max_frames), overrides=run_overrides, timeout_s=timeout_s,
+                         record=record)
     run_pipeline(options, progress=progress)
     return evaluate_run(out, str(source), mode, variant=variant, config=config, seed=seed,
                         overrides=run_overrides, max_frames=max_frames, use_lpips=use_lpips,

@@ -6,7 +6,14 @@ import pytest
 
 from memgs_ros.core.gaussians import SH_C0
 from memgs_ros.core.map_delta import (
-    DeltaOutbox, MapReplica, MessageKind, decode, encode, message_dtype, packed_rgb, unpack_rgb,
+    DeltaOutbox,
+    MapReplica,
+    MessageKind,
+    decode,
+    encode,
+    message_dtype,
+    packed_rgb,
+    unpack_rgb,
 )
 from memgs_ros.core.records import PLY_F_REST, GaussianRecords
 
@@ -70,7 +77,10 @@ def test_rgb_survives_pointcloud2_and_decodes_through_it() -> None:
     pytest.importorskip("rclpy", reason="the ROS extra is not installed")
     from sensor_msgs.msg import PointField
 
-    from memgs_ros.ros.codecs import pointcloud2_to_structured, structured_to_pointcloud2
+    from memgs_ros.ros.codecs import (
+        pointcloud2_to_structured,
+        structured_to_pointcloud2,
+    )
 
     rec = _records(30)
     cloud = structured_to_pointcloud2(

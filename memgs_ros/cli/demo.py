@@ -26,11 +26,12 @@ def run(args: argparse.Namespace) -> int:
 
     args.out.mkdir(parents=True, exist_ok=True)
     bag = args.out / "synthetic.mcap"
+    options = options_from_args(args, str(bag))  # checks the arguments before the bag is written
     t0 = time.perf_counter()
     result = write_bag(generate_frames(parse_spec(args.spec)), bag)
     print(f"wrote {bag} ({result}) in {time.perf_counter() - t0:.1f} s")
-    summary = run_pipeline(options_from_args(args, str(bag)))
-    print_summary(summary, args.json)
+    summary = run_pipeline(options)
+    print_summary(summary, args.json, options.record)
     _print_trajectory_error(str(bag), summary.trajectory_path)
     return 0
 

@@ -15,8 +15,9 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from memgs_ros.cli.run import check_inputs, guess_config, run_log
+from memgs_ros.cli.run import add_record_argument, check_inputs, guess_config, run_log
 from memgs_ros.errors import ConfigError
+from memgs_ros.orchestration.run_files import check_record_path
 
 logger = logging.getLogger(__name__)
 
@@ -47,6 +48,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--single-process", action="store_true", help="run the nodes in this process")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS even when the lpips package is there")
     p.add_argument("--no-plots", action="store_true", help="write JSON and tables only")
+    add_record_argument(p)
 
 
 def _overrides(items: list[str]) -> dict[str, Any]:
@@ -86,6 +88,10 @@ def run(args: argparse.Namespace) -> int:
     source = str(args.source)
     config = args.config or guess_config(source)
     overrides = _overrides(args.set)
+    if args.record is not None:
+        if args.ablation:
+            raise ConfigError("--record records one run; run the variants one at a time to record them")
+        args.record = check_record_path(args.record)
     warnings = check_inputs(source, config, args.max_frames, overrides, args.out)  # before torch, rclpy, nodes
     with run_log(args.out):
         for warning in warnings:
@@ -110,6 +116,8 @@ def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dic
         configure_cpu_runtime()  # this process renders every frame on CPU
     kwargs = dict(max_frames=args.max_frames, domain_id=args.domain_id, timeout_s=args.timeout,
                   single_process=args.single_process, use_lpips=not args.no_lpips)
+    if args.record is not None:
+        kwargs["record"] = args.record
     out = Path(args.out)
     if args.ablation:
         res = evaluation.ablation(source, config, args.mode, args.scale, args.seed, out, overrides, **kwargs)
@@ -132,4 +140,6 @@ def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dic
             print(f"wrote {path}")
     print()
     print(table)
+    if args.record is not None:
+        print(f"recording {args.record} ({args.record.stat().st_size / 1e6:.1f} MB)")
     return 0

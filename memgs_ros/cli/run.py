@@ -14,7 +14,8 @@ import yaml
 from memgs_ros.core.camera import PinholeCamera, calibration_differences, describe_camera
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.orchestration.run_files import (
-    LOGS_DIR, ConfiguredCamera, RunOptions, RunSummary, build_params, configured_camera, node_params,
+    LOGS_DIR, ConfiguredCamera, RunOptions, RunSummary, build_params, check_record_path, configured_camera,
+    node_params,
 )
 
 logger = logging.getLogger(__name__)
@@ -49,6 +50,14 @@ def add_graph_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kill", action="append", default=[], metavar="NODE@SECONDS",
                    help="fault injection: SIGKILL NODE (mapper, merger, ...) this many seconds after the "
                         "player starts and restart it at once (repeatable; separate processes only)")
+    add_record_argument(p)
+
+
+def add_record_argument(p: argparse.ArgumentParser) -> None:
+    """``--record``, shared by ``run``, ``demo`` and ``eval``."""
+    p.add_argument("--record", type=Path, default=None, metavar="FILE.mcap",
+                   help="also record every output topic (poses, path, map, renders, stats) into this ROS 2 "
+                        "mcap file, for Foxglove, RViz via ros2 bag play, or rosbags; replaced when complete")
 
 
 def guess_config(source: str) -> str:
@@ -82,7 +91,8 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
         source=source, config=args.config or guess_config(source), out_dir=args.out,
         single_process=args.single_process, lockstep=not args.realtime, rate=args.rate,
         namespace=args.namespace, domain_id=args.domain_id, max_frames=args.max_frames,
-        overrides=overrides, timeout_s=args.timeout, kill_after_s=kills)
+        overrides=overrides, timeout_s=args.timeout, kill_after_s=kills,
+        record=check_record_path(args.record) if getattr(args, "record", None) is not None else None)
 
 
 def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict | None = None,
@@ -168,7 +178,7 @@ def player_error(out_dir: Path) -> str:
     return errors[-1].split("]: ", 1)[-1].strip() if errors else ""
 
 
-def print_summary(summary: RunSummary, json_path: Path | None) -> None:
+def print_summary(summary: RunSummary, json_path: Path | None, record: Path | None = None) -> None:
     s = summary
     print(f"source        {s.source}")
     print(f"frames        {s.frames} in, {s.poses} poses, {s.lost_frames} lost")
@@ -183,6 +193,8 @@ def print_summary(summary: RunSummary, json_path: Path | None) -> None:
     print(f"wall time     {s.wall_s:.1f} s")
     print(f"map           {s.ply_path}")
     print(f"trajectory    {s.trajectory_path}")
+    if record is not None:
+        print(f"recording     {record} ({record.stat().st_size / 1e6:.1f} MB)")
     if json_path is not None:
         json_path.write_text(json.dumps(s.as_dict(), indent=2))
 
@@ -198,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
         for warning in warnings:
             logger.warning(warning)
         summary = run_pipeline(options)
-    print_summary(summary, args.json)
+    print_summary(summary, args.json, options.record)
     if not summary.source_complete:
         cause = player_error(options.out_dir)
         print(f"memgs run: error: {options.source} failed part-way{f': {cause}' if cause else ''} (see "

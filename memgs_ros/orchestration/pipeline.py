@@ -17,7 +17,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -39,10 +39,10 @@ from memgs_ros.core.map_delta import decode
 from memgs_ros.core.atomic import atomic_write
 from memgs_ros.core.runtime import MALLOC_ARENAS
 from memgs_ros.errors import ConfigError, PipelineError
-from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, tracker
+from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, recorder, tracker
 from memgs_ros.orchestration.run_files import (
     KEYFRAMES_FILE, LOGS_DIR, MAP_FILE, PARAMS_FILE, STATS_TIMELINE_FILE, SUMMARY_FILE, TRAJECTORY_FILE,
-    RunOptions, RunSummary, build_params, config_path,
+    RunOptions, RunSummary, build_params, config_path, node_params,
 )
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import image_to_numpy, pointcloud2_to_structured, pose_to_matrix, stamp_to_ns
@@ -56,10 +56,11 @@ __all__ = ["GRAPH_NODES", "NODE_MODULES", "PipelineError", "RunOptions", "RunSum
 # The graph, by module: a process runs ``python -m <module.__name__>`` (its ``main``); in one
 # process the module's Node class is built on a shared executor.
 NODE_MODULES: dict[str, ModuleType] = {
-    m.__name__.rsplit(".", 1)[-1]: m for m in (tracker, keyframe_sampler, mapper, merger, bag_player)}
+    m.__name__.rsplit(".", 1)[-1]: m for m in (tracker, keyframe_sampler, mapper, merger, bag_player, recorder)}
 _NODE_FACTORIES: dict[str, Callable[..., Any]] = {
     "tracker": tracker.TrackerNode, "keyframe_sampler": keyframe_sampler.KeyframeSamplerNode,
-    "mapper": mapper.MapperNode, "merger": merger.MergerNode, "bag_player": bag_player.BagPlayer}
+    "mapper": mapper.MapperNode, "merger": merger.MergerNode, "bag_player": bag_player.BagPlayer,
+    "recorder": recorder.RecorderNode}
 GRAPH_NODES = ("merger", "mapper", "keyframe_sampler", "tracker")  # start order; the player last
 
 
@@ -178,6 +179,18 @@ class _Processes:
         os.replace(self.log_dir / f"{name}.log", self.log_dir / f"{name}.killed-{int(time.time())}.log")
         self.start(name)
 
+    def stop_one(self, name: str, timeout_s: float = 20.0) -> int | None:
+        """SIGINT one node and wait for it (killed after ``timeout_s``); its exit code."""
+        p = self.procs[name]
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+        try:
+            return p.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            logger.warning("node %s did not stop on SIGINT; killing it", name)
+            p.kill()
+            return p.wait()
+
     def check(self) -> None:
         for name, p in list(self.procs.items()):
             code = p.poll()
@@ -230,7 +243,8 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
     (out / LOGS_DIR).mkdir(parents=True, exist_ok=True)
     map_path = out / MAP_FILE
     params_file = out / PARAMS_FILE
-    _write_text(params_file, yaml.safe_dump(build_params(options, map_path), sort_keys=False))
+    params = build_params(options, map_path)
+    _write_text(params_file, yaml.safe_dump(params, sort_keys=False))
 
     # A 50 ms heartbeat repairs lost fragments of big messages fast (see config/fastdds.xml);
     # a profile the user chose is kept.
@@ -246,8 +260,9 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
     try:
         observer = _Observer(context)
         executor.add_node(observer.node)
+        recording = ("recorder",) if options.record is not None else ()
         if options.single_process:
-            for name in (*GRAPH_NODES, "bag_player"):
+            for name in (*GRAPH_NODES, *recording, "bag_player"):  # the recorder sees the graph's publishers
                 node = _NODE_FACTORIES[name](context=context)
                 in_process.append(node)
                 executor.add_node(node)
@@ -268,7 +283,12 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
             for name in GRAPH_NODES:
                 if name not in delayed:
                     procs.start(name)
+            for name in recording:  # beside the graph; it subscribes as it discovers their publishers
+                procs.start(name)
             _wait_for_graph(observer, procs, [n for n in GRAPH_NODES if n not in delayed], t0 + options.timeout_s)
+            if recording:
+                topics = node_params(params).get("recorder", {}).get("topics", recorder.DEFAULT_TOPICS)
+                _wait_for_recorder(observer, procs, topics, t0 + options.timeout_s)
             procs.start("bag_player")
             for name, delay in delayed.items():  # counted from the start of the replay, as kills are
                 timer = threading.Timer(delay, procs.start, args=(name,))
@@ -277,6 +297,8 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
         elif options.kill_after_s:
             raise ConfigError("fault injection (kill_after_s) needs separate processes")
         summary = _drive(observer, options, procs, out, t0, progress)
+        if recording:
+            _finish_recording(options, procs, in_process, out)
         return summary
     finally:
         if procs is not None:
@@ -294,6 +316,38 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
 # A topic each node publishes: once the observer sees it, DDS discovery reached that node.
 _READY_TOPICS = {"tracker": "memgs/pose", "keyframe_sampler": "memgs/keyframe/seeds",
                  "mapper": "memgs/frame_ack", "merger": "memgs/map/gaussians"}
+
+
+def _wait_for_recorder(obs: _Observer, procs: _Processes, topics: Sequence[str], deadline: float) -> None:
+    """Block until the recorder subscribes to every output topic whose publisher is up, so the
+    first frame's pose is in the file (topics of nodes that start later it subscribes to later)."""
+    ns = "/" + obs.node.get_namespace().strip("/")
+    topics = [obs.node.resolve_topic_name(t) for t in topics]
+    while True:
+        procs.check()
+        waiting = [t for t in topics if obs.node.count_publishers(t) > 0 and not any(
+            i.node_name == "recorder" and i.node_namespace == ns for i in obs.node.get_subscriptions_info_by_topic(t))]
+        if not waiting:
+            break
+        if time.monotonic() > deadline:
+            raise PipelineError(f"the recorder did not subscribe to {', '.join(waiting)}")
+        time.sleep(0.1)
+    time.sleep(0.3)  # endpoint matching settles just after discovery, as for the graph
+
+
+def _finish_recording(options: RunOptions, procs: _Processes | None, in_process: list[Any], out: Path) -> None:
+    """Stop the recorder before the other nodes (it has heard the final map and stats), so its
+    file is complete; PipelineError when the file is not there."""
+    if procs is not None:
+        code = procs.stop_one("recorder")
+        detail = f" (exit code {code}; see {out / LOGS_DIR / 'recorder.log'})"
+    else:
+        for node in in_process:
+            if isinstance(node, recorder.RecorderNode):
+                node.on_shutdown()
+        detail = ""
+    if options.record is None or not Path(options.record).is_file():
+        raise PipelineError(f"the recorder did not write {options.record}{detail}")
 
 
 def _wait_for_graph(obs: _Observer, procs: _Processes, nodes: list[str], deadline: float) -> None:

@@ -24,10 +24,11 @@ __all__ = [
     "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE", "STATS_TIMELINE_FILE",
     "SUMMARY_FILE", "TRAJECTORY_FILE", "ConfiguredCamera", "RunOptions", "RunSummary", "build_params",
     "config_path", "configured_camera", "node_params", "read_params", "read_stats_timeline", "read_summary",
+    "check_record_path",
 ]
 
 # The nodes a parameter override may name; the pipeline starts one module per name.
-NODE_NAMES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player")
+NODE_NAMES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player", "recorder")
 
 # Files in a run's output folder.
 PARAMS_FILE = "params.yaml"  # the effective per-node parameters
@@ -58,6 +59,8 @@ class RunOptions:
     # the player starts, and start them again at once (the mapper resumes from its checkpoint).
     kill_after_s: Mapping[str, float] = field(default_factory=dict)
     timeout_s: float = 1800.0
+    # Record every output topic into this .mcap file (a recorder node; see check_record_path).
+    record: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -134,6 +137,8 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         params.setdefault("tracker", {}).setdefault("tracker.ba_threaded", False)
         params["tracker"].setdefault("input_reliability", "reliable")  # lockstep must not lose a frame
     params.setdefault("merger", {})["map_path"] = str(map_path)
+    if options.record is not None:
+        params.setdefault("recorder", {})["path"] = str(Path(options.record).resolve())
     params.setdefault("mapper", {}).setdefault("checkpoint_path", str(map_path.with_name("mapper_checkpoint.npz")))
     for key, value in options.overrides.items():
         node, _, name = key.partition(".")
@@ -150,6 +155,24 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         if name.startswith(CALIBRATION_PREFIX):
             params.setdefault("bag_player", {}).setdefault(name, value)
     return {f"/**/{node}": {"ros__parameters": p} for node, p in params.items()}
+
+
+def check_record_path(path: str | os.PathLike[str]) -> Path:
+    """The absolute path of a ``--record`` file, checked before anything starts: it must end in
+    ``.mcap``, must not be a folder, and its folder must be creatable and writable (it is made
+    here). An existing file is replaced when the recording is complete."""
+    p = Path(path).expanduser()
+    if p.suffix != ".mcap":
+        raise ConfigError(f"--record {p}: the recording is a ROS 2 mcap file; give a name ending in .mcap")
+    if p.is_dir():
+        raise DataError(f"--record {p}: is an existing folder; give a file name ending in .mcap")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise DataError(f"--record {p}: cannot create its folder {p.parent}: {err.strerror or err}") from err
+    if not os.access(p.parent, os.W_OK | os.X_OK):
+        raise DataError(f"--record {p}: cannot write into {p.parent}: permission denied")
+    return p.resolve()
 
 
 CALIBRATION_PREFIX = "camera."  # tracker parameters camera.width ... camera.k6 (CameraCalibration)
