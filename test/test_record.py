@@ -12,7 +12,8 @@ import pytest
 
 from memgs_ros.cli import main
 from memgs_ros.errors import ConfigError, DataError
-from memgs_ros.io.bag_writer import BagStream, MessageFactory, ros2_typestore, write_bag
+from memgs_ros.io.bag_stream import BagStream, ros2_typestore
+from memgs_ros.io.bag_writer import MessageFactory, write_bag
 from memgs_ros.io.synthetic import generate_frames, parse_spec
 from memgs_ros.orchestration.run_files import check_record_path
 

@@ -32,7 +32,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from memgs_ros.errors import ConfigError, DataError
-from memgs_ros.io.bag_writer import BagStream
+from memgs_ros.io.bag_stream import BagStream
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.params import declare

@@ -179,18 +179,6 @@ class _Processes:
         os.replace(self.log_dir / f"{name}.log", self.log_dir / f"{name}.killed-{int(time.time())}.log")
         self.start(name)
 
-    def stop_one(self, name: str, timeout_s: float = 20.0) -> int | None:
-        """SIGINT one node and wait for it (killed after ``timeout_s``); its exit code."""
-        p = self.procs[name]
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-        try:
-            return p.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            logger.warning("node %s did not stop on SIGINT; killing it", name)
-            p.kill()
-            return p.wait()
-
     def check(self) -> None:
         for name, p in list(self.procs.items()):
             code = p.poll()
@@ -297,9 +285,6 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
         elif options.kill_after_s:
             raise ConfigError("fault injection (kill_after_s) needs separate processes")
         summary = _drive(observer, options, procs, out, t0, progress)
-        if recording:
-            _finish_recording(options, procs, in_process, out)
-        return summary
     finally:
         if procs is not None:
             procs.stop()
@@ -311,6 +296,10 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
         for node in in_process:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
+    if options.record is not None and not Path(options.record).is_file():
+        # The recorder stopped with the graph (its shutdown closes the file): in parallel, not after it.
+        raise PipelineError(f"the recorder did not write {options.record} (see {out / LOGS_DIR / 'recorder.log'})")
+    return summary
 
 
 # A topic each node publishes: once the observer sees it, DDS discovery reached that node.
@@ -333,21 +322,6 @@ def _wait_for_recorder(obs: _Observer, procs: _Processes, topics: Sequence[str],
             raise PipelineError(f"the recorder did not subscribe to {', '.join(waiting)}")
         time.sleep(0.1)
     time.sleep(0.3)  # endpoint matching settles just after discovery, as for the graph
-
-
-def _finish_recording(options: RunOptions, procs: _Processes | None, in_process: list[Any], out: Path) -> None:
-    """Stop the recorder before the other nodes (it has heard the final map and stats), so its
-    file is complete; PipelineError when the file is not there."""
-    if procs is not None:
-        code = procs.stop_one("recorder")
-        detail = f" (exit code {code}; see {out / LOGS_DIR / 'recorder.log'})"
-    else:
-        for node in in_process:
-            if isinstance(node, recorder.RecorderNode):
-                node.on_shutdown()
-        detail = ""
-    if options.record is None or not Path(options.record).is_file():
-        raise PipelineError(f"the recorder did not write {options.record}{detail}")
 
 
 def _wait_for_graph(obs: _Observer, procs: _Processes, nodes: list[str], deadline: float) -> None:

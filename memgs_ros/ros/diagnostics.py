@@ -8,10 +8,10 @@ from collections.abc import Mapping
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
+from std_msgs.msg import Header
 
 from memgs_ros.core.runtime import release_free_memory
 from memgs_ros.ros import qos
-from memgs_ros.ros.codecs import make_header
 
 
 class NodeStats:
@@ -47,8 +47,8 @@ class NodeStats:
             level=level, name=f"memgs/{self._name}", hardware_id=self._node.get_fully_qualified_name(),
             message="problems seen" if level else "ok",
             values=[KeyValue(key=k, value=str(v)) for k, v in sorted(values.items())])
-        now_ns = self._node.get_clock().now().nanoseconds
-        return DiagnosticArray(header=make_header(now_ns, ""), status=[status])
+        # Not codecs.make_header: codecs loads scipy, which a light node (the recorder) does without.
+        return DiagnosticArray(header=Header(stamp=self._node.get_clock().now().to_msg()), status=[status])
 
     def publish(self) -> None:
         self._pub.publish(self.message())
