@@ -29,15 +29,17 @@ from typing import Any
 CPU_LINE = re.compile(r"cpu_s=([0-9.]+) startup_cpu_s=([0-9.]+)")
 
 
-def run_demo(out: Path, spec: str, record: bool, extra: list[str]) -> dict[str, Any]:
+def run_demo(out: Path, spec: str, record: bool, timeout_s: float, extra: list[str]) -> dict[str, Any]:
     """One ``memgs demo`` in ``out``; its timings and, when recording, the recorder's figures."""
-    cmd = [sys.executable, "-m", "memgs_ros", "demo", "--spec", spec, "--out", str(out), *extra]
+    # demo's own --timeout: a run that hangs fails and stops its nodes (a killed demo would not)
+    cmd = [sys.executable, "-m", "memgs_ros", "demo", "--spec", spec, "--out", str(out),
+           "--timeout", str(timeout_s), *extra]
     rec = out / "record.mcap"
     if record:
         cmd += ["--record", str(rec)]
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(f"memgs demo failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
@@ -57,18 +59,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spec", default="synthetic:w=320,h=240,n=60,seed=0", help="demo sequence (memgs demo's default)")
     p.add_argument("--json", type=Path, default=Path("results/bench_record.json"))
     p.add_argument("--keep", action="store_true", help="keep the run folders (printed)")
+    p.add_argument("--run-timeout", type=float, default=900.0, help="give up a run after this many seconds")
     p.add_argument("demo_args", nargs="*", help="more memgs demo arguments, after --")
     args = p.parse_args(argv)
     if args.pairs < 1:
         p.error("--pairs must be >= 1")
-    uptime = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    uptime = subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip()
     print(f"machine: {os.cpu_count()} cores, {uptime}")
     root = Path(tempfile.mkdtemp(prefix="bench_record_"))
     rows: list[dict[str, Any]] = []
     try:
         for i in range(args.pairs):
             for record in ((False, True) if i % 2 == 0 else (True, False)):
-                row = run_demo(root / f"{i}_{'rec' if record else 'plain'}", args.spec, record, args.demo_args)
+                row = run_demo(root / f"{i}_{'rec' if record else 'plain'}", args.spec, record, args.run_timeout,
+                               args.demo_args)
                 rows.append(row)
                 extra = (f", recorder cpu {row['recorder_cpu_s']:.2f} s (startup {row['recorder_startup_cpu_s']:.2f}),"
                          f" mcap {row['mcap_bytes'] / 1e6:.1f} MB") if record else ""
@@ -79,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"run folders in {root}")
         else:
             shutil.rmtree(root, ignore_errors=True)
-    uptime_after = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    uptime_after = subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip()
 
     def med(key: str, record: bool) -> float:
         return statistics.median(r[key] for r in rows if r["record"] is record)
