@@ -18,10 +18,12 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[1]
 PKG = "memgs_ros"
-NODES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player")
-# Extra arguments a node needs to start and then idle: the player waits for subscribers.
+NODES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player", "recorder")
+# Extra arguments a node needs to start and then idle: the player waits for subscribers; the
+# recorder needs its file (written into the build workspace when it stops).
 NODE_ARGS: dict[str, list[str]] = {
     "bag_player": ["-p", "source:=synthetic:w=32,h=24,n=3", "-p", "start_delay_s:=600.0"],
+    "recorder": ["-p", "path:={ws}/recorder_test.mcap"],
 }
 EXECUTABLES = [*NODES, "memgs"]
 START_TIMEOUT_S = 90.0  # all nodes import torch at once on a shared 2-core machine
@@ -87,7 +89,7 @@ def node_procs(prefix: Path) -> Iterator[dict[str, tuple[subprocess.Popen, int]]
         for exe, domain in zip(exes, domains):
             procs[exe] = (subprocess.Popen(
                 [str(prefix / PKG / "lib" / PKG / exe), "--ros-args", "--params-file", str(config),
-                 "-r", "__ns:=/uav1", *NODE_ARGS.get(exe, [])],
+                 "-r", "__ns:=/uav1", *(a.format(ws=prefix.parent) for a in NODE_ARGS.get(exe, []))],
                 env=_env(prefix, domain), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
             ), domain)
         yield procs
@@ -120,7 +122,8 @@ def _wait_for_node(domain_id: int, proc: subprocess.Popen, timeout_s: float) -> 
 
 
 @pytest.mark.parametrize("exe", NODES)
-def test_node_starts_and_stops_on_sigint(node_procs: dict[str, tuple[subprocess.Popen, int]], exe: str) -> None:
+def test_node_starts_and_stops_on_sigint(node_procs: dict[str, tuple[subprocess.Popen, int]], exe: str,
+                                         prefix: Path) -> None:
     proc, domain = node_procs[exe]
     names = _wait_for_node(domain, proc, START_TIMEOUT_S)
     if not names:
@@ -138,3 +141,5 @@ def test_node_starts_and_stops_on_sigint(node_procs: dict[str, tuple[subprocess.
         pytest.fail(f"{exe} did not exit within {STOP_TIMEOUT_S} s of SIGINT:\n{out[-4000:]}")
     assert proc.returncode == 0, f"{exe} exited {proc.returncode} on SIGINT:\n{out[-4000:]}"
     assert "Traceback" not in out, out[-4000:]
+    if exe == "recorder":  # its file is complete once it has stopped (an empty recording here)
+        assert (prefix.parent / "recorder_test.mcap").is_file(), out[-4000:]
