@@ -5,7 +5,9 @@ with ``--record``, alternating which goes first in each pair so a drift in the m
 falls on both. Each run gets its own output folder. Reports per run the command's wall time
 (what the user waits for, bag generation included), the run's own ``wall_s`` (summary.json:
 graph start to saved map), the 1-minute load average before it, and for recorded runs the
-recorder process's CPU time (from its shutdown line in ``logs/recorder.log``) and the mcap size;
+recorder process's CPU time (from its shutdown line in ``logs/recorder.log``) and the mcap size,
+and the CPU time of the whole command (demo and every node process: on a saturated shared machine
+it drifts far less with the load than wall time does);
 then medians, the ratio of the medians (with / without) and the median of the per-pair ratios.
 JSON to ``--json``.
 
@@ -18,6 +20,7 @@ import argparse
 import json
 import os
 import re
+import resource
 import shutil
 import statistics
 import subprocess
@@ -39,13 +42,17 @@ def run_demo(out: Path, spec: str, record: bool, timeout_s: float, extra: list[s
     if record:
         cmd += ["--record", str(rec)]
     load = os.getloadavg()[0]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)  # demo and every node it waited for
+    cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
     if proc.returncode != 0:
         raise SystemExit(f"memgs demo failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
     summary = json.loads((out / "summary.json").read_text())
     row: dict[str, Any] = {"record": record, "command_wall_s": round(wall, 2), "run_wall_s": round(summary["wall_s"], 2),
+                           "command_cpu_s": round(cpu, 2),
                            "load_1min_before": load, "frames": summary["frames"], "gaussians": summary["gaussians"]}
     if record:
         m = CPU_LINE.search((out / "logs" / "recorder.log").read_text(errors="replace"))
@@ -77,7 +84,8 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(row)
                 extra = (f", recorder cpu {row['recorder_cpu_s']:.2f} s (startup {row['recorder_startup_cpu_s']:.2f}),"
                          f" mcap {row['mcap_bytes'] / 1e6:.1f} MB") if record else ""
-                print(f"pair {i} {'record' if record else 'plain '}: command {row['command_wall_s']:.1f} s, "
+                print(f"pair {i} {'record' if record else 'plain '}: command {row['command_wall_s']:.1f} s "
+                      f"(cpu {row['command_cpu_s']:.1f} s), "
                       f"run {row['run_wall_s']:.1f} s, load {row['load_1min_before']:.2f}{extra}", flush=True)
     finally:
         if args.keep:
@@ -91,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
 
     result: dict[str, Any] = {"argv": sys.argv[1:], "spec": args.spec, "uptime_before": uptime,
                               "uptime_after": uptime_after, "runs": rows}
-    for key in ("command_wall_s", "run_wall_s"):
+    for key in ("command_wall_s", "run_wall_s", "command_cpu_s"):
         plain, rec = med(key, False), med(key, True)
         # each pair ran back to back: its ratio is the least exposed to the load drifting
         pair_ratios = [b[key] / a[key] for a, b in (sorted(rows[i:i + 2], key=lambda r: r["record"])
