@@ -49,6 +49,10 @@ from memgs_ros.ros.seed_cloud import decode_seeds
 from memgs_ros.ros.stamp_sync import KeyframeIntake
 
 
+PARAMS: tuple = ()  # the mapper's own parameters are MapperParams fields (prefix "")
+CONFIGS = (("", MapperParams), ("mapping", MappingConfig), ("merge", MergeConfig))
+
+
 class MapperNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("mapper", **node_kwargs)

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import rclpy
 import yaml
+from tqdm import tqdm
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as NavPath
@@ -41,7 +42,8 @@ from memgs_ros.core.runtime import MALLOC_ARENAS
 from memgs_ros.errors import ConfigError, PipelineError
 from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, tracker
 from memgs_ros.orchestration.run_files import (
-    KEYFRAMES_FILE, LOGS_DIR, MAP_FILE, PARAMS_FILE, STATS_TIMELINE_FILE, SUMMARY_FILE, TRAJECTORY_FILE,
+    GRAPH_NODE_NAMES, KEYFRAMES_FILE, LOGS_DIR, MAP_FILE, PARAMS_FILE, STATS_TIMELINE_FILE, SUMMARY_FILE,
+    TRAJECTORY_FILE,
     RunOptions, RunSummary, build_params, config_path,
 )
 from memgs_ros.ros import qos
@@ -60,7 +62,7 @@ NODE_MODULES: dict[str, ModuleType] = {
 _NODE_FACTORIES: dict[str, Callable[..., Any]] = {
     "tracker": tracker.TrackerNode, "keyframe_sampler": keyframe_sampler.KeyframeSamplerNode,
     "mapper": mapper.MapperNode, "merger": merger.MergerNode, "bag_player": bag_player.BagPlayer}
-GRAPH_NODES = ("merger", "mapper", "keyframe_sampler", "tracker")  # start order; the player last
+GRAPH_NODES = GRAPH_NODE_NAMES
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -312,7 +314,9 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
            progress: bool) -> RunSummary:
     """Wait for the end of the source, finish the mapper, sync the merger, save, summarise."""
     end = t0 + options.timeout_s
-    last_log = 0.0
+    # frames / total, frames/s and ETA on a terminal; nothing when stderr is a file or pipe
+    # (stats_timeline.jsonl keeps the same figures).
+    bar = tqdm(desc="replay", unit="frame", disable=None, dynamic_ncols=True) if progress else None
     play_start = time.monotonic()
     kills = dict(options.kill_after_s)
     restarts: dict[str, int] = {}
@@ -331,12 +335,12 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
             procs.check()
         if time.monotonic() > end:
             raise PipelineError(f"the source did not finish within {options.timeout_s:.0f} s")
-        if progress and time.monotonic() - last_log > 5.0:
-            last_log = time.monotonic()
-            logger.info("frames tracked %d, keyframes %d, Gaussians %d, mapping iteration %d",
-                        obs.stat("tracker", "poses_out"), obs.stat("tracker", "keyframes"),
-                        obs.stat("mapper", "gaussians"), obs.stat("mapper", "iteration"))
+        if bar is not None:
+            _show_progress(bar, obs)
         time.sleep(0.1)
+    if bar is not None:
+        _show_progress(bar, obs)
+        bar.close()
     if procs is not None:
         procs.player_reported = True
     if not obs.source_ok:
@@ -392,6 +396,18 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
     # The summary is a file of the run, so evaluation reads a finished run instead of watching it.
     _write_text(out / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2) + "\n")
     return summary
+
+
+def _show_progress(bar: tqdm, obs: _Observer) -> None:
+    """Frames the player published out of its total, with keyframes and Gaussians beside them."""
+    total = int(obs.stat("player", "frames_total"))
+    if total and bar.total != total:
+        bar.total = total
+    done = int(obs.stat("player", "frames_published"))
+    if done > bar.n:
+        bar.update(done - bar.n)
+    bar.set_postfix(keyframes=int(obs.stat("tracker", "keyframes")), gaussians=int(obs.stat("mapper", "gaussians")),
+                    refresh=False)
 
 
 def _compare_maps(obs: _Observer, final_seq: int, epoch: int, end: float) -> tuple[bool, float]:
