@@ -42,7 +42,7 @@ from memgs_ros.core.runtime import MALLOC_ARENAS
 from memgs_ros.errors import ConfigError, PipelineError
 from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, tracker
 from memgs_ros.orchestration.run_files import (
-    GRAPH_NODE_NAMES, KEYFRAMES_FILE, LOGS_DIR, MAP_FILE, PARAMS_FILE, STATS_TIMELINE_FILE, SUMMARY_FILE,
+    CHECKPOINT_FILE, GRAPH_NODE_NAMES, KEYFRAMES_FILE, LOGS_DIR, MAP_FILE, PARAMS_FILE, STATS_TIMELINE_FILE, SUMMARY_FILE,
     TRAJECTORY_FILE,
     RunOptions, RunSummary, build_params, config_path,
 )
@@ -232,7 +232,10 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
     (out / LOGS_DIR).mkdir(parents=True, exist_ok=True)
     map_path = out / MAP_FILE
     params_file = out / PARAMS_FILE
-    _write_text(params_file, yaml.safe_dump(build_params(options, map_path), sort_keys=False))
+    params = build_params(options, map_path)
+    _write_text(params_file, yaml.safe_dump(params, sort_keys=False))
+    if "mapper.checkpoint_path" not in options.overrides:
+        _set_aside_previous_checkpoint(out / CHECKPOINT_FILE)
 
     # A 50 ms heartbeat repairs lost fragments of big messages fast (see config/fastdds.xml);
     # a profile the user chose is kept.
@@ -291,6 +294,18 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
         for node in in_process:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def _set_aside_previous_checkpoint(path: Path) -> None:
+    """A checkpoint in the output folder from an earlier run would make this run's mapper resume
+    that run's map (resuming is for a mapper restarted within one run): rename it to
+    ``*.previous.npz``, kept rather than deleted."""
+    if not path.is_file():
+        return
+    aside = path.with_name(f"{path.stem}.previous{path.suffix}")
+    os.replace(path, aside)
+    logger.warning("%s holds a checkpoint of an earlier run: moved it to %s so this run starts a new map",
+                   path.parent, aside.name)
 
 
 # A topic each node publishes: once the observer sees it, DDS discovery reached that node.

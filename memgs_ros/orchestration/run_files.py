@@ -21,7 +21,7 @@ from memgs_ros.core.camera import CameraCalibration, PinholeCamera
 from memgs_ros.errors import ConfigError, DataError
 
 __all__ = [
-    "GRAPH_NODE_NAMES", "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE", "STATS_TIMELINE_FILE",
+    "CHECKPOINT_FILE", "GRAPH_NODE_NAMES", "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE", "STATS_TIMELINE_FILE",
     "SUMMARY_FILE", "TRAJECTORY_FILE", "ConfiguredCamera", "RunOptions", "RunSummary", "build_params",
     "check_parameter_names", "config_path", "configured_camera", "node_params", "read_params", "read_stats_timeline", "read_summary",
 ]
@@ -33,6 +33,7 @@ GRAPH_NODE_NAMES = ("merger", "mapper", "keyframe_sampler", "tracker")  # start 
 # Files in a run's output folder.
 PARAMS_FILE = "params.yaml"  # the effective per-node parameters
 MAP_FILE = "map.ply"
+CHECKPOINT_FILE = "mapper_checkpoint.npz"  # the mapper's checkpoint (resumed by a mapper restarted mid-run)
 TRAJECTORY_FILE = "trajectory.txt"  # every tracked pose, TUM format
 KEYFRAMES_FILE = "keyframes.txt"  # keyframe poses at insertion, TUM format
 STATS_TIMELINE_FILE = "stats_timeline.jsonl"  # every node stats message: {"t_s", "node", key: value}
@@ -135,7 +136,7 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         params.setdefault("tracker", {}).setdefault("tracker.ba_threaded", False)
         params["tracker"].setdefault("input_reliability", "reliable")  # lockstep must not lose a frame
     params.setdefault("merger", {})["map_path"] = str(map_path)
-    params.setdefault("mapper", {}).setdefault("checkpoint_path", str(map_path.with_name("mapper_checkpoint.npz")))
+    params.setdefault("mapper", {}).setdefault("checkpoint_path", str(map_path.with_name(CHECKPOINT_FILE)))
     for key, value in options.overrides.items():
         node, _, name = key.partition(".")
         if node not in NODE_NAMES or not name:
