@@ -243,7 +243,7 @@ class MapperNode(Node):
 
     def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         """Insert what is queued, stop training, run the final iterations, flush every change."""
-        done = self.session.finish(self.params.final_iterations).result()
+        done = self.session.finish(self.params.final_iterations, self.params.final_densify).result()
         self.get_logger().info(f"final {done.final_iterations} iterations in {done.seconds:.1f} s")
         self.send_delta(exact=True)
         # A receiver cannot see that the last delta was lost (no later seq shows the gap): the
