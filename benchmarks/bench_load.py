@@ -96,30 +96,6 @@ def summarise(timeline: list[dict], warmup_s: float) -> dict:
     return out
 
 
-def plot(timeline: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (a, b) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
-    for node in NODES:
-        rows = [r for r in timeline if r["node"] == node]
-        a.plot([r["t_s"] for r in rows], [_num(r, "rss_mb") for r in rows], label=node)
-    a.set_ylabel("resident memory (MB)")
-    a.legend(loc="upper left")
-    rows = [r for r in timeline if r["node"] == "mapper"]
-    b.plot([r["t_s"] for r in rows], [_num(r, "gaussians") for r in rows], label="Gaussians (mapper)")
-    b.set_ylabel("Gaussians")
-    b2 = b.twinx()
-    b2.plot([r["t_s"] for r in rows], [_num(r, "keyframes") for r in rows], color="tab:red", label="keyframes")
-    b2.set_ylabel("keyframes", color="tab:red")
-    b.set_xlabel("time since start (s)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seconds", type=float, default=300.0, help="stream length (s of camera time)")
@@ -209,11 +185,15 @@ def main(argv: list[str] | None = None) -> int:
                   f"{tr_['last_min_median']:7.0f} ({tr_['last_min_peak']:4.0f}) {tr_['slope_mb_per_min']:+13.1f} "
                   f"{tr_['floors_mb'][0]:11.0f} / {tr_['floors_mb'][-1]:<9.0f} {tr_['floor_slope_mb_per_min']:+12.1f}")
     print(f"wall {wall:.0f} s, load {load0:.1f} -> {result['loadavg_after']:.1f}")
+    # The figure and its table are made together from this JSON (benchmarks/make_figures.py load):
+    # keep the per-node RSS and the mapper's size over time, and the command.
+    result["command"] = " ".join(["python benchmarks/bench_load.py", *(argv if argv is not None else sys.argv[1:])])
+    result["timeline"] = [{k: r[k] for k in ("t_s", "node", "rss_mb", "gaussians", "keyframes") if k in r}
+                          for r in timeline]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
-    png = args.out.with_suffix(".png")
-    plot(timeline, png)
-    print(f"wrote {args.out} and {png}")
+    print(f"wrote {args.out}; figure and table: python benchmarks/make_figures.py load {args.out} "
+          "--name load_30hz_640x480 --readme README.md")
     return 0
 
 

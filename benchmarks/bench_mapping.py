@@ -209,9 +209,14 @@ def run(name: str, args: argparse.Namespace) -> dict:
     merges = []
     t2 = time.perf_counter()
     step_times = []
+    step_cpu = []  # process CPU s between callbacks: one step (all threads) plus the callback
+    cpu_mark = [time.process_time()]
 
     def on_step(st) -> None:  # noqa: ANN001
         step_times.append(st.seconds)
+        now = time.process_time()
+        step_cpu.append(now - cpu_mark[0])
+        cpu_mark[0] = now
         if st.merged_removed or st.merged_added:
             merges.append({"iteration": st.iteration, "removed": st.merged_removed, "added": st.merged_added})
         if st.iteration % max(1, iters // 10) == 0:
@@ -241,6 +246,7 @@ def run(name: str, args: argparse.Namespace) -> dict:
         "psnr_all_frames_border_black": float(np.mean(psnr_all_black)) if psnr_all_black else None,
         "psnr_target_keyframes": target, "target_met": bool(np.mean(psnr_kf) >= target),
         "train_wall_s": t_train, "median_step_s": float(np.median(step_times)),
+        "median_step_cpu_s": float(np.median(step_cpu)),
         "load_s": t_load, "insert_s": t_insert, "eval_s": t_eval,
         "memory_bytes": asdict(mem), "bytes_per_gaussian": mem.total / max(len(mapper.gmap), 1),
         "merges": merges, "loadavg_before": load0, "loadavg_after": load_avg(),
@@ -290,7 +296,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"[tum] skipped: {args.tum or DEFAULT_TUM} not found", file=sys.stderr)
             continue
         results.append(run(name, args))
-    hdr = (f"{'dataset':10s} {'res':>8s} {'KF':>3s} {'iters':>6s} {'wall s':>7s} {'s/it':>6s} {'N seed':>7s} "
+    hdr = (f"{'dataset':10s} {'res':>8s} {'KF':>3s} {'iters':>6s} {'wall s':>7s} {'s/it':>6s} {'cpu/it':>6s} {'N seed':>7s} "
            f"{'N end':>7s} {'MB':>7s} {'B/G':>5s} {'PSNR kf0':>8s} {'PSNR kf':>8s} {'PSNR all':>8s} {'kf valid':>8s} "
            f"{'all vld':>8s} {'kf blk':>8s} {'target':>7s}")
     print(hdr)
@@ -298,7 +304,8 @@ def main(argv: list[str] | None = None) -> int:
         all_ = f"{r['psnr_all_frames']:8.2f}" if r["psnr_all_frames"] is not None else f"{'-':>8s}"
         allv = f"{r['psnr_all_frames_valid_px']:8.2f}" if r["psnr_all_frames_valid_px"] is not None else f"{'-':>8s}"
         print(f"{r['dataset']:10s} {r['resolution'][0]:>4d}x{r['resolution'][1]:<3d} {r['keyframes']:3d} "
-              f"{r['iterations']:6d} {r['train_wall_s']:7.1f} {r['median_step_s']:6.3f} {r['seed_gaussians']:7d} "
+              f"{r['iterations']:6d} {r['train_wall_s']:7.1f} {r['median_step_s']:6.3f} {r['median_step_cpu_s']:6.3f} "
+              f"{r['seed_gaussians']:7d} "
               f"{r['final_gaussians']:7d} {r['memory_bytes']['total'] / 2**20:7.2f} {r['bytes_per_gaussian']:5.0f} "
               f"{r['psnr_keyframes_before']:8.2f} {r['psnr_keyframes']:8.2f} {all_} "
               f"{r['psnr_keyframes_valid_px']:8.2f} {allv} {r['psnr_keyframes_border_black']:8.2f} "

@@ -321,7 +321,7 @@ def score_map(ply_path: str | os.PathLike[str],
     def on_frame(done: int, total: int) -> None:
         nonlocal bar
         if bar is None:
-            bar = tqdm(total=total, desc="rendering", unit="frame")
+            bar = tqdm(total=total, desc="rendering", unit="frame", disable=None)  # quiet off a terminal
         bar.update(done - bar.n)
 
     try:

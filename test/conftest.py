@@ -19,6 +19,14 @@ except ImportError:  # pragma: no cover - torch is a hard dependency; keep colle
     pass
 
 
+@pytest.fixture(scope="session")
+def colcon_prefix(tmp_path_factory: pytest.TempPathFactory):  # -> pathlib.Path
+    """colcon build the package once per session; the install prefix (see colcon_install.py)."""
+    from colcon_install import build
+
+    return build(tmp_path_factory.mktemp("colcon_ws"))
+
+
 @pytest.fixture
 def ros_domain_id() -> int:
     """A DDS domain id of its own for each test that starts nodes, so parallel runs never hear each other."""

@@ -109,6 +109,44 @@ def test_bad_outputs_and_options_are_one_line(files: dict[str, Path], tmp_path: 
     _one_line_error(capsys, code, "override 'nonode.x'")
 
 
+_MISTAKES = [
+    (["--set", "tracker.keyframe_max_frames=10"],
+     ("tracker has no parameter 'keyframe_max_frames'", "did you mean tracker.keyframe_max_frames")),
+    (["--set", "mapper.mapping.iterationz=3"], ("mapper has no parameter 'mapping.iterationz'",)),
+    (["--kill", "mappr@5"], ("--kill mappr@5", "no node 'mappr'", "did you mean mapper")),
+    (["--kill", "mapper@-1"], ("--kill needs NODE@SECONDS",)),
+    (["--kill", "mapper@5", "--single-process"], ("--kill needs separate processes",)),
+]
+
+
+@pytest.mark.parametrize("command, args, fragments", [
+    (command, args, fragments) for command in ("run", "demo", "eval") for args, fragments in _MISTAKES
+    if command != "eval" or "--kill" not in args])  # memgs eval has no --kill
+def test_mistakes_are_refused_before_anything_is_written(command: str, args: list[str], fragments: tuple[str, ...],
+                                                         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A misspelt parameter or kill target is one line, and no output folder is left behind."""
+    out = tmp_path / "out"
+    base = {"run": ["run", "--bag", SPEC], "demo": ["demo", "--spec", SPEC], "eval": ["eval", SPEC]}[command]
+    code = main([*base, *args, "--out", str(out)])
+    _one_line_error(capsys, code, *fragments)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("config", ["synthetic", "tum_fr1", "tum_fr2", "tum_fr3", "realsense_d435i"])
+def test_shipped_configs_name_only_declared_parameters(config: str) -> None:
+    from memgs_ros.cli.run import check_config
+
+    params = check_config(config)
+    assert params["tracker"] and params["mapper"]
+
+
+def test_a_config_with_a_stray_parameter_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = tmp_path / "stray.yaml"
+    cfg.write_text("/**/merger:\n  ros__parameters:\n    save_period: 5.0\n")
+    code = main(["run", "--bag", SPEC, "--config", str(cfg), "--out", str(tmp_path / "out")])
+    _one_line_error(capsys, code, "merger has no parameter 'save_period'", "save_period_s")
+
+
 def test_process_prints_no_traceback(files: dict[str, Path], tmp_path: Path) -> None:
     """The real entry point, as a user runs it."""
     res = subprocess.run([sys.executable, "-m", "memgs_ros", "run", "--bag", str(files["cut_bag"]),

@@ -4,20 +4,17 @@ from __future__ import annotations
 
 import os
 import random
-import shutil
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from colcon_install import PKG, install_env
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
-REPO = Path(__file__).resolve().parents[1]
-PKG = "memgs_ros"
 NODES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player", "recorder")
 # Extra arguments a node needs to start and then idle: the player waits for subscribers; the
 # recorder needs its file (written into the build workspace when it stops).
@@ -31,27 +28,9 @@ STOP_TIMEOUT_S = 15.0
 
 
 @pytest.fixture(scope="module")
-def prefix(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Run colcon build once; return the install prefix (isolated layout: <prefix>/memgs_ros/...)."""
-    colcon = shutil.which("colcon")
-    assert colcon, "colcon is not on PATH (pip install colcon-core colcon-ros colcon-python-setup-py)"
-    ws = tmp_path_factory.mktemp("colcon_ws")
-    proc = subprocess.run(
-        [colcon, "--log-base", str(ws / "log"), "build", "--base-paths", str(REPO),
-         "--build-base", str(ws / "build"), "--install-base", str(ws / "install")],
-        cwd=ws, capture_output=True, text=True, timeout=180,
-    )
-    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
-    return ws / "install"
-
-
-def _env(prefix: Path, domain_id: int) -> dict[str, str]:
-    """What sourcing <prefix>/setup.sh sets for this package, plus a private DDS domain."""
-    site = prefix / PKG / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1")
-    env["PYTHONPATH"] = os.pathsep.join([str(site), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    env["AMENT_PREFIX_PATH"] = os.pathsep.join([str(prefix / PKG), env.get("AMENT_PREFIX_PATH", "")]).rstrip(os.pathsep)
-    return env
+def prefix(colcon_prefix: Path) -> Path:
+    """The session's colcon install (conftest.py); isolated layout: <prefix>/memgs_ros/..."""
+    return colcon_prefix
 
 
 def test_install_layout_has_ament_index_and_every_executable(prefix: Path) -> None:
@@ -71,7 +50,7 @@ def test_install_layout_has_ament_index_and_every_executable(prefix: Path) -> No
 
 def test_memgs_cli_runs(prefix: Path, ros_domain_id: int) -> None:
     proc = subprocess.run([str(prefix / PKG / "lib" / PKG / "memgs"), "--help"],
-                          env=_env(prefix, ros_domain_id), capture_output=True, text=True, timeout=60)
+                          env=install_env(prefix, ros_domain_id), capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert "usage: memgs" in proc.stdout
 
@@ -90,7 +69,7 @@ def node_procs(prefix: Path) -> Iterator[dict[str, tuple[subprocess.Popen, int]]
             procs[exe] = (subprocess.Popen(
                 [str(prefix / PKG / "lib" / PKG / exe), "--ros-args", "--params-file", str(config),
                  "-r", "__ns:=/uav1", *(a.format(ws=prefix.parent) for a in NODE_ARGS.get(exe, []))],
-                env=_env(prefix, domain), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                env=install_env(prefix, domain), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
             ), domain)
         yield procs
     finally:

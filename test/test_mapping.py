@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 import torch
 
+from memgs_ros.core import ssim as ssim_module
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.keyframes import KeyframeStore, make_keyframe
 from memgs_ros.core.losses import depth_l1_loss, isotropic_loss, mapping_loss, photometric_loss
 from memgs_ros.core.mapping import GaussianMapper, MappingConfig
+from memgs_ros.core.runtime import numba_available
 from memgs_ros.core.view import Undistorter, view_preparation
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
@@ -86,6 +88,46 @@ def test_masked_losses_ignore_invalid_pixels() -> None:
     total.backward()
     assert float(img.grad[:, :, :4].abs().sum()) == 0.0  # no L1 gradient reaches masked pixels
     assert float(img.grad[:, :, 4:].abs().sum()) > 0.0
+
+
+@pytest.mark.parametrize("masked", [False, True])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_photometric_loss_same_on_every_ssim_path(masked: bool, dtype: torch.dtype,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """The loss and its gradient w.r.t. the render agree between SSIM's numba path, its torch
+    path and a loss written out with the plain 2-D twin (float32: 1e-6 of the value, 1e-5 of the
+    largest gradient entry; float64: 1e-12)."""
+    pytest.importorskip("numba")
+    if not numba_available():
+        pytest.skip("numba is disabled here (MEMGS_DISABLE_NUMBA)")
+    g = torch.Generator().manual_seed(3)
+    gt = torch.rand(3, 37, 53, generator=g, dtype=dtype)
+    render = (0.6 * gt + 0.4 * torch.rand(3, 37, 53, generator=g, dtype=dtype)).requires_grad_(True)
+    mask = (torch.rand(37, 53, generator=g) > 0.3) if masked else None
+
+    def run() -> tuple[torch.Tensor, torch.Tensor]:
+        render.grad = None
+        loss, _, _ = photometric_loss(render, gt, ssim_lambda=0.2, mask=mask)
+        loss.backward()
+        return loss.detach(), render.grad.clone()
+
+    loss_numba, grad_numba = run()
+    with monkeypatch.context() as m:
+        m.setattr(ssim_module, "_use_numba", lambda a: False)
+        loss_torch, grad_torch = run()
+    w = torch.ones(37, 53, dtype=dtype) if mask is None else mask.to(dtype)
+    n = 3 * w.sum()
+    render.grad = None
+    ref = (0.8 * ((render - gt).abs() * w).sum() / n
+           + 0.2 * (1.0 - (ssim_module._ssim_map(render, gt) * w).sum() / n))
+    ref.backward()
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    scale = float(render.grad.abs().max())
+    for loss, grad in ((loss_numba, grad_numba), (loss_torch, grad_torch)):
+        assert float((loss - ref.detach()).abs()) <= 0.1 * tol * float(ref.detach())
+        assert float((grad - render.grad).abs().max()) <= tol * scale
+    if mask is not None:  # masked pixels still get SSIM gradient through their neighbours' windows
+        assert float(grad_numba[:, ~mask].abs().max()) > 0
 
 
 def test_undistortion_mask_and_keyframe_levels() -> None:

@@ -9,10 +9,13 @@ import pytest
 import torch
 from scipy import ndimage
 
+from memgs_ros.core import ssim as ssim_module
 from memgs_ros.core.metrics import (
     FrameScore, make_lpips, match_frames, psnr, score_frame, ssim_value, summarize_scores,
 )
+from memgs_ros.core.runtime import numba_available
 from memgs_ros.core.ssim import _ssim_map, gaussian_window_1d, ssim, ssim_map
+from memgs_ros.errors import ConfigError
 
 
 @pytest.fixture(autouse=True)
@@ -44,6 +47,32 @@ def _numpy_ssim_map(a: np.ndarray, b: np.ndarray, size: int = 11, sigma: float =
     return ((2 * mu1 * mu2 + c1) * (2 * s12 + c2)) / ((mu1 ** 2 + mu2 ** 2 + c1) * (s11 + s22 + c2))
 
 
+def _require_numba() -> None:
+    pytest.importorskip("numba")
+    if not numba_available():
+        pytest.skip("numba is disabled here (MEMGS_DISABLE_NUMBA)")
+
+
+@pytest.fixture(params=["numba", "torch"])
+def fast_path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Runs a test once per fast path of ssim_map on CPU: the numba kernels and the grouped torch
+    convolution (what CUDA and installs without numba use)."""
+    if request.param == "numba":
+        _require_numba()
+    else:
+        monkeypatch.setattr(ssim_module, "_use_numba", lambda a: False)
+    return str(request.param)
+
+
+def _assert_path(out: torch.Tensor, path: str) -> None:
+    """The map came from the expected autograd Function (so a test cannot pass on the other path)."""
+    fn = out.grad_fn
+    while fn is not None and type(fn).__name__.startswith("Squeeze"):  # unbatched input
+        fn = fn.next_functions[0][0]
+    name = type(fn).__name__
+    assert "SsimMap" in name and ("Numba" in name) == (path == "numba"), name
+
+
 def _pair(shape: tuple[int, ...], seed: int = 0, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
     a = torch.rand(shape, generator=g, dtype=dtype)
@@ -71,7 +100,7 @@ def test_identical_images_give_one() -> None:
 
 
 @pytest.mark.parametrize("shape", [(3, 40, 56), (2, 3, 31, 47), (1, 1, 12, 12), (3, 5, 64)])
-def test_fast_path_matches_2d_window_twin(shape: tuple[int, ...]) -> None:
+def test_fast_path_matches_2d_window_twin(shape: tuple[int, ...], fast_path: str) -> None:
     a, b = _pair(shape, seed=1)
     fast = ssim_map(a, b)
     ref = _ssim_map(a, b)
@@ -79,7 +108,7 @@ def test_fast_path_matches_2d_window_twin(shape: tuple[int, ...]) -> None:
     assert torch.allclose(fast, ref, atol=1e-5), float((fast - ref).abs().max())
 
 
-def test_matches_textbook_numpy_ssim() -> None:
+def test_matches_textbook_numpy_ssim(fast_path: str) -> None:
     a, b = _pair((3, 33, 41), seed=2, dtype=torch.float64)
     ref = _numpy_ssim_map(a.numpy(), b.numpy())
     fast = ssim_map(a, b).numpy()
@@ -89,31 +118,34 @@ def test_matches_textbook_numpy_ssim() -> None:
     assert 0.2 < ref.mean() < 0.95
 
 
-def test_other_window_and_float32_against_numpy() -> None:
+def test_other_window_and_float32_against_numpy(fast_path: str) -> None:
     a, b = _pair((3, 30, 30), seed=3)
     ref = _numpy_ssim_map(a.double().numpy(), b.double().numpy(), size=7, sigma=1.0)
     fast = ssim_map(a, b, window_size=7, sigma=1.0).double().numpy()
     assert np.abs(fast - ref).max() < 1e-5
 
 
-def test_gradcheck_double() -> None:
+def test_gradcheck_double(fast_path: str) -> None:
     # Small image and a 5x5 window so the window still overlaps the zero padding on every side;
     # fast mode checks random projections of the Jacobian (the full one is covered by the
     # comparison with the 2-D twin below).
     a, b = _pair((1, 2, 7, 8), seed=4, dtype=torch.float64)
     a.requires_grad_(True)
     b.requires_grad_(True)
+    _assert_path(ssim_map(a, b), fast_path)
     assert torch.autograd.gradcheck(lambda x, y: ssim_map(x, y, window_size=5, sigma=1.0), (a, b),
                                     eps=1e-6, atol=1e-5, fast_mode=True)
     assert torch.autograd.gradcheck(lambda x, y: ssim(x, y), (a, b), eps=1e-6, atol=1e-5)
 
 
-def test_gradient_matches_twin_with_random_cotangent() -> None:
+def test_gradient_matches_twin_with_random_cotangent(fast_path: str) -> None:
     a, b = _pair((2, 3, 20, 24), seed=5, dtype=torch.float64)
     a.requires_grad_(True)
     b.requires_grad_(True)
     v = torch.randn(2, 3, 20, 24, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
-    v_fast = torch.autograd.grad(ssim_map(a, b), (a, b), v)
+    out = ssim_map(a, b)
+    _assert_path(out, fast_path)
+    v_fast = torch.autograd.grad(out, (a, b), v)
     v_ref = torch.autograd.grad(_ssim_map(a, b), (a, b), v)
     for g_fast, g_ref in zip(v_fast, v_ref):
         assert torch.allclose(g_fast, g_ref, atol=1e-10)
@@ -121,14 +153,86 @@ def test_gradient_matches_twin_with_random_cotangent() -> None:
 
 
 @pytest.mark.parametrize("which", ["first", "second"])
-def test_gradient_when_only_one_image_needs_it(which: str) -> None:
+def test_gradient_when_only_one_image_needs_it(which: str, fast_path: str) -> None:
     a, b = _pair((3, 17, 21), seed=10, dtype=torch.float64)
     x = a if which == "first" else b
     x.requires_grad_(True)
     v = torch.randn(3, 17, 21, generator=torch.Generator().manual_seed(11), dtype=torch.float64)
-    (g_fast,) = torch.autograd.grad(ssim_map(a, b), (x,), v)
+    out = ssim_map(a, b)
+    _assert_path(out, fast_path)
+    (g_fast,) = torch.autograd.grad(out, (x,), v)
     (g_ref,) = torch.autograd.grad(_ssim_map(a, b), (x,), v)
     assert torch.allclose(g_fast, g_ref, atol=1e-10) and g_fast.abs().max() > 0
+
+
+# Odd sizes, sizes below the window (every window overlaps the zero padding), batched and not.
+NUMBA_SHAPES = [(3, 240, 320), (3, 5, 4), (1, 1, 1, 1), (2, 3, 7, 13), (1, 2, 12, 11), (3, 33, 64), (1, 9)]
+
+
+@pytest.mark.parametrize("shape", NUMBA_SHAPES[:-1])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_numba_path_matches_twin_forward_and_backward(shape: tuple[int, ...], dtype: torch.dtype) -> None:
+    """The compiled path against the 2-D twin evaluated in float64, both images needing
+    gradients, random cotangent. float32 tolerances: map 1e-5 absolute (the twin's own float32
+    error is ~8e-6 at 320x240), gradient 1e-5 of its largest entry (measured ~1e-6)."""
+    _require_numba()
+    a, b = _pair(shape, seed=20)
+    a, b = a.to(dtype).requires_grad_(True), b.to(dtype).requires_grad_(True)
+    v = torch.randn(shape, generator=torch.Generator().manual_seed(21), dtype=dtype)
+    out = ssim_map(a, b)
+    _assert_path(out, "numba")
+    assert out.dtype == dtype and out.shape == a.shape
+    a64, b64 = a.detach().double().requires_grad_(True), b.detach().double().requires_grad_(True)
+    ref = _ssim_map(a64, b64)
+    v_ref = torch.autograd.grad(ref, (a64, b64), v.double())
+    v_out = torch.autograd.grad(out, (a, b), v)
+    f32 = dtype == torch.float32
+    assert float((out.detach().double() - ref.detach()).abs().max()) < (1e-5 if f32 else 1e-12)
+    for g_out, g_ref in zip(v_out, v_ref):
+        scale = float(g_ref.abs().max())
+        assert scale > 0 and g_out.dtype == dtype
+        assert float((g_out.double() - g_ref).abs().max()) <= (1e-5 if f32 else 1e-12) * scale
+
+
+@pytest.mark.parametrize(("window", "sigma"), [(1, 1.0), (3, 0.3), (7, 1.0), (11, 1.5), (15, 3.0)])
+def test_numba_path_other_windows(window: int, sigma: float) -> None:
+    """Other windows, one whose outer taps underflow to 0 (3, 0.3 -> 4e-25 relative), and a
+    window wider than the image (15 > 9)."""
+    _require_numba()
+    a, b = _pair((2, 9, 10), seed=22, dtype=torch.float64)
+    a.requires_grad_(True)
+    v = torch.randn(2, 9, 10, generator=torch.Generator().manual_seed(23), dtype=torch.float64)
+    out = ssim_map(a, b, window_size=window, sigma=sigma)
+    _assert_path(out, "numba")
+    ref = _ssim_map(a, b, window_size=window, sigma=sigma)
+    assert float((out.detach() - ref.detach()).abs().max()) < 1e-12
+    (g_out,) = torch.autograd.grad(out, (a,), v)
+    (g_ref,) = torch.autograd.grad(ref, (a,), v)
+    # Window 1: var = E[x^2] - mu^2 is 0 up to rounding and S is steep there (|v_a| up to ~10).
+    assert float((g_out - g_ref).abs().max()) <= 1e-12 * float(g_ref.abs().max()) and g_ref.abs().max() > 0
+
+
+def test_numba_path_without_gradients_and_non_contiguous_input() -> None:
+    _require_numba()
+    a, b = _pair((3, 40, 30), seed=24)
+    with_grad = ssim_map(a.clone().requires_grad_(True), b)
+    with torch.no_grad():
+        plain = ssim_map(a, b)
+    assert torch.equal(plain, with_grad.detach())
+    # A transposed view is made contiguous first.
+    t = ssim_map(a.transpose(1, 2), b.transpose(1, 2))
+    assert torch.allclose(t, _ssim_map(a.transpose(1, 2).contiguous(), b.transpose(1, 2).contiguous()), atol=1e-5)
+
+
+def test_numba_switch_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch) -> None:
+    """MEMGS_DISABLE_NUMBA (read through runtime.numba_available) sends CPU SSIM to the torch path."""
+    a, b = _pair((3, 12, 14), seed=25)
+    a.requires_grad_(True)
+    monkeypatch.setattr(ssim_module, "numba_available", lambda: False)
+    _assert_path(ssim_map(a, b), "torch")
+    assert not ssim_module._use_numba(a.to(torch.float16))
+    with pytest.raises(ConfigError, match=r"numba path needs numba .* got torch.float32 on cpu \(numba available: False\)"):
+        ssim_module._fast_ssim_map(a, b, 11, 1.5, 1e-4, 9e-4, 1.0, compiled=True)
 
 
 def test_reductions_and_data_range() -> None:

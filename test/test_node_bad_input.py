@@ -553,3 +553,29 @@ def test_mapper_checkpoints_written_while_keyframes_arrive_are_whole(context, fr
         table = {int(s): int(k) for s, k in ck.extra["keyframe_stamps"].items()}
         assert all(table.get(kf.stamp_ns) == kf.kf_id for kf in ck.keyframes), (
             f"a checkpoint holds keyframes {[kf.stamp_ns for kf in ck.keyframes]} but stamps {sorted(table)}")
+
+
+def test_every_node_declares_exactly_its_parameter_table(context) -> None:  # noqa: ANN001
+    """The tables the CLI checks names against (PARAMS, CONFIGS) are what the nodes declare, and a
+    parameter a node does not declare is refused at start, naming the closest real one."""
+    from memgs_ros.errors import ConfigError
+    from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, tracker
+    from memgs_ros.nodes.merger import MergerNode
+    from memgs_ros.nodes.tracker import TrackerNode
+    from memgs_ros.ros.config_params import check_declared, parameter_names
+
+    for module, factory in ((merger, MergerNode), (tracker, TrackerNode), (mapper, mapper.MapperNode),
+                            (keyframe_sampler, keyframe_sampler.KeyframeSamplerNode),
+                            (bag_player, lambda **kw: bag_player.BagPlayer(frames=[], **kw))):
+        node = factory(context=context)
+        try:
+            assert set(node._parameters) == parameter_names(module.PARAMS, module.CONFIGS), module.__name__
+            check_declared(node)  # nothing stray: no error
+        finally:
+            node.destroy_node()
+    node = MergerNode(context=context, parameter_overrides=[Parameter("save_period", value=5.0)])
+    try:
+        with pytest.raises(ConfigError, match=r"merger has no parameter 'save_period' \(did you mean save_period_s"):
+            check_declared(node)
+    finally:
+        node.destroy_node()

@@ -110,6 +110,8 @@ def test_killed_mapper_resumes_from_checkpoint_and_killed_merger_resyncs(bag: Pa
     could end before 12 s on an idle machine, leaving nothing killed.)"""
     overrides = {**FAST, "mapper.lockstep_iterations": 12, "mapper.checkpoint_period_s": 1.0,
                  "merger.save_period_s": 1.0}
+    # An earlier run's checkpoint in the folder is set aside (kept), not resumed by this run.
+    (tmp_path / "mapper_checkpoint.npz").write_bytes(b"an earlier run")
     s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path, domain_id=ros_domain_id,
                                 namespace=_own_ns(), overrides=overrides, kill_after_s={"mapper": 6.0, "merger": 12.0}, timeout_s=600),
                      progress=False)
@@ -122,6 +124,9 @@ def test_killed_mapper_resumes_from_checkpoint_and_killed_merger_resyncs(bag: Pa
     assert s.replica_identical, s.replica_max_abs_diff
     assert s.gaussians > 1000 and len(load_ply(s.ply_path)) == s.gaussians
     assert (tmp_path / "mapper_checkpoint.npz").exists()
+    assert (tmp_path / "mapper_checkpoint.previous.npz").read_bytes() == b"an earlier run"
+    [first_life] = (tmp_path / "logs").glob("mapper.killed-*.log")
+    assert "resumed from" not in first_life.read_text()  # the first life started a new map
     assert _keyframe_psnr(Path(s.ply_path), Path(s.trajectory_path)) > 18.0
 
 

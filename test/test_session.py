@@ -231,3 +231,18 @@ def test_bundle_adjustment_and_loop_poses_take_separate_paths(frames: list[Frame
     np.testing.assert_allclose(kfs[2].T_wc, T_ba)
     assert s.status.counters["keyframes_corrected"] == 1
     s.close()
+
+
+@pytest.mark.parametrize("densify", [True, False])
+def test_final_iterations_densify_only_when_asked(frames: list[Frame], densify: bool) -> None:
+    """finish(n, densify=False) polishes the map without growing it; densify=True densifies as
+    training does (every interval from densify_start_iter)."""
+    s = MappingSession(_cfg(densify_start_iter=5, densify_interval=5, densify_grad_threshold=0.0), free_running=False)
+    for i, f in enumerate(frames[:3]):
+        s.insert_keyframe(_kf(f, 10 + i))
+    s.train(3).result(60)
+    before = s.status.gaussians
+    done = s.finish(20, densify=densify).result(120)
+    assert done.final_iterations == 20
+    assert (done.gaussians > before) == densify, (before, done.gaussians)
+    s.close()

@@ -3,7 +3,7 @@ drawing into an ``Axes`` is :mod:`memgs_ros.plots`). Loaded only when ``memgs ev
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +16,13 @@ from memgs_ros.evaluation import EvalResult
 __all__ = ["save_ablation_plot", "save_plots"]
 
 
-def save_plots(result: EvalResult, out_dir: Path) -> list[Path]:
-    """Trajectory, PSNR per frame, map size over time and frame strip PNGs for one EvalResult."""
+PLOTS = ("trajectory", "psnr", "map_size", "strip")
+
+
+def save_plots(result: EvalResult, out_dir: Path, prefix: str = "", kinds: Collection[str] = PLOTS,
+               metadata: Mapping[str, str] | None = None) -> list[Path]:
+    """Trajectory, PSNR per frame, map size over time and frame strip PNGs (``kinds`` of them,
+    named ``<prefix><kind>.png``, with PNG text ``metadata``) for one EvalResult."""
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     title = f"{result.variant}: {Path(result.source).name or result.source}"
@@ -25,12 +30,12 @@ def save_plots(result: EvalResult, out_dir: Path) -> list[Path]:
     def save(fig: Figure, name: str) -> None:
         FigureCanvasAgg(fig)
         fig.tight_layout()
-        path = out_dir / name
-        fig.savefig(path, dpi=110)
+        path = out_dir / f"{prefix}{name}"
+        fig.savefig(path, dpi=110, metadata=dict(metadata or {}))
         written.append(path)
 
     tr = result.trajectory
-    if tr is not None and tr.n_matched:
+    if "trajectory" in kinds and tr is not None and tr.n_matched:
         fig = Figure(figsize=(11, 4.5))
         ax1, ax2 = fig.subplots(1, 2)
         plots.plot_trajectory_top(ax1, np.array(tr.est_xyz_aligned), np.array(tr.gt_xyz),
@@ -43,7 +48,7 @@ def save_plots(result: EvalResult, out_dir: Path) -> list[Path]:
         save(fig, "trajectory.png")
 
     q = result.frames_quality
-    if q.n:
+    if "psnr" in kinds and q.n:
         stamps = np.array(q.stamps_ns, dtype=np.int64)
         kf = np.isin(stamps, np.array(result.keyframes_quality.stamps_ns, dtype=np.int64))
         fig = Figure(figsize=(8, 3.8))
@@ -53,7 +58,7 @@ def save_plots(result: EvalResult, out_dir: Path) -> list[Path]:
         ax.set_title(f"{title}, every tracked frame at {result.render_size[0]}x{result.render_size[1]}")
         save(fig, "psnr.png")
 
-    if result.map_samples:
+    if "map_size" in kinds and result.map_samples:
         s = result.map_samples
         fig = Figure(figsize=(8, 3.8))
         ax = fig.subplots()
@@ -66,7 +71,7 @@ def save_plots(result: EvalResult, out_dir: Path) -> list[Path]:
         ax.set_title(f"{title}, mapper stats over the run (1 Hz)")
         save(fig, "map_size.png")
 
-    if result.strip_path and Path(result.strip_path).is_file():
+    if "strip" in kinds and result.strip_path and Path(result.strip_path).is_file():
         data = np.load(result.strip_path, allow_pickle=False)
         t0 = q.stamps_ns[0] if q.n else int(data["stamps_ns"][0])
         titles = [f"t={(int(s) - t0) * 1e-9:.1f}s {p:.1f}dB" for s, p in zip(data["stamps_ns"], data["psnr_db"])]
@@ -79,9 +84,10 @@ def save_plots(result: EvalResult, out_dir: Path) -> list[Path]:
     return written
 
 
-def save_ablation_plot(results: Sequence[EvalResult], out_dir: Path) -> Path | None:
+def save_ablation_plot(results: Sequence[EvalResult], out_dir: Path, prefix: str = "",
+                       metadata: Mapping[str, str] | None = None) -> Path | None:
     """Gaussians against mapping iteration for every ablation variant on one axes
-    (``ablation_map_size.png``)."""
+    (``<prefix>ablation_map_size.png``)."""
     if not any(r.map_samples for r in results):
         return None
     fig = Figure(figsize=(8, 3.8))
@@ -99,6 +105,6 @@ def save_ablation_plot(results: Sequence[EvalResult], out_dir: Path) -> Path | N
     ax.legend(loc="best", fontsize="small")
     ax.set_title("ablation: map size over the run (mapper stats, 1 Hz)")
     fig.tight_layout()
-    path = out_dir / "ablation_map_size.png"
-    fig.savefig(path, dpi=110)
+    path = out_dir / f"{prefix}ablation_map_size.png"
+    fig.savefig(path, dpi=110, metadata=dict(metadata or {}))
     return path

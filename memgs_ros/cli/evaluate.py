@@ -37,7 +37,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="mapping resolution scale (mapper.mapping.resolution_scale; default: the config's); "
                         "renders are scored at this resolution")
     p.add_argument("--seed", type=int, default=0, help="seed of mapper, Patch-Grid sampler and tracker")
-    p.add_argument("--out", type=Path, default=Path("memgs_eval"), help="output folder")
+    p.add_argument("--out", type=Path, default=Path("memgs_eval"),
+                   help="output folder: eval.json, table.md, plots, and the run's files (default: %(default)s)")
     p.add_argument("--ablation", action="store_true",
                    help="also run without merging and without Patch-Grid (same data and seed)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
 import logging
 import sys
@@ -14,8 +15,8 @@ import yaml
 from memgs_ros.core.camera import PinholeCamera, calibration_differences, describe_camera
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.orchestration.run_files import (
-    LOGS_DIR, ConfiguredCamera, RunOptions, RunSummary, build_params, check_record_path, configured_camera,
-    node_params,
+    GRAPH_NODE_NAMES, LOGS_DIR, ConfiguredCamera, RunOptions, RunSummary, build_params, check_parameter_names,
+    check_record_path, configured_camera, node_params,
 )
 
 logger = logging.getLogger(__name__)
@@ -34,7 +35,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def add_graph_arguments(p: argparse.ArgumentParser) -> None:
     """Options shared by ``run`` and ``demo``."""
     p.add_argument("--config", default=None, help="config name in config/ (tum_fr1, synthetic, ...) or a YAML path")
-    p.add_argument("--out", type=Path, default=Path("memgs_out"), help="output folder (map.ply, trajectory, logs)")
+    p.add_argument("--out", type=Path, default=Path("memgs_out"),
+                   help="output folder: map.ply, trajectory.txt, keyframes.txt, summary.json, logs/ "
+                        "(README, 'Outputs'; default: %(default)s)")
     p.add_argument("--single-process", action="store_true",
                    help="run all nodes in this process on one multi-threaded executor")
     p.add_argument("--realtime", action="store_true",
@@ -72,12 +75,19 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
     kills = {}
     for item in getattr(args, "kill", []):
         node, sep, after = item.partition("@")
+        node = node.strip()
         try:
-            kills[node.strip()] = float(after)
+            kills[node] = float(after)
         except ValueError:
             sep = ""
-        if not sep:
-            raise ConfigError(f"--kill needs NODE@SECONDS, got '{item}'")
+        if not sep or not kills[node] >= 0:
+            raise ConfigError(f"--kill needs NODE@SECONDS (seconds >= 0), got '{item}'")
+        if node not in GRAPH_NODE_NAMES:
+            close = difflib.get_close_matches(node, GRAPH_NODE_NAMES, 1)
+            raise ConfigError(f"--kill {item}: no node '{node}'{f' (did you mean {close[0]}?)' if close else ''}; "
+                              f"nodes: {', '.join(GRAPH_NODE_NAMES)}")
+    if kills and args.single_process:
+        raise ConfigError("--kill needs separate processes: drop --single-process")
     if not args.rate > 0 or not args.timeout > 0 or args.max_frames < 0:
         raise ConfigError(f"--rate and --timeout must be positive and --max-frames >= 0, got {args.rate}, "
                           f"{args.timeout}, {args.max_frames}")
@@ -95,20 +105,39 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
         record=check_record_path(args.record) if getattr(args, "record", None) is not None else None)
 
 
+def check_config(config: str, overrides: dict | None = None) -> dict[str, dict]:
+    """The run's per-node parameters from ``config`` and ``overrides``; ConfigError (before any node
+    starts) when the config does not load or names a parameter no node declares."""
+    params = node_params(build_params(RunOptions(source="", config=config, overrides=overrides or {}),
+                                      Path("map.ply")))
+    check_parameter_names(params)
+    return params
+
+
+def check_out_dir(out_dir: Path) -> None:
+    """DataError unless ``out_dir`` is (or can be created as) a folder."""
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise DataError(f"output folder {out_dir}: exists and is not a folder")
+    try:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise DataError(f"output folder {out_dir}: {err.strerror or err}") from err
+
+
 def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict | None = None,
                  out_dir: Path | None = None) -> list[str]:
     """Fail before any node starts, with one line naming the file: the config must load, the
     overrides name real nodes, the source must open (a bag is scanned whole, so a truncated or
     corrupt one is found here rather than by the player in the middle of the run), a TUM folder's
-    camera must be known and the output folder must be creatable.
+    camera must be known and the output folder must be creatable (:func:`check_config`: every
+    parameter named must exist).
 
     Returns the warnings to show before the run: the source's camera_info against the config's
     calibration (:func:`calibration_warning`)."""
     from memgs_ros.io.sources import open_source  # opening a source loads the bag readers
     from memgs_ros.io.tum import CAMERA_JSON, TumFolder
 
-    params = node_params(build_params(RunOptions(source=source, config=config, overrides=overrides or {}),
-                                      Path("map.ply")))
+    params = check_config(config, overrides)
     configured = configured_camera(params)
     src = open_source(source, max_frames=max_frames or None, default_camera=configured.camera)
     if isinstance(src, TumFolder) and not src.camera_origin:
@@ -117,12 +146,7 @@ def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict 
                           f"(tum_fr2, tum_fr3) or write {CAMERA_JSON} (see README)")
     warning = calibration_warning(str(source), src.camera, configured, config)
     if out_dir is not None:
-        if Path(out_dir).exists() and not Path(out_dir).is_dir():
-            raise DataError(f"output folder {out_dir}: exists and is not a folder")
-        try:
-            Path(out_dir).mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise DataError(f"output folder {out_dir}: {err.strerror or err}") from err
+        check_out_dir(out_dir)
     return [warning] if warning else []
 
 
@@ -199,6 +223,26 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
         json_path.write_text(json.dumps(s.as_dict(), indent=2))
 
 
+def print_trajectory_error(source: str, trajectory_path: str) -> None:
+    """When the source has ground truth (TUM folders and bags, the synthetic room), print the
+    tracked trajectory's ATE after an SE(3) alignment; print nothing when it has none."""
+    from memgs_ros.core.trajectory import ate
+    from memgs_ros.io.sources import open_source
+    from memgs_ros.io.tum import read_trajectory
+
+    gt_stamps, gt_poses = open_source(source).ground_truth()
+    if not len(gt_stamps):
+        return
+    est_stamps, est_poses = read_trajectory(trajectory_path)
+    try:
+        err = ate(est_stamps, est_poses, gt_stamps, gt_poses)
+    except DataError as why:  # too few poses matched in time: say so rather than fail the run
+        print(f"ATE           n/a ({why})")
+        return
+    print(f"ATE           {err.rmse_m * 100:.2f} cm RMSE over {err.n_matched} frames "
+          "(SE(3)-aligned to the ground truth)")
+
+
 def run(args: argparse.Namespace) -> int:
     # The runner imports every node (rclpy, torch): only when a run starts, not for `memgs --help`.
     from memgs_ros.orchestration.pipeline import run_pipeline
@@ -211,6 +255,8 @@ def run(args: argparse.Namespace) -> int:
             logger.warning(warning)
         summary = run_pipeline(options)
     print_summary(summary, args.json, options.record)
+    if summary.poses:
+        print_trajectory_error(options.source, summary.trajectory_path)
     if not summary.source_complete:
         cause = player_error(options.out_dir)
         print(f"memgs run: error: {options.source} failed part-way{f': {cause}' if cause else ''} (see "

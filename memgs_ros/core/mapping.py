@@ -339,11 +339,12 @@ class GaussianMapper:
                          T_cw, camera, g.active_sh_degree, background=self._background,
                          near=self.cfg.near_m, backend=self.cfg.raster_backend)
 
-    def step(self) -> StepStats | None:
+    def step(self, densify: bool = True) -> StepStats | None:
         """One training iteration; None (and nothing done) until ``ready``.
 
         In an iteration where a merge is scheduled, densification waits for the next interval
-        (merge and densification alternate, reference section 4).
+        (merge and densification alternate, reference section 4). ``densify=False`` skips
+        densification (a final polish of the map that should not grow it).
         """
         if not self.ready:
             return None
@@ -377,7 +378,7 @@ class GaussianMapper:
         merged_removed = merged_added = densified = pruned = 0
         if self.merge.due(it):
             merged_removed, merged_added = self.merge.run(self.gmap, self._newest_kf_id, it)
-        elif self.densify.due(it):
+        elif densify and self.densify.due(it):
             self._record_budget(*self.budget.make_room_for_densification(self.gmap, self.densify, it,
                                                                           self._newest_kf_id, self._fixed_bytes()))
             densified, pruned = self.densify.densify_and_prune(self.gmap, it, self.budget_gaussians)

@@ -353,10 +353,11 @@ class MappingSession:
         the last capture."""
         return self._submit("state_dict", lambda: self._state_dict(only_if_changed))
 
-    def finish(self, final_iterations: int = 0) -> Future[FinishResult]:
-        """Run what is queued, stop free-running training, run ``final_iterations`` (once), and
+    def finish(self, final_iterations: int = 0, densify: bool = True) -> Future[FinishResult]:
+        """Run what is queued, stop free-running training, run ``final_iterations`` (once; with
+        ``densify=False`` they only refine, so the map does not grow at the end), and
         refuse keyframes from then on. Deltas, renders and state stay available."""
-        return self._submit("finish", lambda: self._finish(int(final_iterations)))
+        return self._submit("finish", lambda: self._finish(int(final_iterations), bool(densify)))
 
     def call(self, fn: Callable[[GaussianMapper], T]) -> Future[T]:
         """Run ``fn(mapper)`` on the worker (tests, benchmarks and tools that need the engine);
@@ -570,7 +571,7 @@ class MappingSession:
             self._render_camera = ckpt.keyframes[-1].camera  # prepared: undistorted and scaled
         self._captured = (self._mapper.iteration, len(self._stamps))
 
-    def _finish(self, final_iterations: int) -> FinishResult:
+    def _finish(self, final_iterations: int, densify: bool) -> FinishResult:
         t0 = time.perf_counter()
         ran = 0
         if not self._finished:
@@ -578,7 +579,7 @@ class MappingSession:
             self._finished = True
             if self._mapper.ready:
                 for _ in range(final_iterations):
-                    st = self._mapper.step()
+                    st = self._mapper.step(densify=densify)
                     if st is None:
                         break
                     self._after_step(st)

@@ -42,7 +42,8 @@ from std_msgs.msg import Bool, Header
 from memgs_ros.core.frame import Frame
 from memgs_ros.errors import ConfigError, MemgsError
 from memgs_ros.ros import codecs, qos
-from memgs_ros.ros.camera_params import declare_calibration
+from memgs_ros.core.camera import CameraCalibration
+from memgs_ros.ros.camera_params import CAMERA_PREFIX, declare_calibration
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.params import ParamSpec, declare_all
 
@@ -68,6 +69,8 @@ PARAMS = (
     ParamSpec("frame_id", "camera_color_optical_frame", "frame id of the images and camera info"),
     ParamSpec("world_frame_id", "world", "frame id of the ground-truth poses"),
 )
+
+CONFIGS = ((CAMERA_PREFIX, CameraCalibration),)
 
 
 @dataclass(frozen=True)
@@ -111,6 +114,9 @@ class BagPlayer(Node):
         self._pub_gt = self.create_publisher(PoseStamped, "groundtruth/pose", qos.reliable(10))
         self._pub_done = self.create_publisher(Bool, "memgs/player/done", qos.latched())
         self.stats = NodeStats(self, "player")
+        # Frames this replay will publish (0 = unknown: a looping replay or a source of unknown length),
+        # so a watcher can show a total and an ETA.
+        self.stats.gauges["frames_total"] = 0 if self.cfg.loop else _frames_total(frames, self.cfg.max_frames)
         self._ack_sub = (
             self.create_subscription(Header, self.cfg.ack_topic, self._on_ack, qos.reliable(10))
             if self.cfg.lockstep
@@ -295,6 +301,15 @@ class BagPlayer(Node):
             f"({self._published / elapsed:.1f} frames/s), last stamp {self._last_sent_ns * 1e-9:.3f} s, "
             f"ack timeouts {self._ack_timeouts}"
         )
+
+
+def _frames_total(frames: Iterable[Frame], max_frames: int) -> int:
+    """len(frames) capped at ``max_frames`` (0 = no cap); 0 when the source has no length."""
+    try:
+        n = len(frames)  # type: ignore[arg-type]
+    except TypeError:
+        return max_frames
+    return min(n, max_frames) if max_frames else n
 
 
 def main(args: list[str] | None = None) -> int:

@@ -35,19 +35,25 @@ from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.keyframe_bundle import KeyframeBundleError, decode_keyframe_images
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.params import declare
+from memgs_ros.ros.params import ParamSpec, declare_all
 from memgs_ros.ros.seed_cloud import encode_seeds
 from memgs_ros.ros.stamp_sync import StampBundler
+
+
+PARAMS = (
+    ParamSpec("mode", "rgbd", "camera mode (mono: depth from the nearest keypoint)", choices=("rgbd", "mono")),
+    ParamSpec("depth_scale", 1000.0, "16UC1 depth units per metre", (1e-3, 1e6)),
+    ParamSpec("world_frame", "map", "frame id of the seed cloud"),
+)
+CONFIGS = (("patch_grid", PatchGridConfig),)
 
 
 class KeyframeSamplerNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("keyframe_sampler", **node_kwargs)
-        self.mode = declare(self, "mode", "rgbd", "camera mode (mono: depth from the nearest keypoint)",
-                            choices=("rgbd", "mono"))
-        self.depth_scale = declare(self, "depth_scale", 1000.0, "16UC1 depth units per metre", range=(1e-3, 1e6))
+        v = declare_all(self, PARAMS)
+        self.mode, self.depth_scale, self.world_frame = v["mode"], v["depth_scale"], v["world_frame"]
         self.cfg: PatchGridConfig = declare_config(self, PatchGridConfig, "patch_grid")
-        self.world_frame = declare(self, "world_frame", "map", "frame id of the seed cloud")
         self.stats = NodeStats(self, "keyframe_sampler")
         parts = {"color", "camera_info", "pose", "keypoints"} | ({"depth"} if self.mode == "rgbd" else set())
         self.bundler = StampBundler(parts, max_pending=16)

@@ -33,6 +33,7 @@ from memgs_ros.core import checkpoint
 from memgs_ros.core.map_delta import message_dtype
 from memgs_ros.core.mapping import MappingConfig
 from memgs_ros.core.merge import MergeConfig
+from memgs_ros.core import losses
 from memgs_ros.core.raster import warm_up
 from memgs_ros.core.runtime import configure_cpu_runtime
 from memgs_ros.core.session import KeyframeInput, MappingSession
@@ -47,6 +48,10 @@ from memgs_ros.ros.keyframe_bundle import KeyframeBundleError, decode_keyframe_i
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.seed_cloud import decode_seeds
 from memgs_ros.ros.stamp_sync import KeyframeIntake
+
+
+PARAMS: tuple = ()  # the mapper's own parameters are MapperParams fields (prefix "")
+CONFIGS = (("", MapperParams), ("mapping", MappingConfig), ("merge", MergeConfig))
 
 
 class MapperNode(Node):
@@ -116,9 +121,10 @@ class MapperNode(Node):
             self.publish_snapshot()  # latched: the merger takes the resumed map and its epoch
         if p.render_rate_hz > 0:
             self.create_timer(1.0 / p.render_rate_hz, lambda: self._render(self.latest_pose))
-        # The memory baseline: imports, node, session and the rasterizer's compiled kernels
-        # (loaded now, not inside the first training step); the working memory is above it.
+        # The memory baseline: imports, node, session and the compiled kernels of rasterizer and
+        # SSIM (loaded now, not inside the first training step); the working memory is above it.
         warm_up(device, self.cfg.raster_backend, self.cfg.max_sh_degree)
+        losses.warm_up(device)
         self._rss_baseline_mb = rss_mb()
         self.stats.gauges["rss_baseline_mb"] = round(self._rss_baseline_mb, 1)
         self.create_timer(0.1, self._sync_stats)
@@ -237,7 +243,7 @@ class MapperNode(Node):
 
     def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         """Insert what is queued, stop training, run the final iterations, flush every change."""
-        done = self.session.finish(self.params.final_iterations).result()
+        done = self.session.finish(self.params.final_iterations, self.params.final_densify).result()
         self.get_logger().info(f"final {done.final_iterations} iterations in {done.seconds:.1f} s")
         self.send_delta(exact=True)
         # A receiver cannot see that the last delta was lost (no later seq shows the gap): the

@@ -15,6 +15,8 @@ class MapperParams:
     lockstep: bool = False  # train a fixed number of iterations per frame and acknowledge each (deterministic replay)
     lockstep_iterations: int = 10  # training iterations per frame in lockstep mode
     final_iterations: int = 0  # extra training iterations run by the finish service before the final flush
+    # densify during the final iterations too (false: they only refine the map, which then keeps its size)
+    final_densify: bool = True
     delta_rate_hz: float = 1.0  # map deltas per second
     # link budget for map deltas; the largest changes go first, the rest wait (the final flush ignores it)
     delta_budget_kbytes_per_s: float = 500.0

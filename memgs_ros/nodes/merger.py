@@ -43,37 +43,44 @@ from memgs_ros.ros.codecs import (
 )
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.params import declare
+from memgs_ros.ros.params import ParamSpec, declare_all
 
 if TYPE_CHECKING:
     import torch
 
 
+PARAMS = (
+    ParamSpec("map_path", "memgs_map.ply", "where the map PLY is saved (atomically)"),
+    ParamSpec("save_period_s", 60.0, "also save the PLY this often when it changed (0 = only on request and shutdown)",
+              (0.0, 1e6)),
+    ParamSpec("publish_period_s", 30.0, "publish the full map on memgs/map/gaussians this often (0 = only on request)",
+              (0.0, 1e6)),
+    ParamSpec("resync_interval_s", 1.0, "least time between snapshot requests (doubles, up to 8x, while unanswered)",
+              (0.0, 3600.0)),
+    ParamSpec("max_buffered_deltas", 200, "deltas kept while resynchronising", (1, 100000)),
+    ParamSpec("world_frame", "map", "frame id of the published map"),
+    ParamSpec("fault_drop_every_nth_delta", 0, "fault injection for tests: ignore every n-th delta on arrival (0 = off)",
+              (0, 10**6)),
+    ParamSpec("render_width", 320, "render width (px) for view requests", (1, 8192)),
+    ParamSpec("render_height", 240, "render height (px) for view requests", (1, 8192)),
+    ParamSpec("render_fx", 258.65, "render focal length x (px)", (1e-3, 1e6)),
+    ParamSpec("render_fy", 258.23, "render focal length y (px)", (1e-3, 1e6)),
+    ParamSpec("render_cx", 159.32, "render principal point x (px)", (-1e6, 1e6)),
+    ParamSpec("render_cy", 127.66, "render principal point y (px)", (-1e6, 1e6)),
+)
+CONFIGS: tuple[tuple[str, type], ...] = ()
+
+
 class MergerNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("merger", **node_kwargs)
-        self.map_path = Path(declare(self, "map_path", "memgs_map.ply", "where the map PLY is saved (atomically)"))
-        self.save_period = declare(self, "save_period_s", 60.0,
-                                   "also save the PLY this often when it changed (0 = only on request and shutdown)",
-                                   range=(0.0, 1e6))
-        self.publish_period = declare(self, "publish_period_s", 30.0,
-                                      "publish the full map on memgs/map/gaussians this often (0 = only on request)",
-                                      range=(0.0, 1e6))
-        self.resync_interval = declare(self, "resync_interval_s", 1.0, "least time between snapshot requests (doubles, up to 8x, while unanswered)",
-                                       range=(0.0, 3600.0))
-        self.max_buffered = declare(self, "max_buffered_deltas", 200, "deltas kept while resynchronising",
-                                    range=(1, 100000))
-        self.world_frame = declare(self, "world_frame", "map", "frame id of the published map")
-        self.drop_every = declare(self, "fault_drop_every_nth_delta", 0,
-                                  "fault injection for tests: ignore every n-th delta on arrival (0 = off)",
-                                  range=(0, 10**6))
-        w = declare(self, "render_width", 320, "render width (px) for view requests", range=(1, 8192))
-        h = declare(self, "render_height", 240, "render height (px) for view requests", range=(1, 8192))
-        fx = declare(self, "render_fx", 258.65, "render focal length x (px)", range=(1e-3, 1e6))
-        fy = declare(self, "render_fy", 258.23, "render focal length y (px)", range=(1e-3, 1e6))
-        cx = declare(self, "render_cx", 159.32, "render principal point x (px)", range=(-1e6, 1e6))
-        cy = declare(self, "render_cy", 127.66, "render principal point y (px)", range=(-1e6, 1e6))
-        self.render_camera = PinholeCamera(w, h, fx, fy, cx, cy)
+        v = declare_all(self, PARAMS)
+        self.map_path = Path(v["map_path"])
+        self.save_period, self.publish_period = v["save_period_s"], v["publish_period_s"]
+        self.resync_interval, self.max_buffered = v["resync_interval_s"], v["max_buffered_deltas"]
+        self.world_frame, self.drop_every = v["world_frame"], v["fault_drop_every_nth_delta"]
+        self.render_camera = PinholeCamera(v["render_width"], v["render_height"], v["render_fx"], v["render_fy"],
+                                           v["render_cx"], v["render_cy"])
 
         self.replica = MapReplica()
         self.stats = NodeStats(self, "merger")

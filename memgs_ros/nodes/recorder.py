@@ -25,8 +25,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.exceptions import InvalidParameterTypeException, ParameterException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.topic_endpoint_info import TopicEndpointInfo
@@ -35,9 +33,9 @@ from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.bag_stream import BagStream
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.params import declare
+from memgs_ros.ros.params import ParamSpec, declare_all
 
-__all__ = ["DEFAULT_TOPICS", "RecorderNode", "main"]
+__all__ = ["CONFIGS", "DEFAULT_TOPICS", "PARAMS", "RecorderNode", "main"]
 
 # Every output of the graph, relative to the node's namespace (types as the nodes publish them).
 DEFAULT_TOPICS: tuple[str, ...] = (
@@ -63,6 +61,15 @@ DEFAULT_TOPICS: tuple[str, ...] = (
     "memgs/tracker/stats", "memgs/keyframe_sampler/stats", "memgs/mapper/stats", "memgs/merger/stats",
     "memgs/player/stats",
 )
+
+PARAMS = (
+    ParamSpec("path", "", "the .mcap file to write (required); replaced atomically when the node stops"),
+    ParamSpec("topics", DEFAULT_TOPICS, "topics to record, relative to the node's namespace or absolute "
+                                        "(default: every memgs output)"),
+    ParamSpec("discovery_period_s", 0.2, "look for publishers of topics not yet recorded this often",
+              (0.01, 60.0)),
+)
+CONFIGS: tuple[tuple[str, type], ...] = ()
 
 # A RELIABLE subscription keeps this many messages while the callback catches up; the callback
 # only appends bytes to a file, so the queue stays near empty.
@@ -115,36 +122,27 @@ def _bag_qos(profile: QoSProfile) -> Any:
 class RecorderNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("recorder", **node_kwargs)
-        path = declare(self, "path", "", "the .mcap file to write (required); replaced atomically when "
-                                         "the node stops")
-        topics = self._declare_topics()
-        period = declare(self, "discovery_period_s", 0.2, "look for publishers of topics not yet recorded "
-                                                          "this often", range=(0.01, 60.0))
+        v = declare_all(self, PARAMS)
+        path, topics, period = str(v["path"]), v["topics"], float(v["discovery_period_s"])
+        if not isinstance(topics, (list, tuple)) or not topics or not all(
+                isinstance(t, str) and t.strip() for t in topics):
+            raise ConfigError(f"parameter 'topics' must be a non-empty list of topic names, got {topics!r}")
         if not path:
             raise ConfigError("parameter 'path' is required: the .mcap file to record into")
         if Path(path).suffix != ".mcap":
             raise ConfigError(f"parameter 'path' = {path!r} must end in .mcap")
         self.stats = NodeStats(self, "recorder")
         # Absolute names, as the graph and the bag name topics (remaps and namespace applied).
-        self.pending: list[str] = list(dict.fromkeys(self.resolve_topic_name(t) for t in topics))
+        try:
+            self.pending: list[str] = list(dict.fromkeys(self.resolve_topic_name(t.strip()) for t in topics))
+        except Exception as err:  # rclpy's InvalidTopicNameException and kin: a typo in a name
+            raise ConfigError(f"parameter 'topics': {err}") from err
         self.recorded: dict[str, str] = {}  # topic -> message type
         self.bag = BagStream(path, "mcap", overwrite=True)
         self._discovery = self.create_timer(period, self._discover)
         self._discover()
         self.startup_cpu_s = time.process_time()
         self.get_logger().info(f"recording {len(self.pending) + len(self.recorded)} topics into {path}")
-
-    def _declare_topics(self) -> list[str]:
-        desc = ParameterDescriptor(
-            description="topics to record, relative to the node's namespace or absolute (default: every "
-                        "memgs output)", read_only=True)
-        try:
-            topics = self.declare_parameter("topics", list(DEFAULT_TOPICS), desc).value
-        except (InvalidParameterTypeException, ParameterException) as err:
-            raise ConfigError(f"parameter 'topics' must be a list of topic names: {err}") from err
-        if not topics or not all(isinstance(t, str) and t.strip() for t in topics):
-            raise ConfigError(f"parameter 'topics' must be a non-empty list of topic names, got {topics!r}")
-        return [t.strip() for t in topics]
 
     def _discover(self) -> None:
         """Subscribe to every wanted topic that has publishers now; stop looking once all have."""

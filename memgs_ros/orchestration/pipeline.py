@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import rclpy
 import yaml
+from tqdm import tqdm
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as NavPath
@@ -41,7 +42,8 @@ from memgs_ros.core.runtime import MALLOC_ARENAS
 from memgs_ros.errors import ConfigError, PipelineError
 from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, recorder, tracker
 from memgs_ros.orchestration.run_files import (
-    KEYFRAMES_FILE, LOGS_DIR, MAP_FILE, PARAMS_FILE, STATS_TIMELINE_FILE, SUMMARY_FILE, TRAJECTORY_FILE,
+    CHECKPOINT_FILE, GRAPH_NODE_NAMES, KEYFRAMES_FILE, LOGS_DIR, MAP_FILE, PARAMS_FILE, STATS_TIMELINE_FILE, SUMMARY_FILE,
+    TRAJECTORY_FILE,
     RunOptions, RunSummary, build_params, config_path, node_params,
 )
 from memgs_ros.ros import qos
@@ -61,7 +63,7 @@ _NODE_FACTORIES: dict[str, Callable[..., Any]] = {
     "tracker": tracker.TrackerNode, "keyframe_sampler": keyframe_sampler.KeyframeSamplerNode,
     "mapper": mapper.MapperNode, "merger": merger.MergerNode, "bag_player": bag_player.BagPlayer,
     "recorder": recorder.RecorderNode}
-GRAPH_NODES = ("merger", "mapper", "keyframe_sampler", "tracker")  # start order; the player last
+GRAPH_NODES = GRAPH_NODE_NAMES
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -233,6 +235,9 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
     params_file = out / PARAMS_FILE
     params = build_params(options, map_path)
     _write_text(params_file, yaml.safe_dump(params, sort_keys=False))
+    if "mapper.checkpoint_path" not in options.overrides:
+        _set_aside_previous_checkpoint(out / CHECKPOINT_FILE)
+    earlier_record = _file_identity(options.record)  # an earlier run's file is replaced, never taken for this one's
 
     # A 50 ms heartbeat repairs lost fragments of big messages fast (see config/fastdds.xml);
     # a profile the user chose is kept.
@@ -296,10 +301,31 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
         for node in in_process:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
-    if options.record is not None and not Path(options.record).is_file():
-        # The recorder stopped with the graph (its shutdown closes the file): in parallel, not after it.
+    # The recorder stopped with the graph (its shutdown closes the file): in parallel, not after it.
+    if options.record is not None and _file_identity(options.record) in (None, earlier_record):
         raise PipelineError(f"the recorder did not write {options.record} (see {out / LOGS_DIR / 'recorder.log'})")
     return summary
+
+
+def _file_identity(path: Path | None) -> tuple[int, int] | None:
+    """(inode, mtime ns) of a file, None when there is none: a file moved into place is a new inode."""
+    try:
+        st = Path(path).stat() if path is not None else None
+    except OSError:
+        return None
+    return (st.st_ino, st.st_mtime_ns) if st is not None else None
+
+
+def _set_aside_previous_checkpoint(path: Path) -> None:
+    """A checkpoint in the output folder from an earlier run would make this run's mapper resume
+    that run's map (resuming is for a mapper restarted within one run): rename it to
+    ``*.previous.npz``, kept rather than deleted."""
+    if not path.is_file():
+        return
+    aside = path.with_name(f"{path.stem}.previous{path.suffix}")
+    os.replace(path, aside)
+    logger.warning("%s holds a checkpoint of an earlier run: moved it to %s so this run starts a new map",
+                   path.parent, aside.name)
 
 
 # A topic each node publishes: once the observer sees it, DDS discovery reached that node.
@@ -340,7 +366,9 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
            progress: bool) -> RunSummary:
     """Wait for the end of the source, finish the mapper, sync the merger, save, summarise."""
     end = t0 + options.timeout_s
-    last_log = 0.0
+    # frames / total, frames/s and ETA on a terminal; nothing when stderr is a file or pipe
+    # (stats_timeline.jsonl keeps the same figures).
+    bar = tqdm(desc="replay", unit="frame", disable=None, dynamic_ncols=True) if progress else None
     play_start = time.monotonic()
     kills = dict(options.kill_after_s)
     restarts: dict[str, int] = {}
@@ -359,12 +387,12 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
             procs.check()
         if time.monotonic() > end:
             raise PipelineError(f"the source did not finish within {options.timeout_s:.0f} s")
-        if progress and time.monotonic() - last_log > 5.0:
-            last_log = time.monotonic()
-            logger.info("frames tracked %d, keyframes %d, Gaussians %d, mapping iteration %d",
-                        obs.stat("tracker", "poses_out"), obs.stat("tracker", "keyframes"),
-                        obs.stat("mapper", "gaussians"), obs.stat("mapper", "iteration"))
+        if bar is not None:
+            _show_progress(bar, obs)
         time.sleep(0.1)
+    if bar is not None:
+        _show_progress(bar, obs)
+        bar.close()
     if procs is not None:
         procs.player_reported = True
     if not obs.source_ok:
@@ -420,6 +448,18 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
     # The summary is a file of the run, so evaluation reads a finished run instead of watching it.
     _write_text(out / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2) + "\n")
     return summary
+
+
+def _show_progress(bar: tqdm, obs: _Observer) -> None:
+    """Frames the player published out of its total, with keyframes and Gaussians beside them."""
+    total = int(obs.stat("player", "frames_total"))
+    if total and bar.total != total:
+        bar.total = total
+    done = int(obs.stat("player", "frames_published"))
+    if done > bar.n:
+        bar.update(done - bar.n)
+    bar.set_postfix(keyframes=int(obs.stat("tracker", "keyframes")), gaussians=int(obs.stat("mapper", "gaussians")),
+                    refresh=False)
 
 
 def _compare_maps(obs: _Observer, final_seq: int, epoch: int, end: float) -> tuple[bool, float]:

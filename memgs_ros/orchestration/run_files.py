@@ -21,18 +21,20 @@ from memgs_ros.core.camera import CameraCalibration, PinholeCamera
 from memgs_ros.errors import ConfigError, DataError
 
 __all__ = [
-    "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE", "STATS_TIMELINE_FILE",
+    "CHECKPOINT_FILE", "GRAPH_NODE_NAMES", "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE", "STATS_TIMELINE_FILE",
     "SUMMARY_FILE", "TRAJECTORY_FILE", "ConfiguredCamera", "RunOptions", "RunSummary", "build_params",
-    "config_path", "configured_camera", "node_params", "read_params", "read_stats_timeline", "read_summary",
-    "check_record_path",
+    "check_parameter_names", "check_record_path", "config_path", "configured_camera", "node_params", "read_params",
+    "read_stats_timeline", "read_summary",
 ]
 
 # The nodes a parameter override may name; the pipeline starts one module per name.
 NODE_NAMES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player", "recorder")
+GRAPH_NODE_NAMES = ("merger", "mapper", "keyframe_sampler", "tracker")  # start order; the player last
 
 # Files in a run's output folder.
 PARAMS_FILE = "params.yaml"  # the effective per-node parameters
 MAP_FILE = "map.ply"
+CHECKPOINT_FILE = "mapper_checkpoint.npz"  # the mapper's checkpoint (resumed by a mapper restarted mid-run)
 TRAJECTORY_FILE = "trajectory.txt"  # every tracked pose, TUM format
 KEYFRAMES_FILE = "keyframes.txt"  # keyframe poses at insertion, TUM format
 STATS_TIMELINE_FILE = "stats_timeline.jsonl"  # every node stats message: {"t_s", "node", key: value}
@@ -139,7 +141,7 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
     params.setdefault("merger", {})["map_path"] = str(map_path)
     if options.record is not None:
         params.setdefault("recorder", {})["path"] = str(Path(options.record).resolve())
-    params.setdefault("mapper", {}).setdefault("checkpoint_path", str(map_path.with_name("mapper_checkpoint.npz")))
+    params.setdefault("mapper", {}).setdefault("checkpoint_path", str(map_path.with_name(CHECKPOINT_FILE)))
     for key, value in options.overrides.items():
         node, _, name = key.partition(".")
         if node not in NODE_NAMES or not name:
@@ -183,6 +185,24 @@ class ConfiguredCamera(NamedTuple):
 
     camera: PinholeCamera | None  # None: the config gives no calibration
     override: bool  # tracker.camera_info_override: the nodes use ``camera`` instead of camera_info
+
+
+def check_parameter_names(params: Mapping[str, Mapping[str, Any]]) -> None:
+    """ConfigError naming every parameter in {node: {param: value}} that its node does not declare
+    (rclpy would ignore it and the node would run on the default). Imports the node modules
+    (rclpy, torch) to read their parameter tables, but starts nothing."""
+    import importlib
+
+    from memgs_ros.ros.config_params import parameter_names, unknown_parameters
+
+    lines: list[str] = []
+    for node, values in params.items():
+        if node not in NODE_NAMES:
+            raise ConfigError(f"parameters for '{node}': no such node (nodes: {', '.join(NODE_NAMES)})")
+        module = importlib.import_module(f"memgs_ros.nodes.{node}")
+        lines += unknown_parameters(node, values, parameter_names(module.PARAMS, module.CONFIGS))
+    if lines:
+        raise ConfigError("; ".join(lines))
 
 
 def configured_camera(params: Mapping[str, Mapping[str, Any]]) -> ConfiguredCamera:

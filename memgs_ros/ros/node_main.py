@@ -14,6 +14,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from memgs_ros.errors import MemgsError
+from memgs_ros.ros.config_params import check_declared
 
 
 def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None = None,
@@ -34,6 +35,7 @@ def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None 
             if rclpy.ok():
                 raise
             return code  # Ctrl-C / SIGTERM arrived while the node was still being built
+        check_declared(node)  # a misspelt parameter would otherwise run silently on its default
         executor.add_node(node)
         try:
             executor.spin()

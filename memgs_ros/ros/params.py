@@ -23,7 +23,7 @@ from memgs_ros.errors import ConfigError
 
 __all__ = ["ParamValue", "ParamSpec", "declare", "declare_all"]
 
-ParamValue = bool | int | float | str
+ParamValue = bool | int | float | str | tuple[str, ...] | list[str]  # a string array: the recorder's topics
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,174 @@
+"""Make the README's figures and the tables beside them from one benchmark run, together.
+
+    python benchmarks/make_figures.py eval results/bench_eval.json --name tum_fr1_rpy --readme README.md
+    python benchmarks/make_figures.py load results/bench_load_cap600.json --name load_30hz_640x480 --readme README.md
+
+``eval`` takes the JSON ``benchmarks/bench_eval.py`` writes (one evaluation or an ablation);
+``load`` the JSON of ``benchmarks/bench_load.py``. Each writes into ``benchmarks/figures/``:
+``<name>.md`` (the table) and the PNGs, every PNG carrying the SHA-256 of that table in its
+metadata (``memgs-table-sha256``). With ``--readme`` the block between
+``<!-- figures:<name> -->`` and ``<!-- /figures:<name> -->`` is replaced by the table and the
+images. ``test/test_figures.py`` checks every such block against its table and PNGs, so a
+figure and the table beside it cannot come from different runs.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import re
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+FIGURES = Path(__file__).resolve().parent / "figures"
+SHA_KEY = "memgs-table-sha256"  # PNG text chunk: the table a figure belongs to
+_BLOCK = re.compile(r"<!-- figures:(?P<name>[\w.-]+) -->\n(?P<body>.*?)<!-- /figures:(?P=name) -->", re.S)
+_IMAGE = re.compile(r"!\[[^\]]*\]\((?P<path>[^)]+\.png)\)")
+
+
+def table_sha(table: str) -> str:
+    return hashlib.sha256(table.encode("utf-8")).hexdigest()
+
+
+def png_table_sha(path: Path) -> str | None:
+    """The table digest a PNG written by this script carries, or None."""
+    from PIL import Image  # matplotlib's own dependency
+
+    with Image.open(path) as img:
+        return img.info.get(SHA_KEY)
+
+
+def _save(fig: Figure, path: Path, table: str) -> Path:
+    FigureCanvasAgg(fig)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110, metadata={SHA_KEY: table_sha(table), "Software": "memgs_ros make_figures"})
+    return path
+
+
+def readme_block(name: str, table: str, images: Sequence[Path], readme: Path) -> str:
+    links = "\n".join(f"![{p.stem}]({p.resolve().relative_to(readme.resolve().parent).as_posix()})" for p in images)
+    return f"<!-- figures:{name} -->\n{table.rstrip()}\n\n{links}\n<!-- /figures:{name} -->"
+
+
+def replace_block(text: str, name: str, block: str) -> str:
+    """``text`` with the figures block ``name`` replaced by ``block``; ValueError when it has none."""
+    pattern = re.compile(rf"<!-- figures:{re.escape(name)} -->\n.*?<!-- /figures:{re.escape(name)} -->", re.S)
+    if not pattern.search(text):
+        raise ValueError(f"no '<!-- figures:{name} -->' ... '<!-- /figures:{name} -->' block")
+    return pattern.sub(lambda _: block, text, count=1)
+
+
+def readme_blocks(text: str) -> list[tuple[str, str, list[str]]]:
+    """(name, table text, image paths) of every figures block in a README's text."""
+    out = []
+    for m in _BLOCK.finditer(text):
+        body = m.group("body")
+        images = [i.group("path") for i in _IMAGE.finditer(body)]
+        table = _IMAGE.sub("", body).strip() + "\n"
+        out.append((m.group("name"), table, images))
+    return out
+
+
+# ----------------------------------------------------------------------------- eval
+
+
+def eval_figures(record: dict[str, Any], name: str, out_dir: Path) -> tuple[str, list[Path]]:
+    """Table and figures of a bench_eval.py JSON: the ablation (or single) table, then the full
+    variant's trajectory and PSNR-per-frame plots and, for an ablation, map size per variant."""
+    from memgs_ros.cli.eval_plots import save_ablation_plot, save_plots
+    from memgs_ros.cli.eval_tables import ablation_table, markdown_table
+    from memgs_ros.evaluation import result_from_dict
+
+    result = record["result"]
+    variants = result.get("variants") or [result]
+    results = [result_from_dict(v) for v in variants]
+    table = ablation_table(results) if len(results) > 1 else markdown_table(results)
+    table = f"{table.rstrip()}\n\n`{' '.join(['python benchmarks/bench_eval.py', *record.get('argv', [])])}` " \
+            f"({record.get('uptime_before', '').split('load average:')[-1].strip() or 'load n/a'} load before)\n"
+    meta = {SHA_KEY: table_sha(table), "Software": "memgs_ros make_figures"}
+    written = save_plots(results[0], out_dir, prefix=f"{name}_", kinds=("trajectory", "psnr"), metadata=meta)
+    if len(results) > 1:
+        path = save_ablation_plot(results, out_dir, prefix=f"{name}_", metadata=meta)
+        written += [path] if path is not None else []
+    return table, written
+
+
+# ----------------------------------------------------------------------------- load
+
+
+def load_figures(record: dict[str, Any], name: str, out_dir: Path) -> tuple[str, list[Path]]:
+    """Table (RSS per node: start, first/last minute median and peak, 30 s floors) and the RSS /
+    map-size figure of a bench_load.py JSON (which keeps its stats timeline for this)."""
+    timeline = record.get("timeline")
+    if not timeline:
+        raise SystemExit("this bench_load JSON has no 'timeline': re-run benchmarks/bench_load.py")
+    lines = ["| node | start MB | first minute: median (peak) MB | last minute: median (peak) MB | "
+             "30 s floors, first → last MB |", "| --- | --- | --- | --- | --- |"]
+    for node, n in record["nodes"].items():
+        t = n.get("trend")
+        if t:
+            lines.append(f"| {node} | {n['rss_mb_start']:.0f} | {t['first_min_median']:.0f} ({t['first_min_peak']:.0f}) "
+                         f"| {t['last_min_median']:.0f} ({t['last_min_peak']:.0f}) "
+                         f"| {t['floors_mb'][0]:.0f} → {t['floors_mb'][-1]:.0f} |")
+    cap = record.get("mapper_max_mapper_mbytes") or 0.0
+    acc = record.get("mapper_accounted_mb_max")
+    lines += ["", f"`{record.get('command', 'python benchmarks/bench_load.py')}`: {record['seconds']:.0f} s of "
+              f"{record['spec']} at {record['fps']:.0f} Hz; {record['frames_tracked']} frames tracked, "
+              f"{record['keyframes']} keyframes, {record['gaussians']} Gaussians at the end, "
+              f"{record['mapping_iterations']} mapping iterations; mapper cap {cap:g} MiB"
+              + (f", accounted peak {acc:.1f} MiB" if acc else "")
+              + f"; load {record['loadavg_before']:.1f} → {record['loadavg_after']:.1f}"]
+    table = "\n".join(lines) + "\n"
+    fig = Figure(figsize=(9, 6))
+    a, b = fig.subplots(2, 1, sharex=True)
+    for node in record["nodes"]:
+        rows = [r for r in timeline if r["node"] == node and "rss_mb" in r]
+        a.plot([r["t_s"] for r in rows], [float(r["rss_mb"]) for r in rows], label=node)
+    a.set_ylabel("resident memory [MB]")
+    a.legend(loc="upper left", fontsize="small")
+    a.grid(True, alpha=0.3)
+    rows = [r for r in timeline if r["node"] == "mapper"]
+    b.plot([r["t_s"] for r in rows], [float(r.get("gaussians", "nan")) / 1000 for r in rows], label="Gaussians")
+    b.set_ylabel("Gaussians (mapper) [k]")
+    b.set_xlabel("time since start [s]")
+    b.grid(True, alpha=0.3)
+    b2 = b.twinx()
+    b2.plot([r["t_s"] for r in rows], [float(r.get("keyframes", "nan")) for r in rows], color="tab:red")
+    b2.set_ylabel("keyframes inserted", color="tab:red")
+    return table, [_save(fig, out_dir / f"{name}.png", table)]
+
+
+KINDS: dict[str, Callable[[dict[str, Any], str, Path], tuple[str, list[Path]]]] = {
+    "eval": eval_figures, "load": load_figures}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("kind", choices=sorted(KINDS))
+    p.add_argument("result", type=Path, help="the benchmark's JSON")
+    p.add_argument("--name", required=True, help="figure name prefix and README block name")
+    p.add_argument("--out", type=Path, default=FIGURES, help="folder for the PNGs and the table (.md)")
+    p.add_argument("--readme", type=Path, default=None, help="replace the block <!-- figures:NAME --> here")
+    args = p.parse_args(argv)
+    record = json.loads(args.result.read_text(encoding="utf-8"))
+    table, images = KINDS[args.kind](record, args.name, args.out)
+    (args.out / f"{args.name}.md").write_text(table, encoding="utf-8")
+    for path in images:
+        print(f"wrote {path}")
+    print(f"wrote {args.out / f'{args.name}.md'}\n\n{table}")
+    if args.readme is not None:
+        text = args.readme.read_text(encoding="utf-8")
+        args.readme.write_text(replace_block(text, args.name, readme_block(args.name, table, images, args.readme)),
+                               encoding="utf-8")
+        print(f"updated the '{args.name}' block of {args.readme}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

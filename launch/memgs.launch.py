@@ -1,0 +1,84 @@
+"""The MemGS graph (tracker, keyframe_sampler, mapper, merger) on a live RGB-D camera.
+
+    ros2 launch realsense2_camera rs_launch.py align_depth.enable:=true
+    ros2 launch memgs_ros memgs.launch.py [namespace:=/uav1] [params_file:=my.yaml] [map_path:=/data/map.ply]
+
+Arguments (``ros2 launch memgs_ros memgs.launch.py --show-args``):
+
+- ``namespace``: pushed onto all four nodes, so their ``memgs/*`` topics and services become
+  ``<namespace>/memgs/*`` (default: none).
+- ``params_file``: the nodes' parameters (default: the installed ``config/realsense_d435i.yaml``).
+- ``color_topic``, ``depth_topic``, ``camera_info_topic``: the camera's topics, given to the
+  tracker as its parameters of the same names (they win over the params file). The defaults are
+  the absolute topics of realsense2_camera 4.x with ``align_depth.enable:=true`` and its default
+  ``camera_namespace``/``camera_name`` (``camera``/``camera``), so they do not move with
+  ``namespace``.
+- ``map_path``: where the merger writes the map PLY (on ``memgs/save_map``, every
+  ``save_period_s`` and at shutdown; wins over the params file); a relative path is taken from
+  the directory ``ros2 launch`` runs in.
+- ``use_sim_time``: true when a ``/clock`` publisher (a replayed bag) drives time.
+
+Fast DDS: unless FASTRTPS_DEFAULT_PROFILES_FILE is already set, the nodes get the package's
+``config/fastdds.xml`` (a 50 ms heartbeat that repairs large reliable messages quickly).
+"""
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
+
+PACKAGE = "memgs_ros"
+NODES = ("tracker", "keyframe_sampler", "mapper", "merger")
+
+# Tracker parameter -> default topic: realsense2_camera with align_depth.enable:=true.
+CAMERA_TOPICS = {
+    "color_topic": "/camera/camera/color/image_raw",
+    "depth_topic": "/camera/camera/aligned_depth_to_color/image_raw",
+    "camera_info_topic": "/camera/camera/color/camera_info",
+}
+
+
+def generate_launch_description():
+    share = get_package_share_directory(PACKAGE)
+    arguments = [
+        DeclareLaunchArgument("namespace", default_value="",
+                              description="namespace of the four nodes (e.g. /uav1)"),
+        DeclareLaunchArgument("params_file",
+                              default_value=os.path.join(share, "config", "realsense_d435i.yaml"),
+                              description="ROS parameter file of the nodes"),
+        DeclareLaunchArgument("map_path", default_value="memgs_map.ply",
+                              description="map PLY written by the merger (relative: to the launch directory)"),
+        DeclareLaunchArgument("use_sim_time", default_value="false", choices=["true", "false"],
+                              description="take time from /clock"),
+    ]
+    arguments += [
+        DeclareLaunchArgument(name, default_value=topic, description=f"tracker input ({name})")
+        for name, topic in CAMERA_TOPICS.items()
+    ]
+
+    common = {"use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool)}
+    own = {
+        "tracker": {name: ParameterValue(LaunchConfiguration(name), value_type=str) for name in CAMERA_TOPICS},
+        "merger": {"map_path": ParameterValue(LaunchConfiguration("map_path"), value_type=str)},
+    }
+    env = {}
+    if "FASTRTPS_DEFAULT_PROFILES_FILE" not in os.environ:
+        env["FASTRTPS_DEFAULT_PROFILES_FILE"] = os.path.join(share, "config", "fastdds.xml")
+
+    nodes = [
+        Node(
+            package=PACKAGE,
+            executable=name,
+            name=name,
+            namespace=LaunchConfiguration("namespace"),
+            parameters=[LaunchConfiguration("params_file"), {**common, **own.get(name, {})}],
+            additional_env=env,
+            output="screen",
+            emulate_tty=True,
+        )
+        for name in NODES
+    ]
+    return LaunchDescription(arguments + nodes)
