@@ -116,6 +116,16 @@ def test_bad_record_path_is_refused_before_anything_starts(
     assert not (out / "logs").exists() and not (out / "synthetic.mcap").exists()
 
 
+def test_recorder_parameters_are_checked_like_every_node_s() -> None:
+    pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+    from memgs_ros.cli.run import check_config
+
+    params = check_config("synthetic", {"recorder.topics": ["memgs/pose"], "recorder.discovery_period_s": 1.0})
+    assert params["recorder"]["topics"] == ["memgs/pose"]
+    with pytest.raises(ConfigError, match="recorder has no parameter 'topic'"):
+        check_config("synthetic", {"recorder.topic": ["memgs/pose"]})
+
+
 # --------------------------------------------------------------------------- the node in-process
 
 
@@ -134,6 +144,10 @@ def test_recorder_node_adapts_to_publishers_and_writes_the_file_on_shutdown(
         RecorderNode(context=context)
     with pytest.raises(ConfigError, match="must end in .mcap"):
         RecorderNode(context=context, parameter_overrides=[Parameter("path", value=str(tmp_path / "r.db3"))])
+    with pytest.raises(ConfigError, match="parameter 'topics'"):
+        RecorderNode(context=context, parameter_overrides=[Parameter("path", value=str(tmp_path / "r.mcap")),
+                                                           Parameter("topics", value=["no spaces allowed"])])
+    assert not list(tmp_path.iterdir())  # refused before any file was opened
 
     peer = rclpy.create_node("peer", context=context)
     latched = peer.create_publisher(String, "memgs/tracking_state", qos.latched())
