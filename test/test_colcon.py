@@ -100,6 +100,32 @@ def _wait_for_node(domain_id: int, proc: subprocess.Popen, timeout_s: float) -> 
         rclpy.try_shutdown(context=ctx)
 
 
+def _wait_for_message(domain_id: int, topic: str, timeout_s: float) -> bool:
+    """Whether a DiagnosticArray arrives on ``topic`` in ``domain_id`` within ``timeout_s``."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+
+    from memgs_ros.ros import qos
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    watcher = rclpy.create_node("colcon_test_listener", context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(watcher)
+    got: list[DiagnosticArray] = []
+    watcher.create_subscription(DiagnosticArray, topic, got.append, qos.reliable(5))
+    try:
+        deadline = time.monotonic() + timeout_s
+        while not got and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.1)
+        return bool(got)
+    finally:
+        executor.shutdown()
+        watcher.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
 @pytest.mark.parametrize("exe", NODES)
 def test_node_starts_and_stops_on_sigint(node_procs: dict[str, tuple[subprocess.Popen, int]], exe: str,
                                          prefix: Path) -> None:
@@ -111,6 +137,8 @@ def test_node_starts_and_stops_on_sigint(node_procs: dict[str, tuple[subprocess.
         pytest.fail(f"{exe} never appeared in the ROS graph (exit {proc.returncode}):\n{out[-4000:]}")
     assert names == [f"/uav1/{exe}"], names
     time.sleep(0.5)  # let it get from the constructor into spin
+    if exe == "recorder":  # spinning once its first stats message is out: its file is open by then
+        assert _wait_for_message(domain, "/uav1/memgs/recorder/stats", START_TIMEOUT_S), "recorder never spun"
     proc.send_signal(signal.SIGINT)
     try:
         out, _ = proc.communicate(timeout=STOP_TIMEOUT_S)

@@ -12,7 +12,7 @@ import pytest
 
 from memgs_ros.cli import main
 from memgs_ros.errors import ConfigError, DataError
-from memgs_ros.io.bag_stream import BagStream, ros2_typestore
+from memgs_ros.io.bag_stream import BackgroundBagStream, BagStream, ros2_typestore
 from memgs_ros.io.bag_writer import MessageFactory, write_bag
 from memgs_ros.io.synthetic import generate_frames, parse_spec
 from memgs_ros.orchestration.run_files import check_record_path
@@ -73,6 +73,37 @@ def test_bag_stream_replaces_only_when_complete_and_abort_keeps_the_old_file(tmp
     (tmp_path / "dir.mcap").mkdir()
     with pytest.raises(DataError, match="already exists"):
         BagStream(tmp_path / "dir.mcap", overwrite=True)
+
+
+def test_background_stream_survives_ctrl_c_in_the_caller_and_reports_write_errors(tmp_path: Path) -> None:
+    import _thread
+    import threading
+
+    out = tmp_path / "bg.mcap"
+    bag = BackgroundBagStream(out, max_queued=8)  # small: the caller waits on the writer too
+    bag.add_topic("/memgs/pose", "geometry_msgs/msg/PoseStamped")
+    sent = 0
+    threading.Timer(0.2, _thread.interrupt_main).start()  # what Ctrl-C does to the main thread
+    with pytest.raises(KeyboardInterrupt):
+        while True:
+            if bag.write("/memgs/pose", 10 + sent, _pose_cdr(sent, float(sent))):
+                sent += 1
+    assert bag.close() > 0 and not bag.is_open and bag.write("/memgs/pose", 0, b"") is False
+    _, msgs = _read(out)  # whole: every record the caller handed over, none cut in half
+    # (the interrupt may land after the last one was queued but before `sent` counted it)
+    assert sent > 0 and len(msgs) in (sent, sent + 1), (sent, len(msgs))
+    assert [t for _, t, _ in msgs] == list(range(10, 10 + len(msgs)))
+    ts = ros2_typestore()
+    last = ts.deserialize_cdr(msgs[-1][2], "geometry_msgs/msg/PoseStamped")
+    assert last.pose.position.x == len(msgs) - 1
+
+    bad = BackgroundBagStream(tmp_path / "bad.mcap")
+    with pytest.raises(DataError, match="not a ROS 2 Jazzy type"):
+        bad.add_topic("/x", "my_pkg/msg/Unknown")  # refused at once, not in the thread
+    bad.write("/never/added", 1, b"\0")  # fails in the writer thread ...
+    with pytest.raises(DataError, match="cannot write bag"):
+        bad.close()  # ... and is reported here; nothing is left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bg.mcap"]
 
 
 def test_write_bag_still_writes_frames_through_the_stream(tmp_path: Path) -> None:

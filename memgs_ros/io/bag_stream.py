@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import queue
 import shutil
 import tempfile
 import threading
@@ -18,7 +19,7 @@ from typing import Any
 
 from memgs_ros.errors import DataError
 
-__all__ = ["BagStream", "ros2_typestore"]
+__all__ = ["BackgroundBagStream", "BagStream", "ros2_typestore"]
 
 
 def ros2_typestore() -> Any:
@@ -51,11 +52,12 @@ class BagStream:
     removes the partial one. ``out_path`` ending in ``.mcap`` / ``.db3`` is a single storage file
     that rosbags, ``ros2 bag`` and Foxglove open without ``metadata.yaml``; anything else is a
     bag folder. ``overwrite``: replace an existing file at close instead of refusing at open.
+    ``typestore``: a Jazzy store already loaded (:func:`ros2_typestore`), else one is loaded here.
     Thread-safe: the lock orders writes from several callbacks and a concurrent close.
     """
 
     def __init__(self, out_path: str | os.PathLike[str], storage: str | None = None,
-                 overwrite: bool = False) -> None:
+                 overwrite: bool = False, typestore: Any = None) -> None:
         from rosbags.rosbag2 import StoragePlugin, Writer
 
         out = Path(out_path)
@@ -70,18 +72,21 @@ class BagStream:
         if out.is_dir() or (out.exists() and not (overwrite and self.single_file)):
             raise DataError(f"{out}: already exists; refusing to overwrite")
         self.path = out
-        self.typestore = ros2_typestore()
+        self.typestore = typestore if typestore is not None else ros2_typestore()
         self._tmp_root = _tmp_sibling(out)
         self._bag_dir = self._tmp_root / out.name
         self._connections: dict[str, Any] = {}
         self._counts: dict[str, int] = {}
         self._lock = threading.Lock()
-        self._writer: Any = Writer(self._bag_dir, version=9, storage_plugin=plugins[storage])
+        self._writer: Any = None
         try:
+            self._writer = Writer(self._bag_dir, version=9, storage_plugin=plugins[storage])
             self._writer.open()
-        except Exception as err:  # rosbags' WriterError or OSError: nothing usable was made
+        except BaseException as err:  # nothing usable was made: leave no temporary folder either
             self.abort()
-            raise DataError(f"{out}: cannot open a bag there ({err})") from err
+            if isinstance(err, Exception):  # rosbags' WriterError, OSError; a Ctrl-C passes as it is
+                raise DataError(f"{out}: cannot open a bag there ({err})") from err
+            raise
 
     def __enter__(self) -> BagStream:
         return self
@@ -102,15 +107,19 @@ class BagStream:
         with self._lock:
             return dict(self._counts)
 
+    def check_type(self, topic: str, msgtype: str) -> None:
+        """DataError unless the Jazzy type store knows ``msgtype`` (its schema goes into the bag)."""
+        if msgtype not in self.typestore.types:
+            raise DataError(f"{self.path}: topic {topic}: message type {msgtype} is not a ROS 2 Jazzy type "
+                            "this writer knows")
+
     def add_topic(self, topic: str, msgtype: str, offered_qos: Sequence[Any] = ()) -> None:
         """Register ``topic`` with ``msgtype`` (``pkg/msg/Name``, a Jazzy type) before writing to it.
 
         offered_qos: rosbags ``Qos`` profiles of its publishers, kept in the bag so a player can
         offer them again (a latched map stays latched). DataError for a type the Jazzy store
         does not know: its schema could not be written."""
-        if msgtype not in self.typestore.types:
-            raise DataError(f"{self.path}: topic {topic}: message type {msgtype} is not a ROS 2 Jazzy type "
-                            "this writer knows")
+        self.check_type(topic, msgtype)
         with self._lock:
             if self._writer is None:
                 raise DataError(f"{self.path}: the bag is closed")
@@ -162,3 +171,90 @@ class BagStream:
                 with contextlib.suppress(Exception):  # the partial bag is removed either way
                     writer.close()
             shutil.rmtree(self._tmp_root, ignore_errors=True)
+
+
+class BackgroundBagStream:
+    """A :class:`BagStream` fed through a queue and written by a thread of its own.
+
+    Python raises KeyboardInterrupt (Ctrl-C; rclpy's SIGINT handler chains to it) in the main
+    thread between any two bytecodes, so a write cut there would leave half a record in the file.
+    Here callers only enqueue: a Ctrl-C can lose the message being enqueued, never corrupt the
+    bag, and the file I/O leaves the caller's (executor) thread. At most ``max_queued`` messages
+    wait; a full queue makes :meth:`write` wait, which pushes back on the subscription's queue.
+    A write error in the thread (disk full) is raised as DataError by the next call.
+    """
+
+    def __init__(self, out_path: str | os.PathLike[str], overwrite: bool = False, typestore: Any = None,
+                 max_queued: int = 1000) -> None:
+        self._bag = BagStream(out_path, "mcap", overwrite=overwrite, typestore=typestore)
+        self.path = self._bag.path
+        self._queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(maxsize=max_queued)
+        self._closing = False
+        self._error: Exception | None = None
+        self._thread = threading.Thread(target=self._run, name="bag-writer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while (item := self._queue.get()) is not None:
+            if self._error is not None:
+                continue  # drain; the caller hears of the error
+            try:
+                if item[0] == "topic":
+                    self._bag.add_topic(*item[1:])
+                else:
+                    self._bag.write(*item[1:])
+            except Exception as err:  # noqa: BLE001 - handed to the caller's thread
+                self._error = err
+
+    def _raise_error(self) -> None:
+        if self._error is not None:
+            raise DataError(f"{self.path}: cannot write bag ({self._error})") from self._error
+
+    def _put(self, item: tuple[Any, ...]) -> bool:
+        self._raise_error()
+        while not self._closing:
+            try:
+                self._queue.put(item, timeout=0.1)  # re-checks closing: the thread may have ended
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    @property
+    def is_open(self) -> bool:
+        return not self._closing
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Messages written so far (not those still queued), by topic."""
+        return self._bag.counts
+
+    def add_topic(self, topic: str, msgtype: str, offered_qos: Sequence[Any] = ()) -> None:
+        """:meth:`BagStream.add_topic`, queued before the topic's messages; an unknown type is
+        refused here, at once."""
+        self._bag.check_type(topic, msgtype)
+        self._put(("topic", topic, msgtype, list(offered_qos)))
+
+    def write(self, topic: str, stamp_ns: int, data: bytes | memoryview) -> bool:
+        """Queue one serialised message; False (dropped) once closing."""
+        return self._put(("message", topic, int(stamp_ns), data))
+
+    def _stop(self) -> None:
+        if not self._closing:
+            self._closing = True
+            self._queue.put(None)
+        self._thread.join()
+
+    def close(self) -> int:
+        """Write what is queued, finish the bag and move it into place; its size in bytes."""
+        self._stop()
+        if self._error is not None:
+            self._bag.abort()
+            self._raise_error()
+        return self._bag.close()
+
+    def abort(self) -> None:
+        """Drop the queue and the partial bag; the path is left as it was."""
+        self._error = self._error or DataError("aborted")  # the thread skips what is still queued
+        self._stop()
+        self._bag.abort()

@@ -4,7 +4,9 @@ Subscribes to each topic in ``topics`` (default :data:`DEFAULT_TOPICS`: every me
 publisher of it is seen, with the message type and QoS its publishers offer (RELIABLE and
 TRANSIENT_LOCAL only when every publisher offers them, so a latched map arrives whole and a
 best-effort one is heard at all). Subscriptions are raw: the serialised CDR bytes go to the file
-as they came, never decoded and encoded again. Bag time is the receive time on the node's clock.
+as they came, never decoded and encoded again, written by a thread of their own
+(:class:`~memgs_ros.io.bag_stream.BackgroundBagStream`, so a Ctrl-C cannot cut a record in half).
+Bag time is the receive time on the node's clock.
 
 The file (``path``, ``.mcap``: ros2msg schemas, cdr encoding, the rosbag2 metadata record) is
 written under a hidden temporary name beside ``path`` and moved into place when the node stops
@@ -30,7 +32,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from memgs_ros.errors import ConfigError, DataError
-from memgs_ros.io.bag_stream import BagStream
+from memgs_ros.io.bag_stream import BackgroundBagStream, ros2_typestore
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.params import ParamSpec, declare_all
@@ -121,6 +123,9 @@ def _bag_qos(profile: QoSProfile) -> Any:
 
 class RecorderNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
+        # The type store is the slow part of starting (rosbags builds it): load it before the node
+        # shows in the graph, so whoever sees the node sees it ready moments later.
+        typestore = ros2_typestore()
         super().__init__("recorder", **node_kwargs)
         v = declare_all(self, PARAMS)
         path, topics, period = str(v["path"]), v["topics"], float(v["discovery_period_s"])
@@ -138,11 +143,15 @@ class RecorderNode(Node):
         except Exception as err:  # rclpy's InvalidTopicNameException and kin: a typo in a name
             raise ConfigError(f"parameter 'topics': {err}") from err
         self.recorded: dict[str, str] = {}  # topic -> message type
-        self.bag = BagStream(path, "mcap", overwrite=True)
-        self._discovery = self.create_timer(period, self._discover)
-        self._discover()
-        self.startup_cpu_s = time.process_time()
-        self.get_logger().info(f"recording {len(self.pending) + len(self.recorded)} topics into {path}")
+        self.bag = BackgroundBagStream(path, overwrite=True, typestore=typestore)
+        try:
+            self._discovery = self.create_timer(period, self._discover)
+            self._discover()
+            self.startup_cpu_s = time.process_time()
+            self.get_logger().info(f"recording {len(self.pending) + len(self.recorded)} topics into {path}")
+        except BaseException:  # stopped (Ctrl-C) or failed while starting: no file, no temporary one
+            self.bag.abort()
+            raise
 
     def _discover(self) -> None:
         """Subscribe to every wanted topic that has publishers now; stop looking once all have."""
