@@ -164,6 +164,7 @@ class _Processes:
         self.procs: dict[str, subprocess.Popen] = {}
         self.log_dir = log_dir
         self.player_reported = False  # the player announced its end (done or failed): its exit code is known
+        self.player_exit_seen: float | None = None  # when the runner first saw the player's process ended
         self._params_file, self._ns, self._env = params_file, namespace, env
 
     def start(self, name: str) -> None:
@@ -385,6 +386,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
                     restarts[name] = restarts.get(name, 0) + 1
                     del kills[name]
             procs.check()
+            if _player_ended_unheard(procs):
+                break
         if time.monotonic() > end:
             raise PipelineError(f"the source did not finish within {options.timeout_s:.0f} s")
         if bar is not None:
@@ -448,6 +451,25 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
     # The summary is a file of the run, so evaluation reads a finished run instead of watching it.
     _write_text(out / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2) + "\n")
     return summary
+
+
+_DONE_GRACE_S = 3.0  # after the player's exit, how long its latched "done" may still be in flight
+
+
+def _player_ended_unheard(procs: _Processes) -> bool:
+    """True when the player process ended cleanly (exit 0: the whole source played) but its
+    latched ``memgs/player/done`` has not arrived within a grace time: under heavy load the
+    message can be lost when the player exits right after publishing it. Its exit code says the
+    same, so the run goes on rather than waiting for ``--timeout``."""
+    p = procs.procs.get("bag_player")
+    if p is None or p.poll() != 0:
+        return False
+    if procs.player_exit_seen is None:
+        procs.player_exit_seen = time.monotonic()
+    if time.monotonic() - procs.player_exit_seen < _DONE_GRACE_S:
+        return False
+    logger.warning("the bag player finished (exit 0) but its done message did not arrive; going on")
+    return True
 
 
 def _show_progress(bar: tqdm, obs: _Observer) -> None:
