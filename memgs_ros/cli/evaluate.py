@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
+from memgs_ros.cli.rerun_options import add_rerun_arguments, rerun_target
 from memgs_ros.cli.run import check_inputs, guess_config, run_log
 from memgs_ros.errors import ConfigError
 
@@ -47,6 +48,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--single-process", action="store_true", help="run the nodes in this process")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS even when the lpips package is there")
     p.add_argument("--no-plots", action="store_true", help="write JSON and tables only")
+    add_rerun_arguments(p)
 
 
 def _overrides(items: list[str]) -> dict[str, Any]:
@@ -86,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
     source = str(args.source)
     config = args.config or guess_config(source)
     overrides = _overrides(args.set)
+    args.rerun_target = rerun_target(args)  # ConfigError without rerun-sdk, before anything starts
     warnings = check_inputs(source, config, args.max_frames, overrides, args.out)  # before torch, rclpy, nodes
     with run_log(args.out):
         for warning in warnings:
@@ -109,7 +112,7 @@ def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dic
     if not torch.cuda.is_available():
         configure_cpu_runtime()  # this process renders every frame on CPU
     kwargs = dict(max_frames=args.max_frames, domain_id=args.domain_id, timeout_s=args.timeout,
-                  single_process=args.single_process, use_lpips=not args.no_lpips)
+                  single_process=args.single_process, use_lpips=not args.no_lpips, rerun=args.rerun_target)
     out = Path(args.out)
     if args.ablation:
         res = evaluation.ablation(source, config, args.mode, args.scale, args.seed, out, overrides, **kwargs)

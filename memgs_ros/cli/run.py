@@ -11,6 +11,7 @@ from pathlib import Path
 
 import yaml
 
+from memgs_ros.cli.rerun_options import add_rerun_arguments, rerun_target
 from memgs_ros.core.camera import PinholeCamera, calibration_differences, describe_camera
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.orchestration.run_files import (
@@ -49,6 +50,7 @@ def add_graph_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kill", action="append", default=[], metavar="NODE@SECONDS",
                    help="fault injection: SIGKILL NODE (mapper, merger, ...) this many seconds after the "
                         "player starts and restart it at once (repeatable; separate processes only)")
+    add_rerun_arguments(p)
 
 
 def guess_config(source: str) -> str:
@@ -82,7 +84,7 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
         source=source, config=args.config or guess_config(source), out_dir=args.out,
         single_process=args.single_process, lockstep=not args.realtime, rate=args.rate,
         namespace=args.namespace, domain_id=args.domain_id, max_frames=args.max_frames,
-        overrides=overrides, timeout_s=args.timeout, kill_after_s=kills)
+        overrides=overrides, timeout_s=args.timeout, kill_after_s=kills, rerun=rerun_target(args))
 
 
 def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict | None = None,

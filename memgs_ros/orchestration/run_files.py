@@ -19,6 +19,7 @@ import yaml
 
 from memgs_ros.core.camera import CameraCalibration, PinholeCamera
 from memgs_ros.errors import ConfigError, DataError
+from memgs_ros.viz import RerunTarget
 
 __all__ = [
     "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE", "STATS_TIMELINE_FILE",
@@ -26,8 +27,9 @@ __all__ = [
     "config_path", "configured_camera", "node_params", "read_params", "read_stats_timeline", "read_summary",
 ]
 
-# The nodes a parameter override may name; the pipeline starts one module per name.
-NODE_NAMES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player")
+# The nodes a parameter override may name; the pipeline starts one module per name (rerun_bridge
+# only with RunOptions.rerun).
+NODE_NAMES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player", "rerun_bridge")
 
 # Files in a run's output folder.
 PARAMS_FILE = "params.yaml"  # the effective per-node parameters
@@ -58,6 +60,8 @@ class RunOptions:
     # the player starts, and start them again at once (the mapper resumes from its checkpoint).
     kill_after_s: Mapping[str, float] = field(default_factory=dict)
     timeout_s: float = 1800.0
+    # Stream the run to Rerun (viewer and/or .rrd file) through a rerun_bridge node; None = no view.
+    rerun: RerunTarget | None = None
 
 
 @dataclass(frozen=True)
@@ -134,6 +138,9 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         params.setdefault("tracker", {}).setdefault("tracker.ba_threaded", False)
         params["tracker"].setdefault("input_reliability", "reliable")  # lockstep must not lose a frame
     params.setdefault("merger", {})["map_path"] = str(map_path)
+    if options.rerun is not None:
+        params.setdefault("rerun_bridge", {}).update(
+            options.rerun.node_params(), recording_name=f"{Path(str(options.source)).name} ({Path(options.out_dir).name})")
     params.setdefault("mapper", {}).setdefault("checkpoint_path", str(map_path.with_name("mapper_checkpoint.npz")))
     for key, value in options.overrides.items():
         node, _, name = key.partition(".")
