@@ -68,8 +68,8 @@ class RerunTarget:
         require_rerun()
         if self.spawn and not _can_show_viewer():
             raise ConfigError("cannot spawn a Rerun viewer: no display (DISPLAY / WAYLAND_DISPLAY unset) and no "
-                              f"viewer listening on port {VIEWER_PORT}; record with --rerun-save FILE.rrd or stream "
-                              "to a viewer elsewhere with --rerun-url rerun+http://HOST:9876/proxy")
+                              f"viewer listening on port {VIEWER_PORT}; save an .rrd file instead, or stream to a "
+                              "viewer elsewhere (rerun+http://HOST:9876/proxy)")
         if self.save_path is not None:
             folder = Path(self.save_path).expanduser().resolve().parent
             try:
