@@ -33,7 +33,9 @@ def run(args: argparse.Namespace) -> int:
     saved = load_saved_run(args.map, args.trajectory, args.keyframes)
     rec = target.open("memgs_ros", recording_name=str(saved.map_path))
     log_saved_run(rec, saved, sh=not args.no_sh)
-    rec.flush()
+    from memgs_ros.viz.rerun_log import finish  # imports rerun: after target.check()
+
+    finish(rec, timeout_s=60.0)
     n_traj = 0 if saved.trajectory is None else len(saved.trajectory[0])
     n_kf = 0 if saved.keyframes is None else len(saved.keyframes[0])
     print(f"{saved.map_path}: {len(saved.records)} Gaussians, {n_traj} poses, {n_kf} keyframes, "

@@ -219,7 +219,7 @@ class RerunBridgeNode(Node):
 
     def on_shutdown(self) -> None:
         # The file sink and the gRPC stream are written by rerun's own threads: wait for them.
-        self.rec.flush(timeout_sec=10.0)
+        self.log.finish(self.rec)
 
 
 def main(args: list[str] | None = None) -> int:

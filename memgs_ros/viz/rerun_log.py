@@ -34,7 +34,7 @@ from memgs_ros.viz.splats import psnr_db, splat_arrays
 
 __all__ = [
     "CAMERA", "FRAME_VIEW", "KEYFRAMES", "MAP", "PSNR", "RENDER_VIEW", "STATS", "TRAJECTORY", "LogTime",
-    "keyframe_path", "log_camera", "log_keyframe", "log_map", "log_scalars", "log_trajectory", "log_views",
+    "finish", "keyframe_path", "log_camera", "log_keyframe", "log_map", "log_scalars", "log_trajectory", "log_views",
     "log_stats_rows", "log_world", "numeric_values", "send_blueprint",
 ]
 
@@ -202,6 +202,13 @@ def numeric_values(values: Mapping[str, object], keys: set[str] | None) -> dict[
         if np.isfinite(v):
             out[key] = v
     return out
+
+
+def finish(rec: rr.RecordingStream, timeout_s: float = 10.0) -> None:
+    """Flush what rerun's threads still hold and close the sinks: an ``.rrd`` file gets its footer
+    (without it, readers fall back to scanning the whole file)."""
+    rec.flush(timeout_sec=timeout_s)
+    rec.disconnect()
 
 
 def send_blueprint(rec: rr.RecordingStream, with_views: bool = True) -> None:
