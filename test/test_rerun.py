@@ -110,6 +110,16 @@ def test_splat_arrays_values_and_edge_cases() -> None:
     assert sh_rest_rgb(f_rest)[0, 2].tolist() == [2.0, 17.0, 32.0]  # coefficient 2 of R, G, B
 
 
+def test_viz_imports_no_rclpy() -> None:
+    """The view's library half runs where ROS does not (memgs view on a laptop)."""
+    import subprocess
+
+    code = ("import sys, memgs_ros.viz.rerun_log, memgs_ros.viz.saved_run, memgs_ros.viz.map_follow, "
+            "memgs_ros.cli.view; assert 'rclpy' not in sys.modules, 'rclpy imported'")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+
+
 def test_psnr_db() -> None:
     a = np.zeros((4, 4, 3), np.uint8)
     b = a.copy()
@@ -146,6 +156,38 @@ def test_log_views_pairs_frame_and_render(tmp_path: Path) -> None:
     assert len(rows["/views/render"]) == 3 and len(rows["/views/frame"]) == 2
     assert _component(rows["/views/frame"], "EncodedImage:blob")  # the JPEG one
     assert [r["frame"] for r in rows["/quality/psnr_db"]] == [4]  # inf is not plotted
+
+
+def test_map_follower_follows_deltas_and_repairs_gaps_from_full_maps() -> None:
+    """The bridge's copy of the map: in step from deltas; a lost delta or a late start is repaired
+    by a full map, and the deltas that arrived meanwhile are replayed on top of it."""
+    from memgs_ros.core.map_delta import DeltaOutbox, decode
+    from memgs_ros.viz.map_follow import MapFollower
+
+    out = DeltaOutbox(sh_degree=3, tolerance=0.0, epoch=5)
+    maps = [_records(50 + 10 * i, seed=0) for i in range(8)]  # grows by 10 Gaussians a step, same ids kept
+    deltas = [decode(out.next_delta(m)) for m in maps[:4]]
+    f = MapFollower()
+    for d in deltas:
+        assert not f.on_delta(d)
+    assert f.in_step and f.version == (5, 4, 80)
+    np.testing.assert_array_equal(f.replica.records.xyz, maps[3].xyz)
+
+    lost = decode(out.next_delta(maps[4]))  # seq 5 never arrives
+    assert lost.seq == 5
+    assert f.on_delta(decode(out.next_delta(maps[5])))  # seq 6: a gap, asks for a full map
+    assert not f.in_step
+    full = decode(out.snapshot(maps[5]))  # the merger's map, seq 7, published late:
+    assert f.on_delta(decode(out.next_delta(maps[6])))  # seq 8 arrives first and waits
+    assert f.on_full_map(full)
+    assert f.in_step and f.version == (5, 8, 110)
+    np.testing.assert_array_equal(f.replica.records.xyz, maps[6].xyz)
+
+    late = MapFollower()  # started mid-run: nothing until a full map
+    assert late.on_delta(decode(out.next_delta(maps[7]))) and not late.in_step
+    assert not late.on_full_map(deltas[0])  # a delta is not a full map
+    assert late.on_full_map(decode(out.snapshot(maps[7])))
+    assert late.in_step and late.version == (5, 10, 120)
 
 
 # --------------------------------------------------------------------------- memgs view

@@ -23,6 +23,7 @@ logger = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from memgs_ros.evaluation import EvalResult
+    from memgs_ros.viz import RerunTarget
 
 HELP = "evaluate a run like the paper: PSNR/SSIM, memory, Gaussians, ATE, FPS (optionally an ablation)"
 
@@ -88,15 +89,16 @@ def run(args: argparse.Namespace) -> int:
     source = str(args.source)
     config = args.config or guess_config(source)
     overrides = _overrides(args.set)
-    args.rerun_target = rerun_target(args)  # ConfigError without rerun-sdk, before anything starts
+    rerun = rerun_target(args)  # ConfigError without rerun-sdk, before anything starts
     warnings = check_inputs(source, config, args.max_frames, overrides, args.out)  # before torch, rclpy, nodes
     with run_log(args.out):
         for warning in warnings:
             logger.warning(warning)
-        return _evaluate(args, source, config, overrides)
+        return _evaluate(args, source, config, overrides, rerun)
 
 
-def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dict[str, Any]) -> int:
+def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dict[str, Any],
+              rerun: RerunTarget | None) -> int:
     # Loaded here, not at the top: every subcommand module is imported to build the parser, and
     # these pull in torch and matplotlib (seconds), which `memgs --help` and `memgs run` never need.
     import matplotlib
@@ -112,7 +114,7 @@ def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dic
     if not torch.cuda.is_available():
         configure_cpu_runtime()  # this process renders every frame on CPU
     kwargs = dict(max_frames=args.max_frames, domain_id=args.domain_id, timeout_s=args.timeout,
-                  single_process=args.single_process, use_lpips=not args.no_lpips, rerun=args.rerun_target)
+                  single_process=args.single_process, use_lpips=not args.no_lpips, rerun=rerun)
     out = Path(args.out)
     if args.ablation:
         res = evaluation.ablation(source, config, args.mode, args.scale, args.seed, out, overrides, **kwargs)

@@ -8,15 +8,16 @@ Subscribes: ``memgs/pose`` (camera pose each frame), ``memgs/path`` (the tracker
 trajectory, 1 Hz), ``memgs/keyframe/{pose,camera_info}`` (frusta),
 ``memgs/keyframe/{refined,loop_corrected}_poses`` (keyframes moved by BA and loop closure),
 ``color_topic`` (the source frames, kept briefly to pair with renders), ``memgs/render/color``
-(the mapper's live render at the latest pose), ``memgs/map/gaussians`` (the merger's full map,
-latched) and ``memgs/<node>/stats``. Publishes ``memgs/rerun_bridge/stats`` (``map_seq``,
+(the mapper's live render at the latest pose), ``memgs/map/delta`` (the mapper's map deltas),
+``memgs/map/gaussians`` (the merger's full map, latched) and ``memgs/<node>/stats``. Publishes ``memgs/rerun_bridge/stats`` (``map_seq``,
 ``map_epoch``, ``map_gaussians`` of the last map logged; ``log_us_total``, the time spent in
 Rerun's log calls; ``cpu_s``, this process's CPU time, which in one process with the other nodes
 (``--single-process``) is theirs too).
 
-The map: every ``map_period_s`` the node asks the merger to publish it
-(``memgs/merger/publish_map``), only when the merger's stats show a map newer than the one last
-logged, so an idle map costs nothing; maps the merger publishes on its own are logged too.
+The map: the node follows the deltas as the merger does (:class:`MapFollower`) and logs its copy
+every ``map_period_s`` when it changed, so the view costs the robot no extra traffic. It asks the
+merger for the full map (``memgs/merger/publish_map``) only to start late or repair a gap, and
+logs every full map the merger publishes at once (the run's final map among them).
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.map_delta import decode
+from memgs_ros.core.map_delta import MapMessage, decode
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, decode_rgb
 from memgs_ros.ros import qos
@@ -44,12 +45,14 @@ from memgs_ros.ros.diagnostics import NodeStats, stats_values
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.params import declare
 from memgs_ros.viz import RerunTarget, require_rerun
+from memgs_ros.viz.map_follow import MapFollower
 
 # The stats plotted by default: map size and training progress, tracking speed, memory.
 DEFAULT_STATS_KEYS = ("gaussians,iteration,loss,keyframes,poses_out,track_ms,rss_mb,model_bytes,map_bytes,"
                       "delta_bytes")
 STATS_NODES = ("tracker", "keyframe_sampler", "mapper", "merger")
 _FRAMES_KEPT = 30  # source frames held to pair with a render of the same stamp (renders lag < 1 s)
+_RESYNC_INTERVAL_S = 2.0  # least time between full-map requests while out of step
 
 
 class RerunBridgeNode(Node):
@@ -61,8 +64,8 @@ class RerunBridgeNode(Node):
         save = declare(self, "save_path", "", "also record to this .rrd file; empty = none")
         app = declare(self, "application_id", "memgs_ros", "Rerun application id (the viewer groups recordings by it)")
         name = declare(self, "recording_name", "", "Rerun recording name (empty: the node's namespace)")
-        self.map_period = declare(self, "map_period_s", 5.0, "log the map at most this often (s); 0 = only maps "
-                                  "the merger publishes on its own", range=(0.0, 3600.0))
+        self.map_period = declare(self, "map_period_s", 5.0, "log the map this often when it changed (s); 0 = only "
+                                  "full maps the merger publishes", range=(0.0, 3600.0))
         self.log_sh = declare(self, "log_sh", False, "send the map's degree 1..3 SH coefficients too (+90 B a "
                               "Gaussian each time; the viewer then shows view-dependent colour)")
         self.jpeg_quality = declare(self, "jpeg_quality", 85, "JPEG quality of logged images (0 = raw pixels)",
@@ -93,10 +96,13 @@ class RerunBridgeNode(Node):
         self.frame_of_stamp: OrderedDict[int, int] = OrderedDict()
         self.frames: OrderedDict[int, Image] = OrderedDict()  # stamp -> source colour message
         self.camera: PinholeCamera | None = None
+        self._camera_logged: PinholeCamera | None = None  # the camera of the last frustum at world/camera
         self.keyframes: dict[int, int] = {}  # stamp -> keyframe index
-        self.merger_version: tuple[int, int, int] | None = None  # (epoch, seq, gaussians) from its stats
-        self.logged_version: tuple[int, int, int] | None = None
+        self.keyframe_poses: dict[int, np.ndarray] = {}  # keyframe index -> T_wc [4, 4] as last logged
+        self.map = MapFollower()
+        self.logged_version: tuple[int, int, int] | None = None  # MapFollower.version of the last map logged
         self._map_request: Any = None
+        self._map_requested_at = -1e9
 
         self.create_subscription(PoseStamped, "memgs/pose", self.on_pose, qos.reliable(100))
         self.create_subscription(Path, "memgs/path", self.on_path, qos.reliable(5))
@@ -108,13 +114,14 @@ class RerunBridgeNode(Node):
         if self.log_frames:
             self.create_subscription(Image, color_topic, self.on_frame, qos.sensor())
         self.create_subscription(Image, "memgs/render/color", self.on_render, qos.reliable(2))
-        self.create_subscription(PointCloud2, "memgs/map/gaussians", self.on_map, qos.latched())
+        self.create_subscription(PointCloud2, "memgs/map/delta", self.on_delta, qos.reliable(50))
+        self.create_subscription(PointCloud2, "memgs/map/gaussians", self.on_full_map, qos.latched())
         for node in STATS_NODES:
             self.create_subscription(DiagnosticArray, f"memgs/{node}/stats",
                                      lambda m, n=node: self.on_stats(n, m), qos.reliable(5))
         self.publish_map_client = self.create_client(Trigger, "memgs/merger/publish_map")
         if self.map_period > 0:
-            self.create_timer(self.map_period, self.request_map)
+            self.create_timer(self.map_period, self.log_map)
         self.create_timer(1.0, lambda: self.stats.gauges.update(cpu_s=round(time.process_time(), 3)))
         sinks = ", ".join(s for s in (spawn and "spawned viewer", url, save) if s)
         self.get_logger().info(f"logging to Rerun: {sinks}")
@@ -129,7 +136,9 @@ class RerunBridgeNode(Node):
     def _timed(self, what: str, fn: Any, *args: Any) -> Any:
         t0 = time.perf_counter()
         out = fn(*args)
-        self.stats.counters["log_us_total"] += int((time.perf_counter() - t0) * 1e6)
+        us = int((time.perf_counter() - t0) * 1e6)
+        self.stats.counters["log_us_total"] += us
+        self.stats.counters[f"log_us.{what}"] += us
         self.stats.counters[f"logged.{what}"] += 1
         return out
 
@@ -141,7 +150,10 @@ class RerunBridgeNode(Node):
         self.frame_of_stamp[stamp] = self.frame_index
         while len(self.frame_of_stamp) > 4 * _FRAMES_KEPT:
             self.frame_of_stamp.popitem(last=False)
-        self._timed("pose", self.log.log_camera, self.rec, pose_to_matrix(msg.pose), self._now(stamp), self.camera)
+        # The frustum once per camera (the viewer keeps the latest); the transform every frame.
+        camera = self.camera if self.camera != self._camera_logged else None
+        self._camera_logged = self.camera
+        self._timed("pose", self.log.log_camera, self.rec, pose_to_matrix(msg.pose), self._now(stamp), camera)
 
     def on_path(self, msg: Path) -> None:
         if len(msg.poses) >= 2:
@@ -150,22 +162,35 @@ class RerunBridgeNode(Node):
 
     def on_camera_info(self, msg: CameraInfo) -> None:
         try:
-            self.camera = decode_camera_info(msg)
+            camera = decode_camera_info(msg)
         except (MessageError, DataError) as err:
             self.stats.problem("bad_camera_info", f"camera_info ignored: {err}")
+            return
+        first = self.camera is None
+        self.camera = camera
+        if first:  # keyframes that came before their camera_info get their frusta now
+            for index, T in self.keyframe_poses.items():
+                self._timed("keyframe", self.log.log_keyframe, self.rec, index, T, self._now(), self.camera, self.plane_m)
 
     def on_keyframe(self, msg: PoseStamped) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
-        index = self.keyframes.setdefault(stamp, len(self.keyframes))
-        self._timed("keyframe", self.log.log_keyframe, self.rec, index, pose_to_matrix(msg.pose),
-                    self._now(stamp), self.camera, self.plane_m)
+        if stamp in self.keyframes:
+            return  # a TRANSIENT_LOCAL copy of one already logged
+        index = self.keyframes[stamp] = len(self.keyframes)
+        T = self.keyframe_poses[index] = pose_to_matrix(msg.pose)
+        self._timed("keyframe", self.log.log_keyframe, self.rec, index, T, self._now(stamp), self.camera, self.plane_m)
 
     def on_keyframes_moved(self, msg: Path) -> None:
+        """Move the keyframes that BA or a loop closure moved by more than 1 mm or ~0.06 degrees
+        (BA sends its whole window after every run; most of it barely moves)."""
         for p in msg.poses:
             index = self.keyframes.get(stamp_to_ns(p.header.stamp))
-            if index is not None:
-                self._timed("keyframe", self.log.log_keyframe, self.rec, index, pose_to_matrix(p.pose),
-                            self._now(), self.camera, self.plane_m)
+            if index is None:
+                continue
+            T = pose_to_matrix(p.pose)
+            if np.abs(T[:3] - self.keyframe_poses[index][:3]).max() > 1e-3:
+                self.keyframe_poses[index] = T
+                self._timed("keyframe_moved", self.log.log_keyframe, self.rec, index, T, self._now())
 
     def on_frame(self, msg: Image) -> None:
         self.frames[stamp_to_ns(msg.header.stamp)] = msg  # decoded only if a render pairs with it
@@ -185,37 +210,50 @@ class RerunBridgeNode(Node):
         if value is not None:
             self.stats.gauges["psnr_db"] = round(value, 2)
 
-    def on_map(self, msg: PointCloud2) -> None:
+    def _decode_map(self, msg: PointCloud2) -> MapMessage | None:
         try:
-            m = decode(pointcloud2_to_structured(msg))
+            return decode(pointcloud2_to_structured(msg))
         except MessageError as err:
-            self.stats.problem("bad_map_message", f"map message not logged: {err}")
+            self.stats.problem("bad_map_message", f"map message ignored: {err}")
+            return None
+
+    def on_delta(self, msg: PointCloud2) -> None:
+        m = self._decode_map(msg)
+        if m is not None and self.map.on_delta(m):
+            self.request_full_map()
+
+    def on_full_map(self, msg: PointCloud2) -> None:
+        m = self._decode_map(msg)
+        if m is not None and self.map.on_full_map(m):
+            self.log_map()  # rare (on request, the merger's period, the end of a run): show it now
+        if self.map.resyncing:
+            self.request_full_map()
+
+    def log_map(self) -> None:
+        """Log the followed map if it changed since the last one logged."""
+        if self.map.resyncing:
+            self.request_full_map()
+        if not self.map.in_step or self.map.version == self.logged_version:
             return
-        version = (m.epoch, m.seq, len(m.upserts))
-        if version != self.logged_version:
-            self._timed("map", self.log.log_map, self.rec, m.upserts, self._now(), self.log_sh)
-            self.logged_version = version
-        self.stats.gauges.update(map_epoch=m.epoch, map_seq=m.seq, map_gaussians=len(m.upserts))
+        records = self.map.replica.records
+        self._timed("map", self.log.log_map, self.rec, records, self._now(), self.log_sh)
+        self.logged_version = epoch, seq, n = self.map.version
+        self.stats.gauges.update(map_epoch=epoch, map_seq=seq, map_gaussians=n)
 
-    def on_stats(self, node: str, msg: DiagnosticArray) -> None:
-        values = stats_values(msg)
-        if node == "merger":
-            try:
-                self.merger_version = (int(values["epoch"]), int(values["seq"]), int(values["gaussians"]))
-            except (KeyError, ValueError):
-                pass  # a merger that holds no map yet
-        numbers = self.log.numeric_values(values, self.stats_keys)
-        if numbers:
-            self._timed("stats", self.log.log_scalars, self.rec, node, numbers, self._now())
-
-    def request_map(self) -> None:
-        """Ask the merger for its map when its stats show one newer than the last logged."""
+    def request_full_map(self) -> None:
+        """Ask the merger for its full map, at most every few seconds and one request at a time."""
         pending = self._map_request is not None and not self._map_request.done()
-        if (pending or self.merger_version is None or self.merger_version == self.logged_version
-                or self.merger_version[2] == 0 or not self.publish_map_client.service_is_ready()):
+        now = time.monotonic()
+        if pending or now - self._map_requested_at < _RESYNC_INTERVAL_S or not self.publish_map_client.service_is_ready():
             return
+        self._map_requested_at = now
         self._map_request = self.publish_map_client.call_async(Trigger.Request())
         self.stats.counters["map_requests"] += 1
+
+    def on_stats(self, node: str, msg: DiagnosticArray) -> None:
+        numbers = self.log.numeric_values(stats_values(msg), self.stats_keys)
+        if numbers:
+            self._timed("stats", self.log.log_scalars, self.rec, node, numbers, self._now())
 
     def on_shutdown(self) -> None:
         # The file sink and the gRPC stream are written by rerun's own threads: wait for them.

@@ -131,7 +131,8 @@ def keyframe_path(index: int) -> str:
 def log_keyframe(rec: rr.RecordingStream, index: int, T_wc: np.ndarray, t: LogTime | None,  # [4, 4]
                  camera: PinholeCamera | None = None, image_plane_distance_m: float = 0.08) -> None:
     """Keyframe ``index`` at pose ``T_wc`` [4, 4]: a transform and, with ``camera``, a frustum.
-    Logging it again (after bundle adjustment or a loop closure) moves it."""
+    Logging it again (after bundle adjustment or a loop closure) moves it; the frustum stays
+    (leave ``camera`` out then)."""
     log_camera(rec, T_wc, t, camera, keyframe_path(index), image_plane_distance_m)
 
 
