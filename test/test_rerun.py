@@ -303,7 +303,8 @@ def test_run_rerun_save_end_to_end(tmp_path: Path, ros_domain_id: int) -> None:
     assert len(maps) >= 2  # the map grew during the run, not only at the end
     assert len(maps[-1]) == s.gaussians == len(saved) > 1000
     np.testing.assert_array_equal(np.sort(np.array(maps[-1]), axis=0), np.sort(saved.xyz, axis=0))
-    assert len(_component(rows["/world/camera"], "Transform3D:translation")) == s.poses == 30
+    # The first pose may go out before DDS has matched the bridge to the tracker (a viewer joining).
+    assert s.poses - 1 <= len(_component(rows["/world/camera"], "Transform3D:translation")) <= s.poses == 30
     assert _component(rows["/world/camera"], "Pinhole:image_from_camera")
     assert len([e for e in rows if e.startswith("/world/keyframes/")]) == s.keyframes
     assert len(_component(rows["/world/trajectory"], "LineStrips3D:strips")[-1][0]) >= 2
