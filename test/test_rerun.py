@@ -223,8 +223,8 @@ def test_view_logs_map_trajectory_keyframes_and_stats(tmp_path: Path, capsys: py
     keyframes = sorted(e for e in rows if e.startswith("/world/keyframes/"))
     assert keyframes == [f"/world/keyframes/{i:05d}" for i in range(5)]
     assert _component(rows["/world/keyframes/00001"], "Pinhole:image_from_camera")
-    assert [r["Scalars:scalars"] for r in rows["/stats/mapper/gaussians"]] == [[10.0], [20.0]]
-    assert "/stats/mapper/state" not in rows
+    assert [r["Scalars:scalars"] for r in rows["/stats/gaussians/mapper"]] == [[10.0], [20.0]]
+    assert "/stats/state/mapper" not in rows
 
 
 def test_view_takes_explicit_files_and_reports_bad_ones(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -312,6 +312,6 @@ def test_run_rerun_save_end_to_end(tmp_path: Path, ros_domain_id: int) -> None:
     assert _component(rows["/views/frame"], "EncodedImage:blob")
     psnr = [v[0] for v in _component(rows["/quality/psnr_db"], "Scalars:scalars")]
     assert psnr and max(psnr) > 15.0  # a live render of the room, not a blank image (~8-12 dB)
-    gaussians = [v[0] for v in _component(rows["/stats/mapper/gaussians"], "Scalars:scalars")]
+    gaussians = [v[0] for v in _component(rows["/stats/gaussians/mapper"], "Scalars:scalars")]
     assert gaussians and max(gaussians) > 1000
-    assert _component(rows["/stats/tracker/poses_out"], "Scalars:scalars")
+    assert _component(rows["/stats/poses_out/tracker"], "Scalars:scalars")

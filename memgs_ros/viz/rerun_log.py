@@ -13,7 +13,7 @@ Entities (the blueprint of :func:`send_blueprint` lays them out)::
     world/keyframes/<n>      Transform3D + Pinhole of keyframe n
     views/frame, views/render   the source frame and the live render at the same pose
     quality/psnr_db          PSNR of that render against that frame
-    stats/<node>/<key>       Scalars from the nodes' stats
+    stats/<key>/<node>       Scalars from the nodes' stats (one plot a key, one series a node)
 
 Import this module only after :func:`memgs_ros.viz.require_rerun` (it imports rerun).
 """
@@ -168,10 +168,10 @@ def log_views(rec: rr.RecordingStream, render_rgb: np.ndarray, frame_rgb: np.nda
 
 
 def log_scalars(rec: rr.RecordingStream, node: str, values: Mapping[str, float], t: LogTime) -> None:
-    """One time series point per value, at ``stats/<node>/<key>``."""
+    """One time series point per value, at ``stats/<key>/<node>`` (a key's plot shows every node)."""
     _set_time(rec, t)
     for key, value in values.items():
-        rec.log(f"{STATS}/{node}/{key}", rr.Scalars(float(value)))
+        rec.log(f"{STATS}/{key}/{node}", rr.Scalars(float(value)))
 
 
 def log_stats_rows(rec: rr.RecordingStream, rows: Iterable[Mapping[str, object]], keys: Iterable[str]) -> int:
@@ -184,7 +184,7 @@ def log_stats_rows(rec: rr.RecordingStream, rows: Iterable[Mapping[str, object]]
         rec.reset_time()
         rec.set_time(RUN_TIMELINE, duration=float(row["t_s"]))  # type: ignore[arg-type]
         for key, value in numeric_values(row, wanted).items():
-            rec.log(f"{STATS}/{row['node']}/{key}", rr.Scalars(value))
+            rec.log(f"{STATS}/{key}/{row['node']}", rr.Scalars(value))
             n += 1
     return n
 
@@ -212,16 +212,19 @@ def finish(rec: rr.RecordingStream, timeout_s: float = 10.0) -> None:
     rec.disconnect()
 
 
+# The stats plotted side by side (tabs) in the default layout; others are logged, not laid out.
+PLOTTED_STATS = ("gaussians", "rss_mb", "track_ms", "iteration", "loss", "keyframes", "delta_bytes", "map_bytes")
+
+
 def send_blueprint(rec: rr.RecordingStream, with_views: bool = True) -> None:
-    """The default layout: the 3D world on the left; frame and render side by side above the
-    time series on the right (``with_views``), or the time series alone."""
-    plots = rrb.TimeSeriesView(origin=STATS, name="stats")
-    right: rrb.Container | rrb.View = plots
+    """The default layout: the 3D world on the left; on the right the frame and the render side by
+    side (``with_views``), the PSNR, and the stats in tabs, one plot a key."""
+    plots = rrb.Tabs(*(rrb.TimeSeriesView(origin=f"{STATS}/{key}", name=key) for key in PLOTTED_STATS))
+    right: list[rrb.Container | rrb.View] = [plots]
     if with_views:
-        right = rrb.Vertical(
-            rrb.Horizontal(rrb.Spatial2DView(origin=FRAME_VIEW, name="frame"),
-                           rrb.Spatial2DView(origin=RENDER_VIEW, name="render")),
-            rrb.TimeSeriesView(origin="quality", name="PSNR (dB)"), plots)
+        right = [rrb.Horizontal(rrb.Spatial2DView(origin=FRAME_VIEW, name="frame"),
+                                rrb.Spatial2DView(origin=RENDER_VIEW, name="render")),
+                 rrb.TimeSeriesView(origin="quality", name="PSNR (dB)"), plots]
     rec.send_blueprint(rrb.Blueprint(
-        rrb.Horizontal(rrb.Spatial3DView(origin="world", name="map"), right, column_shares=[3, 2]),
+        rrb.Horizontal(rrb.Spatial3DView(origin="world", name="map"), rrb.Vertical(*right), column_shares=[3, 2]),
         collapse_panels=True))
