@@ -116,6 +116,10 @@ def matplotlib_figure(rrd: Path, out: Path) -> Path:
         rgba = np.stack([(packed >> s) & 255 for s in (24, 16, 8, 0)], axis=1) / 255.0
         order = np.argsort(-xyz[:, 1])  # world y points down: draw the lowest first, the top last
         ax.scatter(xyz[order, 0], xyz[order, 2], c=rgba[order], s=1.0, linewidths=0)
+        lo, hi = np.percentile(xyz[:, [0, 2]], [1, 99], axis=0)  # a few stray Gaussians would zoom out
+        pad = 0.1 * (hi - lo)
+        ax.set_xlim(lo[0] - pad[0], hi[0] + pad[0])
+        ax.set_ylim(lo[1] - pad[1], hi[1] + pad[1])
         ax.set_title(f"map from above: {len(xyz)} Gaussians (last map logged)")
     strips = last("/world/trajectory", "LineStrips3D:strips")
     if strips:
@@ -135,7 +139,7 @@ def matplotlib_figure(rrd: Path, out: Path) -> Path:
         if blob is not None:
             import cv2
 
-            img = cv2.imdecode(np.frombuffer(bytes(blob), np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
+            img = cv2.imdecode(np.frombuffer(bytes(blob[0]), np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
             a.imshow(img)
         a.set_title(f"last {title}")
         a.axis("off")
