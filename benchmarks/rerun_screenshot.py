@@ -47,6 +47,18 @@ def _wait_http(url: str, timeout_s: float) -> None:
             time.sleep(0.5)
 
 
+def _drawn(png: Path) -> bool:
+    """False for the loading screen: one dark colour over nearly the whole image."""
+    import cv2
+    import numpy as np
+
+    img = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        return False
+    values, counts = np.unique(img, return_counts=True)
+    return counts.max() / img.size < 0.8
+
+
 def web_screenshot(rrd: Path, out: Path, size: tuple[int, int], wait_s: float, chromium: str) -> Path:
     """Serve ``rrd`` with ``rerun --serve-web`` and screenshot the web viewer with headless Chromium."""
     browser = shutil.which(chromium)
@@ -60,14 +72,21 @@ def web_screenshot(rrd: Path, out: Path, size: tuple[int, int], wait_s: float, c
         data = urllib.parse.quote(f"rerun+http://127.0.0.1:{grpc_port}/proxy", safe="")
         url = f"http://127.0.0.1:{web_port}/?url={data}&renderer=webgl"
         out.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory() as profile:
-            cmd = [browser, "--headless=new", "--no-sandbox", "--hide-scrollbars", f"--user-data-dir={profile}",
-                   *GPU_FLAGS, f"--window-size={size[0]},{size[1]}", f"--virtual-time-budget={int(wait_s * 1000)}",
-                   f"--screenshot={out}", url]
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=wait_s + 120)
-        if proc.returncode != 0 or not out.exists():
-            raise SystemExit(f"chromium failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
-        return out
+        # --virtual-time-budget is no promise that the Wasm app has loaded and drawn (its compile
+        # runs in real time): a shot of the loading screen is retried with twice the budget.
+        for attempt in range(3):
+            budget_s = wait_s * 2**attempt
+            with tempfile.TemporaryDirectory() as profile:
+                cmd = [browser, "--headless=new", "--no-sandbox", "--hide-scrollbars", f"--user-data-dir={profile}",
+                       *GPU_FLAGS, f"--window-size={size[0]},{size[1]}", f"--virtual-time-budget={int(budget_s * 1000)}",
+                       f"--screenshot={out}", url]
+                proc = subprocess.run(cmd, capture_output=True, text=True, timeout=budget_s + 180)
+            if proc.returncode != 0 or not out.exists():
+                raise SystemExit(f"chromium failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+            if _drawn(out):
+                return out
+            print(f"attempt {attempt + 1}: the viewer had not drawn yet after {budget_s:.0f} s of virtual time")
+        raise SystemExit(f"the web viewer did not draw within {budget_s:.0f} s (see {out})")
     finally:
         server.terminate()
         try:
