@@ -247,6 +247,39 @@ def test_view_takes_explicit_files_and_reports_bad_ones(tmp_path: Path, capsys: 
     assert "not supported" in capsys.readouterr().err
 
 
+@pytest.mark.filterwarnings("ignore:RRD file has no footer")  # the rerun CLI's --save writes none on Ctrl-C
+def test_view_streams_to_a_viewer_at_a_url(tmp_path: Path) -> None:
+    """--url (as --rerun-url on a run) streams over gRPC: a `rerun` server that saves what it
+    receives stands in for the viewer on another machine."""
+    import signal
+    import socket
+    import subprocess
+    import time
+
+    records = _saved_run(tmp_path, n=700, poses=12)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    received = tmp_path / "received.rrd"
+    server = subprocess.Popen([sys.executable, "-m", "rerun", "--port", str(port), "--save", str(received)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        end = time.monotonic() + 60
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                assert time.monotonic() < end and server.poll() is None, "the rerun server did not start"
+                time.sleep(0.2)
+        assert main(["view", str(tmp_path), "--url", f"rerun+http://127.0.0.1:{port}/proxy"]) == 0
+    finally:
+        server.send_signal(signal.SIGINT)  # the server writes the file's footer and exits
+        server.wait(timeout=60)
+    centers = _component(_rows(received)["/world/map"], CENTERS)
+    assert len(centers) == 1 and len(centers[0]) == len(records)
+
+
 def test_without_rerun_sdk_every_rerun_option_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                           capsys: pytest.CaptureFixture[str]) -> None:
     """`import rerun` failing (the extra not installed): one line naming the extra, exit 2, and for a
