@@ -299,6 +299,24 @@ def test_without_rerun_sdk_every_rerun_option_is_one_line(tmp_path: Path, monkey
     assert "memgs_ros[viz]" in capsys.readouterr().err
 
 
+@pytest.mark.ros
+def test_bridge_node_refuses_no_sink_and_missing_rerun(context: Any, tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """The node fails at start with one ConfigError (run_node logs it as one fatal line, exit 2)."""
+    from rclpy.parameter import Parameter
+
+    from memgs_ros.nodes.rerun_bridge import RerunBridgeNode
+
+    with pytest.raises(ConfigError, match="parameters spawn, connect_url, save_path"):
+        RerunBridgeNode(context=context)
+    with pytest.raises(ConfigError, match="must look like rerun"):
+        RerunBridgeNode(context=context, parameter_overrides=[Parameter("connect_url", value="http://x:9876")])
+    monkeypatch.setitem(sys.modules, "rerun", None)
+    with pytest.raises(ConfigError, match=r"memgs_ros\[viz\]"):
+        RerunBridgeNode(context=context, parameter_overrides=[Parameter("save_path", value=str(tmp_path / "x.rrd"))])
+    assert not (tmp_path / "x.rrd").exists()
+
+
 # --------------------------------------------------------------------------- end to end
 
 
