@@ -16,6 +16,7 @@ NODES = {
     "merger": "memgs_ros.nodes.merger:main",
     "bag_player": "memgs_ros.nodes.bag_player:main",
     "recorder": "memgs_ros.nodes.recorder:main",
+    "rerun_bridge": "memgs_ros.nodes.rerun_bridge:main",
 }
 
 setup(
@@ -57,7 +58,12 @@ setup(
         ],
         # CUDA users: the rasterizer's gsplat backend (same signature, used when importable on CUDA).
         "gsplat": ["gsplat>=1.0"],
-        "test": ["pytest>=7", "hypothesis>=6", "colcon-core", "colcon-ros", "colcon-python-setup-py"],
+        # The Rerun view (memgs run --rerun, memgs view, the rerun_bridge node): 0.36 is the first
+        # rerun-sdk with the GaussianSplats3D archetype.
+        "viz": ["rerun-sdk>=0.36"],
+        # rerun-sdk >= 0.41: the tests read recordings back with rerun.chunk.RrdReader.
+        "test": ["pytest>=7", "hypothesis>=6", "colcon-core", "colcon-ros", "colcon-python-setup-py",
+                 "rerun-sdk>=0.41"],
     },
     zip_safe=True,
     maintainer="memgs_ros maintainers",

@@ -61,6 +61,7 @@ from memgs_ros.orchestration.run_files import (
     KEYFRAMES_FILE, LOGS_DIR, ConfiguredCamera, RunOptions, RunSummary, configured_camera, read_params,
     read_stats_timeline, read_summary,
 )
+from memgs_ros.viz import RerunTarget
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
@@ -456,14 +457,16 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
              overrides: Mapping[str, Any] | None = None, *, max_frames: int = 0,
              domain_id: int | None = None, namespace: str = "", timeout_s: float = 3600.0,
              single_process: bool = False, variant: str = "full", use_lpips: bool = True,
-             device: str | None = None, progress: bool = True, record: Path | None = None) -> EvalResult:
+             device: str | None = None, progress: bool = True, record: Path | None = None,
+             rerun: RerunTarget | None = None) -> EvalResult:
     """Run the graph on ``source`` in lockstep, then :func:`evaluate_run` on its output.
 
     resolution_scale: mapping resolution (``mapper.mapping.resolution_scale``); None keeps the
     config's. seed: seeds the mapper and the Patch-Grid sampler (and the tracker's RANSAC).
     overrides: "node.param" -> value, applied after mode/scale/seed. domain_id: DDS domain of
     the run; None lets the run pick a free one. record: also record the run's output topics into
-    this .mcap file. device: where the evaluation renders. On CPU,
+    this .mcap file. rerun: stream the run to Rerun (see RunOptions). device: where the evaluation
+    renders. On CPU,
     call :func:`memgs_ros.core.runtime.configure_cpu_runtime` first (the CLI does): with OpenMP
     threads on a shared machine each render is ~30x slower.
     """
@@ -483,7 +486,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
     options = RunOptions(source=str(source), config=config, out_dir=out, single_process=single_process,
                          lockstep=True, namespace=namespace, domain_id=domain_id,
                          max_frames=int(max_frames), overrides=run_overrides, timeout_s=timeout_s,
-                         record=record)
+                         record=record, rerun=rerun)
     run_pipeline(options, progress=progress)
     return evaluate_run(out, str(source), mode, variant=variant, config=config, seed=seed,
                         overrides=run_overrides, max_frames=max_frames, use_lpips=use_lpips,
@@ -502,8 +505,10 @@ def ablation(source: str, config: str = "synthetic", mode: str = "rgbd",
             raise ConfigError(f"unknown ablation variant {name!r}; known: {', '.join(ABLATION_VARIANTS)}")
         merged = {**dict(overrides or {}), **ABLATION_VARIANTS[name]}
         logger.info("ablation variant %s (%s)", name, ", ".join(f"{k}={v}" for k, v in merged.items()) or "defaults")
+        rerun = kwargs.get("rerun")
+        per_variant = {**kwargs, "rerun": rerun.for_variant(name)} if rerun is not None else kwargs
         results.append(evaluate(source, config, mode, resolution_scale, seed, Path(out_dir) / name, merged,
-                                variant=name, **kwargs))
+                                variant=name, **per_variant))
     return AblationResult(tuple(results))
 
 

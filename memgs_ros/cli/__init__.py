@@ -22,6 +22,7 @@ SUBCOMMANDS: dict[str, str] = {
     "synth": "synth",
     "convert": "convert",
     "eval": "evaluate",
+    "view": "view",
 }
 
 

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
+from memgs_ros.cli.rerun_options import add_rerun_arguments, rerun_target
 from memgs_ros.cli.run import add_record_argument, check_inputs, guess_config, run_log
 from memgs_ros.errors import ConfigError
 from memgs_ros.orchestration.run_files import check_record_path
@@ -23,6 +24,7 @@ logger = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from memgs_ros.evaluation import EvalResult
+    from memgs_ros.viz import RerunTarget
 
 HELP = "evaluate a run like the paper: PSNR/SSIM, memory, Gaussians, ATE, FPS (optionally an ablation)"
 
@@ -50,6 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS even when the lpips package is there")
     p.add_argument("--no-plots", action="store_true", help="write JSON and tables only")
     add_record_argument(p)
+    add_rerun_arguments(p)
 
 
 def _overrides(items: list[str]) -> dict[str, Any]:
@@ -93,14 +96,16 @@ def run(args: argparse.Namespace) -> int:
         if args.ablation:
             raise ConfigError("--record records one run; run the variants one at a time to record them")
         args.record = check_record_path(args.record)
+    rerun = rerun_target(args)  # ConfigError without rerun-sdk, before anything starts
     warnings = check_inputs(source, config, args.max_frames, overrides, args.out)  # before torch, rclpy, nodes
     with run_log(args.out):
         for warning in warnings:
             logger.warning(warning)
-        return _evaluate(args, source, config, overrides)
+        return _evaluate(args, source, config, overrides, rerun)
 
 
-def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dict[str, Any]) -> int:
+def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dict[str, Any],
+              rerun: RerunTarget | None) -> int:
     # Loaded here, not at the top: every subcommand module is imported to build the parser, and
     # these pull in torch and matplotlib (seconds), which `memgs --help` and `memgs run` never need.
     import matplotlib
@@ -116,7 +121,7 @@ def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dic
     if not torch.cuda.is_available():
         configure_cpu_runtime()  # this process renders every frame on CPU
     kwargs = dict(max_frames=args.max_frames, domain_id=args.domain_id, timeout_s=args.timeout,
-                  single_process=args.single_process, use_lpips=not args.no_lpips)
+                  single_process=args.single_process, use_lpips=not args.no_lpips, rerun=rerun)
     if args.record is not None:
         kwargs["record"] = args.record
     out = Path(args.out)

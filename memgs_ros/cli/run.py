@@ -12,6 +12,7 @@ from pathlib import Path
 
 import yaml
 
+from memgs_ros.cli.rerun_options import add_rerun_arguments, rerun_target
 from memgs_ros.core.camera import PinholeCamera, calibration_differences, describe_camera
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.orchestration.run_files import (
@@ -54,6 +55,7 @@ def add_graph_arguments(p: argparse.ArgumentParser) -> None:
                    help="fault injection: SIGKILL NODE (mapper, merger, ...) this many seconds after the "
                         "player starts and restart it at once (repeatable; separate processes only)")
     add_record_argument(p)
+    add_rerun_arguments(p)
 
 
 def add_record_argument(p: argparse.ArgumentParser) -> None:
@@ -102,7 +104,8 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
         single_process=args.single_process, lockstep=not args.realtime, rate=args.rate,
         namespace=args.namespace, domain_id=args.domain_id, max_frames=args.max_frames,
         overrides=overrides, timeout_s=args.timeout, kill_after_s=kills,
-        record=check_record_path(args.record) if getattr(args, "record", None) is not None else None)
+        record=check_record_path(args.record) if getattr(args, "record", None) is not None else None,
+        rerun=rerun_target(args))
 
 
 def check_config(config: str, overrides: dict | None = None) -> dict[str, dict]:

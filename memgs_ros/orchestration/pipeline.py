@@ -40,10 +40,10 @@ from memgs_ros.core.map_delta import decode
 from memgs_ros.core.atomic import atomic_write
 from memgs_ros.core.runtime import MALLOC_ARENAS
 from memgs_ros.errors import ConfigError, PipelineError
-from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, recorder, tracker
+from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, recorder, rerun_bridge, tracker
 from memgs_ros.orchestration.run_files import (
-    CHECKPOINT_FILE, GRAPH_NODE_NAMES, KEYFRAMES_FILE, LOGS_DIR, MAP_FILE, PARAMS_FILE, STATS_TIMELINE_FILE, SUMMARY_FILE,
-    TRAJECTORY_FILE,
+    CHECKPOINT_FILE, GRAPH_NODE_NAMES, KEYFRAMES_FILE, LOGS_DIR, MAP_FILE, PARAMS_FILE, STATS_TIMELINE_FILE,
+    SUMMARY_FILE, TRAJECTORY_FILE,
     RunOptions, RunSummary, build_params, config_path, node_params,
 )
 from memgs_ros.ros import qos
@@ -58,12 +58,14 @@ __all__ = ["GRAPH_NODES", "NODE_MODULES", "PipelineError", "RunOptions", "RunSum
 # The graph, by module: a process runs ``python -m <module.__name__>`` (its ``main``); in one
 # process the module's Node class is built on a shared executor.
 NODE_MODULES: dict[str, ModuleType] = {
-    m.__name__.rsplit(".", 1)[-1]: m for m in (tracker, keyframe_sampler, mapper, merger, bag_player, recorder)}
+    m.__name__.rsplit(".", 1)[-1]: m
+    for m in (tracker, keyframe_sampler, mapper, merger, bag_player, recorder, rerun_bridge)}
 _NODE_FACTORIES: dict[str, Callable[..., Any]] = {
     "tracker": tracker.TrackerNode, "keyframe_sampler": keyframe_sampler.KeyframeSamplerNode,
     "mapper": mapper.MapperNode, "merger": merger.MergerNode, "bag_player": bag_player.BagPlayer,
-    "recorder": recorder.RecorderNode}
+    "recorder": recorder.RecorderNode, "rerun_bridge": rerun_bridge.RerunBridgeNode}
 GRAPH_NODES = GRAPH_NODE_NAMES
+VIEW_NODE = "rerun_bridge"  # started after GRAPH_NODES when RunOptions.rerun is set
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -114,7 +116,7 @@ class _Observer:
         self.node.create_subscription(PoseStamped, "memgs/pose", on_pose, qos.reliable(1000))
         self.node.create_subscription(NavPath, "memgs/path", on_path, qos.reliable(5))
         self.node.create_subscription(PoseStamped, "memgs/keyframe/pose", on_keyframe, qos.reliable(1000))
-        for name in ("tracker", "keyframe_sampler", "mapper", "merger", "player"):
+        for name in ("tracker", "keyframe_sampler", "mapper", "merger", "player", VIEW_NODE):
             self.node.create_subscription(DiagnosticArray, f"memgs/{name}/stats", stats_cb(name), qos.reliable(5))
 
         self.maps: dict[str, Any] = {}
@@ -230,6 +232,8 @@ def _open_context(domain_id: int | None, ros_args: list[str], probe_s: float = 1
 def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
     """Replay ``options.source`` through the graph and return what it produced."""
 
+    if options.rerun is not None:
+        options.rerun.check()  # rerun-sdk missing or no display: one line, before any node starts
     out = Path(options.out_dir).resolve()
     (out / LOGS_DIR).mkdir(parents=True, exist_ok=True)
     map_path = out / MAP_FILE
@@ -255,8 +259,9 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
         observer = _Observer(context)
         executor.add_node(observer.node)
         recording = ("recorder",) if options.record is not None else ()
+        graph = (*GRAPH_NODES, VIEW_NODE) if options.rerun is not None else GRAPH_NODES
         if options.single_process:
-            for name in (*GRAPH_NODES, *recording, "bag_player"):  # the recorder sees the graph's publishers
+            for name in (*graph, *recording, "bag_player"):  # the recorder sees the graph's publishers
                 node = _NODE_FACTORIES[name](context=context)
                 in_process.append(node)
                 executor.add_node(node)
@@ -274,12 +279,12 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
             env.setdefault("MALLOC_ARENA_MAX", str(MALLOC_ARENAS))
             procs = _Processes(params_file, ns, env, out / LOGS_DIR)
             delayed = {n: float(d) for n, d in options.start_delays_s.items() if float(d) > 0}
-            for name in GRAPH_NODES:
+            for name in graph:
                 if name not in delayed:
                     procs.start(name)
             for name in recording:  # beside the graph; it subscribes as it discovers their publishers
                 procs.start(name)
-            _wait_for_graph(observer, procs, [n for n in GRAPH_NODES if n not in delayed], t0 + options.timeout_s)
+            _wait_for_graph(observer, procs, [n for n in graph if n not in delayed], t0 + options.timeout_s)
             if recording:
                 topics = node_params(params).get("recorder", {}).get("topics", recorder.DEFAULT_TOPICS)
                 _wait_for_recorder(observer, procs, topics, t0 + options.timeout_s)
@@ -331,7 +336,8 @@ def _set_aside_previous_checkpoint(path: Path) -> None:
 
 # A topic each node publishes: once the observer sees it, DDS discovery reached that node.
 _READY_TOPICS = {"tracker": "memgs/pose", "keyframe_sampler": "memgs/keyframe/seeds",
-                 "mapper": "memgs/frame_ack", "merger": "memgs/map/gaussians"}
+                 "mapper": "memgs/frame_ack", "merger": "memgs/map/gaussians",
+                 VIEW_NODE: f"memgs/{VIEW_NODE}/stats"}
 
 
 def _wait_for_recorder(obs: _Observer, procs: _Processes, topics: Sequence[str], deadline: float) -> None:
@@ -416,6 +422,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
             raise PipelineError(f"the merger did not reach delta {final_seq} in time")
         time.sleep(0.1)
     identical, max_diff = _compare_maps(obs, final_seq, epoch, end)
+    if options.rerun is not None:
+        _wait_for_view(obs, procs, final_seq, epoch, end)
     time.sleep(1.5)  # one more round of the 1 Hz stats, so the summary sees the final counts
     saved = obs.call(obs.save_client, 120.0) if gaussians or final_seq else ""
     ply = saved.split()[0] if saved else ""
@@ -506,6 +514,17 @@ def _compare_maps(obs: _Observer, final_seq: int, epoch: int, end: float) -> tup
     diff = max((float(np.abs(getattr(a, f) - getattr(b, f)).max(initial=0.0))
                 for f in ("xyz", "f_dc", "f_rest", "opacity", "scale", "rot")), default=0.0)
     return diff <= 1e-6, diff
+
+
+def _wait_for_view(obs: _Observer, procs: _Processes | None, final_seq: int, epoch: int, end: float) -> None:
+    """Wait until the rerun_bridge has logged the final map (the one _compare_maps had the merger
+    publish), so the recording ends with the saved map before the nodes are stopped."""
+    while obs.stat(VIEW_NODE, "map_seq", -1) < final_seq or obs.stat(VIEW_NODE, "map_epoch", -1) != epoch:
+        if procs is not None:
+            procs.check()
+        if time.monotonic() > end:
+            raise PipelineError(f"the Rerun view did not log the final map (delta {final_seq}) in time")
+        time.sleep(0.1)
 
 
 def _render_info(msg: Any) -> dict[str, Any]:

@@ -19,6 +19,7 @@ import yaml
 
 from memgs_ros.core.camera import CameraCalibration, PinholeCamera
 from memgs_ros.errors import ConfigError, DataError
+from memgs_ros.viz import RerunTarget
 
 __all__ = [
     "CHECKPOINT_FILE", "GRAPH_NODE_NAMES", "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE", "STATS_TIMELINE_FILE",
@@ -27,8 +28,9 @@ __all__ = [
     "read_stats_timeline", "read_summary",
 ]
 
-# The nodes a parameter override may name; the pipeline starts one module per name.
-NODE_NAMES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player", "recorder")
+# The nodes a parameter override may name; the pipeline starts one module per name (recorder
+# only with RunOptions.record, rerun_bridge only with RunOptions.rerun).
+NODE_NAMES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player", "recorder", "rerun_bridge")
 GRAPH_NODE_NAMES = ("merger", "mapper", "keyframe_sampler", "tracker")  # start order; the player last
 
 # Files in a run's output folder.
@@ -63,6 +65,8 @@ class RunOptions:
     timeout_s: float = 1800.0
     # Record every output topic into this .mcap file (a recorder node; see check_record_path).
     record: Path | None = None
+    # Stream the run to Rerun (viewer and/or .rrd file) through a rerun_bridge node; None = no view.
+    rerun: RerunTarget | None = None
 
 
 @dataclass(frozen=True)
@@ -141,6 +145,9 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
     params.setdefault("merger", {})["map_path"] = str(map_path)
     if options.record is not None:
         params.setdefault("recorder", {})["path"] = str(Path(options.record).resolve())
+    if options.rerun is not None:
+        params.setdefault("rerun_bridge", {}).update(
+            options.rerun.node_params(), recording_name=f"{Path(str(options.source)).name} ({Path(options.out_dir).name})")
     params.setdefault("mapper", {}).setdefault("checkpoint_path", str(map_path.with_name(CHECKPOINT_FILE)))
     for key, value in options.overrides.items():
         node, _, name = key.partition(".")
