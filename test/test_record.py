@@ -197,9 +197,11 @@ def test_recorder_node_adapts_to_publishers_and_writes_the_file_on_shutdown(
     assert rec.recorded == {"/memgs/tracking_state": "std_msgs/msg/String", "/cam/pose": "geometry_msgs/msg/PoseStamped"}
     assert rec.pending == ["/never/published"]
     # Best effort: poses sent before the recorder's reader is matched are lost, so keep sending
-    # (a loaded machine can take seconds to match) until five are in the file.
+    # (a loaded machine can take seconds to match) until five are in the file, and the latched
+    # state (delivered once its reader matches) is too.
     end = time.monotonic() + 30.0
-    while time.monotonic() < end and rec.bag.counts.get("/cam/pose", 0) < 5:
+    while time.monotonic() < end and (rec.bag.counts.get("/cam/pose", 0) < 5
+                                      or rec.bag.counts.get("/memgs/tracking_state", 0) < 1):
         best_effort.publish(PoseStamped())
         executor.spin_once(timeout_sec=0.05)
     rec.on_shutdown()
