@@ -83,11 +83,21 @@ def test_background_stream_survives_ctrl_c_in_the_caller_and_reports_write_error
     bag = BackgroundBagStream(out, max_queued=8)  # small: the caller waits on the writer too
     bag.add_topic("/memgs/pose", "geometry_msgs/msg/PoseStamped")
     sent = 0
-    threading.Timer(0.2, _thread.interrupt_main).start()  # what Ctrl-C does to the main thread
-    with pytest.raises(KeyboardInterrupt):
-        while True:
-            if bag.write("/memgs/pose", 10 + sent, _pose_cdr(sent, float(sent))):
-                sent += 1
+    interrupted = threading.Event()
+
+    def ctrl_c() -> None:  # what Ctrl-C does to the main thread, again until it lands in our loop
+        while not interrupted.wait(0.2):  # (library code may swallow one that lands inside it)
+            _thread.interrupt_main()
+
+    threading.Thread(target=ctrl_c, daemon=True).start()
+    deadline = time.monotonic() + 30.0
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            while time.monotonic() < deadline:  # bounded: a lost interrupt fails the test, never hangs it
+                if bag.write("/memgs/pose", 10 + sent, _pose_cdr(sent, float(sent))):
+                    sent += 1
+    finally:
+        interrupted.set()
     assert bag.close() > 0 and not bag.is_open and bag.write("/memgs/pose", 0, b"") is False
     _, msgs = _read(out)  # whole: every record the caller handed over, none cut in half
     # (the interrupt may land after the last one was queued but before `sent` counted it)
