@@ -175,6 +175,71 @@ def test_lockstep_without_acks_times_out_and_goes_on(ros_domain_id: int) -> None
     assert player.ack_timeouts == 3 and player.frames_published == 3 and rx.done == [True]
 
 
+class Bystander(Node):
+    """Reads the frames and could ack (a Rerun bridge beside the tracker), but acks nothing."""
+
+    def __init__(self, context: rclpy.Context) -> None:
+        super().__init__("bystander", context=context)
+        self.color: list[int] = []
+        self.create_publisher(Header, "memgs/frame_ack", qos.reliable(10))
+        self.create_subscription(Image, "color/image_raw", lambda m: self.color.append(codecs.stamp_to_ns(m.header.stamp)),
+                                 qos.reliable(10))
+        self.create_subscription(CameraInfo, "color/camera_info", lambda m: None, qos.reliable(10))
+
+
+def _play_with_late_receiver(frames: list[Frame], domain_id: int, receiver_after_s: float | None,
+                             **params: object) -> tuple[BagPlayer, Bystander, Receiver | None]:
+    """A bystander reads the frames from the start; the acking receiver appears only after
+    ``receiver_after_s`` (never when None)."""
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    executor = SingleThreadedExecutor(context=ctx)
+    nodes: list[Node] = []
+    receiver = None
+    try:
+        bystander = Bystander(ctx)
+        player = BagPlayer(frames, context=ctx, parameter_overrides=_params(**params))
+        nodes += [bystander, player]
+        executor.add_node(bystander)
+        executor.add_node(player)
+        t0 = time.monotonic()
+        while not player.finished.done() and time.monotonic() - t0 < 30.0:
+            if receiver is None and receiver_after_s is not None and time.monotonic() - t0 >= receiver_after_s:
+                receiver = Receiver(ctx)
+                nodes.append(receiver)
+                executor.add_node(receiver)
+            executor.spin_once(timeout_sec=0.02)
+        assert player.finished.done(), "player did not finish within 30 s"
+        return player, bystander, receiver
+    finally:
+        executor.shutdown()
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+def test_first_frame_waits_for_the_named_reader_not_any_reader(ros_domain_id: int) -> None:
+    """Another reader and ack publisher are up at once; the named node (the tracker in a run)
+    comes 1.5 s later and must still get every lockstep frame, with no ack timeout. Without
+    wait_for_readers the player starts after 0.5 s of steady counts and frame 1 is lost."""
+    frames = make_frames(4)
+    player, bystander, rx = _play_with_late_receiver(frames, ros_domain_id, 1.5, lockstep=True, ack_timeout_s=3.0,
+                                                     wait_for_readers="receiver", start_delay_s=20.0)
+    stamps = [f.stamp_ns for f in frames]
+    assert rx is not None and [s for s, _ in rx.color] == stamps
+    assert rx.acked == stamps and player.ack_timeouts == 0
+    assert bystander.color == stamps
+
+
+def test_a_named_reader_that_never_comes_delays_the_start_by_start_delay_s_only(ros_domain_id: int) -> None:
+    frames = make_frames(2)
+    t0 = time.monotonic()
+    player, bystander, _ = _play_with_late_receiver(frames, ros_domain_id, None, lockstep=True, ack_timeout_s=0.2,
+                                                    wait_for_readers="tracker", start_delay_s=1.5)
+    assert time.monotonic() - t0 >= 1.5
+    assert bystander.color == [f.stamp_ns for f in frames] and player.ack_timeouts == 2
+
+
 def test_depth_as_16uc1_millimetres(ros_domain_id: int) -> None:
     frames = make_frames(2)
     _, rx = play_in_process(frames, ros_domain_id, lockstep=True, depth_encoding="16UC1", depth_scale=1000.0)

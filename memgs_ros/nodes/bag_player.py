@@ -62,6 +62,8 @@ PARAMS = (
     ParamSpec("ack_timeout_s", 10.0, "lockstep: warn and go on when no ack arrives within this time", (0.05, 3600.0)),
     ParamSpec("start_delay_s", 5.0, "wait at most this long for a color subscriber before the first frame",
               (0.0, 600.0)),
+    ParamSpec("wait_for_readers", "", "comma-separated node names whose color and camera_info readers must be "
+              "matched before the first frame (memgs run names the tracker); at most start_delay_s"),
     ParamSpec("max_frames", 0, "stop after this many frames, over all loops (0 = no limit)", (0, 2**31 - 1)),
     ParamSpec("depth_encoding", "32FC1", "depth image encoding: 32FC1 metres or 16UC1 scaled units",
               choices=("32FC1", "16UC1")),
@@ -82,6 +84,7 @@ class PlayerConfig:
     ack_topic: str
     ack_timeout_s: float
     start_delay_s: float
+    wait_for_readers: str
     max_frames: int
     depth_encoding: str
     depth_scale: float
@@ -137,6 +140,7 @@ class BagPlayer(Node):
         self._ack_timeouts = 0
         self._created_at = time.monotonic()
         self._frame_pubs = (self._pub_color, self._pub_depth, self._pub_info, self._pub_gt)
+        self._wait_for = tuple(n.strip() for n in self.cfg.wait_for_readers.split(",") if n.strip())
         self._match_counts: tuple[int, ...] = ()
         self._steady_since = self._created_at
         self._t0: float | None = None  # wall time and stamp of the first frame (real-time pacing)
@@ -204,23 +208,45 @@ class BagPlayer(Node):
             self._log_progress(now)
 
     def _ready_to_start(self, now: float) -> bool:
-        """Start once a color subscriber (and, in lockstep, an ack publisher) has matched and the
-        match counts of all topics have been steady for SETTLE_S (so a subscriber's depth and
-        info readers, discovered a moment after its color reader, get the first frame too),
-        or when start_delay_s runs out."""
+        """Start once a color subscriber (and, in lockstep, an ack publisher) has matched, every
+        node named in wait_for_readers has its readers matched, and the match counts of all topics
+        have been steady for SETTLE_S (so a subscriber's depth and info readers, discovered a moment
+        after its color reader, get the first frame too), or when start_delay_s runs out.
+
+        Naming the tracker matters when other nodes read the frames too (a Rerun bridge): their
+        readers can match first, and a lockstep frame the tracker never got waits out the ack
+        timeout and is lost."""
         counts = tuple(p.get_subscription_count() for p in self._frame_pubs)
         has_reader = counts[0] > 0
         has_acker = self._ack_sub is None or self._ack_sub.get_publisher_count() > 0
+        unmatched = self._unmatched_readers()
         if counts != self._match_counts:
             self._match_counts, self._steady_since = counts, now
-        if has_reader and has_acker and now - self._steady_since >= min(SETTLE_S, self.cfg.start_delay_s):
+        if has_reader and has_acker and not unmatched and now - self._steady_since >= min(SETTLE_S, self.cfg.start_delay_s):
             return True
         if now - self._created_at >= self.cfg.start_delay_s:
-            if not has_reader or not has_acker:
-                missing = "a color subscriber" if not has_reader else f"a publisher on '{self.cfg.ack_topic}'"
-                self.get_logger().warning(f"starting without {missing} after {self.cfg.start_delay_s:g} s")
+            missing = [] if has_reader else ["a color subscriber"]
+            missing += [] if has_acker else [f"a publisher on '{self.cfg.ack_topic}'"]
+            missing += unmatched
+            if missing:
+                self.get_logger().warning(f"starting without {'; '.join(missing)} after {self.cfg.start_delay_s:g} s")
             return True
         return False
+
+    def _unmatched_readers(self) -> list[str]:
+        """What still keeps the first frame from the nodes in wait_for_readers: a node whose color
+        or camera_info reader the graph does not show yet, or a reader the graph shows that this
+        publisher has not matched yet."""
+        if not self._wait_for:
+            return []
+        missing = []
+        for pub in (self._pub_color, self._pub_info):
+            readers = self.get_subscriptions_info_by_topic(pub.topic_name)
+            names = {r.node_name for r in readers}
+            missing += [f"{n}'s reader on '{pub.topic_name}'" for n in self._wait_for if n not in names]
+            if pub.get_subscription_count() < len(readers):
+                missing.append(f"a match for all {len(readers)} readers on '{pub.topic_name}'")
+        return missing
 
     def _on_ack(self, msg: Header) -> None:
         stamp_ns = codecs.stamp_to_ns(msg.stamp)

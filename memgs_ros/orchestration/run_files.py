@@ -138,6 +138,11 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         source=str(options.source), lockstep=options.lockstep, rate=float(options.rate),
         max_frames=int(options.max_frames), ack_topic="memgs/frame_ack", world_frame_id="map")
     params.setdefault("mapper", {})["lockstep"] = options.lockstep
+    if float(options.start_delays_s.get("tracker", 0.0)) <= 0:
+        # The first frame waits for the tracker's readers, not just any reader (a Rerun bridge
+        # reads the frames too); the runner has already seen the tracker come up.
+        params["bag_player"].setdefault("wait_for_readers", "tracker")
+        params["bag_player"].setdefault("start_delay_s", 30.0)
     if options.lockstep:
         # Background BA would refine poses at timing-dependent moments: run it in step instead.
         params.setdefault("tracker", {}).setdefault("tracker.ba_threaded", False)
