@@ -81,6 +81,9 @@ def test_graph_end_to_end_in_processes(bag: Path, tmp_path: Path, ros_domain_id:
     assert s.render_size == (160, 120) and s.render_std > 10.0
     assert _keyframe_psnr(Path(s.ply_path), Path(s.trajectory_path)) > 20.0
     assert s.delta_messages > 0 and s.delta_bytes > 0
+    # Every process's CPU time, from its own last stats.
+    assert set(s.cpu_s) == {"tracker", "keyframe_sampler", "mapper", "merger", "player", "runner"}
+    assert all(v > 0 for v in s.cpu_s.values())
 
 
 def generate_stamps_and_poses() -> tuple[np.ndarray, np.ndarray]:

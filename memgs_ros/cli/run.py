@@ -218,6 +218,8 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
         print(f"faults        restarted {s.restarts}; merger resyncs {s.merger_resyncs}; "
               f"merger == mapper: {s.replica_identical}")
     print(f"wall time     {s.wall_s:.1f} s")
+    if s.cpu_s:
+        print("CPU time      " + ", ".join(f"{n} {v:.1f} s" for n, v in s.cpu_s.items()))
     print(f"map           {s.ply_path}")
     print(f"trajectory    {s.trajectory_path}")
     if record is not None:

@@ -12,8 +12,7 @@ trajectory, 1 Hz), ``memgs/keyframe/{pose,camera_info}`` (frusta),
 (the mapper's map deltas and snapshots), ``memgs/map/gaussians`` (the merger's full map, latched)
 and ``memgs/<node>/stats``. Publishes ``memgs/rerun_bridge/stats`` (``map_seq``,
 ``map_epoch``, ``map_gaussians`` of the last map logged; ``log_us_total``, the time spent in
-Rerun's log calls; ``cpu_s``, this process's CPU time, which in one process with the other nodes
-(``--single-process``) is theirs too).
+Rerun's log calls; and, as every node, ``cpu_s``, its process's CPU time).
 
 The map: the node follows the deltas as the merger does (:class:`MapFollower`) and logs its copy
 every ``map_period_s`` when it changed, so the view costs the robot no extra traffic. It asks the
@@ -135,7 +134,6 @@ class RerunBridgeNode(Node):
         self.stats = NodeStats(self, "rerun_bridge")
         if self.map_period > 0:
             self.create_timer(self.map_period, self.log_map)
-        self.create_timer(1.0, lambda: self.stats.gauges.update(cpu_s=round(time.process_time(), 3)))
         sinks = ", ".join(s for s in (spawn and "spawned viewer", url, save) if s)
         self.get_logger().info(f"logging to Rerun: {sinks}")
 

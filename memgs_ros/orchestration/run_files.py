@@ -98,6 +98,7 @@ class RunSummary:
     render_size: tuple[int, int]  # (width, height) of the last live render, (0, 0) if none
     render_std: float  # spread of its pixel values in [0, 255]: ~0 means a blank view
     source_complete: bool = True  # False: the source failed part-way; the map holds what was played
+    cpu_s: dict[str, float] = field(default_factory=dict)  # per node process, from its last stats (s)
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)

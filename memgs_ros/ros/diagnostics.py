@@ -1,6 +1,10 @@
-"""Node statistics as diagnostic_msgs/DiagnosticArray on ``memgs/<node>/stats``."""
+"""Node statistics as diagnostic_msgs/DiagnosticArray on ``memgs/<node>/stats``.
+
+Every node's stats carry ``peak_rss_mb``, ``rss_mb`` and ``cpu_s`` (its process's CPU time so far)
+beside the node's own counters and gauges."""
 from __future__ import annotations
 
+import os
 import resource
 import time
 from collections import Counter
@@ -41,6 +45,9 @@ class NodeStats:
             release_free_memory()  # so rss_mb is what the node uses, not its heap's high-water mark
         self.gauges["peak_rss_mb"] = round(peak_rss_mb(), 1)
         self.gauges["rss_mb"] = round(rss_mb(), 1)
+        self.gauges["cpu_s"] = round(time.process_time(), 2)  # of the process (in one process: of all nodes)
+        if hasattr(os, "getpriority"):
+            self.gauges["nice"] = os.getpriority(os.PRIO_PROCESS, 0)  # the Rerun view runs at 10 under memgs run
         values: Mapping[str, object] = {**self.counters, **self.gauges}
         level = DiagnosticStatus.WARN if any(k.startswith("problem.") for k in self.counters) else DiagnosticStatus.OK
         status = DiagnosticStatus(
