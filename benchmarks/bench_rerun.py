@@ -109,7 +109,8 @@ def _one_run(args: argparse.Namespace, work: Path, i: int, rerun: bool) -> dict[
     r: dict[str, Any] = {
         "rerun": rerun, "uptime_before": load, "wall_s": summary["wall_s"], "command_s": command_s,
         "cpu_s_all_processes": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
-        "frames": summary["frames"], "gaussians": summary["gaussians"]}
+        "frames": summary["frames"], "gaussians": summary["gaussians"],
+        "cpu_s_by_process": summary.get("cpu_s", {})}
     if rerun:
         b = _last(out / "stats_timeline.jsonl", "rerun_bridge")
         r.update(bridge_cpu_s=float(b.get("cpu_s", "nan")), bridge_log_s=float(b.get("log_us_total", 0)) * 1e-6,
@@ -135,8 +136,19 @@ def bench_run(args: argparse.Namespace) -> dict[str, Any]:
            "wall_s_median": {"plain": med(plain, "wall_s"), "rerun": med(view, "wall_s")},
            "cpu_s_median": {"plain": med(plain, "cpu_s_all_processes"), "rerun": med(view, "cpu_s_all_processes")},
            "bridge_cpu_s_median": med(view, "bridge_cpu_s")}
+    # Each with-run against the without-run just before it: load drifts less within a pair.
+    ratios = [v["wall_s"] / p["wall_s"] for p, v in zip(plain, view)]
+    out["pair_wall_ratios"] = ratios
+    by_process = {n: statistics.median(r["cpu_s_by_process"].get(n, 0.0) for r in view) -
+                  statistics.median(r["cpu_s_by_process"].get(n, 0.0) for r in plain)
+                  for n in view[0]["cpu_s_by_process"]}
+    out["cpu_s_by_process_median_difference"] = by_process
     w, c = out["wall_s_median"], out["cpu_s_median"]
-    print(f"median wall: without {w['plain']:.1f} s, with {w['rerun']:.1f} s ({100 * (w['rerun'] / w['plain'] - 1):+.1f} %)")
+    print(f"median wall: without {w['plain']:.1f} s, with {w['rerun']:.1f} s ({100 * (w['rerun'] / w['plain'] - 1):+.1f} %); "
+          f"pair ratios {', '.join(f'{100 * (r - 1):+.1f} %' for r in ratios)} "
+          f"(median {100 * (statistics.median(ratios) - 1):+.1f} %)")
+    print("CPU with minus without, medians by process: "
+          + ", ".join(f"{n} {d:+.1f} s" for n, d in by_process.items()))
     print(f"median CPU of all processes: without {c['plain']:.1f} s, with {c['rerun']:.1f} s "
           f"({100 * (c['rerun'] / c['plain'] - 1):+.1f} %); bridge alone {out['bridge_cpu_s_median']:.1f} s "
           f"({100 * out['bridge_cpu_s_median'] / c['plain']:.1f} % of the run's CPU)")
