@@ -14,9 +14,13 @@ heartbeat period and points FASTRTPS_DEFAULT_PROFILES_FILE at it in both process
 the default period (3 s) a lost fragment of a large message stalls the reader until the next
 heartbeat. Prints a table and writes JSON (default results/bench_bag_player.json).
 
+``--idle-s S``: instead, what a lockstep player waiting for an ack costs: its process's CPU per
+wall second over S seconds, no frame going out (median of ``--repeats``).
+
     python benchmarks/bench_bag_player.py --frames random --n 100
     python benchmarks/bench_bag_player.py --frames random --n 100 --heartbeat-ms 50
     python benchmarks/bench_bag_player.py --source synthetic:w=640,h=480,n=60 --heartbeat-ms 50
+    python benchmarks/bench_bag_player.py --idle-s 10
 """
 from __future__ import annotations
 
@@ -136,6 +140,34 @@ def run_once(cmd: list[str], env: dict[str, str], domain: int, timeout_s: float)
     }
 
 
+def idle_cpu_fraction(seconds: float, domain: int) -> float:
+    """CPU seconds per wall second of a lockstep player (in this process) that has published
+    nothing and waits: it has no reader, so only its timer wakes it."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from memgs_ros.nodes.bag_player import BagPlayer
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    executor = SingleThreadedExecutor(context=ctx)
+    player = BagPlayer(context=ctx, parameter_overrides=[
+        Parameter("source", value="synthetic:w=64,h=48,n=2"), Parameter("lockstep", value=True),
+        Parameter("start_delay_s", value=600.0)])
+    try:
+        executor.add_node(player)
+        executor.spin_once(timeout_sec=0.1)
+        t0, c0 = time.monotonic(), time.process_time()
+        while time.monotonic() - t0 < seconds:
+            executor.spin_once(timeout_sec=0.1)
+        return (time.process_time() - c0) / (time.monotonic() - t0)
+    finally:
+        executor.shutdown()
+        player.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     what = parser.add_mutually_exclusive_group()
@@ -148,10 +180,16 @@ def main() -> int:
     parser.add_argument("--heartbeat-ms", type=float, default=0.0, help="Fast DDS writer heartbeat (0 = default)")
     parser.add_argument("--timeout-s", type=float, default=300.0)
     parser.add_argument("--out", type=Path, default=Path("results/bench_bag_player.json"))
+    parser.add_argument("--idle-s", type=float, default=0.0, help="measure an idle lockstep player's CPU instead")
     parser.add_argument("--serve-player", action="store_true", help=argparse.SUPPRESS)
     args, _ = parser.parse_known_args()
     if args.serve_player:
         return serve_player(args.n, args.width, args.height)
+    if args.idle_s > 0:
+        fractions = [idle_cpu_fraction(args.idle_s, random.randrange(100, 200)) for _ in range(args.repeats)]
+        print(f"idle lockstep player: {100 * statistics.median(fractions):.1f} % of a core "
+              f"(runs: {', '.join(f'{100 * f:.1f}' for f in fractions)}; load {os.getloadavg()[0]:.1f})")
+        return 0
 
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     tmp = tempfile.TemporaryDirectory()

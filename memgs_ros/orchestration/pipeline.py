@@ -66,6 +66,7 @@ _NODE_FACTORIES: dict[str, Callable[..., Any]] = {
     "recorder": recorder.RecorderNode, "rerun_bridge": rerun_bridge.RerunBridgeNode}
 GRAPH_NODES = GRAPH_NODE_NAMES
 VIEW_NODE = "rerun_bridge"  # started after GRAPH_NODES when RunOptions.rerun is set
+_STATS_NODES = (*GRAPH_NODES, "player", VIEW_NODE, "recorder")  # the names on memgs/<name>/stats
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -116,7 +117,7 @@ class _Observer:
         self.node.create_subscription(PoseStamped, "memgs/pose", on_pose, qos.reliable(1000))
         self.node.create_subscription(NavPath, "memgs/path", on_path, qos.reliable(5))
         self.node.create_subscription(PoseStamped, "memgs/keyframe/pose", on_keyframe, qos.reliable(1000))
-        for name in ("tracker", "keyframe_sampler", "mapper", "merger", "player", VIEW_NODE, "recorder"):
+        for name in _STATS_NODES:
             self.node.create_subscription(DiagnosticArray, f"memgs/{name}/stats", stats_cb(name), qos.reliable(5))
 
         self.maps: dict[str, Any] = {}
@@ -342,11 +343,11 @@ def _set_aside_previous_checkpoint(path: Path) -> None:
                    path.parent, aside.name)
 
 
-# A topic each node publishes: once the observer sees it, DDS discovery reached that node.
 # The Rerun view yields the cores to mapping: on 2 cores its CPU (~3 % of a run's) otherwise
 # lengthens the run by as much. It still runs whenever a core idles (lockstep waits, I/O).
 _NICENESS = {VIEW_NODE: 10}
 
+# A topic each node publishes: once the observer sees it, DDS discovery reached that node.
 _READY_TOPICS = {"tracker": "memgs/pose", "keyframe_sampler": "memgs/keyframe/seeds",
                  "mapper": "memgs/frame_ack", "merger": "memgs/map/gaussians",
                  VIEW_NODE: f"memgs/{VIEW_NODE}/stats"}
@@ -479,7 +480,7 @@ def _cpu_times(obs: _Observer, procs: _Processes | None) -> dict[str, float]:
     process (``--single-process``) the process's total."""
     if procs is None:
         return {"all nodes": round(time.process_time(), 2)}
-    names = [n for n in (*GRAPH_NODES, "player", VIEW_NODE, "recorder") if obs.stat(n, "cpu_s") > 0]
+    names = [n for n in _STATS_NODES if obs.stat(n, "cpu_s") > 0]
     return {**{n: obs.stat(n, "cpu_s") for n in names}, "runner": round(time.process_time(), 2)}
 
 

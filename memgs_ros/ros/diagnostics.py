@@ -1,7 +1,7 @@
 """Node statistics as diagnostic_msgs/DiagnosticArray on ``memgs/<node>/stats``.
 
-Every node's stats carry ``peak_rss_mb``, ``rss_mb`` and ``cpu_s`` (its process's CPU time so far)
-beside the node's own counters and gauges."""
+Every node's stats carry ``peak_rss_mb``, ``rss_mb``, ``cpu_s`` (its process's CPU time so far) and
+``nice`` (its scheduling priority) beside the node's own counters and gauges."""
 from __future__ import annotations
 
 import os
