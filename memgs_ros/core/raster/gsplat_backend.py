@@ -9,6 +9,11 @@ maps, and where gsplat's semantics differ from the torch backend:
 - ``render_mode="RGB+D"`` gives the alpha-blended, un-normalised depth (the paper's D_p);
 - gsplat bins by a 3-sigma box on 16x16 tiles, so pixels far in a Gaussian's tail can differ
   from the torch backend by up to one 1/255 step of alpha;
+- pixel centres: gsplat evaluates pixel (i, j) at (j + 0.5, i + 0.5), this package (OpenCV, and
+  the torch/numba backends) at (j, i). gsplat gets the principal point shifted by +0.5 px
+  (:func:`gsplat_intrinsics`), so both render the same image from the same camera, and its
+  ``means2d`` come back shifted by -0.5 px into this package's convention. (Passing K
+  unchanged rendered every image half a pixel off: the cause of the first GPU parity failure.)
 - ``means2d`` is a detached [N, 2] copy of gsplat's ``meta["means2d"]`` whose ``.grad`` a
   backward hook fills (it is not part of the graph: do not differentiate through it).
 """
@@ -34,6 +39,19 @@ def gsplat_available() -> bool:
     return True
 
 
+# gsplat's pixel (i, j) has its centre at (j + 0.5, i + 0.5); this package's at (j, i).
+GSPLAT_PIXEL_CENTRE = 0.5
+
+
+def gsplat_intrinsics(camera: PinholeCamera, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """[3, 3] K to hand gsplat so that it renders what the torch backend renders from ``camera``:
+    the principal point moved by +0.5 px (see the module docstring)."""
+    c = GSPLAT_PIXEL_CENTRE
+    return torch.tensor(
+        [[camera.fx, 0.0, camera.cx + c], [0.0, camera.fy, camera.cy + c], [0.0, 0.0, 1.0]], dtype=dtype, device=device
+    )
+
+
 def rasterize_gsplat(
     means: Tensor,  # [N, 3]
     quats_wxyz: Tensor,  # [N, 4]
@@ -53,9 +71,7 @@ def rasterize_gsplat(
     from memgs_ros.core.raster import RenderOutput
 
     dtype, device = means.dtype, means.device
-    K = torch.tensor(
-        [[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]], dtype=dtype, device=device
-    )
+    K = gsplat_intrinsics(camera, dtype, device)
     n_bases = (sh_degree + 1) ** 2
     coeffs = torch.cat([sh_dc, sh_rest[:, : n_bases - 1]], dim=1)  # [N, B, 3]
     renders, alphas, meta = rasterization(
@@ -77,7 +93,7 @@ def rasterize_gsplat(
     # gsplat's means2d is [1, N, 2]; hand out an [N, 2] leaf whose .grad a hook fills, so that
     # callers read out.means2d.grad exactly as with the torch backend.
     full = meta["means2d"]
-    means2d = full[0].detach()
+    means2d = full[0].detach() - GSPLAT_PIXEL_CENTRE  # a shift: the gradient is the same
     if full.requires_grad:
 
         def _store(grad: Tensor) -> None:
