@@ -531,3 +531,39 @@ def test_backend_selection_without_numba(monkeypatch: pytest.MonkeyPatch) -> Non
     assert torch.equal(auto.color, torch_out.color)
     with pytest.raises(ConfigError, match="backend 'numba' was asked for but numba is not importable"):
         rasterize(*params, T, CAM_32, 1, backend="numba")
+
+
+def test_gpu_chunk_schedule_matches_reference(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The schedule a GPU gets (CUDA_PAIRS_PER_CHUNK: a few big chunks instead of many small ones)
+    renders and differentiates exactly like the brute-force reference, here on the CPU."""
+    from memgs_ros.core.raster import tiles
+
+    cam = PinholeCamera(160, 120, 120.0, 118.0, 79.2, 60.7)
+    params, T = _scene(400, 191, spread=1.4)
+    proj = project_gaussians(*params, T, cam, 1, 0.01)
+    cut = alpha_cutoff_sq(proj.opacities.detach(), MIN_ALPHA)
+    chunks = {}
+    for pairs in (tiles.PAIRS_PER_CHUNK // 64, tiles.CUDA_PAIRS_PER_CHUNK):
+        plan = build_tile_plan(proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, cam.width, cam.height,
+                               tiles.TILE_SIZE, pairs)
+        chunks[pairs] = len(plan.chunks)
+    assert chunks[tiles.CUDA_PAIRS_PER_CHUNK] == 1 < chunks[tiles.PAIRS_PER_CHUNK // 64]
+    monkeypatch.setenv(tiles.CHUNK_PAIRS_ENV, str(tiles.CUDA_PAIRS_PER_CHUNK))
+    bg = torch.tensor([0.3, 0.1, 0.6], dtype=torch.float64)
+    out = _compare(params, T, cam, 1, background=bg)
+    assert out.alpha.max() > 0.5
+
+
+def test_chunk_size_by_device(monkeypatch: pytest.MonkeyPatch) -> None:
+    from memgs_ros.core.raster import tiles
+    from memgs_ros.errors import ConfigError
+
+    monkeypatch.delenv(tiles.CHUNK_PAIRS_ENV, raising=False)
+    assert tiles.pairs_per_chunk_for(torch.device("cpu")) == tiles.PAIRS_PER_CHUNK
+    assert tiles.pairs_per_chunk_for(torch.device("cuda")) == tiles.CUDA_PAIRS_PER_CHUNK
+    monkeypatch.setenv(tiles.CHUNK_PAIRS_ENV, "12345")
+    assert tiles.pairs_per_chunk_for(torch.device("cpu")) == 12345
+    for bad in ("0", "-3", "lots"):
+        monkeypatch.setenv(tiles.CHUNK_PAIRS_ENV, bad)
+        with pytest.raises(ConfigError, match=tiles.CHUNK_PAIRS_ENV):
+            tiles.pairs_per_chunk_for(torch.device("cpu"))

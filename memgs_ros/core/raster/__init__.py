@@ -28,7 +28,7 @@ from memgs_ros.core.raster.numba_backend import NUMBA_TILE_SIZE, composite_numba
 from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians, screen_radii
 from memgs_ros.core.raster.projection_numba import project_gaussians_numba
 from memgs_ros.core.raster.reference import _rasterize_reference
-from memgs_ros.core.raster.tiles import TILE_SIZE, build_tile_plan
+from memgs_ros.core.raster.tiles import TILE_SIZE, build_tile_plan, pairs_per_chunk_for
 
 __all__ = ["RenderOutput", "rasterize", "warm_up", "_rasterize_reference"]
 
@@ -155,6 +155,7 @@ def rasterize(
         camera.width,
         camera.height,
         NUMBA_TILE_SIZE if use_numba else TILE_SIZE,
+        pairs_per_chunk_for(means.device),  # only the torch compositor reads it
     )
     if background is None:
         background = torch.zeros(3, dtype=means.dtype, device=means.device)

@@ -21,17 +21,42 @@ float64 formulas, a counting sort instead of a comparison sort), else in torch
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from functools import cached_property
 
 import torch
 from torch import Tensor
 
+from memgs_ros.errors import ConfigError
+
 # px. Pixel-Gaussian pairs per pixel on the benchmark scene (20k, 320x240, exact binning):
 # 27 at 2 px, 38 at 4 px, 62 at 8 px, 130 at 16 px; 4 px balances pairs against per-tile overhead.
 TILE_SIZE = 4
-PAIRS_PER_CHUNK = 1 << 18  # pixel-Gaussian pairs per compositing chunk (~1 MB per float32 buffer)
+PAIRS_PER_CHUNK = 1 << 18  # pixel-Gaussian pairs per compositing chunk on a CPU (~1 MB per float32 buffer)
+# On a GPU each chunk costs ~50 kernel launches whatever its size: at the CPU's chunk size the
+# bench_raster scene (100k Gaussians, 640x480) took 56 chunks, ~3000 launches, and the launches
+# were the render's time. 4M pairs (16 MB float32 buffers) make it 5 chunks (18 at 500k) for
+# 17 % more padded pairs; a chunk's transient buffers stay near 100 MB (a Jetson shares that
+# memory with the CPU).
+CUDA_PAIRS_PER_CHUNK = 1 << 22
+CHUNK_PAIRS_ENV = "MEMGS_RASTER_CHUNK_PAIRS"  # overrides both (tuning on a new device)
 BIN_MARGIN = 1.001  # widen the cutoff ellipse a little: binning must never miss a pixel
+
+
+def pairs_per_chunk_for(device: torch.device) -> int:
+    """The torch compositor's chunk size on ``device``: ``CUDA_PAIRS_PER_CHUNK`` on a GPU,
+    ``PAIRS_PER_CHUNK`` elsewhere, or the positive integer in $MEMGS_RASTER_CHUNK_PAIRS."""
+    value = os.environ.get(CHUNK_PAIRS_ENV, "").strip()
+    if value:
+        try:
+            pairs = int(value)
+        except ValueError:
+            pairs = 0
+        if pairs <= 0:
+            raise ConfigError(f"{CHUNK_PAIRS_ENV} must be a positive integer, got {value!r}")
+        return pairs
+    return CUDA_PAIRS_PER_CHUNK if device.type == "cuda" else PAIRS_PER_CHUNK
 
 
 @dataclass(frozen=True)
