@@ -41,3 +41,17 @@ def context(ros_domain_id: int):  # -> rclpy.Context
     rclpy.init(context=ctx, domain_id=ros_domain_id)
     yield ctx
     rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture
+def numba_off(monkeypatch: pytest.MonkeyPatch):  # -> Iterator[None]
+    """MEMGS_DISABLE_NUMBA=1 for one test: the plain-torch twins of every compiled path run (the
+    branches a GPU takes). numba_available() is read once per process, so its cache is cleared
+    on the way in and, with the variable restored, on the way out."""
+    from memgs_ros.core import runtime
+
+    monkeypatch.setenv("MEMGS_DISABLE_NUMBA", "1")
+    runtime.numba_available.cache_clear()
+    yield
+    monkeypatch.undo()
+    runtime.numba_available.cache_clear()

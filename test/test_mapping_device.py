@@ -78,9 +78,9 @@ def _full_res_loss(mapper: GaussianMapper) -> float:
 
 @pytest.mark.parametrize("device,backend", CASES)
 def test_training_step_stays_on_device(frames: list[Frame], device: str, backend: str,
-                                       monkeypatch: pytest.MonkeyPatch) -> None:
+                                       request: pytest.FixtureRequest) -> None:
     if device == "cpu":
-        monkeypatch.setenv("MEMGS_DISABLE_NUMBA", "1")  # the branches a GPU takes
+        request.getfixturevalue("numba_off")  # the branches a GPU takes
     cfg = MappingConfig(min_keyframes=3, pyramid_uses_per_level=2, raster_backend=backend,
                         densify_start_iter=20, densify_interval=20, merge_start_iter=30, merge_interval=30,
                         merge_stop_iter=10_000, densify_grad_threshold=1e-7)

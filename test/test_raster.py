@@ -519,13 +519,12 @@ def test_numba_edge_cases() -> None:
         assert torch.equal(getattr(with_grad, name).detach(), getattr(no_grad, name))
 
 
-def test_backend_selection_without_numba(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_backend_selection_without_numba(numba_off: None) -> None:
     """Without numba, "auto" renders with the torch compositor and "numba" is refused by name."""
-    import memgs_ros.core.raster as raster_mod
     from memgs_ros.errors import ConfigError
 
     params, T = _scene(20, 321)
-    monkeypatch.setattr(raster_mod, "numba_available", lambda: False)
+
     auto = rasterize(*params, T, CAM_32, 1)
     torch_out = rasterize(*params, T, CAM_32, 1, backend="torch")
     assert torch.equal(auto.color, torch_out.color)

@@ -23,6 +23,7 @@ SUBCOMMANDS: dict[str, str] = {
     "convert": "convert",
     "eval": "evaluate",
     "view": "view",
+    "doctor": "doctor",
 }
 
 

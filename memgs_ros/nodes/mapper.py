@@ -20,7 +20,6 @@ import time
 from concurrent.futures import Future
 
 import numpy as np
-import torch
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -35,6 +34,7 @@ from memgs_ros.core.mapping import MappingConfig
 from memgs_ros.core.merge import MergeConfig
 from memgs_ros.core import losses
 from memgs_ros.core.raster import warm_up
+from memgs_ros.core.raster.backend_choice import choose_backend, device_label, resolve_device
 from memgs_ros.core.runtime import configure_cpu_runtime
 from memgs_ros.core.session import KeyframeInput, MappingSession
 from memgs_ros.nodes.mapper_params import RANGES, MapperParams
@@ -60,12 +60,14 @@ class MapperNode(Node):
         self.params = p = declare_config(self, MapperParams, "", ranges=RANGES)
         self.cfg: MappingConfig = declare_config(self, MappingConfig, "mapping")
         merge_cfg: MergeConfig = declare_config(self, MergeConfig, "merge")
-        device = p.device if p.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
+        device = resolve_device(p.device)
+        raster = choose_backend(device, self.cfg.raster_backend)  # what warm_up and training will run
         if device == "cpu":
             configure_cpu_runtime()
         # Free heap pages go back every 2 s (each trim ~5 ms): training leaves ~30-50 MB of
         # freed step buffers a step, and at the default 30 s they piled up into the peak RSS.
         self.stats = NodeStats(self, "mapper", trim_period_s=2.0)
+        self.stats.gauges["raster_backend"] = raster.backend
         self.ckpt = checkpoint.CheckpointFile(pathlib.Path(p.checkpoint_path).expanduser()) if p.checkpoint_path else None
         resumed, why = self.ckpt.read_or_set_aside() if p.resume and self.ckpt else (None, None)
         # A new delta epoch every start: a merger that held the map of an earlier life resynchronises.
@@ -128,7 +130,11 @@ class MapperNode(Node):
         self._rss_baseline_mb = rss_mb()
         self.stats.gauges["rss_baseline_mb"] = round(self._rss_baseline_mb, 1)
         self.create_timer(0.1, self._sync_stats)
-        self.get_logger().info(f"mapper on {device}, {'lockstep' if p.lockstep else 'free-running'} training")
+        self.get_logger().info(f"mapper on {device_label(device)}, rasterizer {raster.backend}, "
+                               f"{'lockstep' if p.lockstep else 'free-running'} training")
+        if raster.fallback_warning:
+            self.get_logger().warning("CUDA without gsplat: the torch fallback rasterizer is several times slower; "
+                                      "install gsplat (README 'On a Jetson')")
 
     def save_checkpoint(self, force: bool = False) -> pathlib.Path | None:
         """Write the session's state atomically when it changed since the last write."""

@@ -23,6 +23,7 @@ from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.errors import ConfigError
 from memgs_ros.core.raster.composite import MIN_ALPHA
 from memgs_ros.core.raster.composite import composite as _composite  # keep the submodule name free
+from memgs_ros.core.raster.backend_choice import choose_backend
 from memgs_ros.core.raster.gsplat_backend import gsplat_available, rasterize_gsplat
 from memgs_ros.core.raster.numba_backend import NUMBA_TILE_SIZE, composite_numba, numba_available
 from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians, screen_radii
@@ -128,13 +129,13 @@ def rasterize(
         background = background.to(device=means.device, dtype=means.dtype)
     if backend == "gsplat" and not gsplat_available():
         raise ConfigError("rasterize: backend 'gsplat' was asked for but the gsplat package is not installed")
-    use_gsplat = backend == "gsplat" or (backend == "auto" and means.is_cuda and gsplat_available())
-    if use_gsplat:
+    chosen = choose_backend(means.device, backend).backend
+    if chosen == "gsplat":
         return rasterize_gsplat(
             means, quats_wxyz, log_scales, opacity_logits, sh_dc, sh_rest, T_cw, camera, sh_degree, background, near
         )
 
-    use_numba = backend == "numba" or (backend == "auto" and not means.is_cuda and numba_available())
+    use_numba = chosen == "numba"
     if backend == "numba" and (means.is_cuda or not numba_available()):
         why = "the tensors are on CUDA" if means.is_cuda else "numba is not importable (or MEMGS_DISABLE_NUMBA is set)"
         raise ConfigError(f"rasterize: backend 'numba' was asked for but {why}")

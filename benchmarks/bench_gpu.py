@@ -1,0 +1,349 @@
+"""Benchmark: the whole package on a CUDA machine, in one run of under 8 minutes.
+
+Stages (each can be skipped; each writes its part of one JSON, default results/bench_gpu.json):
+
+  setup    the card, torch/CUDA, gsplat; missing wheels (rclpy, rosbags, mcap, pytest, gsplat)
+           installed from ``--wheels DIR`` when given (``pip install --no-index``); gsplat's
+           CUDA code built once, here, before any other process needs it.
+  tests    the CUDA tests: test_cuda.py (torch on CUDA vs the reference, gsplat vs torch),
+           test_mapping_device.py (a full mapper step per backend stays on the GPU),
+           test_gsplat_conventions.py (the adapter's conventions, CPU).
+  raster   ``rasterize`` forward + backward of benchmarks/bench_raster.py's room scene at
+           640x480, SH degree 3, per backend (torch fallback, gsplat) and size (20k, 100k,
+           500k Gaussians): median of ``--runs`` timed iterations after 3 untimed ones, each
+           ended by torch.cuda.synchronize; the peak torch.cuda.max_memory_allocated.
+  mapping  benchmarks/bench_mapping.py on the TUM head at resolution scale 1.0 (640x480) per
+           backend: median step time over the last quarter (map near its final size),
+           Gaussians, PSNR.
+  eval     ``memgs eval`` on the TUM head, lockstep, scale 1.0: PSNR over all frames, ATE, the
+           mapper's peak torch.cuda.max_memory_allocated, wall time.
+  live     ``memgs run --realtime`` on the head at scale 1.0, then the finished run scored
+           (evaluation.evaluate_run): frames tracked of frames played, PSNR at the tracked poses.
+
+    TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 python benchmarks/bench_gpu.py --tum DIR [--wheels DIR]
+    python benchmarks/bench_gpu.py --table results/bench_gpu.json   # the README's GPU table
+
+The issue-25 targets are printed beside each figure. Run nothing else on the machine meanwhile.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_TUM = ROOT.parent / "shared/data/tum/rgbd_dataset_freiburg1_rpy_head"
+STAGES = ("setup", "tests", "raster", "mapping", "eval", "live")
+RASTER_SIZES = (20_000, 100_000, 500_000)
+# Issue 25's targets: name -> (bound, "<=" or ">=")
+TARGETS: dict[str, tuple[float, str]] = {
+    "raster_gsplat_100000_ms": (3.0, "<="),
+    "raster_torch_100000_ms": (25.0, "<="),
+    "raster_torch_500000_ms": (150.0, "<="),
+    "mapping_gsplat_step_ms": (8.0, "<="),
+    "eval_psnr_db": (23.5, ">="),
+    "eval_ate_cm": (1.5, "<="),
+    "eval_cuda_peak_mb": (1024.0, "<="),
+    "eval_wall_s": (90.0, "<="),
+    "live_tracked_fraction": (1.0, ">="),
+    "live_psnr_db": (22.0, ">="),
+}
+# Wheels the GPU machine may lack (no ROS there); pip names.
+WHEELS = ("pytest", "rosbags", "mcap", "ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "ros-jazzy-rmw-fastrtps-cpp")
+
+
+def _log(msg: str) -> None:
+    print(f"[bench_gpu {time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def _importable(module: str) -> bool:
+    return subprocess.run([sys.executable, "-c", f"import {module}"], capture_output=True).returncode == 0
+
+
+def _pip_from(wheels: Path, names: list[str]) -> str:
+    cmd = [sys.executable, "-m", "pip", "install", "-q", "--no-index", "--find-links", str(wheels), *names]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    return "ok" if r.returncode == 0 else f"failed: {(r.stderr or r.stdout).strip().splitlines()[-1:]}"
+
+
+def stage_setup(args: argparse.Namespace) -> dict[str, Any]:
+    import torch
+
+    out: dict[str, Any] = {"python": platform.python_version(), "cpu_cores": os.cpu_count(), "torch": torch.__version__,
+                           "cuda": torch.version.cuda, "device": args.device, "installed": {}}
+    if args.device == "cuda":
+        if not torch.cuda.is_available():
+            raise SystemExit("bench_gpu: no CUDA device (torch.cuda.is_available() is False)")
+        props = torch.cuda.get_device_properties(0)
+        # One build configuration for this process and every child: torch's extension loader keys
+        # on these flags, so a child with other flags would rebuild gsplat (60-90 s) or break it.
+        os.environ.setdefault("TORCH_CUDA_ARCH_LIST", f"{props.major}.{props.minor}")
+        os.environ.setdefault("MAX_JOBS", str(os.cpu_count() or 4))
+        out.update(card=torch.cuda.get_device_name(0), memory_gib=round(props.total_memory / 2**30, 1),
+                   compute_capability=f"{props.major}.{props.minor}",
+                   TORCH_CUDA_ARCH_LIST=os.environ["TORCH_CUDA_ARCH_LIST"])
+    else:
+        out["card"] = f"CPU ({platform.processor() or platform.machine()}), a dry run of the script"
+    modules = {"pytest": ["pytest"], "rosbags": ["rosbags"], "mcap": ["mcap"], "rclpy": list(WHEELS[3:])}
+    missing = [pip for mod, pips in modules.items() if not _importable(mod) for pip in pips]
+    if missing and args.wheels:
+        out["installed"]["wheels"] = {"names": missing, "result": _pip_from(args.wheels, missing)}
+    if not _importable("gsplat") and args.wheels and list(args.wheels.glob("gsplat-*.whl")):
+        out["installed"]["gsplat"] = _pip_from(args.wheels, ["gsplat"])
+    if not _importable("memgs_ros"):
+        r = subprocess.run([sys.executable, "-m", "pip", "install", "-q", "-e", str(ROOT), "--no-deps"],
+                           capture_output=True, text=True)
+        out["installed"]["memgs_ros"] = "ok" if r.returncode == 0 else r.stderr.strip()[-300:]
+    out["missing_after_setup"] = [m for m in ("pytest", "rosbags", "mcap", "rclpy") if not _importable(m)]
+    from memgs_ros.core.raster.gsplat_backend import gsplat_available
+
+    out["gsplat"] = None
+    if gsplat_available() and args.device == "cuda":
+        import gsplat
+
+        from memgs_ros.core.raster import warm_up
+
+        t0 = time.perf_counter()
+        warm_up("cuda", "gsplat")  # JIT-builds gsplat's CUDA code on first use
+        torch.cuda.synchronize()
+        out["gsplat"] = {"version": getattr(gsplat, "__version__", "?"), "first_use_s": round(time.perf_counter() - t0, 1)}
+    return out
+
+
+def stage_tests(args: argparse.Namespace) -> dict[str, Any]:
+    tests = ["test/test_cuda.py", "test/test_mapping_device.py", "test/test_gsplat_conventions.py"]
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-rs", *tests], cwd=ROOT, capture_output=True, text=True)
+    tail = (r.stdout + r.stderr).strip().splitlines()
+    return {"returncode": r.returncode, "summary": tail[-1] if tail else "", "tail": tail[-25:],
+            "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def _time(fn: Callable[[], None], runs: int, device: str, warmup: int = 3) -> float:
+    """Median seconds of ``fn`` (each run ended by a CUDA synchronize on a GPU)."""
+    import torch
+
+    def sync() -> None:
+        if device == "cuda":
+            torch.cuda.synchronize()
+
+    for _ in range(warmup):
+        fn()
+    sync()
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def stage_raster(args: argparse.Namespace) -> dict[str, Any]:
+    import torch
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from bench_raster import build_scene
+
+    from memgs_ros.core.raster import rasterize
+    from memgs_ros.core.raster.gsplat_backend import gsplat_available
+
+    dev = args.device
+    backends = ["torch"] + (["gsplat"] if gsplat_available() and dev == "cuda" else [])
+    rows = []
+    for n in args.raster_sizes:
+        params, T, cam = build_scene(n, 640, 480)
+        params = [p.to(dev, torch.float32).requires_grad_() for p in params]
+        T = T.to(dev, torch.float32)
+        target = torch.rand(3, 480, 640, generator=torch.Generator().manual_seed(0)).to(dev)
+        for backend in backends:
+            def step() -> None:
+                out = rasterize(*params, T, cam, 3, backend=backend)
+                loss = (out.color - target).abs().mean() + 0.1 * out.depth.abs().mean()
+                loss.backward()
+                for p in params:
+                    p.grad = None
+
+            if dev == "cuda":
+                torch.cuda.empty_cache()
+                torch.cuda.reset_peak_memory_stats()
+            try:
+                sec = _time(step, args.runs, dev)
+            except torch.cuda.OutOfMemoryError as err:
+                rows.append({"backend": backend, "gaussians": n, "error": f"out of memory: {err}"[:200]})
+                continue
+            peak = torch.cuda.max_memory_allocated() / 2**20 if dev == "cuda" else None
+            rows.append({"backend": backend, "gaussians": n, "ms": round(sec * 1e3, 2),
+                         "peak_mb": None if peak is None else round(peak, 1)})
+            _log(f"raster {backend:6s} {n:7d}: {sec * 1e3:8.2f} ms")
+        del params
+    return {"width": 640, "height": 480, "sh_degree": 3, "runs": args.runs, "rows": rows}
+
+
+def _run(cmd: list[str], timeout: float, log: Path) -> tuple[int, float]:
+    t0 = time.perf_counter()
+    with open(log, "w") as fh:
+        try:
+            rc = subprocess.run(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT, timeout=timeout).returncode
+        except subprocess.TimeoutExpired:
+            rc = 124
+    return rc, time.perf_counter() - t0
+
+
+def stage_mapping(args: argparse.Namespace) -> dict[str, Any]:
+    from memgs_ros.core.raster.gsplat_backend import gsplat_available
+
+    out: dict[str, Any] = {"source": str(args.tum), "scale": 1.0, "iterations": args.mapping_iterations, "runs": []}
+    for backend in ["gsplat", "torch"] if gsplat_available() and args.device == "cuda" else ["torch"]:
+        js = args.out_dir / f"mapping_{backend}.json"
+        cmd = [sys.executable, "benchmarks/bench_mapping.py", "--dataset", "tum", "--tum", str(args.tum),
+               "--device", args.device, "--scale", "1.0", "--grid", "8",  # ~50k Gaussians, as at scale 0.5 with 4 px
+               "--iterations", str(args.mapping_iterations),
+               "--set", f"raster_backend='{backend}'", "--skip-all-frames", "--out", str(js)]
+        rc, wall = _run(cmd, 240, args.out_dir / f"mapping_{backend}.log")
+        row: dict[str, Any] = {"backend": backend, "returncode": rc, "wall_s": round(wall, 1)}
+        if rc == 0 and js.exists():
+            r = json.loads(js.read_text())["results"][0]
+            row.update(step_ms=round(r["median_step_s_last_quarter"] * 1e3, 2),
+                       step_ms_all=round(r["median_step_s"] * 1e3, 2), gaussians=r["final_gaussians"],
+                       psnr_keyframes=round(r["psnr_keyframes"], 2), resolution=r["resolution"])
+        out["runs"].append(row)
+        _log(f"mapping {backend}: {row}")
+    return out
+
+
+def stage_eval(args: argparse.Namespace) -> dict[str, Any]:
+    out_dir = args.out_dir / "eval"
+    cmd = [sys.executable, "-m", "memgs_ros", "eval", str(args.tum), "--config", "tum_fr1", "--scale", "1.0",
+           "--out", str(out_dir), "--no-plots", "--no-lpips", "--max-frames", str(args.max_frames)]
+    rc, wall = _run(cmd, 300, args.out_dir / "eval.log")
+    row: dict[str, Any] = {"returncode": rc, "command_wall_s": round(wall, 1)}
+    js = next(iter(sorted(out_dir.rglob("eval.json"))), None)
+    if js is not None:
+        r = json.loads(js.read_text())
+        traj = r.get("trajectory") or {}
+        mem = r.get("memory") or {}
+        cuda = mem.get("cuda_max_allocated_bytes")
+        row.update(psnr_db=r["frames_quality"]["psnr_db"], ssim=r["frames_quality"].get("ssim"),
+                   frames=r["frames"], keyframes=r["keyframes"], gaussians=r["gaussians"],
+                   ate_cm=None if not traj else round(traj["rmse_m"] * 100, 3),
+                   cuda_peak_mb=None if cuda is None else round(cuda / 2**20, 1), wall_s=round(r["wall_s"], 1),
+                   mapper_device=mem.get("mapper_device"), mapping_iterations=r["mapping_iterations"])
+    _log(f"eval: {row}")
+    return row
+
+
+def stage_live(args: argparse.Namespace) -> dict[str, Any]:
+    out_dir = args.out_dir / "live"
+    summary = args.out_dir / "live_summary.json"
+    cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", str(args.tum), "--config", "tum_fr1", "--realtime",
+           "--set", "mapper.mapping.resolution_scale=1.0", "--out", str(out_dir), "--json", str(summary),
+           "--max-frames", str(args.max_frames)]
+    rc, wall = _run(cmd, 180, args.out_dir / "live.log")
+    row: dict[str, Any] = {"returncode": rc, "wall_s": round(wall, 1)}
+    if rc == 0 and summary.exists():
+        s = json.loads(summary.read_text())
+        row.update(frames=s["frames"], poses=s["poses"], lost=s["lost_frames"], keyframes=s["keyframes"],
+                   tracked_fraction=round(s["poses"] / max(s["frames"], 1), 3), cpu_s=s.get("cpu_s"))
+        from memgs_ros.evaluation import evaluate_run
+
+        r = evaluate_run(out_dir, str(args.tum), use_lpips=False, device=args.device, progress=False,
+                         max_frames=args.max_frames)
+        row["psnr_db"] = r.frames_quality.psnr_db
+        row["ate_cm"] = None if r.trajectory is None else round(r.trajectory.rmse_m * 100, 3)
+    _log(f"live: {row}")
+    return row
+
+
+def headline(res: dict[str, Any]) -> dict[str, float | None]:
+    """The figures the issue names, flat (None where a stage did not run or failed)."""
+    h: dict[str, float | None] = {k: None for k in TARGETS}
+    for row in res.get("raster", {}).get("rows", []):
+        if "ms" in row:
+            h[f"raster_{row['backend']}_{row['gaussians']}_ms"] = row["ms"]
+    for row in res.get("mapping", {}).get("runs", []):
+        if "step_ms" in row:
+            h[f"mapping_{row['backend']}_step_ms"] = row["step_ms"]
+    ev, live = res.get("eval", {}), res.get("live", {})
+    h.update(eval_psnr_db=ev.get("psnr_db"), eval_ate_cm=ev.get("ate_cm"), eval_cuda_peak_mb=ev.get("cuda_peak_mb"),
+             eval_wall_s=ev.get("wall_s"), live_tracked_fraction=live.get("tracked_fraction"),
+             live_psnr_db=live.get("psnr_db"))
+    return h
+
+
+def table(res: dict[str, Any]) -> str:
+    """The README's GPU table, from the JSON this script writes."""
+    s = res.get("setup", {})
+    lines = [f"Card: {s.get('card', '?')} ({s.get('memory_gib', '?')} GiB), torch {s.get('torch', '?')}, "
+             f"CUDA {s.get('cuda', '?')}, gsplat {(s.get('gsplat') or {}).get('version', 'not installed')}; "
+             f"`python benchmarks/bench_gpu.py` ({res.get('date', '?')}).", "",
+             "| figure | value | target |", "|---|---|---|"]
+    for name, value in headline(res).items():
+        bound, op = TARGETS.get(name, (None, ""))
+        target = "" if bound is None else f"{op} {bound:g}"
+        if value is None:
+            lines.append(f"| {name} | not run | {target} |")
+            continue
+        ok = bound is None or (value <= bound if op == "<=" else value >= bound)
+        lines.append(f"| {name} | {value:g} | {target}{'' if ok else ' (missed)'} |")
+    tests = res.get("tests", {})
+    if tests:
+        lines.append(f"\nCUDA tests: {tests.get('summary', '?')}")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--tum", type=Path, default=DEFAULT_TUM, help="TUM folder (default the shared fr1/rpy head)")
+    ap.add_argument("--wheels", type=Path, default=None, help="folder of wheels for what the machine lacks")
+    ap.add_argument("--skip", nargs="*", choices=STAGES, default=[], help="stages to leave out")
+    ap.add_argument("--runs", type=int, default=10, help="timed rasterize iterations per backend and size")
+    ap.add_argument("--mapping-iterations", type=int, default=1000)
+    ap.add_argument("--raster-sizes", type=int, nargs="+", default=list(RASTER_SIZES))
+    ap.add_argument("--max-frames", type=int, default=0, help="frames of the TUM folder for eval/live (0 = all)")
+    ap.add_argument("--device", choices=("cuda", "cpu"), default="cuda",
+                    help="cpu: a dry run of the script's wiring on a machine without a GPU (figures mean nothing)")
+    ap.add_argument("--out", type=Path, default=ROOT / "results/bench_gpu.json")
+    ap.add_argument("--table", type=Path, default=None, metavar="JSON", help="print the table of a saved run and exit")
+    args = ap.parse_args(argv)
+    if args.table is not None:
+        print(table(json.loads(args.table.read_text())), end="")
+        return 0
+    args.out_dir = args.out.parent / "bench_gpu_runs"
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    res: dict[str, Any] = {"date": time.strftime("%Y-%m-%d"), "script": "benchmarks/bench_gpu.py"}
+    t0 = time.perf_counter()
+    stages: dict[str, Callable[[argparse.Namespace], dict[str, Any]]] = {
+        "setup": stage_setup, "tests": stage_tests, "raster": stage_raster, "mapping": stage_mapping,
+        "eval": stage_eval, "live": stage_live}
+    for name in STAGES:
+        if name in args.skip and name != "setup":
+            continue
+        if name in ("mapping", "eval", "live") and not args.tum.is_dir():
+            res[name] = {"error": f"no TUM folder at {args.tum}"}
+            continue
+        _log(f"stage {name}")
+        ts = time.perf_counter()
+        try:
+            res[name] = stage_setup(args) if name == "setup" else stages[name](args)
+        except Exception as err:  # one failed stage must not lose the others' figures
+            res[name] = {"error": f"{type(err).__name__}: {err}"[:500]}
+        res[name]["stage_s"] = round(time.perf_counter() - ts, 1)
+        args.out.write_text(json.dumps(res, indent=2))  # after every stage: a timeout keeps what ran
+    res["total_s"] = round(time.perf_counter() - t0, 1)
+    res["headline"] = headline(res)
+    args.out.write_text(json.dumps(res, indent=2))
+    print(table(res), end="")
+    _log(f"wrote {args.out} in {res['total_s']:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
