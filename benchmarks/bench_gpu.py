@@ -20,7 +20,8 @@ Stages (each can be skipped; each writes its part of one JSON, default results/b
   live     ``memgs run --realtime`` on the head at scale 1.0, then the finished run scored
            (evaluation.evaluate_run): frames tracked of frames played, PSNR at the tracked poses.
 
-    TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 python benchmarks/bench_gpu.py --tum DIR [--wheels DIR]
+    python benchmarks/gpu_carry.py gpu_carry   # on a machine with the index: wheels + a TUM subset
+    TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 python benchmarks/bench_gpu.py --tum DIR [--wheels gpu_carry/wheels]
     python benchmarks/bench_gpu.py --table results/bench_gpu.json   # the README's GPU table
 
 The issue-25 targets are printed beside each figure. Run nothing else on the machine meanwhile.
