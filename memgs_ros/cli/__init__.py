@@ -14,6 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from memgs_ros.errors import MemgsError
+from memgs_ros.orchestration.signals import exit_status
 
 # Subcommand name -> module under memgs_ros.cli.
 SUBCOMMANDS: dict[str, str] = {
@@ -55,9 +56,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as err:  # str() names the errno text and the file
         print(f"memgs {args.command}: error: {err}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"memgs {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as err:  # Ctrl-C, or SIGTERM / SIGHUP (orchestration/signals.py)
+        status, name = exit_status(err)
+        print(f"memgs {args.command}: interrupted ({name}); the nodes were stopped", file=sys.stderr)
+        return status
 
 
 if __name__ == "__main__":

@@ -117,3 +117,33 @@ def numba_available() -> bool:
     except ImportError:
         return False
     return True
+
+
+# The runner names itself to the nodes it starts; a node then asks the kernel to end it with
+# the runner (see die_with_parent).
+PARENT_PID_ENV = "MEMGS_PARENT_PID"
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def die_with_parent(parent_pid: int, sig: int = 15) -> bool:
+    """Ask the kernel to send ``sig`` (default SIGTERM) to this process when its parent ends,
+    however it ends (SIGKILL included), so that a node the runner started never outlives it.
+
+    The kernel sends it when the parent *thread* that forked this process exits: the runner
+    starts its nodes from its main thread. Returns False when the parent is already gone
+    (``parent_pid`` is no longer the parent: the caller should exit) and True otherwise,
+    also where prctl does not exist (not Linux: nothing is armed then).
+    """
+    name = ctypes.util.find_library("c")
+    if name is not None:
+        try:
+            prctl = ctypes.CDLL(name, use_errno=True).prctl
+        except (OSError, AttributeError):
+            prctl = None
+        if prctl is not None:
+            prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
+            prctl.restype = ctypes.c_int
+            if prctl(_PR_SET_PDEATHSIG, sig, 0, 0, 0) != 0:
+                _log.warning("prctl(PR_SET_PDEATHSIG) failed: errno %d", ctypes.get_errno())
+    # The parent may have died between fork and prctl: then nothing will ever be sent.
+    return os.getppid() == parent_pid

@@ -45,6 +45,7 @@ from memgs_ros.ros import codecs, qos
 from memgs_ros.core.camera import CameraCalibration
 from memgs_ros.ros.camera_params import CAMERA_PREFIX, declare_calibration
 from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.node_main import started_by_runner
 from memgs_ros.ros.params import ParamSpec, declare_all
 
 # The tick sleeps until the next frame is due (real time; at least MIN_TICK_S) or, in lockstep,
@@ -356,6 +357,8 @@ def _frames_total(frames: Iterable[Frame], max_frames: int) -> int:
 
 
 def main(args: list[str] | None = None) -> int:
+    if not started_by_runner():
+        return 0
     rclpy.init(args=args)
     node: BagPlayer | None = None
     code = 0

@@ -38,7 +38,7 @@ from std_srvs.srv import Trigger
 from memgs_ros.core.geometry import pose_to_tq
 from memgs_ros.core.map_delta import decode
 from memgs_ros.core.atomic import atomic_write
-from memgs_ros.core.runtime import MALLOC_ARENAS
+from memgs_ros.core.runtime import MALLOC_ARENAS, PARENT_PID_ENV
 from memgs_ros.errors import ConfigError, PipelineError
 from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, recorder, rerun_bridge, tracker
 from memgs_ros.orchestration.run_files import (
@@ -46,6 +46,7 @@ from memgs_ros.orchestration.run_files import (
     SUMMARY_FILE, TRAJECTORY_FILE,
     RunOptions, RunSummary, build_params, config_path, node_params,
 )
+from memgs_ros.orchestration.signals import stop_on_signals
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import image_to_numpy, pointcloud2_to_structured, pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.diagnostics import stats_values
@@ -161,21 +162,31 @@ def _parse_kv(message: str) -> dict[str, str]:
 
 
 class _Processes:
-    """The graph's nodes as child processes, logs in ``log_dir``; stopped with SIGINT."""
+    """The graph's nodes as child processes, logs in ``log_dir``; stopped with SIGINT.
+
+    Each node runs in a session of its own (a terminal's Ctrl-C or hang-up reaches the runner
+    alone, which stops the nodes in order) and ends with the runner however the runner ends
+    (MEMGS_PARENT_PID: the node arms PR_SET_PDEATHSIG). The kernel sends that signal when the
+    forking *thread* exits, so every start happens on the thread that calls ``start`` from
+    ``run_pipeline`` and ``_drive`` (the main thread), never on a short-lived one.
+    """
 
     def __init__(self, params_file: Path, namespace: str, env: dict[str, str], log_dir: Path) -> None:
         self.procs: dict[str, subprocess.Popen] = {}
         self.log_dir = log_dir
         self.player_reported = False  # the player announced its end (done or failed): its exit code is known
         self.player_exit_seen: float | None = None  # when the runner first saw the player's process ended
-        self._params_file, self._ns, self._env = params_file, namespace, env
+        self.due: dict[str, float] = {}  # node -> monotonic time of a delayed start (start_due)
+        self._params_file, self._ns = params_file, namespace
+        self._env = dict(env, **{PARENT_PID_ENV: str(os.getpid())})
 
     def start(self, name: str) -> None:
         cmd = [sys.executable, "-m", NODE_MODULES[name].__name__, "--ros-args", "--params-file", str(self._params_file)]
         if self._ns:
             cmd += ["-r", f"__ns:={self._ns}"]
         log = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 - owned by the child
-        self.procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self._env)
+        self.procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self._env,
+                                            start_new_session=True)
         if name in _NICENESS and hasattr(os, "setpriority"):
             try:
                 os.setpriority(os.PRIO_PROCESS, self.procs[name].pid, _NICENESS[name])
@@ -190,6 +201,14 @@ class _Processes:
         os.replace(self.log_dir / f"{name}.log", self.log_dir / f"{name}.killed-{int(time.time())}.log")
         self.start(name)
 
+    def start_due(self) -> None:
+        """Start the nodes whose delayed start (``due``) has come."""
+        now = time.monotonic()
+        for name, when in list(self.due.items()):
+            if now >= when:
+                del self.due[name]
+                self.start(name)
+
     def check(self) -> None:
         for name, p in list(self.procs.items()):
             code = p.poll()
@@ -198,17 +217,32 @@ class _Processes:
                 raise PipelineError(f"node {name} exited with code {code}:\n  " + "\n  ".join(tail))
 
     def stop(self, timeout_s: float = 20.0) -> None:
+        """SIGINT to every node (each saves what it holds), SIGKILL to those still running after
+        ``timeout_s``, and to all at once on a second Ctrl-C / SIGTERM while waiting."""
+        self.due.clear()
         for p in list(self.procs.values()):
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
         end = time.monotonic() + timeout_s
-        for name, p in list(self.procs.items()):
-            try:
-                p.wait(timeout=max(0.1, end - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                logger.warning("node %s did not stop on SIGINT; killing it", name)
+        try:
+            for name, p in list(self.procs.items()):
+                try:
+                    p.wait(timeout=max(0.1, end - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    logger.warning("node %s did not stop on SIGINT; killing it", name)
+                    p.kill()
+                    p.wait()
+        except KeyboardInterrupt:
+            logger.warning("interrupted again while the nodes stop: killing them")
+            self.kill_all()
+            raise
+
+    def kill_all(self) -> None:
+        for p in self.procs.values():
+            if p.poll() is None:
                 p.kill()
-                p.wait()
+        for p in self.procs.values():
+            p.wait()
 
 
 def _open_context(domain_id: int | None, ros_args: list[str], probe_s: float = 1.0,
@@ -236,7 +270,16 @@ def _open_context(domain_id: int | None, ros_args: list[str], probe_s: float = 1
 
 
 def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
-    """Replay ``options.source`` through the graph and return what it produced."""
+    """Replay ``options.source`` through the graph and return what it produced.
+
+    SIGTERM and SIGHUP stop it as Ctrl-C does (``orchestration/signals.py``): the nodes are
+    stopped in order and the merger saves its map; then ``StopRequested`` propagates.
+    """
+    with stop_on_signals():
+        return _run_pipeline(options, progress)
+
+
+def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
 
     if options.rerun is not None:
         options.rerun.check()  # rerun-sdk missing or no display: one line, before any node starts
@@ -298,10 +341,8 @@ def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
                 topics = node_params(params).get("recorder", {}).get("topics", recorder.DEFAULT_TOPICS)
                 _wait_for_recorder(observer, procs, topics, t0 + options.timeout_s)
             procs.start("bag_player")
-            for name, delay in delayed.items():  # counted from the start of the replay, as kills are
-                timer = threading.Timer(delay, procs.start, args=(name,))
-                timer.daemon = True
-                timer.start()
+            # Counted from the start of the replay, as kills are; started by _drive's loop.
+            procs.due = {name: time.monotonic() + delay for name, delay in delayed.items()}
         elif options.kill_after_s:
             raise ConfigError("fault injection (kill_after_s) needs separate processes")
         summary = _drive(observer, options, procs, out, t0, progress)
@@ -404,6 +445,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
                     procs.kill_and_restart(name)
                     restarts[name] = restarts.get(name, 0) + 1
                     del kills[name]
+            procs.start_due()
             procs.check()
             if _player_ended_unheard(procs):
                 break

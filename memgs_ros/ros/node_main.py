@@ -6,6 +6,8 @@ A node may define ``on_shutdown()`` (save the map, stop threads); it runs before
 """
 from __future__ import annotations
 
+import os
+import signal
 from collections.abc import Callable, Sequence
 
 import rclpy
@@ -13,13 +15,24 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, Si
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from memgs_ros.core.runtime import PARENT_PID_ENV, die_with_parent
 from memgs_ros.errors import MemgsError
 from memgs_ros.ros.config_params import check_declared
+
+
+def started_by_runner() -> bool:
+    """For a node that ``memgs run`` started (it sets MEMGS_PARENT_PID): arm SIGTERM for when the
+    runner ends, however it ends (SIGKILL too), so no node outlives it; SIGTERM takes the same
+    clean path as Ctrl-C (the merger saves its map). False: the runner is already gone, exit."""
+    parent = os.environ.get(PARENT_PID_ENV, "")
+    return not parent.isdigit() or die_with_parent(int(parent), signal.SIGTERM)
 
 
 def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None = None,
              threads: int = 1) -> int:
     """Create the node with ``factory`` after rclpy.init and spin it until shutdown."""
+    if not started_by_runner():
+        return 0
     # rclpy's own handlers (SignalHandlerOptions.ALL) turn SIGINT and SIGTERM into a context
     # shutdown that wakes the executor, which then ends the spin, so on_shutdown still runs.
     # (A Python handler that shuts the context down could land while the executor builds its

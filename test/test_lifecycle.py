@@ -1,0 +1,130 @@
+"""Every way ``memgs run`` ends, it ends the nodes it started: SIGTERM and SIGHUP stop them in order
+(the merger saves its map), SIGKILL of the runner ends them through the kernel
+(PR_SET_PDEATHSIG), and a second Ctrl-C kills them at once. Real processes, real DDS."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+
+from memgs_ros.core.ply import load_ply  # noqa: E402
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+NODES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player")
+
+
+def node_pids(out: Path) -> dict[int, str]:
+    """{pid: node} of the processes started with this run's params file."""
+    marker = str(out.resolve() / "params.yaml").encode()
+    found: dict[int, str] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            cmdline = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if marker in cmdline:
+            module = next((a.decode() for a in cmdline if a.startswith(b"memgs_ros.nodes.")), "?")
+            found[int(entry)] = module.rsplit(".", 1)[-1]
+    return found
+
+
+def start_run(out: Path, domain: int) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", "synthetic:w=96,h=72,n=900,seed=3",
+           "--config", "synthetic", "--out", str(out), "--domain-id", str(domain), "--realtime"]
+    log = open(out.parent / f"{out.name}.log", "wb")  # noqa: SIM115 - the child's
+    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+
+
+def wait_until_mapping(run: subprocess.Popen, out: Path, domain: int, timeout_s: float = 120.0) -> None:
+    """All nodes up and the merger holding Gaussians (read from its stats on the run's domain)."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from memgs_ros.ros import qos
+    from memgs_ros.ros.diagnostics import stats_values
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = rclpy.create_node("lifecycle_test_peer", context=ctx)
+    stats: dict[str, str] = {}
+    node.create_subscription(DiagnosticArray, "memgs/merger/stats", lambda m: stats.update(stats_values(m)),
+                             qos.reliable(5))
+    executor = rclpy.executors.SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    try:
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            assert run.poll() is None, (out.parent / f"{out.name}.log").read_text()[-3000:]
+            executor.spin_once(timeout_sec=0.1)
+            if float(stats.get("gaussians", 0)) > 0 and set(node_pids(out).values()) >= set(NODES):
+                return
+        pytest.fail(f"no map in the merger after {timeout_s} s: nodes {node_pids(out)}, merger stats {stats}")
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+def wait_for_no_nodes(out: Path, timeout_s: float) -> float:
+    t0 = time.monotonic()
+    while node_pids(out):
+        if time.monotonic() - t0 > timeout_s:
+            left = node_pids(out)
+            for pid in left:
+                os.kill(pid, signal.SIGKILL)  # leave nothing behind for the other tests
+            pytest.fail(f"nodes still running {timeout_s} s after the runner ended: {left}")
+        time.sleep(0.1)
+    return time.monotonic() - t0
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGKILL], ids=lambda s: s.name)
+def test_runner_end_ends_every_node(tmp_path: Path, sig: signal.Signals, ros_domain_id: int) -> None:
+    out = tmp_path / "run"
+    out.mkdir()
+    run = start_run(out, ros_domain_id)
+    try:
+        wait_until_mapping(run, out, ros_domain_id)
+        run.send_signal(sig)
+        code = run.wait(timeout=60)
+        waited = wait_for_no_nodes(out, timeout_s=20.0)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    log = (out.parent / f"{out.name}.log").read_text()
+    assert code == (-signal.SIGKILL if sig == signal.SIGKILL else 128 + int(sig)), log[-2000:]
+    if sig != signal.SIGKILL:
+        assert f"interrupted ({sig.name})" in log, log[-2000:]
+    # SIGTERM / SIGHUP: the runner stopped the nodes; SIGKILL: the kernel's SIGTERM did. Either
+    # way the merger saved the map it held.
+    assert waited < 20.0
+    assert len(load_ply(out / "map.ply").ids) > 0
+
+
+def test_second_interrupt_kills_the_nodes_at_once(tmp_path: Path, ros_domain_id: int) -> None:
+    out = tmp_path / "run"
+    out.mkdir()
+    run = start_run(out, ros_domain_id)
+    try:
+        wait_until_mapping(run, out, ros_domain_id)
+        run.send_signal(signal.SIGINT)
+        time.sleep(0.3)  # inside the orderly stop
+        run.send_signal(signal.SIGINT)
+        code = run.wait(timeout=30)
+        waited = wait_for_no_nodes(out, timeout_s=5.0)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    log = (out.parent / f"{out.name}.log").read_text()
+    assert code == 130, log[-2000:]
+    assert "killing them" in log, log[-2000:]
+    assert waited < 5.0
