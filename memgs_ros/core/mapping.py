@@ -79,6 +79,33 @@ class MapChanges:
     changed: GaussianRecords
 
 
+def prepare_keyframe(cfg: MappingConfig, device: torch.device, kf_id: int, stamp_ns: int, T_wc: np.ndarray,
+                     rgb: np.ndarray, depth_m: np.ndarray | None, camera: PinholeCamera) -> TrainingKeyframe:
+    """The keyframe as it is trained on: undistorted, resized to ``cfg.resolution_scale``, with its
+    valid-pixel mask and pyramid, on ``device`` (``core/view.py``, ``make_keyframe``). A pure
+    function of the config: any thread may call it while a mapper trains.
+
+    T_wc: [4, 4] camera-to-world; rgb: [H, W, 3] uint8; depth_m: [H, W] float32 metres
+    (NaN/0 invalid) or None; camera: intrinsics of rgb (with its distortion).
+    """
+    if rgb.dtype != np.uint8 or rgb.shape != (camera.height, camera.width, 3):
+        raise DataError(f"keyframe {kf_id}: rgb must be uint8 [{camera.height}, {camera.width}, 3], "
+                        f"got {rgb.dtype} {rgb.shape}")
+    if depth_m is not None and depth_m.shape != (camera.height, camera.width):
+        raise DataError(f"keyframe {kf_id}: depth must be [{camera.height}, {camera.width}], got {depth_m.shape}")
+    prep = view_preparation(camera, cfg.resolution_scale)
+    rgb, depth = prep(rgb, depth_m)
+    image = torch.from_numpy(np.ascontiguousarray(rgb)).to(device).permute(2, 0, 1)  # uint8, stored as is
+    depth_t = None
+    if depth is not None:
+        d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+        depth_t = torch.from_numpy(d).to(device)
+    mask_t = None
+    if cfg.mask_invalid_pixels and prep.valid_mask is not None:
+        mask_t = torch.from_numpy(prep.valid_mask).to(device)
+    return make_keyframe(kf_id, stamp_ns, T_wc, image.contiguous(), depth_t, prep.camera, valid_mask=mask_t)
+
+
 class GaussianMapper:
     """Trains a Gaussian map on keyframes (see module docstring). ``device``: torch device.
 
@@ -168,29 +195,8 @@ class GaussianMapper:
 
     def prepare_keyframe(self, kf_id: int, stamp_ns: int, T_wc: np.ndarray, rgb: np.ndarray,
                          depth_m: np.ndarray | None, camera: PinholeCamera) -> TrainingKeyframe:
-        """The keyframe as it is trained on: undistorted, resized to ``resolution_scale``, with its
-        valid-pixel mask and pyramid (``core/view.py``, ``make_keyframe``). Reads only the config:
-        safe to call from any thread while another one trains.
-
-        T_wc: [4, 4] camera-to-world; rgb: [H, W, 3] uint8; depth_m: [H, W] float32 metres
-        (NaN/0 invalid) or None; camera: intrinsics of rgb (with its distortion).
-        """
-        if rgb.dtype != np.uint8 or rgb.shape != (camera.height, camera.width, 3):
-            raise DataError(f"keyframe {kf_id}: rgb must be uint8 [{camera.height}, {camera.width}, 3], "
-                            f"got {rgb.dtype} {rgb.shape}")
-        if depth_m is not None and depth_m.shape != (camera.height, camera.width):
-            raise DataError(f"keyframe {kf_id}: depth must be [{camera.height}, {camera.width}], got {depth_m.shape}")
-        prep = view_preparation(camera, self.cfg.resolution_scale)
-        rgb, depth = prep(rgb, depth_m)
-        image = torch.from_numpy(np.ascontiguousarray(rgb)).to(self.device).permute(2, 0, 1)  # uint8, stored as is
-        depth_t = None
-        if depth is not None:
-            d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
-            depth_t = torch.from_numpy(d).to(self.device)
-        mask_t = None
-        if self.cfg.mask_invalid_pixels and prep.valid_mask is not None:
-            mask_t = torch.from_numpy(prep.valid_mask).to(self.device)
-        return make_keyframe(kf_id, stamp_ns, T_wc, image.contiguous(), depth_t, prep.camera, valid_mask=mask_t)
+        """:func:`prepare_keyframe` with this mapper's config and device."""
+        return prepare_keyframe(self.cfg, self.device, kf_id, stamp_ns, T_wc, rgb, depth_m, camera)
 
     def add_prepared_keyframe(self, kf: TrainingKeyframe, points_w: np.ndarray | None = None,
                               colors: np.ndarray | None = None, enforce_budget: bool = True) -> int:

@@ -8,9 +8,12 @@ capture state, finish. Every mutation happens on that worker; callers get a
 ``concurrent.futures.Future`` per command and readers get immutable values (records copied to
 host memory, ``SessionStatus``). There are no locks around the map: nothing but the worker
 touches it. Two jobs that need no map state leave the worker, so they overlap a training step on
-another core: a keyframe's images are prepared (undistorted, resized, pyramid) in the caller's
-thread, and map snapshots the worker cut are diffed against what the receiver holds, encoded and
-published by the outbox thread, which owns the delta outbox and sends in the order cut.
+another core: a keyframe's images are prepared (undistorted, resized, pyramid: a pure function of
+the config, ``prepare_keyframe``) in the caller's thread, and map snapshots the worker cut are
+diffed against what the receiver holds, encoded and published by the outbox, a second actor that
+alone owns the delta outbox and sends in the order cut. Both are ``CommandWorker``s
+(core/worker.py): an error in a command reaches its future, a failed training step is an event,
+and a worker that stops or dies fails every pending future, the outbox's included.
 
 Free-running (``free_running=True``): between commands the worker trains, one step at a time, so
 a command waits at most for the step in progress. Lockstep: the worker trains only on ``train``
@@ -28,13 +31,12 @@ from __future__ import annotations
 
 import logging
 import queue
-import threading
 import time
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
-from typing import Any, Generic, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -44,9 +46,10 @@ from memgs_ros.core.checkpoint import MapperCheckpoint
 from memgs_ros.core.gaussians import GaussianRecords
 from memgs_ros.core.keyframes import TrainingKeyframe
 from memgs_ros.core.map_delta import DeltaOutbox
-from memgs_ros.core.mapping import GaussianMapper, MappingConfig, StepStats
+from memgs_ros.core.mapping import GaussianMapper, MappingConfig, StepStats, prepare_keyframe
 from memgs_ros.core.view import view_preparation
-from memgs_ros.errors import DataError, MemgsError
+from memgs_ros.core.worker import BACKGROUND_ERROR_PAUSE_S, Command, CommandWorker, WorkerStopped
+from memgs_ros.errors import DataError
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
@@ -55,13 +58,8 @@ T = TypeVar("T")
 
 # A free-running worker with nothing to train (too few keyframes) waits this long for a command.
 _IDLE_WAIT_S = 0.05
-# After a failed training step, free-running training pauses this long (one bad step, e.g. a CUDA
-# hiccup, must not spin).
-_STEP_ERROR_PAUSE_S = 0.1
-
-
-class SessionError(MemgsError):
-    """A command reached a session that is closed."""
+# A command that reaches a closed or dead session (or its outbox) fails with this.
+SessionError = WorkerStopped
 
 
 @dataclass(frozen=True, eq=False)
@@ -141,6 +139,7 @@ class SessionStatus:
     delta_seq: int = 0
     delta_pending_rows: int = 0
     finished: bool = False
+    alive: bool = True  # the worker and the outbox run commands (False once closed or dead)
     render_camera: PinholeCamera | None = None
     counters: Mapping[str, int] = field(default_factory=dict)
 
@@ -148,7 +147,7 @@ class SessionStatus:
         """The values a node reports as gauges (the counters are reported as counters); the map's
         figures once training has begun, so a time series of them starts at the first step."""
         out: dict[str, int | float] = {"insert_queue": self.insert_queue, "seq": self.delta_seq,
-                                       "delta_pending_rows": self.delta_pending_rows}
+                                       "delta_pending_rows": self.delta_pending_rows, "alive": int(self.alive)}
         if self.iteration > 0:
             out.update(iteration=self.iteration, gaussians=self.gaussians, model_bytes=self.model_bytes,
                        model_bytes_peak=self.model_bytes_peak, gaussians_peak=self.gaussians_peak,
@@ -180,21 +179,57 @@ class _OutboxJob:
     max_rows: int | None
     exact: bool
     publish: Callable[[np.ndarray], None] | None
-    out: Future[Any]
 
 
-class _Command(Generic[T]):
-    """A queued call: ``run`` executes on the worker; its result or exception goes to ``future``."""
+class _Outbox(CommandWorker):
+    """The actor that owns the delta outbox: diffs, encodes and publishes the snapshots the
+    session's worker cut, in the order cut (one queue). ``sent`` is an immutable value."""
 
-    __slots__ = ("name", "run", "future")
+    def __init__(self, max_sh_degree: int, tolerance: float, epoch: int) -> None:
+        super().__init__("mapping-session-outbox")
+        self._box = DeltaOutbox(max_sh_degree, tolerance, epoch=epoch)
+        self.sent = _Sent()  # replaced whole by the worker
+        self.start()
 
-    def __init__(self, name: str, run: Callable[[], T]) -> None:
-        self.name = name
-        self.run = run
-        self.future: Future[T] = Future()
+    def send(self, job: _OutboxJob) -> Future[Any]:
+        return self.submit(job.kind, lambda: self._send(job))
+
+    def _send(self, job: _OutboxJob) -> Any:
+        box, sent = self._box, self.sent
+        if job.kind == "snapshot":
+            rows = box.snapshot(job.records)
+            if job.publish is not None:
+                job.publish(rows)
+            self.sent = replace(sent, seq=box.seq, pending_rows=0, snapshots=sent.snapshots + 1)
+            return rows, len(job.records), box.seq
+        n = n_bytes = 0
+        while (rows := box.next_delta(job.records, None if job.exact else job.max_rows,
+                                      0.0 if job.exact else None)) is not None:
+            n, n_bytes = n + 1, n_bytes + int(rows.nbytes)
+            if job.publish is not None:
+                job.publish(rows)
+            if not job.exact:
+                break
+        self.sent = replace(sent, seq=box.seq, pending_rows=box.pending_rows, messages=sent.messages + n,
+                            bytes=sent.bytes + n_bytes)
+        return DeltaBatch(n, box.seq, box.epoch, box.pending_rows)
 
 
-class MappingSession:
+def _forward(src: Future[Any], dst: Future[Any], errors_only: bool = False) -> None:
+    """When ``src`` is done, resolve ``dst`` the same way (if it is not already); with
+    ``errors_only`` only a failure is passed on."""
+    def done(f: Future[Any]) -> None:
+        if dst.done():
+            return
+        err = f.exception()
+        if err is not None:
+            dst.set_exception(err)
+        elif not errors_only:
+            dst.set_result(f.result())
+    src.add_done_callback(done)
+
+
+class MappingSession(CommandWorker):
     """The one owner of a live Gaussian map (see module docstring).
 
     ``checkpoint``: a state to start from (``state_dict`` of an earlier session); ``delta_epoch`` /
@@ -207,14 +242,13 @@ class MappingSession:
                  checkpoint: MapperCheckpoint | None = None) -> None:
         if insert_queue < 1:
             raise DataError(f"insert_queue must be >= 1, got {insert_queue}")
+        super().__init__("mapping-session")
         self.cfg = cfg if cfg is not None else MappingConfig()
         self.free_running = free_running
         self.insert_queue = int(insert_queue)
         self._mapper = GaussianMapper(self.cfg, device=device, merge_cfg=merge_cfg)
-        self._outbox = DeltaOutbox(self.cfg.max_sh_degree, delta_tolerance, epoch=delta_epoch)  # outbox thread's
+        self._device = self._mapper.device  # callers read this, never the mapper
         self._epoch = int(delta_epoch)
-        self._sent = _Sent()  # replaced whole by the outbox thread
-        self._outbox_queue: queue.SimpleQueue[_OutboxJob | None] = queue.SimpleQueue()
         self._stamps: dict[int, int] = {}  # keyframe stamp -> keyframe id (ids 0, 1, ... by arrival)
         self._render_camera: PinholeCamera | None = None
         self._finished = False
@@ -223,20 +257,15 @@ class MappingSession:
         self._peaks = [0, 0, 0]  # model bytes, Gaussians, accounted bytes
         self._last_loss: float | None = None
         self._captured: tuple[int, int] | None = None  # (iteration, keyframes) of the last state_dict
-        self._commands: deque[_Command[Any]] = deque()
-        self._pending_inserts = 0
-        self._cv = threading.Condition()
-        self._closed = False
+        self._pending_inserts = 0  # changed under the worker's condition only
         self._events: queue.SimpleQueue[SessionEvent] = queue.SimpleQueue()
         if checkpoint is not None:
             self._load(checkpoint)
         self.resumed_stamps: frozenset[int] = frozenset(self._stamps)
         self._status = SessionStatus()
         self._publish_status()
-        self._worker = threading.Thread(target=self._run, name="mapping-session", daemon=True)
-        self._worker.start()
-        self._outbox_thread = threading.Thread(target=self._send_loop, name="mapping-session-outbox", daemon=True)
-        self._outbox_thread.start()
+        self._outbox = _Outbox(self.cfg.max_sh_degree, delta_tolerance, delta_epoch)
+        self.start()
 
     # ------------------------------------------------------------------ readers
     @property
@@ -244,15 +273,16 @@ class MappingSession:
         """The latest status (an immutable value the worker replaces; only the worker reads the
         map: a caller reading tensors the worker resizes can crash the process) with the insert
         queue's length now."""
-        sent = self._sent
-        return replace(self._status, insert_queue=self._pending_inserts, delta_seq=sent.seq,
+        sent = self._outbox.sent
+        return replace(self._status, alive=self.alive and self._outbox.alive,
+                       insert_queue=self._pending_inserts, delta_seq=sent.seq,
                        delta_pending_rows=sent.pending_rows,
                        counters={**self._status.counters, "delta_messages": sent.messages,
                                  "delta_bytes": sent.bytes, "snapshots": sent.snapshots})
 
     @property
     def device(self) -> torch.device:
-        return self._mapper.device
+        return self._device
 
     def poll_events(self) -> list[SessionEvent]:
         """Problems met since the last call, oldest first."""
@@ -267,43 +297,43 @@ class MappingSession:
     def insert_keyframe(self, kf: KeyframeInput) -> Future[int | None]:
         """Queue a keyframe. The future gives the Gaussians seeded, or None when the keyframe was
         refused (counted as an event), dropped for overload, or came after ``finish``."""
-        try:  # no map state: prepared here, overlapping the worker's training step
-            prepared = self._mapper.prepare_keyframe(-1, kf.stamp_ns, kf.T_wc, kf.rgb, kf.depth_m, kf.camera)
+        try:  # a pure function of the config: here, overlapping the worker's training step
+            prepared = prepare_keyframe(self.cfg, self.device, -1, kf.stamp_ns, kf.T_wc, kf.rgb, kf.depth_m,
+                                        kf.camera)
         except DataError as err:
             self._event("bad_keyframe", f"keyframe {kf.stamp_ns} refused: {err}")
             refused: Future[int | None] = Future()
             refused.set_result(None)
             return refused
-        cmd: _Command[int | None] = _Command("insert", lambda: self._insert(kf, prepared))
-        with self._cv:
+        cmd: Command[int | None] = Command("insert", lambda: self._insert(kf, prepared))
+        with self._condition:
             self._check_open()
             if self.free_running and self._pending_inserts >= self.insert_queue:
-                oldest = next(c for c in self._commands if c.name == "insert")
-                self._commands.remove(oldest)
-                self._pending_inserts -= 1
-                oldest.future.set_result(None)
+                oldest = self._drop_queued(lambda c: c.name == "insert")
+                if oldest is not None:
+                    self._pending_inserts -= 1
+                    oldest.future.set_result(None)
                 self._event("keyframe_overload", "mapper cannot keep up: a keyframe was dropped from its full "
                                                  "insert queue")
-            self._commands.append(cmd)
+            self._append(cmd)
             self._pending_inserts += 1
-            self._cv.notify()
         return cmd.future
 
     def update_poses(self, poses: Mapping[int, np.ndarray]) -> Future[int]:
         """Replace keyframe poses ({stamp_ns: T_wc [4, 4]}, e.g. bundle adjustment); the Gaussians
         stay. The future gives how many keyframes were updated (unknown and dropped ones are not)."""
-        return self._submit("update_poses", lambda: self._update_poses(dict(poses)))
+        return self.submit("update_poses", lambda: self._update_poses(dict(poses)))
 
     def correct_keyframes(self, poses: Mapping[int, np.ndarray]) -> Future[tuple[int, int]]:
         """Rigidly move keyframes ({stamp_ns: corrected T_wc}) and the Gaussians anchored to them,
         then train them with priority (``GaussianMapper.correct_keyframes``). The future gives
         (keyframes corrected, Gaussians moved)."""
-        return self._submit("correct", lambda: self._correct(dict(poses)))
+        return self.submit("correct", lambda: self._correct(dict(poses)))
 
     def train(self, iterations: int) -> Future[StepStats | None]:
         """Run ``iterations`` training steps now (nothing before ``ready``); the future gives the
         last step's stats. Lockstep replays call this once per frame."""
-        return self._submit("train", lambda: self._train(int(iterations)))
+        return self.submit("train", lambda: self._train(int(iterations)))
 
     def delta(self, max_rows: int | None, exact: bool = False,
               publish: Callable[[np.ndarray], None] | None = None) -> Future[DeltaBatch]:
@@ -326,18 +356,15 @@ class MappingSession:
         out: Future[Any] = Future()
 
         def cut() -> None:  # on the worker: the snapshot is the only part that reads the map
-            try:
-                self._mapper.discard_changes()  # the outbox diffs snapshots; the change log would only grow
-                self._outbox_queue.put(_OutboxJob(kind, self._mapper.snapshot(), max_rows, exact, publish, out))
-            except BaseException as err:  # noqa: BLE001 - handed to the caller
-                out.set_exception(err)
+            self._mapper.discard_changes()  # the outbox diffs snapshots; the change log would only grow
+            _forward(self._outbox.send(_OutboxJob(kind, self._mapper.snapshot(), max_rows, exact, publish)), out)
 
-        self._submit(kind, cut)
+        _forward(self.submit(kind, cut), out, errors_only=True)  # a failed cut (or a dead worker) fails ``out``
         return out
 
     def snapshot(self) -> Future[GaussianRecords]:
         """The whole map as records (host copies)."""
-        return self._submit("records", self._mapper.snapshot)
+        return self.submit("records", self._mapper.snapshot)
 
     def render(self, T_wc: np.ndarray, camera: PinholeCamera | None = None,
                publish: Callable[[RenderedView], None] | None = None) -> Future[RenderedView | None]:
@@ -345,93 +372,62 @@ class MappingSession:
         prepared camera of the first keyframe). None before a keyframe or with an empty map.
         ``publish(view)`` is called on the worker when there is a view."""
         T = np.asarray(T_wc, dtype=np.float64)
-        return self._submit("render", lambda: self._render(T, camera, publish))
+        return self.submit("render", lambda: self._render(T, camera, publish))
 
     def state_dict(self, only_if_changed: bool = False) -> Future[MapperCheckpoint | None]:
         """Everything needed to resume (the mapper's state plus the keyframe-stamp table in
         ``extra["keyframe_stamps"]``), or None when ``only_if_changed`` and nothing changed since
         the last capture."""
-        return self._submit("state_dict", lambda: self._state_dict(only_if_changed))
+        return self.submit("state_dict", lambda: self._state_dict(only_if_changed))
 
     def finish(self, final_iterations: int = 0, densify: bool = True) -> Future[FinishResult]:
         """Run what is queued, stop free-running training, run ``final_iterations`` (once; with
         ``densify=False`` they only refine, so the map does not grow at the end), and
         refuse keyframes from then on. Deltas, renders and state stay available."""
-        return self._submit("finish", lambda: self._finish(int(final_iterations), bool(densify)))
+        return self.submit("finish", lambda: self._finish(int(final_iterations), bool(densify)))
 
     def call(self, fn: Callable[[GaussianMapper], T]) -> Future[T]:
         """Run ``fn(mapper)`` on the worker (tests, benchmarks and tools that need the engine);
         it must not keep references to the mapper's tensors."""
-        return self._submit("call", lambda: fn(self._mapper))
+        return self.submit("call", lambda: fn(self._mapper))
 
-    def close(self, timeout_s: float = 30.0) -> None:
-        """Stop the worker after the command or step in progress; queued commands fail with
-        SessionError. Idempotent."""
-        with self._cv:
-            self._closed = True
-            dropped = list(self._commands)
-            self._commands.clear()
-            self._pending_inserts = 0
-            self._cv.notify_all()
-        for cmd in dropped:
-            cmd.future.set_exception(SessionError(f"mapping session closed before '{cmd.name}' ran"))
-        if threading.current_thread() is not self._worker:
-            self._worker.join(timeout_s)
-        self._outbox_queue.put(None)  # after the worker: every snapshot it cut is still sent
+    def save_state(self, write: Callable[[MapperCheckpoint], T], only_if_changed: bool = False) -> Future[T | None]:
+        """Capture the state (``state_dict``) and ``write(state)`` it, both on the worker: saves
+        from several threads (a timer, a finish service) land in command order, so an older
+        state never overwrites a newer one. None when ``only_if_changed`` and nothing changed."""
+        def run() -> T | None:
+            ckpt = self._state_dict(only_if_changed)
+            return None if ckpt is None else write(ckpt)
+        return self.submit("save_state", run)
+
+    def close(self, timeout_s: float = 30.0, drain: bool = False) -> bool:
+        """Stop the worker after the command or step in progress (queued commands fail with
+        SessionError), then the outbox after sending every snapshot the worker cut; a cut that
+        comes later (the worker outlived ``timeout_s``) fails its future. Idempotent."""
+        stopped = super().close(timeout_s, drain)
+        return self._outbox.close(timeout_s, drain=True) and stopped
 
     # ------------------------------------------------------------------- worker
-    def _submit(self, name: str, run: Callable[[], T]) -> Future[T]:
-        cmd: _Command[T] = _Command(name, run)
-        with self._cv:
-            self._check_open()
-            self._commands.append(cmd)
-            self._cv.notify()
-        return cmd.future
+    def _take(self, cmd: Command[Any]) -> None:
+        if cmd.name == "insert":
+            self._pending_inserts -= 1
 
-    def _check_open(self) -> None:
-        if self._closed:
-            raise SessionError("the mapping session is closed")
+    def _after_command(self, cmd: Command[Any]) -> None:
+        self._publish_status()
 
-    def _run(self) -> None:
-        while True:
-            with self._cv:
-                while not self._closed and not self._commands and not self._wants_step():
-                    self._cv.wait()
-                if self._closed:
-                    return
-                cmd = self._commands.popleft() if self._commands else None
-                if cmd is not None and cmd.name == "insert":
-                    self._pending_inserts -= 1
-            if cmd is None:
-                self._free_step()
-                continue
-            if not cmd.future.set_running_or_notify_cancel():
-                continue
-            try:
-                cmd.future.set_result(cmd.run())
-            except BaseException as err:  # noqa: BLE001 - handed to the caller through its future
-                cmd.future.set_exception(err)
-            self._publish_status()
-
-    def _wants_step(self) -> bool:
+    def _has_background(self) -> bool:
         return self._training and not self._finished
 
-    def _free_step(self) -> None:
-        try:
-            st = self._mapper.step()
-        except (DataError, RuntimeError) as err:
-            self._event("training_step", f"training step failed: {err}")
-            self._idle(_STEP_ERROR_PAUSE_S)
-            return
+    def _background(self) -> float:
+        st = self._mapper.step()
         if st is None:
-            self._idle(_IDLE_WAIT_S)
-            return
+            return _IDLE_WAIT_S
         self._after_step(st)
+        return 0.0
 
-    def _idle(self, seconds: float) -> None:
-        with self._cv:
-            if not self._commands and not self._closed:
-                self._cv.wait(seconds)
+    def _on_background_error(self, err: Exception) -> float:
+        self._event("training_step", f"training step failed: {type(err).__name__}: {err}")
+        return BACKGROUND_ERROR_PAUSE_S
 
     def _after_step(self, st: StepStats) -> None:
         c = self._counters
@@ -509,34 +505,6 @@ class MappingSession:
             self._after_step(st)
             last = st
         return last
-
-    def _send_loop(self) -> None:
-        """The outbox thread: diff, encode and publish snapshots in the order the worker cut them."""
-        while (job := self._outbox_queue.get()) is not None:
-            try:
-                job.out.set_result(self._send(job))
-            except BaseException as err:  # noqa: BLE001 - handed to the caller
-                job.out.set_exception(err)
-
-    def _send(self, job: _OutboxJob) -> Any:
-        box, sent = self._outbox, self._sent
-        if job.kind == "snapshot":
-            rows = box.snapshot(job.records)
-            if job.publish is not None:
-                job.publish(rows)
-            self._sent = replace(sent, seq=box.seq, pending_rows=0, snapshots=sent.snapshots + 1)
-            return rows, len(job.records), box.seq
-        n = n_bytes = 0
-        while (rows := box.next_delta(job.records, None if job.exact else job.max_rows,
-                                      0.0 if job.exact else None)) is not None:
-            n, n_bytes = n + 1, n_bytes + int(rows.nbytes)
-            if job.publish is not None:
-                job.publish(rows)
-            if not job.exact:
-                break
-        self._sent = replace(sent, seq=box.seq, pending_rows=box.pending_rows, messages=sent.messages + n,
-                             bytes=sent.bytes + n_bytes)
-        return DeltaBatch(n, box.seq, box.epoch, box.pending_rows)
 
     def _render(self, T_wc: np.ndarray, camera: PinholeCamera | None,
                 publish: Callable[[RenderedView], None] | None) -> RenderedView | None:

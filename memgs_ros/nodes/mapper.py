@@ -37,6 +37,7 @@ from memgs_ros.core.raster import warm_up
 from memgs_ros.core.raster.backend_choice import choose_backend, device_label, resolve_device
 from memgs_ros.core.runtime import configure_cpu_runtime
 from memgs_ros.core.session import KeyframeInput, MappingSession
+from memgs_ros.core.worker import WorkerStopped
 from memgs_ros.nodes.mapper_params import RANGES, MapperParams
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros import qos
@@ -138,14 +139,20 @@ class MapperNode(Node):
 
     def save_checkpoint(self, force: bool = False) -> pathlib.Path | None:
         """Write the session's state atomically when it changed since the last write."""
+        if self.ckpt is None:
+            return None
         t0 = time.perf_counter()
-        try:
-            ck = self.session.state_dict(only_if_changed=not force).result() if self.ckpt is not None else None
-            if ck is None:
+        ckpt = self.ckpt
+
+        def write(state: checkpoint.MapperCheckpoint) -> bool:
+            ckpt.write(state)
+            return True
+
+        try:  # captured and written on the session's worker: a timer's save never overwrites the final one
+            if not self.session.save_state(write, only_if_changed=not force).result():
                 return None
-            self.ckpt.write(ck)
-        except (OSError, DataError) as err:
-            self.stats.problem("checkpoint_failed", f"could not write checkpoint {self.ckpt.path}: {err}")
+        except (OSError, DataError, WorkerStopped) as err:
+            self.stats.problem("checkpoint_failed", f"could not write checkpoint {ckpt.path}: {err}")
             return None
         self.stats.counters["checkpoints"] += 1
         self.stats.gauges["checkpoint_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
