@@ -14,7 +14,6 @@ View selection (``KeyframeStore.next_view``):
 from __future__ import annotations
 
 import random
-import threading
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -160,7 +159,8 @@ class TrainingView:
 
 
 class KeyframeStore:
-    """Thread-safe keyframes plus the Photo-SLAM view schedule (see module docstring)."""
+    """Keyframes plus the Photo-SLAM view schedule (see module docstring). Not thread-safe: it
+    belongs to one ``GaussianMapper``, which one thread drives (the session's worker)."""
 
     def __init__(self, new_keyframe_budget: int = 2, uses_per_level: int = 8, seed: int = 0) -> None:
         if new_keyframe_budget < 1 or uses_per_level < 0:
@@ -168,7 +168,6 @@ class KeyframeStore:
                             f"{new_keyframe_budget} and {uses_per_level}")
         self.new_keyframe_budget = int(new_keyframe_budget)
         self.uses_per_level = int(uses_per_level)
-        self._lock = threading.RLock()
         self._kfs: dict[int, TrainingKeyframe] = {}
         self._budget: dict[int, int] = {}
         self._uses: dict[int, int] = {}  # draws so far, drives the pyramid level
@@ -176,97 +175,85 @@ class KeyframeStore:
         self._rng = random.Random(seed)
 
     def __len__(self) -> int:
-        with self._lock:
-            return len(self._kfs)
+        return len(self._kfs)
 
     def __contains__(self, kf_id: int) -> bool:
-        with self._lock:
-            return kf_id in self._kfs
+        return kf_id in self._kfs
 
     def ids(self) -> list[int]:
-        with self._lock:
-            return sorted(self._kfs)
+        return sorted(self._kfs)
 
     def add(self, kf: TrainingKeyframe) -> None:
         """Insert a new keyframe with the new-keyframe budget, at a random place in the list."""
-        with self._lock:
-            if kf.kf_id in self._kfs:
-                raise DataError(f"keyframe {kf.kf_id} is already in the store")
-            self._kfs[kf.kf_id] = kf
-            self._budget[kf.kf_id] = self.new_keyframe_budget
-            self._uses[kf.kf_id] = 0
-            self._pool.insert(self._rng.randrange(len(self._pool) + 1), kf.kf_id)
+        if kf.kf_id in self._kfs:
+            raise DataError(f"keyframe {kf.kf_id} is already in the store")
+        self._kfs[kf.kf_id] = kf
+        self._budget[kf.kf_id] = self.new_keyframe_budget
+        self._uses[kf.kf_id] = 0
+        self._pool.insert(self._rng.randrange(len(self._pool) + 1), kf.kf_id)
 
     def remove(self, kf_id: int) -> None:
         """Drop a keyframe from training (its Gaussians stay in the map)."""
-        with self._lock:
-            if kf_id not in self._kfs:
-                raise DataError(f"no keyframe with id {kf_id}")
-            del self._kfs[kf_id], self._budget[kf_id], self._uses[kf_id]
-            self._pool = [k for k in self._pool if k != kf_id]
+        if kf_id not in self._kfs:
+            raise DataError(f"no keyframe with id {kf_id}")
+        del self._kfs[kf_id], self._budget[kf_id], self._uses[kf_id]
+        self._pool = [k for k in self._pool if k != kf_id]
 
     def get(self, kf_id: int) -> TrainingKeyframe:
-        with self._lock:
-            try:
-                return self._kfs[kf_id]
-            except KeyError as err:
-                raise DataError(f"no keyframe with id {kf_id}") from err
+        try:
+            return self._kfs[kf_id]
+        except KeyError as err:
+            raise DataError(f"no keyframe with id {kf_id}") from err
 
     def nbytes(self) -> int:
         """Bytes of every stored keyframe's tensors (``TrainingKeyframe.nbytes``)."""
-        with self._lock:
-            return sum(kf.nbytes for kf in self._kfs.values())
+        return sum(kf.nbytes for kf in self._kfs.values())
 
     def all(self) -> list[TrainingKeyframe]:
         """Every keyframe, in id order."""
-        with self._lock:
-            return [self._kfs[k] for k in sorted(self._kfs)]
+        return [self._kfs[k] for k in sorted(self._kfs)]
 
     def update_pose(self, kf_id: int, T_wc: np.ndarray) -> None:
         """Replace keyframe ``kf_id``'s camera-to-world pose ([4, 4])."""
         T = np.asarray(T_wc, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise DataError(f"keyframe {kf_id}: T_wc must be a finite 4x4 matrix")
-        with self._lock:
-            self._kfs[kf_id] = replace(self.get(kf_id), T_wc=T.copy())
+        self._kfs[kf_id] = replace(self.get(kf_id), T_wc=T.copy())
 
     def prioritise(self, kf_id: int) -> None:
         """Give keyframe ``kf_id`` a new keyframe's budget of views again and put it back in the
         list of views to draw (a keyframe whose pose a loop closure corrected: retrain it first)."""
-        with self._lock:
-            if kf_id not in self._kfs:
-                raise DataError(f"no keyframe with id {kf_id}")
-            self._budget[kf_id] = max(self._budget[kf_id], self.new_keyframe_budget)
-            if kf_id not in self._pool:
-                self._pool.append(kf_id)  # next_view draws from the end: it comes next
+        if kf_id not in self._kfs:
+            raise DataError(f"no keyframe with id {kf_id}")
+        self._budget[kf_id] = max(self._budget[kf_id], self.new_keyframe_budget)
+        if kf_id not in self._pool:
+            self._pool.append(kf_id)  # next_view draws from the end: it comes next
 
     def level_index(self, kf_id: int) -> int:
         """Pyramid level the keyframe's next draw renders (0 = coarsest)."""
-        with self._lock:
-            n_levels = self._kfs[kf_id].n_levels
-            if self.uses_per_level == 0:
-                return n_levels - 1
-            return min(self._uses[kf_id] // self.uses_per_level, n_levels - 1)
+        n_levels = self._kfs[kf_id].n_levels
+        if self.uses_per_level == 0:
+            return n_levels - 1
+        return min(self._uses[kf_id] // self.uses_per_level, n_levels - 1)
 
     def next_view(self) -> TrainingView | None:
         """Draw the next training view (None when the store is empty)."""
-        with self._lock:
-            if not self._kfs:
-                return None
-            if not self._pool:
-                for k in self._budget:
-                    self._budget[k] += 1
-                self._pool = list(self._kfs)
-                self._rng.shuffle(self._pool)
-            kf_id = self._pool[-1]
-            level_index = self.level_index(kf_id)
-            self._budget[kf_id] -= 1
-            self._uses[kf_id] += 1
-            if self._budget[kf_id] <= 0:
-                self._pool.pop()
-            else:
-                # Move it to a random place so one keyframe's uses are not consecutive.
-                self._pool.pop()
-                self._pool.insert(self._rng.randrange(len(self._pool) + 1), kf_id)
-            kf = self._kfs[kf_id]
-        return TrainingView(kf, kf.level(level_index))  # made outside the lock
+        if not self._kfs:
+            return None
+        if not self._pool:
+            for k in self._budget:
+                self._budget[k] += 1
+            self._pool = list(self._kfs)
+            self._rng.shuffle(self._pool)
+        kf_id = self._pool[-1]
+        level_index = self.level_index(kf_id)
+        self._budget[kf_id] -= 1
+        self._uses[kf_id] += 1
+        if self._budget[kf_id] <= 0:
+            self._pool.pop()
+        else:
+            # Move it to a random place so one keyframe's uses are not consecutive.
+            self._pool.pop()
+            self._pool.insert(self._rng.randrange(len(self._pool) + 1), kf_id)
+        kf = self._kfs[kf_id]
+        return TrainingView(kf, kf.level(level_index))
