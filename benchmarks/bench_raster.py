@@ -132,7 +132,7 @@ def _rss_mb() -> tuple[float, float]:
 
 def resolve_backend(backend: str) -> str:
     """The CPU compositor that rasterize(..., backend=backend) uses: "torch" or "numba"."""
-    from memgs_ros.core.raster.numba_backend import numba_available
+    from memgs_ros.core.runtime import numba_available
 
     if backend == "auto":
         return "numba" if numba_available() else "torch"
@@ -158,7 +158,7 @@ def run_one(
     import torch
 
     from memgs_ros.core.raster import rasterize
-    from memgs_ros.core.raster.composite import MIN_ALPHA
+    from memgs_ros.core.raster.rules import MIN_ALPHA
     from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
     from memgs_ros.core.raster.tiles import build_tile_plan
     from memgs_ros.core.runtime import configure_cpu_runtime
@@ -250,7 +250,7 @@ def stage_breakdown(n: int, width: int, height: int, runs: int, backend: str) ->
     """CPU ms per stage (min over ``runs``), compositing on this thread only (one thread)."""
     import torch
 
-    from memgs_ros.core.raster.composite import MIN_ALPHA
+    from memgs_ros.core.raster.rules import MIN_ALPHA
     from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
     from memgs_ros.core.raster.tiles import build_tile_plan
     from memgs_ros.core.runtime import configure_cpu_runtime

@@ -44,22 +44,34 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from memgs_ros.core import scoring
+from memgs_ros.core.atomic import atomic_write
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.gaussians import GaussianMap
 from memgs_ros.core.metrics import make_lpips
-from memgs_ros.core.atomic import atomic_write
 from memgs_ros.core.ply import load_ply
 from memgs_ros.core.scoring import (
-    ATE_MAX_DT_S, FRAME_MATCH_MAX_DT_S, STRIP_FRAMES, QualityResult, StripFrame, TrajectoryResult,
+    ATE_MAX_DT_S,
+    FRAME_MATCH_MAX_DT_S,
+    STRIP_FRAMES,
+    QualityResult,
+    StripFrame,
+    TrajectoryResult,
 )
-from memgs_ros.core import scoring
 from memgs_ros.core.view import view_preparation
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.sources import open_source
 from memgs_ros.io.tum import read_trajectory
 from memgs_ros.orchestration.run_files import (
-    KEYFRAMES_FILE, LOGS_DIR, ConfiguredCamera, RunOptions, RunSummary, configured_camera, read_params,
-    read_stats_timeline, read_summary,
+    KEYFRAMES_FILE,
+    LOGS_DIR,
+    ConfiguredCamera,
+    RunOptions,
+    RunSummary,
+    configured_camera,
+    read_params,
+    read_stats_timeline,
+    read_summary,
 )
 from memgs_ros.viz import RerunTarget
 
@@ -67,10 +79,27 @@ logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
 
 __all__ = [
-    "ABLATION_LABELS", "ABLATION_VARIANTS", "ATE_MAX_DT_S", "AblationResult", "EvalResult",
-    "FRAME_MATCH_MAX_DT_S", "MapSample", "MemoryResult", "QualityResult", "TrajectoryResult",
-    "ablation", "evaluate", "evaluate_run", "map_samples", "mode_overrides", "node_peak_rss_mb",
-    "result_from_dict", "score_map", "score_trajectory", "training_rate", "write_json",
+    "ABLATION_LABELS",
+    "ABLATION_VARIANTS",
+    "ATE_MAX_DT_S",
+    "FRAME_MATCH_MAX_DT_S",
+    "AblationResult",
+    "EvalResult",
+    "MapSample",
+    "MemoryResult",
+    "QualityResult",
+    "TrajectoryResult",
+    "ablation",
+    "evaluate",
+    "evaluate_run",
+    "map_samples",
+    "mode_overrides",
+    "node_peak_rss_mb",
+    "result_from_dict",
+    "score_map",
+    "score_trajectory",
+    "training_rate",
+    "write_json",
 ]
 
 # Ablation variants: name -> parameter overrides on top of the run's own.
@@ -248,7 +277,7 @@ def map_samples(timeline: Sequence[Mapping[str, Any]]) -> tuple[MapSample, ...]:
         if row.get("node") != "mapper" or "gaussians" not in row:
             continue
 
-        def num(key: str) -> int:
+        def num(key: str, row: Mapping[str, Any] = row) -> int:
             v = _number(row.get(key, 0))
             return 0 if v is None else int(v)
 
@@ -279,8 +308,11 @@ def node_peak_rss_mb(timeline: Sequence[Mapping[str, Any]]) -> dict[str, float]:
 # ----------------------------------------------------------------------------- scoring
 
 
+_UNCONFIGURED = ConfiguredCamera(None, False)
+
+
 def _ground_truth_images(source: str, max_frames: int, scale: float,
-                         configured: ConfiguredCamera = ConfiguredCamera(None, False),
+                         configured: ConfiguredCamera = _UNCONFIGURED,
                          ) -> tuple[np.ndarray, list[np.ndarray], PinholeCamera, Any, np.ndarray | None]:
     """Ground-truth images prepared as the mapper prepares its keyframes, with the camera the
     run's tracker used: the configured calibration when it overrode camera_info, else the source's.

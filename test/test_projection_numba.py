@@ -20,7 +20,7 @@ CAM_OFFCENTRE = PinholeCamera(48, 40, 45.0, 40.0, 12.0, 31.0)
 @pytest.fixture(autouse=True)
 def _needs_numba() -> None:
     pytest.importorskip("numba")
-    from memgs_ros.core.raster.numba_backend import numba_available
+    from memgs_ros.core.runtime import numba_available
 
     if not numba_available():
         pytest.skip("numba is disabled here (MEMGS_DISABLE_NUMBA)")

@@ -11,7 +11,8 @@ import torch
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
 from memgs_ros.core.raster import RenderOutput, _rasterize_reference, rasterize
-from memgs_ros.core.raster.composite import MIN_ALPHA, composite
+from memgs_ros.core.raster.composite import composite
+from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
 from memgs_ros.core.raster.tiles import build_tile_plan
 
@@ -379,7 +380,7 @@ def test_opaque_front_gaussian_terminates() -> None:
 # ------------------------------------------------------------------ numba compositor
 def _numba() -> None:
     pytest.importorskip("numba")
-    from memgs_ros.core.raster.numba_backend import numba_available
+    from memgs_ros.core.runtime import numba_available
 
     if not numba_available():
         pytest.skip("numba is disabled here (MEMGS_DISABLE_NUMBA)")

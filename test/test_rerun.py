@@ -115,7 +115,7 @@ def test_viz_imports_no_rclpy() -> None:
     """The view's library half runs where ROS does not (memgs view on a laptop)."""
     import subprocess
 
-    code = ("import sys, memgs_ros.viz.rerun_log, memgs_ros.viz.saved_run, memgs_ros.viz.map_follow, "
+    code = ("import sys, memgs_ros.viz.rerun_log, memgs_ros.orchestration.saved_run, memgs_ros.viz.map_follow, "
             "memgs_ros.cli.view; assert 'rclpy' not in sys.modules, 'rclpy imported'")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr

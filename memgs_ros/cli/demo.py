@@ -9,7 +9,12 @@ import argparse
 import time
 
 from memgs_ros.cli.run import (
-    add_graph_arguments, check_config, check_out_dir, options_from_args, print_summary, print_trajectory_error,
+    add_graph_arguments,
+    check_config,
+    check_out_dir,
+    options_from_args,
+    print_summary,
+    print_trajectory_error,
 )
 
 HELP = "run the whole SLAM graph on the embedded synthetic sequence"

@@ -158,7 +158,8 @@ def collect(check_gsplat: bool = True) -> dict[str, Any]:
         warnings.append("this is a Jetson but torch sees no CUDA: install NVIDIA's torch wheel for your JetPack "
                         "(README 'On a Jetson'), not PyPI's")
     elif torch_info["cuda_build"] and not torch_info["cuda_available"]:
-        warnings.append(f"torch is built for CUDA {torch_info['cuda_build']} but sees no GPU (driver?): the mapper runs on the CPU")
+        warnings.append(f"torch is built for CUDA {torch_info['cuda_build']} but sees no GPU (driver?): "
+                        "the mapper runs on the CPU")
     dds = _dds_profile(rclpy_info["rmw"])
     if dds["file"] and not dds["exists"]:
         warnings.append(f"FASTRTPS_DEFAULT_PROFILES_FILE names a missing file ({dds['file']}): Fast DDS cannot load it")
@@ -197,7 +198,8 @@ def format_report(r: dict[str, Any]) -> str:
     t, b, ros = r["torch"], r["backends"], r["ros"]
     numba, gsplat = b["numba"], b["gsplat"]
     numba_s = (f"{numba['version']}" if numba["available"]
-               else "disabled (MEMGS_DISABLE_NUMBA)" if numba["disabled_by_env"] and numba["version"] else "not installed")
+               else "disabled (MEMGS_DISABLE_NUMBA)" if numba["disabled_by_env"] and numba["version"]
+               else "not installed")
     gsplat_s = (gsplat["version"] or "installed") if gsplat["available"] else "not installed"
     if gsplat["cuda_extension"] is not None:
         gsplat_s += f", CUDA extension: {gsplat['cuda_extension']}"
@@ -207,7 +209,8 @@ def format_report(r: dict[str, Any]) -> str:
     dds = ros["dds_profile"]
     rows = [
         ("python", f"{r['python']['version']} ({r['python']['executable']})"),
-        ("torch", f"{t['version']}, CUDA build {t['cuda_build'] or 'none'}, CUDA available: {_yes(t['cuda_available'])}"),
+        ("torch", f"{t['version']}, CUDA build {t['cuda_build'] or 'none'}, "
+                  f"CUDA available: {_yes(t['cuda_available'])}"),
         *((f"  cuda:{d['index']}", f"{d['name']}, {d['memory_gib']} GiB, compute {d['compute_capability']}")
           for d in t["devices"]),
         ("rasterizer", f"torch: yes | numba: {numba_s} | gsplat: {gsplat_s}"),
@@ -215,8 +218,10 @@ def format_report(r: dict[str, Any]) -> str:
                    f"-> {r['mapper']['raster_backend']}"),
         ("rclpy", rclpy_s),
         ("rmw", f"{ros['rmw_implementation']} ({ros['rmw_source']})"),
-        ("domain", f"ROS_DOMAIN_ID={domain}" if domain is not None else "ROS_DOMAIN_ID unset (0; memgs run picks a free one)"),
-        ("dds", f"{dds['file'] or '-'} [{dds['source']}]" + ("" if dds["exists"] or not dds["file"] else " MISSING FILE")),
+        ("domain", f"ROS_DOMAIN_ID={domain}" if domain is not None
+                   else "ROS_DOMAIN_ID unset (0; memgs run picks a free one)"),
+        ("dds", f"{dds['file'] or '-'} [{dds['source']}]"
+                + ("" if dds["exists"] or not dds["file"] else " MISSING FILE")),
         *((name, _ver(info)) for name, info in r["packages"].items()),
     ]
     width = max(len(k) for k, _ in rows)

@@ -13,8 +13,8 @@ from memgs_ros.evaluation import ABLATION_LABELS, FRAME_MATCH_MAX_DT_S, Ablation
 
 __all__ = ["TABLE_HEADER", "ablation_json", "ablation_table", "markdown_row", "markdown_table"]
 
-TABLE_HEADER = ("| method | PSNR dB / Mem GB / Points k | model MB | PSNR valid px dB | PSNR kf dB | SSIM | LPIPS | ATE cm "
-                "| rot deg | track FPS | map it/s | frames | KF |\n"
+TABLE_HEADER = ("| method | PSNR dB / Mem GB / Points k | model MB | PSNR valid px dB | PSNR kf dB | SSIM "
+                "| LPIPS | ATE cm | rot deg | track FPS | map it/s | frames | KF |\n"
                 "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 TABLE_FOOTNOTE_SPEED = ("track FPS: 1 / mean tracker time per frame; map it/s: mapping iterations per second "
                         "while training (mapper stats), whole-run rate in eval.json.")
@@ -49,7 +49,8 @@ def markdown_row(r: EvalResult, label: str | None = None) -> str:
     ate_cm = None if r.trajectory is None else r.trajectory.rmse_m * 100.0
     rot = None if r.trajectory is None else r.trajectory.rotation_rmse_deg
     return (f"| {label or ABLATION_LABELS.get(r.variant, r.variant)} | {_fmt(q.psnr_db, '.2f')} / {mem:.3g}{star} / "
-            f"{r.gaussians / 1000:.1f} | {r.memory.model_bytes_peak / 1e6:.1f} | {_fmt(q.psnr_db_valid, '.2f')} | {_fmt(k.psnr_db, '.2f')} | {_fmt(q.ssim, '.3f')} | {_fmt(q.lpips, '.3f')} "
+            f"{r.gaussians / 1000:.1f} | {r.memory.model_bytes_peak / 1e6:.1f} | {_fmt(q.psnr_db_valid, '.2f')} "
+            f"| {_fmt(k.psnr_db, '.2f')} | {_fmt(q.ssim, '.3f')} | {_fmt(q.lpips, '.3f')} "
             f"| {_fmt(ate_cm, '.2f')} | {_fmt(rot, '.2f')} | {r.tracking_fps:.1f} "
             f"| {_fmt(r.mapping_iters_per_s_training, '.2f')} "
             f"| {q.n} | {k.n} |")
@@ -82,7 +83,8 @@ def ablation_table(results: Sequence[EvalResult]) -> str:
              "|---|---|---|---|---|---|"]
 
     def diff(a: float | None, b: float | None, scale: float = 1.0) -> str:
-        return "n/a" if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)) else f"{(a - b) * scale:+.2f}"
+        return ("n/a" if a is None or b is None or not (math.isfinite(a) and math.isfinite(b))
+                else f"{(a - b) * scale:+.2f}")
 
     def ate(r: EvalResult) -> float | None:
         return None if r.trajectory is None else r.trajectory.rmse_m

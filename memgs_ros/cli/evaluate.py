@@ -46,7 +46,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
                    help="override a node parameter, e.g. mapper.final_iterations=500 (repeatable)")
     p.add_argument("--max-frames", type=int, default=0, help="use only the first N frames (0 = all)")
-    p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: a random one no other node is using)")
+    p.add_argument("--domain-id", type=int, default=None,
+                   help="ROS_DOMAIN_ID (default: a random one no other node is using)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up a run after this many seconds")
     p.add_argument("--single-process", action="store_true", help="run the nodes in this process")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS even when the lpips package is there")
@@ -75,7 +76,8 @@ def _print_result(r: EvalResult) -> None:
           f"{q.ssim if q.ssim is not None else float('nan'):.3f}"
           + (f", LPIPS {q.lpips:.3f}" if q.lpips is not None else ", LPIPS n/a"))
     if r.trajectory is not None:
-        print(f"[{r.variant}] ATE {r.trajectory.rmse_m * 100:.2f} cm, rotation {r.trajectory.rotation_rmse_deg:.2f} deg "
+        print(f"[{r.variant}] ATE {r.trajectory.rmse_m * 100:.2f} cm, "
+              f"rotation {r.trajectory.rotation_rmse_deg:.2f} deg "
               f"({r.trajectory.n_matched} poses)")
     rss = ", ".join(f"{n} {v:.0f}" for n, v in m.peak_rss_mb.items())
     print(f"[{r.variant}] Gaussians {r.gaussians} (peak {r.gaussians_peak}), memory {m.headline_kind} "
@@ -120,8 +122,8 @@ def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dic
 
     if not torch.cuda.is_available():
         configure_cpu_runtime()  # this process renders every frame on CPU
-    kwargs = dict(max_frames=args.max_frames, domain_id=args.domain_id, timeout_s=args.timeout,
-                  single_process=args.single_process, use_lpips=not args.no_lpips, rerun=rerun)
+    kwargs = {"max_frames": args.max_frames, "domain_id": args.domain_id, "timeout_s": args.timeout,
+                  "single_process": args.single_process, "use_lpips": not args.no_lpips, "rerun": rerun}
     if args.record is not None:
         kwargs["record"] = args.record
     out = Path(args.out)

@@ -16,8 +16,16 @@ from memgs_ros.cli.rerun_options import add_rerun_arguments, rerun_target
 from memgs_ros.core.camera import PinholeCamera, calibration_differences, describe_camera
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.orchestration.run_files import (
-    GRAPH_NODE_NAMES, LOGS_DIR, ConfiguredCamera, RunOptions, RunSummary, build_params, check_parameter_names,
-    check_record_path, configured_camera, node_params,
+    GRAPH_NODE_NAMES,
+    LOGS_DIR,
+    ConfiguredCamera,
+    RunOptions,
+    RunSummary,
+    build_params,
+    check_parameter_names,
+    check_record_path,
+    configured_camera,
+    node_params,
 )
 
 logger = logging.getLogger(__name__)

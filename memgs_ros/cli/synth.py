@@ -53,7 +53,8 @@ def run(args: argparse.Namespace) -> int:
         n = write_tum_folder(frames("tum folder"), args.out)
         size = sum(p.stat().st_size for p in Path(args.out).rglob("*") if p.is_file())
         print(f"TUM folder {args.out}: {n} frames {spec.width}x{spec.height}, {size / 1e6:.1f} MB, "
-              f"{time.perf_counter() - t1:.2f} s (rendering {render_s[0]:.2f} s, {n / max(render_s[0], 1e-9):.1f} frames/s)")
+              f"{time.perf_counter() - t1:.2f} s (rendering {render_s[0]:.2f} s, "
+              f"{n / max(render_s[0], 1e-9):.1f} frames/s)")
     if args.bag is not None:
         render_s[0] = 0.0
         t2 = time.perf_counter()

@@ -24,8 +24,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from memgs_ros.orchestration.saved_run import load_saved_run, log_saved_run
     from memgs_ros.viz import RerunTarget
-    from memgs_ros.viz.saved_run import load_saved_run, log_saved_run
 
     # No sink named: open a viewer, as `rerun map.ply` would.
     target = RerunTarget(spawn=not (args.save or args.url), connect_url=args.url, save_path=args.save)

@@ -61,10 +61,10 @@ class PinholeCamera:
     def has_distortion(self) -> bool:
         return any(abs(d) > 0.0 for d in self.dist)
 
-    def scaled(self, factor: float) -> "PinholeCamera":
+    def scaled(self, factor: float) -> PinholeCamera:
         """The same camera for an image resized by ``factor`` (pixel-centre convention)."""
-        w = max(1, int(round(self.width * factor)))
-        h = max(1, int(round(self.height * factor)))
+        w = max(1, round(self.width * factor))
+        h = max(1, round(self.height * factor))
         sx, sy = w / self.width, h / self.height
         return replace(
             self,
@@ -76,7 +76,7 @@ class PinholeCamera:
             cy=(self.cy + 0.5) * sy - 0.5,
         )
 
-    def fitted(self, width: int, height: int) -> "PinholeCamera":
+    def fitted(self, width: int, height: int) -> PinholeCamera:
         """This camera for images of ``width`` x ``height``: itself when the size matches, rescaled
         when only the resolution differs (same aspect ratio within a pixel); DataError otherwise."""
         if (width, height) == (self.width, self.height):
@@ -87,7 +87,7 @@ class PinholeCamera:
                             "with another aspect ratio")
         return self.scaled(f)
 
-    def undistorted(self) -> "PinholeCamera":
+    def undistorted(self) -> PinholeCamera:
         """The same intrinsics with zero distortion (after undistorting the images)."""
         return replace(self, dist=(0.0, 0.0, 0.0, 0.0, 0.0))
 
@@ -185,20 +185,20 @@ class CameraCalibration:
         """The calibrated camera, or None when no calibration is given."""
         if not self.given:
             return None
-        dist = (self.k1, self.k2, self.p1, self.p2, self.k3)
+        dist: tuple[float, ...] = (self.k1, self.k2, self.p1, self.p2, self.k3)
         if self.k4 or self.k5 or self.k6:
             dist = (*dist, self.k4, self.k5, self.k6)
         return PinholeCamera(int(self.width), int(self.height), float(self.fx), float(self.fy),
                              float(self.cx), float(self.cy), tuple(float(d) for d in dist))
 
     @classmethod
-    def from_camera(cls, camera: PinholeCamera) -> "CameraCalibration":
+    def from_camera(cls, camera: PinholeCamera) -> CameraCalibration:
         d = tuple(camera.dist) + (0.0,) * (8 - len(camera.dist))
         return cls(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
                    k1=d[0], k2=d[1], p1=d[2], p2=d[3], k3=d[4], k4=d[5], k5=d[6], k6=d[7])
 
     @classmethod
-    def from_params(cls, params: Mapping[str, object], prefix: str = "camera.") -> "CameraCalibration":
+    def from_params(cls, params: Mapping[str, object], prefix: str = "camera.") -> CameraCalibration:
         """From a node's parameter dict (``camera.fx`` ...); other keys are ignored. ConfigError
         names a value that is not a number."""
         values: dict[str, object] = {}

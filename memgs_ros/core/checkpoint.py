@@ -102,7 +102,7 @@ def save(ckpt: MapperCheckpoint, path: str | os.PathLike[str]) -> Path:
             arrays[f"kf{i}_depth"] = k.depth_m
         if k.valid_mask is not None:
             arrays[f"kf{i}_mask"] = k.valid_mask
-    atomic_write(path, lambda f: np.savez(f, **arrays))
+    atomic_write(path, lambda f: np.savez(f, **arrays))  # type: ignore[arg-type]  # numpy's stub types **kwds as bool
     return path
 
 

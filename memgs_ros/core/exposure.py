@@ -20,6 +20,7 @@ re-centred on zero mean. ~100 B per keyframe.
 from __future__ import annotations
 
 import math
+
 import torch
 
 from memgs_ros.errors import DataError

@@ -35,9 +35,8 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
-from memgs_ros.errors import ConfigError, DataError
-
 from memgs_ros.core.records import PLY_F_REST, GaussianRecords  # noqa: F401 - re-exported
+from memgs_ros.errors import ConfigError, DataError
 
 SH_C0 = 0.28209479177387814  # zeroth real spherical harmonic, Y_0^0
 PARAM_NAMES = ("means", "log_scales", "quats_wxyz", "opacity_logits", "sh_dc", "sh_rest")
@@ -136,8 +135,19 @@ class GaussianMap:
     means [N, 3], log_scales [N, 3], quats_wxyz [N, 4], opacity_logits [N, 1], sh_dc [N, 1, 3],
     sh_rest [N, K, 3] with K = (max_sh_degree + 1)^2 - 1.
 
-    Not thread-safe by itself: the mapper holds a lock around every call.
+    Not thread-safe: one thread drives it (the mapping session's worker).
     """
+
+    # Per-Gaussian side arrays [N] (SIDE_NAMES, dtypes in _SIDE_DTYPES), resized with the parameters.
+    ids: torch.Tensor  # int64, unique and increasing in creation order
+    keyframe_ids: torch.Tensor  # int64, the keyframe that created the Gaussian (-1: loaded)
+    created_iter: torch.Tensor  # int64, training iteration at creation
+    densify_grad_sum: torch.Tensor  # float32, accumulated screen-space gradient norms
+    densify_count: torch.Tensor  # int64, times seen since the last densification
+    merge_grad_sum: torch.Tensor  # float32, accumulated 3D positional gradient norms
+    merge_count: torch.Tensor  # int64
+    max_radii2d: torch.Tensor  # float32, largest screen radius seen (px)
+    dirty: torch.Tensor  # bool, changed since the last pop_changes
 
     def __init__(self, max_sh_degree: int = 3, device: torch.device | str = "cpu",
                  lrs: GaussianLearningRates | None = None, spatial_lr_scale: float = 1.0) -> None:
@@ -234,6 +244,8 @@ class GaussianMap:
         param_groups and state keys stay valid; gradients are dropped.
         """
         n_new = 0 if new_params is None else int(new_params["means"].shape[0])
+        params_in = new_params if new_params is not None else {}
+        side_in = new_side if new_side is not None else {}
         # Row indices + index_select into one preallocated tensor: bool-mask indexing and a
         # second copy for the append cost ~3x more on CPU (a merge pass at 150k rows: 54 ms).
         idx = None if keep is None else torch.nonzero(keep).squeeze(1)
@@ -255,7 +267,7 @@ class GaussianMap:
             p: torch.nn.Parameter = getattr(self, name)
             new = None
             if n_new:
-                new = new_params[name].to(self.device, torch.float32).reshape((n_new,) + self._row_shapes[name])
+                new = params_in[name].to(self.device, torch.float32).reshape((n_new,) + self._row_shapes[name])
             data = rebuild(p.data, new)
             state = self.optimizer.state.get(p)
             if state:
@@ -268,7 +280,7 @@ class GaussianMap:
             p.grad = None
         for name in SIDE_NAMES:
             arr = getattr(self, name)
-            new = new_side[name].to(self.device, _SIDE_DTYPES[name]) if n_new else None
+            new = side_in[name].to(self.device, _SIDE_DTYPES[name]) if n_new else None
             setattr(self, name, rebuild(arr, new))
 
     # ------------------------------------------------------------------ grow
@@ -354,7 +366,8 @@ class GaussianMap:
             mean_sq = np.full(m, 1e-2)  # a lone point: no neighbour to size it by, 10 cm
         mean_sq = np.maximum(mean_sq, 1e-7)
         log_s = np.log(np.sqrt(mean_sq))[:, None].repeat(3, 1)
-        quats = np.zeros((m, 4)); quats[:, 0] = 1.0
+        quats = np.zeros((m, 4))
+        quats[:, 0] = 1.0
         if not 0.0 < opacity < 1.0:
             raise DataError(f"seed opacity must be in (0, 1), got {opacity}")
         opac = np.full((m, 1), math.log(opacity / (1.0 - opacity)))
@@ -433,10 +446,13 @@ class GaussianMap:
         return self.merge_grad_sum / self.merge_count.clamp_min(1).float()
 
     def reset_densify_stats(self) -> None:
-        self.densify_grad_sum.zero_(); self.densify_count.zero_(); self.max_radii2d.zero_()
+        self.densify_grad_sum.zero_()
+        self.densify_count.zero_()
+        self.max_radii2d.zero_()
 
     def reset_merge_stats(self) -> None:
-        self.merge_grad_sum.zero_(); self.merge_count.zero_()
+        self.merge_grad_sum.zero_()
+        self.merge_count.zero_()
 
     # ------------------------------------------------------ optimisation step
     def optimizer_step(self) -> None:
@@ -503,7 +519,7 @@ class GaussianMap:
     @staticmethod
     def from_records(records: GaussianRecords, max_sh_degree: int = 3, device: torch.device | str = "cpu",
                      lrs: GaussianLearningRates | None = None, spatial_lr_scale: float = 1.0,
-                     keyframe_id: int = -1, iteration: int = 0) -> "GaussianMap":
+                     keyframe_id: int = -1, iteration: int = 0) -> GaussianMap:
         """A new map holding ``records`` with their ids (next_id continues after the largest).
 
         SH coefficients beyond ``max_sh_degree`` are dropped. Keyframe ids are not part of the

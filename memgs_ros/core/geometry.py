@@ -107,7 +107,7 @@ def interpolate_poses(stamps_ns: np.ndarray, poses: np.ndarray, query_ns: np.nda
     return out, valid
 
 
-def quat_wxyz_to_rotmat_torch(q_wxyz: "torch.Tensor") -> "torch.Tensor":
+def quat_wxyz_to_rotmat_torch(q_wxyz: torch.Tensor) -> torch.Tensor:
     """Quaternions [N, 4] (w, x, y, z; normalised here) to rotation matrices [N, 3, 3]."""
     import torch
 
@@ -123,7 +123,7 @@ def quat_wxyz_to_rotmat_torch(q_wxyz: "torch.Tensor") -> "torch.Tensor":
     ).reshape(q.shape[:-1] + (3, 3))
 
 
-def rotmat_to_quat_wxyz_torch(R: "torch.Tensor") -> "torch.Tensor":
+def rotmat_to_quat_wxyz_torch(R: torch.Tensor) -> torch.Tensor:
     """Rotation matrices [N, 3, 3] to unit quaternions [N, 4] (w, x, y, z), w >= 0."""
     import torch
 

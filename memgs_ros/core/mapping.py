@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -37,8 +37,15 @@ from memgs_ros.core.geometry import invert_pose, nearest_pose_distance, rotmat_t
 from memgs_ros.core.keyframes import KeyframeStore, TrainingKeyframe, make_keyframe
 from memgs_ros.core.losses import mapping_loss
 from memgs_ros.core.mapping_config import MappingConfig
-from memgs_ros.core.strategies import (DELTA_BYTES_PER_GAUSSIAN, BudgetStrategy, DensifyStrategy, MemoryAccount,
-                                      MergeFn, MergeSchedule, step_buffer_bytes)
+from memgs_ros.core.strategies import (
+    DELTA_BYTES_PER_GAUSSIAN,
+    BudgetStrategy,
+    DensifyStrategy,
+    MemoryAccount,
+    MergeFn,
+    MergeSchedule,
+    step_buffer_bytes,
+)
 from memgs_ros.core.view import view_preparation
 from memgs_ros.errors import ConfigError, DataError
 
@@ -215,7 +222,7 @@ class GaussianMapper:
         self._drop_redundant_keyframes()
         self._update_extent()
         added = 0
-        if points_w is not None and len(points_w):
+        if points_w is not None and len(points_w) and colors is not None:  # colors checked above
             ids = self.gmap.add_from_points(points_w, colors, kf.kf_id, self.iteration, opacity=self.cfg.seed_opacity)
             added = int(ids.numel())
             # A memory cap is a promise about every moment, not about the next step: keep it here

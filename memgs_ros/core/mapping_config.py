@@ -154,7 +154,7 @@ class MappingConfig:
             scaling=self.lr_scaling, rotation=self.lr_rotation)
 
     @staticmethod
-    def from_dict(values: dict[str, Any]) -> "MappingConfig":
+    def from_dict(values: dict[str, Any]) -> MappingConfig:
         """Build from a flat dict (e.g. ROS parameters), refusing unknown names."""
         known = {f.name for f in fields(MappingConfig)}
         unknown = sorted(set(values) - known)

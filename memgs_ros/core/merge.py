@@ -363,7 +363,7 @@ def _w2_terms_sqrtcov_soa(X: torch.Tensor,  # [6, P]
     Xs: Sym6 = X.unbind(0)  # type: ignore[assignment]
     St: Sym6 = S_t.unbind(0)  # type: ignore[assignment]
     At: Sym6 = adj_t.unbind(0)  # type: ignore[assignment]
-    a, d, f, b, c, e = Xs
+    a, _, _, b, c, _ = Xs  # (a, d, f, b, c, e): only the first row enters the determinant
     adj_x = _sym_adj_soa(Xs)
     det_x = a * adj_x[0] + b * adj_x[3] + c * adj_x[4]  # cofactor expansion along the first row
     S_k = _sym_sq_soa(Xs)
@@ -424,7 +424,8 @@ def merge_covariance(q_i: torch.Tensor,  # [P, 4]
     assert q_i.shape == q_j.shape == (P, 4) and s_i.shape == s_j.shape == (P, 3), \
         f"merge_covariance: {tuple(q_i.shape)} {tuple(s_i.shape)} {tuple(q_j.shape)} {tuple(s_j.shape)}"
     if parametrization not in ("sqrt_cov", "quat_scale"):
-        raise ConfigError(f"merge_covariance: parametrization must be 'sqrt_cov' or 'quat_scale', got {parametrization!r}")
+        raise ConfigError("merge_covariance: parametrization must be 'sqrt_cov' or 'quat_scale', "
+                          f"got {parametrization!r}")
     out_dtype = s_i.dtype
     if P == 0:
         return q_i.new_zeros((0, 4)), s_i.new_zeros((0, 3)), 0
@@ -445,7 +446,7 @@ def merge_covariance(q_i: torch.Tensor,  # [P, 4]
         def target(q: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, ...]:
             R = quat_wxyz_to_rotmat_torch(q)
             S = _sym_from_dense((R * (s * s)[:, None, :]) @ R.transpose(-1, -2))
-            return S, torch.stack(_sym_adj_soa(S.unbind(0))), s.prod(-1)
+            return S, torch.stack(_sym_adj_soa(S.unbind(0))), s.prod(-1)  # type: ignore[arg-type]  # [6, ...]
 
         ti, tj = target(qi, si_n), target(qj, sj_n)
         S_t, adj_t, r_t = (torch.cat([a, b], -1) for a, b in zip(ti, tj))  # 2P columns: i terms, j terms
@@ -504,7 +505,7 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def merge_pass(gmap: "GaussianMap", cfg: MergeConfig, newest_keyframe_id: int, iteration: int) -> MergeResult:
+def merge_pass(gmap: GaussianMap, cfg: MergeConfig, newest_keyframe_id: int, iteration: int) -> MergeResult:
     """One merge pass over ``gmap`` in place (reference section 4).
 
     Candidates: ``merge_grad_mean() < cfg.tau`` and keyframe id in

@@ -110,7 +110,7 @@ def match_frames(render_stamps_ns: np.ndarray,  # [R]
                  max_dt_s: float = FRAME_MATCH_MAX_DT_S) -> tuple[np.ndarray, np.ndarray]:
     """One-to-one nearest matching of rendered frames to ground-truth frames within max_dt_s.
     Returns (ir [n], ig [n]) int64 indices, sorted by ir."""
-    return associate(render_stamps_ns, gt_stamps_ns, int(round(max_dt_s * 1e9)))
+    return associate(render_stamps_ns, gt_stamps_ns, round(max_dt_s * 1e9))
 
 
 def summarize_scores(scores: Sequence[FrameScore]) -> dict[str, float | int | None]:
@@ -125,5 +125,5 @@ def summarize_scores(scores: Sequence[FrameScore]) -> dict[str, float | int | No
         "n": len(scores),
         "psnr_db": float(p[finite].mean()) if finite.any() else math.inf,
         "ssim": float(np.mean([s.ssim for s in scores])),
-        "lpips": float(np.mean(lp)) if all(v is not None for v in lp) else None,
+        "lpips": float(np.mean([v for v in lp if v is not None])) if all(v is not None for v in lp) else None,
     }

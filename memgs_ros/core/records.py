@@ -57,7 +57,7 @@ class GaussianRecords:
         return sum(getattr(self, f.name).nbytes for f in fields(self))
 
     @staticmethod
-    def empty() -> "GaussianRecords":
+    def empty() -> GaussianRecords:
         """Zero Gaussians."""
         return GaussianRecords.from_arrays(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)),
                                            np.zeros((0, PLY_F_REST)), np.zeros(0), np.zeros((0, 3)),
@@ -65,18 +65,18 @@ class GaussianRecords:
 
     @staticmethod
     def from_arrays(ids: np.ndarray, xyz: np.ndarray, f_dc: np.ndarray, f_rest: np.ndarray,
-                    opacity: np.ndarray, scale: np.ndarray, rot: np.ndarray) -> "GaussianRecords":
+                    opacity: np.ndarray, scale: np.ndarray, rot: np.ndarray) -> GaussianRecords:
         """Build records casting to the canonical dtypes (ids int64, everything else float32)."""
         f32 = lambda a: np.ascontiguousarray(np.asarray(a, dtype=np.float32))  # noqa: E731
         return GaussianRecords(np.ascontiguousarray(np.asarray(ids, dtype=np.int64)), f32(xyz), f32(f_dc),
                                f32(f_rest), f32(opacity), f32(scale), f32(rot))
 
-    def select(self, index: np.ndarray) -> "GaussianRecords":
+    def select(self, index: np.ndarray) -> GaussianRecords:
         """Rows picked by a bool mask [N] or an index array [M]."""
         return GaussianRecords(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
 
     @staticmethod
-    def concat(parts: list["GaussianRecords"]) -> "GaussianRecords":
+    def concat(parts: list[GaussianRecords]) -> GaussianRecords:
         """Rows of several records, in order."""
         if not parts:
             return GaussianRecords.empty()

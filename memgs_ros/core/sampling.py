@@ -25,8 +25,15 @@ from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.errors import ConfigError, DataError
 
 __all__ = [
-    "PG_MONO_TUM", "PG_RGBD", "PatchGridConfig", "SOURCE_KEYPOINT", "SOURCE_PATCH_GRID",
-    "SeedPoints", "patch_grid_uv", "seeds_mono", "seeds_rgbd",
+    "PG_MONO_TUM",
+    "PG_RGBD",
+    "SOURCE_KEYPOINT",
+    "SOURCE_PATCH_GRID",
+    "PatchGridConfig",
+    "SeedPoints",
+    "patch_grid_uv",
+    "seeds_mono",
+    "seeds_rgbd",
 ]
 
 SOURCE_KEYPOINT = 0
@@ -91,7 +98,8 @@ class SeedPoints:
     def __post_init__(self) -> None:
         s = self.points_w.shape[0] if self.points_w.ndim == 2 else -1
         if self.points_w.shape != (s, 3) or self.points_w.dtype != np.float32:
-            raise DataError(f"SeedPoints.points_w must be float32 [S, 3], got {self.points_w.dtype} {self.points_w.shape}")
+            raise DataError("SeedPoints.points_w must be float32 [S, 3], "
+                            f"got {self.points_w.dtype} {self.points_w.shape}")
         if self.colors.shape != (s, 3) or self.colors.dtype != np.float32:
             raise DataError(f"SeedPoints.colors must be float32 [{s}, 3], got {self.colors.dtype} {self.colors.shape}")
         if self.source.shape != (s,) or self.source.dtype != np.uint8:

@@ -197,11 +197,11 @@ class _Outbox(CommandWorker):
     def _send(self, job: _OutboxJob) -> Any:
         box, sent = self._box, self.sent
         if job.kind == "snapshot":
-            rows = box.snapshot(job.records)
+            whole = box.snapshot(job.records)
             if job.publish is not None:
-                job.publish(rows)
+                job.publish(whole)
             self.sent = replace(sent, seq=box.seq, pending_rows=0, snapshots=sent.snapshots + 1)
-            return rows, len(job.records), box.seq
+            return whole, len(job.records), box.seq
         n = n_bytes = 0
         while (rows := box.next_delta(job.records, None if job.exact else job.max_rows,
                                       0.0 if job.exact else None)) is not None:
@@ -450,7 +450,8 @@ class MappingSession(CommandWorker):
             keyframes_trained=len(m.keyframes), keyframes_dropped=m.keyframes_dropped,
             budget_gaussians=m.budget_gaussians, model_bytes=model, model_bytes_peak=self._peaks[0],
             keyframe_bytes=account.keyframes, accounted_bytes=account.total, accounted_bytes_peak=self._peaks[2],
-            gaussians_peak=self._peaks[1], loss=self._last_loss, cuda_max_allocated=cuda, insert_queue=self._pending_inserts,
+            gaussians_peak=self._peaks[1], loss=self._last_loss, cuda_max_allocated=cuda,
+            insert_queue=self._pending_inserts,
             finished=self._finished, render_camera=self._render_camera, counters=dict(self._counters))
 
     def _event(self, kind: str, message: str) -> None:

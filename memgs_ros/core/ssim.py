@@ -131,7 +131,7 @@ class _SsimMapFunction(torch.autograd.Function):
         return s
 
     @staticmethod
-    def backward(ctx: torch.autograd.function.FunctionCtx,  # type: ignore[override]
+    def backward(ctx: Any,  # type: ignore[override]
                  v_s: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         a, b, k, mu1, mu2, num_l, num_cs, den_l, den_cs, s = ctx.saved_tensors
         need_a, need_b = ctx.needs_input_grad[0], ctx.needs_input_grad[1]

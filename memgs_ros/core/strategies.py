@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -196,7 +197,7 @@ class BudgetStrategy:
         with torch.no_grad():
             merged = 0
             merge_cfg = self.merge.budget_config(newest_kf_id)
-            if merge_cfg is not None:
+            if merge_cfg is not None and self.merge.merge_fn is not None:
                 for _ in range(BUDGET_MERGE_PASSES):
                     result = self.merge.merge_fn(gmap, merge_cfg, newest_kf_id, iteration)
                     self.merge.last_budget = result
@@ -332,15 +333,15 @@ class DensifyStrategy:
                 std = gmap.scales()[split_idx].repeat(k, 1)
                 samples = torch.randn(std.shape, generator=self._generator).to(gmap.device) * std
                 rot = quat_wxyz_to_rotmat_torch(gmap.quats_wxyz[split_idx]).repeat(k, 1, 1)
-                child = dict(
-                    means=(rot @ samples[..., None])[..., 0] + gmap.means[split_idx].repeat(k, 1),
-                    log_scales=torch.log(std / cfg.split_scale_factor),
-                    quats_wxyz=gmap.quats_wxyz[split_idx].repeat(k, 1),
-                    opacity_logits=gmap.opacity_logits[split_idx].repeat(k, 1),
-                    sh_dc=gmap.sh_dc[split_idx].repeat(k, 1, 1),
-                    sh_rest=gmap.sh_rest[split_idx].repeat(k, 1, 1),
-                    keyframe_id=gmap.keyframe_ids[split_idx].repeat(k),
-                )
+                child = {
+                    "means": (rot @ samples[..., None])[..., 0] + gmap.means[split_idx].repeat(k, 1),
+                    "log_scales": torch.log(std / cfg.split_scale_factor),
+                    "quats_wxyz": gmap.quats_wxyz[split_idx].repeat(k, 1),
+                    "opacity_logits": gmap.opacity_logits[split_idx].repeat(k, 1),
+                    "sh_dc": gmap.sh_dc[split_idx].repeat(k, 1, 1),
+                    "sh_rest": gmap.sh_rest[split_idx].repeat(k, 1, 1),
+                    "keyframe_id": gmap.keyframe_ids[split_idx].repeat(k),
+                }
             if clone_idx.numel():
                 gmap.add(gmap.means[clone_idx], gmap.log_scales[clone_idx], gmap.quats_wxyz[clone_idx],
                          gmap.opacity_logits[clone_idx], gmap.sh_dc[clone_idx], gmap.sh_rest[clone_idx],

@@ -214,7 +214,7 @@ def ate(est_stamps_ns: np.ndarray,  # [M]
         f"ate: gt_T_wc {gt_T.shape} must be [K, 4, 4] with K = len(gt_stamps_ns) = {gt_s.shape[0]}")
     finite = np.isfinite(est_T).all(axis=(1, 2))
     keep = np.flatnonzero(finite)
-    ia, ib = associate(est_s[keep], gt_s, int(round(max_dt_s * 1e9)))
+    ia, ib = associate(est_s[keep], gt_s, round(max_dt_s * 1e9))
     ia = keep[ia]
     n = int(ia.size)
     if n < _MIN_ALIGN_POINTS:
@@ -261,7 +261,7 @@ def rpe(est_stamps_ns: np.ndarray,  # [M]
     assert gt_T.ndim == 3 and gt_T.shape[1:] == (4, 4) and gt_T.shape[0] == gt_s.shape[0], (
         f"rpe: gt_T_wc {gt_T.shape} must be [K, 4, 4] with K = len(gt_stamps_ns) = {gt_s.shape[0]}")
     keep = np.flatnonzero(np.isfinite(est_T).all(axis=(1, 2)))
-    ia, ib = associate(est_s[keep], gt_s, int(round(max_dt_s * 1e9)))
+    ia, ib = associate(est_s[keep], gt_s, round(max_dt_s * 1e9))
     ia = keep[ia]
     order = np.argsort(est_s[ia], kind="stable")
     ia, ib = ia[order], ib[order]

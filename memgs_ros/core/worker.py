@@ -45,7 +45,7 @@ class WorkerStopped(MemgsError):
 class Command(Generic[T]):
     """A queued call: ``run`` executes on the worker; its result or exception goes to ``future``."""
 
-    __slots__ = ("name", "run", "future")
+    __slots__ = ("future", "name", "run")
 
     def __init__(self, name: str, run: Callable[[], T]) -> None:
         self.name = name

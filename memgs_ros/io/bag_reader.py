@@ -242,7 +242,7 @@ class BagSource:
         plan: list[tuple[int, int | None, int]] = []  # (rgb index, depth index, stamp)
         if self.with_depth:
             ds = np.array([s for _, s in depth_stamps], dtype=np.int64)
-            for i, j in associate(rs, ds, int(round(max_dt_s * 1e9))):
+            for i, j in associate(rs, ds, round(max_dt_s * 1e9)):
                 plan.append((rgb_stamps[i][0], depth_stamps[j][0], int(rs[i])))
         else:
             plan = [(k, None, s) for k, s in rgb_stamps]
@@ -261,7 +261,7 @@ class BagSource:
             self._gt_stamps, self._gt_poses, self.gt_source = self._gt_from_tf(edges, rgb_frame_id)
         q = np.array([p[2] for p in plan], dtype=np.int64)
         self._frame_gt, self._frame_gt_valid = interpolate_poses(
-            self._gt_stamps, self._gt_poses, q, int(round(gt_max_gap_s * 1e9)))
+            self._gt_stamps, self._gt_poses, q, round(gt_max_gap_s * 1e9))
 
     def _gt_from_tf(self, edges: dict[tuple[str, str], _Edge], rgb_frame_id: str | None
                     ) -> tuple[np.ndarray, np.ndarray, str]:
@@ -345,7 +345,8 @@ class BagSource:
                         img = decode_rgb(msg) if is_rgb else decode_depth(msg, self.depth_scale)
                         expected = (self.camera.height, self.camera.width)
                         if img.shape[:2] != expected:
-                            raise MessageError(f"image is {img.shape[1]}x{img.shape[0]}, camera is {expected[1]}x{expected[0]}")
+                            raise MessageError(f"image is {img.shape[1]}x{img.shape[0]}, "
+                                               f"camera is {expected[1]}x{expected[0]}")
                     except Exception as err:  # noqa: BLE001 - pass 1 validated it; a failure here is one bad frame
                         self._skip(f"undecodable image on {c.topic}", str(err))
                         failed.add(k)

@@ -6,7 +6,8 @@ ROS 2 layout (TUM topic names, Jazzy types):
 | --- | --- | --- |
 | ``/camera/rgb/image_color`` | sensor_msgs/Image | rgb8 |
 | ``/camera/depth/image`` | sensor_msgs/Image | 32FC1 metres, NaN = invalid |
-| ``/camera/rgb/camera_info``, ``/camera/depth/camera_info`` | sensor_msgs/CameraInfo | plumb_bob (or rational_polynomial) + distortion |
+| ``/camera/rgb/camera_info`` | sensor_msgs/CameraInfo | plumb_bob (or rational_polynomial) + distortion |
+| ``/camera/depth/camera_info`` | sensor_msgs/CameraInfo | plumb_bob (or rational_polynomial) + distortion |
 | ``/tf`` | tf2_msgs/TFMessage | ``world`` -> camera optical frame (ground truth) |
 | ``/groundtruth/pose`` | geometry_msgs/PoseStamped | camera in ``world`` (ground truth) |
 
@@ -183,7 +184,8 @@ def write_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str], storage
 
         for f in frames:
             s = int(f.stamp_ns)
-            put(RGB_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s, mf.camera_info(mf.header(s, camera_frame_id), f.camera))
+            put(RGB_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
+                mf.camera_info(mf.header(s, camera_frame_id), f.camera))
             put(RGB_TOPIC, "sensor_msgs/msg/Image", s, mf.image(mf.header(s, camera_frame_id), f.rgb, "rgb8"))
             if f.depth_m is not None:
                 put(DEPTH_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
@@ -193,7 +195,8 @@ def write_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str], storage
             if f.T_wc_gt is not None:
                 tf = mf.transform_stamped(mf.header(s, world_frame_id), camera_frame_id, f.T_wc_gt)
                 put(TF_TOPIC, "tf2_msgs/msg/TFMessage", s, mf.tf_message([tf]))
-                put(POSE_TOPIC, "geometry_msgs/msg/PoseStamped", s, mf.pose_stamped(mf.header(s, world_frame_id), f.T_wc_gt))
+                put(POSE_TOPIC, "geometry_msgs/msg/PoseStamped", s,
+                    mf.pose_stamped(mf.header(s, world_frame_id), f.T_wc_gt))
             n += 1
             if on_frame is not None:
                 on_frame(f)
@@ -238,10 +241,12 @@ def write_ros1_tum_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str]
                 if f.T_wc_gt is not None:
                     T_world_kinect = f.T_wc_gt @ T_optical_kinect
                     tfs = [mf.transform_stamped(mf.header(s, ROS1_WORLD, seq), ROS1_KINECT, T_world_kinect)]
-                    tfs += [mf.transform_stamped(mf.header(s, parent, seq), child, pose_from_tq(np.array(t), np.array(q)))
+                    tfs += [mf.transform_stamped(mf.header(s, parent, seq), child,
+                                                 pose_from_tq(np.array(t), np.array(q)))
                             for parent, child, t, q in ROS1_CHAIN]
                     put(TF_TOPIC, TF_MESSAGE_ROS1, s, mf.tf_message(tfs))
-                put(RGB_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s, mf.camera_info(mf.header(s, ROS1_OPTICAL, seq), f.camera))
+                put(RGB_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
+                    mf.camera_info(mf.header(s, ROS1_OPTICAL, seq), f.camera))
                 put(RGB_TOPIC, "sensor_msgs/msg/Image", s, mf.image(mf.header(s, ROS1_OPTICAL, seq), f.rgb, "rgb8"))
                 if f.depth_m is not None:
                     put(DEPTH_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
@@ -260,7 +265,23 @@ def write_ros1_tum_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str]
 
 
 __all__ = [
-    "write_bag", "write_ros1_tum_bag", "BagStream", "BagWriteResult", "MessageFactory", "ros1_typestore", "ros2_typestore",
-    "chain_T_kinect_optical", "depth_to_32fc1", "RGB_TOPIC", "DEPTH_TOPIC", "RGB_INFO_TOPIC",
-    "DEPTH_INFO_TOPIC", "TF_TOPIC", "POSE_TOPIC", "WORLD_FRAME", "CAMERA_FRAME", "ROS1_OPTICAL", "ROS1_WORLD",
+    "CAMERA_FRAME",
+    "DEPTH_INFO_TOPIC",
+    "DEPTH_TOPIC",
+    "POSE_TOPIC",
+    "RGB_INFO_TOPIC",
+    "RGB_TOPIC",
+    "ROS1_OPTICAL",
+    "ROS1_WORLD",
+    "TF_TOPIC",
+    "WORLD_FRAME",
+    "BagStream",
+    "BagWriteResult",
+    "MessageFactory",
+    "chain_T_kinect_optical",
+    "depth_to_32fc1",
+    "ros1_typestore",
+    "ros2_typestore",
+    "write_bag",
+    "write_ros1_tum_bag",
 ]

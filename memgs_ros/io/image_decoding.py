@@ -34,16 +34,16 @@ from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.errors import DataError, MessageError
 
 __all__ = [
-    "IMAGE_ENCODINGS",
     "COLOR_ENCODINGS",
-    "DEPTH_ENCODINGS",
     "DEFAULT_DEPTH_SCALE",
+    "DEPTH_ENCODINGS",
+    "IMAGE_ENCODINGS",
     "check_image",
-    "image_to_numpy",
-    "decode_rgb",
-    "decode_depth",
-    "decode_camera_info",
     "check_image_sizes",
+    "decode_camera_info",
+    "decode_depth",
+    "decode_rgb",
+    "image_to_numpy",
 ]
 
 # encoding -> (element dtype, channels), native byte order; the wire order is is_bigendian's.

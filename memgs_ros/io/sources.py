@@ -95,9 +95,12 @@ def source_kind(spec: str | os.PathLike[str]) -> str:
     raise DataError(f"{p}: unknown input; expected a TUM folder, a {'/'.join(BAG_SUFFIXES)} bag or 'synthetic:...'")
 
 
+_TUM_TOPICS = BagTopics()
+
+
 def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = None, max_dt_s: float = 0.02, *,
                 depth_factor: float | None = None, depth_scale: float = DEFAULT_DEPTH_SCALE,
-                topics: BagTopics = BagTopics(), with_depth: bool = True,
+                topics: BagTopics = _TUM_TOPICS, with_depth: bool = True,
                 max_frames: int | None = None, default_camera: PinholeCamera | None = None) -> FrameSource:
     """Open any frame input (module docstring).
 

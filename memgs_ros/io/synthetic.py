@@ -101,7 +101,8 @@ class SyntheticSpec:
         if not 0.0 <= self.hole_fraction < 1.0:
             raise ConfigError(f"synthetic hole fraction must be in [0, 1), got {self.hole_fraction}")
         if not (0.0 <= self.path_amp <= 1.5 and 0.0 <= self.path_rot <= 2.0):
-            raise ConfigError(f"synthetic path scales amp in [0, 1.5], rot in [0, 2]; got {self.path_amp}, {self.path_rot}")
+            raise ConfigError("synthetic path scales amp in [0, 1.5], rot in [0, 2]; "
+                              f"got {self.path_amp}, {self.path_rot}")
         if self.path not in PATH_KINDS:
             raise ConfigError(f"synthetic path must be one of {PATH_KINDS}, got {self.path!r}")
         if not 0 <= self.supersample <= 4:
@@ -186,7 +187,8 @@ class SyntheticScene:
     atlas: np.ndarray  # [Ha, Wa, 3] uint8 RGB
 
 
-def _face_frames(lo: np.ndarray, hi: np.ndarray, inward: bool) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[float, float]]]:
+def _face_frames(lo: np.ndarray, hi: np.ndarray, inward: bool
+                 ) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[float, float]]]:
     """Six faces of an AABB as (name, normal, origin, u_axis, v_axis, size); face index = 2*axis + (0 lo, 1 hi).
 
     Walls get v up (z); floor/ceiling and box tops get u = x, v = y.
@@ -292,8 +294,8 @@ def _poster(img: np.ndarray, u: np.ndarray, v: np.ndarray, rect: tuple[float, fl
 def _bake_texture(name: str, kind: str, size_m: tuple[float, float], rng: np.random.Generator,
                   noise: _Noise, base: np.ndarray) -> np.ndarray:
     """Texture [h, w, 3] float32 in [0, 1] of one face; texel (row r, col c) is at v=(r+.5)*TEXEL, u=(c+.5)*TEXEL."""
-    w = max(2, int(math.ceil(size_m[0] / TEXEL_M)))
-    h = max(2, int(math.ceil(size_m[1] / TEXEL_M)))
+    w = max(2, math.ceil(size_m[0] / TEXEL_M))
+    h = max(2, math.ceil(size_m[1] / TEXEL_M))
     u = ((np.arange(w, dtype=np.float32) + 0.5) * TEXEL_M)[None, :].repeat(h, 0)
     v = ((np.arange(h, dtype=np.float32) + 0.5) * TEXEL_M)[:, None].repeat(w, 1)
     ou, ov = rng.random() * 100, rng.random() * 100
@@ -374,7 +376,8 @@ def build_scene(seed: int = 0) -> SyntheticScene:
     faces: list[tuple[str, str, np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[float, float], np.ndarray]] = []
     for i, (name, n, o, ua, va, size) in enumerate(_face_frames(room_lo, room_hi, inward=True)):
         kind = "floor" if name == "z-" else "ceiling" if name == "z+" else "wall"
-        base = {"floor": np.array((0.62, 0.5, 0.36), np.float32), "ceiling": np.array((0.9, 0.9, 0.88), np.float32)}.get(
+        base = {"floor": np.array((0.62, 0.5, 0.36), np.float32),
+                "ceiling": np.array((0.9, 0.9, 0.88), np.float32)}.get(
             kind, wall_pal[i % 4] * (0.9 + 0.2 * rng.random(3).astype(np.float32)))
         faces.append((name, kind, n, o, ua, va, size, base))
     for b in range(len(boxes_lo)):
@@ -389,7 +392,8 @@ def build_scene(seed: int = 0) -> SyntheticScene:
         rel = (o - light).astype(np.float32)
         ua32, va32 = ua.astype(np.float32), va.astype(np.float32)
 
-        def falloff(uu: np.ndarray, vv: np.ndarray) -> np.ndarray:
+        def falloff(uu: np.ndarray, vv: np.ndarray, rel: np.ndarray = rel, ua32: np.ndarray = ua32,
+                    va32: np.ndarray = va32) -> np.ndarray:
             # squared distance from the light of the surface point at (uu, vv)
             dist2 = sum((rel[k] + uu * ua32[k] + vv * va32[k]) ** 2 for k in range(3))
             return np.exp(-dist2 / np.float32(12.0))
@@ -410,7 +414,7 @@ def build_scene(seed: int = 0) -> SyntheticScene:
         shelf_h = max(shelf_h, h + 2 * gutter)
     atlas = np.zeros((y + shelf_h, atlas_w, 3), np.uint8)
     surfaces = []
-    for (name, kind, n, o, ua, va, size, base), tex, (ox, oy) in zip(faces, textures, offsets):
+    for (name, _kind, n, o, ua, va, size, _base), tex, (ox, oy) in zip(faces, textures, offsets):
         h, w = tex.shape[:2]
         # edge-replicate into the gutter so bilinear taps at a face's border stay on that face's colour
         atlas[oy - gutter:oy + h + gutter, ox - gutter:ox + w + gutter] = np.pad(
@@ -455,7 +459,8 @@ def _box_window(lo: np.ndarray, hi: np.ndarray, T_cw: np.ndarray, dirs_c: np.nda
     return slice(r0, r1), slice(c0, c1)
 
 
-def _cast(scene: SyntheticScene, T_wc: np.ndarray, dirs_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+def _cast(scene: SyntheticScene, T_wc: np.ndarray,
+          dirs_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """Nearest hit along each ray of a grid. dirs_c: [Hs, Ws, 3] camera-frame rays with z = 1.
 
     Returns (t [Hs, Ws] = camera z of the hit, surface index [Hs, Ws] int32 (room faces 0-5,
@@ -510,7 +515,8 @@ def _cast(scene: SyntheticScene, T_wc: np.ndarray, dirs_c: np.ndarray) -> tuple[
     return t, sid, p
 
 
-def render(scene: SyntheticScene, camera: PinholeCamera, T_wc: np.ndarray, aa: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def render(scene: SyntheticScene, camera: PinholeCamera, T_wc: np.ndarray,
+           aa: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Render one view (pinhole, distortion ignored).
 
     T_wc: [4, 4] camera-to-world (optical frame: x right, y down, z forward).
@@ -708,6 +714,16 @@ def write_tum_folder(frames: Iterable[Frame], path: str | os.PathLike[str], dept
 
 
 __all__ = [
-    "SyntheticSpec", "SyntheticScene", "Surface", "parse_spec", "is_spec_string", "build_scene",
-    "render", "trajectory", "loop_revisit_frames", "generate_frames", "write_tum_folder", "SYNTH_START_NS",
+    "SYNTH_START_NS",
+    "Surface",
+    "SyntheticScene",
+    "SyntheticSpec",
+    "build_scene",
+    "generate_frames",
+    "is_spec_string",
+    "loop_revisit_frames",
+    "parse_spec",
+    "render",
+    "trajectory",
+    "write_tum_folder",
 ]

@@ -42,7 +42,7 @@ def parse_stamp_ns(text: str) -> int:
     m = re.fullmatch(r"(\d+)(?:\.(\d*))?", s)
     if m is None:
         # rare forms (exponent, sign): go through float, accepting sub-microsecond rounding
-        return int(round(float(s) * 1e9))
+        return round(float(s) * 1e9)
     frac = (m.group(2) or "")[:9].ljust(9, "0")
     return int(m.group(1)) * _NS + int(frac)
 
@@ -202,7 +202,8 @@ class TumFolder:
         from_file = read_camera_json(cam_file) if cam_file.is_file() else None
         from_name = camera_from_name(self.path.resolve().name)
         guess = from_file or from_name
-        self.depth_factor = float(depth_factor if depth_factor is not None else guess[1] if guess else DEFAULT_DEPTH_FACTOR)
+        self.depth_factor = float(depth_factor if depth_factor is not None
+                                  else guess[1] if guess else DEFAULT_DEPTH_FACTOR)
         if not self.depth_factor > 0:
             raise DataError(f"{self.path}: depth factor must be positive, got {self.depth_factor}")
         # Where the camera comes from ("" = nowhere: iterating raises DataError).
@@ -215,7 +216,7 @@ class TumFolder:
         entries: list[TumEntry] = []
         if with_depth:
             depth_stamps, depth_names = read_file_list(self.path / "depth.txt")
-            for i, j in associate(rgb_stamps, depth_stamps, int(round(max_dt_s * 1e9))):
+            for i, j in associate(rgb_stamps, depth_stamps, round(max_dt_s * 1e9)):
                 entries.append(TumEntry(int(rgb_stamps[i]), rgb_names[i], int(depth_stamps[j]), depth_names[j]))
         else:
             entries = [TumEntry(int(s), n, None, None) for s, n in zip(rgb_stamps, rgb_names)]
@@ -233,7 +234,7 @@ class TumFolder:
             self._gt_stamps, self._gt_poses = np.zeros(0, np.int64), np.zeros((0, 4, 4))
         q = np.array([e.stamp_ns for e in self.entries], dtype=np.int64)
         self._frame_gt, self._frame_gt_valid = interpolate_poses(
-            self._gt_stamps, self._gt_poses, q, int(round(gt_max_gap_s * 1e9)))
+            self._gt_stamps, self._gt_poses, q, round(gt_max_gap_s * 1e9))
 
     @property
     def camera(self) -> PinholeCamera:
@@ -277,5 +278,17 @@ class TumFolder:
         return float(np.mean(self._frame_gt_valid)) if len(self._frame_gt_valid) else 0.0
 
 
-__all__ = ["TumFolder", "TumEntry", "associate", "read_file_list", "read_trajectory", "parse_stamp_ns",
-           "format_stamp", "camera_from_name", "load_rgb", "load_depth", "write_camera_json", "read_camera_json"]
+__all__ = [
+    "TumEntry",
+    "TumFolder",
+    "associate",
+    "camera_from_name",
+    "format_stamp",
+    "load_depth",
+    "load_rgb",
+    "parse_stamp_ns",
+    "read_camera_json",
+    "read_file_list",
+    "read_trajectory",
+    "write_camera_json",
+]

@@ -39,10 +39,10 @@ from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Bool, Header
 
+from memgs_ros.core.camera import CameraCalibration
 from memgs_ros.core.frame import Frame
 from memgs_ros.errors import ConfigError, MemgsError
 from memgs_ros.ros import codecs, qos
-from memgs_ros.core.camera import CameraCalibration
 from memgs_ros.ros.camera_params import CAMERA_PREFIX, declare_calibration
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import started_by_runner
@@ -240,7 +240,8 @@ class BagPlayer(Node):
         unmatched = self._unmatched_readers()
         if counts != self._match_counts:
             self._match_counts, self._steady_since = counts, now
-        if has_reader and has_acker and not unmatched and now - self._steady_since >= min(SETTLE_S, self.cfg.start_delay_s):
+        if (has_reader and has_acker and not unmatched
+                and now - self._steady_since >= min(SETTLE_S, self.cfg.start_delay_s)):
             return True
         if now - self._created_at >= self.cfg.start_delay_s:
             missing = [] if has_reader else ["a color subscriber"]

@@ -1,8 +1,8 @@
 """keyframe_sampler node: Patch-Grid sampling of each keyframe into seeds for new Gaussians.
 
 Subscribes (reliable): ``memgs/keyframe/{color,depth,camera_info,pose,keypoints}`` (one stamp per
-keyframe; depth only in RGB-D mode; images as recorded, undistorted here). Publishes ``memgs/keyframe/seeds``: PointCloud2 with
-x, y, z (world, float32), rgb (float32-packed 0x00RRGGBB, the PCL/RViz convention) and
+keyframe; depth only in RGB-D mode; images as recorded, undistorted here). Publishes ``memgs/keyframe/seeds``:
+PointCloud2 with x, y, z (world, float32), rgb (float32-packed 0x00RRGGBB, the PCL/RViz convention) and
 source (uint8: 0 keypoint, 1 Patch-Grid sample), stamped like the keyframe.
 
 A keyframe that cannot be used is refused whole (nothing is published for it) and counted on
@@ -38,7 +38,6 @@ from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.params import ParamSpec, declare_all
 from memgs_ros.ros.seed_cloud import encode_seeds
 from memgs_ros.ros.stamp_sync import StampBundler
-
 
 PARAMS = (
     ParamSpec("mode", "rgbd", "camera mode (mono: depth from the nearest keypoint)", choices=("rgbd", "mono")),
@@ -104,7 +103,8 @@ class KeyframeSamplerNode(Node):
             self.stats.problem(stage, f"keyframe {stamp_ns} refused: {err}")
             return
         self.n_keyframes += 1
-        self.pub.publish(structured_to_pointcloud2(encode_seeds(seeds.points_w, seeds.colors, seeds.source), stamp_ns, self.world_frame))
+        self.pub.publish(structured_to_pointcloud2(encode_seeds(seeds.points_w, seeds.colors, seeds.source),
+                                                   stamp_ns, self.world_frame))
         self.stats.counters["keyframes"] += 1
         self.stats.counters["seeds_keypoint"] += int((seeds.source == 0).sum())
         self.stats.counters["seeds_patch_grid"] += int((seeds.source == 1).sum())

@@ -2,10 +2,11 @@
 (core/session.py, the one owner of the Gaussian map) and publishes what it returns.
 
 In: ``memgs/keyframe/{color,depth,camera_info,pose,seeds}`` (one stamp per keyframe),
-``memgs/keyframe/refined_poses`` (bundle adjustment), ``memgs/keyframe/loop_corrected_poses``, ``memgs/pose`` (live view), ``memgs/render/view_pose``,
-``memgs/tracker/processed`` (lockstep). Out: ``memgs/map/delta`` (core/map_delta.py),
-``memgs/mapper/snapshot`` (latched, with a packed ``rgb`` colour), ``memgs/render/{color,depth,camera_info}``, ``memgs/frame_ack``,
-``memgs/mapper/stats``; services ``memgs/mapper/publish_snapshot`` and ``memgs/mapper/finish``
+``memgs/keyframe/refined_poses`` (bundle adjustment), ``memgs/keyframe/loop_corrected_poses``,
+``memgs/pose`` (live view), ``memgs/render/view_pose``, ``memgs/tracker/processed`` (lockstep).
+Out: ``memgs/map/delta`` (core/map_delta.py), ``memgs/mapper/snapshot`` (latched, with a packed ``rgb`` colour),
+``memgs/render/{color,depth,camera_info}``, ``memgs/frame_ack``, ``memgs/mapper/stats``; services
+``memgs/mapper/publish_snapshot`` and ``memgs/mapper/finish``
 (answers ``seq=<n> gaussians=<n> epoch=<n>``). With ``checkpoint_path`` the session's state is
 written there atomically (periodically, at finish and shutdown) and a restarted mapper resumes
 from it under a new delta epoch, publishing a snapshot so the merger replaces its copy.
@@ -28,28 +29,34 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from memgs_ros.core import checkpoint
+from memgs_ros.core import checkpoint, losses
 from memgs_ros.core.map_delta import message_dtype
 from memgs_ros.core.mapping import MappingConfig
 from memgs_ros.core.merge import MergeConfig
-from memgs_ros.core import losses
 from memgs_ros.core.raster import warm_up
 from memgs_ros.core.raster.backend_choice import choose_backend, device_label, resolve_device
 from memgs_ros.core.runtime import configure_cpu_runtime
 from memgs_ros.core.session import KeyframeInput, MappingSession
 from memgs_ros.core.worker import WorkerStopped
-from memgs_ros.nodes.mapper_params import RANGES, MapperParams
 from memgs_ros.errors import DataError, MessageError
+from memgs_ros.nodes.mapper_params import RANGES, MapperParams
 from memgs_ros.ros import qos
-from memgs_ros.ros.codecs import (camera_to_camera_info, depth_to_image, make_header, numpy_to_image,
-                                  pointcloud2_to_structured, pose_to_matrix, stamp_to_ns, structured_to_pointcloud2)
+from memgs_ros.ros.codecs import (
+    camera_to_camera_info,
+    depth_to_image,
+    make_header,
+    numpy_to_image,
+    pointcloud2_to_structured,
+    pose_to_matrix,
+    stamp_to_ns,
+    structured_to_pointcloud2,
+)
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats, peak_rss_mb, rss_mb
 from memgs_ros.ros.keyframe_bundle import KeyframeBundleError, decode_keyframe_images
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.seed_cloud import decode_seeds
 from memgs_ros.ros.stamp_sync import KeyframeIntake
-
 
 PARAMS: tuple = ()  # the mapper's own parameters are MapperParams fields (prefix "")
 CONFIGS = (("", MapperParams), ("mapping", MappingConfig), ("merge", MergeConfig))
@@ -69,7 +76,8 @@ class MapperNode(Node):
         # freed step buffers a step, and at the default 30 s they piled up into the peak RSS.
         self.stats = NodeStats(self, "mapper", trim_period_s=2.0)
         self.stats.gauges["raster_backend"] = raster.backend
-        self.ckpt = checkpoint.CheckpointFile(pathlib.Path(p.checkpoint_path).expanduser()) if p.checkpoint_path else None
+        self.ckpt = (checkpoint.CheckpointFile(pathlib.Path(p.checkpoint_path).expanduser())
+                     if p.checkpoint_path else None)
         resumed, why = self.ckpt.read_or_set_aside() if p.resume and self.ckpt else (None, None)
         # A new delta epoch every start: a merger that held the map of an earlier life resynchronises.
         start = functools.partial(MappingSession, self.cfg, device, merge_cfg=merge_cfg, free_running=not p.lockstep,
@@ -111,15 +119,18 @@ class MapperNode(Node):
         self.create_subscription(Header, "memgs/tracker/processed", self.on_processed, qos.reliable(100),
                                  callback_group=io)
         self.create_subscription(PoseStamped, "memgs/pose", lambda m: setattr(self, "latest_pose", m), qos.reliable(5))
-        self.create_subscription(PoseStamped, "memgs/render/view_pose", lambda m: self._render(m, True), qos.reliable(5))
+        self.create_subscription(PoseStamped, "memgs/render/view_pose", lambda m: self._render(m, True),
+                                 qos.reliable(5))
         out = MutuallyExclusiveCallbackGroup()  # deltas, snapshots and the final flush leave in seq order
         self.create_service(Trigger, "memgs/mapper/publish_snapshot", self.on_snapshot_request, callback_group=out)
-        self.create_service(Trigger, "memgs/mapper/finish", self.on_finish, callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_service(Trigger, "memgs/mapper/finish", self.on_finish,
+                            callback_group=MutuallyExclusiveCallbackGroup())
         self.create_timer(1.0 / p.delta_rate_hz, self.send_delta, callback_group=out)
         if p.snapshot_period_s > 0:
             self.create_timer(p.snapshot_period_s, self.publish_snapshot, callback_group=out)
         if self.ckpt is not None and p.checkpoint_period_s > 0:
-            self.create_timer(p.checkpoint_period_s, self.save_checkpoint, callback_group=MutuallyExclusiveCallbackGroup())
+            self.create_timer(p.checkpoint_period_s, self.save_checkpoint,
+                              callback_group=MutuallyExclusiveCallbackGroup())
         if resumed is not None:
             self.publish_snapshot()  # latched: the merger takes the resumed map and its epoch
         if p.render_rate_hz > 0:
@@ -281,7 +292,8 @@ class MapperNode(Node):
 
     def on_shutdown(self) -> None:
         if self.save_checkpoint() is not None:
-            self.get_logger().info(f"checkpoint written to {self.ckpt.path} ({self.session.status.gaussians} Gaussians)")
+            self.get_logger().info(f"checkpoint written to {self.ckpt.path} "
+                                   f"({self.session.status.gaussians} Gaussians)")
         self.session.close()
 
 

@@ -20,16 +20,19 @@ class MapperParams:
     delta_rate_hz: float = 1.0  # map deltas per second
     # link budget for map deltas; the largest changes go first, the rest wait (the final flush ignores it)
     delta_budget_kbytes_per_s: float = 500.0
-    # send a Gaussian again only when a parameter moved more than this (m, or pre-activation units); the final flush is exact
+    # send a Gaussian again only when a parameter moved more than this (m, or pre-activation units);
+    # the final flush is exact
     delta_tolerance: float = 1e-3
     snapshot_period_s: float = 0.0  # publish a full snapshot this often (0 = only on request)
     render_rate_hz: float = 1.0  # live view renders per second (0 = off)
     world_frame: str = "map"  # frame id of published maps and poses
     ack_topic: str = "memgs/frame_ack"  # lockstep acknowledgement topic (to the player)
     checkpoint_path: str = ""  # file for map + keyframe checkpoints (.npz); empty = no checkpoints
-    checkpoint_period_s: float = 30.0  # write a checkpoint this often while the map changes (0 = only at finish/shutdown)
+    # write a checkpoint this often while the map changes (0 = only at finish/shutdown)
+    checkpoint_period_s: float = 30.0
     resume: bool = True  # start from the checkpoint at checkpoint_path when one exists
-    # free-running: complete keyframes waiting for insertion; when full the oldest is dropped and counted (problem.keyframe_overload)
+    # free-running: complete keyframes waiting for insertion; when full the oldest is dropped and counted
+    # (problem.keyframe_overload)
     insert_queue: int = 4
 
     def __post_init__(self) -> None:

@@ -2,9 +2,10 @@
 
 Subscribes: ``memgs/map/delta`` (reliable) and ``memgs/mapper/snapshot`` (latched) from the mapper,
 ``memgs/merger/view_pose`` (PoseStamped render requests). Publishes ``memgs/map/gaussians`` (latched
-full map with a packed ``rgb`` colour field for viewers, on request and every ``publish_period_s``), ``memgs/merger/render/{color,depth}`` and
-``memgs/merger/stats``. Services: ``memgs/save_map`` (std_srvs/Trigger: write the PLY atomically,
-answers its path) and ``memgs/merger/publish_map``. Saves periodically and on shutdown.
+full map with a packed ``rgb`` colour field for viewers, on request and every ``publish_period_s``),
+``memgs/merger/render/{color,depth}`` and ``memgs/merger/stats``. Services: ``memgs/save_map``
+(std_srvs/Trigger: write the PLY atomically, answers its path) and ``memgs/merger/publish_map``.
+Saves periodically and on shutdown.
 
 A gap in the delta sequence, a late start or a count mismatch triggers a resync: deltas are
 buffered, a snapshot is requested from the mapper (``memgs/mapper/publish_snapshot``), loaded, and
@@ -38,7 +39,11 @@ from memgs_ros.core.ply import save_ply
 from memgs_ros.errors import MemgsError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
-    depth_to_image, numpy_to_image, pointcloud2_to_structured, pose_to_matrix, stamp_to_ns,
+    depth_to_image,
+    numpy_to_image,
+    pointcloud2_to_structured,
+    pose_to_matrix,
+    stamp_to_ns,
     structured_to_pointcloud2,
 )
 from memgs_ros.ros.diagnostics import NodeStats
@@ -59,7 +64,8 @@ PARAMS = (
               (0.0, 3600.0)),
     ParamSpec("max_buffered_deltas", 200, "deltas kept while resynchronising", (1, 100000)),
     ParamSpec("world_frame", "map", "frame id of the published map"),
-    ParamSpec("fault_drop_every_nth_delta", 0, "fault injection for tests: ignore every n-th delta on arrival (0 = off)",
+    ParamSpec("fault_drop_every_nth_delta", 0,
+              "fault injection for tests: ignore every n-th delta on arrival (0 = off)",
               (0, 10**6)),
     ParamSpec("render_width", 320, "render width (px) for view requests", (1, 8192)),
     ParamSpec("render_height", 240, "render height (px) for view requests", (1, 8192)),
@@ -187,14 +193,14 @@ class MergerNode(Node):
     def _retry_resync(self) -> None:
         if self.resyncing:
             self._request_snapshot()
-        elif not self._heard_delta and not self._asked_at_start and time.monotonic() - self._started > 2.0:
-            # A merger (re)started after the mapper went quiet (finished, or idle) would wait
-            # for a delta that never comes: ask once for the current map.
-            if self.snapshot_client.service_is_ready():
-                self._asked_at_start = True
-                self._last_request = time.monotonic()
-                self.snapshot_client.call_async(Trigger.Request())
-                self.stats.counters["snapshot_requests"] += 1
+        # A merger (re)started after the mapper went quiet (finished, or idle) would wait for a
+        # delta that never comes: ask once for the current map.
+        elif (not self._heard_delta and not self._asked_at_start and time.monotonic() - self._started > 2.0
+              and self.snapshot_client.service_is_ready()):
+            self._asked_at_start = True
+            self._last_request = time.monotonic()
+            self.snapshot_client.call_async(Trigger.Request())
+            self.stats.counters["snapshot_requests"] += 1
 
     def _gauges(self) -> None:
         self.stats.gauges["seq"] = self.replica.seq

@@ -83,7 +83,8 @@ class RerunBridgeNode(Node):
                                        v["recording_name"])
         self.map_period, self.log_sh, self.jpeg_quality = v["map_period_s"], v["log_sh"], v["jpeg_quality"]
         self.log_frames, color_topic, keys = v["log_frames"], v["color_topic"], v["stats_keys"]
-        self.stats_keys: set[str] | None = None if keys.strip() == "*" else {k.strip() for k in keys.split(",") if k.strip()}
+        self.stats_keys: set[str] | None = (None if keys.strip() == "*"
+                                            else {k.strip() for k in keys.split(",") if k.strip()})
         self.plane_m = v["frustum_size_m"]
         try:
             target = RerunTarget(spawn=spawn, connect_url=url, save_path=FsPath(save) if save else None)
@@ -183,7 +184,8 @@ class RerunBridgeNode(Node):
         self.camera = camera
         if first:  # keyframes that came before their camera_info get their frusta now
             for index, T in self.keyframe_poses.items():
-                self._timed("keyframe", self.log.log_keyframe, self.rec, index, T, self._now(), self.camera, self.plane_m)
+                self._timed("keyframe", self.log.log_keyframe, self.rec, index, T, self._now(), self.camera,
+                            self.plane_m)
 
     def on_keyframe(self, msg: PoseStamped) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
@@ -257,7 +259,8 @@ class RerunBridgeNode(Node):
         """Ask the merger for its full map, at most every few seconds and one request at a time."""
         pending = self._map_request is not None and not self._map_request.done()
         now = time.monotonic()
-        if pending or now - self._map_requested_at < _RESYNC_INTERVAL_S or not self.publish_map_client.service_is_ready():
+        if (pending or now - self._map_requested_at < _RESYNC_INTERVAL_S
+                or not self.publish_map_client.service_is_ready()):
             return
         self._map_requested_at = now
         self._map_request = self.publish_map_client.call_async(Trigger.Request())

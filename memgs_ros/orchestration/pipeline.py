@@ -25,7 +25,6 @@ from typing import Any
 import numpy as np
 import rclpy
 import yaml
-from tqdm import tqdm
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as NavPath
@@ -34,17 +33,29 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
 from std_msgs.msg import Bool
 from std_srvs.srv import Trigger
+from tqdm import tqdm
 
+from memgs_ros.core.atomic import atomic_write
 from memgs_ros.core.geometry import pose_to_tq
 from memgs_ros.core.map_delta import decode
-from memgs_ros.core.atomic import atomic_write
 from memgs_ros.core.runtime import MALLOC_ARENAS, PARENT_PID_ENV
 from memgs_ros.errors import ConfigError, PipelineError
 from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, recorder, rerun_bridge, tracker
 from memgs_ros.orchestration.run_files import (
-    CHECKPOINT_FILE, GRAPH_NODE_NAMES, KEYFRAMES_FILE, LOGS_DIR, MAP_FILE, PARAMS_FILE, STATS_TIMELINE_FILE,
-    SUMMARY_FILE, TRAJECTORY_FILE,
-    RunOptions, RunSummary, build_params, config_path, node_params,
+    CHECKPOINT_FILE,
+    GRAPH_NODE_NAMES,
+    KEYFRAMES_FILE,
+    LOGS_DIR,
+    MAP_FILE,
+    PARAMS_FILE,
+    STATS_TIMELINE_FILE,
+    SUMMARY_FILE,
+    TRAJECTORY_FILE,
+    RunOptions,
+    RunSummary,
+    build_params,
+    config_path,
+    node_params,
 )
 from memgs_ros.orchestration.signals import stop_on_signals
 from memgs_ros.ros import qos

@@ -22,7 +22,8 @@ from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.viz import RerunTarget
 
 __all__ = [
-    "CHECKPOINT_FILE", "GRAPH_NODE_NAMES", "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE", "STATS_TIMELINE_FILE",
+    "CHECKPOINT_FILE", "GRAPH_NODE_NAMES", "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE",
+    "STATS_TIMELINE_FILE",
     "SUMMARY_FILE", "TRAJECTORY_FILE", "ConfiguredCamera", "RunOptions", "RunSummary", "build_params",
     "check_parameter_names", "check_record_path", "config_path", "configured_camera", "node_params", "read_params",
     "read_stats_timeline", "read_summary",
@@ -153,7 +154,8 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         params.setdefault("recorder", {})["path"] = str(Path(options.record).resolve())
     if options.rerun is not None:
         params.setdefault("rerun_bridge", {}).update(
-            options.rerun.node_params(), recording_name=f"{Path(str(options.source)).name} ({Path(options.out_dir).name})")
+            options.rerun.node_params(),
+            recording_name=f"{Path(str(options.source)).name} ({Path(options.out_dir).name})")
     params.setdefault("mapper", {}).setdefault("checkpoint_path", str(map_path.with_name(CHECKPOINT_FILE)))
     for key, value in options.overrides.items():
         node, _, name = key.partition(".")

@@ -17,7 +17,13 @@ from memgs_ros.core.records import GaussianRecords
 from memgs_ros.errors import DataError
 from memgs_ros.io.tum import read_trajectory
 from memgs_ros.orchestration.run_files import (
-    KEYFRAMES_FILE, MAP_FILE, PARAMS_FILE, STATS_TIMELINE_FILE, TRAJECTORY_FILE, configured_camera, read_params,
+    KEYFRAMES_FILE,
+    MAP_FILE,
+    PARAMS_FILE,
+    STATS_TIMELINE_FILE,
+    TRAJECTORY_FILE,
+    configured_camera,
+    read_params,
     read_stats_timeline,
 )
 

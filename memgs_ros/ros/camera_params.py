@@ -16,7 +16,7 @@ __all__ = ["CAMERA_PREFIX", "declare_calibration"]
 
 CAMERA_PREFIX = "camera"
 # Distortion coefficients take either sign; the intrinsics keep the default non-negative range.
-_RANGES = {name: (-1e6, 1e6) for name in ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")}
+_RANGES = dict.fromkeys(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), (-1000000.0, 1000000.0))
 
 
 def declare_calibration(node: Node) -> PinholeCamera | None:

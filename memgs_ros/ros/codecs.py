@@ -31,24 +31,25 @@ from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.geometry import pose_from_tq, pose_to_tq
 from memgs_ros.errors import MessageError
 from memgs_ros.io.image_decoding import IMAGE_ENCODINGS
+
 # Decoding lives in the one decoder; ros/pipeline.py still imports image_to_numpy from here.
 from memgs_ros.io.image_decoding import image_to_numpy as image_to_numpy
 
 __all__ = [
     "IMAGE_ENCODINGS",
-    "stamp_to_ns",
-    "ns_to_stamp",
-    "make_header",
-    "numpy_to_image",
-    "depth_to_image",
+    "append_to_path",
     "camera_to_camera_info",
-    "pose_to_matrix",
+    "depth_to_image",
+    "make_header",
+    "matrix_to_odometry",
     "matrix_to_pose",
     "matrix_to_pose_stamped",
-    "matrix_to_odometry",
-    "append_to_path",
-    "structured_to_pointcloud2",
+    "ns_to_stamp",
+    "numpy_to_image",
     "pointcloud2_to_structured",
+    "pose_to_matrix",
+    "stamp_to_ns",
+    "structured_to_pointcloud2",
 ]
 
 _NS_PER_S = 1_000_000_000
@@ -381,6 +382,6 @@ def pointcloud2_to_structured(msg: PointCloud2, required: Sequence[str] = ()) ->
         out = np.frombuffer(buf, dtype=wire, count=n_points)
     else:
         out = np.ndarray(shape=(h, w), dtype=wire, buffer=buf, strides=(row_step, point_step)).reshape(-1)
-    if big and sys.byteorder == "little" or not big and sys.byteorder == "big":
+    if (big and sys.byteorder == "little") or (not big and sys.byteorder == "big"):
         out = out.astype(wire.newbyteorder("="))
     return out

@@ -14,7 +14,7 @@ import inspect
 import re
 from collections.abc import Collection, Iterable, Mapping
 from dataclasses import MISSING, Field, fields, is_dataclass
-from functools import lru_cache
+from functools import cache
 from typing import TypeVar
 
 from rclpy.node import Node
@@ -51,7 +51,7 @@ def _docstring_items(config_cls: type) -> dict[str, str]:
     return out
 
 
-@lru_cache(maxsize=None)
+@cache
 def field_descriptions(config_cls: type) -> dict[str, str]:
     """Field name -> the comment on its line (or the comment block just above it), else its
     ``name: text`` item in the class docstring."""

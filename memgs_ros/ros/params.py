@@ -21,7 +21,7 @@ from rclpy.node import Node
 
 from memgs_ros.errors import ConfigError
 
-__all__ = ["ParamValue", "ParamSpec", "declare", "declare_all"]
+__all__ = ["ParamSpec", "ParamValue", "declare", "declare_all"]
 
 ParamValue = bool | int | float | str | tuple[str, ...] | list[str]  # a string array: the recorder's topics
 

@@ -25,7 +25,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
-__all__ = ["sensor", "reliable", "latched", "keyframes"]
+__all__ = ["keyframes", "latched", "reliable", "sensor"]
 
 
 def sensor() -> QoSProfile:

@@ -59,8 +59,8 @@ class NearestPairer(Generic[T]):
     max_dt_ns: int
     queue_size: int = 5
     dropped: int = 0
-    _a: "OrderedDict[int, T]" = field(default_factory=OrderedDict)
-    _b: "OrderedDict[int, T]" = field(default_factory=OrderedDict)
+    _a: OrderedDict[int, T] = field(default_factory=OrderedDict)
+    _b: OrderedDict[int, T] = field(default_factory=OrderedDict)
 
     def add_a(self, stamp_ns: int, item: T) -> tuple[int, T, T] | None:
         return self._add(self._a, self._b, stamp_ns, item, a_first=True)
@@ -68,7 +68,7 @@ class NearestPairer(Generic[T]):
     def add_b(self, stamp_ns: int, item: T) -> tuple[int, T, T] | None:
         return self._add(self._b, self._a, stamp_ns, item, a_first=False)
 
-    def _add(self, mine: "OrderedDict[int, T]", other: "OrderedDict[int, T]", stamp_ns: int, item: T,
+    def _add(self, mine: OrderedDict[int, T], other: OrderedDict[int, T], stamp_ns: int, item: T,
              a_first: bool) -> tuple[int, T, T] | None:
         best = None
         for s in other:

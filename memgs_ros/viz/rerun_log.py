@@ -33,9 +33,27 @@ from memgs_ros.core.records import GaussianRecords
 from memgs_ros.viz.splats import psnr_db, splat_arrays
 
 __all__ = [
-    "CAMERA", "FRAME_VIEW", "KEYFRAMES", "MAP", "PSNR", "RENDER_VIEW", "STATS", "TRAJECTORY", "LogTime",
-    "finish", "keyframe_path", "log_camera", "log_keyframe", "log_map", "log_scalars", "log_trajectory", "log_views",
-    "log_stats_rows", "log_world", "numeric_values", "send_blueprint",
+    "CAMERA",
+    "FRAME_VIEW",
+    "KEYFRAMES",
+    "MAP",
+    "PSNR",
+    "RENDER_VIEW",
+    "STATS",
+    "TRAJECTORY",
+    "LogTime",
+    "finish",
+    "keyframe_path",
+    "log_camera",
+    "log_keyframe",
+    "log_map",
+    "log_scalars",
+    "log_stats_rows",
+    "log_trajectory",
+    "log_views",
+    "log_world",
+    "numeric_values",
+    "send_blueprint",
 ]
 
 MAP = "world/map"

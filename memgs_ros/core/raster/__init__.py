@@ -20,18 +20,19 @@ import torch
 from torch import Tensor
 
 from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.errors import ConfigError
-from memgs_ros.core.raster.composite import MIN_ALPHA
-from memgs_ros.core.raster.composite import composite as _composite  # keep the submodule name free
 from memgs_ros.core.raster.backend_choice import choose_backend
+from memgs_ros.core.raster.composite import composite as _composite  # keep the submodule name free
 from memgs_ros.core.raster.gsplat_backend import gsplat_available, rasterize_gsplat
-from memgs_ros.core.raster.numba_backend import NUMBA_TILE_SIZE, composite_numba, numba_available
+from memgs_ros.core.raster.numba_backend import NUMBA_TILE_SIZE, composite_numba
 from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians, screen_radii
 from memgs_ros.core.raster.projection_numba import project_gaussians_numba
 from memgs_ros.core.raster.reference import _rasterize_reference
+from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.tiles import TILE_SIZE, build_tile_plan, pairs_per_chunk_for
+from memgs_ros.core.runtime import numba_available
+from memgs_ros.errors import ConfigError
 
-__all__ = ["RenderOutput", "rasterize", "warm_up", "_rasterize_reference"]
+__all__ = ["RenderOutput", "_rasterize_reference", "rasterize", "warm_up"]
 
 BACKENDS = ("auto", "torch", "numba", "gsplat")
 
@@ -183,5 +184,7 @@ def warm_up(device: torch.device | str = "cpu", backend: str = "auto", sh_degree
     for t in params:
         t.requires_grad_(True)
     cam = PinholeCamera(32, 24, 30.0, 30.0, 16.0, 12.0)
-    out = rasterize(*params, torch.eye(4, device=dev), cam, sh_degree, backend=backend)
+    means, quats, log_scales, opacity_logits, sh_dc, sh_rest = params
+    out = rasterize(means, quats, log_scales, opacity_logits, sh_dc, sh_rest, torch.eye(4, device=dev), cam,
+                    sh_degree, backend=backend)
     (out.color.sum() + out.depth.sum()).backward()

@@ -26,7 +26,7 @@ import math
 import numpy as np
 from numba import njit
 
-from memgs_ros.core.raster.composite import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
+from memgs_ros.core.raster.rules import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
 
 G_MX, G_MY, G_A, G_B, G_C, G_OP, G_R, G_G, G_BL, G_Z, G_LNCUT, G_HX, G_HY, G_EXPA = range(14)
 G_COLS = 14
@@ -42,7 +42,7 @@ def _rows(g: np.ndarray, gid: int, y0: int, ny: int) -> tuple[int, int]:
     """Tile-local pixel rows [py0, py1) of the Gaussian's 1/255 bounding box."""
     my = g[gid, G_MY] - y0
     hy = g[gid, G_HY]
-    return max(0, int(math.ceil(my - hy))), min(ny, int(math.floor(my + hy)) + 1)
+    return max(0, math.ceil(my - hy)), min(ny, math.floor(my + hy) + 1)
 
 
 @njit(cache=True, fastmath=False, inline="always")
@@ -57,8 +57,8 @@ def _run(
     if disc < 0.0:
         return 0, 0, 0.0, 0.0
     root = math.sqrt(disc)
-    px0 = max(0, int(math.ceil(mx + (-bq - root) / ca)))
-    px1 = min(nx, int(math.floor(mx + (-bq + root) / ca)) + 1)
+    px0 = max(0, math.ceil(mx + (-bq - root) / ca))
+    px1 = min(nx, math.floor(mx + (-bq + root) / ca) + 1)
     if px0 >= px1:
         return 0, 0, 0.0, 0.0
     dx = px0 - mx

@@ -117,7 +117,8 @@ def project_forward(
     colors: np.ndarray,  # [N, 3] out
     in_front: np.ndarray,  # [N] bool out
 ) -> None:
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = pose[0], pose[1], pose[2], pose[3], pose[4], pose[5], pose[6], pose[7], pose[8]
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = (pose[0], pose[1], pose[2], pose[3], pose[4], pose[5], pose[6],
+                                                   pose[7], pose[8])
     t0, t1, t2 = pose[9], pose[10], pose[11]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     lxn, lxp, lyn, lyp, near = cam[4], cam[5], cam[6], cam[7], cam[8]
@@ -213,7 +214,8 @@ def project_backward(
     v_rest: np.ndarray,  # [N, K, 3] out (bands above the active degree get 0; untouched at degree 0)
     acc: np.ndarray,  # [ACC_COLS] out: this range's pose gradient
 ) -> None:
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = pose[0], pose[1], pose[2], pose[3], pose[4], pose[5], pose[6], pose[7], pose[8]
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = (pose[0], pose[1], pose[2], pose[3], pose[4], pose[5], pose[6],
+                                                   pose[7], pose[8])
     t0, t1, t2 = pose[9], pose[10], pose[11]
     fx, fy = cam[0], cam[1]
     lxn, lxp, lyn, lyp, near = cam[4], cam[5], cam[6], cam[7], cam[8]
@@ -303,9 +305,12 @@ def project_backward(
         gm20, gm21, gm22 = vb00 * j02 + vb10 * j12, vb01 * j02 + vb11 * j12, vb02 * j02 + vb12 * j12
         # ---- M(q normalised) -> q
         vqw = 2.0 * (-qz * gm01 + qy * gm02 + qz * gm10 - qx * gm12 - qy * gm20 + qx * gm21)
-        vqx = 2.0 * (qy * gm01 + qz * gm02 + qy * gm10 - 2.0 * qx * gm11 - qw * gm12 + qz * gm20 + qw * gm21 - 2.0 * qx * gm22)
-        vqy = 2.0 * (-2.0 * qy * gm00 + qx * gm01 + qw * gm02 + qx * gm10 + qz * gm12 - qw * gm20 + qz * gm21 - 2.0 * qy * gm22)
-        vqz = 2.0 * (-2.0 * qz * gm00 - qw * gm01 + qx * gm02 + qw * gm10 - 2.0 * qz * gm11 + qy * gm12 + qx * gm20 + qy * gm21)
+        vqx = 2.0 * (qy * gm01 + qz * gm02 + qy * gm10 - 2.0 * qx * gm11 - qw * gm12 + qz * gm20 + qw * gm21
+                     - 2.0 * qx * gm22)
+        vqy = 2.0 * (-2.0 * qy * gm00 + qx * gm01 + qw * gm02 + qx * gm10 + qz * gm12 - qw * gm20 + qz * gm21
+                     - 2.0 * qy * gm22)
+        vqz = 2.0 * (-2.0 * qz * gm00 - qw * gm01 + qx * gm02 + qw * gm10 - 2.0 * qz * gm11 + qy * gm12 + qx * gm20
+                     + qy * gm21)
         inv_qn = 1.0 / qn
         proj_q = 0.0
         if qnorm >= 1e-12:

@@ -27,18 +27,17 @@ How it stays fast and small on a CPU:
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Callable, Sequence, TypeVar
+from typing import Any, TypeVar
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from memgs_ros.core.raster.rules import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
 from memgs_ros.core.raster.tiles import Chunk, TilePlan
 
-MIN_ALPHA = 1.0 / 255.0
-MAX_ALPHA = 0.99
-MIN_TRANSMITTANCE = 1e-4
 # exp() of very negative arguments takes a slow path (~14x); below -30 alpha is 0 anyway.
 MIN_POWER = -30.0
 # Above this, alpha and T are recomputed in the backward pass instead of kept (see _saves_pairs).
@@ -152,7 +151,7 @@ def _forward_chunk(
     czT = torch.stack([x[_CR], x[_CG], x[_CBL], x[_Z], torch.ones_like(mu)], dim=1)  # [T, 5, K]
     alpha = torch.matmul(feat, coef)  # [T, P, K] exponent
     alpha.clamp_(MIN_POWER, 0.0).exp_().mul_(x[_OP].unsqueeze(1)).clamp_max_(MAX_ALPHA)
-    torch.nn.functional.threshold_(alpha, alpha_floor, 0.0)  # alpha < 1/255 -> 0
+    torch.nn.functional.threshold_(alpha, alpha_floor, 0.0)  # type: ignore[attr-defined]  # alpha < 1/255 -> 0
     one_minus = 1.0 - alpha
     trans = torch.cumprod(one_minus, dim=-1)  # inclusive
     t_excl = trans / one_minus  # 1 - alpha >= 0.01
@@ -264,7 +263,7 @@ class _CompositeFn(torch.autograd.Function):
             v_alpha_p = cum.addcmul_(t_excl, v)  # [T, P, K] dL/d alpha_i
             # d alpha / d power = alpha, except where clamped at 0.99: -alpha below it, 0 above
             # (the sign is undone below), again without bool tensors.
-            d_alpha = torch.nn.functional.threshold_(alpha.neg(), -MAX_ALPHA, 0.0)
+            d_alpha = torch.nn.functional.threshold_(alpha.neg(), -MAX_ALPHA, 0.0)  # type: ignore[attr-defined]
             v_power = v_alpha_p.mul_(d_alpha)  # = -dL/d power
             vx[_OP] = v_power.sum(1).div_(x[_OP].clamp_min(1e-30)).neg_()
             g0, g1, g2, g3, g4, g5 = torch.matmul(feat_t, v_power).neg_().unbind(1)  # dL/d coef, [T, K] each

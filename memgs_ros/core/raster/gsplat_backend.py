@@ -64,7 +64,7 @@ def rasterize_gsplat(
     sh_degree: int,
     background: Tensor | None,  # [3]
     near: float,
-) -> "RenderOutput":
+) -> RenderOutput:
     """gsplat twin of :func:`memgs_ros.core.raster.rasterize`; same arguments and result."""
     from gsplat import rasterization
 

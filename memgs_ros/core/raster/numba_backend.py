@@ -24,17 +24,17 @@ import os
 from typing import Any
 
 import numpy as np
-
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from memgs_ros.core.raster.composite import MIN_ALPHA, _map
+from memgs_ros.core.raster.composite import _map
+from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.tiles import BIN_MARGIN, TilePlan
-from memgs_ros.core.runtime import numba_available  # noqa: F401 - one switch for every compiled path
+from memgs_ros.core.runtime import numba_available
 from memgs_ros.errors import ConfigError
 
-__all__ = ["NUMBA_TILE_SIZE", "composite_numba", "cpu_threads", "numba_available"]
+__all__ = ["NUMBA_TILE_SIZE", "composite_numba", "cpu_threads"]
 
 # px. Per-pixel early termination and per-Gaussian pixel boxes make list padding irrelevant;
 # larger tiles mean fewer (tile, Gaussian) pairs to bin and reduce and longer runs per pixel

@@ -22,9 +22,10 @@ from torch.autograd.function import once_differentiable
 
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.raster.composite import _map
-from memgs_ros.core.raster.numba_backend import cpu_threads, numba_available
+from memgs_ros.core.raster.numba_backend import cpu_threads
 from memgs_ros.core.raster.projection import JACOBIAN_FOV_MARGIN, Projected
 from memgs_ros.core.raster.sh import num_sh_bases
+from memgs_ros.core.runtime import numba_available
 from memgs_ros.errors import ConfigError
 
 __all__ = ["project_gaussians_numba"]
@@ -119,7 +120,8 @@ class _ProjectNumbaFn(torch.autograd.Function):
             cam,
             sh_degree,
         )
-        outs = (means2d.numpy(), cov2d.numpy(), conics.numpy(), depths.numpy(), opac.numpy(), colors.numpy(), in_front.numpy())
+        outs = (means2d.numpy(), cov2d.numpy(), conics.numpy(), depths.numpy(), opac.numpy(), colors.numpy(),
+                in_front.numpy())
         jobs = _ranges(n, threads)
         _map(lambda j: k.project_forward(j[1], j[2], *args, *outs), jobs, threads)
         ctx.args = args
@@ -127,7 +129,8 @@ class _ProjectNumbaFn(torch.autograd.Function):
         ctx.threads = threads
         ctx.dtype = dtype
         ctx.rest_shape = tuple(sh_rest.shape)
-        ctx.dtypes = (means.dtype, quats_wxyz.dtype, log_scales.dtype, opacity_logits.dtype, sh_dc.dtype, sh_rest.dtype, T_cw.dtype)
+        ctx.dtypes = (means.dtype, quats_wxyz.dtype, log_scales.dtype, opacity_logits.dtype, sh_dc.dtype, sh_rest.dtype,
+                      T_cw.dtype)
         ctx.mark_non_differentiable(in_front)
         out_dtype = means.dtype
         return (

@@ -11,8 +11,8 @@ import torch
 from torch import Tensor
 
 from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.raster.composite import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
 from memgs_ros.core.raster.projection import project_gaussians, screen_radii
+from memgs_ros.core.raster.rules import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
 
 
 def _composite_reference(

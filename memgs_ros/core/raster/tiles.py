@@ -28,6 +28,7 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
+from memgs_ros.core.runtime import numba_available
 from memgs_ros.errors import ConfigError
 
 # px. Pixel-Gaussian pairs per pixel on the benchmark scene (20k, 320x240, exact binning):
@@ -226,8 +227,6 @@ def build_tile_plan(
 
 
 def _numba_binning(device: torch.device) -> bool:
-    from memgs_ros.core.raster.numba_backend import numba_available
-
     return device.type == "cpu" and numba_available()
 
 

@@ -1,0 +1,126 @@
+"""The package's tiers hold: no module imports from a tier above its own, and no modules import
+each other in a circle (module-level imports, and imports inside functions too).
+
+Tiers, bottom up: errors; core (no rclpy); io (datasets, bags); viz (Rerun logging, no rclpy);
+ros (rclpy glue); nodes; orchestration (runs the graph); evaluation; cli. core/ must not import
+rclpy at all."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parent.parent / "memgs_ros"
+TIERS = ("errors", "core", "io", "viz", "ros", "nodes", "orchestration", "evaluation", "plots", "cli")
+# Tiers that may sit side by side (neither imports the other).
+SAME = {"plots": "evaluation"}
+
+
+def _tier(module: str) -> int | None:
+    parts = module.split(".")
+    if parts[0] != "memgs_ros" or len(parts) < 2:
+        return None
+    name = SAME.get(parts[1], parts[1])
+    return TIERS.index(name) if name in TIERS else None
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in PACKAGE.rglob("*.py"):
+        rel = path.relative_to(PACKAGE.parent).with_suffix("")
+        parts = list(rel.parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def _imports(path: Path, module: str, known: set[str]) -> set[str]:
+    """The package modules ``module`` imports (``from pkg import name`` counts as ``pkg.name``
+    when that is a module, else ``pkg``)."""
+    found: set[str] = set()
+    is_pkg = path.name == "__init__.py"
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names if a.name.startswith("memgs_ros"))
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = module.split(".") if is_pkg else module.split(".")[:-1]
+                anchor = anchor[: len(anchor) - node.level + 1]
+                base = ".".join(anchor + ([base] if base else []))
+            if not base.startswith("memgs_ros"):
+                continue
+            for a in node.names:
+                sub = f"{base}.{a.name}"
+                found.add(sub if sub in known else base)
+    found.discard(module)
+    return {m for m in found if m in known}
+
+
+def _graph() -> dict[str, set[str]]:
+    mods = _modules()
+    return {m: _imports(p, m, set(mods)) for m, p in mods.items()}
+
+
+def test_no_module_imports_from_a_higher_tier() -> None:
+    upward = []
+    for mod, deps in _graph().items():
+        t = _tier(mod)
+        for dep in deps:
+            td = _tier(dep)
+            if t is not None and td is not None and td > t:
+                upward.append(f"{mod} -> {dep}")
+    assert upward == [], "imports that run up the tiers " + str(TIERS) + ":\n" + "\n".join(sorted(upward))
+
+
+def test_core_does_not_import_rclpy() -> None:
+    offenders = []
+    for path in (PACKAGE / "core").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            if any(n.split(".")[0] in ("rclpy", "rosidl_runtime_py") for n in names):
+                offenders.append(str(path.relative_to(PACKAGE)))
+    assert offenders == []
+
+
+def test_no_import_circles() -> None:
+    graph = _graph()
+    # Packages import their own submodules in __init__; a submodule importing a sibling through
+    # the package is not a circle of files, so edges to a package's __init__ from inside it are dropped.
+    def inside(mod: str, pkg: str) -> bool:
+        return mod.startswith(pkg + ".")
+    edges = {m: {d for d in deps if not inside(m, d)} for m, deps in graph.items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    circles: list[list[str]] = []
+    counter = [0]
+
+    def visit(v: str) -> None:  # Tarjan's strongly connected components
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on_stack.add(v)
+        for w in edges.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                circles.append(sorted(comp))
+
+    for v in sorted(edges):
+        if v not in index:
+            visit(v)
+    assert circles == [], f"modules importing each other in a circle: {circles}"
