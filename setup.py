@@ -62,8 +62,9 @@ setup(
         # rerun-sdk with the GaussianSplats3D archetype.
         "viz": ["rerun-sdk>=0.36"],
         # rerun-sdk >= 0.41: the tests read recordings back with rerun.chunk.RrdReader.
+        # ruff and mypy pinned: test/test_lint.py holds the code to exactly these versions' rules.
         "test": ["pytest>=7", "hypothesis>=6", "colcon-core", "colcon-ros", "colcon-python-setup-py",
-                 "rerun-sdk>=0.41"],
+                 "rerun-sdk>=0.41", "ruff==0.17.6", "mypy==2.4.1"],
     },
     zip_safe=True,
     maintainer="memgs_ros maintainers",
