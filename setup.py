@@ -3,21 +3,17 @@
 The ROS 2 Python wheels are an optional extra (``[ros]``): on a Jetson rclpy
 comes from apt, and everything that is not a node imports without it.
 """
+import runpy
 from glob import glob
+from pathlib import Path
 
 from setuptools import find_packages, setup
 
 PACKAGE = "memgs_ros"
 
-NODES = {
-    "tracker": "memgs_ros.nodes.tracker:main",
-    "keyframe_sampler": "memgs_ros.nodes.keyframe_sampler:main",
-    "mapper": "memgs_ros.nodes.mapper:main",
-    "merger": "memgs_ros.nodes.merger:main",
-    "bag_player": "memgs_ros.nodes.bag_player:main",
-    "recorder": "memgs_ros.nodes.recorder:main",
-    "rerun_bridge": "memgs_ros.nodes.rerun_bridge:main",
-}
+# The node list lives in memgs_ros/nodes/registry.py (literals: read without importing the package).
+NODES = {name: f"{module}:main" for name, (module, _) in
+         runpy.run_path(str(Path(__file__).resolve().parent / "memgs_ros/nodes/registry.py"))["NODES"].items()}
 
 setup(
     name=PACKAGE,

@@ -24,14 +24,16 @@ Fast DDS: unless FASTRTPS_DEFAULT_PROFILES_FILE is already set, the nodes get th
 import os
 
 from ament_index_python.packages import get_package_share_directory
-from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 
+from launch import LaunchDescription
+from memgs_ros.nodes.registry import GRAPH
+
 PACKAGE = "memgs_ros"
-NODES = ("tracker", "keyframe_sampler", "mapper", "merger")
+NODES = GRAPH  # memgs_ros/nodes/registry.py
 
 # Tracker parameter -> default topic: realsense2_camera with align_depth.enable:=true.
 CAMERA_TOPICS = {

@@ -29,7 +29,7 @@ from colcon_install import PKG, REPO, install_env
 
 LAUNCH_NAME = "memgs.launch.py"
 LAUNCH_FILE = REPO / "launch" / LAUNCH_NAME
-GRAPH = ("tracker", "keyframe_sampler", "mapper", "merger")
+GRAPH = ("tracker", "keyframe_sampler", "mapper", "merger")  # what a robot runs: registry.GRAPH, as a set
 # Declared by rclpy itself on every node.
 BUILTIN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
 
@@ -255,6 +255,13 @@ def _mutated(tmp_path: Path, old: str, new: str) -> Path:
     return path
 
 
+def test_the_launch_file_starts_the_registry_graph() -> None:
+    from memgs_ros.nodes.registry import GRAPH as REGISTRY_GRAPH
+
+    assert set(REGISTRY_GRAPH) == set(GRAPH)
+    assert {n.name for n in load_launch(LAUNCH_FILE, {PKG: REPO}).nodes} == set(GRAPH)
+
+
 def test_checker_accepts_the_launch_file_against_the_source_tree() -> None:
     launch = load_launch(LAUNCH_FILE, {PKG: REPO})
     assert check_launch(launch, set(GRAPH), _declared_by_source()) == []
@@ -265,7 +272,8 @@ def test_checker_accepts_the_launch_file_against_the_source_tree() -> None:
 
 
 @pytest.mark.parametrize(("old", "new", "expected"), [
-    ('"keyframe_sampler", "mapper"', '"keyframe_sampler", "mapping"', "executable 'mapping' is not installed"),
+    ("NODES = GRAPH", 'NODES = tuple("mapping" if n == "mapper" else n for n in GRAPH)',
+     "executable 'mapping' is not installed"),
     ('"color_topic": "/camera', '"colour_topic": "/camera', "tracker: parameter 'colour_topic' is not declared"),
     ('"map_path": ParameterValue', '"map_file": ParameterValue', "merger: parameter 'map_file' is not declared"),
     ('"realsense_d435i.yaml"', '"realsense_d435.yaml"', "realsense_d435.yaml does not exist"),

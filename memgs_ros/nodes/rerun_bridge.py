@@ -39,6 +39,7 @@ from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.map_delta import MapMessage, decode
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, decode_rgb
+from memgs_ros.nodes.registry import GRAPH
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pointcloud2_to_structured, pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.diagnostics import NodeStats, stats_values
@@ -50,7 +51,7 @@ from memgs_ros.viz.map_follow import MapFollower
 # The stats plotted by default: map size and training progress, tracking speed, memory.
 DEFAULT_STATS_KEYS = ("gaussians,iteration,loss,keyframes,poses_out,track_ms,rss_mb,model_bytes,map_bytes,"
                       "delta_bytes")
-STATS_NODES = ("tracker", "keyframe_sampler", "mapper", "merger")
+STATS_NODES = GRAPH
 _FRAMES_KEPT = 30  # source frames held to pair with a render of the same stamp (renders lag < 1 s)
 _RESYNC_INTERVAL_S = 2.0  # least time between full-map requests while out of step
 

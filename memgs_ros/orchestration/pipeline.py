@@ -8,6 +8,7 @@ It is what ``memgs run`` / ``memgs demo`` and the end-to-end tests call.
 """
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import os
@@ -40,7 +41,7 @@ from memgs_ros.core.geometry import pose_to_tq
 from memgs_ros.core.map_delta import decode
 from memgs_ros.core.runtime import MALLOC_ARENAS, PARENT_PID_ENV
 from memgs_ros.errors import ConfigError, PipelineError
-from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, recorder, rerun_bridge, tracker
+from memgs_ros.nodes.registry import NODES
 from memgs_ros.orchestration.run_files import (
     CHECKPOINT_FILE,
     GRAPH_NODE_NAMES,
@@ -69,13 +70,9 @@ __all__ = ["GRAPH_NODES", "NODE_MODULES", "PipelineError", "RunOptions", "RunSum
 
 # The graph, by module: a process runs ``python -m <module.__name__>`` (its ``main``); in one
 # process the module's Node class is built on a shared executor.
-NODE_MODULES: dict[str, ModuleType] = {
-    m.__name__.rsplit(".", 1)[-1]: m
-    for m in (tracker, keyframe_sampler, mapper, merger, bag_player, recorder, rerun_bridge)}
+NODE_MODULES: dict[str, ModuleType] = {name: importlib.import_module(module) for name, (module, _) in NODES.items()}
 _NODE_FACTORIES: dict[str, Callable[..., Any]] = {
-    "tracker": tracker.TrackerNode, "keyframe_sampler": keyframe_sampler.KeyframeSamplerNode,
-    "mapper": mapper.MapperNode, "merger": merger.MergerNode, "bag_player": bag_player.BagPlayer,
-    "recorder": recorder.RecorderNode, "rerun_bridge": rerun_bridge.RerunBridgeNode}
+    name: getattr(NODE_MODULES[name], cls) for name, (_, cls) in NODES.items()}
 GRAPH_NODES = GRAPH_NODE_NAMES
 VIEW_NODE = "rerun_bridge"  # started after GRAPH_NODES when RunOptions.rerun is set
 _STATS_NODES = (*GRAPH_NODES, "player", VIEW_NODE, "recorder")  # the names on memgs/<name>/stats
@@ -349,7 +346,7 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
                 procs.start(name)
             _wait_for_graph(observer, procs, [n for n in graph if n not in delayed], t0 + options.timeout_s)
             if recording:
-                topics = node_params(params).get("recorder", {}).get("topics", recorder.DEFAULT_TOPICS)
+                topics = node_params(params).get("recorder", {}).get("topics", NODE_MODULES["recorder"].DEFAULT_TOPICS)
                 _wait_for_recorder(observer, procs, topics, t0 + options.timeout_s)
             procs.start("bag_player")
             # Counted from the start of the replay, as kills are; started by _drive's loop.

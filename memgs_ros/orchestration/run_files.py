@@ -19,6 +19,7 @@ import yaml
 
 from memgs_ros.core.camera import CameraCalibration, PinholeCamera
 from memgs_ros.errors import ConfigError, DataError
+from memgs_ros.nodes.registry import GRAPH, NODES
 from memgs_ros.viz import RerunTarget
 
 __all__ = [
@@ -30,9 +31,10 @@ __all__ = [
 ]
 
 # The nodes a parameter override may name; the pipeline starts one module per name (recorder
-# only with RunOptions.record, rerun_bridge only with RunOptions.rerun).
-NODE_NAMES = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player", "recorder", "rerun_bridge")
-GRAPH_NODE_NAMES = ("merger", "mapper", "keyframe_sampler", "tracker")  # start order; the player last
+# only with RunOptions.record, rerun_bridge only with RunOptions.rerun). Start order: the graph,
+# then the player. Both from memgs_ros/nodes/registry.py.
+NODE_NAMES = tuple(NODES)
+GRAPH_NODE_NAMES = GRAPH
 
 # Files in a run's output folder.
 PARAMS_FILE = "params.yaml"  # the effective per-node parameters
