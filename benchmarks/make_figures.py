@@ -1,14 +1,16 @@
-"""Make the README's figures and the tables beside them from one benchmark run, together.
+"""Make the documentation's figures and the tables beside them from one benchmark run, together.
 
     python benchmarks/make_figures.py eval results/bench_eval.json --name tum_fr1_rpy --readme README.md
-    python benchmarks/make_figures.py load results/bench_load_cap600.json --name load_30hz_640x480 --readme README.md
+    python benchmarks/make_figures.py load results/bench_load_cap600.json --name load_30hz_640x480 \
+        --readme docs/results.md
 
 ``eval`` takes the JSON ``benchmarks/bench_eval.py`` writes (one evaluation or an ablation);
 ``load`` the JSON of ``benchmarks/bench_load.py``. Each writes into ``benchmarks/figures/``:
 ``<name>.md`` (the table) and the PNGs, every PNG carrying the SHA-256 of that table in its
-metadata (``memgs-table-sha256``). With ``--readme`` the block between
-``<!-- figures:<name> -->`` and ``<!-- /figures:<name> -->`` is replaced by the table and the
-images. ``test/test_figures.py`` checks every such block against its table and PNGs, so a
+metadata (``memgs-table-sha256``). With ``--readme FILE`` (``README.md`` or a page under
+``docs/``) the block between ``<!-- figures:<name> -->`` and ``<!-- /figures:<name> -->`` in FILE
+is replaced by the table and the images, linked relative to FILE. ``test/test_figures.py``
+checks every such block in ``README.md`` and ``docs/*.md`` against its table and PNGs, so a
 figure and the table beside it cannot come from different runs.
 """
 from __future__ import annotations
@@ -16,6 +18,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import os
 import re
 import sys
 from collections.abc import Callable, Sequence
@@ -25,7 +28,8 @@ from typing import Any
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-FIGURES = Path(__file__).resolve().parent / "figures"
+ROOT = Path(__file__).resolve().parents[1]
+FIGURES = ROOT / "benchmarks" / "figures"
 SHA_KEY = "memgs-table-sha256"  # PNG text chunk: the table a figure belongs to
 _BLOCK = re.compile(r"<!-- figures:(?P<name>[\w.-]+) -->\n(?P<body>.*?)<!-- /figures:(?P=name) -->", re.S)
 _IMAGE = re.compile(r"!\[[^\]]*\]\((?P<path>[^)]+\.png)\)")
@@ -51,8 +55,15 @@ def _save(fig: Figure, path: Path, table: str) -> Path:
     return path
 
 
+def image_link(image: Path, page: Path) -> str:
+    """``image`` as a Markdown link target relative to the folder of ``page`` (``../benchmarks/...``
+    from a page under ``docs/``)."""
+    return Path(os.path.relpath(image.resolve(), page.resolve().parent)).as_posix()
+
+
 def readme_block(name: str, table: str, images: Sequence[Path], readme: Path) -> str:
-    links = "\n".join(f"![{p.stem}]({p.resolve().relative_to(readme.resolve().parent).as_posix()})" for p in images)
+    """The figures block ``name``: the table, then the images linked relative to ``readme``."""
+    links = "\n".join(f"![{p.stem}]({image_link(p, readme)})" for p in images)
     return f"<!-- figures:{name} -->\n{table.rstrip()}\n\n{links}\n<!-- /figures:{name} -->"
 
 
@@ -65,7 +76,8 @@ def replace_block(text: str, name: str, block: str) -> str:
 
 
 def readme_blocks(text: str) -> list[tuple[str, str, list[str]]]:
-    """(name, table text, image paths) of every figures block in a README's text."""
+    """(name, table text, image paths as written, i.e. relative to the page) of every figures block
+    in a page's text."""
     out = []
     for m in _BLOCK.finditer(text):
         body = m.group("body")
@@ -113,7 +125,8 @@ def load_figures(record: dict[str, Any], name: str, out_dir: Path) -> tuple[str,
     for node, n in record["nodes"].items():
         t = n.get("trend")
         if t:
-            lines.append(f"| {node} | {n['rss_mb_start']:.0f} | {t['first_min_median']:.0f} ({t['first_min_peak']:.0f}) "
+            lines.append(f"| {node} | {n['rss_mb_start']:.0f} "
+                         f"| {t['first_min_median']:.0f} ({t['first_min_peak']:.0f}) "
                          f"| {t['last_min_median']:.0f} ({t['last_min_peak']:.0f}) "
                          f"| {t['floors_mb'][0]:.0f} → {t['floors_mb'][-1]:.0f} |")
     cap = record.get("mapper_max_mapper_mbytes") or 0.0
@@ -144,6 +157,12 @@ def load_figures(record: dict[str, Any], name: str, out_dir: Path) -> tuple[str,
     return table, [_save(fig, out_dir / f"{name}.png", table)]
 
 
+def pages_with_block(name: str, root: Path = ROOT) -> list[Path]:
+    """The documentation pages (``README.md``, ``docs/*.md``) that hold the figures block ``name``."""
+    pages = [root / "README.md", *sorted((root / "docs").glob("*.md"))]
+    return [p for p in pages if p.is_file() and any(b[0] == name for b in readme_blocks(p.read_text(encoding="utf-8")))]
+
+
 KINDS: dict[str, Callable[[dict[str, Any], str, Path], tuple[str, list[Path]]]] = {
     "eval": eval_figures, "load": load_figures}
 
@@ -152,10 +171,18 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("kind", choices=sorted(KINDS))
     p.add_argument("result", type=Path, help="the benchmark's JSON")
-    p.add_argument("--name", required=True, help="figure name prefix and README block name")
+    p.add_argument("--name", required=True, help="figure name prefix and documentation block name")
     p.add_argument("--out", type=Path, default=FIGURES, help="folder for the PNGs and the table (.md)")
-    p.add_argument("--readme", type=Path, default=None, help="replace the block <!-- figures:NAME --> here")
+    p.add_argument("--readme", type=Path, default=None,
+                   help="replace the block <!-- figures:NAME --> in this page (README.md or docs/*.md)")
     args = p.parse_args(argv)
+    page = args.readme.read_text(encoding="utf-8") if args.readme is not None else ""
+    if args.readme is not None and args.name not in {b[0] for b in readme_blocks(page)}:
+        # Checked before any file is written: new figures without their page would fail test_figures.
+        found = ", ".join(path.relative_to(ROOT).as_posix() for path in pages_with_block(args.name))
+        print(f"{args.readme} has no '<!-- figures:{args.name} -->' block" + (f"; it is in {found}" if found else ""),
+              file=sys.stderr)
+        return 2
     record = json.loads(args.result.read_text(encoding="utf-8"))
     table, images = KINDS[args.kind](record, args.name, args.out)
     (args.out / f"{args.name}.md").write_text(table, encoding="utf-8")
@@ -163,8 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {path}")
     print(f"wrote {args.out / f'{args.name}.md'}\n\n{table}")
     if args.readme is not None:
-        text = args.readme.read_text(encoding="utf-8")
-        args.readme.write_text(replace_block(text, args.name, readme_block(args.name, table, images, args.readme)),
+        args.readme.write_text(replace_block(page, args.name, readme_block(args.name, table, images, args.readme)),
                                encoding="utf-8")
         print(f"updated the '{args.name}' block of {args.readme}")
     return 0
