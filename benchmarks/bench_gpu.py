@@ -22,7 +22,7 @@ Stages (each can be skipped; each writes its part of one JSON, default results/b
 
     python benchmarks/gpu_carry.py gpu_carry   # on a machine with the index: wheels + a TUM subset
     TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 python benchmarks/bench_gpu.py --tum DIR [--wheels gpu_carry/wheels]
-    python benchmarks/bench_gpu.py --table results/bench_gpu.json   # the README's GPU table
+    python benchmarks/bench_gpu.py --table results/bench_gpu.json   # the GPU table of docs/results.md (On a GPU)
 
 The issue-25 targets are printed beside each figure. Run nothing else on the machine meanwhile.
 """
@@ -280,7 +280,7 @@ def headline(res: dict[str, Any]) -> dict[str, float | None]:
 
 
 def table(res: dict[str, Any]) -> str:
-    """The README's GPU table, from the JSON this script writes."""
+    """The GPU table of docs/results.md (On a GPU), from the JSON this script writes."""
     s = res.get("setup", {})
     lines = [f"Card: {s.get('card', '?')} ({s.get('memory_gib', '?')} GiB), torch {s.get('torch', '?')}, "
              f"CUDA {s.get('cuda', '?')}, gsplat {(s.get('gsplat') or {}).get('version', 'not installed')}; "

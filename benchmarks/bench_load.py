@@ -193,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     print(f"wrote {args.out}; figure and table: python benchmarks/make_figures.py load {args.out} "
-          "--name load_30hz_640x480 --readme README.md")
+          "--name load_30hz_640x480 --readme docs/results.md")
     return 0
 
 

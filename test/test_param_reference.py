@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from memgs_ros.ros import param_reference as ref
+from memgs_ros.orchestration import param_reference as ref
 from memgs_ros.ros.config_params import ROS_PARAMETERS, parameter_names
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -58,7 +58,7 @@ class MappingConfig:
     seed_opacity: float = 0.1
     # Per-keyframe affine colour correction trained with the map (core/exposure.py); renders
     # for evaluation and the rendered-view topics never use it. Off by default: on the fr1/rpy
-    # head it cost 0.40 dB under the paper's protocol (README, Map quality)
+    # head it cost 0.40 dB under the paper's protocol (docs/results.md, Map quality)
     exposure_compensation: bool = False
     exposure_lr: float = 0.005
     exposure_reg: float = 0.01  # weight of the pull towards identity (gain 1, bias 0)

@@ -7,8 +7,8 @@ tables go through the same helpers the nodes call (``declare_all``, ``declare_co
 names, defaults, descriptions and ranges are those ``ros2 param describe`` shows. No rclpy
 node is created.
 
-    python -m memgs_ros.ros.param_reference --write docs/parameters.md
-    python -m memgs_ros.ros.param_reference --check docs/parameters.md   # exit 1 when stale
+    python -m memgs_ros.orchestration.param_reference --write docs/parameters.md
+    python -m memgs_ros.orchestration.param_reference --check docs/parameters.md   # exit 1 when stale
 """
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ if TYPE_CHECKING:
 __all__ = ["DEFAULT_PATH", "ParamRow", "node_modules", "parameter_rows", "render_markdown", "rows_from_declarations"]
 
 DEFAULT_PATH = "docs/parameters.md"
-REGENERATE = f"python -m memgs_ros.ros.param_reference --write {DEFAULT_PATH}"
+REGENERATE = f"python -m memgs_ros.orchestration.param_reference --write {DEFAULT_PATH}"
 
 # How a node declares a config group when it is more than ``declare_config(node, cls, prefix)``
 # (a ranges table of its own). Keep in step with the nodes' ``__init__``.
@@ -192,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.check is not None:
         current = args.check.read_text(encoding="utf-8") if args.check.is_file() else None
         if current != text:
-            print(f"{args.check} is stale: run python -m memgs_ros.ros.param_reference --write {args.check}",
+            print(f"{args.check} is stale: run python -m memgs_ros.orchestration.param_reference --write {args.check}",
                   file=sys.stderr)
             return 1
         print(f"{args.check} is up to date")
