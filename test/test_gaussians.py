@@ -192,23 +192,6 @@ def test_records_validate_shapes_and_from_records_sorts_ids() -> None:
         GaussianMap.from_records(dup)
 
 
-def test_pop_changes_tracks_adds_removals_and_moved_rows() -> None:
-    g = _map_with_points(6)
-    removed, changed = g.pop_changes()
-    assert removed.numel() == 0 and changed.tolist() == list(range(6))
-    removed, changed = g.pop_changes()
-    assert changed.numel() == 0
-    # Only row 2 gets a gradient: only row 2 moves and becomes dirty.
-    loss = g.means[2].sum()
-    loss.backward()
-    g.optimizer_step()
-    removed, changed = g.pop_changes()
-    assert changed.tolist() == [2]
-    g.remove(torch.tensor([True, False, False, False, False, False]))
-    removed, changed = g.pop_changes()
-    assert removed.tolist() == [0]
-
-
 def test_render_tensors_match_a_map_built_from_the_records() -> None:
     # The merger renders from records without a GaussianMap (no gradients or Adam state): the
     # inputs must equal the map's own tensors row for row, SH layout included.

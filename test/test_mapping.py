@@ -323,31 +323,6 @@ def test_pose_update_changes_training(tiny_frames: list[Frame]) -> None:
     assert not torch.equal(a.gmap.sh_dc, c.gmap.sh_dc)
 
 
-def test_pop_changes_semantics(tiny_frames: list[Frame]) -> None:
-    m = _mapper(tiny_frames)
-    n = len(m.gmap)
-    ch = m.pop_changes()
-    assert ch.removed_ids.size == 0 and len(ch.changed) == n
-    assert np.array_equal(np.sort(ch.changed.ids), np.arange(n))
-    assert len(m.pop_changes().changed) == 0
-    m.step()
-    ch = m.pop_changes()
-    assert 0 < len(ch.changed) <= n
-    snap = m.snapshot()
-    pos = np.searchsorted(snap.ids, ch.changed.ids)
-    assert np.array_equal(snap.xyz[pos], ch.changed.xyz)  # current values travel
-    # Rows nobody saw in that render were not touched and are not reported.
-    unchanged = np.setdiff1d(snap.ids, ch.changed.ids)
-    assert unchanged.size > 0
-    # Pruning reports removals.
-    with torch.no_grad():
-        m.gmap.opacity_logits[:5] = -10.0
-    m.gmap.created_iter[:] = -1000
-    m.densify_and_prune()
-    ch = m.pop_changes()
-    assert set(snap.ids[:5].tolist()) <= set(ch.removed_ids.tolist())
-
-
 def test_densify_clones_small_and_splits_large() -> None:
     cam = PinholeCamera(32, 24, 30.0, 30.0, 16.0, 12.0)
     m = GaussianMapper(MappingConfig(min_keyframes=1, merge_enabled=False, scene_extent=1.0,

@@ -25,7 +25,6 @@ Side arrays (all ``[N]`` tensors on the map's device, stable names for other mod
   the number of renders it was visible in (MemGS merge candidates, reference section 4). Use
   ``merge_grad_mean()``; an unseen Gaussian has mean 0.
 - ``max_radii2d`` float32: the largest screen radius (pixels) seen since the last densification.
-- ``dirty`` bool: added or changed since the last ``pop_changes``.
 """
 from __future__ import annotations
 
@@ -42,13 +41,13 @@ SH_C0 = 0.28209479177387814  # zeroth real spherical harmonic, Y_0^0
 PARAM_NAMES = ("means", "log_scales", "quats_wxyz", "opacity_logits", "sh_dc", "sh_rest")
 SIDE_NAMES = (
     "ids", "keyframe_ids", "created_iter", "densify_grad_sum", "densify_count",
-    "merge_grad_sum", "merge_count", "max_radii2d", "dirty",
+    "merge_grad_sum", "merge_count", "max_radii2d",
 )
 _SIDE_DTYPES = {
     "ids": torch.int64, "keyframe_ids": torch.int64, "created_iter": torch.int64,
     "densify_grad_sum": torch.float32, "densify_count": torch.int64,
     "merge_grad_sum": torch.float32, "merge_count": torch.int64,
-    "max_radii2d": torch.float32, "dirty": torch.bool,
+    "max_radii2d": torch.float32,
 }
 
 
@@ -147,7 +146,6 @@ class GaussianMap:
     merge_grad_sum: torch.Tensor  # float32, accumulated 3D positional gradient norms
     merge_count: torch.Tensor  # int64
     max_radii2d: torch.Tensor  # float32, largest screen radius seen (px)
-    dirty: torch.Tensor  # bool, changed since the last pop_changes
 
     def __init__(self, max_sh_degree: int = 3, device: torch.device | str = "cpu",
                  lrs: GaussianLearningRates | None = None, spatial_lr_scale: float = 1.0) -> None:
@@ -177,7 +175,6 @@ class GaussianMap:
             self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
         except (RuntimeError, TypeError, ValueError):  # a torch or device without the fused Adam
             self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
-        self._removed_ids: list[torch.Tensor] = []
 
     # ------------------------------------------------------------------ basics
     def _empty_param(self, name: str) -> torch.nn.Parameter:
@@ -318,16 +315,14 @@ class GaussianMap:
             "created_iter": torch.full((m,), int(iteration), dtype=torch.int64),
             "densify_grad_sum": torch.zeros(m), "densify_count": torch.zeros(m, dtype=torch.int64),
             "merge_grad_sum": torch.zeros(m), "merge_count": torch.zeros(m, dtype=torch.int64),
-            "max_radii2d": torch.zeros(m), "dirty": torch.ones(m, dtype=torch.bool),
+            "max_radii2d": torch.zeros(m),
         }
         keep = None
         if remove is not None:
             remove = torch.as_tensor(remove, dtype=torch.bool, device=self.device)
             if tuple(remove.shape) != (len(self),):
                 raise DataError(f"remove mask must be [{len(self)}] bool, got {tuple(remove.shape)}")
-            removed = self.ids[remove].clone()
-            if removed.numel():
-                self._removed_ids.append(removed)
+            if bool(remove.any()):
                 keep = ~remove
         self._resize(keep, new, side)
         return ids
@@ -385,7 +380,6 @@ class GaussianMap:
         removed = self.ids[mask_t].clone()
         if removed.numel():
             self._resize(~mask_t, None, None)
-            self._removed_ids.append(removed)
         return removed
 
     def index_of(self, ids: torch.Tensor | np.ndarray) -> torch.Tensor:
@@ -412,7 +406,6 @@ class GaussianMap:
                 for name in ("densify_grad_sum", "densify_count", "merge_grad_sum", "merge_count",
                              "max_radii2d"):
                     getattr(self, name)[index] = 0
-            self.dirty[index] = True
 
     # ------------------------------------------------------------ statistics
     def accumulate_stats(self, means2d_grad: torch.Tensor | None, visible: torch.Tensor,
@@ -456,36 +449,9 @@ class GaussianMap:
 
     # ------------------------------------------------------ optimisation step
     def optimizer_step(self) -> None:
-        """Adam step, then mark every row the step moved as dirty, then drop gradients.
-
-        A row moves iff its first moment is non-zero in any parameter (Adam's update is
-        lr * m_hat / (sqrt(v_hat) + eps)), which also covers rows carried by momentum. Only
-        means, opacity and SH DC are checked (0.4 ms instead of 4 ms at 31k rows): a Gaussian
-        gets an SH-rest gradient only with a colour weight, which gives SH DC one, and a
-        scale or rotation gradient only through its alpha, which gives opacity one.
-        """
+        """Adam step, then drop gradients."""
         self.optimizer.step()
-        with torch.no_grad():
-            moved = torch.zeros(len(self), dtype=torch.bool, device=self.device)
-            for p in (self.means, self.opacity_logits, self.sh_dc):
-                state = self.optimizer.state.get(p)
-                if state and "exp_avg" in state:
-                    moved |= state["exp_avg"].reshape(len(self), -1).ne(0).any(dim=1)
-            self.dirty |= moved
         self.optimizer.zero_grad(set_to_none=True)
-
-    def pop_changes(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Ids removed and rows dirty since the last call; clears both.
-
-        Returns (removed_ids [R] int64, changed_index [C] int64 row positions). Ids both added and
-        removed since the last call appear in removed_ids only (consumers ignore unknown ids).
-        """
-        removed = (torch.cat(self._removed_ids) if self._removed_ids
-                   else torch.zeros(0, dtype=torch.int64, device=self.device))
-        self._removed_ids = []
-        changed = torch.nonzero(self.dirty).reshape(-1)
-        self.dirty.zero_()
-        return removed, changed
 
     # ------------------------------------------------------------- memory
     def memory_bytes(self) -> MemoryReport:

@@ -320,10 +320,6 @@ class DeltaOutbox:
         self._mirror = GaussianRecords.empty()  # rows sorted by id
         self.pending_rows = 0  # rows over tolerance that the last row limit held back
 
-    @property
-    def receiver_size(self) -> int:
-        return len(self._mirror)
-
     def next_delta(self, current: GaussianRecords, max_rows: int | None = None,
                    tolerance: float | None = None) -> np.ndarray | None:
         """The next delta as structured rows (see ``encode``), or None when nothing differs."""

@@ -58,7 +58,7 @@ class StepStats:
     """What one ``step()`` did. ``terms`` are the loss terms (see ``losses.mapping_loss``).
 
     ``budget_merged`` / ``budget_pruned``: Gaussians the memory budget removed since the previous
-    step (``enforce_budget``, including its runs after ``add_keyframe`` / ``load_map``):
+    step (``enforce_budget``, including its runs after ``add_keyframe``):
     merged pairs (each pair's two ids replaced by one new Gaussian, so the map shrank by that
     many) and pruned Gaussians.
     """
@@ -75,15 +75,6 @@ class StepStats:
     seconds: float = 0.0
     budget_merged: int = 0
     budget_pruned: int = 0
-
-
-@dataclass(frozen=True, eq=False)
-class MapChanges:
-    """Map delta since the last ``pop_changes``: removed ids [R] int64 and the rows added or
-    changed (their current values)."""
-
-    removed_ids: np.ndarray
-    changed: GaussianRecords
 
 
 def prepare_keyframe(cfg: MappingConfig, device: torch.device, kf_id: int, stamp_ns: int, T_wc: np.ndarray,
@@ -313,7 +304,6 @@ class GaussianMapper:
                 q_D = rotmat_to_quat_wxyz_torch(D[:, :3, :3])  # [K, 4]
                 g.quats_wxyz[rows] = _quat_multiply_wxyz(q_D[which], g.quats_wxyz[rows])
             g.reset_rows(rows, moments=True, accumulators=False)
-            g.dirty[rows] = True
         for kf_id, T_new, _ in todo:
             self._anchor_poses[kf_id] = T_new.copy()
             if kf_id in self.keyframes:
@@ -332,14 +322,6 @@ class GaussianMapper:
         if abs(extent - self.gmap.spatial_lr_scale) > 1e-9:
             self.gmap.set_spatial_lr_scale(extent)
             self.gmap.update_learning_rate(self.iteration)
-
-    def load_map(self, records: GaussianRecords) -> None:
-        """Replace the map by ``records`` (e.g. handed back by the merger after a restart)."""
-        self.gmap.remove(torch.ones(len(self.gmap), dtype=torch.bool, device=self.device))
-        self.gmap.pop_changes()
-        self.gmap.load_records(records, keyframe_id=-1, iteration=self.iteration)
-        self.gmap.pop_changes()
-        self._enforce_budget()  # its removals reach the next pop_changes
 
     # ------------------------------------------------------------- training
     def _rasterize(self, T_wc: np.ndarray, camera: PinholeCamera):  # -> RenderOutput
@@ -448,21 +430,6 @@ class GaussianMapper:
         kf = self.keyframes.get(kf_id)
         return self.render(kf.T_wc, kf.camera)
 
-    def pop_changes(self) -> MapChanges:
-        """Ids removed and Gaussians added or changed since the last call (then forgotten).
-
-        After optimiser steps "changed" is every Gaussian the steps moved (non-zero Adam first
-        moment), which includes every Gaussian that received a non-zero gradient.
-        """
-        removed, changed_idx = self.gmap.pop_changes()
-        return MapChanges(removed.cpu().numpy().astype(np.int64), self.gmap.to_records(changed_idx))
-
-    def discard_changes(self) -> None:
-        """Forget the removals and changes ``pop_changes`` would report. For users that diff
-        snapshots instead (the session's DeltaOutbox): without this, the ids of every Gaussian
-        ever removed pile up (~7 MB per 900k removals, a load run's 5 minutes)."""
-        self.gmap.pop_changes()
-
     def snapshot(self) -> GaussianRecords:
         """The whole map as records (host copies)."""
         return self.gmap.to_records()
@@ -511,7 +478,6 @@ class GaussianMapper:
         gmap.next_id = -(-max(ckpt.next_id, 1) // ID_BLOCK) * ID_BLOCK
         while gmap.active_sh_degree < min(ckpt.active_sh_degree, gmap.max_sh_degree):
             gmap.raise_sh_degree()
-        gmap.pop_changes()  # the restored map is the baseline, not a change
         self.iteration = ckpt.iteration
 
 

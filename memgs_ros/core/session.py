@@ -356,7 +356,6 @@ class MappingSession(CommandWorker):
         out: Future[Any] = Future()
 
         def cut() -> None:  # on the worker: the snapshot is the only part that reads the map
-            self._mapper.discard_changes()  # the outbox diffs snapshots; the change log would only grow
             _forward(self._outbox.send(_OutboxJob(kind, self._mapper.snapshot(), max_rows, exact, publish)), out)
 
         _forward(self.submit(kind, cut), out, errors_only=True)  # a failed cut (or a dead worker) fails ``out``

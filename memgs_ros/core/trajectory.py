@@ -42,14 +42,6 @@ class Sim3Alignment:
         """points: [M, 3] -> [M, 3] in the reference frame."""
         return self.s * np.asarray(points, dtype=np.float64) @ self.R.T + self.t
 
-    def apply_poses(self, T_wc: np.ndarray) -> np.ndarray:
-        """Camera poses [M, 4, 4] -> [M, 4, 4] in the reference frame (rotation stays orthonormal;
-        the scale applies to positions only)."""
-        T = np.array(T_wc, dtype=np.float64, copy=True)
-        T[:, :3, :3] = self.R @ T[:, :3, :3]
-        T[:, :3, 3] = self.apply(T[:, :3, 3])
-        return T
-
 
 @dataclass(frozen=True, eq=False)
 class AteResult:
