@@ -153,7 +153,7 @@ def stage_raster(args: argparse.Namespace) -> dict[str, Any]:
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from bench_raster import build_scene
 
-    from memgs_ros.core.raster import rasterize
+    from memgs_ros.core.raster import Gaussians, rasterize
     from memgs_ros.core.raster.gsplat_backend import gsplat_available
 
     dev = args.device
@@ -166,7 +166,7 @@ def stage_raster(args: argparse.Namespace) -> dict[str, Any]:
         target = torch.rand(3, 480, 640, generator=torch.Generator().manual_seed(0)).to(dev)
         for backend in backends:
             def step() -> None:
-                out = rasterize(*params, T, cam, 3, backend=backend)
+                out = rasterize(Gaussians(*params), T, cam, 3, backend=backend)
                 loss = (out.color - target).abs().mean() + 0.1 * out.depth.abs().mean()
                 loss.backward()
                 for p in params:

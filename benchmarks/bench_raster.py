@@ -157,7 +157,7 @@ def run_one(
     """Time forward/backward for one Gaussian count in this process; returns a result row."""
     import torch
 
-    from memgs_ros.core.raster import rasterize
+    from memgs_ros.core.raster import Gaussians, rasterize
     from memgs_ros.core.raster.rules import MIN_ALPHA
     from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
     from memgs_ros.core.raster.tiles import build_tile_plan
@@ -172,7 +172,7 @@ def run_one(
     target_depth = torch.full((height, width), 3.0)
 
     with torch.no_grad():
-        proj = project_gaussians(*params, T_cw, cam, 3, 0.01)
+        proj = project_gaussians(Gaussians(*params), T_cw, cam, 3, 0.01)
         det = proj.cov2d[:, 0] * proj.cov2d[:, 2] - proj.cov2d[:, 1] ** 2
         on_img = (
             proj.in_front
@@ -195,7 +195,7 @@ def run_one(
             q.grad = None
         c0 = time.process_time()
         t0 = time.perf_counter()
-        out = rasterize(*params, T_cw, cam, 3, backend=backend)
+        out = rasterize(Gaussians(*params), T_cw, cam, 3, backend=backend)
         t1 = time.perf_counter()
         loss = (out.color - target).abs().mean() + 0.1 * (out.depth - target_depth).abs().mean()
         loss.backward()
@@ -209,7 +209,7 @@ def run_one(
     rss_after, peak = _rss_mb()
 
     # The compositor alone (forward + backward, default threads): CPU ns per pixel-Gaussian pair.
-    proj = project_gaussians(*params, T_cw, cam, 3, 0.01)
+    proj = project_gaussians(Gaussians(*params), T_cw, cam, 3, 0.01)
     inputs = [proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, torch.zeros(3)]
     cot = [torch.rand(3, height, width, generator=g), torch.rand(height, width, generator=g), torch.rand(height, width, generator=g)]
     comp = []
@@ -251,6 +251,7 @@ def stage_breakdown(n: int, width: int, height: int, runs: int, backend: str) ->
     import torch
 
     from memgs_ros.core.raster.rules import MIN_ALPHA
+    from memgs_ros.core.raster import Gaussians
     from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
     from memgs_ros.core.raster.tiles import build_tile_plan
     from memgs_ros.core.runtime import configure_cpu_runtime
@@ -269,7 +270,7 @@ def stage_breakdown(n: int, width: int, height: int, runs: int, backend: str) ->
         for q in params:
             q.grad = None
         marks = [("start", time.thread_time())]
-        proj = project_gaussians(*params, T_cw, cam, 3, 0.01)
+        proj = project_gaussians(Gaussians(*params), T_cw, cam, 3, 0.01)
         proj.means2d.retain_grad()
         marks.append(("project", time.thread_time()))
         cut = alpha_cutoff_sq(proj.opacities.detach(), MIN_ALPHA)

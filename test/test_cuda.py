@@ -9,6 +9,7 @@ from test_raster import CAM_64, PARAM_NAMES, _scene
 
 from memgs_ros.core.raster import _rasterize_reference, rasterize
 from memgs_ros.core.raster.gsplat_backend import gsplat_available
+from memgs_ros.core.raster.values import Gaussians
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 
@@ -31,8 +32,8 @@ def _cuda_loss(out) -> torch.Tensor:
 def test_torch_rasterizer_on_cuda_matches_reference() -> None:
     params, T = _scene(60, seed=11, sh_deg_max=1)
     p, Tc = _on(params, T, "cuda", torch.float64)
-    out = rasterize(*p, Tc, CAM_64, 1, backend="torch")
-    ref = _rasterize_reference(*p, Tc, CAM_64, 1)
+    out = rasterize(Gaussians(*p), Tc, CAM_64, 1, backend="torch")
+    ref = _rasterize_reference(Gaussians(*p), Tc, CAM_64, 1)
     assert out.color.is_cuda
     for name in ("color", "depth", "alpha"):
         torch.testing.assert_close(getattr(out, name), getattr(ref, name), atol=1e-9, rtol=0)
@@ -47,8 +48,8 @@ def test_gsplat_backend_matches_torch_forward_and_gradients() -> None:
     p_t, Tc = _on(params, T, "cuda", torch.float32)
     p_g, _ = _on(params, T, "cuda", torch.float32)
     bg = torch.tensor([0.1, 0.2, 0.3], device="cuda")
-    ours = rasterize(*p_t, Tc, CAM_64, 1, background=bg, backend="torch")
-    theirs = rasterize(*p_g, Tc, CAM_64, 1, background=bg, backend="gsplat")
+    ours = rasterize(Gaussians(*p_t), Tc, CAM_64, 1, background=bg, backend="torch")
+    theirs = rasterize(Gaussians(*p_g), Tc, CAM_64, 1, background=bg, backend="gsplat")
     # gsplat bins by a 3-sigma box on 16 px tiles: tails may differ by ~1/255 of alpha.
     for name in ("color", "depth", "alpha"):
         a, b = getattr(ours, name), getattr(theirs, name)

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 import memgs_ros.core.raster.backend_choice as backend_choice
+import memgs_ros.core.raster.backends as backends
 from memgs_ros.cli import doctor, main
 from memgs_ros.core.runtime import numba_available
 
@@ -18,7 +19,7 @@ from memgs_ros.core.runtime import numba_available
 def _expected_backend(numba: bool) -> str:
     """What rasterize(backend="auto") takes on the mapper's default device, written out independently."""
     if torch.cuda.is_available():
-        return "gsplat" if backend_choice.gsplat_available() else "torch"
+        return "gsplat" if backends.gsplat_available() else "torch"
     return "numba" if numba else "torch"
 
 
@@ -89,7 +90,7 @@ def test_strict_fails_when_rclpy_cannot_start(monkeypatch: pytest.MonkeyPatch,
     assert main(["doctor", "--strict", "--no-gsplat-check"]) == 1
 
 
-@pytest.mark.skipif(backend_choice.gsplat_available(), reason="checks the report of a gsplat that cannot run")
+@pytest.mark.skipif(backends.gsplat_available(), reason="checks the report of a gsplat that cannot run")
 def test_gsplat_check_reports_the_error_instead_of_raising() -> None:
     err = doctor._gsplat_extension_error("cpu")
     assert err is not None and err.startswith("ConfigError: ") and "gsplat" in err
@@ -98,7 +99,7 @@ def test_gsplat_check_reports_the_error_instead_of_raising() -> None:
 @pytest.mark.parametrize("gsplat, expected, warn", [(True, "gsplat", False), (False, "torch", True)])
 def test_auto_on_cuda_takes_gsplat_when_it_imports(monkeypatch: pytest.MonkeyPatch, gsplat: bool, expected: str,
                                                    warn: bool) -> None:
-    monkeypatch.setattr(backend_choice, "gsplat_available", lambda: gsplat)
+    monkeypatch.setattr(backends, "gsplat_available", lambda: gsplat)
     for device in ("cuda", "cuda:1", torch.device("cuda", 0)):
         choice = backend_choice.choose_backend(device)
         assert (choice.backend, choice.fallback_warning, choice.requested) == (expected, warn, "auto")
@@ -108,8 +109,8 @@ def test_auto_on_cuda_takes_gsplat_when_it_imports(monkeypatch: pytest.MonkeyPat
 
 @pytest.mark.parametrize("numba", [True, False])
 def test_auto_on_cpu_takes_numba_when_it_imports(monkeypatch: pytest.MonkeyPatch, numba: bool) -> None:
-    monkeypatch.setattr(backend_choice, "gsplat_available", lambda: True)  # never on the CPU
-    monkeypatch.setattr(backend_choice, "numba_available", lambda: numba)
+    monkeypatch.setattr(backends, "gsplat_available", lambda: True)  # never on the CPU
+    monkeypatch.setattr(backends, "numba_available", lambda: numba)
     choice = backend_choice.choose_backend("cpu")
     assert (choice.backend, choice.fallback_warning) == ("numba" if numba else "torch", False)
     assert backend_choice.choose_backend("cpu", "gsplat").backend == "gsplat"  # named: taken as asked
@@ -132,7 +133,7 @@ def _fake_cuda(monkeypatch: pytest.MonkeyPatch, gsplat: bool) -> None:
     monkeypatch.setattr(doctor, "_torch_report", lambda: gpu)
     monkeypatch.setattr(backend_choice, "resolve_device", lambda requested="auto": "cuda")
     monkeypatch.setattr(backend_choice, "device_label", lambda device: f"{device} (Orin)")
-    monkeypatch.setattr(backend_choice, "gsplat_available", lambda: gsplat)
+    monkeypatch.setattr(backends, "gsplat_available", lambda: gsplat)
     monkeypatch.setattr(gsplat_backend, "gsplat_available", lambda: gsplat)
 
 

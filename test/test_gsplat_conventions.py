@@ -23,6 +23,7 @@ from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.raster import rasterize
 from memgs_ros.core.raster.projection import project_gaussians, screen_radii
 from memgs_ros.core.raster.reference import _composite_reference
+from memgs_ros.core.raster.values import Gaussians
 
 
 def _fake_rasterization(
@@ -36,8 +37,8 @@ def _fake_rasterization(
     K = Ks[0]
     cam = PinholeCamera(width, height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     op = opacities.clamp(1e-7, 1 - 1e-7)
-    proj = project_gaussians(means, quats, torch.log(scales), torch.log(op / (1 - op))[:, None], colors[:, :1],
-                             colors[:, 1:], viewmats[0], cam, sh_degree, near_plane)
+    g = Gaussians(means, quats, torch.log(scales), torch.log(op / (1 - op))[:, None], colors[:, :1], colors[:, 1:])
+    proj = project_gaussians(g, viewmats[0], cam, sh_degree, near_plane)
     bg = torch.zeros(3, dtype=means.dtype) if backgrounds is None else backgrounds[0]
     # gsplat's pixel (i, j) is evaluated at (j + 0.5, i + 0.5): the reference compositor (pixel
     # centres at (j, i)) draws that image from means moved by -0.5 px.
@@ -70,8 +71,8 @@ def test_gsplat_adapter_renders_what_the_torch_backend_renders(fake_gsplat: None
     p_t = [p.detach().clone().requires_grad_() for p in params]
     p_g = [p.detach().clone().requires_grad_() for p in params]
     bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
-    ours = rasterize(*p_t, T, cam, 1, background=bg, backend="torch")
-    theirs = rasterize(*p_g, T, cam, 1, background=bg, backend="gsplat")
+    ours = rasterize(Gaussians(*p_t), T, cam, 1, background=bg, backend="torch")
+    theirs = rasterize(Gaussians(*p_g), T, cam, 1, background=bg, backend="gsplat")
     for name in ("color", "depth", "alpha", "means2d"):
         torch.testing.assert_close(getattr(theirs, name), getattr(ours, name), atol=1e-9, rtol=0, msg=name)
     assert theirs.radii.dtype == torch.int32 and theirs.radii.shape == ours.radii.shape
@@ -94,8 +95,8 @@ def test_unshifted_intrinsics_would_be_caught(fake_gsplat: None, monkeypatch: py
     params, T = _scene(200, seed=5, sh_deg_max=1, dtype=torch.float32)
     bg = torch.tensor([0.1, 0.2, 0.3])
     with torch.no_grad():
-        ours = rasterize(*params, T, CAM_64, 1, background=bg, backend="torch")
-        theirs = rasterize(*params, T, CAM_64, 1, background=bg, backend="gsplat")
+        ours = rasterize(Gaussians(*params), T, CAM_64, 1, background=bg, backend="torch")
+        theirs = rasterize(Gaussians(*params), T, CAM_64, 1, background=bg, backend="gsplat")
     worst = max(float((getattr(ours, n) - getattr(theirs, n)).abs().mean()) for n in ("color", "depth", "alpha"))
     assert worst > 2e-3
 

@@ -60,8 +60,7 @@ def _keyframe_psnr(ply: Path, trajectory: Path, stride: int = 5) -> float:
         T_cw = torch.from_numpy(invert_pose(by_stamp[frame.stamp_ns])).float()
         cam = frame.camera.scaled(0.5)  # the mapping resolution
         with torch.no_grad():
-            out = rasterize(g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh_dc, g.sh_rest,
-                            T_cw, cam, sh_degree=3)
+            out = rasterize(g.gaussians(), T_cw, cam, sh_degree=3)
         ref = cv2.resize(frame.rgb, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
         values.append(psnr(out.color.clamp(0, 1), torch.from_numpy(ref).permute(2, 0, 1).float() / 255))
     return float(np.mean(values))

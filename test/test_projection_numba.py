@@ -9,6 +9,7 @@ import torch
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
 from memgs_ros.core.raster.projection import project_gaussians
+from memgs_ros.core.raster.values import Gaussians
 
 OUTPUTS = ("means2d", "cov2d", "conics", "depths", "opacities", "colors")
 INPUTS = ("means", "quats_wxyz", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "T_cw")
@@ -49,8 +50,8 @@ def _inputs(n: int, seed: int, dtype: torch.dtype = torch.float64, k: int = 15) 
 def _project_both(inputs, cam, deg, near=0.01):
     from memgs_ros.core.raster.projection_numba import project_gaussians_numba
 
-    ref = project_gaussians(*inputs, cam, deg, near)
-    out = project_gaussians_numba(*inputs, cam, deg, near)
+    ref = project_gaussians(Gaussians(*inputs[:6]), inputs[6], cam, deg, near)
+    out = project_gaussians_numba(Gaussians(*inputs[:6]), inputs[6], cam, deg, near)
     return out, ref
 
 
@@ -118,7 +119,7 @@ def test_float32_matches_float64_reference() -> None:
     inputs64 = _inputs(300, seed=6)
     inputs32 = [t.detach().float().requires_grad_() for t in inputs64]
     out32, ref32 = _project_both(inputs32, CAM, 3)
-    truth = project_gaussians(*inputs64, CAM, 3, 0.01)
+    truth = project_gaussians(Gaussians(*inputs64[:6]), inputs64[6], CAM, 3, 0.01)
     for name in OUTPUTS:
         a, b, c = getattr(out32, name), getattr(ref32, name), getattr(truth, name)
         assert a.dtype == torch.float32
@@ -134,8 +135,8 @@ def test_threads_are_deterministic(threads: int, monkeypatch: pytest.MonkeyPatch
 
     monkeypatch.setattr(pn, "MIN_ROWS_PER_THREAD", 7)
     inputs = _inputs(100, seed=8)
-    one = pn.project_gaussians_numba(*inputs, CAM, 3, 0.01, threads=1)
-    many = pn.project_gaussians_numba(*inputs, CAM, 3, 0.01, threads=threads)
+    one = pn.project_gaussians_numba(Gaussians(*inputs[:6]), inputs[6], CAM, 3, 0.01, threads=1)
+    many = pn.project_gaussians_numba(Gaussians(*inputs[:6]), inputs[6], CAM, 3, 0.01, threads=threads)
     for name in OUTPUTS:
         assert torch.equal(getattr(one, name), getattr(many, name)), name
     cot = [torch.ones_like(getattr(one, name)) for name in OUTPUTS]
@@ -166,7 +167,7 @@ def test_means2d_grad_can_be_retained() -> None:
     from memgs_ros.core.raster.projection_numba import project_gaussians_numba
 
     inputs = _inputs(10, seed=12)
-    out = project_gaussians_numba(*inputs, CAM, 1, 0.01)
+    out = project_gaussians_numba(Gaussians(*inputs[:6]), inputs[6], CAM, 1, 0.01)
     out.means2d.retain_grad()
     (out.means2d.square().sum() + out.colors.sum()).backward()
     assert out.means2d.grad is not None

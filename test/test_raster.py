@@ -15,6 +15,7 @@ from memgs_ros.core.raster.composite import composite
 from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
 from memgs_ros.core.raster.tiles import build_tile_plan
+from memgs_ros.core.raster.values import Gaussians
 
 PARAM_NAMES = ("means", "quats_wxyz", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 
@@ -76,8 +77,8 @@ CAM_32 = PinholeCamera(32, 24, 30.0, 30.0, 15.5, 11.5)
 def _compare(
     params, T_cw, cam, deg, background=None, atol_fwd=1e-10, rtol_grad=1e-8, seed=7, backend="torch"
 ) -> RenderOutput:
-    out = rasterize(*params, T_cw, cam, deg, background=background, backend=backend)
-    ref = _rasterize_reference(*params, T_cw, cam, deg, background=background)
+    out = rasterize(Gaussians(*params), T_cw, cam, deg, background=background, backend=backend)
+    ref = _rasterize_reference(Gaussians(*params), T_cw, cam, deg, background=background)
     for name in ("color", "depth", "alpha"):
         a, b = getattr(out, name), getattr(ref, name)
         assert a.shape == b.shape
@@ -180,7 +181,7 @@ def test_finite_differences_float64() -> None:
     """Directional derivatives of the tiled path against central differences, per parameter."""
     params, T = _scene(12, 61, sh_deg_max=1)
     cam = CAM_32
-    out = rasterize(*params, T, cam, 1, backend="torch")
+    out = rasterize(Gaussians(*params), T, cam, 1, backend="torch")
     grads = torch.autograd.grad(_loss(out, 3), params)
     g = torch.Generator().manual_seed(9)
     eps = 1e-6
@@ -191,7 +192,7 @@ def test_finite_differences_float64() -> None:
                 shifted = []
                 for sign in (1.0, -1.0):
                     moved = [q + sign * eps * d if q is p else q for q in params]
-                    shifted.append(_loss(rasterize(*moved, T, cam, 1, backend="torch"), 3).item())
+                    shifted.append(_loss(rasterize(Gaussians(*moved), T, cam, 1, backend="torch"), 3).item())
             fd = (shifted[0] - shifted[1]) / (2 * eps)
             an = (gp * d).sum().item()
             assert abs(fd - an) <= 1e-5 * max(1.0, abs(an)), f"{name}: finite diff {fd} vs analytic {an}"
@@ -199,7 +200,7 @@ def test_finite_differences_float64() -> None:
 
 def test_means2d_grad_populated() -> None:
     params, T = _scene(50, 71)
-    out = rasterize(*params, T, CAM_64, 1, backend="torch")
+    out = rasterize(Gaussians(*params), T, CAM_64, 1, backend="torch")
     _loss(out, 1).backward()
     assert out.means2d.grad is not None and out.means2d.grad.shape == (50, 2)
     assert (out.means2d.grad[out.visible].abs().sum(-1) > 0).any()
@@ -209,7 +210,7 @@ def test_means2d_grad_populated() -> None:
 def test_no_gaussians() -> None:
     params, T = _scene(0, 1)
     bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
-    out = rasterize(*params, T, CAM_32, 1, background=bg, backend="torch")
+    out = rasterize(Gaussians(*params), T, CAM_32, 1, background=bg, backend="torch")
     assert out.color.shape == (3, 24, 32) and out.depth.shape == (24, 32) and out.alpha.shape == (24, 32)
     assert torch.allclose(out.color, bg[:, None, None].expand(3, 24, 32))
     assert (out.depth == 0).all() and (out.alpha == 0).all()
@@ -220,7 +221,7 @@ def test_no_gaussians() -> None:
 
 def test_all_behind_camera() -> None:
     params, T = _scene(30, 81, depth=-3.0)
-    out = rasterize(*params, T, CAM_32, 1, backend="torch")
+    out = rasterize(Gaussians(*params), T, CAM_32, 1, backend="torch")
     assert (out.color == 0).all() and (out.alpha == 0).all() and (out.depth == 0).all()
     assert not out.visible.any() and (out.radii == 0).all()
     grads = torch.autograd.grad(out.color.sum() + out.depth.sum(), params, allow_unused=True)
@@ -230,8 +231,8 @@ def test_all_behind_camera() -> None:
 
 def test_near_plane_culls() -> None:
     params, T = _scene(40, 91, depth=1.0)
-    out_near = rasterize(*params, T, CAM_32, 0, near=0.01, backend="torch")
-    out_far = rasterize(*params, T, CAM_32, 0, near=100.0, backend="torch")
+    out_near = rasterize(Gaussians(*params), T, CAM_32, 0, near=0.01, backend="torch")
+    out_far = rasterize(Gaussians(*params), T, CAM_32, 0, near=100.0, backend="torch")
     assert out_near.visible.any() and not out_far.visible.any()
 
 
@@ -240,7 +241,7 @@ def test_projection_geometry() -> None:
     params, T = _scene(25, 101, sh_deg_max=0)
     cam = CAM_OFFCENTRE
     means, quats, log_scales = params[0].detach(), params[1].detach(), params[2].detach()
-    proj = project_gaussians(*[p.detach() for p in params], T, cam, 0, 0.01)
+    proj = project_gaussians(Gaussians(*[p.detach() for p in params]), T, cam, 0, 0.01)
     p_c = means @ T[:3, :3].T + T[:3, 3]
     u, v = cam.project(p_c.numpy())
     np.testing.assert_allclose(proj.means2d[:, 0].numpy(), u, rtol=0, atol=1e-9)
@@ -264,7 +265,7 @@ def test_image_does_not_depend_on_tiles_or_threads() -> None:
     """Exact ellipse binning keeps every alpha >= 1/255; chunking and threads change nothing."""
     params, T = _scene(120, 111)
     cam = CAM_64
-    proj = project_gaussians(*params, T, cam, 1, 0.01)
+    proj = project_gaussians(Gaussians(*params), T, cam, 1, 0.01)
     cut = alpha_cutoff_sq(proj.opacities.detach(), MIN_ALPHA)
     bg = torch.zeros(3, dtype=torch.float64)
     images = []
@@ -299,10 +300,10 @@ def test_backward_recomputes_when_pairs_exceed_budget(monkeypatch: pytest.Monkey
     import memgs_ros.core.raster.composite as composite_mod
 
     params, T = _scene(80, 141)
-    out = rasterize(*params, T, CAM_64, 1, backend="torch")
+    out = rasterize(Gaussians(*params), T, CAM_64, 1, backend="torch")
     saved = torch.autograd.grad(_loss(out, 2), params)
     monkeypatch.setattr(composite_mod, "SAVED_PAIRS_BUDGET_BYTES", 0)
-    out2 = rasterize(*params, T, CAM_64, 1, backend="torch")
+    out2 = rasterize(Gaussians(*params), T, CAM_64, 1, backend="torch")
     recomputed = torch.autograd.grad(_loss(out2, 2), params)
     for a, b in zip(saved, recomputed):
         assert torch.equal(a, b)
@@ -310,9 +311,9 @@ def test_backward_recomputes_when_pairs_exceed_budget(monkeypatch: pytest.Monkey
 
 def test_render_without_grad_matches() -> None:
     params, T = _scene(60, 151)
-    with_grad = rasterize(*params, T, CAM_64, 1, backend="torch")
+    with_grad = rasterize(Gaussians(*params), T, CAM_64, 1, backend="torch")
     with torch.no_grad():
-        no_grad = rasterize(*params, T, CAM_64, 1, backend="torch")
+        no_grad = rasterize(Gaussians(*params), T, CAM_64, 1, backend="torch")
     assert not no_grad.color.requires_grad
     for name in ("color", "depth", "alpha"):
         assert torch.equal(getattr(with_grad, name).detach(), getattr(no_grad, name))
@@ -320,7 +321,7 @@ def test_render_without_grad_matches() -> None:
 
 def test_tile_lists_are_front_to_back() -> None:
     params, T = _scene(80, 121)
-    proj = project_gaussians(*[p.detach() for p in params], T, CAM_64, 1, 0.01)
+    proj = project_gaussians(Gaussians(*[p.detach() for p in params]), T, CAM_64, 1, 0.01)
     cut = alpha_cutoff_sq(proj.opacities, MIN_ALPHA)
     plan = build_tile_plan(proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, 64, 48)
     z = proj.depths[plan.pair_gid]
@@ -336,11 +337,11 @@ def test_bad_shapes_are_refused() -> None:
     bad = list(params)
     bad[1] = bad[1][:, :3]
     with pytest.raises(ValueError, match=r"quats_wxyz must have shape \[10, 4\], got \[10, 3\]"):
-        rasterize(*bad, T, CAM_32, 1)
+        rasterize(Gaussians(*bad), T, CAM_32, 1)
     with pytest.raises(ValueError, match="sh_degree 2 needs"):
-        rasterize(*params, T, CAM_32, 2)
+        rasterize(Gaussians(*params), T, CAM_32, 2)
     with pytest.raises(ValueError, match="backend"):
-        rasterize(*params, T, CAM_32, 1, backend="opengl")
+        rasterize(Gaussians(*params), T, CAM_32, 1, backend="opengl")
 
 
 def test_gsplat_backend_refused_without_gsplat() -> None:
@@ -351,9 +352,9 @@ def test_gsplat_backend_refused_without_gsplat() -> None:
         pytest.skip("gsplat is installed here; the refusal path cannot be exercised")
     params, T = _scene(5, 161)
     with pytest.raises(ConfigError, match="gsplat package is not installed"):
-        rasterize(*params, T, CAM_32, 1, backend="gsplat")
+        rasterize(Gaussians(*params), T, CAM_32, 1, backend="gsplat")
     # "auto" on CPU falls back to a CPU compositor.
-    assert rasterize(*params, T, CAM_32, 1, backend="auto").color.shape == (3, 24, 32)
+    assert rasterize(Gaussians(*params), T, CAM_32, 1, backend="auto").color.shape == (3, 24, 32)
 
 
 def test_opaque_front_gaussian_terminates() -> None:
@@ -453,7 +454,7 @@ def test_numba_compositor_matches_torch_compositor(scene: str, tile: int) -> Non
 
     params, T = _scene(150, 301) if scene == "random" else _opaque_stack()
     cam = CAM_64 if scene == "random" else CAM_32
-    proj = project_gaussians(*params, T, cam, 1, 0.01)
+    proj = project_gaussians(Gaussians(*params), T, cam, 1, 0.01)
     cut = alpha_cutoff_sq(proj.opacities.detach(), MIN_ALPHA)
     plan = build_tile_plan(proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, cam.width, cam.height, tile)
     bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64, requires_grad=True)
@@ -480,7 +481,7 @@ def test_numba_threads_and_binning_are_deterministic(monkeypatch: pytest.MonkeyP
     from memgs_ros.core.raster.numba_backend import composite_numba
 
     params, T = _scene(300, 311, spread=2.0)
-    proj = project_gaussians(*params, T, CAM_64, 1, 0.01)
+    proj = project_gaussians(Gaussians(*params), T, CAM_64, 1, 0.01)
     cut = alpha_cutoff_sq(proj.opacities.detach(), MIN_ALPHA)
     args = (proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, 64, 48)
     for tile in (4, 16):
@@ -506,16 +507,16 @@ def test_numba_edge_cases() -> None:
     _numba()
     params, T = _scene(0, 1)
     bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
-    out = rasterize(*params, T, CAM_32, 1, background=bg, backend="numba")
+    out = rasterize(Gaussians(*params), T, CAM_32, 1, background=bg, backend="numba")
     assert torch.allclose(out.color, bg[:, None, None].expand(3, 24, 32))
     assert (out.alpha == 0).all() and torch.autograd.grad(out.color.sum(), params[0])[0].shape == (0, 3)
     params, T = _scene(30, 81, depth=-3.0)
-    out = rasterize(*params, T, CAM_32, 1, backend="numba")
+    out = rasterize(Gaussians(*params), T, CAM_32, 1, backend="numba")
     assert (out.color == 0).all() and not out.visible.any()
     params, T = _scene(60, 151)
     with torch.no_grad():
-        no_grad = rasterize(*params, T, CAM_64, 1, backend="numba")
-    with_grad = rasterize(*params, T, CAM_64, 1, backend="numba")
+        no_grad = rasterize(Gaussians(*params), T, CAM_64, 1, backend="numba")
+    with_grad = rasterize(Gaussians(*params), T, CAM_64, 1, backend="numba")
     for name in ("color", "depth", "alpha"):
         assert torch.equal(getattr(with_grad, name).detach(), getattr(no_grad, name))
 
@@ -526,11 +527,11 @@ def test_backend_selection_without_numba(numba_off: None) -> None:
 
     params, T = _scene(20, 321)
 
-    auto = rasterize(*params, T, CAM_32, 1)
-    torch_out = rasterize(*params, T, CAM_32, 1, backend="torch")
+    auto = rasterize(Gaussians(*params), T, CAM_32, 1)
+    torch_out = rasterize(Gaussians(*params), T, CAM_32, 1, backend="torch")
     assert torch.equal(auto.color, torch_out.color)
     with pytest.raises(ConfigError, match="backend 'numba' was asked for but numba is not importable"):
-        rasterize(*params, T, CAM_32, 1, backend="numba")
+        rasterize(Gaussians(*params), T, CAM_32, 1, backend="numba")
 
 
 def test_gpu_chunk_schedule_matches_reference(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -540,7 +541,7 @@ def test_gpu_chunk_schedule_matches_reference(monkeypatch: pytest.MonkeyPatch) -
 
     cam = PinholeCamera(160, 120, 120.0, 118.0, 79.2, 60.7)
     params, T = _scene(400, 191, spread=1.4)
-    proj = project_gaussians(*params, T, cam, 1, 0.01)
+    proj = project_gaussians(Gaussians(*params), T, cam, 1, 0.01)
     cut = alpha_cutoff_sq(proj.opacities.detach(), MIN_ALPHA)
     chunks = {}
     for pairs in (tiles.PAIRS_PER_CHUNK // 64, tiles.CUDA_PAIRS_PER_CHUNK):

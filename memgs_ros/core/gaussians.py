@@ -34,6 +34,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
+from memgs_ros.core.raster.values import Gaussians
 from memgs_ros.core.records import PLY_F_REST, GaussianRecords  # noqa: F401 - re-exported
 from memgs_ros.errors import ConfigError, DataError
 
@@ -63,16 +64,16 @@ def rgb_to_sh_dc(rgb: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
     return (rgb - 0.5) / SH_C0
 
 
-def render_tensors(records: GaussianRecords, device: torch.device | str = "cpu") -> tuple[torch.Tensor, ...]:
-    """The rasterizer's map inputs from records, without a ``GaussianMap`` (no gradients, no
-    optimiser state): (means [N, 3], quats_wxyz [N, 4], log_scales [N, 3], opacity_logits [N, 1],
-    sh_dc [N, 1, 3], sh_rest [N, 15, 3]); positions, rotations and scales share the records'
+def render_tensors(records: GaussianRecords, device: torch.device | str = "cpu") -> Gaussians:
+    """The rasterizer's input from records, without a ``GaussianMap`` (no gradients, no
+    optimiser state): means [N, 3], quats_wxyz [N, 4], log_scales [N, 3], opacity_logits [N, 1],
+    sh_dc [N, 1, 3], sh_rest [N, 15, 3]; positions, rotations and scales share the records'
     memory on the CPU."""
     n = len(records)
     t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
     sh_rest = t(records.f_rest).reshape(n, 3, 15).transpose(1, 2).contiguous()
-    return (t(records.xyz), t(records.rot), t(records.scale), t(records.opacity).reshape(n, 1),
-            t(records.f_dc).reshape(n, 1, 3), sh_rest)
+    return Gaussians(t(records.xyz), t(records.rot), t(records.scale), t(records.opacity).reshape(n, 1),
+                     t(records.f_dc).reshape(n, 1, 3), sh_rest)
 
 
 @dataclass(frozen=True)
@@ -193,6 +194,10 @@ class GaussianMap:
     @property
     def num_gaussians(self) -> int:
         return len(self)
+
+    def gaussians(self) -> Gaussians:
+        """The parameters as the rasterizer's input (the same tensors: gradients reach them)."""
+        return Gaussians(self.means, self.quats_wxyz, self.log_scales, self.opacity_logits, self.sh_dc, self.sh_rest)
 
     def params(self) -> dict[str, torch.nn.Parameter]:
         """The six parameters by name (same objects for the map's lifetime)."""

@@ -330,8 +330,7 @@ class GaussianMapper:
         T_cw = torch.as_tensor(invert_pose(np.asarray(T_wc, dtype=np.float64)), dtype=torch.float32,
                                device=self.device)
         g = self.gmap
-        return rasterize(g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh_dc, g.sh_rest,
-                         T_cw, camera, g.active_sh_degree, background=self._background,
+        return rasterize(g.gaussians(), T_cw, camera, g.active_sh_degree, background=self._background,
                          near=self.cfg.near_m, backend=self.cfg.raster_backend)
 
     def step(self, densify: bool = True) -> StepStats | None:

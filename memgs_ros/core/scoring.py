@@ -149,8 +149,7 @@ def score_map(gmap: GaussianMap,
             T_cw = torch.from_numpy(invert_pose(T_wc)).float().to(device)
             if len(gmap):
                 with torch.no_grad():
-                    out = rasterize(gmap.means, gmap.quats_wxyz, gmap.log_scales, gmap.opacity_logits,
-                                    gmap.sh_dc, gmap.sh_rest, T_cw, camera, sh_degree=3, background=bg)
+                    out = rasterize(gmap.gaussians(), T_cw, camera, sh_degree=3, background=bg)
                 color = out.color.clamp(0.0, 1.0)
             else:  # an empty map renders the background
                 color = bg.reshape(3, 1, 1).expand(3, camera.height, camera.width)

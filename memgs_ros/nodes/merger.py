@@ -51,7 +51,7 @@ from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.params import ParamSpec, declare_all
 
 if TYPE_CHECKING:
-    import torch
+    from memgs_ros.core.raster import Gaussians
 
 
 PARAMS = (
@@ -98,7 +98,7 @@ class MergerNode(Node):
         self._heard_delta = False
         self._asked_at_start = False
         # (seq, size, tensors to render): the map's rows as rasterizer inputs, no training state
-        self._render_cache: tuple[int, int, tuple[torch.Tensor, ...]] | None = None  # torch: loaded lazily
+        self._render_cache: tuple[int, int, Gaussians] | None = None  # torch: loaded lazily
         self._saved_version: tuple[int, int] | None = None
         self._published_version: tuple[int, int] | None = None
 
@@ -269,7 +269,7 @@ class MergerNode(Node):
             self._render_cache = (*key, render_tensors(self.replica.records))
         T_cw = torch.from_numpy(np.linalg.inv(pose_to_matrix(msg.pose))).float()
         with torch.no_grad():
-            out = rasterize(*self._render_cache[2], T_cw, self.render_camera, sh_degree=3)
+            out = rasterize(self._render_cache[2], T_cw, self.render_camera, sh_degree=3)
         stamp = stamp_to_ns(msg.header.stamp)
         rgb = (out.color.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
         self.pub_color.publish(numpy_to_image(np.ascontiguousarray(rgb), "rgb8", stamp, "render_camera"))

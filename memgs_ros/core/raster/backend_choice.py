@@ -1,8 +1,9 @@
 """Which device the mapper takes and which rasterizer ``backend="auto"`` runs on it.
 
 One place for the choice: :func:`memgs_ros.core.raster.rasterize` makes it with
-:func:`choose_backend`, ``memgs doctor`` reports it and the mapper node logs it at start-up
-(gsplat on CUDA when importable, numba on the CPU when importable, else the torch compositor).
+:func:`choose_backend` (the registry's ``auto`` order, :mod:`.backends`: gsplat on CUDA when
+importable, numba on the CPU when importable, else the torch compositor), ``memgs doctor``
+reports it and the mapper node logs it at start-up.
 """
 from __future__ import annotations
 
@@ -10,8 +11,7 @@ from dataclasses import dataclass
 
 import torch
 
-from memgs_ros.core.raster.gsplat_backend import gsplat_available
-from memgs_ros.core.runtime import numba_available
+from memgs_ros.core.raster.backends import auto_backend
 
 __all__ = ["BackendChoice", "choose_backend", "device_label", "resolve_device"]
 
@@ -46,14 +46,8 @@ def choose_backend(device: str | torch.device, requested: str = "auto") -> Backe
     dev = torch.device(device)
     if requested != "auto":
         return BackendChoice(str(dev), requested, requested, fallback_warning=False)
-    on_cuda = dev.type == "cuda"
-    if on_cuda and gsplat_available():
-        backend = "gsplat"
-    elif not on_cuda and numba_available():
-        backend = "numba"
-    else:
-        backend = "torch"
-    return BackendChoice(str(dev), backend, requested, fallback_warning=on_cuda and backend == "torch")
+    backend = auto_backend(dev).name
+    return BackendChoice(str(dev), backend, requested, fallback_warning=dev.type == "cuda" and backend == "torch")
 
 
 def device_label(device: str | torch.device) -> str:

@@ -19,15 +19,11 @@ maps, and where gsplat's semantics differ from the torch backend:
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 from torch import Tensor
 
 from memgs_ros.core.camera import PinholeCamera
-
-if TYPE_CHECKING:
-    from memgs_ros.core.raster import RenderOutput
+from memgs_ros.core.raster.values import Gaussians, RenderOutput
 
 
 def gsplat_available() -> bool:
@@ -53,12 +49,7 @@ def gsplat_intrinsics(camera: PinholeCamera, dtype: torch.dtype, device: torch.d
 
 
 def rasterize_gsplat(
-    means: Tensor,  # [N, 3]
-    quats_wxyz: Tensor,  # [N, 4]
-    log_scales: Tensor,  # [N, 3]
-    opacity_logits: Tensor,  # [N, 1]
-    sh_dc: Tensor,  # [N, 1, 3]
-    sh_rest: Tensor,  # [N, K, 3]
+    gaussians: Gaussians,
     T_cw: Tensor,  # [4, 4]
     camera: PinholeCamera,
     sh_degree: int,
@@ -66,9 +57,8 @@ def rasterize_gsplat(
     near: float,
 ) -> RenderOutput:
     """gsplat twin of :func:`memgs_ros.core.raster.rasterize`; same arguments and result."""
+    means, quats_wxyz, log_scales, opacity_logits, sh_dc, sh_rest = gaussians
     from gsplat import rasterization
-
-    from memgs_ros.core.raster import RenderOutput
 
     dtype, device = means.dtype, means.device
     K = gsplat_intrinsics(camera, dtype, device)

@@ -16,6 +16,7 @@ from torch import Tensor
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
 from memgs_ros.core.raster.sh import eval_sh_colors
+from memgs_ros.core.raster.values import Gaussians
 
 COV2D_DILATION = 0.3  # px^2 added to the 2D covariance diagonal (3DGS low-pass filter)
 # The Jacobian is evaluated with x/z, y/z clamped to 1.3x the half field of view (3DGS/gsplat):
@@ -43,12 +44,7 @@ class Projected:
 
 
 def project_gaussians(
-    means: Tensor,  # [N, 3]
-    quats_wxyz: Tensor,  # [N, 4]
-    log_scales: Tensor,  # [N, 3]
-    opacity_logits: Tensor,  # [N, 1]
-    sh_dc: Tensor,  # [N, 1, 3]
-    sh_rest: Tensor,  # [N, K, 3]
+    gaussians: Gaussians,
     T_cw: Tensor,  # [4, 4]
     camera: PinholeCamera,
     sh_degree: int,
@@ -59,6 +55,7 @@ def project_gaussians(
     means: [N, 3]; quats_wxyz: [N, 4]; log_scales: [N, 3]; opacity_logits: [N, 1];
     sh_dc: [N, 1, 3]; sh_rest: [N, K, 3]; T_cw: [4, 4]. Returns a :class:`Projected` with [N, ...] rows.
     """
+    means, quats_wxyz, log_scales, opacity_logits, sh_dc, sh_rest = gaussians
     R = T_cw[:3, :3]  # [3, 3]
     t = T_cw[:3, 3]  # [3]
     p_c = means @ R.T + t  # [N, 3]

@@ -25,6 +25,7 @@ from memgs_ros.core.raster.composite import _map
 from memgs_ros.core.raster.numba_backend import cpu_threads
 from memgs_ros.core.raster.projection import JACOBIAN_FOV_MARGIN, Projected
 from memgs_ros.core.raster.sh import num_sh_bases
+from memgs_ros.core.raster.values import Gaussians
 from memgs_ros.core.runtime import numba_available
 from memgs_ros.errors import ConfigError
 
@@ -205,12 +206,7 @@ class _ProjectNumbaFn(torch.autograd.Function):
 
 
 def project_gaussians_numba(
-    means: Tensor,  # [N, 3]
-    quats_wxyz: Tensor,  # [N, 4]
-    log_scales: Tensor,  # [N, 3]
-    opacity_logits: Tensor,  # [N, 1]
-    sh_dc: Tensor,  # [N, 1, 3]
-    sh_rest: Tensor,  # [N, K, 3]
+    gaussians: Gaussians,
     T_cw: Tensor,  # [4, 4]
     camera: PinholeCamera,
     sh_degree: int,
@@ -224,6 +220,7 @@ def project_gaussians_numba(
     :func:`cpu_threads`; one below MIN_ROWS_PER_THREAD rows per thread). Returns a
     :class:`Projected` with [N, ...] rows, in the input dtype (computed in float64).
     """
+    means, quats_wxyz, log_scales, opacity_logits, sh_dc, sh_rest = gaussians
     for name, t in (("means", means), ("T_cw", T_cw)):
         if t.device.type != "cpu":
             raise ValueError(f"project_gaussians_numba: {name} must be a CPU tensor, got {t.device}")

@@ -13,6 +13,7 @@ from torch import Tensor
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.raster.projection import project_gaussians, screen_radii
 from memgs_ros.core.raster.rules import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
+from memgs_ros.core.raster.values import Gaussians, RenderOutput
 
 
 def _composite_reference(
@@ -69,27 +70,19 @@ def _composite_reference(
 
 
 def _rasterize_reference(
-    means: Tensor,  # [N, 3]
-    quats_wxyz: Tensor,  # [N, 4]
-    log_scales: Tensor,  # [N, 3]
-    opacity_logits: Tensor,  # [N, 1]
-    sh_dc: Tensor,  # [N, 1, 3]
-    sh_rest: Tensor,  # [N, K, 3]
+    gaussians: Gaussians,
     T_cw: Tensor,  # [4, 4]
     camera: PinholeCamera,
     sh_degree: int,
     background: Tensor | None = None,  # [3]
     near: float = 0.01,
-):  # -> RenderOutput (import cycle: the dataclass lives in the package __init__)
+) -> RenderOutput:
     """Reference twin of :func:`memgs_ros.core.raster.rasterize` (torch backend), for tests.
 
     Same arguments and :class:`RenderOutput`; ``visible`` is "alpha >= 1/255 at some pixel".
     """
-    from memgs_ros.core.raster import RenderOutput
-
-    proj = project_gaussians(
-        means, quats_wxyz, log_scales, opacity_logits, sh_dc, sh_rest, T_cw, camera, sh_degree, near
-    )
+    means = gaussians.means
+    proj = project_gaussians(gaussians, T_cw, camera, sh_degree, near)
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
     if background is None:
