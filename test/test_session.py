@@ -11,7 +11,8 @@ import torch
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
 from memgs_ros.core.mapping import MappingConfig
-from memgs_ros.core.session import KeyframeInput, MappingSession, SessionError
+from memgs_ros.core.keyframes import KeyframeInput
+from memgs_ros.core.session import MappingSession, SessionError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
 from frame_seeds import grid_seeds

@@ -14,7 +14,8 @@ import pytest
 
 from memgs_ros.core.frame import Frame
 from memgs_ros.core.mapping import GaussianMapper, MappingConfig
-from memgs_ros.core.session import KeyframeInput, MappingSession, SessionError
+from memgs_ros.core.keyframes import KeyframeInput
+from memgs_ros.core.session import MappingSession, SessionError
 from memgs_ros.core.worker import CommandWorker, WorkerStopped
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 

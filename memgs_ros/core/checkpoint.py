@@ -47,8 +47,9 @@ ID_BLOCK = 1 << 32
 
 @dataclass(frozen=True, eq=False)
 class KeyframeState:
-    """One keyframe as trained on. image: [h, w, 3] uint8; depth_m: [h, w] float32 (0 = none)
-    or None; valid_mask: [h, w] bool or None; T_wc: [4, 4] float64."""
+    """Stage boundary mapper -> checkpoint file: one keyframe as trained on, in host memory (the
+    mapper's ``TrainingKeyframe`` on its way to disk and back). image: [h, w, 3] uint8; depth_m:
+    [h, w] float32 (0 = none) or None; valid_mask: [h, w] bool or None; T_wc: [4, 4] float64."""
 
     kf_id: int
     stamp_ns: int

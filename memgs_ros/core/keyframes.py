@@ -27,6 +27,28 @@ PYRAMID_FACTORS: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)  # coarse to fine
 
 
 @dataclass(frozen=True, eq=False)
+class KeyframeInput:
+    """Stage boundary tracker -> keyframe_sampler / mapper: a keyframe as it arrives (a decoded
+    bundle, images as recorded, not yet prepared), owned by the receiving node. The sampler reads
+    its images; the mapper adds the sampler's seeds (``dataclasses.replace``) and hands it to the
+    mapping session, which prepares it into a ``TrainingKeyframe``.
+
+    stamp_ns: capture time (the keyframe's name on the wire); T_wc: [4, 4] camera-to-world;
+    rgb: [H, W, 3] uint8; depth_m: [H, W] float32 metres (NaN invalid) or None; camera: the
+    images' intrinsics with distortion; points_w: [M, 3] world seeds; colors: [M, 3] in [0, 1]
+    (None: no seeds).
+    """
+
+    stamp_ns: int
+    T_wc: np.ndarray
+    rgb: np.ndarray
+    depth_m: np.ndarray | None
+    camera: PinholeCamera
+    points_w: np.ndarray | None = None
+    colors: np.ndarray | None = None
+
+
+@dataclass(frozen=True, eq=False)
 class PyramidLevel:
     """One resolution of a keyframe. image: [3, h, w] float in [0, 1]; depth_m: [h, w] or None;
     valid_mask: [h, w] bool (pixels with real image content) or None (all valid).
@@ -43,7 +65,8 @@ class PyramidLevel:
 
 @dataclass(frozen=True, eq=False)
 class TrainingKeyframe:
-    """A keyframe as the mapper trains on it, stored compactly (issue: memory per keyframe).
+    """Inside the mapping stage: a keyframe as the mapper trains on it, stored compactly (its
+    host copy at the checkpoint boundary is ``checkpoint.KeyframeState``).
 
     kf_id: keyframe id; stamp_ns: capture time; T_wc: [4, 4] float64 camera-to-world.
     rgb: [3, H, W] uint8 (the undistorted, resized colour: exactly what the float image was,

@@ -44,7 +44,7 @@ import torch
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.checkpoint import MapperCheckpoint
 from memgs_ros.core.gaussians import GaussianRecords
-from memgs_ros.core.keyframes import TrainingKeyframe
+from memgs_ros.core.keyframes import KeyframeInput, TrainingKeyframe
 from memgs_ros.core.map_delta import DeltaOutbox
 from memgs_ros.core.mapping import GaussianMapper, MappingConfig, StepStats, prepare_keyframe
 from memgs_ros.core.view import view_preparation
@@ -60,24 +60,6 @@ T = TypeVar("T")
 _IDLE_WAIT_S = 0.05
 # A command that reaches a closed or dead session (or its outbox) fails with this.
 SessionError = WorkerStopped
-
-
-@dataclass(frozen=True, eq=False)
-class KeyframeInput:
-    """A keyframe as it arrives (images as recorded, not yet prepared).
-
-    stamp_ns: capture time (the keyframe's name on the wire); T_wc: [4, 4] camera-to-world;
-    rgb: [H, W, 3] uint8; depth_m: [H, W] float32 metres (NaN invalid) or None; camera: the
-    images' intrinsics with distortion; points_w: [M, 3] world seeds; colors: [M, 3] in [0, 1].
-    """
-
-    stamp_ns: int
-    T_wc: np.ndarray
-    rgb: np.ndarray
-    depth_m: np.ndarray | None
-    camera: PinholeCamera
-    points_w: np.ndarray
-    colors: np.ndarray
 
 
 @dataclass(frozen=True)

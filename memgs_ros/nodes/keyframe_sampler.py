@@ -78,7 +78,7 @@ class KeyframeSamplerNode(Node):
         # Each stage names the problem kind a failure in it is counted under (module docstring).
         stage = "bad_keypoints"
         try:
-            kf = decode_keyframe_images(b, self.depth_scale)
+            kf = decode_keyframe_images(b, stamp_ns, self.depth_scale)
             cam, rgb, depth, T_wc = kf.camera, kf.rgb, kf.depth_m, kf.T_wc
             kps = pointcloud2_to_structured(b["keypoints"], required=("u", "v", "depth"))
             uv = np.stack([kps["u"], kps["v"]], axis=1).astype(np.float32)

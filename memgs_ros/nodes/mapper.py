@@ -19,6 +19,7 @@ import secrets
 import sys
 import time
 from concurrent.futures import Future
+from dataclasses import replace
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -36,7 +37,7 @@ from memgs_ros.core.merge import MergeConfig
 from memgs_ros.core.raster import warm_up
 from memgs_ros.core.raster.backend_choice import choose_backend, device_label, resolve_device
 from memgs_ros.core.runtime import configure_cpu_runtime
-from memgs_ros.core.session import KeyframeInput, MappingSession
+from memgs_ros.core.session import MappingSession
 from memgs_ros.core.worker import WorkerStopped
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.nodes.mapper_params import RANGES, MapperParams
@@ -178,14 +179,14 @@ class MapperNode(Node):
         if b is None:
             return
         try:
-            kf = decode_keyframe_images(b, self.params.depth_scale)
+            kf = decode_keyframe_images(b, stamp, self.params.depth_scale)
             points, colors = decode_seeds(pointcloud2_to_structured(b["seeds"]))
         except KeyframeBundleError as err:
             self.stats.problem(err.kind, f"keyframe {stamp} refused: {err}")
         except (MessageError, DataError) as err:
             self.stats.problem("bad_seeds", f"keyframe {stamp} refused: {err}")
         else:
-            self.session.insert_keyframe(KeyframeInput(stamp, kf.T_wc, kf.rgb, kf.depth_m, kf.camera, points, colors))
+            self.session.insert_keyframe(replace(kf, points_w=points, colors=colors))
         if stamp in self.awaiting_keyframes:
             self.awaiting_keyframes.discard(stamp)
             self._lockstep_ack(stamp)

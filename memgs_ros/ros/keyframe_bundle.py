@@ -7,12 +7,11 @@ which check failed: ``camera_info``, ``bad_image``, ``size_mismatch``, ``empty_d
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.keyframes import KeyframeInput
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.io.image_decoding import (
     DEFAULT_DEPTH_SCALE,
@@ -32,19 +31,10 @@ class KeyframeBundleError(MessageError):
         self.kind = kind
 
 
-@dataclass(frozen=True, eq=False)
-class KeyframeImages:
-    """camera: as recorded (with distortion); rgb: [H, W, 3] uint8; depth_m: [H, W] float32
-    metres (NaN invalid) or None; T_wc: [4, 4] camera-to-world."""
-
-    camera: PinholeCamera
-    rgb: np.ndarray
-    depth_m: np.ndarray | None
-    T_wc: np.ndarray
-
-
-def decode_keyframe_images(bundle: Mapping[str, Any], depth_scale: float = DEFAULT_DEPTH_SCALE) -> KeyframeImages:
-    """Decode ``camera_info``, ``color``, ``pose`` and, when present, ``depth`` of a bundle.
+def decode_keyframe_images(bundle: Mapping[str, Any], stamp_ns: int,
+                           depth_scale: float = DEFAULT_DEPTH_SCALE) -> KeyframeInput:
+    """Decode ``camera_info``, ``color``, ``pose`` and, when present, ``depth`` of the bundle of
+    keyframe ``stamp_ns`` (no seeds: the mapper adds the sampler's).
 
     Raises KeyframeBundleError naming the kind of the first check that fails.
     """
@@ -63,4 +53,4 @@ def decode_keyframe_images(bundle: Mapping[str, Any], depth_scale: float = DEFAU
         T_wc = pose_to_matrix(bundle["pose"].pose)
     except (MessageError, DataError) as err:
         raise KeyframeBundleError(kind, str(err)) from err
-    return KeyframeImages(camera, rgb, depth, T_wc)
+    return KeyframeInput(stamp_ns, T_wc, rgb, depth, camera)
