@@ -28,7 +28,8 @@ def run(args: argparse.Namespace) -> int:
     from memgs_ros.core.frame import Frame
     from memgs_ros.errors import ConfigError
     from memgs_ros.io.bag_writer import write_bag
-    from memgs_ros.io.synthetic import build_scene, generate_frames, parse_spec, write_tum_folder
+    from memgs_ros.io.synthetic import generate_frames, parse_spec, write_tum_folder
+    from memgs_ros.io.synthetic_scene import build_scene
 
     if args.out is None and args.bag is None:
         raise ConfigError("nothing to write: give --out DIR and/or --bag PATH")
