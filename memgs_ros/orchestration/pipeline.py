@@ -8,19 +8,13 @@ It is what ``memgs run`` / ``memgs demo`` and the end-to-end tests call.
 """
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import os
-import random
-import signal
-import subprocess
-import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -39,9 +33,9 @@ from tqdm import tqdm
 from memgs_ros.core.atomic import atomic_write
 from memgs_ros.core.geometry import pose_to_tq
 from memgs_ros.core.map_delta import decode
-from memgs_ros.core.runtime import MALLOC_ARENAS, PARENT_PID_ENV
+from memgs_ros.core.runtime import MALLOC_ARENAS
 from memgs_ros.errors import ConfigError, PipelineError
-from memgs_ros.nodes.registry import NODES
+from memgs_ros.orchestration.processes import NODE_FACTORIES, NODE_MODULES, VIEW_NODE, NodeProcesses, open_context
 from memgs_ros.orchestration.run_files import (
     CHECKPOINT_FILE,
     GRAPH_NODE_NAMES,
@@ -68,13 +62,7 @@ logger.addHandler(logging.NullHandler())
 
 __all__ = ["GRAPH_NODES", "NODE_MODULES", "PipelineError", "RunOptions", "RunSummary", "run_pipeline"]
 
-# The graph, by module: a process runs ``python -m <module.__name__>`` (its ``main``); in one
-# process the module's Node class is built on a shared executor.
-NODE_MODULES: dict[str, ModuleType] = {name: importlib.import_module(module) for name, (module, _) in NODES.items()}
-_NODE_FACTORIES: dict[str, Callable[..., Any]] = {
-    name: getattr(NODE_MODULES[name], cls) for name, (_, cls) in NODES.items()}
 GRAPH_NODES = GRAPH_NODE_NAMES
-VIEW_NODE = "rerun_bridge"  # started after GRAPH_NODES when RunOptions.rerun is set
 _STATS_NODES = (*GRAPH_NODES, "player", VIEW_NODE, "recorder")  # the names on memgs/<name>/stats
 
 
@@ -169,114 +157,6 @@ def _parse_kv(message: str) -> dict[str, str]:
     return dict(part.split("=", 1) for part in message.split() if "=" in part)
 
 
-class _Processes:
-    """The graph's nodes as child processes, logs in ``log_dir``; stopped with SIGINT.
-
-    Each node runs in a session of its own (a terminal's Ctrl-C or hang-up reaches the runner
-    alone, which stops the nodes in order) and ends with the runner however the runner ends
-    (MEMGS_PARENT_PID: the node arms PR_SET_PDEATHSIG). The kernel sends that signal when the
-    forking *thread* exits, so every start happens on the thread that calls ``start`` from
-    ``run_pipeline`` and ``_drive`` (the main thread), never on a short-lived one.
-    """
-
-    def __init__(self, params_file: Path, namespace: str, env: dict[str, str], log_dir: Path) -> None:
-        self.procs: dict[str, subprocess.Popen] = {}
-        self.log_dir = log_dir
-        self.player_reported = False  # the player announced its end (done or failed): its exit code is known
-        self.player_exit_seen: float | None = None  # when the runner first saw the player's process ended
-        self.due: dict[str, float] = {}  # node -> monotonic time of a delayed start (start_due)
-        self._params_file, self._ns = params_file, namespace
-        self._env = dict(env, **{PARENT_PID_ENV: str(os.getpid())})
-
-    def start(self, name: str) -> None:
-        cmd = [sys.executable, "-m", NODE_MODULES[name].__name__, "--ros-args", "--params-file", str(self._params_file)]
-        if self._ns:
-            cmd += ["-r", f"__ns:={self._ns}"]
-        log = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 - owned by the child
-        self.procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self._env,
-                                            start_new_session=True)
-        if name in _NICENESS and hasattr(os, "setpriority"):
-            try:
-                os.setpriority(os.PRIO_PROCESS, self.procs[name].pid, _NICENESS[name])
-            except OSError as err:  # the view then competes at normal priority: slower, still right
-                logger.warning("could not lower the priority of %s: %s", name, err)
-
-    def kill_and_restart(self, name: str) -> None:
-        """SIGKILL a node (no chance to save anything) and start it again."""
-        p = self.procs[name]
-        p.kill()
-        p.wait()
-        os.replace(self.log_dir / f"{name}.log", self.log_dir / f"{name}.killed-{int(time.time())}.log")
-        self.start(name)
-
-    def start_due(self) -> None:
-        """Start the nodes whose delayed start (``due``) has come."""
-        now = time.monotonic()
-        for name, when in list(self.due.items()):
-            if now >= when:
-                del self.due[name]
-                self.start(name)
-
-    def check(self) -> None:
-        for name, p in list(self.procs.items()):
-            code = p.poll()
-            if code is not None and not (name == "bag_player" and (code == 0 or self.player_reported)):
-                tail = (self.log_dir / f"{name}.log").read_text(errors="replace").strip().splitlines()[-15:]
-                raise PipelineError(f"node {name} exited with code {code}:\n  " + "\n  ".join(tail))
-
-    def stop(self, timeout_s: float = 20.0) -> None:
-        """SIGINT to every node (each saves what it holds), SIGKILL to those still running after
-        ``timeout_s``, and to all at once on a second Ctrl-C / SIGTERM while waiting."""
-        self.due.clear()
-        for p in list(self.procs.values()):
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        end = time.monotonic() + timeout_s
-        try:
-            for name, p in list(self.procs.items()):
-                try:
-                    p.wait(timeout=max(0.1, end - time.monotonic()))
-                except subprocess.TimeoutExpired:
-                    logger.warning("node %s did not stop on SIGINT; killing it", name)
-                    p.kill()
-                    p.wait()
-        except KeyboardInterrupt:
-            logger.warning("interrupted again while the nodes stop: killing them")
-            self.kill_all()
-            raise
-
-    def kill_all(self) -> None:
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.kill()
-        for p in self.procs.values():
-            p.wait()
-
-
-def _open_context(domain_id: int | None, ros_args: list[str], probe_s: float = 1.0,
-                  tries: int = 12) -> tuple[Any, int]:
-    """An rclpy context on ``domain_id``, or on a random domain where no other node is seen.
-
-    Two graphs on one domain hear each other (another run's camera_info reached a tracker):
-    a run that picks its own domain first listens for ``probe_s`` that nobody is there.
-    """
-
-    candidates = [domain_id] if domain_id is not None else random.sample(range(1, 233), tries)
-    for domain in candidates:
-        context = rclpy.Context()
-        rclpy.init(args=ros_args, context=context, domain_id=domain)
-        if domain_id is not None:
-            return context, domain
-        probe = rclpy.create_node("memgs_run_domain_probe", context=context)
-        time.sleep(probe_s)
-        busy = [n for n in probe.get_node_names() if n != "memgs_run_domain_probe"]
-        probe.destroy_node()
-        if not busy:
-            return context, domain
-        rclpy.try_shutdown(context=context)
-    raise PipelineError(f"no free ROS domain found in {tries} tries; pass one with --domain-id")
-
-
 def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
     """Replay ``options.source`` through the graph and return what it produced.
 
@@ -306,13 +186,13 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
     os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(config_path("fastdds.xml")))
     ns = options.namespace
     ros_args = ["--ros-args", "--params-file", str(params_file)] + (["-r", f"__ns:={ns}"] if ns else [])
-    context, domain = _open_context(options.domain_id, ros_args)
+    context, domain = open_context(options.domain_id, ros_args)
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     # The observer alone needs one thread; its callbacks only store what arrives. (rclpy's
     # multi-threaded executor spends CPU on every wake-up: the runner used 11 s over a 156 s run.)
     executor: Executor = (MultiThreadedExecutor(num_threads=8, context=context) if options.single_process
                           else SingleThreadedExecutor(context=context))
-    procs: _Processes | None = None
+    procs: NodeProcesses | None = None
     in_process: list[Any] = []
     t0 = time.monotonic()
     try:
@@ -322,7 +202,7 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
         graph = (*GRAPH_NODES, VIEW_NODE) if options.rerun is not None else GRAPH_NODES
         if options.single_process:
             for name in (*graph, *recording, "bag_player"):  # the recorder sees the graph's publishers
-                node = _NODE_FACTORIES[name](context=context)
+                node = NODE_FACTORIES[name](context=context)
                 in_process.append(node)
                 executor.add_node(node)
         spin = threading.Thread(target=executor.spin, daemon=True)
@@ -337,7 +217,7 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
             # compositor threads) freed blocks sit in arenas that other threads never reuse, and the
             # mapper's peak RSS on the fr1/rpy head was 26 MB higher (723 instead of 697 MB).
             env.setdefault("MALLOC_ARENA_MAX", str(MALLOC_ARENAS))
-            procs = _Processes(params_file, ns, env, out / LOGS_DIR)
+            procs = NodeProcesses(params_file, ns, env, out / LOGS_DIR)
             delayed = {n: float(d) for n, d in options.start_delays_s.items() if float(d) > 0}
             for name in graph:
                 if name not in delayed:
@@ -392,17 +272,13 @@ def _set_aside_previous_checkpoint(path: Path) -> None:
                    path.parent, aside.name)
 
 
-# The Rerun view yields the cores to mapping: on 2 cores its CPU (~3 % of a run's) otherwise
-# lengthens the run by as much. It still runs whenever a core idles (lockstep waits, I/O).
-_NICENESS = {VIEW_NODE: 10}
-
 # A topic each node publishes: once the observer sees it, DDS discovery reached that node.
 _READY_TOPICS = {"tracker": "memgs/pose", "keyframe_sampler": "memgs/keyframe/seeds",
                  "mapper": "memgs/frame_ack", "merger": "memgs/map/gaussians",
                  VIEW_NODE: f"memgs/{VIEW_NODE}/stats"}
 
 
-def _wait_for_recorder(obs: _Observer, procs: _Processes, topics: Sequence[str], deadline: float) -> None:
+def _wait_for_recorder(obs: _Observer, procs: NodeProcesses, topics: Sequence[str], deadline: float) -> None:
     """Block until the recorder subscribes to every output topic whose publisher is up, so the
     first frame's pose is in the file (topics of nodes that start later it subscribes to later)."""
     ns = "/" + obs.node.get_namespace().strip("/")
@@ -419,7 +295,7 @@ def _wait_for_recorder(obs: _Observer, procs: _Processes, topics: Sequence[str],
     time.sleep(0.3)  # endpoint matching settles just after discovery, as for the graph
 
 
-def _wait_for_graph(obs: _Observer, procs: _Processes, nodes: list[str], deadline: float) -> None:
+def _wait_for_graph(obs: _Observer, procs: NodeProcesses, nodes: list[str], deadline: float) -> None:
     """Block until every node in ``nodes`` is discovered, so the first frame reaches all of them."""
     missing = list(nodes)
     while missing:
@@ -431,7 +307,7 @@ def _wait_for_graph(obs: _Observer, procs: _Processes, nodes: list[str], deadlin
     time.sleep(0.5)  # endpoint matching between the nodes themselves settles just after discovery
 
 
-def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: Path, t0: float,
+def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out: Path, t0: float,
            progress: bool) -> RunSummary:
     """Wait for the end of the source, finish the mapper, sync the merger, save, summarise."""
     end = t0 + options.timeout_s
@@ -525,7 +401,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: _Processes | None, out: P
     return summary
 
 
-def _cpu_times(obs: _Observer, procs: _Processes | None) -> dict[str, float]:
+def _cpu_times(obs: _Observer, procs: NodeProcesses | None) -> dict[str, float]:
     """CPU seconds of each node process so far (from its last stats) and of this runner; in one
     process (``--single-process``) the process's total."""
     if procs is None:
@@ -537,7 +413,7 @@ def _cpu_times(obs: _Observer, procs: _Processes | None) -> dict[str, float]:
 _DONE_GRACE_S = 3.0  # after the player's exit, how long its latched "done" may still be in flight
 
 
-def _player_ended_unheard(procs: _Processes) -> bool:
+def _player_ended_unheard(procs: NodeProcesses) -> bool:
     """True when the player process ended cleanly (exit 0: the whole source played) but its
     latched ``memgs/player/done`` has not arrived within a grace time: under heavy load the
     message can be lost when the player exits right after publishing it. Its exit code says the
@@ -589,7 +465,7 @@ def _compare_maps(obs: _Observer, final_seq: int, epoch: int, end: float) -> tup
     return diff <= 1e-6, diff
 
 
-def _wait_for_view(obs: _Observer, procs: _Processes | None, final_seq: int, epoch: int, end: float) -> None:
+def _wait_for_view(obs: _Observer, procs: NodeProcesses | None, final_seq: int, epoch: int, end: float) -> None:
     """Wait until the rerun_bridge has logged the final map (the one _compare_maps had the merger
     publish), so the recording ends with the saved map before the nodes are stopped."""
     while obs.stat(VIEW_NODE, "map_seq", -1) < final_seq or obs.stat(VIEW_NODE, "map_epoch", -1) != epoch:

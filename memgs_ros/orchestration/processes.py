@@ -1,0 +1,149 @@
+"""The graph's nodes as child processes of the runner, and the runner's own rclpy context.
+
+Each node runs in a session of its own and dies with the runner (``NodeProcesses``); a run opens
+its context on a DDS domain no other graph uses (``open_context``).
+"""
+from __future__ import annotations
+
+import importlib
+import logging
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import rclpy
+
+from memgs_ros.core.runtime import PARENT_PID_ENV
+from memgs_ros.errors import PipelineError
+from memgs_ros.nodes.registry import NODES
+
+logger = logging.getLogger(__name__)
+logger.addHandler(logging.NullHandler())
+
+VIEW_NODE = "rerun_bridge"  # started after the graph when RunOptions.rerun is set
+
+# The graph, by module: a process runs ``python -m <module.__name__>`` (its ``main``); in one
+# process the module's Node class is built on a shared executor.
+NODE_MODULES: dict[str, ModuleType] = {name: importlib.import_module(module) for name, (module, _) in NODES.items()}
+NODE_FACTORIES: dict[str, Callable[..., Any]] = {
+    name: getattr(NODE_MODULES[name], cls) for name, (_, cls) in NODES.items()}
+# The Rerun view yields the cores to mapping: on 2 cores its CPU (~3 % of a run's) otherwise
+# lengthens the run by as much. It still runs whenever a core idles (lockstep waits, I/O).
+NICENESS = {VIEW_NODE: 10}
+
+
+class NodeProcesses:
+    """The graph's nodes as child processes, logs in ``log_dir``; stopped with SIGINT.
+
+    Each node runs in a session of its own (a terminal's Ctrl-C or hang-up reaches the runner
+    alone, which stops the nodes in order) and ends with the runner however the runner ends
+    (MEMGS_PARENT_PID: the node arms PR_SET_PDEATHSIG). The kernel sends that signal when the
+    forking *thread* exits, so every start happens on the thread that calls ``start`` from
+    ``run_pipeline`` and ``_drive`` (the main thread), never on a short-lived one.
+    """
+
+    def __init__(self, params_file: Path, namespace: str, env: dict[str, str], log_dir: Path) -> None:
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.log_dir = log_dir
+        self.player_reported = False  # the player announced its end (done or failed): its exit code is known
+        self.player_exit_seen: float | None = None  # when the runner first saw the player's process ended
+        self.due: dict[str, float] = {}  # node -> monotonic time of a delayed start (start_due)
+        self._params_file, self._ns = params_file, namespace
+        self._env = dict(env, **{PARENT_PID_ENV: str(os.getpid())})
+
+    def start(self, name: str) -> None:
+        cmd = [sys.executable, "-m", NODE_MODULES[name].__name__, "--ros-args", "--params-file", str(self._params_file)]
+        if self._ns:
+            cmd += ["-r", f"__ns:={self._ns}"]
+        log = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 - owned by the child
+        self.procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self._env,
+                                            start_new_session=True)
+        if name in NICENESS and hasattr(os, "setpriority"):
+            try:
+                os.setpriority(os.PRIO_PROCESS, self.procs[name].pid, NICENESS[name])
+            except OSError as err:  # the view then competes at normal priority: slower, still right
+                logger.warning("could not lower the priority of %s: %s", name, err)
+
+    def kill_and_restart(self, name: str) -> None:
+        """SIGKILL a node (no chance to save anything) and start it again."""
+        p = self.procs[name]
+        p.kill()
+        p.wait()
+        os.replace(self.log_dir / f"{name}.log", self.log_dir / f"{name}.killed-{int(time.time())}.log")
+        self.start(name)
+
+    def start_due(self) -> None:
+        """Start the nodes whose delayed start (``due``) has come."""
+        now = time.monotonic()
+        for name, when in list(self.due.items()):
+            if now >= when:
+                del self.due[name]
+                self.start(name)
+
+    def check(self) -> None:
+        for name, p in list(self.procs.items()):
+            code = p.poll()
+            if code is not None and not (name == "bag_player" and (code == 0 or self.player_reported)):
+                tail = (self.log_dir / f"{name}.log").read_text(errors="replace").strip().splitlines()[-15:]
+                raise PipelineError(f"node {name} exited with code {code}:\n  " + "\n  ".join(tail))
+
+    def stop(self, timeout_s: float = 20.0) -> None:
+        """SIGINT to every node (each saves what it holds), SIGKILL to those still running after
+        ``timeout_s``, and to all at once on a second Ctrl-C / SIGTERM while waiting."""
+        self.due.clear()
+        for p in list(self.procs.values()):
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        end = time.monotonic() + timeout_s
+        try:
+            for name, p in list(self.procs.items()):
+                try:
+                    p.wait(timeout=max(0.1, end - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    logger.warning("node %s did not stop on SIGINT; killing it", name)
+                    p.kill()
+                    p.wait()
+        except KeyboardInterrupt:
+            logger.warning("interrupted again while the nodes stop: killing them")
+            self.kill_all()
+            raise
+
+    def kill_all(self) -> None:
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.kill()
+        for p in self.procs.values():
+            p.wait()
+
+
+def open_context(domain_id: int | None, ros_args: list[str], probe_s: float = 1.0,
+                  tries: int = 12) -> tuple[Any, int]:
+    """An rclpy context on ``domain_id``, or on a random domain where no other node is seen.
+
+    Two graphs on one domain hear each other (another run's camera_info reached a tracker):
+    a run that picks its own domain first listens for ``probe_s`` that nobody is there.
+    """
+
+    candidates = [domain_id] if domain_id is not None else random.sample(range(1, 233), tries)
+    for domain in candidates:
+        context = rclpy.Context()
+        rclpy.init(args=ros_args, context=context, domain_id=domain)
+        if domain_id is not None:
+            return context, domain
+        probe = rclpy.create_node("memgs_run_domain_probe", context=context)
+        time.sleep(probe_s)
+        busy = [n for n in probe.get_node_names() if n != "memgs_run_domain_probe"]
+        probe.destroy_node()
+        if not busy:
+            return context, domain
+        rclpy.try_shutdown(context=context)
+    raise PipelineError(f"no free ROS domain found in {tries} tries; pass one with --domain-id")
+
+
