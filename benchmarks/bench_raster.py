@@ -158,6 +158,7 @@ def run_one(
     import torch
 
     from memgs_ros.core.raster import Gaussians, rasterize
+    from memgs_ros.core.raster.values import Splats2D
     from memgs_ros.core.raster.rules import MIN_ALPHA
     from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
     from memgs_ros.core.raster.tiles import build_tile_plan
@@ -215,7 +216,7 @@ def run_one(
     comp = []
     for it in range(warmup + runs):
         c0 = time.process_time()
-        outs = composite_fn(*inputs, plan)
+        outs = composite_fn(Splats2D(*inputs[:5]), inputs[5], plan)
         torch.autograd.grad(outs, inputs[:5], cot, retain_graph=True)
         if it >= warmup:
             comp.append(time.process_time() - c0)
@@ -252,6 +253,7 @@ def stage_breakdown(n: int, width: int, height: int, runs: int, backend: str) ->
 
     from memgs_ros.core.raster.rules import MIN_ALPHA
     from memgs_ros.core.raster import Gaussians
+    from memgs_ros.core.raster.values import Splats2D
     from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
     from memgs_ros.core.raster.tiles import build_tile_plan
     from memgs_ros.core.runtime import configure_cpu_runtime
@@ -278,7 +280,7 @@ def stage_breakdown(n: int, width: int, height: int, runs: int, backend: str) ->
         marks.append(("bin", time.thread_time()))
         bg = torch.zeros(3)
         inputs = [proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths]
-        color, depth, _ = composite(*inputs, bg, plan)
+        color, depth, _ = composite(Splats2D(*inputs), bg, plan)
         marks.append(("composite fwd", time.thread_time()))
         loss = (color - target).abs().mean() + 0.1 * depth.abs().mean()
         v_color, v_depth = torch.autograd.grad(loss, [color, depth], retain_graph=True)

@@ -43,8 +43,8 @@ def _fake_rasterization(
     # gsplat's pixel (i, j) is evaluated at (j + 0.5, i + 0.5): the reference compositor (pixel
     # centres at (j, i)) draws that image from means moved by -0.5 px.
     means2d = proj.means2d[None]  # [1, N, 2]: gsplat's meta["means2d"] is what its compositor reads
-    color, depth, alpha, hit = _composite_reference(means2d[0] - 0.5, proj.conics, proj.opacities, proj.colors,
-                                                    proj.depths, bg, proj.in_front, width, height)
+    color, depth, alpha, hit = _composite_reference(proj.splats()._replace(means2d=means2d[0] - 0.5), bg,
+                                                    proj.in_front, width, height)
     renders = torch.cat([color.permute(1, 2, 0), depth[..., None]], dim=-1)[None]  # [1, H, W, 4]
     r = torch.where(hit, screen_radii(proj.cov2d), torch.zeros_like(hit, dtype=torch.int32))
     radii = torch.stack([r, r], dim=-1)[None]  # [1, N, 2] (gsplat >= 1.5)

@@ -15,7 +15,7 @@ from memgs_ros.core.raster.composite import composite
 from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
 from memgs_ros.core.raster.tiles import build_tile_plan
-from memgs_ros.core.raster.values import Gaussians
+from memgs_ros.core.raster.values import Gaussians, Splats2D
 
 PARAM_NAMES = ("means", "quats_wxyz", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 
@@ -271,7 +271,7 @@ def test_image_does_not_depend_on_tiles_or_threads() -> None:
     images = []
     for tile, chunk, workers in [(4, 1 << 18, 1), (8, 2000, 2), (16, 500, 3)]:
         plan = build_tile_plan(proj.means2d, proj.cov2d, cut, proj.depths, proj.in_front, 64, 48, tile, chunk)
-        images.append(composite(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, bg, plan, workers))
+        images.append(composite(proj.splats(), bg, plan, workers))
     for other in images[1:]:
         for a, b in zip(images[0], other):
             assert (a - b).abs().max() < 1e-12
@@ -281,7 +281,7 @@ def test_image_does_not_depend_on_tiles_or_threads() -> None:
     inputs = (proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths)
     grads = []
     for workers in (1, 3):
-        color, depth, alpha = composite(*inputs, bg, plan, workers)
+        color, depth, alpha = composite(Splats2D(*inputs), bg, plan, workers)
         loss = (color * color).sum() + depth.sum() + alpha.sum()
         grads.append(torch.autograd.grad(loss, inputs, retain_graph=True))
     for a, b in zip(*grads):
@@ -462,7 +462,7 @@ def test_numba_compositor_matches_torch_compositor(scene: str, tile: int) -> Non
     g = torch.Generator().manual_seed(5)
     results = []
     for fn in (composite_numba, composite):
-        outs = fn(*inputs, plan)
+        outs = fn(Splats2D(*inputs[:5]), inputs[5], plan)
         cot = [torch.randn(o.shape, generator=g, dtype=o.dtype) for o in outs]
         g.manual_seed(5)
         results.append((outs, torch.autograd.grad(outs, inputs, cot, retain_graph=True)))
@@ -496,7 +496,7 @@ def test_numba_threads_and_binning_are_deterministic(monkeypatch: pytest.MonkeyP
     bg = torch.zeros(3, dtype=torch.float64)
     results = []
     for threads in (1, 3):
-        color, depth, alpha = composite_numba(*inputs, bg, plan, threads=threads)
+        color, depth, alpha = composite_numba(Splats2D(*inputs), bg, plan, threads=threads)
         loss = (color * color).sum() + depth.sum() + alpha.sum()
         results.append((color, depth, alpha) + torch.autograd.grad(loss, inputs, retain_graph=True))
     for a, b in zip(*results):

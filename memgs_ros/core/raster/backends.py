@@ -69,7 +69,7 @@ def _tiled(project: Callable[..., Projected], compositor: Callable[..., tuple[Te
             pairs_per_chunk_for(means.device),  # only the torch compositor reads it
         )
         bg = background if background is not None else torch.zeros(3, dtype=means.dtype, device=means.device)
-        color, depth, alpha = compositor(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, bg, plan)
+        color, depth, alpha = compositor(proj.splats(), bg, plan)
         visible = plan.gaussian_hit
         radii = torch.where(visible, screen_radii(proj.cov2d), torch.zeros_like(visible, dtype=torch.int32))
         return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=proj.means2d, radii=radii, visible=visible)

@@ -37,6 +37,7 @@ from torch.autograd.function import once_differentiable
 
 from memgs_ros.core.raster.rules import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
 from memgs_ros.core.raster.tiles import Chunk, TilePlan
+from memgs_ros.core.raster.values import Splats2D
 
 # exp() of very negative arguments takes a slow path (~14x); below -30 alpha is 0 anyway.
 MIN_POWER = -30.0
@@ -296,23 +297,19 @@ class _CompositeFn(torch.autograd.Function):
 
 
 def composite(
-    means2d: Tensor,  # [N, 2]
-    conics: Tensor,  # [N, 3]
-    opacities: Tensor,  # [N]
-    colors: Tensor,  # [N, 3]
-    depths: Tensor,  # [N]
+    splats: Splats2D,
     background: Tensor,  # [3]
     plan: TilePlan,
     workers: int | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Composite binned Gaussians into colour [3, H, W], expected depth [H, W] and alpha [H, W].
 
-    means2d: [N, 2] px; conics: [N, 3] (a, b, c) of Sigma2D^-1; opacities: [N]; colors: [N, 3];
-    depths: [N] camera z (also the value blended into the depth image); background: [3];
-    plan: the tile binning of these Gaussians (front-to-back within each tile).
-    Differentiable w.r.t. all tensor inputs. Memory: 8 B per pixel-Gaussian pair (up to
-    SAVED_PAIRS_BUDGET_BYTES, then recomputed) plus one chunk per worker.
+    splats: the projected Gaussians (:class:`Splats2D`); background: [3]; plan: the tile binning
+    of these Gaussians (front-to-back within each tile). Differentiable w.r.t. all tensor inputs.
+    Memory: 8 B per pixel-Gaussian pair (up to SAVED_PAIRS_BUDGET_BYTES, then recomputed) plus one
+    chunk per worker.
     """
+    means2d, conics, opacities, colors, depths = splats
     if workers is None:
         workers = default_workers(means2d.device)
     inputs = (means2d, conics, opacities, colors, depths, background)

@@ -31,6 +31,7 @@ from torch.autograd.function import once_differentiable
 from memgs_ros.core.raster.composite import _map
 from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.tiles import BIN_MARGIN, TilePlan
+from memgs_ros.core.raster.values import Splats2D
 from memgs_ros.core.runtime import numba_available
 from memgs_ros.errors import ConfigError
 
@@ -217,11 +218,7 @@ class _CompositeNumbaFn(torch.autograd.Function):
 
 
 def composite_numba(
-    means2d: Tensor,  # [N, 2]
-    conics: Tensor,  # [N, 3]
-    opacities: Tensor,  # [N]
-    colors: Tensor,  # [N, 3]
-    depths: Tensor,  # [N]
+    splats: Splats2D,
     background: Tensor,  # [3]
     plan: TilePlan,
     threads: int | None = None,
@@ -233,6 +230,7 @@ def composite_numba(
     :func:`cpu_threads`). Memory: 12 B per pixel plus
     80 B per (tile, Gaussian) pair in the backward pass.
     """
+    means2d, conics, opacities, colors, depths = splats
     for name, t in (("means2d", means2d), ("background", background)):
         if t.device.type != "cpu":
             raise ValueError(f"composite_numba: {name} must be a CPU tensor, got {t.device}")

@@ -16,7 +16,7 @@ from torch import Tensor
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
 from memgs_ros.core.raster.sh import eval_sh_colors
-from memgs_ros.core.raster.values import Gaussians
+from memgs_ros.core.raster.values import Gaussians, Splats2D
 
 COV2D_DILATION = 0.3  # px^2 added to the 2D covariance diagonal (3DGS low-pass filter)
 # The Jacobian is evaluated with x/z, y/z clamped to 1.3x the half field of view (3DGS/gsplat):
@@ -41,6 +41,10 @@ class Projected:
     opacities: Tensor
     colors: Tensor
     in_front: Tensor
+
+    def splats(self) -> Splats2D:
+        """What a compositor takes (the same tensors: gradients flow back through them)."""
+        return Splats2D(self.means2d, self.conics, self.opacities, self.colors, self.depths)
 
 
 def project_gaussians(

@@ -13,15 +13,11 @@ from torch import Tensor
 from memgs_ros.core.camera import PinholeCamera
 from memgs_ros.core.raster.projection import project_gaussians, screen_radii
 from memgs_ros.core.raster.rules import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
-from memgs_ros.core.raster.values import Gaussians, RenderOutput
+from memgs_ros.core.raster.values import Gaussians, RenderOutput, Splats2D
 
 
 def _composite_reference(
-    means2d: Tensor,  # [N, 2]
-    conics: Tensor,  # [N, 3]
-    opacities: Tensor,  # [N]
-    colors: Tensor,  # [N, 3]
-    depths: Tensor,  # [N]
+    splats: Splats2D,
     background: Tensor,  # [3]
     active: Tensor,  # [N] bool
     width: int,
@@ -29,10 +25,10 @@ def _composite_reference(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Reference compositing. Returns color [3, H, W], depth [H, W], alpha [H, W], hit [N] bool.
 
-    means2d: [N, 2]; conics: [N, 3]; opacities: [N]; colors: [N, 3]; depths: [N];
-    background: [3]; active: [N] bool (Gaussians allowed to contribute, e.g. in front).
+    splats: the projected Gaussians; background: [3]; active: [N] bool (Gaussians allowed to contribute, e.g. in front).
     ``hit`` marks Gaussians with alpha >= 1/255 at some pixel.
     """
+    means2d, conics, opacities, colors, depths = splats
     dtype, device = means2d.dtype, means2d.device
     idx = torch.nonzero(active).squeeze(1)
     idx = idx[torch.argsort(depths.detach()[idx], stable=True)]  # [G] front to back
@@ -88,11 +84,7 @@ def _rasterize_reference(
     if background is None:
         background = torch.zeros(3, dtype=means.dtype, device=means.device)
     color, depth, alpha, hit = _composite_reference(
-        proj.means2d,
-        proj.conics,
-        proj.opacities,
-        proj.colors,
-        proj.depths,
+        proj.splats(),
         background,
         proj.in_front,
         camera.width,

@@ -1,4 +1,5 @@
-"""The values the rasterizer takes and returns: :class:`Gaussians` in, :class:`RenderOutput` out.
+"""The values the rasterizer takes and returns: :class:`Gaussians` in, :class:`RenderOutput` out,
+and between projection and compositing :class:`Splats2D`.
 
 Every backend (:func:`memgs_ros.core.raster.rasterize`'s torch, numba and gsplat paths, the
 projection twins and the brute-force reference) takes one :class:`Gaussians` instead of six
@@ -47,6 +48,20 @@ class Gaussians(NamedTuple):
                 f"rasterize: sh_degree {sh_degree} needs 0..3 and sh_rest with >= {(sh_degree + 1) ** 2 - 1} "
                 f"coefficients, got {rest.shape[1]}"
             )
+
+
+class Splats2D(NamedTuple):
+    """N projected Gaussians, what every compositor takes (screen space, activated).
+
+    means2d: [N, 2] px; conics: [N, 3] (a, b, c) of Sigma2D^-1; opacities: [N] in (0, 1);
+    colors: [N, 3]; depths: [N] camera z (also the value blended into the depth image).
+    """
+
+    means2d: Tensor
+    conics: Tensor
+    opacities: Tensor
+    colors: Tensor
+    depths: Tensor
 
 
 @dataclass(frozen=True)
