@@ -49,6 +49,13 @@ def test_text_report_names_the_real_versions_and_choice(capsys: pytest.CaptureFi
     assert verdict.startswith(f"mapper will run on {device}") and verdict.endswith(f" with {backend}")
 
 
+def test_doctor_assumes_the_mappers_default_device() -> None:
+    """doctor resolves "auto" rather than import the mapper node (rclpy) into its own process."""
+    from memgs_ros.nodes.mapper import MapperParams
+
+    assert MapperParams().device == "auto"
+
+
 def test_json_report_in_a_fresh_process() -> None:
     r = _doctor_json()
     assert r["torch"]["version"] == torch.__version__

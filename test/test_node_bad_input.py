@@ -556,20 +556,20 @@ def test_mapper_checkpoints_written_while_keyframes_arrive_are_whole(context, fr
 
 
 def test_every_node_declares_exactly_its_parameter_table(context) -> None:  # noqa: ANN001
-    """The tables the CLI checks names against (PARAMS, CONFIGS) are what the nodes declare, and a
+    """The tables the CLI checks names against (CONFIGS) are what the nodes declare, and a
     parameter a node does not declare is refused at start, naming the closest real one."""
     from memgs_ros.errors import ConfigError
     from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, tracker
     from memgs_ros.nodes.merger import MergerNode
     from memgs_ros.nodes.tracker import TrackerNode
-    from memgs_ros.ros.config_params import check_declared, parameter_names
+    from memgs_ros.ros.config_params import check_declared, module_parameter_names
 
     for module, factory in ((merger, MergerNode), (tracker, TrackerNode), (mapper, mapper.MapperNode),
                             (keyframe_sampler, keyframe_sampler.KeyframeSamplerNode),
                             (bag_player, lambda **kw: bag_player.BagPlayer(frames=[], **kw))):
         node = factory(context=context)
         try:
-            assert set(node._parameters) == parameter_names(module.PARAMS, module.CONFIGS), module.__name__
+            assert set(node._parameters) == module_parameter_names(module), module.__name__
             check_declared(node)  # nothing stray: no error
         finally:
             node.destroy_node()

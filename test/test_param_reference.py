@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from memgs_ros.orchestration import param_reference as ref
-from memgs_ros.ros.config_params import ROS_PARAMETERS, parameter_names
+from memgs_ros.ros.config_params import ROS_PARAMETERS, module_parameter_names, module_specs
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / ref.DEFAULT_PATH
@@ -19,7 +19,7 @@ def test_the_reference_file_is_current() -> None:
 
 
 def test_every_declared_parameter_is_listed_once_under_its_node() -> None:
-    """The names are those config_params.parameter_names gives (what the CLI checks overrides
+    """The names are those config_params.module_parameter_names gives (what the CLI checks overrides
     against, and what test_node_bad_input shows the running nodes declare)."""
     text = ref.render_markdown()
     sections = {s.split("\n", 1)[0]: s for s in text.split("\n## ")[1:]}
@@ -30,7 +30,7 @@ def test_every_declared_parameter_is_listed_once_under_its_node() -> None:
         rows = ref.parameter_rows(module)
         names = [r.name for r in rows]
         assert len(names) == len(set(names)), f"{node}: a parameter listed twice"
-        assert set(names) == parameter_names(module.PARAMS, module.CONFIGS) - ROS_PARAMETERS, node
+        assert set(names) == module_parameter_names(module) - ROS_PARAMETERS, node
         for row in rows:
             assert row.node == node and row.type and row.default and row.description, row
             assert sections[node].count(f"\n| `{row.name}` |") == 1, f"{node}.{row.name} not in its table"
@@ -40,8 +40,10 @@ def test_ranges_and_choices_are_those_the_nodes_enforce() -> None:
     rows = {(r.node, r.name): r for m in ref.node_modules() for r in ref.parameter_rows(m)}
     assert rows["tracker", "sync"].range == "one of `approximate`, `exact`"
     assert rows["tracker", "sync"].description == "colour/depth pairing"
-    assert rows["mapper", "insert_queue"].range == "[1, 1000]"  # mapper_params.RANGES
-    assert rows["tracker", "camera.k1"].range == "[-1000000, 1000000]"  # camera_params: either sign
+    assert rows["mapper", "insert_queue"].range == "[1, 1000]"  # MapperParams.RANGES
+    assert rows["mapper", "mode"].range == "one of `rgbd`, `mono`"  # MapperParams.CHOICES
+    assert rows["mapper", "mode"].description == "camera mode: rgbd, or mono (keyframes carry no depth)"
+    assert rows["tracker", "camera.k1"].range == "[-1000000, 1000000]"  # CameraCalibration.RANGES: either sign
     assert rows["tracker", "camera.fx"].range == "[0, 1e12]"  # config_params: non-negative default
     assert rows["mapper", "mapping.max_gaussians"].range == "[0, 2147483647]"
     assert rows["tracker", "camera_info_override"].range == ""  # bool: no range
@@ -52,7 +54,7 @@ def test_ranges_and_choices_are_those_the_nodes_enforce() -> None:
 def test_rows_equal_what_running_nodes_declare(context, tmp_path: Path) -> None:  # noqa: ANN001
     """The stand-in node records what a real rclpy node gets: same names, defaults, descriptions,
     ranges. (The mapper is left out: it takes ~20 s to start on a CPU; its groups go through the
-    same declare_config, with its RANGES table.)"""
+    same declare_config, with the RANGES on its classes.)"""
     from rclpy.parameter import Parameter
 
     from memgs_ros.nodes import bag_player, keyframe_sampler, merger, recorder, tracker
@@ -67,7 +69,7 @@ def test_rows_equal_what_running_nodes_declare(context, tmp_path: Path) -> None:
             declared = {name: (p.value, node.describe_parameter(name))
                         for name, p in node._parameters.items() if name not in ROS_PARAMETERS}
             if overrides:  # the row shows the default, not this test's value
-                declared.update({p.name: (next(s.default for s in module.PARAMS if s.name == p.name),
+                declared.update({p.name: (next(s.default for s in module_specs(module) if s.name == p.name),
                                           declared[p.name][1]) for p in overrides})
         finally:
             node.destroy_node()

@@ -125,12 +125,13 @@ def collect(check_gsplat: bool = True) -> dict[str, Any]:
     from memgs_ros.core.raster.backend_choice import choose_backend, device_label, resolve_device
     from memgs_ros.core.raster.gsplat_backend import gsplat_available
     from memgs_ros.core.runtime import numba_available
-    from memgs_ros.nodes.mapper_params import MapperParams
 
     problems: list[str] = []
     warnings: list[str] = []
     torch_info = _torch_report()
-    device = resolve_device(MapperParams().device)
+    # The mapper's default device ("auto"); not read from nodes.mapper, whose rclpy import would end
+    # this process when RMW_IMPLEMENTATION is broken (what the rclpy probe below reports).
+    device = resolve_device("auto")
     choice = choose_backend(device, MappingConfig().raster_backend)
     numba_disabled = os.environ.get("MEMGS_DISABLE_NUMBA", "") not in ("", "0")
     gsplat = {"available": gsplat_available(), "version": _dist_version("gsplat"), "cuda_extension": None}

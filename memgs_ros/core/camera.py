@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
+from typing import ClassVar
 
 import numpy as np
 
@@ -158,6 +159,10 @@ class CameraCalibration:
     k4: float = 0.0  # rational_polynomial numerator (0 for plumb_bob)
     k5: float = 0.0  # rational_polynomial numerator (0 for plumb_bob)
     k6: float = 0.0  # rational_polynomial numerator (0 for plumb_bob)
+
+    # Distortion coefficients take either sign; the intrinsics keep the default non-negative range.
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = dict.fromkeys(
+        ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), (-1000000.0, 1000000.0))
 
     def __post_init__(self) -> None:
         if not self.given:

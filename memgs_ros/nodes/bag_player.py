@@ -30,6 +30,7 @@ import sys
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from typing import ClassVar
 
 import rclpy
 from geometry_msgs.msg import PoseStamped
@@ -44,9 +45,9 @@ from memgs_ros.core.frame import Frame
 from memgs_ros.errors import ConfigError, MemgsError
 from memgs_ros.ros import codecs, qos
 from memgs_ros.ros.camera_params import CAMERA_PREFIX, declare_calibration
+from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import started_by_runner
-from memgs_ros.ros.params import ParamSpec, declare_all
 
 # The tick sleeps until the next frame is due (real time; at least MIN_TICK_S) or, in lockstep,
 # where frames go out from the ack callback, only watches for timeouts. A fixed 5 ms tick cost an
@@ -58,43 +59,37 @@ LINGER_S = 0.5  # keep the latched "done" publisher alive so matched readers rec
 PROGRESS_EVERY_S = 5.0
 DEFAULT_PERIOD_NS = 33_333_333  # loop gap for a one-frame source (30 Hz)
 
-PARAMS = (
-    ParamSpec("source", "", "frame source: TUM folder, .bag, ROS 2 bag folder/.mcap, or 'synthetic:...' spec"),
-    ParamSpec("rate", 1.0, "real-time factor (2.0 plays twice as fast); ignored in lockstep", (0.01, 1000.0)),
-    ParamSpec("loop", False, "start over at the end (stamps keep increasing)"),
-    ParamSpec("lockstep", False, "publish the next frame only after the pipeline acks the current one"),
-    ParamSpec("ack_topic", "memgs/frame_ack", "std_msgs/Header acks (stamp of the finished frame), lockstep only"),
-    ParamSpec("ack_timeout_s", 10.0, "lockstep: warn and go on when no ack arrives within this time", (0.05, 3600.0)),
-    ParamSpec("start_delay_s", 5.0, "wait at most this long for a color subscriber before the first frame",
-              (0.0, 600.0)),
-    ParamSpec("wait_for_readers", "", "comma-separated node names whose color and camera_info readers must be "
-              "matched before the first frame (memgs run names the tracker); at most start_delay_s"),
-    ParamSpec("max_frames", 0, "stop after this many frames, over all loops (0 = no limit)", (0, 2**31 - 1)),
-    ParamSpec("depth_encoding", "32FC1", "depth image encoding: 32FC1 metres or 16UC1 scaled units",
-              choices=("32FC1", "16UC1")),
-    ParamSpec("depth_scale", 1000.0, "16UC1 units per metre (1000 = millimetres)", (1.0, 100000.0)),
-    ParamSpec("frame_id", "camera_color_optical_frame", "frame id of the images and camera info"),
-    ParamSpec("world_frame_id", "world", "frame id of the ground-truth poses"),
-)
-
-CONFIGS = ((CAMERA_PREFIX, CameraCalibration),)
-
 
 @dataclass(frozen=True)
-class PlayerConfig:
-    source: str
-    rate: float
-    loop: bool
-    lockstep: bool
-    ack_topic: str
-    ack_timeout_s: float
-    start_delay_s: float
-    wait_for_readers: str
-    max_frames: int
-    depth_encoding: str
-    depth_scale: float
-    frame_id: str
-    world_frame_id: str
+class BagPlayerParams:
+    """The player's own parameters (no prefix; the ``camera.*`` calibration is its own group).
+
+    wait_for_readers: comma-separated node names whose color and camera_info readers must be matched
+        before the first frame (memgs run names the tracker); at most start_delay_s
+    """
+
+    source: str = ""  # frame source: TUM folder, .bag, ROS 2 bag folder/.mcap, or 'synthetic:...' spec
+    rate: float = 1.0  # real-time factor (2.0 plays twice as fast); ignored in lockstep
+    loop: bool = False  # start over at the end (stamps keep increasing)
+    lockstep: bool = False  # publish the next frame only after the pipeline acks the current one
+    ack_topic: str = "memgs/frame_ack"  # std_msgs/Header acks (stamp of the finished frame), lockstep only
+    ack_timeout_s: float = 10.0  # lockstep: warn and go on when no ack arrives within this time
+    start_delay_s: float = 5.0  # wait at most this long for a color subscriber before the first frame
+    wait_for_readers: str = ""
+    max_frames: int = 0  # stop after this many frames, over all loops (0 = no limit)
+    depth_encoding: str = "32FC1"  # depth image encoding: 32FC1 metres or 16UC1 scaled units
+    depth_scale: float = 1000.0  # 16UC1 units per metre (1000 = millimetres)
+    frame_id: str = "camera_color_optical_frame"  # frame id of the images and camera info
+    world_frame_id: str = "world"  # frame id of the ground-truth poses
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "rate": (0.01, 1000.0), "ack_timeout_s": (0.05, 3600.0), "start_delay_s": (0.0, 600.0),
+        "max_frames": (0, 2**31 - 1), "depth_scale": (1.0, 100000.0),
+    }
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"depth_encoding": ("32FC1", "16UC1")}
+
+
+CONFIGS: tuple[tuple[str, type], ...] = (("", BagPlayerParams), (CAMERA_PREFIX, CameraCalibration))
 
 
 class BagPlayer(Node):
@@ -102,7 +97,7 @@ class BagPlayer(Node):
 
     def __init__(self, frames: Iterable[Frame] | None = None, **node_kwargs: object) -> None:
         super().__init__("bag_player", **node_kwargs)
-        self.cfg = PlayerConfig(**declare_all(self, PARAMS))
+        self.cfg = declare_config(self, BagPlayerParams, "")
         folder_camera = declare_calibration(self)  # for a TUM folder that names no camera
         if frames is None:
             if not self.cfg.source:

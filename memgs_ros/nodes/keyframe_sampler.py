@@ -16,6 +16,8 @@ depth pixel), ``bad_pose``, ``bad_keypoints`` (missing u/v/depth fields, wrong r
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -35,23 +37,30 @@ from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.keyframe_bundle import KeyframeBundleError, decode_keyframe_images
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.params import ParamSpec, declare_all
 from memgs_ros.ros.seed_cloud import encode_seeds
 from memgs_ros.ros.stamp_sync import StampBundler
 
-PARAMS = (
-    ParamSpec("mode", "rgbd", "camera mode (mono: depth from the nearest keypoint)", choices=("rgbd", "mono")),
-    ParamSpec("depth_scale", 1000.0, "16UC1 depth units per metre", (1e-3, 1e6)),
-    ParamSpec("world_frame", "map", "frame id of the seed cloud"),
-)
-CONFIGS = (("patch_grid", PatchGridConfig),)
+
+@dataclass(frozen=True)
+class KeyframeSamplerParams:
+    """The keyframe sampler's own parameters (no prefix)."""
+
+    mode: str = "rgbd"  # camera mode (mono: depth from the nearest keypoint)
+    depth_scale: float = 1000.0  # 16UC1 depth units per metre
+    world_frame: str = "map"  # frame id of the seed cloud
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {"depth_scale": (1e-3, 1e6)}
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": ("rgbd", "mono")}
+
+
+CONFIGS: tuple[tuple[str, type], ...] = (("", KeyframeSamplerParams), ("patch_grid", PatchGridConfig))
 
 
 class KeyframeSamplerNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("keyframe_sampler", **node_kwargs)
-        v = declare_all(self, PARAMS)
-        self.mode, self.depth_scale, self.world_frame = v["mode"], v["depth_scale"], v["world_frame"]
+        v = declare_config(self, KeyframeSamplerParams, "")
+        self.mode, self.depth_scale, self.world_frame = v.mode, v.depth_scale, v.world_frame
         self.cfg: PatchGridConfig = declare_config(self, PatchGridConfig, "patch_grid")
         self.stats = NodeStats(self, "keyframe_sampler")
         parts = {"color", "camera_info", "pose", "keypoints"} | ({"depth"} if self.mode == "rgbd" else set())

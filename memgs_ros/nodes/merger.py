@@ -24,8 +24,9 @@ from __future__ import annotations
 import sys
 import time
 from collections import deque
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -46,47 +47,53 @@ from memgs_ros.ros.codecs import (
     stamp_to_ns,
     structured_to_pointcloud2,
 )
+from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.params import ParamSpec, declare_all
 
 if TYPE_CHECKING:
     from memgs_ros.core.raster import Gaussians
 
 
-PARAMS = (
-    ParamSpec("map_path", "memgs_map.ply", "where the map PLY is saved (atomically)"),
-    ParamSpec("save_period_s", 60.0, "also save the PLY this often when it changed (0 = only on request and shutdown)",
-              (0.0, 1e6)),
-    ParamSpec("publish_period_s", 30.0, "publish the full map on memgs/map/gaussians this often (0 = only on request)",
-              (0.0, 1e6)),
-    ParamSpec("resync_interval_s", 1.0, "least time between snapshot requests (doubles, up to 8x, while unanswered)",
-              (0.0, 3600.0)),
-    ParamSpec("max_buffered_deltas", 200, "deltas kept while resynchronising", (1, 100000)),
-    ParamSpec("world_frame", "map", "frame id of the published map"),
-    ParamSpec("fault_drop_every_nth_delta", 0,
-              "fault injection for tests: ignore every n-th delta on arrival (0 = off)",
-              (0, 10**6)),
-    ParamSpec("render_width", 320, "render width (px) for view requests", (1, 8192)),
-    ParamSpec("render_height", 240, "render height (px) for view requests", (1, 8192)),
-    ParamSpec("render_fx", 258.65, "render focal length x (px)", (1e-3, 1e6)),
-    ParamSpec("render_fy", 258.23, "render focal length y (px)", (1e-3, 1e6)),
-    ParamSpec("render_cx", 159.32, "render principal point x (px)", (-1e6, 1e6)),
-    ParamSpec("render_cy", 127.66, "render principal point y (px)", (-1e6, 1e6)),
-)
-CONFIGS: tuple[tuple[str, type], ...] = ()
+@dataclass(frozen=True)
+class MergerParams:
+    """The merger's own parameters (no prefix)."""
+
+    map_path: str = "memgs_map.ply"  # where the map PLY is saved (atomically)
+    save_period_s: float = 60.0  # also save the PLY this often when it changed (0 = only on request and shutdown)
+    publish_period_s: float = 30.0  # publish the full map on memgs/map/gaussians this often (0 = only on request)
+    resync_interval_s: float = 1.0  # least time between snapshot requests (doubles, up to 8x, while unanswered)
+    max_buffered_deltas: int = 200  # deltas kept while resynchronising
+    world_frame: str = "map"  # frame id of the published map
+    fault_drop_every_nth_delta: int = 0  # fault injection for tests: ignore every n-th delta on arrival (0 = off)
+    render_width: int = 320  # render width (px) for view requests
+    render_height: int = 240  # render height (px) for view requests
+    render_fx: float = 258.65  # render focal length x (px)
+    render_fy: float = 258.23  # render focal length y (px)
+    render_cx: float = 159.32  # render principal point x (px)
+    render_cy: float = 127.66  # render principal point y (px)
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "save_period_s": (0.0, 1e6), "publish_period_s": (0.0, 1e6), "resync_interval_s": (0.0, 3600.0),
+        "max_buffered_deltas": (1, 100000), "fault_drop_every_nth_delta": (0, 10**6),
+        "render_width": (1, 8192), "render_height": (1, 8192), "render_fx": (1e-3, 1e6), "render_fy": (1e-3, 1e6),
+        "render_cx": (-1e6, 1e6), "render_cy": (-1e6, 1e6),
+    }
+
+
+CONFIGS: tuple[tuple[str, type], ...] = (("", MergerParams),)
 
 
 class MergerNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("merger", **node_kwargs)
-        v = declare_all(self, PARAMS)
-        self.map_path = Path(v["map_path"])
-        self.save_period, self.publish_period = v["save_period_s"], v["publish_period_s"]
-        self.resync_interval, self.max_buffered = v["resync_interval_s"], v["max_buffered_deltas"]
-        self.world_frame, self.drop_every = v["world_frame"], v["fault_drop_every_nth_delta"]
-        self.render_camera = PinholeCamera(v["render_width"], v["render_height"], v["render_fx"], v["render_fy"],
-                                           v["render_cx"], v["render_cy"])
+        v = declare_config(self, MergerParams, "")
+        self.map_path = Path(v.map_path)
+        self.save_period, self.publish_period = v.save_period_s, v.publish_period_s
+        self.resync_interval, self.max_buffered = v.resync_interval_s, v.max_buffered_deltas
+        self.world_frame, self.drop_every = v.world_frame, v.fault_drop_every_nth_delta
+        self.render_camera = PinholeCamera(v.render_width, v.render_height, v.render_fx, v.render_fy,
+                                           v.render_cx, v.render_cy)
 
         self.replica = MapReplica()
         self.stats = NodeStats(self, "merger")

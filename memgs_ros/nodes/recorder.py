@@ -24,8 +24,9 @@ import importlib
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -33,11 +34,11 @@ from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.bag_stream import BackgroundBagStream, ros2_typestore
+from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.params import ParamSpec, declare_all
 
-__all__ = ["CONFIGS", "DEFAULT_TOPICS", "PARAMS", "RecorderNode", "main"]
+__all__ = ["CONFIGS", "DEFAULT_TOPICS", "RecorderNode", "RecorderParams", "main"]
 
 # Every output of the graph, relative to the node's namespace (types as the nodes publish them).
 DEFAULT_TOPICS: tuple[str, ...] = (
@@ -64,14 +65,22 @@ DEFAULT_TOPICS: tuple[str, ...] = (
     "memgs/player/stats",
 )
 
-PARAMS = (
-    ParamSpec("path", "", "the .mcap file to write (required); replaced atomically when the node stops"),
-    ParamSpec("topics", DEFAULT_TOPICS, "topics to record, relative to the node's namespace or absolute "
-                                        "(default: every memgs output)"),
-    ParamSpec("discovery_period_s", 0.2, "look for publishers of topics not yet recorded this often",
-              (0.01, 60.0)),
-)
-CONFIGS: tuple[tuple[str, type], ...] = ()
+
+@dataclass(frozen=True)
+class RecorderParams:
+    """The recorder's own parameters (no prefix).
+
+    topics: topics to record, relative to the node's namespace or absolute (default: every memgs output)
+    """
+
+    path: str = ""  # the .mcap file to write (required); replaced atomically when the node stops
+    topics: tuple[str, ...] = DEFAULT_TOPICS
+    discovery_period_s: float = 0.2  # look for publishers of topics not yet recorded this often
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {"discovery_period_s": (0.01, 60.0)}
+
+
+CONFIGS: tuple[tuple[str, type], ...] = (("", RecorderParams),)
 
 # A RELIABLE subscription keeps this many messages while the callback catches up; the callback
 # only appends bytes to a file, so the queue stays near empty.
@@ -129,8 +138,8 @@ class RecorderNode(Node):
         # shows in the graph, so whoever sees the node sees it ready moments later.
         typestore = ros2_typestore()
         super().__init__("recorder", **node_kwargs)
-        v = declare_all(self, PARAMS)
-        path, topics, period = str(v["path"]), v["topics"], float(v["discovery_period_s"])
+        v = declare_config(self, RecorderParams, "")
+        path, topics, period = v.path, v.topics, v.discovery_period_s
         if not isinstance(topics, (list, tuple)) or not topics or not all(
                 isinstance(t, str) and t.strip() for t in topics):
             raise ConfigError(f"parameter 'topics' must be a non-empty list of topic names, got {topics!r}")

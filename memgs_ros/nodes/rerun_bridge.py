@@ -24,8 +24,9 @@ from __future__ import annotations
 import sys
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 from pathlib import Path as FsPath
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -42,9 +43,9 @@ from memgs_ros.io.image_decoding import decode_camera_info, decode_rgb
 from memgs_ros.nodes.registry import GRAPH
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pointcloud2_to_structured, pose_to_matrix, stamp_to_ns
+from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats, stats_values
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.params import ParamSpec, declare_all
 from memgs_ros.viz import RerunTarget
 from memgs_ros.viz.map_follow import MapFollower
 
@@ -56,37 +57,47 @@ _FRAMES_KEPT = 30  # source frames held to pair with a render of the same stamp 
 _RESYNC_INTERVAL_S = 2.0  # least time between full-map requests while out of step
 
 
-PARAMS = (
-    ParamSpec("spawn", False, "spawn a local Rerun viewer (or use one listening on port 9876)"),
-    ParamSpec("connect_url", "", "stream to the Rerun viewer at this URL (rerun+http://HOST:9876/proxy); empty = none"),
-    ParamSpec("save_path", "", "also record to this .rrd file; empty = none"),
-    ParamSpec("application_id", "memgs_ros", "Rerun application id (the viewer groups recordings by it)"),
-    ParamSpec("recording_name", "", "Rerun recording name (empty: the node's namespace)"),
-    ParamSpec("map_period_s", 5.0, "log the map this often when it changed (s); 0 = only full maps the merger "
-              "publishes", (0.0, 3600.0)),
-    ParamSpec("log_sh", False, "send the map's degree 1..3 SH coefficients too (+90 B a Gaussian each time; the "
-              "viewer then shows view-dependent colour)"),
-    ParamSpec("jpeg_quality", 85, "JPEG quality of logged images (0 = raw pixels)", (0, 100)),
-    ParamSpec("log_frames", True, "subscribe to color_topic and log the frame beside each render (off on a thin "
-              "link: the renders alone are small)"),
-    ParamSpec("color_topic", "color/image_raw", "the source colour images"),
-    ParamSpec("stats_keys", DEFAULT_STATS_KEYS, "comma-separated stats keys to plot ('*' = all)"),
-    ParamSpec("frustum_size_m", 0.08, "depth of the drawn keyframe frusta (m)", (1e-4, 100.0)),
-)
-CONFIGS: tuple[tuple[str, type], ...] = ()
+@dataclass(frozen=True)
+class RerunBridgeParams:
+    """The bridge's own parameters (no prefix).
+
+    log_sh: send the map's degree 1..3 SH coefficients too (+90 B a Gaussian each time; the viewer then
+        shows view-dependent colour)
+    log_frames: subscribe to color_topic and log the frame beside each render (off on a thin link: the
+        renders alone are small)
+    """
+
+    spawn: bool = False  # spawn a local Rerun viewer (or use one listening on port 9876)
+    connect_url: str = ""  # stream to the Rerun viewer at this URL (rerun+http://HOST:9876/proxy); empty = none
+    save_path: str = ""  # also record to this .rrd file; empty = none
+    application_id: str = "memgs_ros"  # Rerun application id (the viewer groups recordings by it)
+    recording_name: str = ""  # Rerun recording name (empty: the node's namespace)
+    map_period_s: float = 5.0  # log the map this often when it changed (s); 0 = only full maps the merger publishes
+    log_sh: bool = False
+    jpeg_quality: int = 85  # JPEG quality of logged images (0 = raw pixels)
+    log_frames: bool = True
+    color_topic: str = "color/image_raw"  # the source colour images
+    stats_keys: str = DEFAULT_STATS_KEYS  # comma-separated stats keys to plot ('*' = all)
+    frustum_size_m: float = 0.08  # depth of the drawn keyframe frusta (m)
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "map_period_s": (0.0, 3600.0), "jpeg_quality": (0, 100), "frustum_size_m": (1e-4, 100.0),
+    }
+
+
+CONFIGS: tuple[tuple[str, type], ...] = (("", RerunBridgeParams),)
 
 
 class RerunBridgeNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("rerun_bridge", **node_kwargs)
-        v = declare_all(self, PARAMS)
-        spawn, url, save, app, name = (v["spawn"], v["connect_url"], v["save_path"], v["application_id"],
-                                       v["recording_name"])
-        self.map_period, self.log_sh, self.jpeg_quality = v["map_period_s"], v["log_sh"], v["jpeg_quality"]
-        self.log_frames, color_topic, keys = v["log_frames"], v["color_topic"], v["stats_keys"]
+        v = declare_config(self, RerunBridgeParams, "")
+        spawn, url, save, app, name = v.spawn, v.connect_url, v.save_path, v.application_id, v.recording_name
+        self.map_period, self.log_sh, self.jpeg_quality = v.map_period_s, v.log_sh, v.jpeg_quality
+        self.log_frames, color_topic, keys = v.log_frames, v.color_topic, v.stats_keys
         self.stats_keys: set[str] | None = (None if keys.strip() == "*"
                                             else {k.strip() for k in keys.split(",") if k.strip()})
-        self.plane_m = v["frustum_size_m"]
+        self.plane_m = v.frustum_size_m
         try:
             target = RerunTarget(spawn=spawn, connect_url=url, save_path=FsPath(save) if save else None)
         except ConfigError as err:

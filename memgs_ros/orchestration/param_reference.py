@@ -1,10 +1,10 @@
 """The parameter reference (``docs/parameters.md``), made from the nodes' own parameter tables.
 
-Each node module lists its parameters in ``PARAMS`` (:class:`~memgs_ros.ros.params.ParamSpec`)
-and ``CONFIGS`` ((prefix, config dataclass) pairs). The rows are what the nodes declare: the
-tables go through the same helpers the nodes call (``declare_all``, ``declare_config``,
-``declare_calibration``) on a stand-in node that records each ``declare_parameter`` call, so
-names, defaults, descriptions and ranges are those ``ros2 param describe`` shows. No rclpy
+Each node module lists its parameters in ``CONFIGS`` ((prefix, frozen config dataclass) pairs;
+the node's own parameters under the empty prefix). The rows are what the nodes declare: the
+specs :func:`~memgs_ros.ros.config_params.config_specs` gives go through ``declare_all``, as
+``declare_config`` sends them, on a stand-in node that records each ``declare_parameter`` call,
+so names, defaults, descriptions and ranges are those ``ros2 param describe`` shows. No rclpy
 node is created.
 
     python -m memgs_ros.orchestration.param_reference --write docs/parameters.md
@@ -15,18 +15,14 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, Any, cast
 
-from memgs_ros.core.camera import CameraCalibration
-from memgs_ros.nodes.mapper_params import RANGES as MAPPER_RANGES
-from memgs_ros.nodes.mapper_params import MapperParams
 from memgs_ros.orchestration.run_files import NODE_NAMES
-from memgs_ros.ros.camera_params import declare_calibration
-from memgs_ros.ros.config_params import declare_config
+from memgs_ros.ros.config_params import module_specs
 from memgs_ros.ros.params import declare_all
 
 if TYPE_CHECKING:
@@ -36,14 +32,6 @@ __all__ = ["DEFAULT_PATH", "ParamRow", "node_modules", "parameter_rows", "render
 
 DEFAULT_PATH = "docs/parameters.md"
 REGENERATE = f"python -m memgs_ros.orchestration.param_reference --write {DEFAULT_PATH}"
-
-# How a node declares a config group when it is more than ``declare_config(node, cls, prefix)``
-# (a ranges table of its own). Keep in step with the nodes' ``__init__``.
-_DECLARE: dict[type, Callable[[Any, str], object]] = {
-    MapperParams: lambda node, prefix: declare_config(node, MapperParams, prefix, ranges=MAPPER_RANGES),
-    CameraCalibration: lambda node, prefix: declare_calibration(node),
-}
-
 
 @dataclass(frozen=True)
 class ParamRow:
@@ -109,19 +97,16 @@ def _range_text(descriptor: Any, choices: tuple[str, ...]) -> str:
 
 
 def parameter_rows(node_module: ModuleType) -> list[ParamRow]:
-    """Every parameter ``node_module`` declares from its ``PARAMS`` and ``CONFIGS``, in declaration
-    order (rclpy's own ``use_sim_time`` and the like are not listed)."""
+    """Every parameter ``node_module`` declares (its ``CONFIGS``), in declaration order (rclpy's
+    own ``use_sim_time`` and the like are not listed)."""
     recorder = _RecordingNode()
-    node = cast("Node", recorder)  # the helpers only call declare_parameter
-    declare_all(node, node_module.PARAMS)
-    for prefix, config_cls in node_module.CONFIGS:
-        _DECLARE.get(config_cls, lambda n, p, c=config_cls: declare_config(n, c, p))(node, prefix)
+    declare_all(cast("Node", recorder), module_specs(node_module))  # the helpers only call declare_parameter
     return rows_from_declarations(node_module, {name: (d.value, d.descriptor) for name, d in recorder.declared.items()})
 
 
 def rows_from_declarations(node_module: ModuleType, declared: Mapping[str, tuple[Any, Any]]) -> list[ParamRow]:
     """Rows of ``declared`` ({name: (value, ParameterDescriptor)}, from a stand-in or a real node)."""
-    choices = {spec.name: spec.choices for spec in node_module.PARAMS}
+    choices = {spec.name: spec.choices for spec in module_specs(node_module)}
     node_name = node_module.__name__.rsplit(".", 1)[-1]
     rows = []
     for name, (value, descriptor) in declared.items():

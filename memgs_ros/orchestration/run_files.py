@@ -210,14 +210,14 @@ def check_parameter_names(params: Mapping[str, Mapping[str, Any]]) -> None:
     (rclpy, torch) to read their parameter tables, but starts nothing."""
     import importlib
 
-    from memgs_ros.ros.config_params import parameter_names, unknown_parameters
+    from memgs_ros.ros.config_params import module_parameter_names, unknown_parameters
 
     lines: list[str] = []
     for node, values in params.items():
         if node not in NODE_NAMES:
             raise ConfigError(f"parameters for '{node}': no such node (nodes: {', '.join(NODE_NAMES)})")
         module = importlib.import_module(f"memgs_ros.nodes.{node}")
-        lines += unknown_parameters(node, values, parameter_names(module.PARAMS, module.CONFIGS))
+        lines += unknown_parameters(node, values, module_parameter_names(module))
     if lines:
         raise ConfigError("; ".join(lines))
 

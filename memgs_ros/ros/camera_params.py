@@ -15,11 +15,9 @@ from memgs_ros.ros.config_params import declare_config
 __all__ = ["CAMERA_PREFIX", "declare_calibration"]
 
 CAMERA_PREFIX = "camera"
-# Distortion coefficients take either sign; the intrinsics keep the default non-negative range.
-_RANGES = dict.fromkeys(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), (-1000000.0, 1000000.0))
 
 
 def declare_calibration(node: Node) -> PinholeCamera | None:
     """Declare ``camera.width`` ... ``camera.k6``; the configured camera, or None when none is set.
     ConfigError (naming the parameters) when only part of a calibration is set."""
-    return declare_config(node, CameraCalibration, CAMERA_PREFIX, ranges=_RANGES).camera()
+    return declare_config(node, CameraCalibration, CAMERA_PREFIX).camera()

@@ -1,11 +1,14 @@
-"""Expose every field of a core config dataclass as a described, ranged ROS parameter.
+"""Node parameters from frozen config dataclasses: one declaration path for every node.
 
-The core configs (TrackerConfig, MappingConfig, MergeConfig, PatchGridConfig) are the
-single source of truth: their fields give names, types and defaults, their source
-comments give the descriptions, and their ``__post_init__`` validation refuses bad
-values. A node declares them under a prefix (``tracker.n_features``) and gets the
-typed, validated config back. Numbers get a range: the node's table where it gives
-one, else non-negative when the default is, so ``ros2 param describe`` documents all.
+A config's fields give names, types and defaults, their source comments (or ``name: text``
+items in the class docstring) the descriptions, its ``RANGES`` / ``CHOICES`` class variables
+the numeric ranges and allowed strings, and its ``__post_init__`` refuses inconsistent values.
+A node declares each config under a prefix (``tracker.n_features``; no prefix for the node's
+own parameters) and gets the typed, validated config back. Numbers without a range get a
+non-negative one when the default is, so ``ros2 param describe`` documents all.
+
+:func:`config_specs` gives the declarations as data (for the CLI and the parameter reference);
+:func:`check_values` judges given values as the node will, without starting it.
 """
 from __future__ import annotations
 
@@ -15,12 +18,14 @@ import re
 from collections.abc import Collection, Iterable, Mapping
 from dataclasses import MISSING, Field, fields, is_dataclass
 from functools import cache
-from typing import TypeVar
-
-from rclpy.node import Node
+from types import ModuleType
+from typing import TYPE_CHECKING, TypeVar, cast
 
 from memgs_ros.errors import ConfigError, MemgsError
-from memgs_ros.ros.params import ParamSpec, declare
+from memgs_ros.ros.params import ParamSpec, ParamValue, check_value, declare_all
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
 
 C = TypeVar("C")
 _BIG = 1e12
@@ -80,15 +85,20 @@ def field_descriptions(config_cls: type) -> dict[str, str]:
     return out
 
 
+def _is_string_array(value: object) -> bool:
+    return isinstance(value, (tuple, list)) and bool(value) and all(isinstance(v, str) for v in value)
+
+
 def _plain_fields(config_cls: type, defaults: Mapping[str, object]) -> list[tuple[Field, object]]:
-    """The fields a config exposes as parameters (plain bool/int/float/str defaults) with their
-    defaults; tuples and nested configs stay at their defaults."""
+    """The fields a config exposes as parameters (plain bool/int/float/str defaults, or a
+    non-empty tuple of str: a string array) with their defaults; other tuples and nested configs
+    stay at their defaults."""
     if not is_dataclass(config_cls):
         raise TypeError(f"{config_cls!r} is not a dataclass")
     out = []
     for f in fields(config_cls):
         default = defaults.get(f.name, f.default)
-        if default is not MISSING and isinstance(default, (bool, int, float, str)):
+        if default is not MISSING and (isinstance(default, (bool, int, float, str)) or _is_string_array(default)):
             out.append((f, default))
     return out
 
@@ -97,12 +107,105 @@ def _param_name(prefix: str, field_name: str) -> str:
     return f"{prefix}.{field_name}" if prefix else field_name  # no prefix: a node's own parameters
 
 
-def parameter_names(specs: Iterable[ParamSpec], configs: Iterable[tuple[str, type]]) -> frozenset[str]:
-    """Every parameter a node declares from its ``PARAMS`` specs and ``CONFIGS`` ((prefix, config
-    class) pairs, as :func:`declare_config` declares them), without creating the node."""
-    names = {spec.name for spec in specs}
-    names.update(_param_name(prefix, f.name) for prefix, cls in configs for f, _ in _plain_fields(cls, {}))
+def _field_specs(config_cls: type, prefix: str, defaults: Mapping[str, object] | None,
+                 ranges: Mapping[str, tuple[float, float]] | None) -> list[tuple[str, ParamSpec]]:
+    """(field name, spec) for every parameter of ``config_cls`` under ``prefix``."""
+    all_ranges = {**getattr(config_cls, "RANGES", {}), **(ranges or {})}
+    choices: Mapping[str, tuple[str, ...]] = getattr(config_cls, "CHOICES", {})
+    docs = field_descriptions(config_cls)
+    out = []
+    for f, default in _plain_fields(config_cls, defaults or {}):
+        rng = all_ranges.get(f.name)
+        if rng is None and isinstance(default, (int, float)) and not isinstance(default, bool):
+            rng = (0, _BIG) if default >= 0 else (-_BIG, _BIG)
+            if isinstance(default, int):
+                rng = (int(rng[0]), 2**31 - 1)
+        value = cast("ParamValue", default)
+        desc = docs.get(f.name) or f"{config_cls.__name__}.{f.name}"
+        out.append((f.name, ParamSpec(_param_name(prefix, f.name), value, desc, rng, tuple(choices.get(f.name, ())))))
+    return out
+
+
+def config_specs(config_cls: type, prefix: str = "", defaults: Mapping[str, object] | None = None,
+                 ranges: Mapping[str, tuple[float, float]] | None = None) -> list[ParamSpec]:
+    """The parameters :func:`declare_config` declares for ``config_cls`` under ``prefix``, in field order.
+
+    Each plain field gives one: its default fixes the type, its source comment (or docstring item)
+    the description, ``RANGES`` / ``CHOICES`` (class variables) the range and allowed values; a
+    number without a range gets a non-negative one when its default is, else any sign.
+    defaults: per-node default overrides; ranges: override ``RANGES``.
+    """
+    return [spec for _, spec in _field_specs(config_cls, prefix, defaults, ranges)]
+
+
+def parameter_names(configs: Iterable[tuple[str, type]]) -> frozenset[str]:
+    """Every parameter a node declares from its ``CONFIGS`` ((prefix, config class) pairs, as
+    :func:`declare_config` declares them), rclpy's own included, without creating the node."""
+    names = {spec.name for prefix, cls in configs for spec in config_specs(cls, prefix)}
     return frozenset(names | ROS_PARAMETERS)
+
+
+def _legacy_specs(node_module: ModuleType) -> tuple[ParamSpec, ...]:
+    """Transitional: a node module that still lists ``PARAMS`` (ParamSpec, declared first with
+    ``declare_all``); drop this once every node declares dataclasses only."""
+    return tuple(getattr(node_module, "PARAMS", ()))
+
+
+def module_specs(node_module: ModuleType) -> list[ParamSpec]:
+    """Every parameter a node module declares from its ``CONFIGS``, in declaration order."""
+    own = (spec for prefix, cls in node_module.CONFIGS for spec in config_specs(cls, prefix))
+    return [*_legacy_specs(node_module), *own]
+
+
+def module_parameter_names(node_module: ModuleType) -> frozenset[str]:
+    """Every parameter a node module declares (:func:`module_specs`), rclpy's own included: what
+    the CLI checks parameter-file names against."""
+    return parameter_names(node_module.CONFIGS) | {spec.name for spec in _legacy_specs(node_module)}
+
+
+def _group(prefix: str) -> str:
+    return f"parameters '{prefix}.*'" if prefix else "parameters"
+
+
+def _refusal(prefix: str, err: Exception) -> str:
+    """A config's own validation refusing the values, in the words :func:`declare_config` uses."""
+    if isinstance(err, MemgsError):
+        return f"{_group(prefix)}: {err}"
+    return f"{_group(prefix)} are inconsistent: {err}"
+
+
+def check_values(config_cls: type, prefix: str, given: Mapping[str, object], *, node: str = "",
+                 defaults: Mapping[str, object] | None = None,
+                 ranges: Mapping[str, tuple[float, float]] | None = None,
+                 int_as_float: bool = False) -> list[str]:
+    """One line for each value in ``given`` ({parameter name: value}, as in a parameter file) that
+    ``config_cls`` under ``prefix`` would refuse at start, in the words the node uses; [] when none.
+
+    Checks type, range and allowed values of the names this config declares (others are left to
+    :func:`unknown_parameters`), then, when those pass, builds the config with them so its
+    ``__post_init__`` judges the whole group. No rclpy node is needed. node: prefixes each line
+    (``mapper: ...``), as the node's fatal log line is. rclpy refuses an int for a float parameter
+    (``2`` for ``2.0``), and so does this unless ``int_as_float`` (for a caller that converts).
+    """
+    lines: list[str] = []
+    values: dict[str, object] = {}
+    for field_name, spec in _field_specs(config_cls, prefix, defaults, ranges):
+        if spec.name not in given:
+            continue
+        value = given[spec.name]
+        problem = check_value(spec, value, int_as_float)
+        if problem is not None:
+            lines.append(problem)
+        elif isinstance(value, list):
+            values[field_name] = tuple(value)  # as declare_config passes a string array
+        else:
+            values[field_name] = float(cast("float", value)) if isinstance(spec.default, float) else value
+    if not lines:
+        try:
+            config_cls(**{**(defaults or {}), **values})
+        except (MemgsError, TypeError, ValueError) as err:
+            lines.append(_refusal(prefix, err))
+    return [f"{node}: {line}" for line in lines] if node else lines
 
 
 def unknown_parameters(node_name: str, given: Iterable[str], declared: Collection[str]) -> list[str]:
@@ -133,27 +236,20 @@ def check_declared(node: Node) -> None:
 def declare_config(node: Node, config_cls: type[C], prefix: str,
                    ranges: Mapping[str, tuple[float, float]] | None = None,
                    defaults: Mapping[str, object] | None = None) -> C:
-    """Declare ``<prefix>.<field>`` (``<field>`` when prefix is empty) for every plain
-    (bool/int/float/str) field; build the config.
+    """Declare :func:`config_specs` (``<prefix>.<field>``, ``<field>`` when prefix is empty) on
+    ``node`` and build the config from the values.
 
     defaults: per-node default overrides (e.g. mode="mono"); parameter files still win.
-    Raises ConfigError naming the parameter when a value is refused.
+    ranges: override the class's ``RANGES``. Raises ConfigError naming the parameter when a
+    value is refused.
     """
-    ranges = ranges or {}
-    docs = field_descriptions(config_cls)
-    values: dict[str, object] = {}
-    for f, default in _plain_fields(config_cls, defaults or {}):
-        name = _param_name(prefix, f.name)
-        desc = docs.get(f.name) or f"{config_cls.__name__}.{f.name}"
-        rng = ranges.get(f.name)
-        if rng is None and isinstance(default, (int, float)) and not isinstance(default, bool):
-            rng = (0, _BIG) if default >= 0 else (-_BIG, _BIG)
-            if isinstance(default, int):
-                rng = (int(rng[0]), 2**31 - 1)
-        values[f.name] = declare(node, name, default, desc, range=rng)
+    specs = _field_specs(config_cls, prefix, defaults, ranges)
+    declared = declare_all(node, [spec for _, spec in specs])
+    values = {}
+    for field_name, spec in specs:
+        value = declared[spec.name]
+        values[field_name] = tuple(value) if isinstance(value, list) else value  # frozen configs hold tuples
     try:
         return config_cls(**values)
-    except MemgsError as err:
-        raise ConfigError(f"parameters '{prefix}.*': {err}") from err
-    except (TypeError, ValueError) as err:
-        raise ConfigError(f"parameters '{prefix}.*' are inconsistent: {err}") from err
+    except (MemgsError, TypeError, ValueError) as err:
+        raise ConfigError(_refusal(prefix, err)) from err

@@ -14,14 +14,15 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.exceptions import InvalidParameterTypeException, ParameterException
-from rclpy.node import Node
+from typing import TYPE_CHECKING, cast
 
 from memgs_ros.errors import ConfigError
 
-__all__ = ["ParamSpec", "ParamValue", "declare", "declare_all"]
+if TYPE_CHECKING:  # rclpy only where a node declares: config_params.check_values needs none
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.node import Node
+
+__all__ = ["ParamSpec", "ParamValue", "check_value", "declare", "declare_all", "type_name"]
 
 ParamValue = bool | int | float | str | tuple[str, ...] | list[str]  # a string array: the recorder's topics
 
@@ -38,7 +39,14 @@ class ParamSpec:
     read_only: bool = True
 
 
+def type_name(default: ParamValue) -> str:
+    """The parameter type a default fixes, in the words of the refusals and docs/parameters.md."""
+    return "string array" if isinstance(default, (tuple, list)) else type(default).__name__
+
+
 def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
     desc = spec.description
     if spec.choices:
         desc = f"{desc} (one of: {', '.join(spec.choices)})"
@@ -54,21 +62,59 @@ def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
     return d
 
 
+def _type_ok(default: ParamValue, value: object, int_as_float: bool) -> bool:
+    if isinstance(default, bool):
+        return isinstance(value, bool)
+    if isinstance(value, bool):
+        return False  # bool is an int to Python, not to rclpy
+    if isinstance(default, int):
+        return isinstance(value, int)
+    if isinstance(default, float):
+        return isinstance(value, float) or (int_as_float and isinstance(value, int))
+    if isinstance(default, str):
+        return isinstance(value, str)
+    return isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value)  # a string array
+
+
+def _wrong_type(spec: ParamSpec) -> str:
+    hint = " (write floats with a decimal point, e.g. 2.0)" if isinstance(spec.default, float) else ""
+    return f"parameter '{spec.name}' must be of type {type_name(spec.default)}{hint}"
+
+
+def _value_problem(spec: ParamSpec, value: object) -> str | None:
+    """Range and choices of a value of the right type (what rclpy does not check, or checks less)."""
+    if spec.range is not None and not spec.range[0] <= cast("float", value) <= spec.range[1]:
+        return f"parameter '{spec.name}' = {value!r} is outside [{spec.range[0]}, {spec.range[1]}]"
+    if spec.choices and value not in spec.choices:
+        return f"parameter '{spec.name}' = {value!r} is not one of {list(spec.choices)}"
+    return None
+
+
+def check_value(spec: ParamSpec, value: object, int_as_float: bool = False) -> str | None:
+    """The line :func:`declare` would raise for ``value`` given to ``spec`` (type, range, choices),
+    or None when it is accepted; needs no node. rclpy refuses an int for a float parameter
+    (``2`` for ``2.0``), and so does this unless ``int_as_float`` (for a caller that converts)."""
+    if not _type_ok(spec.default, value, int_as_float):
+        return f"{_wrong_type(spec)}, got {value!r}"
+    return _value_problem(spec, value)
+
+
 def _declare_spec(node: Node, spec: ParamSpec) -> ParamValue:
+    from rclpy.exceptions import InvalidParameterTypeException, ParameterException
+
     try:
         value = node.declare_parameter(spec.name, spec.default, _descriptor(spec)).value
     except InvalidParameterTypeException as err:
-        hint = " (write floats with a decimal point, e.g. 2.0)" if isinstance(spec.default, float) else ""
-        raise ConfigError(
-            f"parameter '{spec.name}' must be of type {type(spec.default).__name__}{hint}: {err}"
-        ) from err
+        raise ConfigError(f"{_wrong_type(spec)}: {err}") from err
     except ParameterException as err:
-        raise ConfigError(f"parameter '{spec.name}' has a bad value (allowed {spec.range}): {err}") from err
-    if spec.range is not None and not (spec.range[0] <= value <= spec.range[1]):
-        # rclpy checks ranges too; this also catches NaN, which compares false everywhere.
-        raise ConfigError(f"parameter '{spec.name}' = {value!r} is outside [{spec.range[0]}, {spec.range[1]}]")
-    if spec.choices and value not in spec.choices:
-        raise ConfigError(f"parameter '{spec.name}' = {value!r} is not one of {list(spec.choices)}")
+        # rclpy refused the override against the descriptor's range: name it as check_value does.
+        given = getattr(node, "_parameter_overrides", {}).get(spec.name)  # rclpy: this node's overrides
+        problem = None if given is None else _value_problem(spec, given.value)
+        raise ConfigError(problem or f"parameter '{spec.name}' has a bad value (allowed {spec.range}): {err}") from err
+    # rclpy checks ranges too; this also catches NaN, which compares false everywhere, and choices.
+    problem = _value_problem(spec, value)
+    if problem:
+        raise ConfigError(problem)
     return value
 
 
