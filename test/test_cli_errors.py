@@ -113,6 +113,14 @@ _MISTAKES = [
     (["--set", "tracker.keyframe_max_frames=10"],
      ("tracker has no parameter 'keyframe_max_frames'", "did you mean tracker.keyframe_max_frames")),
     (["--set", "mapper.mapping.iterationz=3"], ("mapper has no parameter 'mapping.iterationz'",)),
+    # Values are checked before anything starts, in the words the node would use at start.
+    (["--set", "mapper.mapping.resolution_scale=50.0"],
+     ("mapper: parameter 'mapping.resolution_scale' = 50.0 is outside [0.01, 2.0]",)),
+    (["--set", "mapper.mapping.resolution_scale=abc"],
+     ("parameter 'mapping.resolution_scale' must be of type float", "got 'abc'")),
+    (["--set", "mapper.mapping.raster_backend=opengl"], ("'opengl' is not one of",)),
+    (["--set", "merger.render_width=0"], ("merger: parameter 'render_width' = 0 is outside [1, 8192]",)),
+    (["--set", "mapper.merge.colour_from=oldest"], ("'oldest' is not one of ['older', 'newer']",)),
     (["--kill", "mappr@5"], ("--kill mappr@5", "no node 'mappr'", "did you mean mapper")),
     (["--kill", "mapper@-1"], ("--kill needs NODE@SECONDS",)),
     (["--kill", "mapper@5", "--single-process"], ("--kill needs separate processes",)),
@@ -133,7 +141,7 @@ def test_mistakes_are_refused_before_anything_is_written(command: str, args: lis
 
 
 @pytest.mark.parametrize("config", ["synthetic", "tum_fr1", "tum_fr2", "tum_fr3", "realsense_d435i"])
-def test_shipped_configs_name_only_declared_parameters(config: str) -> None:
+def test_shipped_configs_name_only_declared_parameters_with_values_in_range(config: str) -> None:
     from memgs_ros.cli.run import check_config
 
     params = check_config(config)

@@ -139,3 +139,25 @@ def test_check_values_says_what_the_node_says_at_start(context, cls: type, prefi
         assert at_start.startswith(before.split(", got ")[0] + ": "), (before, at_start)
     else:
         assert before == at_start
+
+
+def test_every_number_of_every_config_has_a_range_a_user_can_reason_about() -> None:
+    """No parameter falls back to the catch-all [0, 1e12]: each numeric field of a node's configs
+    has a range of its own (a typo such as resolution_scale=50 for 0.5 is then refused)."""
+    import dataclasses
+    import importlib
+
+    from memgs_ros.nodes.registry import NODES
+
+    missing = []
+    for node, (module_name, _) in NODES.items():
+        module = importlib.import_module(module_name)
+        for prefix, cls in module.CONFIGS:
+            ranges = getattr(cls, "RANGES", {})
+            for f in dataclasses.fields(cls):
+                numeric = isinstance(f.default, (int, float)) and not isinstance(f.default, bool)
+                if numeric and f.name not in ranges:
+                    missing.append(f"{node}: {prefix + '.' if prefix else ''}{f.name}")
+    # The tracker's own table and TrackerConfig are converted with the tracker's split.
+    missing = [m for m in missing if not m.startswith("tracker: tracker.")]
+    assert missing == [], missing

@@ -44,8 +44,8 @@ def test_ranges_and_choices_are_those_the_nodes_enforce() -> None:
     assert rows["mapper", "mode"].range == "one of `rgbd`, `mono`"  # MapperParams.CHOICES
     assert rows["mapper", "mode"].description == "camera mode: rgbd, or mono (keyframes carry no depth)"
     assert rows["tracker", "camera.k1"].range == "[-1000000, 1000000]"  # CameraCalibration.RANGES: either sign
-    assert rows["tracker", "camera.fx"].range == "[0, 1e12]"  # config_params: non-negative default
-    assert rows["mapper", "mapping.max_gaussians"].range == "[0, 2147483647]"
+    assert rows["tracker", "camera.fx"].range == "[0, 1000000]"  # CameraCalibration.RANGES
+    assert rows["mapper", "mapping.max_gaussians"].range == "[0, 1000000000]"  # MappingConfig.RANGES
     assert rows["tracker", "camera_info_override"].range == ""  # bool: no range
     assert rows["merger", "render_fx"].default == "`258.65`" and rows["mapper", "lockstep_iterations"].default == "`10`"
     assert rows["recorder", "topics"].type == "string array"

@@ -22,7 +22,7 @@ from memgs_ros.orchestration.run_files import (
     RunOptions,
     RunSummary,
     build_params,
-    check_parameter_names,
+    check_parameters,
     check_record_path,
     configured_camera,
     node_params,
@@ -118,10 +118,11 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
 
 def check_config(config: str, overrides: dict | None = None) -> dict[str, dict]:
     """The run's per-node parameters from ``config`` and ``overrides``; ConfigError (before any node
-    starts) when the config does not load or names a parameter no node declares."""
+    starts) when the config does not load, names a parameter no node declares or gives one a value
+    its node would refuse (type, range, choices)."""
     params = node_params(build_params(RunOptions(source="", config=config, overrides=overrides or {}),
                                       Path("map.ply")))
-    check_parameter_names(params)
+    check_parameters(params)
     return params
 
 

@@ -160,9 +160,12 @@ class CameraCalibration:
     k5: float = 0.0  # rational_polynomial numerator (0 for plumb_bob)
     k6: float = 0.0  # rational_polynomial numerator (0 for plumb_bob)
 
-    # Distortion coefficients take either sign; the intrinsics keep the default non-negative range.
-    RANGES: ClassVar[dict[str, tuple[float, float]]] = dict.fromkeys(
-        ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), (-1000000.0, 1000000.0))
+    # Distortion coefficients take either sign; 0 everywhere means "no calibration given".
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "width": (0, 100_000), "height": (0, 100_000), "fx": (0.0, 1e6), "fy": (0.0, 1e6),
+        "cx": (-1e6, 1e6), "cy": (-1e6, 1e6),
+        **dict.fromkeys(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), (-1000000.0, 1000000.0)),
+    }
 
     def __post_init__(self) -> None:
         if not self.given:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, ClassVar
 
 from memgs_ros.core.gaussians import GaussianLearningRates
 from memgs_ros.errors import ConfigError
@@ -108,6 +108,28 @@ class MappingConfig:
     budget_target_fraction: float = 0.95  # enforcement stops at this fraction of the budget (hysteresis)
     budget_merge: bool = True  # merge (all keyframes, no gradient gate) before pruning, when merging is on
     budget_merge_voxel_scale: float = 1.0  # voxel of the budget merge = merge voxel x this
+
+    # Ranges a user can reason about, checked before a run starts (``memgs run --set``, config
+    # files) and again by the mapper node: a typo such as resolution_scale=50 (for 0.5) is refused
+    # instead of growing a 6 GB map.
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "lr_means": (0.0, 1.0), "lr_means_final": (0.0, 1.0), "lr_means_decay_steps": (1, 10**8),
+        "lr_sh_dc": (0.0, 1.0), "lr_sh_rest": (0.0, 1.0), "lr_opacity": (0.0, 1.0), "lr_scaling": (0.0, 1.0),
+        "lr_rotation": (0.0, 1.0), "scene_extent": (0.0, 1e4), "min_scene_extent": (1e-3, 1e4),
+        "ssim_lambda": (0.0, 1.0), "iso_weight": (0.0, 1e3), "depth_weight": (0.0, 1e3),
+        "seed_opacity": (1e-4, 0.9999), "exposure_lr": (0.0, 1.0), "exposure_reg": (0.0, 1e3),
+        "max_sh_degree": (0, 3), "sh_up_interval": (1, 10**8),
+        "densify_start_iter": (0, 10**8), "densify_stop_iter": (0, 10**8), "densify_interval": (1, 10**8),
+        "densify_grad_threshold": (0.0, 1.0), "percent_dense": (0.0, 1.0), "split_children": (2, 16),
+        "split_scale_factor": (1.0, 100.0), "prune_opacity": (0.0, 1.0), "prune_min_age_iters": (0, 10**8),
+        "max_screen_size_px": (0.0, 1e5), "min_keyframes": (1, 10**5), "new_keyframe_budget": (1, 10**4),
+        "pyramid_uses_per_level": (0, 10**4), "resolution_scale": (0.01, 2.0), "near_m": (1e-4, 100.0),
+        "merge_start_iter": (0, 10**8), "merge_interval": (1, 10**8), "merge_stop_iter": (0, 10**8),
+        "seed": (0, 2**31 - 1), "max_gaussians": (0, 10**9), "max_keyframes": (0, 10**5),
+        "max_model_mbytes": (0.0, 1e6), "max_mapper_mbytes": (0.0, 1e6), "budget_target_fraction": (0.1, 1.0),
+        "budget_merge_voxel_scale": (1.0, 1e3),
+    }
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"raster_backend": ("auto", "torch", "numba", "gsplat")}
 
     def __post_init__(self) -> None:
         for name in ("lr_means", "lr_means_final", "lr_sh_dc", "lr_sh_rest", "lr_opacity",

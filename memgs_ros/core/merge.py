@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal, NamedTuple
+from typing import TYPE_CHECKING, ClassVar, Literal, NamedTuple
 
 import torch
 
@@ -115,6 +115,15 @@ class MergeConfig:
     lbfgs_parametrization: Literal["sqrt_cov", "quat_scale"] = "sqrt_cov"
     init_scale_offset_m: tuple[float, float, float] = (0.001, 0.002, 0.003)
     slerp_t: float = 0.5
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "tau": (0.0, 1e30), "chi2_gate": (0.0, 1e3), "window_keyframes": (1, 10**5), "voxel_size_m": (1e-4, 10.0),
+        "max_per_voxel": (2, 10**4),
+        "lbfgs_lr": (1e-6, 1e3), "lbfgs_max_iter": (1, 10**4), "lbfgs_history": (1, 1000),
+        "lbfgs_tolerance_change": (0.0, 1.0), "lbfgs_tolerance_grad": (0.0, 1.0), "slerp_t": (0.0, 1.0),
+    }
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"colour_from": ("older", "newer"),
+                                                     "lbfgs_parametrization": ("sqrt_cov", "quat_scale")}
 
     def __post_init__(self) -> None:
         positive = {"tau": self.tau, "voxel_size_m": self.voxel_size_m, "chi2_gate": self.chi2_gate,

@@ -17,6 +17,7 @@ All images here are undistorted: :func:`memgs_ros.core.view.view_preparation` ma
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -57,6 +58,11 @@ class PatchGridConfig:
     # keeps most samples near structure while refusing to extrapolate across empty regions.
     max_px_dist: float = 20.0
     seed: int = 0  # seed of the sampler's random generator (see rng_for)
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "grid_size": (4, 4096), "num_thr": (0, 10**4), "margin_px": (0, 1024), "skip_short_px": (0, 4096),
+        "min_depth_m": (0.0, 1e3), "max_depth_m": (1e-3, 1e4), "max_px_dist": (0.0, 1e4), "seed": (0, 2**31 - 1),
+    }
 
     def __post_init__(self) -> None:
         if self.grid_size < 1:

@@ -26,7 +26,7 @@ __all__ = [
     "CHECKPOINT_FILE", "GRAPH_NODE_NAMES", "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE",
     "STATS_TIMELINE_FILE",
     "SUMMARY_FILE", "TRAJECTORY_FILE", "ConfiguredCamera", "RunOptions", "RunSummary", "build_params",
-    "check_parameter_names", "check_record_path", "config_path", "configured_camera", "node_params", "read_params",
+    "check_parameters", "check_record_path", "config_path", "configured_camera", "node_params", "read_params",
     "read_stats_timeline", "read_summary",
 ]
 
@@ -204,13 +204,16 @@ class ConfiguredCamera(NamedTuple):
     override: bool  # tracker.camera_info_override: the nodes use ``camera`` instead of camera_info
 
 
-def check_parameter_names(params: Mapping[str, Mapping[str, Any]]) -> None:
-    """ConfigError naming every parameter in {node: {param: value}} that its node does not declare
-    (rclpy would ignore it and the node would run on the default). Imports the node modules
-    (rclpy, torch) to read their parameter tables, but starts nothing."""
+def check_parameters(params: Mapping[str, Mapping[str, Any]]) -> None:
+    """ConfigError with one line per problem in {node: {param: value}}, before any node starts:
+    a name the node does not declare (rclpy would ignore it and the node would run on the
+    default), a value of the wrong type, out of its range or not one of its choices, or a group
+    its config refuses as a whole: what the node itself would refuse at start, in its words.
+    Imports the node modules (rclpy, torch) to read their parameter tables, but starts nothing."""
     import importlib
 
-    from memgs_ros.ros.config_params import module_parameter_names, unknown_parameters
+    from memgs_ros.ros.config_params import check_values, module_parameter_names, unknown_parameters
+    from memgs_ros.ros.params import check_value
 
     lines: list[str] = []
     for node, values in params.items():
@@ -218,6 +221,12 @@ def check_parameter_names(params: Mapping[str, Mapping[str, Any]]) -> None:
             raise ConfigError(f"parameters for '{node}': no such node (nodes: {', '.join(NODE_NAMES)})")
         module = importlib.import_module(f"memgs_ros.nodes.{node}")
         lines += unknown_parameters(node, values, module_parameter_names(module))
+        for prefix, config_cls in module.CONFIGS:
+            lines += check_values(config_cls, prefix, values, node=node)
+        for spec in getattr(module, "PARAMS", ()):  # a node not yet on CONFIGS alone
+            problem = check_value(spec, values[spec.name]) if spec.name in values else None
+            if problem is not None:
+                lines.append(f"{node}: {problem}")
     if lines:
         raise ConfigError("; ".join(lines))
 
