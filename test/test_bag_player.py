@@ -393,3 +393,24 @@ def test_declare_documents_range_and_refuses_runtime_changes(ros_domain_id: int)
     assert latched.durability == DurabilityPolicy.TRANSIENT_LOCAL and latched.depth == 1
     with pytest.raises(ValueError, match="depth must be >= 1"):
         qos.reliable(0)
+
+
+@pytest.mark.parametrize("strict", [False, True], ids=["skip", "strict"])
+def test_frames_going_backwards_or_changing_camera_are_skipped_and_counted(ros_domain_id: int, strict: bool) -> None:
+    """A stamp that does not follow the last one and a frame whose camera is not the first
+    frame's: skipped, counted by kind in the stats, and the replay goes on; strict ends it at
+    the first (done False)."""
+    from dataclasses import replace
+
+    frames = make_frames(6)
+    other = replace(CAM, fx=CAM.fx * 1.5)
+    bad = [*frames[:2], replace(frames[0], stamp_ns=frames[0].stamp_ns - 1), *frames[2:4],
+           replace(frames[4], camera=other), frames[5]]
+    player, rx = play_in_process(bad, ros_domain_id, lockstep=True, strict=strict)
+    sent = [s for s, _ in rx.color]
+    if strict:
+        assert sent == [f.stamp_ns for f in frames[:2]] and rx.done == [False]
+        return
+    assert sent == [f.stamp_ns for f in (*frames[:4], frames[5])] and rx.done == [True]
+    assert player.stats.counters["skipped.stamp_backwards"] == 1
+    assert player.stats.counters["skipped.camera_changed"] == 1

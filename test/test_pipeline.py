@@ -152,9 +152,13 @@ def test_namespaced_instances_do_not_cross_talk(tmp_path: Path, ros_domain_id: i
         assert summary["namespace"] == ns
 
 
-def test_source_failing_part_way_still_saves_the_map(tmp_path: Path, ros_domain_id: int) -> None:
-    """A TUM folder whose 11th colour image is corrupt: the run maps and saves the 10 frames
-    before it, reports the failure (exit 1, one line) and does not wait for its timeout."""
+@pytest.mark.parametrize("strict", [False, True], ids=["skip", "strict"])
+def test_a_corrupt_frame_is_skipped_and_counted_or_with_strict_ends_the_run(tmp_path: Path, ros_domain_id: int,
+                                                                           strict: bool) -> None:
+    """A TUM folder whose 11th colour image is corrupt. By default the frame is skipped: the run
+    maps the other 15, exits 0 and its summary counts the skipped frame by kind. With --strict
+    the run maps and saves the 10 frames before it, reports the failure (exit 1, one line) and
+    does not wait for its timeout."""
     from memgs_ros.io.synthetic import write_tum_folder
 
     folder = tmp_path / "seq"
@@ -165,13 +169,19 @@ def test_source_failing_part_way_still_saves_the_map(tmp_path: Path, ros_domain_
     cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", str(folder), "--config", "synthetic",
            "--single-process", "--domain-id", str(ros_domain_id), "--namespace", _own_ns(), "--out", str(out), "--json",
            str(tmp_path / "summary.json"), "--set", "mapper.lockstep_iterations=1",
-           "--set", "mapper.mapping.merge_enabled=false", "--timeout", "400"]
+           "--set", "mapper.mapping.merge_enabled=false", "--timeout", "400", *(["--strict"] if strict else [])]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert p.returncode == 1, (p.stdout[-2000:], p.stderr[-3000:])
-    assert "failed part-way" in p.stderr and "Traceback" not in p.stderr, p.stderr[-3000:]
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["source_complete"] is False
-    assert summary["frames"] == 10 and summary["poses"] == 10, summary
+    if strict:
+        assert p.returncode == 1, (p.stdout[-2000:], p.stderr[-3000:])
+        assert "failed part-way" in p.stderr and "Traceback" not in p.stderr, p.stderr[-3000:]
+        assert summary["source_complete"] is False
+        assert summary["frames"] == 10 and summary["poses"] == 10, summary
+    else:
+        assert p.returncode == 0, (p.stdout[-2000:], p.stderr[-3000:])
+        assert summary["source_complete"] is True and summary["skipped_frames"] == {"unreadable_image": 1}, summary
+        assert summary["frames"] == 15 and summary["poses"] == 15, summary
+        assert "skipped       1 unreadable_image" in p.stdout, p.stdout[-2000:]
     assert summary["gaussians"] > 0 and len(load_ply(Path(summary["ply_path"])).ids) == summary["gaussians"]
 
 

@@ -162,3 +162,25 @@ def test_quaternion_rows_are_checked(tmp_path):
     st, T = read_trajectory(p)
     assert st.tolist() == [1_000_000_000, 2_000_000_000]  # sorted
     np.testing.assert_allclose(T[1], pose_from_tq(np.array([1.0, 0, 0]), np.array([0, 0, 0, 1.0])))
+
+
+def test_a_bad_image_is_skipped_and_counted_or_refused_with_strict(tmp_path: Path) -> None:
+    """One unreadable colour image and one depth image of another size: iteration goes on past
+    both and counts them by kind; strict refuses the first, naming the file."""
+    import cv2
+
+    from memgs_ros.errors import DataError
+    from memgs_ros.io.tum import TumFolder
+
+    folder = tmp_path / "rgbd_dataset_freiburg1_x"
+    write_tum_folder(generate_frames(SyntheticSpec(width=32, height=24, n_frames=8, seed=2)), folder)
+    rgb = sorted((folder / "rgb").iterdir())
+    depth = sorted((folder / "depth").iterdir())
+    rgb[2].write_bytes(b"not a png")
+    cv2.imwrite(str(depth[5]), np.zeros((10, 10), np.uint16))
+    source = TumFolder(folder)
+    frames = list(source)
+    assert len(frames) == 6 and dict(source.skipped) == {"unreadable_image": 1, "size_mismatch": 1}
+    assert [f.stamp_ns for f in frames] == [e.stamp_ns for k, e in enumerate(source.entries) if k not in (2, 5)]
+    with pytest.raises(DataError, match="unreadable_image"):
+        list(TumFolder(folder, strict=True))

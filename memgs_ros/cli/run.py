@@ -55,6 +55,9 @@ def add_graph_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--namespace", default="", help="ROS namespace for every node (e.g. /uav1)")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: a random free-ish one)")
     p.add_argument("--max-frames", type=int, default=0, help="stop after this many frames (0 = all)")
+    p.add_argument("--strict", action="store_true",
+                   help="stop at the first bad frame (unreadable or mis-sized image, stamp going backwards, "
+                        "camera changing) instead of skipping it and counting it in the summary")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
                    help="override a node parameter, e.g. mapper.mapping.resolution_scale=0.25 (repeatable)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
@@ -111,7 +114,7 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
         source=source, config=args.config or guess_config(source), out_dir=args.out,
         single_process=args.single_process, lockstep=not args.realtime, rate=args.rate,
         namespace=args.namespace, domain_id=args.domain_id, max_frames=args.max_frames,
-        overrides=overrides, timeout_s=args.timeout, kill_after_s=kills,
+        overrides=overrides, timeout_s=args.timeout, kill_after_s=kills, strict=args.strict,
         record=check_record_path(args.record) if getattr(args, "record", None) is not None else None,
         rerun=rerun_target(args))
 
@@ -226,6 +229,9 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
     if s.restarts:
         print(f"faults        restarted {s.restarts}; merger resyncs {s.merger_resyncs}; "
               f"merger == mapper: {s.replica_identical}")
+    if s.skipped_frames:
+        print("skipped       " + ", ".join(f"{n} {kind}" for kind, n in sorted(s.skipped_frames.items()))
+              + " (bad frames; --strict stops at the first)")
     print(f"wall time     {s.wall_s:.1f} s")
     if s.cpu_s:
         print("CPU time      " + ", ".join(f"{n} {v:.1f} s" for n, v in s.cpu_s.items()))

@@ -46,6 +46,7 @@ from memgs_ros.io.image_decoding import (
     decode_depth,
     decode_rgb,
 )
+from memgs_ros.io.skips import SkipLog
 from memgs_ros.io.tum import associate
 
 logger = logging.getLogger(__name__)
@@ -119,12 +120,13 @@ class BagSource:
     path: ROS 1 ``.bag`` file, ROS 2 bag directory, or a bare ``.mcap`` / ``.db3`` file.
     depth_scale: 16UC1 / mono16 depth units per metre (RealSense 1000, TUM PNG-style 5000).
     Images decode as :mod:`memgs_ros.io.image_decoding` says: RGB uint8, depth metres with NaN invalid.
-    with_depth: False pairs nothing and yields every colour image with depth None.
+    with_depth: False pairs nothing and yields every colour image with depth None. A bad message
+    or frame is skipped and counted in ``skipped`` by kind (``strict``: DataError instead).
     """
 
     def __init__(self, path: str | Path, topics: BagTopics = BagTopics(), camera: PinholeCamera | None = None,
                  max_dt_s: float = 0.02, depth_scale: float = DEFAULT_DEPTH_SCALE, with_depth: bool = True,
-                 gt_max_gap_s: float = 0.1, max_frames: int | None = None) -> None:
+                 gt_max_gap_s: float = 0.1, max_frames: int | None = None, strict: bool = False) -> None:
         self.path = Path(path)
         self.name = self.path.name
         self.topics = topics
@@ -132,8 +134,8 @@ class BagSource:
             raise ConfigError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
         self.depth_scale = float(depth_scale)
         self.with_depth = with_depth
-        self.skipped: dict[str, int] = defaultdict(int)
-        self._logged: set[str] = set()
+        self._skips = SkipLog(str(self.path), strict)
+        self.skipped = self._skips.counts  # bad frames and messages skipped, by kind
         if not self.path.exists():
             raise DataError(f"{self.path}: bag not found")
         self._scan(camera, max_dt_s, gt_max_gap_s, max_frames)
@@ -141,11 +143,7 @@ class BagSource:
     # ------------------------------------------------------------------ helpers
 
     def _skip(self, kind: str, detail: str = "", n: int = 1, level: int = logging.WARNING) -> None:
-        self.skipped[kind] += n
-        if kind not in self._logged:
-            self._logged.add(kind)
-            logger.log(level, "%s: skipping %s%s (logged once; counted in skipped)", self.path, kind,
-                           f": {detail}" if detail else "")
+        self._skips.skip(kind, detail, n, level)
 
     def _open(self) -> Any:
         from rosbags.highlevel import AnyReader

@@ -101,7 +101,8 @@ _TUM_TOPICS = BagTopics()
 def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = None, max_dt_s: float = 0.02, *,
                 depth_factor: float | None = None, depth_scale: float = DEFAULT_DEPTH_SCALE,
                 topics: BagTopics = _TUM_TOPICS, with_depth: bool = True,
-                max_frames: int | None = None, default_camera: PinholeCamera | None = None) -> FrameSource:
+                max_frames: int | None = None, default_camera: PinholeCamera | None = None,
+                strict: bool = False) -> FrameSource:
     """Open any frame input (module docstring).
 
     camera: overrides the camera from the data (TUM name/camera.json, bag CameraInfo);
@@ -111,7 +112,8 @@ def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = Non
     max_dt_s: colour/depth pairing tolerance. depth_factor: TUM PNG units per metre
       (default from the folder). depth_scale: 16UC1 bag depth units per metre.
     topics: bag topic/frame names. with_depth: False = colour only (monocular).
-    max_frames: keep only the first N frames.
+    max_frames: keep only the first N frames. strict: a bad frame of a TUM folder or bag is a
+      DataError instead of being skipped and counted in the source's ``skipped``.
     """
     if max_frames is not None and max_frames < 1:
         raise ConfigError(f"max_frames must be >= 1, got {max_frames}")
@@ -125,9 +127,9 @@ def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = Non
         return SyntheticSource(s, with_depth=with_depth)
     if kind == "tum":
         return TumFolder(spec, camera=camera, depth_factor=depth_factor, max_dt_s=max_dt_s, with_depth=with_depth,
-                         max_frames=max_frames, default_camera=default_camera)
+                         max_frames=max_frames, default_camera=default_camera, strict=strict)
     return BagSource(spec, topics=topics, camera=camera, max_dt_s=max_dt_s, depth_scale=depth_scale,
-                     with_depth=with_depth, max_frames=max_frames)
+                     with_depth=with_depth, max_frames=max_frames, strict=strict)
 
 
 __all__ = ["FrameSource", "SyntheticSource", "open_source", "source_kind"]

@@ -28,6 +28,7 @@ from memgs_ros.core.frame import Frame
 from memgs_ros.core.geometry import interpolate_poses, quat_xyzw_to_rotmat
 from memgs_ros.core.trajectory import associate as associate_stamps
 from memgs_ros.errors import DataError
+from memgs_ros.io.skips import SkipLog
 
 logger = logging.getLogger(__name__)
 
@@ -188,13 +189,17 @@ class TumFolder:
     Frames are the RGB images associated one-to-one with a depth image within ``max_dt_s``
     (``with_depth=False``: every RGB image, depth None), stamped with the RGB time, with
     ground truth interpolated at that time (None outside the ground-truth range or across
-    a gap longer than ``gt_max_gap_s``).
+    a gap longer than ``gt_max_gap_s``). A frame whose image is missing, unreadable or of another
+    size is skipped and counted in ``skipped`` by kind (``strict``: DataError instead).
     """
 
     def __init__(self, path: str | Path, camera: PinholeCamera | None = None, depth_factor: float | None = None,
                  max_dt_s: float = 0.02, with_depth: bool = True, gt_max_gap_s: float = 0.1,
-                 max_frames: int | None = None, default_camera: PinholeCamera | None = None) -> None:
+                 max_frames: int | None = None, default_camera: PinholeCamera | None = None,
+                 strict: bool = False) -> None:
         self.path = Path(path)
+        self._skips = SkipLog(str(self.path), strict)
+        self.skipped = self._skips.counts  # frames skipped while iterating, by kind
         if not self.path.is_dir():
             raise DataError(f"{self.path}: not a directory (expected a TUM RGB-D folder)")
         self.name = self.path.name
@@ -259,13 +264,18 @@ class TumFolder:
     def __iter__(self) -> Iterator[Frame]:
         camera = self.camera
         for k, e in enumerate(self.entries):
-            rgb = load_rgb(self.path / e.rgb_path)
-            depth = load_depth(self.path / e.depth_path, self.depth_factor) if e.depth_path is not None else None
+            try:
+                rgb = load_rgb(self.path / e.rgb_path)
+                depth = load_depth(self.path / e.depth_path, self.depth_factor) if e.depth_path is not None else None
+            except DataError as err:
+                self._skips.skip("unreadable_image", str(err))
+                continue
             gt = self._frame_gt[k].copy() if self._frame_gt_valid[k] else None
             try:
                 frame = Frame(e.stamp_ns, rgb, depth, camera, gt)
             except DataError as err:
-                raise DataError(f"{self.path / e.rgb_path}: {err}") from err
+                self._skips.skip("size_mismatch", f"{self.path / e.rgb_path}: {err}")
+                continue
             yield frame
 
     def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:

@@ -40,9 +40,10 @@ from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Bool, Header
 
-from memgs_ros.core.camera import CameraCalibration
+from memgs_ros.core.camera import CameraCalibration, PinholeCamera
 from memgs_ros.core.frame import Frame
 from memgs_ros.errors import ConfigError, MemgsError
+from memgs_ros.io.skips import SkipLog
 from memgs_ros.ros import codecs, qos
 from memgs_ros.ros.camera_params import CAMERA_PREFIX, declare_calibration
 from memgs_ros.ros.config_params import declare_config
@@ -81,6 +82,9 @@ class BagPlayerParams:
     depth_scale: float = 1000.0  # 16UC1 units per metre (1000 = millimetres)
     frame_id: str = "camera_color_optical_frame"  # frame id of the images and camera info
     world_frame_id: str = "world"  # frame id of the ground-truth poses
+    # stop at the first bad frame (unreadable or mis-sized image, stamp going backwards, a camera that
+    # changes mid-run) instead of skipping and counting it (skipped.<kind> in the stats)
+    strict: bool = False
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "rate": (0.01, 1000.0), "ack_timeout_s": (0.05, 3600.0), "start_delay_s": (0.0, 600.0),
@@ -104,10 +108,13 @@ class BagPlayer(Node):
                 raise ConfigError("parameter 'source' is empty: give a TUM folder, bag or 'synthetic:...' spec")
             from memgs_ros.io.sources import open_source  # heavy readers only when replaying files
 
-            source = open_source(self.cfg.source, default_camera=folder_camera)
+            source = open_source(self.cfg.source, default_camera=folder_camera, strict=self.cfg.strict)
             _ = source.camera  # a TUM folder with no camera fails here, before the first frame
             frames = source
         self._source = frames
+        # Frames skipped here (stamp going backwards, camera changed); the source counts its own.
+        self._skips = SkipLog("bag_player", self.cfg.strict)
+        self._first_camera: PinholeCamera | None = None
         self.finished: Future = Future()
         self.ok = True
 
@@ -274,24 +281,33 @@ class BagPlayer(Node):
     # ------------------------------------------------------------------ frames
 
     def _prefetch(self) -> None:
-        """Load the next frame into self._next (None at the end), handling loops and max_frames."""
+        """Load the next good frame into self._next (None at the end), handling loops and
+        max_frames; bad frames are skipped and counted (``strict``: the replay fails instead)."""
         self._next = None
         if self.cfg.max_frames and self._published >= self.cfg.max_frames:
             return
-        try:
-            frame = next(self._it, None)
-            if frame is None and self.cfg.loop and self._first_src_ns is not None:
-                span = (self._last_src_ns or self._first_src_ns) - self._first_src_ns
-                self._loop_offset_ns += span + self._period_ns
-                self._first_src_ns = self._last_src_ns = None
-                self._it = iter(self._source)
+        while True:
+            try:
                 frame = next(self._it, None)
-        except MemgsError as err:
-            self.get_logger().error(f"cannot read the next frame: {err}")
-            self.ok = False
-            return
-        if frame is None:
-            return
+                if frame is None and self.cfg.loop and self._first_src_ns is not None:
+                    span = (self._last_src_ns or self._first_src_ns) - self._first_src_ns
+                    self._loop_offset_ns += span + self._period_ns
+                    self._first_src_ns = self._last_src_ns = None
+                    self._it = iter(self._source)
+                    frame = next(self._it, None)
+                problem = None if frame is None else self._bad_frame(frame)
+                if problem is not None:
+                    self._skips.skip(*problem)
+            except MemgsError as err:
+                self.get_logger().error(f"cannot read the next frame: {err}")
+                self.ok = False
+                return
+            finally:
+                self._count_skips()
+            if frame is None:
+                return
+            if problem is None:
+                break
         if self._first_src_ns is None:
             self._first_src_ns = frame.stamp_ns
         elif self._last_src_ns is not None and frame.stamp_ns > self._last_src_ns and self._published < 2:
@@ -299,6 +315,23 @@ class BagPlayer(Node):
         self._last_src_ns = frame.stamp_ns
         self._next = frame
         self._next_stamp_ns = frame.stamp_ns + self._loop_offset_ns
+
+    def _bad_frame(self, frame: Frame) -> tuple[str, str] | None:
+        """(kind, detail) when ``frame`` must be skipped: its stamp does not follow the last one of
+        this pass, or its camera is not the first frame's (the nodes keep one calibration)."""
+        if self._last_src_ns is not None and frame.stamp_ns <= self._last_src_ns:
+            return "stamp_backwards", f"{frame.stamp_ns} after {self._last_src_ns}"
+        if self._first_camera is None:
+            self._first_camera = frame.camera
+        elif frame.camera != self._first_camera:
+            return "camera_changed", f"{frame.camera} (first frame: {self._first_camera})"
+        return None
+
+    def _count_skips(self) -> None:
+        """Frames skipped so far (by the source and here) into the stats, by kind."""
+        for log in (getattr(self._source, "skipped", {}), self._skips.counts):
+            for kind, n in log.items():
+                self.stats.counters[f"skipped.{kind}"] = n
 
     def _publish_next(self) -> None:
         frame, stamp_ns = self._next, self._next_stamp_ns

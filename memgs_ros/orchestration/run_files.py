@@ -66,6 +66,8 @@ class RunOptions:
     # the player starts, and start them again at once (the mapper resumes from its checkpoint).
     kill_after_s: Mapping[str, float] = field(default_factory=dict)
     timeout_s: float = 1800.0
+    # Stop at the first bad frame instead of skipping and counting it (the player's strict).
+    strict: bool = False
     # Record every output topic into this .mcap file (a recorder node; see check_record_path).
     record: Path | None = None
     # Stream the run to Rerun (viewer and/or .rrd file) through a rerun_bridge node; None = no view.
@@ -102,6 +104,7 @@ class RunSummary:
     render_std: float  # spread of its pixel values in [0, 255]: ~0 means a blank view
     source_complete: bool = True  # False: the source failed part-way; the map holds what was played
     cpu_s: dict[str, float] = field(default_factory=dict)  # per node process, from its last stats (s)
+    skipped_frames: dict[str, int] = field(default_factory=dict)  # bad frames the player skipped, by kind
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -140,7 +143,8 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         params[node] = dict(node_params)
     params.setdefault("bag_player", {}).update(
         source=str(options.source), lockstep=options.lockstep, rate=float(options.rate),
-        max_frames=int(options.max_frames), ack_topic="memgs/frame_ack", world_frame_id="map")
+        max_frames=int(options.max_frames), ack_topic="memgs/frame_ack", world_frame_id="map",
+        strict=bool(options.strict))
     params.setdefault("mapper", {})["lockstep"] = options.lockstep
     if float(options.start_delays_s.get("tracker", 0.0)) <= 0:
         # The first frame waits for the tracker's readers, not just any reader (a Rerun bridge
