@@ -76,7 +76,6 @@ from memgs_ros.orchestration.run_files import (
 from memgs_ros.viz import RerunTarget
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 __all__ = [
     "ABLATION_LABELS",

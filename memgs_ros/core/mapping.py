@@ -50,7 +50,6 @@ from memgs_ros.core.view import view_preparation
 from memgs_ros.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 _log = logging.getLogger(__name__)
-_log.addHandler(logging.NullHandler())
 
 # glibc <malloc.h> parameter numbers.
 _M_TRIM_THRESHOLD = -1

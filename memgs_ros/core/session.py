@@ -52,7 +52,6 @@ from memgs_ros.core.worker import BACKGROUND_ERROR_PAUSE_S, Command, CommandWork
 from memgs_ros.errors import DataError
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 T = TypeVar("T")
 

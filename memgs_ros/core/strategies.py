@@ -30,7 +30,6 @@ if TYPE_CHECKING:
     from memgs_ros.core.mapping_config import MappingConfig
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 # Budget merge passes per enforcement: each pass merges at most one pair per voxel, so a map far
 # over budget may need several; the rest is pruned.

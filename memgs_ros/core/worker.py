@@ -30,7 +30,6 @@ from typing import Any, Generic, TypeVar
 from memgs_ros.errors import MemgsError
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 T = TypeVar("T")
 

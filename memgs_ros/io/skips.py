@@ -13,7 +13,6 @@ from collections import Counter
 from memgs_ros.errors import DataError
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 
 class SkipLog:

@@ -58,7 +58,6 @@ from memgs_ros.ros.codecs import image_to_numpy, pointcloud2_to_structured, pose
 from memgs_ros.ros.diagnostics import stats_values
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 __all__ = ["GRAPH_NODES", "NODE_MODULES", "PipelineError", "RunOptions", "RunSummary", "run_pipeline"]
 

@@ -25,7 +25,6 @@ from memgs_ros.errors import PipelineError
 from memgs_ros.nodes.registry import NODES
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 VIEW_NODE = "rerun_bridge"  # started after the graph when RunOptions.rerun is set
 

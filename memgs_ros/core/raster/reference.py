@@ -65,14 +65,8 @@ def _composite_reference(
     )
 
 
-def _rasterize_reference(
-    gaussians: Gaussians,
-    T_cw: Tensor,  # [4, 4]
-    camera: PinholeCamera,
-    sh_degree: int,
-    background: Tensor | None = None,  # [3]
-    near: float = 0.01,
-) -> RenderOutput:
+def _rasterize_reference(gaussians: Gaussians, T_cw: Tensor, camera: PinholeCamera, sh_degree: int,
+                         background: Tensor | None = None, near: float = 0.01) -> RenderOutput:
     """Reference twin of :func:`memgs_ros.core.raster.rasterize` (torch backend), for tests.
 
     Same arguments and :class:`RenderOutput`; ``visible`` is "alpha >= 1/255 at some pixel".
