@@ -225,6 +225,7 @@ def _cast(scene: SyntheticScene, T_wc: np.ndarray,
                 tnear = np.where(later, tmin, tnear)
                 face = np.where(later, np.where(pk, np.int32(2 * k), np.int32(2 * k + 1)), face)
                 tfar = np.minimum(tfar, tmax)
+        assert tnear is not None and tfar is not None and face is not None  # three axes ran
         tw = t[win]
         hit = (tnear <= tfar) & (tnear > 0) & (tnear < tw)
         t[win] = np.where(hit, tnear, tw)
