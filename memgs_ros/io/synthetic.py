@@ -211,21 +211,20 @@ def _cast(scene: SyntheticScene, T_wc: np.ndarray,
         if win is None:
             continue
         blo32, bhi32 = blo.astype(np.float32), bhi.astype(np.float32)
-        tnear = tfar = face = None
+        slabs = []
         for k in range(3):
             pk, ik = pos[k][win], inv[k][win]
             t1 = (blo32[k] - o[k]) * ik
             t2 = (bhi32[k] - o[k]) * ik
             # a ray going +axis enters through the lo face (side 0)
-            tmin, tmax = np.where(pk, t1, t2), np.where(pk, t2, t1)
-            if tnear is None:
-                tnear, tfar, face = tmin, tmax, np.where(pk, np.int32(2 * k), np.int32(2 * k + 1))
-            else:
-                later = tmin > tnear
-                tnear = np.where(later, tmin, tnear)
-                face = np.where(later, np.where(pk, np.int32(2 * k), np.int32(2 * k + 1)), face)
-                tfar = np.minimum(tfar, tmax)
-        assert tnear is not None and tfar is not None and face is not None  # three axes ran
+            side = np.where(pk, np.int32(2 * k), np.int32(2 * k + 1))
+            slabs.append((np.where(pk, t1, t2), np.where(pk, t2, t1), side))
+        tnear, tfar, face = slabs[0]
+        for tmin, tmax, side in slabs[1:]:
+            later = tmin > tnear
+            tnear = np.where(later, tmin, tnear)
+            face = np.where(later, side, face)
+            tfar = np.minimum(tfar, tmax)
         tw = t[win]
         hit = (tnear <= tfar) & (tnear > 0) & (tnear < tw)
         t[win] = np.where(hit, tnear, tw)
