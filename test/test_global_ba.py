@@ -1,5 +1,8 @@
-"""Global bundle adjustment (sparse Schur) on a toy ring map with a loop error."""
+"""Global bundle adjustment (sparse Schur) on a toy ring map with a loop error, and the LM loop it shares."""
 from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
 
 import numpy as np
 
@@ -89,8 +92,37 @@ def test_global_ba_time_budget_returns_the_best_so_far() -> None:
 def test_global_ba_observations_per_point_are_bounded() -> None:
     # A place seen again and again gives points with a hundred observations: the global BA keeps
     # few enough per point that its observation pairs stay bounded; ordinary maps keep them all.
-    from memgs_ros.core.tracking.frontend import _GLOBAL_BA_MAX_PAIRS, _max_observations_per_point
+    from memgs_ros.core.tracking.ba_problem import _GLOBAL_BA_MAX_PAIRS, _max_observations_per_point
 
     assert _max_observations_per_point([2, 3, 5]) == 5
     m = _max_observations_per_point([100] * 23000)
     assert 2 <= m < 100 and 23000 * m * m <= _GLOBAL_BA_MAX_PAIRS
+
+
+def test_one_lm_loop_stops_on_convergence_or_budget() -> None:
+    from memgs_ros.core.tracking.lm import LMSettings, lm_iterations, solve
+
+    # Fit a, b of y = a * exp(b t): Gauss-Newton with the shared damping loop.
+    t = np.linspace(0.0, 1.0, 20)
+    y = 2.0 * np.exp(-1.5 * t)
+
+    def evaluate(x: np.ndarray) -> tuple[np.ndarray, float]:
+        r = x[0] * np.exp(x[1] * t) - y
+        return r, 0.5 * float(r @ r)
+
+    def linearise(x: np.ndarray, r: np.ndarray) -> Callable[[float], np.ndarray | None]:
+        J = np.column_stack([np.exp(x[1] * t), x[0] * t * np.exp(x[1] * t)])
+        H, g = J.T @ J, J.T @ r
+
+        def propose(lam: float) -> np.ndarray | None:
+            return x - np.linalg.solve(H + lam * np.diag(np.diag(H)), g)
+
+        return propose
+
+    steps = list(lm_iterations(np.array([1.0, 0.0]), evaluate, linearise, 50, LMSettings(rel_tol=1e-12)))
+    assert steps[0].iterations == 0 and steps[0].n_evaluations == 1
+    assert [s.iterations for s in steps] == list(range(len(steps))) and len(steps) < 51
+    np.testing.assert_allclose(steps[-1].x, [2.0, -1.5], atol=1e-6)
+    assert all(b.cost <= a.cost for a, b in itertools.pairwise(steps))
+    first = solve(lm_iterations(np.array([1.0, 0.0]), evaluate, linearise, 50), time_budget_s=0.0)
+    assert first.iterations == 0 and first.cost == first.initial_cost

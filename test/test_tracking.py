@@ -244,14 +244,15 @@ def test_local_ba_reduces_error_and_matches_reference() -> None:
     assert np.median(np.linalg.norm(fast.points_w - ref.points_w, axis=1)) < 2e-3
 
 
-def test_close_stops_ba_thread(frames: list[Frame]) -> None:
+def test_close_stops_the_backend_thread(frames: list[Frame]) -> None:
     tracker = make_tracker(TrackerConfig(), frames[0].camera)
     tracker.track(frames[0])
-    thread = tracker._ba_thread
-    assert thread is not None and thread.is_alive()
+    backend = tracker.backend
+    assert backend.threaded and backend.alive
     tracker.close()
-    assert not thread.is_alive()
-    tracker.close()  # idempotent
+    assert not backend.alive
+    assert backend.close()  # idempotent: the thread has ended
+    tracker.close()
 
 
 def test_orbslam3_backend_without_binding_is_a_clear_error(frames: list[Frame]) -> None:

@@ -58,8 +58,15 @@ from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode
 from memgs_ros.ros import qos
 from memgs_ros.ros.camera_params import CAMERA_PREFIX, declare_calibration
 from memgs_ros.ros.codecs import (
-    append_to_path, camera_to_camera_info, depth_to_image, make_header, matrix_to_odometry, matrix_to_pose_stamped,
-    numpy_to_image, stamp_to_ns, structured_to_pointcloud2,
+    append_to_path,
+    camera_to_camera_info,
+    depth_to_image,
+    make_header,
+    matrix_to_odometry,
+    matrix_to_pose_stamped,
+    numpy_to_image,
+    stamp_to_ns,
+    structured_to_pointcloud2,
 )
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats

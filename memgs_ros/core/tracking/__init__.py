@@ -10,8 +10,16 @@ from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, Tracking
 from memgs_ros.core.tracking.frontend import FeatureTracker
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
 
-__all__ = ["KeyframeInfo", "TrackResult", "TrackerConfig", "TrackingState", "FeatureTracker", "SparseMapStats",
-           "Tracker", "make_tracker"]
+__all__ = [
+    "FeatureTracker",
+    "KeyframeInfo",
+    "SparseMapStats",
+    "TrackResult",
+    "Tracker",
+    "TrackerConfig",
+    "TrackingState",
+    "make_tracker",
+]
 
 
 def make_tracker(cfg: TrackerConfig, camera: PinholeCamera) -> Tracker:

@@ -14,7 +14,6 @@ path runs. Compiled on first use and cached on disk (``cache=True``).
 """
 from __future__ import annotations
 
-
 import numpy as np
 
 from memgs_ros.core.runtime import numba_available  # noqa: F401 - re-exported

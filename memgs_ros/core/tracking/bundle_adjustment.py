@@ -10,6 +10,7 @@ Poses are ``T_cw`` perturbed on the left: ``R <- exp(w) R``, ``t <- exp(w) t + v
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -19,6 +20,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from memgs_ros.core.tracking._compiled import numba_available, optimize_pose_kernel
+from memgs_ros.core.tracking.lm import LMProgress, lm_iterations, solve
 
 CHI2_MONO = 5.991  # chi-square 95 %, 2 dof
 CHI2_STEREO = 7.815  # chi-square 95 %, 3 dof
@@ -216,7 +218,7 @@ def _local_bundle_adjustment_scipy(prob: BAProblem, K: np.ndarray, bf: float, hu
     Slow (LSMR on the full system: seconds for ~10k observations), kept to check the fast
     Schur-complement solver against. Huber is applied per residual component here.
     """
-    C, P, O = len(prob.T_cw), len(prob.points_w), len(prob.obs_cam)
+    C, P, n_obs = len(prob.T_cw), len(prob.points_w), len(prob.obs_cam)
     free = np.flatnonzero(~prob.fixed)
     pose_col = np.full(C, -1, dtype=np.int64)
     pose_col[free] = np.arange(len(free)) * 6
@@ -248,7 +250,7 @@ def _local_bundle_adjustment_scipy(prob: BAProblem, K: np.ndarray, bf: float, hu
         return (_residuals(p_c, obs, has_depth, K, bf) * s[:, None]).ravel()
 
     # Sparsity pattern: each observation's 3 rows touch its camera's 6 and its point's 3 columns.
-    rows_base = (np.arange(O) * 3)[:, None] + np.arange(3)[None, :]  # [O, 3]
+    rows_base = (np.arange(n_obs) * 3)[:, None] + np.arange(3)[None, :]  # [O, 3]
     cam_free = pose_col[cam] >= 0
 
     def jac(x: np.ndarray) -> sp.csr_matrix:
@@ -260,7 +262,7 @@ def _local_bundle_adjustment_scipy(prob: BAProblem, K: np.ndarray, bf: float, hu
         J_pt = Jp @ R[cam]  # [O, 3, 3]
         r_pt = np.repeat(rows_base[:, :, None], 3, axis=2)
         c_pt = n_pose + (pt * 3)[:, None, None] + np.arange(3)[None, None, :]
-        c_pt = np.broadcast_to(c_pt, (O, 3, 3))
+        c_pt = np.broadcast_to(c_pt, (n_obs, 3, 3))
         rows = [r_pt.ravel()]
         cols = [c_pt.ravel()]
         vals = [J_pt.ravel()]
@@ -272,7 +274,7 @@ def _local_bundle_adjustment_scipy(prob: BAProblem, K: np.ndarray, bf: float, hu
             cols.append(c_po.ravel())
             vals.append(J_pose[cam_free].ravel())
         return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                             shape=(3 * O, n_pose + 3 * P))
+                             shape=(3 * n_obs, n_pose + 3 * P))
 
     x0 = np.concatenate([np.zeros(n_pose), prob.points_w.ravel()])
     res = least_squares(fun, x0, jac=jac, method="trf", loss="huber", f_scale=huber_px,
@@ -326,114 +328,149 @@ def _obs_pairs(obs_point: np.ndarray, n_points: int) -> tuple[np.ndarray, np.nda
     return o1, o2
 
 
+class _Segments:
+    """Sums of per-observation values grouped by an integer key in [0, n) (sort once, reduceat)."""
+
+    def __init__(self, keys: np.ndarray, n: int) -> None:
+        self.order = np.argsort(keys, kind="stable")
+        k = keys[self.order]
+        self.start = np.flatnonzero(np.r_[True, k[1:] != k[:-1]]) if len(k) else np.zeros(0, np.int64)
+        self.keys = k[self.start]
+        self.n = n
+
+    def sum(self, a: np.ndarray) -> np.ndarray:
+        """a: [len(keys), ...] -> [n, ...] (zeros for keys never seen)."""
+        out = np.zeros((self.n,) + a.shape[1:])
+        if len(self.start):
+            out[self.keys] = np.add.reduceat(a[self.order], self.start, axis=0)
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class BABlocks:
+    """Normal-equation blocks of a BA state (Huber IRLS weights applied).
+
+    Hpp: [P, 3, 3], gp: [P, 3] per point; Hcp: [F, 6, 3] per observation by a free camera;
+    Hcc: [nf, 6, 6], gc: [nf, 6] per free camera.
+    """
+
+    Hpp: np.ndarray
+    gp: np.ndarray
+    Hcp: np.ndarray
+    Hcc: np.ndarray
+    gc: np.ndarray
+
+
+BAState = tuple[np.ndarray, np.ndarray]  # (T_cw [C, 4, 4], points_w [P, 3])
+BAAux = tuple[np.ndarray, np.ndarray]  # (p_c [O, 3], whitened residuals r [O, 3])
+
+
+class BAGeometry:
+    """What stays fixed while one BA problem is solved: observations, free cameras, groupings.
+
+    Shared by the local (dense reduced system) and global (sparse pairs) solvers; both run the one
+    Levenberg-Marquardt loop of ``lm``. ``free``: [nf] free camera indices; ``of``: [F] observations
+    by free cameras, with their slot ``of_slot`` [F] and point ``of_pt`` [F]; ``per_point``,
+    ``per_cam`` and ``per_free_point`` sum per-observation values over those groupings.
+    """
+
+    def __init__(self, prob: BAProblem, K: np.ndarray, bf: float, huber_px: float) -> None:
+        self.prob, self.K, self.bf, self.huber_px = prob, K, bf, huber_px
+        self.n_points = len(prob.points_w)
+        self.free = np.flatnonzero(~prob.fixed)
+        self.nf = len(self.free)
+        slot = np.full(len(prob.T_cw), -1, dtype=np.int64)
+        slot[self.free] = np.arange(self.nf)
+        self.obs, self.has_depth = observed_uvr(prob.obs_uv, prob.obs_depth, bf)
+        self.cam, self.pt, self.s = prob.obs_cam, prob.obs_point, prob.obs_inv_sigma
+        o_slot = slot[self.cam]
+        self.of = np.flatnonzero(o_slot >= 0)
+        self.of_slot, self.of_pt = o_slot[self.of], self.pt[self.of]
+        self.per_point = _Segments(self.pt, self.n_points)
+        self.per_cam = _Segments(self.of_slot, self.nf)
+        self.per_free_point = _Segments(self.of_pt, self.n_points)
+
+    def initial(self) -> BAState:
+        return self.prob.T_cw.copy(), self.prob.points_w.copy()
+
+    def evaluate(self, x: BAState) -> tuple[BAAux, float]:
+        p_c, r, cost = _huber_residuals(x[0], x[1], self.cam, self.pt, self.obs, self.has_depth, self.s,
+                                        self.K, self.bf, self.huber_px)
+        return (p_c, r), cost
+
+    def blocks(self, x: BAState, aux: BAAux) -> BABlocks:
+        T, (p_c, r), of = x[0], aux, self.of
+        e = np.sqrt(np.einsum("ij,ij->i", r, r))
+        w = np.where(e <= self.huber_px, 1.0, self.huber_px / np.maximum(e, 1e-12))  # IRLS Huber weight [O]
+        Jp = _projection_jacobian(p_c, self.K[0, 0], self.K[1, 1], self.bf)
+        Jp[~self.has_depth, 2, :] = 0.0
+        Jp *= self.s[:, None, None]
+        Jx = np.matmul(Jp, T[self.cam, :3, :3])  # d r / d X [O, 3, 3]
+        wJxT = (Jx * w[:, None, None]).transpose(0, 2, 1)  # [O, 3, 3]
+        Hpp = self.per_point.sum(np.matmul(wJxT, Jx))
+        gp = self.per_point.sum(np.matmul(wJxT, r[:, :, None])[:, :, 0])
+        Jc = np.concatenate([-np.matmul(Jp[of], _skew(p_c[of])), Jp[of]], axis=2)  # [F, 3, 6]
+        wJcT = (Jc * w[of, None, None]).transpose(0, 2, 1)  # [F, 6, 3]
+        return BABlocks(Hpp, gp, np.matmul(wJcT, Jx[of]), self.per_cam.sum(np.matmul(wJcT, Jc)),
+                        self.per_cam.sum(np.matmul(wJcT, r[of, :, None])[:, :, 0]))
+
+    def stepped(self, x: BAState, dc: np.ndarray, dX: np.ndarray) -> BAState:
+        """State after camera steps dc [nf, 6] (left update) and point steps dX [P, 3]."""
+        T_new = x[0].copy()
+        for i, c in enumerate(self.free.tolist()):
+            T_new[c] = apply_left_update(x[0][c], dc[i])
+        return T_new, x[1] + dX
+
+    def result(self, progress: LMProgress[BAState, BAAux]) -> BAResult:
+        """The BAResult of an LM state: poses re-orthonormalised, chi-square inliers per observation."""
+        (T, X), (_, r) = progress.x, progress.aux
+        chi2 = np.einsum("ij,ij->i", r, r)
+        p_cz = np.einsum("oij,oj->oi", T[self.cam, :3, :3], X[self.pt])[:, 2] + T[self.cam, 2, 3]
+        inl = (p_cz > 1e-4) & (chi2 < np.where(self.has_depth, CHI2_STEREO, CHI2_MONO))
+        T = np.stack([orthonormalized(Ti) for Ti in T])
+        return BAResult(T, X, inl, progress.initial_cost, progress.cost, progress.n_evaluations)
+
+
 def local_bundle_adjustment(prob: BAProblem, K: np.ndarray, bf: float, huber_px: float,
                             max_iterations: int) -> BAResult:
     """Jointly refine free keyframe poses and all points: Levenberg-Marquardt with the Schur complement.
 
     Residuals per observation are (u, v[, u_right]) scaled by ``obs_inv_sigma``; Huber on the
     observation's whitened error norm with threshold ``huber_px`` (iteratively reweighted).
-    Points are eliminated per point (3x3 blocks), so each step solves one dense [6C, 6C] system.
+    Points are eliminated per point (3x3 blocks), so each step solves one dense [6C, 6C] system
+    (the camera-point blocks stacked densely per point: fine for a window of ~10 keyframes;
+    ``global_ba`` accumulates them over observation pairs instead).
     Twin: ``_local_bundle_adjustment_scipy`` (same residuals, scipy TRF).
     """
-    C, P = len(prob.T_cw), len(prob.points_w)
-    free = np.flatnonzero(~prob.fixed)
-    slot = np.full(C, -1, dtype=np.int64)
-    slot[free] = np.arange(len(free))
-    nf = len(free)
-    obs, has_depth = observed_uvr(prob.obs_uv, prob.obs_depth, bf)
-    s = prob.obs_inv_sigma
-    cam, pt = prob.obs_cam, prob.obs_point
-    fx, fy = K[0, 0], K[1, 1]
-    o_slot = slot[cam]
-    o_free = o_slot >= 0
-    order = np.argsort(pt, kind="stable")
-    seg_start = np.flatnonzero(np.r_[True, pt[order][1:] != pt[order][:-1]])
-    seg_point = pt[order][seg_start]
-    T = prob.T_cw.copy()
-    X = prob.points_w.copy()
+    g = BAGeometry(prob, K, bf, huber_px)
+    nf, P = g.nf, g.n_points
 
-    def per_point_sum(a: np.ndarray) -> np.ndarray:
-        out = np.zeros((P,) + a.shape[1:])
-        out[seg_point] = np.add.reduceat(a[order], seg_start, axis=0)
-        return out
+    def linearise(x: BAState, aux: BAAux) -> Callable[[float], BAState | None]:
+        b = g.blocks(x, aux)
+        if nf:  # Y[p] = [3, 6 nf]: the point-camera blocks stacked per point (one observation per pair)
+            Y_blocks = np.zeros((P, 3, nf, 6))
+            Y_blocks[g.of_pt, :, g.of_slot, :] = b.Hcp.transpose(0, 2, 1)
+            Y = Y_blocks.reshape(P, 3, 6 * nf)
 
-    def evaluate(T: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        return _huber_residuals(T, X, cam, pt, obs, has_depth, s, K, bf, huber_px)
-
-    p_c, r, cost = evaluate(T, X)
-    cost0 = cost
-    lam = 1e-3
-    n_eval = 1
-    of = np.flatnonzero(o_free)
-    for _ in range(max_iterations):
-        e = np.sqrt(np.einsum("ij,ij->i", r, r))
-        w = np.where(e <= huber_px, 1.0, huber_px / np.maximum(e, 1e-12))  # IRLS Huber weight [O]
-        Jp = _projection_jacobian(p_c, fx, fy, bf)
-        Jp[~has_depth, 2, :] = 0.0
-        Jp *= s[:, None, None]
-        Jx = np.matmul(Jp, T[cam, :3, :3])  # [O, 3, 3]
-        wJxT = (Jx * w[:, None, None]).transpose(0, 2, 1)  # [O, 3, 3]
-        Hpp = per_point_sum(np.matmul(wJxT, Jx))
-        gp = per_point_sum(np.matmul(wJxT, r[:, :, None])[:, :, 0])
-        if nf:
-            Jc = np.concatenate([-np.matmul(Jp[of], _skew(p_c[of])), Jp[of]], axis=2)  # [F, 3, 6]
-            wJcT = (Jc * w[of, None, None]).transpose(0, 2, 1)  # [F, 6, 3]
-            Hcp = np.matmul(wJcT, Jx[of])  # [F, 6, 3]
-            Hcc_o = np.matmul(wJcT, Jc)  # [F, 6, 6]
-            gc_o = np.matmul(wJcT, r[of, :, None])[:, :, 0]  # [F, 6]
-            Hcc = np.zeros((nf, 6, 6))
-            gc = np.zeros((nf, 6))
+        def propose(lam: float) -> BAState | None:
+            Hpp_inv = np.linalg.inv(b.Hpp + lam * b.Hpp * np.eye(3) + 1e-9 * np.eye(3))  # [P, 3, 3]
+            if not nf:
+                return g.stepped(x, np.zeros((0, 6)), -np.einsum("pij,pj->pi", Hpp_inv, b.gp))
+            Z = np.matmul(Hpp_inv, Y)  # [P, 3, 6nf]
+            S = np.zeros((6 * nf, 6 * nf))
             for i in range(nf):
-                m = o_slot[of] == i
-                Hcc[i] = Hcc_o[m].sum(axis=0)
-                gc[i] = gc_o[m].sum(axis=0)
-            # Y[p] = [3, 6 nf]: the point-camera blocks stacked per point (one observation per pair).
-            Y = np.zeros((P, 3, nf, 6))
-            Y[pt[of], :, o_slot[of], :] = Hcp.transpose(0, 2, 1)
-            Y = Y.reshape(P, 3, 6 * nf)
-        improved = False
-        converged = False
-        for _attempt in range(6):
-            Hpp_d = Hpp + lam * Hpp * np.eye(3) + 1e-9 * np.eye(3)
-            Hpp_inv = np.linalg.inv(Hpp_d)  # [P, 3, 3]
-            if nf:
-                Z = np.matmul(Hpp_inv, Y)  # [P, 3, 6nf]
-                S = np.zeros((6 * nf, 6 * nf))
-                for i in range(nf):
-                    S[6 * i:6 * i + 6, 6 * i:6 * i + 6] = Hcc[i]
-                # einsum, not BLAS: a threaded GEMM stalls badly when the cores are shared.
-                S -= np.einsum("pi,pj->ij", Y.reshape(-1, 6 * nf), Z.reshape(-1, 6 * nf))
-                b = gc.ravel() - np.einsum("pki,pk->i", Z, gp)
-                S += lam * np.diag(np.diag(S)) + 1e-9 * np.eye(6 * nf)
-                try:
-                    dc = -np.linalg.solve(S, b).reshape(nf, 6)
-                except np.linalg.LinAlgError:
-                    lam *= 10.0
-                    continue
-                # dp = Hpp^-1 (-gp - Hpc dc)
-                corr = np.einsum("pki,i->pk", Y, dc.ravel())
-                dX = -np.einsum("pij,pj->pi", Hpp_inv, gp + corr)
-            else:
-                dc = np.zeros((0, 6))
-                dX = -np.einsum("pij,pj->pi", Hpp_inv, gp)
-            T_new = T.copy()
-            for i, c in enumerate(free):
-                T_new[c] = apply_left_update(T[c], dc[i])
-            X_new = X + dX
-            p_c_new, r_new, cost_new = evaluate(T_new, X_new)
-            n_eval += 1
-            if np.isfinite(cost_new) and cost_new < cost:
-                T, X, p_c, r = T_new, X_new, p_c_new, r_new
-                converged = (cost - cost_new) < 1e-6 * cost
-                cost = cost_new
-                lam = max(lam / 3.0, 1e-7)
-                improved = True
-                break
-            lam *= 10.0
-        if not improved or converged:
-            break
-    chi2 = np.einsum("ij,ij->i", r, r)
-    p_cz = np.einsum("oij,oj->oi", T[cam, :3, :3], X[pt])[:, 2] + T[cam, 2, 3]
-    inl = (p_cz > 1e-4) & (chi2 < np.where(has_depth, CHI2_STEREO, CHI2_MONO))
-    T = np.stack([orthonormalized(Ti) for Ti in T])
-    return BAResult(T, X, inl, cost0, cost, n_eval)
+                S[6 * i:6 * i + 6, 6 * i:6 * i + 6] = b.Hcc[i]
+            # einsum, not BLAS: a threaded GEMM stalls badly when the cores are shared.
+            S -= np.einsum("pi,pj->ij", Y.reshape(-1, 6 * nf), Z.reshape(-1, 6 * nf))
+            rhs = b.gc.ravel() - np.einsum("pki,pk->i", Z, b.gp)
+            S += lam * np.diag(np.diag(S)) + 1e-9 * np.eye(6 * nf)
+            try:
+                dc = -np.linalg.solve(S, rhs).reshape(nf, 6)
+            except np.linalg.LinAlgError:
+                return None
+            corr = np.einsum("pki,i->pk", Y, dc.ravel())  # dp = Hpp^-1 (-gp - Hpc dc)
+            return g.stepped(x, dc, -np.einsum("pij,pj->pi", Hpp_inv, b.gp + corr))
+
+        return propose
+
+    return g.result(solve(lm_iterations(g.initial(), g.evaluate, linearise, max_iterations)))

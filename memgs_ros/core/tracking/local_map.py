@@ -1,7 +1,8 @@
 """The tracker's sparse map: keyframes, map points, observations, covisibility.
 
-One lock guards every mutation, because local bundle adjustment reads a snapshot in a
-background thread and commits refined poses/points back while the tracker keeps going.
+The map has one owner, the tracker's front-end thread: it tracks against the map, inserts
+keyframes and commits what the back-end (``backend.TrackingBackend``) sends back. The back-end
+works on immutable copies (``snapshot``), so nothing here is locked.
 
 Memory stays bounded on long runs: the tracker removes keyframes over its cap
 (``remove_keyframe``), points seen by no keyframe turn bad, and ``compact`` drops bad points
@@ -11,13 +12,13 @@ its snapshot before the compaction can still commit (``commit_refinement(layout_
 """
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from memgs_ros.core.geometry import invert_pose
 from memgs_ros.core.tracking.features import FrameFeatures
+from memgs_ros.core.tracking.map_snapshot import MapSnapshot
 
 
 @dataclass(eq=False)
@@ -59,7 +60,6 @@ class SparseMap:
     """Keyframes and map points of one tracking segment."""
 
     def __init__(self, first_keyframe_id: int = 0) -> None:
-        self.lock = threading.RLock()
         self.keyframes: dict[int, SparseKeyframe] = {}
         self._pts = _PointStore()
         self.observations: list[dict[int, int]] = []  # point id -> {keyframe id: keypoint index}
@@ -102,56 +102,51 @@ class SparseMap:
     def add_points(self, pos_w: np.ndarray, desc: np.ndarray, octave: np.ndarray,
                    kf_id: int, kp_idx: np.ndarray) -> np.ndarray:
         """New points [K, 3] seen by keyframe ``kf_id`` at keypoints ``kp_idx`` [K]; returns ids [K]."""
-        with self.lock:
-            k = len(pos_w)
-            self._grow(k)
-            p = self._pts
-            ids = np.arange(p.size, p.size + k)
-            p.pos[ids], p.desc[ids], p.octave[ids] = pos_w, desc, octave
-            p.n_visible[ids], p.n_found[ids], p.n_obs[ids] = 1, 1, 1
-            p.first_kf[ids], p.bad[ids] = kf_id, False
-            p.size += k
-            self.observations.extend({kf_id: int(i)} for i in kp_idx)
-            self.keyframes[kf_id].point_ids[kp_idx] = ids
-            return ids
+        k = len(pos_w)
+        self._grow(k)
+        p = self._pts
+        ids = np.arange(p.size, p.size + k)
+        p.pos[ids], p.desc[ids], p.octave[ids] = pos_w, desc, octave
+        p.n_visible[ids], p.n_found[ids], p.n_obs[ids] = 1, 1, 1
+        p.first_kf[ids], p.bad[ids] = kf_id, False
+        p.size += k
+        self.observations.extend({kf_id: int(i)} for i in kp_idx)
+        self.keyframes[kf_id].point_ids[kp_idx] = ids
+        return ids
 
     def add_observations(self, point_ids: np.ndarray, kf_id: int, kp_idx: np.ndarray) -> None:
-        with self.lock:
-            kf = self.keyframes[kf_id]
-            for pid, i in zip(point_ids.tolist(), kp_idx.tolist()):
-                if self._pts.bad[pid] or kf_id in self.observations[pid]:
-                    continue
-                self.observations[pid][kf_id] = i
-                self._pts.n_obs[pid] += 1
-                kf.point_ids[i] = pid
+        kf = self.keyframes[kf_id]
+        for pid, i in zip(point_ids.tolist(), kp_idx.tolist()):
+            if self._pts.bad[pid] or kf_id in self.observations[pid]:
+                continue
+            self.observations[pid][kf_id] = i
+            self._pts.n_obs[pid] += 1
+            kf.point_ids[i] = pid
 
     def remove_observation(self, pid: int, kf_id: int) -> None:
-        with self.lock:
-            i = self.observations[pid].pop(kf_id, None)
-            if i is not None:
-                self._pts.n_obs[pid] -= 1
-            kf = self.keyframes.get(kf_id)
-            if i is not None and kf is not None and kf.point_ids[i] == pid:
-                kf.point_ids[i] = -1
-            if not self.observations[pid]:
-                self._pts.bad[pid] = True
+        i = self.observations[pid].pop(kf_id, None)
+        if i is not None:
+            self._pts.n_obs[pid] -= 1
+        kf = self.keyframes.get(kf_id)
+        if i is not None and kf is not None and kf.point_ids[i] == pid:
+            kf.point_ids[i] = -1
+        if not self.observations[pid]:
+            self._pts.bad[pid] = True
 
     def set_bad(self, pids: np.ndarray) -> None:
-        with self.lock:
-            for pid in np.asarray(pids).tolist():
-                for kf_id, i in self.observations[pid].items():
-                    kf = self.keyframes.get(kf_id)
-                    if kf is not None and kf.point_ids[i] == pid:
-                        kf.point_ids[i] = -1
-                self.observations[pid] = {}
-                self._pts.bad[pid] = True
-                self._pts.n_obs[pid] = 0
+        for pid in np.asarray(pids).tolist():
+            for kf_id, i in self.observations[pid].items():
+                kf = self.keyframes.get(kf_id)
+                if kf is not None and kf.point_ids[i] == pid:
+                    kf.point_ids[i] = -1
+            self.observations[pid] = {}
+            self._pts.bad[pid] = True
+            self._pts.n_obs[pid] = 0
 
     def point_arrays(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(pos [K, 3], desc [K, 32], octave [K]) copies for point ids [K]."""
-        with self.lock:
-            p = self._pts
-            return p.pos[ids].copy(), p.desc[ids].copy(), p.octave[ids].copy()
+        p = self._pts
+        return p.pos[ids].copy(), p.desc[ids].copy(), p.octave[ids].copy()
 
     def n_observations(self, ids: np.ndarray) -> np.ndarray:
         """[K] number of keyframes observing each point id (0 for bad points)."""
@@ -172,17 +167,16 @@ class SparseMap:
 
     def cull_points(self, current_kf_id: int, min_found_ratio: float, min_obs: int) -> int:
         """Mark recent points bad when rarely found or seen by too few keyframes; returns count."""
-        with self.lock:
-            p = self._pts
-            ids = np.flatnonzero(~p.bad[: p.size] & (p.first_kf[: p.size] >= current_kf_id - 3))
-            if len(ids) == 0:
-                return 0
-            ratio = p.n_found[ids] / np.maximum(p.n_visible[ids], 1)
-            n_obs = p.n_obs[ids]
-            age = current_kf_id - p.first_kf[ids]
-            bad = (ratio < min_found_ratio) | ((age >= 2) & (n_obs < min_obs))
-            self.set_bad(ids[bad])
-            return int(bad.sum())
+        p = self._pts
+        ids = np.flatnonzero(~p.bad[: p.size] & (p.first_kf[: p.size] >= current_kf_id - 3))
+        if len(ids) == 0:
+            return 0
+        ratio = p.n_found[ids] / np.maximum(p.n_visible[ids], 1)
+        n_obs = p.n_obs[ids]
+        age = current_kf_id - p.first_kf[ids]
+        bad = (ratio < min_found_ratio) | ((age >= 2) & (n_obs < min_obs))
+        self.set_bad(ids[bad])
+        return int(bad.sum())
 
     # -- keyframes ----------------------------------------------------------------------
     @property
@@ -194,24 +188,22 @@ class SparseMap:
         return self._next_kf_id - 1
 
     def add_keyframe(self, kf: SparseKeyframe) -> None:
-        with self.lock:
-            self.keyframes[kf.keyframe_id] = kf
+        self.keyframes[kf.keyframe_id] = kf
 
     def remove_keyframe(self, kf_id: int) -> None:
         """Forget keyframe ``kf_id`` and its observations; points it alone saw turn bad."""
-        with self.lock:
-            kf = self.keyframes.pop(kf_id, None)
-            if kf is None:
-                return
-            p = self._pts
-            for pid in kf.point_ids[kf.point_ids >= 0].tolist():
-                obs = self.observations[pid]
-                if obs.pop(kf_id, None) is not None:
-                    p.n_obs[pid] -= 1
-                if not obs:
-                    p.bad[pid] = True
-                    p.n_obs[pid] = 0
-            self.keyframes_removed += 1
+        kf = self.keyframes.pop(kf_id, None)
+        if kf is None:
+            return
+        p = self._pts
+        for pid in kf.point_ids[kf.point_ids >= 0].tolist():
+            obs = self.observations[pid]
+            if obs.pop(kf_id, None) is not None:
+                p.n_obs[pid] -= 1
+            if not obs:
+                p.bad[pid] = True
+                p.n_obs[pid] = 0
+        self.keyframes_removed += 1
 
     def compact(self, min_bad: int = 1024, min_fraction: float = 0.5) -> bool:
         """Drop bad points once there are at least ``min_bad`` and ``min_fraction`` of the store
@@ -220,86 +212,95 @@ class SparseMap:
         Renumbers the good points 0..n-1 (keyframe point_ids and observations follow); returns
         whether it compacted. Holders of old ids must translate them with ``renumber``.
         """
-        with self.lock:
-            p = self._pts
-            n = p.size
-            keep = ~p.bad[:n]
-            n_keep = int(keep.sum())
-            n_bad = n - n_keep
-            if n_bad == 0 or n_bad < min_bad or n_bad < min_fraction * n:
-                return False
-            new_id = np.full(n, -1, np.int64)
-            new_id[keep] = np.arange(n_keep)
-            cap = max(1024, 2 * n_keep)
+        p = self._pts
+        n = p.size
+        keep = ~p.bad[:n]
+        n_keep = int(keep.sum())
+        n_bad = n - n_keep
+        if n_bad == 0 or n_bad < min_bad or n_bad < min_fraction * n:
+            return False
+        new_id = np.full(n, -1, np.int64)
+        new_id[keep] = np.arange(n_keep)
+        cap = max(1024, 2 * n_keep)
 
-            def shrink(a: np.ndarray, fill: object = 0) -> np.ndarray:
-                out = np.full((cap,) + a.shape[1:], fill, dtype=a.dtype)
-                out[:n_keep] = a[:n][keep]
-                return out
+        def shrink(a: np.ndarray, fill: object = 0) -> np.ndarray:
+            out = np.full((cap,) + a.shape[1:], fill, dtype=a.dtype)
+            out[:n_keep] = a[:n][keep]
+            return out
 
-            p.pos, p.desc, p.octave = shrink(p.pos), shrink(p.desc), shrink(p.octave)
-            p.n_visible, p.n_found, p.first_kf = shrink(p.n_visible), shrink(p.n_found), shrink(p.first_kf)
-            p.n_obs, p.bad = shrink(p.n_obs), shrink(p.bad, True)
-            p.size = n_keep
-            self.observations = [self.observations[i] for i in np.flatnonzero(keep).tolist()]
-            for kf in self.keyframes.values():
-                has = kf.point_ids >= 0
-                kf.point_ids[has] = new_id[kf.point_ids[has]]
-            self._last_renumbering = new_id
-            self.layout_version += 1
-            self.points_compacted += n_bad
-            return True
+        p.pos, p.desc, p.octave = shrink(p.pos), shrink(p.desc), shrink(p.octave)
+        p.n_visible, p.n_found, p.first_kf = shrink(p.n_visible), shrink(p.n_found), shrink(p.first_kf)
+        p.n_obs, p.bad = shrink(p.n_obs), shrink(p.bad, True)
+        p.size = n_keep
+        self.observations = [self.observations[i] for i in np.flatnonzero(keep).tolist()]
+        for kf in self.keyframes.values():
+            has = kf.point_ids >= 0
+            kf.point_ids[has] = new_id[kf.point_ids[has]]
+        self._last_renumbering = new_id
+        self.layout_version += 1
+        self.points_compacted += n_bad
+        return True
 
     def renumber(self, point_ids: np.ndarray, layout_version: int) -> np.ndarray | None:
         """Point ids [K] taken at ``layout_version`` in today's numbering (-1 for dropped ones),
         or None when more than one compaction happened since (the ids are meaningless now)."""
-        with self.lock:
-            if layout_version == self.layout_version:
-                return np.asarray(point_ids, np.int64)
-            if layout_version == self.layout_version - 1:
-                return self._last_renumbering[np.asarray(point_ids, np.int64)]
-            return None
+        if layout_version == self.layout_version:
+            return np.asarray(point_ids, np.int64)
+        if layout_version == self.layout_version - 1:
+            return self._last_renumbering[np.asarray(point_ids, np.int64)]
+        return None
 
     def covisible(self, point_ids: np.ndarray, k: int, exclude: int | None = None) -> list[int]:
         """The ``k`` keyframes observing most of ``point_ids``, most first."""
         counts: dict[int, int] = {}
-        with self.lock:
-            for pid in np.asarray(point_ids).tolist():
-                for kf_id in self.observations[pid]:
-                    counts[kf_id] = counts.get(kf_id, 0) + 1
+        for pid in np.asarray(point_ids).tolist():
+            for kf_id in self.observations[pid]:
+                counts[kf_id] = counts.get(kf_id, 0) + 1
         if exclude is not None:
             counts.pop(exclude, None)
         return [kf for kf, _ in sorted(counts.items(), key=lambda kv: -kv[1])[:k]]
 
     def points_of(self, kf_ids: list[int]) -> np.ndarray:
         """Unique good point ids observed by the keyframes ``kf_ids``."""
-        with self.lock:
-            arrs = [self.keyframes[i].point_ids for i in kf_ids if i in self.keyframes]
-            if not arrs:
-                return np.zeros(0, np.int64)
-            # A mask over the store instead of np.unique: O(points) without a sort (0.5 -> 0.05 ms
-            # for a 10-keyframe local map); the result is the same sorted unique ids.
-            seen = np.zeros(self._pts.size, dtype=bool)
-            for a in arrs:
-                seen[a[a >= 0]] = True
-            seen &= ~self._pts.bad[: self._pts.size]
-            return np.flatnonzero(seen)
+        arrs = [self.keyframes[i].point_ids for i in kf_ids if i in self.keyframes]
+        if not arrs:
+            return np.zeros(0, np.int64)
+        # A mask over the store instead of np.unique: O(points) without a sort (0.5 -> 0.05 ms
+        # for a 10-keyframe local map); the result is the same sorted unique ids.
+        seen = np.zeros(self._pts.size, dtype=bool)
+        for a in arrs:
+            seen[a[a >= 0]] = True
+        seen &= ~self._pts.bad[: self._pts.size]
+        return np.flatnonzero(seen)
+
+    def snapshot(self) -> MapSnapshot:
+        """An immutable copy for the back-end (poses, keypoint-to-point links, the point store)."""
+        ids = sorted(self.keyframes)
+        kfs = [self.keyframes[k] for k in ids]
+        n = self._pts.size
+        p = self._pts
+        return MapSnapshot(
+            np.array(ids, np.int64), np.stack([kf.T_cw for kf in kfs]) if kfs else np.zeros((0, 4, 4)),
+            tuple(kf.feats for kf in kfs),
+            np.concatenate([kf.point_ids for kf in kfs]) if kfs else np.zeros(0, np.int64),
+            np.r_[0, np.cumsum([len(kf.point_ids) for kf in kfs], dtype=np.int64)].astype(np.int64),
+            p.pos[:n].copy(), p.desc[:n].copy(), p.octave[:n].copy(), ~p.bad[:n],
+            self.layout_version, self.pose_epoch)
 
     def merge_point(self, src: int, dst: int) -> None:
         """Fuse point ``src`` into ``dst`` (a loop's duplicate): its observations move to ``dst``
         where the keyframe does not see ``dst`` yet, then ``src`` turns bad."""
-        with self.lock:
-            if src == dst or self._pts.bad[dst]:
-                return
-            for kf_id, i in list(self.observations[src].items()):
-                kf = self.keyframes.get(kf_id)
-                if kf is not None and kf_id not in self.observations[dst] and kf.point_ids[i] == src:
-                    self.observations[dst][kf_id] = i
-                    self._pts.n_obs[dst] += 1
-                    kf.point_ids[i] = dst
-            self._pts.n_visible[dst] += self._pts.n_visible[src]
-            self._pts.n_found[dst] += self._pts.n_found[src]
-            self.set_bad(np.array([src]))
+        if src == dst or self._pts.bad[dst]:
+            return
+        for kf_id, i in list(self.observations[src].items()):
+            kf = self.keyframes.get(kf_id)
+            if kf is not None and kf_id not in self.observations[dst] and kf.point_ids[i] == src:
+                self.observations[dst][kf_id] = i
+                self._pts.n_obs[dst] += 1
+                kf.point_ids[i] = dst
+        self._pts.n_visible[dst] += self._pts.n_visible[src]
+        self._pts.n_found[dst] += self._pts.n_found[src]
+        self.set_bad(np.array([src]))
 
     def apply_loop_correction(self, kf_ids: np.ndarray, D: np.ndarray, newer_D: np.ndarray,
                               newer_than: int) -> dict[int, tuple[np.ndarray, np.ndarray]]:
@@ -309,42 +310,41 @@ class SparseMap:
         one is gone, with a keyframe observing it). Bumps ``pose_epoch`` so that bundle
         adjustments snapshotted before are discarded. Returns {kf_id: (old T_cw, new T_cw)}.
         """
-        with self.lock:
-            table = {int(k): Dk for k, Dk in zip(np.asarray(kf_ids).tolist(), D)}
-            eye = np.eye(4)
+        table = {int(k): Dk for k, Dk in zip(np.asarray(kf_ids).tolist(), D)}
+        eye = np.eye(4)
 
-            def correction(kf_id: int) -> np.ndarray | None:
-                c = table.get(kf_id)
-                if c is None and kf_id > newer_than:
-                    c = newer_D
-                return c
+        def correction(kf_id: int) -> np.ndarray | None:
+            c = table.get(kf_id)
+            if c is None and kf_id > newer_than:
+                c = newer_D
+            return c
 
-            moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-            for kf_id, kf in self.keyframes.items():
+        moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for kf_id, kf in self.keyframes.items():
+            c = correction(kf_id)
+            if c is None:
+                continue
+            T_new = kf.T_cw @ invert_pose(c)  # (D T_wc)^-1
+            moved[kf_id] = (kf.T_cw.copy(), T_new)
+            kf.T_cw = T_new
+        p = self._pts
+        ids = np.flatnonzero(~p.bad[: p.size])
+        refs = p.first_kf[ids]
+        uniq, inv = np.unique(refs, return_inverse=True)
+        per_ref = [correction(int(r)) for r in uniq.tolist()]
+        Dp = np.stack([eye if c is None else c for c in per_ref])[inv]  # [P, 4, 4]
+        missing = np.array([c is None for c in per_ref], bool)[inv]
+        for j in np.flatnonzero(missing).tolist():  # creator gone: follow an observing keyframe
+            for kf_id in self.observations[int(ids[j])]:
                 c = correction(kf_id)
-                if c is None:
-                    continue
-                T_new = kf.T_cw @ invert_pose(c)  # (D T_wc)^-1
-                moved[kf_id] = (kf.T_cw.copy(), T_new)
-                kf.T_cw = T_new
-            p = self._pts
-            ids = np.flatnonzero(~p.bad[: p.size])
-            refs = p.first_kf[ids]
-            uniq, inv = np.unique(refs, return_inverse=True)
-            per_ref = [correction(int(r)) for r in uniq.tolist()]
-            Dp = np.stack([eye if c is None else c for c in per_ref])[inv]  # [P, 4, 4]
-            missing = np.array([c is None for c in per_ref], bool)[inv]
-            for j in np.flatnonzero(missing).tolist():  # creator gone: follow an observing keyframe
-                for kf_id in self.observations[int(ids[j])]:
-                    c = correction(kf_id)
-                    if c is not None:
-                        Dp[j] = c
-                        break
-            pos = p.pos[ids]
-            p.pos[ids] = np.einsum("pij,pj->pi", Dp[:, :3, :3], pos) + Dp[:, :3, 3]
-            self.pose_epoch += 1
-            self.version += 1
-            return moved
+                if c is not None:
+                    Dp[j] = c
+                    break
+        pos = p.pos[ids]
+        p.pos[ids] = np.einsum("pij,pj->pi", Dp[:, :3, :3], pos) + Dp[:, :3, 3]
+        self.pose_epoch += 1
+        self.version += 1
+        return moved
 
     def commit_refinement(self, kf_ids: list[int], T_cw: np.ndarray, point_ids: np.ndarray,
                           points_w: np.ndarray, outliers: list[tuple[int, int]],
@@ -357,28 +357,27 @@ class SparseMap:
         taken in (None: today's); results older than the last compaction but one are discarded.
         ``pose_epoch``: the epoch of the snapshot; results from before a loop correction are discarded.
         """
-        with self.lock:
-            moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-            if pose_epoch is not None and pose_epoch != self.pose_epoch:
-                return moved
-            point_ids = np.asarray(point_ids, np.int64)
-            if layout_version is not None and layout_version != self.layout_version:
-                renumbered = self.renumber(np.concatenate([point_ids, np.array([o[0] for o in outliers],
-                                                                               np.int64)]), layout_version)
-                if renumbered is None:
-                    return moved
-                point_ids, out_ids = renumbered[: len(point_ids)], renumbered[len(point_ids):]
-                outliers = [(int(i), k) for i, (_, k) in zip(out_ids.tolist(), outliers, strict=True) if i >= 0]
-            for kf_id, T in zip(kf_ids, T_cw):
-                kf = self.keyframes.get(kf_id)
-                if kf is not None:
-                    moved[kf_id] = (kf.T_cw.copy(), T.copy())
-                    kf.T_cw = T.copy()
-            live = point_ids >= 0
-            point_ids, points_w = point_ids[live], np.asarray(points_w)[live]
-            ok = ~self._pts.bad[point_ids]
-            self._pts.pos[point_ids[ok]] = points_w[ok]
-            for pid, kf_id in outliers:
-                self.remove_observation(pid, kf_id)
-            self.version += 1
+        moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        if pose_epoch is not None and pose_epoch != self.pose_epoch:
             return moved
+        point_ids = np.asarray(point_ids, np.int64)
+        if layout_version is not None and layout_version != self.layout_version:
+            renumbered = self.renumber(np.concatenate([point_ids, np.array([o[0] for o in outliers],
+                                                                           np.int64)]), layout_version)
+            if renumbered is None:
+                return moved
+            point_ids, out_ids = renumbered[: len(point_ids)], renumbered[len(point_ids):]
+            outliers = [(int(i), k) for i, (_, k) in zip(out_ids.tolist(), outliers, strict=True) if i >= 0]
+        for kf_id, T in zip(kf_ids, T_cw):
+            kf = self.keyframes.get(kf_id)
+            if kf is not None:
+                moved[kf_id] = (kf.T_cw.copy(), T.copy())
+                kf.T_cw = T.copy()
+        live = point_ids >= 0
+        point_ids, points_w = point_ids[live], np.asarray(points_w)[live]
+        ok = ~self._pts.bad[point_ids]
+        self._pts.pos[point_ids[ok]] = points_w[ok]
+        for pid, kf_id in outliers:
+            self.remove_observation(pid, kf_id)
+        self.version += 1
+        return moved

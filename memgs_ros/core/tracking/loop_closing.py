@@ -1,7 +1,7 @@
 """Loop closing pieces: consistent loop candidates, 3D-2D verification, SE(3) pose-graph optimisation.
 
-The tracker (``FeatureTracker``) runs these on its place-recognition thread; nothing here holds a
-lock or touches the sparse map, so each piece is testable alone:
+The tracker's back-end runs these (``place_recognition.PlaceRecognition``, on map snapshots);
+nothing here keeps state across calls but the detector, so each piece is testable alone:
 
 - ``LoopDetector``: ORB-SLAM's consistency check. A keyframe's candidates (BoW hits outside its
   local map, not recent) each bring a group (the candidate and its covisible keyframes); a group
@@ -18,6 +18,7 @@ would need Sim(3) and does not detect loops (it still uses the BoW index to relo
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -37,6 +38,7 @@ from memgs_ros.core.tracking.features import (
     match_by_projection,
     match_descriptors,
 )
+from memgs_ros.core.tracking.lm import LMSettings, lm_iterations, solve
 
 # ------------------------------------------------------------------------------ detection
 
@@ -157,9 +159,14 @@ def _edge_residuals(T_wc: np.ndarray, ei: np.ndarray, ej: np.ndarray, Z_inv: np.
     return r * sqrt_w[:, None], A
 
 
+# Pose-graph damping: residuals are small near the optimum, so start and shrink the damping lower
+# than bundle adjustment does, and stop only on a tiny absolute decrease.
+_POSE_GRAPH_LM = LMSettings(lam0=1e-4, lam_down=10.0, lam_min=1e-9, attempts=8, rel_tol=1e-8, abs_tol=1e-10)
+
+
 def optimise_pose_graph(T_wc: np.ndarray, edges_i: np.ndarray, edges_j: np.ndarray, Z: np.ndarray,
                         weights: np.ndarray, fixed: np.ndarray, max_iterations: int = 20) -> PoseGraphResult:
-    """SE(3) pose graph by Levenberg-Marquardt.
+    """SE(3) pose graph by Levenberg-Marquardt (the ``lm`` loop).
 
     T_wc: [N, 4, 4] initial poses; edges_i/edges_j: [E] node indices; Z: [E, 4, 4] measured
     relative poses T_wc_i^-1 T_wc_j; weights: [E] information (same for the 6 components,
@@ -174,15 +181,14 @@ def optimise_pose_graph(T_wc: np.ndarray, edges_i: np.ndarray, edges_j: np.ndarr
     slot = np.full(n, -1, np.int64)
     free = np.flatnonzero(~np.asarray(fixed, bool))
     slot[free] = np.arange(len(free))
-    T = np.asarray(T_wc, np.float64).copy()
-    r, A = _edge_residuals(T, ei, ej, Z_inv, sqrt_w)
-    cost = cost0 = 0.5 * float(np.sum(r * r))
-    if len(free) == 0 or len(ei) == 0:
-        return PoseGraphResult(T, cost0, cost0, 0)
     m = len(ei)
-    lam = 1e-4
-    it = 0
-    for it in range(1, max_iterations + 1):
+
+    def evaluate(T: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], float]:
+        r, A = _edge_residuals(T, ei, ej, Z_inv, sqrt_w)
+        return (r, A), 0.5 * float(np.sum(r * r))
+
+    def linearise(T: np.ndarray, aux: tuple[np.ndarray, np.ndarray]) -> Callable[[float], np.ndarray | None]:
+        r, A = aux
         # Ad_A = [[R, 0], [t^ R, R]] for (w, v) ordering; d r / d delta_j = Ad_A, d r / d delta_i = -Ad_A.
         R, t = A[:, :3, :3], A[:, :3, 3]
         tx = np.zeros((m, 3, 3))
@@ -208,38 +214,34 @@ def optimise_pose_graph(T_wc: np.ndarray, edges_i: np.ndarray, edges_j: np.ndarr
         H = (J.T @ J).tocsc()
         g = J.T @ r.ravel()
         diag = H.diagonal()
-        improved = False
-        for _ in range(8):
+
+        def propose(lam: float) -> np.ndarray | None:
             try:
                 dx = -spla.spsolve(H + sp.diags(lam * (diag + 1e-9)), g)
             except (RuntimeError, ValueError):
-                lam *= 10.0
-                continue
+                return None
             if not np.all(np.isfinite(dx)):
-                lam *= 10.0
-                continue
+                return None
             T_new = T.copy()
             for k, c in enumerate(free.tolist()):
                 T_new[c] = apply_left_update(T[c], dx[6 * k:6 * k + 6])
-            r_new, A_new = _edge_residuals(T_new, ei, ej, Z_inv, sqrt_w)
-            cost_new = 0.5 * float(np.sum(r_new * r_new))
-            if cost_new < cost:
-                done = cost - cost_new < 1e-10 + 1e-8 * cost
-                T, r, A, cost = T_new, r_new, A_new, cost_new
-                lam = max(lam / 10.0, 1e-9)
-                improved = True
-                break
-            lam *= 10.0
-        if not improved or done:
-            break
-    T = np.stack([orthonormalized(Ti) for Ti in T])
-    return PoseGraphResult(T, cost0, cost, it)
+            return T_new
+
+        return propose
+
+    T0 = np.asarray(T_wc, np.float64).copy()
+    if len(free) == 0 or m == 0:
+        cost0 = evaluate(T0)[1]
+        return PoseGraphResult(T0, cost0, cost0, 0)
+    res = solve(lm_iterations(T0, evaluate, linearise, max_iterations, _POSE_GRAPH_LM))
+    T = np.stack([orthonormalized(Ti) for Ti in res.x])
+    return PoseGraphResult(T, res.initial_cost, res.cost, res.iterations)
 
 
 @dataclass(frozen=True, eq=False)
 class LoopCorrection:
-    """A loop correction ready to commit (made by the place-recognition thread, committed by the
-    tracker under the map lock at its next frame).
+    """A loop correction ready to commit (made by the back-end from a map snapshot, committed by
+    the front-end to its map at its next frame: ``corrections.commit_correction``).
 
     kf_ids: [N] keyframes of the snapshot; D: [N, 4, 4] each one's world-frame correction
     T_wc_new inv(T_wc_old); query_id: the loop keyframe (keyframes newer than the snapshot move

@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 
 from memgs_ros.core.frame import Frame
-from memgs_ros.core.tracking.bundle_adjustment import CHI2_MONO, BAProblem, local_bundle_adjustment
+from memgs_ros.core.tracking.ba_problem import build_problem
+from memgs_ros.core.tracking.bundle_adjustment import CHI2_MONO, local_bundle_adjustment
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackingState
 from memgs_ros.core.tracking.features import FrameFeatures, match_descriptors
 from memgs_ros.core.tracking.frontend import FeatureTracker
@@ -55,6 +56,7 @@ class MonocularTracker(FeatureTracker):
     """Feature tracking without depth; see module docstring."""
 
     uses_depth = False
+    ba_fixed_keyframes = 2  # fixing two keyframes also pins the scale, the seventh gauge freedom
 
     def __init__(self, *args: object, **kwargs: object) -> None:
         super().__init__(*args, **kwargs)  # type: ignore[arg-type]
@@ -138,27 +140,22 @@ class MonocularTracker(FeatureTracker):
         kf1 = self._make_keyframe(frame, feats, T1)
         ids = self.map.add_points(X, ref.desc[i_ref], ref.octave[i_ref], kf0.keyframe_id, i_ref)
         self.map.add_observations(ids, kf1.keyframe_id, i_cur)
-        # Full BA of the two views (first fixed), then restore the unit median depth.
-        n = len(ids)
-        prob = BAProblem(np.stack([kf0.T_cw, kf1.T_cw]), np.array([True, False]), X,
-                         np.r_[np.zeros(n, np.int64), np.ones(n, np.int64)], np.r_[np.arange(n), np.arange(n)],
-                         np.r_[ref.uv[i_ref], feats.uv[i_cur]], np.full(2 * n, np.nan),
-                         np.r_[self._inv_sigma(ref.octave[i_ref]), self._inv_sigma(feats.octave[i_cur])])
-        res = local_bundle_adjustment(prob, self.K, self.bf, self.cfg.ba_huber_px, 20)
+        # Full BA of the two views (first fixed; monocular: no depth), then restore the unit median
+        # depth. Here, on the tracking thread: nothing can be tracked before it.
+        sp = build_problem(self.map.snapshot(), [kf0.keyframe_id, kf1.keyframe_id], np.array([True, False]),
+                           ids, self.inv_sigma_levels)
+        res = local_bundle_adjustment(sp.problem, self.K, self.bf, self.cfg.ba_huber_px, 20)
         X2, T2 = res.points_w, res.T_cw[1].copy()
         med2 = float(np.median(X2[:, 2]))
         if med2 > 0 and np.isfinite(res.final_cost):
             X2 = X2 / med2
             T2[:3, 3] /= med2
-            with self.map.lock:
-                self.map.commit_refinement([kf1.keyframe_id], T2[None], ids, X2, [])
-        bad = np.flatnonzero(~res.obs_inlier[:n] | ~res.obs_inlier[n:])
-        self.map.set_bad(ids[bad])
+            self.map.commit_refinement([kf1.keyframe_id], T2[None], ids, X2, [])
+        self.map.set_bad(ids[np.unique(sp.problem.obs_point[~res.obs_inlier])])
         self.state = TrackingState.OK
         self._T_cw_last = kf1.T_cw.copy()
         self._last_good_T_cw = kf1.T_cw.copy()
-        self._velocity = np.eye(4)
-        self._velocity_known = False
+        self.motion.reset()
         self._lost_frames = 0
         self._local_kfs = [kf0.keyframe_id, kf1.keyframe_id]
         self._init_ref = None
@@ -198,10 +195,6 @@ class MonocularTracker(FeatureTracker):
 
     def _keyframe_ratio(self) -> float:
         return self.cfg.mono_keyframe_tracked_ratio
-
-    def _ba_fixed_count(self) -> int:
-        # Fixing two keyframes also pins the scale, the seventh gauge freedom of monocular BA.
-        return 2
 
     def _lost_timeout(self, frame: Frame, feats: FrameFeatures) -> np.ndarray | None:
         """Start over: a new segment (new scale) from a fresh two-view initialisation."""

@@ -47,7 +47,7 @@ class OrbSlam3Tracker(Tracker):
                             ("orbslam3_settings", cfg.orbslam3_settings)):
             if not path or not Path(path).is_file():
                 raise ConfigError(f"TrackerConfig.{field} must name an existing file, got {path!r}")
-        sensors = getattr(getattr(mod, "System"), "eSensor", None) or getattr(mod, "Sensor", None)
+        sensors = getattr(mod.System, "eSensor", None) or getattr(mod, "Sensor", None)
         if sensors is None:
             raise ConfigError("pyorbslam3 exposes no sensor enum (System.eSensor or Sensor)")
         sensor = getattr(sensors, "RGBD" if cfg.mode == "rgbd" else "MONOCULAR")

@@ -37,16 +37,15 @@ def relocalise(smap: SparseMap, feats: FrameFeatures, K: np.ndarray, bf: float, 
     """
     if len(feats) < _MIN_CANDIDATE_MATCHES:
         return None
-    with smap.lock:
-        if candidates is None:
-            candidates = candidate_keyframes(list(smap.keyframes), cfg.reloc_max_keyframes)
-        kfs = [smap.keyframes[i] for i in candidates if i in smap.keyframes]
-        per_kf = []
-        for kf in kfs:
-            has = np.flatnonzero(kf.point_ids >= 0)
-            pids = kf.point_ids[has]
-            ok = smap.good(pids)
-            per_kf.append((has[ok], pids[ok]))
+    if candidates is None:
+        candidates = candidate_keyframes(list(smap.keyframes), cfg.reloc_max_keyframes)
+    kfs = [smap.keyframes[i] for i in candidates if i in smap.keyframes]
+    per_kf = []
+    for kf in kfs:
+        has = np.flatnonzero(kf.point_ids >= 0)
+        pids = kf.point_ids[has]
+        ok = smap.good(pids)
+        per_kf.append((has[ok], pids[ok]))
     scored = []
     for kf, (kp_idx, pids) in zip(kfs, per_kf):
         if len(pids) < _MIN_CANDIDATE_MATCHES:
@@ -60,11 +59,11 @@ def relocalise(smap: SparseMap, feats: FrameFeatures, K: np.ndarray, bf: float, 
     for _, q, pids in scored[:_MAX_PNP_CANDIDATES]:
         p_w, _, _ = smap.point_arrays(pids)
         uv = feats.uv[q]
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+        found, rvec, tvec, inl = cv2.solvePnPRansac(
             p_w.astype(np.float64), uv.astype(np.float64), K, None,
             iterationsCount=cfg.ransac_iterations * 2, reprojectionError=cfg.ransac_reprojection_px,
             confidence=0.99, flags=cv2.SOLVEPNP_EPNP)
-        if not ok or inl is None or len(inl) < need:
+        if not found or inl is None or len(inl) < need:
             continue
         T = np.eye(4)
         T[:3, :3] = cv2.Rodrigues(rvec)[0]

@@ -37,8 +37,7 @@ class RGBDTracker(FeatureTracker):
         self.state = TrackingState.OK
         self._T_cw_last = T_cw.copy()
         self._last_good_T_cw = T_cw.copy()
-        self._velocity = np.eye(4)
-        self._velocity_known = False
+        self.motion.reset()
         self._lost_frames = 0
         self._local_kfs = [kf.keyframe_id]
         return self._finish_keyframe(kf)

@@ -207,7 +207,7 @@ def build_vocabulary(images_desc: Sequence[np.ndarray], branching: int = 12, dep
 class KeyframeDatabase:
     """Inverted index of keyframe BoW vectors: word -> {keyframe id: weight}.
 
-    Not thread-safe on its own: the tracker guards it with its map lock.
+    One owner each: the tracker's back-end (loop search) and front-end (relocalisation) keep one apiece.
     """
 
     def __init__(self) -> None:
