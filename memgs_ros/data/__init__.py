@@ -1,1 +1,1 @@
-"""Package data: the ORB vocabulary (built by ``python -m memgs_ros.core.tracking.vocabulary``)."""
+"""Package data: the ORB vocabulary (built by ``python benchmarks/build_vocabulary.py``)."""
