@@ -158,6 +158,4 @@ def test_every_number_of_every_config_has_a_range_a_user_can_reason_about() -> N
                 numeric = isinstance(f.default, (int, float)) and not isinstance(f.default, bool)
                 if numeric and f.name not in ranges:
                     missing.append(f"{node}: {prefix + '.' if prefix else ''}{f.name}")
-    # The tracker's own table and TrackerConfig are converted with the tracker's split.
-    missing = [m for m in missing if not m.startswith("tracker: tracker.")]
     assert missing == [], missing

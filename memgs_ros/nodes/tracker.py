@@ -40,6 +40,8 @@ from __future__ import annotations
 import sys
 import time
 from collections import deque
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -71,53 +73,68 @@ from memgs_ros.ros.codecs import (
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.params import ParamSpec, declare_all
 from memgs_ros.ros.stamp_sync import NearestPairer
 
 KEYPOINT_DTYPE = np.dtype([("u", np.float32), ("v", np.float32), ("depth", np.float32), ("active", np.uint8)])
 
 
-PARAMS = (
-    ParamSpec("color_topic", "camera/camera/color/image_raw", "colour image input"),
-    ParamSpec("depth_topic", "camera/camera/aligned_depth_to_color/image_raw",
-              "depth image input registered to colour (16UC1 or 32FC1); unused in mono mode"),
-    ParamSpec("camera_info_topic", "camera/camera/color/camera_info",
-              "camera_info of the colour camera (plumb_bob or rational_polynomial)"),
-    ParamSpec("depth_scale", 1000.0, "16UC1 depth units per metre (RealSense 1000, TUM 5000)", (1e-3, 1e6)),
-    ParamSpec("sync", "approximate", "colour/depth pairing", choices=("approximate", "exact")),
-    ParamSpec("max_sync_dt_s", 0.02, "largest colour/depth stamp difference paired (approximate)", (0.0, 1.0)),
-    ParamSpec("world_frame", "map", "frame id of published poses"),
-    ParamSpec("camera_frame", "camera_color_optical_frame", "child frame id of the odometry (camera optical frame)"),
-    ParamSpec("input_reliability", "best_effort",
-              "camera subscriptions: best_effort (sensor-data QoS, live cameras: drop rather than queue) or "
-              "reliable (lockstep replays must not lose a frame)", choices=("best_effort", "reliable")),
-    ParamSpec("path_max_len", 10000, "poses kept in memgs/path (0 = all)", (0, 10**7)),
-    ParamSpec("path_rate_hz", 1.0, "memgs/path publications per second (the whole path each time; poses go out "
-              "per frame on memgs/pose and memgs/odom)", (0.01, 100.0)),
-    ParamSpec("time_jump_back_s", 1.0, "a frame stamped more than this before the previous one is a time reset "
-              "(bag loop): tracking goes on from it; a smaller step back is a late frame and is dropped", (0.0, 1e6)),
-    ParamSpec("max_stamp_ahead_s", 3600.0, "drop frames stamped more than this ahead of the node's clock "
-              "(0 = no check)", (0.0, 1e9)),
-    ParamSpec("camera_info_override", False, "use the camera.* calibration instead of camera_info (whose intrinsics "
-              "and distortion are then ignored; TUM's bags carry placeholder ones)"),
-)
+@dataclass(frozen=True)
+class TrackerParams:
+    """The tracker node's own parameters (no prefix; the algorithm's are ``tracker.*``).
+
+    depth_topic: depth image input registered to colour (16UC1 or 32FC1); unused in mono mode
+    camera_info_topic: camera_info of the colour camera (plumb_bob or rational_polynomial)
+    input_reliability: camera subscriptions: best_effort (sensor-data QoS, live cameras: drop rather than
+        queue) or reliable (lockstep replays must not lose a frame)
+    path_rate_hz: memgs/path publications per second (the whole path each time; poses go out per frame on
+        memgs/pose and memgs/odom)
+    time_jump_back_s: a frame stamped more than this before the previous one is a time reset (bag loop):
+        tracking goes on from it; a smaller step back is a late frame and is dropped
+    camera_info_override: use the camera.* calibration instead of camera_info (whose intrinsics and
+        distortion are then ignored; TUM's bags carry placeholder ones)
+    """
+
+    color_topic: str = "camera/camera/color/image_raw"  # colour image input
+    depth_topic: str = "camera/camera/aligned_depth_to_color/image_raw"
+    camera_info_topic: str = "camera/camera/color/camera_info"
+    depth_scale: float = 1000.0  # 16UC1 depth units per metre (RealSense 1000, TUM 5000)
+    sync: str = "approximate"  # colour/depth pairing
+    max_sync_dt_s: float = 0.02  # largest colour/depth stamp difference paired (approximate)
+    world_frame: str = "map"  # frame id of published poses
+    camera_frame: str = "camera_color_optical_frame"  # child frame id of the odometry (camera optical frame)
+    input_reliability: str = "best_effort"
+    path_max_len: int = 10000  # poses kept in memgs/path (0 = all)
+    path_rate_hz: float = 1.0
+    time_jump_back_s: float = 1.0
+    max_stamp_ahead_s: float = 3600.0  # drop frames stamped more than this ahead of the node's clock (0 = no check)
+    camera_info_override: bool = False
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "depth_scale": (1e-3, 1e6), "max_sync_dt_s": (0.0, 1.0), "path_max_len": (0, 10**7),
+        "path_rate_hz": (0.01, 100.0), "time_jump_back_s": (0.0, 1e6), "max_stamp_ahead_s": (0.0, 1e9),
+    }
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {
+        "sync": ("approximate", "exact"), "input_reliability": ("best_effort", "reliable"),
+    }
+
+
 # Parameter groups declared from core configs: "<prefix>.<field>".
-CONFIGS = (("tracker", TrackerConfig), (CAMERA_PREFIX, CameraCalibration))
+CONFIGS = (("", TrackerParams), ("tracker", TrackerConfig), (CAMERA_PREFIX, CameraCalibration))
 
 
 class TrackerNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("tracker", **node_kwargs)
-        v = declare_all(self, PARAMS)
-        self.color_topic, self.depth_topic, self.info_topic = v["color_topic"], v["depth_topic"], v["camera_info_topic"]
-        self.depth_scale, self.sync, max_dt = v["depth_scale"], v["sync"], v["max_sync_dt_s"]
-        self.world_frame, self.camera_frame = v["world_frame"], v["camera_frame"]
-        self.input_reliability, self.path_max_len = v["input_reliability"], v["path_max_len"]
-        path_rate = v["path_rate_hz"]
-        self.jump_back_ns = int(1e9 * v["time_jump_back_s"])
-        self.max_ahead_ns = int(1e9 * v["max_stamp_ahead_s"])
+        v = declare_config(self, TrackerParams, "")
+        self.color_topic, self.depth_topic, self.info_topic = v.color_topic, v.depth_topic, v.camera_info_topic
+        self.depth_scale, self.sync, max_dt = v.depth_scale, v.sync, v.max_sync_dt_s
+        self.world_frame, self.camera_frame = v.world_frame, v.camera_frame
+        self.input_reliability, self.path_max_len = v.input_reliability, v.path_max_len
+        path_rate = v.path_rate_hz
+        self.jump_back_ns = int(1e9 * v.time_jump_back_s)
+        self.max_ahead_ns = int(1e9 * v.max_stamp_ahead_s)
         self.cfg: TrackerConfig = declare_config(self, TrackerConfig, "tracker")
-        override = v["camera_info_override"]
+        override = v.camera_info_override
         calibration = declare_calibration(self)
         if override and calibration is None:
             raise ConfigError("camera_info_override is true but no calibration is set: give camera.width, "

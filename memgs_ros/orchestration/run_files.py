@@ -217,7 +217,6 @@ def check_parameters(params: Mapping[str, Mapping[str, Any]]) -> None:
     import importlib
 
     from memgs_ros.ros.config_params import check_values, module_parameter_names, unknown_parameters
-    from memgs_ros.ros.params import check_value
 
     lines: list[str] = []
     for node, values in params.items():
@@ -227,10 +226,6 @@ def check_parameters(params: Mapping[str, Mapping[str, Any]]) -> None:
         lines += unknown_parameters(node, values, module_parameter_names(module))
         for prefix, config_cls in module.CONFIGS:
             lines += check_values(config_cls, prefix, values, node=node)
-        for spec in getattr(module, "PARAMS", ()):  # a node not yet on CONFIGS alone
-            problem = check_value(spec, values[spec.name]) if spec.name in values else None
-            if problem is not None:
-                lines.append(f"{node}: {problem}")
     if lines:
         raise ConfigError("; ".join(lines))
 

@@ -145,22 +145,15 @@ def parameter_names(configs: Iterable[tuple[str, type]]) -> frozenset[str]:
     return frozenset(names | ROS_PARAMETERS)
 
 
-def _legacy_specs(node_module: ModuleType) -> tuple[ParamSpec, ...]:
-    """Transitional: a node module that still lists ``PARAMS`` (ParamSpec, declared first with
-    ``declare_all``); drop this once every node declares dataclasses only."""
-    return tuple(getattr(node_module, "PARAMS", ()))
-
-
 def module_specs(node_module: ModuleType) -> list[ParamSpec]:
     """Every parameter a node module declares from its ``CONFIGS``, in declaration order."""
-    own = (spec for prefix, cls in node_module.CONFIGS for spec in config_specs(cls, prefix))
-    return [*_legacy_specs(node_module), *own]
+    return [spec for prefix, cls in node_module.CONFIGS for spec in config_specs(cls, prefix)]
 
 
 def module_parameter_names(node_module: ModuleType) -> frozenset[str]:
     """Every parameter a node module declares (:func:`module_specs`), rclpy's own included: what
     the CLI checks parameter-file names against."""
-    return parameter_names(node_module.CONFIGS) | {spec.name for spec in _legacy_specs(node_module)}
+    return parameter_names(node_module.CONFIGS)
 
 
 def _group(prefix: str) -> str:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, fields
+from typing import ClassVar
 
 import numpy as np
 
@@ -116,6 +117,31 @@ class TrackerConfig:
     orbslam3_vocabulary: str = ""
     orbslam3_settings: str = ""
     seed: int = 0
+
+    # Ranges a user can reason about, checked before a run starts and by the node at start.
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "n_features": (50, 20_000), "scale_factor": (1.01, 2.0), "n_levels": (1, 16), "fast_threshold": (1, 255),
+        "fast_min_threshold": (1, 255), "grid_cell_px": (8, 1024), "min_depth_m": (0.0, 100.0),
+        "max_depth_m": (0.01, 1000.0), "virtual_baseline_m": (0.001, 10.0), "rolling_shutter_readout_s": (0.0, 1.0),
+        "search_radius_px": (1.0, 500.0), "refine_radius_px": (0.5, 500.0), "max_descriptor_distance": (1, 256),
+        "match_ratio": (0.1, 1.0), "max_reprojection_px": (0.1, 100.0), "min_inliers": (4, 10_000),
+        "ransac_iterations": (1, 100_000), "ransac_reprojection_px": (0.1, 100.0),
+        "max_translation_jump_m": (0.0, 100.0), "max_rotation_jump_deg": (0.0, 180.0),
+        "keyframe_tracked_ratio": (0.0, 1.0), "keyframe_min_new_points": (0, 100_000),
+        "keyframe_max_frames": (1, 100_000), "keyframe_min_frames": (0, 100_000),
+        "keyframe_max_rotation_deg": (0.0, 180.0), "keyframe_max_translation_m": (0.0, 100.0),
+        "local_map_keyframes": (1, 1000), "ba_window": (2, 1000), "ba_max_iterations": (0, 1000),
+        "ba_huber_px": (0.1, 100.0), "point_min_found_ratio": (0.0, 1.0), "max_keyframes": (0, 10**6),
+        "max_recently_lost_frames": (0, 10_000), "reloc_min_inliers": (4, 10_000), "reloc_max_keyframes": (1, 10_000),
+        "new_segment_after_lost_frames": (0, 10**6), "loop_min_keyframe_gap": (1, 10**6),
+        "loop_consistency": (1, 100), "loop_min_inliers": (4, 10_000), "loop_covisibility_edge_points": (1, 10_000),
+        "loop_cooldown_keyframes": (0, 10**6), "loop_global_ba_iterations": (0, 1000),
+        "loop_global_ba_budget_s": (0.0, 3600.0), "loop_global_ba_followup_keyframes": (0, 10**6),
+        "mono_min_init_matches": (8, 100_000), "mono_min_parallax_deg": (0.0, 90.0),
+        "mono_keyframe_tracked_ratio": (0.0, 1.0), "mono_min_triangulated": (3, 100_000),
+        "mono_homography_ratio": (0.0, 1.0), "seed": (0, 2**31 - 1),
+    }
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": MODES, "backend": BACKENDS}
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:

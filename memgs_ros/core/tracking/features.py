@@ -51,10 +51,10 @@ class OrbExtractor:
 
     def __init__(self, cfg: TrackerConfig) -> None:
         self.cfg = cfg
-        self._orb = cv2.ORB_create(nfeatures=2 * cfg.n_features, scaleFactor=cfg.scale_factor,
+        self._orb = cv2.ORB_create(nfeatures=2 * cfg.n_features, scaleFactor=cfg.scale_factor,  # type: ignore[attr-defined]  # missing from OpenCV's stubs
                                    nlevels=cfg.n_levels, edgeThreshold=19, patchSize=31,
                                    fastThreshold=cfg.fast_threshold)
-        self._orb_low = cv2.ORB_create(nfeatures=2 * cfg.n_features, scaleFactor=cfg.scale_factor,
+        self._orb_low = cv2.ORB_create(nfeatures=2 * cfg.n_features, scaleFactor=cfg.scale_factor,  # type: ignore[attr-defined]  # missing from OpenCV's stubs
                                        nlevels=cfg.n_levels, edgeThreshold=19, patchSize=31,
                                        fastThreshold=cfg.fast_min_threshold)
 
@@ -62,7 +62,7 @@ class OrbExtractor:
         n = self.cfg.n_features
         if len(kps) <= n:
             return list(kps)
-        pts = cv2.KeyPoint_convert(kps)
+        pts = cv2.KeyPoint_convert(kps)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
         resp = np.array([k.response for k in kps], dtype=np.float32)
         cell = self.cfg.grid_cell_px
         gx = max(1, int(np.ceil(width / cell)))
@@ -104,7 +104,7 @@ class OrbExtractor:
         # the centre of level pixel x is at (x + 0.5) s - 0.5 in level 0, a bias of 0.5 (s - 1)
         # (1.3 px at level 7) that differs between octaves of the same point.
         shift = 0.5 * (self.cfg.scale_factor ** octave - 1.0)
-        uv_raw = (cv2.KeyPoint_convert(kps).astype(np.float64) + shift[:, None]).astype(np.float32)
+        uv_raw = (cv2.KeyPoint_convert(kps).astype(np.float64) + shift[:, None]).astype(np.float32)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
         uv = undistort_points(uv_raw, camera)
         depth = np.full(len(kps), np.nan)
         if depth_m is not None:

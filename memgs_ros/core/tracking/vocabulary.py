@@ -121,7 +121,7 @@ class Vocabulary:
 
     def save(self, path: str | Path) -> None:
         np.savez_compressed(path, branching=self.branching, depth=self.depth, idf=self.idf.astype(np.float32),
-                            **{f"level{i}": c for i, c in enumerate(self.levels)})
+                            **{f"level{i}": c for i, c in enumerate(self.levels)})  # type: ignore[arg-type]
 
     @classmethod
     def load(cls, path: str | Path) -> Vocabulary:
