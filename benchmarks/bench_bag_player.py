@@ -53,8 +53,8 @@ def serve_player(n: int, width: int, height: int) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
-    from memgs_ros.core.camera import TUM_FR3
-    from memgs_ros.core.frame import Frame
+    from memgs_ros.core.geometry.camera import TUM_FR3
+    from memgs_ros.core.geometry.frame import Frame
     from memgs_ros.nodes.bag_player import BagPlayer
 
     rng = np.random.default_rng(0)

@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 
 DEFAULT_SOURCE = Path("/work/shared/data/tum/rgbd_dataset_freiburg1_rpy_head")
 # What TUM's ROS 1 bags publish on /camera/rgb/camera_info (reference section 6).

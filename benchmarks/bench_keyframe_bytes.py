@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from memgs_ros.core.keyframes import TrainingKeyframe
-from memgs_ros.core.mapping import GaussianMapper, MappingConfig
-from memgs_ros.core.runtime import configure_cpu_runtime
+from memgs_ros.core.mapping.keyframes import TrainingKeyframe
+from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
+from memgs_ros.core.runtime.cpu import configure_cpu_runtime
 
 DEFAULT_TUM = "/work/shared/data/tum/rgbd_dataset_freiburg1_rpy_head"
 

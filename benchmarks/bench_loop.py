@@ -37,7 +37,7 @@ import numpy as np
 
 from memgs_ros.core.tracking import TrackerConfig, make_tracker
 from memgs_ros.core.tracking.anchored_path import AnchoredPath
-from memgs_ros.core.trajectory import ate, path_length_m
+from memgs_ros.core.metrics.trajectory import ate, path_length_m
 from memgs_ros.io.synthetic import generate_frames, loop_revisit_frames, parse_spec
 
 DEFAULT_SPEC = "synthetic:w=320,h=240,n=240,path=loop,noise=0.01,holes=0.05"
@@ -76,7 +76,7 @@ def map_psnr(frames: list, kf_poses: dict, T_first: np.ndarray, eval_idx: np.nda
     sys.path.insert(0, str(Path(__file__).parent))
     from bench_mapping import PRESETS, grid_seeds, psnr_of
 
-    from memgs_ros.core.mapping import GaussianMapper, MappingConfig
+    from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
 
     cfg = MappingConfig(min_keyframes=1, resolution_scale=0.5, densify_start_iter=iterations // 4,
                         densify_stop_iter=int(0.7 * iterations), merge_enabled=False,

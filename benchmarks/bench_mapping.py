@@ -45,7 +45,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-# One BLAS thread (before numpy/torch load): the machine's cores are shared, see core/runtime.py.
+# One BLAS thread (before numpy/torch load): the machine's cores are shared, see core/runtime/cpu.py.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -125,7 +125,7 @@ def psnr_of(mapper, frame, scale: float) -> tuple[float, float, float]:
     whole-image PSNR with the render set to black outside those pixels as the GT is)."""
     import torch
 
-    from memgs_ros.core.view import valid_pixel_mask, view_preparation
+    from memgs_ros.core.geometry.view import valid_pixel_mask, view_preparation
 
     view = view_preparation(frame.camera, scale)
     rgb, _ = view(frame.rgb)
@@ -164,7 +164,7 @@ def run(name: str, args: argparse.Namespace) -> dict:
     import numpy as np
     import torch
 
-    from memgs_ros.core.mapping import GaussianMapper, MappingConfig
+    from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
     from memgs_ros.io.sources import open_source
 
     spec, scale, stride, iters, grid, target = DATASETS[name]
@@ -291,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="results/bench_mapping.json")
     args = p.parse_args(argv)
 
-    from memgs_ros.core.runtime import configure_cpu_runtime
+    from memgs_ros.core.runtime.cpu import configure_cpu_runtime
 
     rt = configure_cpu_runtime(torch_threads=args.threads)
     names = ["synthetic", "tum"] if args.dataset == "both" else [args.dataset]

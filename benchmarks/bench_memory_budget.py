@@ -46,7 +46,7 @@ def mapping_args(args: argparse.Namespace, overrides: list[str]) -> argparse.Nam
 
 def run_arm(name: str, args: argparse.Namespace, overrides: list[str]) -> dict:
     """One bench_mapping run plus what the budget removed over the run."""
-    from memgs_ros.core import mapping
+    from memgs_ros.core.mapping import mapper as mapping
 
     removed = {"budget_merged": 0, "budget_pruned": 0}
     step = mapping.GaussianMapper.step
@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[tum] {args.tum or bench_mapping.DEFAULT_TUM} not found", file=sys.stderr)
         return 1
 
-    from memgs_ros.core.runtime import configure_cpu_runtime
+    from memgs_ros.core.runtime.cpu import configure_cpu_runtime
 
     rt = configure_cpu_runtime(torch_threads=args.threads)
     if args.unbudgeted_json:

@@ -35,7 +35,7 @@ STAGES = ("masking", "hashing", "distances", "lbfgs", "surgery", "total")
 def build_map(args: argparse.Namespace):  # -> GaussianMap
     import torch
 
-    from memgs_ros.core.gaussians import GaussianMap
+    from memgs_ros.core.mapping.gaussians import GaussianMap
 
     g = torch.Generator().manual_seed(0)
     v = args.voxel_size
@@ -98,7 +98,7 @@ def accuracy(before: dict, res, gmap) -> dict:
     """Relative Frobenius error of the merged covariances against the exact W2 barycentre."""
     import torch
 
-    from memgs_ros.core.wasserstein import covariance_from_scale_quat, w2_barycenter_fixed_point
+    from memgs_ros.core.merge.wasserstein import covariance_from_scale_quat, w2_barycenter_fixed_point
 
     pairs = res.removed_ids.reshape(-1, 2)
     if pairs.shape[0] == 0:
@@ -135,8 +135,8 @@ def main() -> int:
     args = ap.parse_args()
 
 
-    from memgs_ros.core.merge import MergeConfig, merge_pass
-    from memgs_ros.core.runtime import configure_cpu_runtime
+    from memgs_ros.core.merge.voxel_merge import MergeConfig, merge_pass
+    from memgs_ros.core.runtime.cpu import configure_cpu_runtime
 
     rt = configure_cpu_runtime(torch_threads=args.threads)
     cfg = MergeConfig(tau=args.tau, window_keyframes=args.window, voxel_size_m=args.voxel_size,

@@ -34,7 +34,7 @@ def _no_merge(gmap, cfg, newest_keyframe_id: int, iteration: int):  # -> MergeRe
     """A merge pass that merges nothing (the "off" arm of the ablation)."""
     import torch
 
-    from memgs_ros.core.merge import MergeResult
+    from memgs_ros.core.merge.voxel_merge import MergeResult
 
     empty = torch.zeros(0, dtype=torch.int64, device=gmap.device)
     return MergeResult(empty, empty, 0, 0, 0, 0)
@@ -45,12 +45,12 @@ def run_one(args: argparse.Namespace) -> dict:
     import numpy as np
     import torch
 
-    from memgs_ros.core.mapping import GaussianMapper, MappingConfig
-    from memgs_ros.core.merge import MergeConfig
-    from memgs_ros.core.metrics import psnr
-    from memgs_ros.core.runtime import configure_cpu_runtime
+    from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
+    from memgs_ros.core.merge.voxel_merge import MergeConfig
+    from memgs_ros.core.metrics.image import psnr
+    from memgs_ros.core.runtime.cpu import configure_cpu_runtime
     from memgs_ros.core.sampling import seeds_rgbd
-    from memgs_ros.core.view import view_preparation
+    from memgs_ros.core.geometry.view import view_preparation
     from memgs_ros.io.sources import open_source
 
     configure_cpu_runtime(torch_threads=args.threads)

@@ -20,9 +20,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from memgs_ros.core.camera import TUM_CAMERAS, TUM_DEPTH_FACTORS
+from memgs_ros.core.geometry.camera import TUM_CAMERAS, TUM_DEPTH_FACTORS
 from memgs_ros.core.sampling import PatchGridConfig, patch_grid_uv, seeds_mono, seeds_rgbd
-from memgs_ros.core.view import undistort_uv, undistorter_for, view_preparation
+from memgs_ros.core.geometry.view import undistort_uv, undistorter_for, view_preparation
 
 RADII_PX = (1.0, 20.0, 30.0, 50.0, 80.0)
 

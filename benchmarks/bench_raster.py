@@ -36,8 +36,8 @@ SIGMA_PX = 1.8  # median tangent sigma in pixels (before the 0.3 px^2 dilation)
 def build_scene(n: int, width: int, height: int, seed: int = 0):  # -> (params, T_cw, camera)
     import torch
 
-    from memgs_ros.core.camera import TUM_FR1, PinholeCamera
-    from memgs_ros.core.geometry import rotmat_to_quat_wxyz_torch
+    from memgs_ros.core.geometry.camera import TUM_FR1, PinholeCamera
+    from memgs_ros.core.geometry.poses import rotmat_to_quat_wxyz_torch
 
     base = TUM_FR1.undistorted()
     cam = PinholeCamera(
@@ -132,7 +132,7 @@ def _rss_mb() -> tuple[float, float]:
 
 def resolve_backend(backend: str) -> str:
     """The CPU compositor that rasterize(..., backend=backend) uses: "torch" or "numba"."""
-    from memgs_ros.core.runtime import numba_available
+    from memgs_ros.core.runtime.cpu import numba_available
 
     if backend == "auto":
         return "numba" if numba_available() else "torch"
@@ -162,7 +162,7 @@ def run_one(
     from memgs_ros.core.raster.rules import MIN_ALPHA
     from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
     from memgs_ros.core.raster.tiles import build_tile_plan
-    from memgs_ros.core.runtime import configure_cpu_runtime
+    from memgs_ros.core.runtime.cpu import configure_cpu_runtime
 
     composite_fn, tile_size = _compositor(backend, None)
 
@@ -256,7 +256,7 @@ def stage_breakdown(n: int, width: int, height: int, runs: int, backend: str) ->
     from memgs_ros.core.raster.values import Splats2D
     from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
     from memgs_ros.core.raster.tiles import build_tile_plan
-    from memgs_ros.core.runtime import configure_cpu_runtime
+    from memgs_ros.core.runtime.cpu import configure_cpu_runtime
 
     configure_cpu_runtime(torch_threads=1)
     composite, tile_size = _compositor(backend, 1)

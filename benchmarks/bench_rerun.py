@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from memgs_ros.core.records import GaussianRecords
+from memgs_ros.core.maps.records import GaussianRecords
 
 
 def _uptime() -> str:

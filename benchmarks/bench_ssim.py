@@ -24,10 +24,10 @@ from pathlib import Path
 
 import torch
 
-from memgs_ros.core import ssim as ssim_module
-from memgs_ros.core.losses import photometric_loss
-from memgs_ros.core.runtime import numba_available
-from memgs_ros.core.ssim import _ssim_map
+from memgs_ros.core.metrics import ssim as ssim_module
+from memgs_ros.core.mapping.losses import photometric_loss
+from memgs_ros.core.runtime.cpu import numba_available
+from memgs_ros.core.metrics.ssim import _ssim_map
 
 
 def _ssim_on(compiled: bool) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:

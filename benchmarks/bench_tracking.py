@@ -30,7 +30,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from memgs_ros.core.trajectory import ate, path_length_m, rpe  # noqa: E402
+from memgs_ros.core.metrics.trajectory import ate, path_length_m, rpe  # noqa: E402
 from memgs_ros.core.tracking import TrackerConfig, TrackingState, make_tracker  # noqa: E402
 
 DEFAULT_TUM = "/work/shared/data/tum/rgbd_dataset_freiburg1_rpy_head"

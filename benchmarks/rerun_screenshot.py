@@ -105,7 +105,7 @@ def matplotlib_figure(rrd: Path, out: Path) -> Path:
     import pyarrow as pa
     from rerun.chunk import RrdReader
 
-    from memgs_ros.core.atomic import atomic_write
+    from memgs_ros.core.runtime.atomic import atomic_write
 
     rows: dict[str, list[dict]] = {}
     for chunk in RrdReader(str(rrd)).stream():

@@ -1,6 +1,6 @@
 """Evaluation of a run (reference section 7): the paper's table for one sequence.
 
-The run tier between the pure scorers (:mod:`memgs_ros.core.scoring`) and the CLI
+The run tier between the pure scorers (:mod:`memgs_ros.core.metrics.scoring`) and the CLI
 (``memgs eval``, which makes the tables and plots):
 
 - :func:`evaluate_run` reads a **finished** run's files (``summary.json``, ``params.yaml``,
@@ -16,7 +16,7 @@ What is measured:
 - rendering quality: the saved PLY rendered at the tracked pose of **every tracked frame**
   matched to a ground-truth image within 0.08 s, and separately at every keyframe's pose at
   insertion (``keyframes.txt``; MemGS's in-system number). Ground-truth images go through the
-  mapper's own view preparation (:func:`memgs_ros.core.view.view_preparation`: undistorted,
+  mapper's own view preparation (:func:`memgs_ros.core.geometry.view.view_preparation`: undistorted,
   resized to the **mapping resolution**); PSNR, SSIM and, when the ``lpips`` package and its
   cached weights are there, LPIPS;
 - trajectory: ATE RMSE after SE(3) Umeyama alignment (Sim(3) for monocular) and rotation RMSE,
@@ -44,13 +44,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from memgs_ros.core import scoring
-from memgs_ros.core.atomic import atomic_write
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.gaussians import GaussianMap
-from memgs_ros.core.metrics import make_lpips
-from memgs_ros.core.ply import load_ply
-from memgs_ros.core.scoring import (
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.view import view_preparation
+from memgs_ros.core.mapping.gaussians import GaussianMap
+from memgs_ros.core.maps.ply import load_ply
+from memgs_ros.core.metrics import scoring
+from memgs_ros.core.metrics.image import make_lpips
+from memgs_ros.core.metrics.scoring import (
     ATE_MAX_DT_S,
     FRAME_MATCH_MAX_DT_S,
     STRIP_FRAMES,
@@ -58,7 +58,7 @@ from memgs_ros.core.scoring import (
     StripFrame,
     TrajectoryResult,
 )
-from memgs_ros.core.view import view_preparation
+from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.sources import open_source
 from memgs_ros.io.tum import read_trajectory
@@ -343,7 +343,7 @@ def score_map(ply_path: str | os.PathLike[str],
               strip_from: str | None = None, strip_frames: int = STRIP_FRAMES,
               valid_mask: np.ndarray | None = None,  # [h, w] bool: pixels with image content
               ) -> tuple[dict[str, QualityResult], list[StripFrame], bool]:
-    """:func:`memgs_ros.core.scoring.score_map` on the map saved at ``ply_path`` (DataError
+    """:func:`memgs_ros.core.metrics.scoring.score_map` on the map saved at ``ply_path`` (DataError
     naming the file when it cannot be read), with a progress bar and LPIPS when available.
     Returns ({name: QualityResult}, strip frames, whether LPIPS was computed)."""
     gmap = GaussianMap.from_records(load_ply(ply_path), max_sh_degree=3, device=device)
@@ -370,7 +370,7 @@ def score_map(ply_path: str | os.PathLike[str],
 def score_trajectory(trajectory_path: str | os.PathLike[str], gt_stamps_ns: np.ndarray,  # [K]
                      gt_T_wc: np.ndarray,  # [K, 4, 4]
                      sim3: bool, keyframes_path: str | os.PathLike[str] | None = None) -> TrajectoryResult:
-    """:func:`memgs_ros.core.scoring.score_trajectory` of a TUM trajectory file (and, for the
+    """:func:`memgs_ros.core.metrics.scoring.score_trajectory` of a TUM trajectory file (and, for the
     plot, the keyframe poses in ``keyframes_path`` when it is readable). Raises DataError when
     fewer than 3 poses match."""
     stamps, poses = read_trajectory(trajectory_path)
@@ -498,7 +498,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
     the run; None lets the run pick a free one. record: also record the run's output topics into
     this .mcap file. rerun: stream the run to Rerun (see RunOptions). device: where the evaluation
     renders. On CPU,
-    call :func:`memgs_ros.core.runtime.configure_cpu_runtime` first (the CLI does): with OpenMP
+    call :func:`memgs_ros.core.runtime.cpu.configure_cpu_runtime` first (the CLI does): with OpenMP
     threads on a shared machine each render is ~30x slower.
     """
     # Only running needs rclpy and the nodes; scoring a finished run (evaluate_run) does not.

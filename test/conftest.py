@@ -48,7 +48,7 @@ def numba_off(monkeypatch: pytest.MonkeyPatch):  # -> Iterator[None]
     """MEMGS_DISABLE_NUMBA=1 for one test: the plain-torch twins of every compiled path run (the
     branches a GPU takes). numba_available() is read once per process, so its cache is cleared
     on the way in and, with the variable restored, on the way out."""
-    from memgs_ros.core import runtime
+    from memgs_ros.core.runtime import cpu as runtime
 
     monkeypatch.setenv("MEMGS_DISABLE_NUMBA", "1")
     runtime.numba_available.cache_clear()

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from memgs_ros.core.frame import Frame
+from memgs_ros.core.geometry.frame import Frame
 
 
 def grid_seeds(f: Frame, step: int = 4) -> tuple[np.ndarray, np.ndarray]:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from memgs_ros.core.atomic import atomic_write
+from memgs_ros.core.runtime.atomic import atomic_write
 
 
 def test_atomic_write_replaces_whole_with_umask_permissions_and_cleans_up(tmp_path: Path) -> None:

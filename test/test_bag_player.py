@@ -21,9 +21,9 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import Bool, Header  # noqa: E402
 
-from memgs_ros.core.camera import PinholeCamera  # noqa: E402
-from memgs_ros.core.frame import Frame  # noqa: E402
-from memgs_ros.core.geometry import pose_from_tq  # noqa: E402
+from memgs_ros.core.geometry.camera import PinholeCamera  # noqa: E402
+from memgs_ros.core.geometry.frame import Frame  # noqa: E402
+from memgs_ros.core.geometry.poses import pose_from_tq  # noqa: E402
 from memgs_ros.errors import ConfigError, DataError  # noqa: E402
 from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb, image_to_numpy  # noqa: E402
 from memgs_ros.nodes.bag_player import BagPlayer  # noqa: E402

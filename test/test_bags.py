@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.io.bag_reader import BagSource, BagTopics
 from memgs_ros.io.bag_writer import (

@@ -18,7 +18,7 @@ import yaml
 
 from memgs_ros.cli import main
 from memgs_ros.cli.run import calibration_warning, check_inputs, run_log
-from memgs_ros.core.camera import (
+from memgs_ros.core.geometry.camera import (
     TUM_CAMERAS, TUM_FR1, TUM_FR3, CameraCalibration, PinholeCamera, calibration_differences,
 )
 from memgs_ros.errors import ConfigError, DataError, PipelineError
@@ -353,8 +353,8 @@ def test_run_on_a_bag_with_wrong_camera_info_maps_with_the_true_camera(tmp_path:
     """TUM's situation in small: a ROS 1 bag whose camera_info is the ROS default while the images
     were made with another camera. With the true calibration in the config the keyframes the mapper
     trained on carry the true camera, and the trajectory matches ground truth."""
-    from memgs_ros.core import checkpoint
-    from memgs_ros.core.trajectory import ate
+    from memgs_ros.core.mapping import checkpoint
+    from memgs_ros.core.metrics.trajectory import ate
     from memgs_ros.io.tum import read_trajectory
     from memgs_ros.orchestration.pipeline import run_pipeline
 

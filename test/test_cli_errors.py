@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 
 import memgs_ros
 from memgs_ros.cli import main
-from memgs_ros.core.gaussians import GaussianRecords, PLY_F_REST
-from memgs_ros.core.ply import ids_sidecar_path, load_ply, save_ply
+from memgs_ros.core.mapping.gaussians import GaussianRecords, PLY_F_REST
+from memgs_ros.core.maps.ply import ids_sidecar_path, load_ply, save_ply
 from memgs_ros.errors import DataError
 
 SPEC = "synthetic:w=32,h=24,n=3,seed=1"
@@ -191,7 +191,7 @@ def test_operating_system_errors_are_one_line(monkeypatch: pytest.MonkeyPatch, c
 def test_corrupt_ply_where_evaluation_reads_one(tmp_path: Path) -> None:
     """``memgs eval`` scores the saved map through score_map: a corrupt PLY is a DataError naming it."""
     pytest.importorskip("torch")
-    from memgs_ros.core.camera import PinholeCamera
+    from memgs_ros.core.geometry.camera import PinholeCamera
     from memgs_ros.evaluation import score_map
 
     p = save_ply(_records(4), tmp_path / "map.ply")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from memgs_ros.cli.run import print_trajectory_error
-from memgs_ros.core.geometry import pose_to_tq
+from memgs_ros.core.geometry.poses import pose_to_tq
 from memgs_ros.io.sources import open_source
 
 SPEC = "synthetic:w=32,h=24,n=12,seed=2"

@@ -14,8 +14,8 @@ from geometry_msgs.msg import Pose  # noqa: E402
 from nav_msgs.msg import Path  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField  # noqa: E402
 
-from memgs_ros.core.camera import TUM_FR1, TUM_FR3, PinholeCamera  # noqa: E402
-from memgs_ros.core.geometry import pose_from_tq  # noqa: E402
+from memgs_ros.core.geometry.camera import TUM_FR1, TUM_FR3, PinholeCamera  # noqa: E402
+from memgs_ros.core.geometry.poses import pose_from_tq  # noqa: E402
 from memgs_ros.errors import MessageError  # noqa: E402
 from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb, image_to_numpy  # noqa: E402
 from memgs_ros.ros import codecs  # noqa: E402

@@ -9,7 +9,7 @@ from typing import ClassVar
 import pytest
 from rclpy.parameter import Parameter
 
-from memgs_ros.core.camera import CameraCalibration
+from memgs_ros.core.geometry.camera import CameraCalibration
 from memgs_ros.errors import ConfigError
 from memgs_ros.nodes.bag_player import BagPlayer
 from memgs_ros.nodes.keyframe_sampler import KeyframeSamplerNode, KeyframeSamplerParams

@@ -13,7 +13,7 @@ import torch
 import memgs_ros.core.raster.backend_choice as backend_choice
 import memgs_ros.core.raster.backends as backends
 from memgs_ros.cli import doctor, main
-from memgs_ros.core.runtime import numba_available
+from memgs_ros.core.runtime.cpu import numba_available
 
 
 def _expected_backend(numba: bool) -> str:

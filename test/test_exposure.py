@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from memgs_ros.core.exposure import ExposureCompensation
-from memgs_ros.core.mapping import GaussianMapper, MappingConfig
+from memgs_ros.core.mapping.exposure import ExposureCompensation
+from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 

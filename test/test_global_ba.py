@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking.bundle_adjustment import (
     BAProblem,
     apply_left_update,

@@ -16,7 +16,7 @@ from rclpy.serialization import deserialize_message  # noqa: E402
 from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
-from memgs_ros.core.camera import PinholeCamera  # noqa: E402
+from memgs_ros.core.geometry.camera import PinholeCamera  # noqa: E402
 from memgs_ros.errors import MessageError  # noqa: E402
 from memgs_ros.io.bag_reader import BagSource  # noqa: E402
 from memgs_ros.io.bag_writer import (  # noqa: E402

@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("rclpy", reason="the ROS extra is not installed")
 
-from memgs_ros.core.ply import load_ply  # noqa: E402
+from memgs_ros.core.maps.ply import load_ply  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking import TrackerConfig, make_tracker
 from memgs_ros.core.tracking.anchored_path import AnchoredPath
 from memgs_ros.core.tracking.bundle_adjustment import apply_left_update

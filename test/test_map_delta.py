@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from memgs_ros.core.gaussians import GaussianRecords
-from memgs_ros.core.map_delta import (
+from memgs_ros.core.mapping.gaussians import GaussianRecords
+from memgs_ros.core.maps.map_delta import (
     ApplyStatus, MapReplica, MessageKind, decode, encode, f_rest_columns, message_dtype,
 )
 from memgs_ros.errors import MessageError
@@ -95,7 +95,7 @@ def test_count_mismatch_is_reported() -> None:
 
 
 def test_outbox_budgeted_deltas_keep_replica_in_step() -> None:
-    from memgs_ros.core.map_delta import DeltaOutbox
+    from memgs_ros.core.maps.map_delta import DeltaOutbox
 
     out, rep = DeltaOutbox(sh_degree=3), MapReplica()
     live = _records(range(10))
@@ -110,7 +110,7 @@ def test_outbox_budgeted_deltas_keep_replica_in_step() -> None:
 
 
 def test_outbox_sends_only_changes_over_tolerance_then_flushes_exactly() -> None:
-    from memgs_ros.core.map_delta import DeltaOutbox
+    from memgs_ros.core.maps.map_delta import DeltaOutbox
 
     out, rep = DeltaOutbox(sh_degree=3, tolerance=1e-3), MapReplica()
     live = _records(range(5))
@@ -128,7 +128,7 @@ def test_outbox_sends_only_changes_over_tolerance_then_flushes_exactly() -> None
 
 
 def test_outbox_snapshot_then_deltas() -> None:
-    from memgs_ros.core.map_delta import DeltaOutbox
+    from memgs_ros.core.maps.map_delta import DeltaOutbox
 
     out = DeltaOutbox(sh_degree=3)
     out.next_delta(_records([1, 2, 3]))
@@ -144,7 +144,7 @@ def test_outbox_snapshot_then_deltas() -> None:
 
 
 def test_restarted_sender_new_epoch_resyncs_from_its_snapshot() -> None:
-    from memgs_ros.core.map_delta import DeltaOutbox
+    from memgs_ros.core.maps.map_delta import DeltaOutbox
 
     first = DeltaOutbox(sh_degree=3, epoch=7)
     rep = MapReplica()

@@ -14,10 +14,10 @@ from collections.abc import Iterator
 import pytest
 import torch
 
-from memgs_ros.core.frame import Frame
-from memgs_ros.core.losses import mapping_loss
-from memgs_ros.core.mapping import GaussianMapper, MappingConfig
-from memgs_ros.core.merge import MergeConfig
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.mapping.losses import mapping_loss
+from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
+from memgs_ros.core.merge.voxel_merge import MergeConfig
 from memgs_ros.core.raster.gsplat_backend import gsplat_available
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
@@ -42,7 +42,7 @@ def frames() -> list[Frame]:
 def no_host_round_trip() -> Iterator[list[str]]:
     """Fail on any tensor -> numpy or numpy -> tensor conversion, and on the compiled (numba)
     kernels of the rasterizer and SSIM, inside the block."""
-    from memgs_ros.core import _ssim_numba
+    from memgs_ros.core.metrics import _ssim_numba
     from memgs_ros.core.raster import _numba_kernels
 
     calls: list[str] = []
@@ -116,8 +116,8 @@ def test_training_step_stays_on_device(frames: list[Frame], device: str, backend
 def test_session_reports_the_cuda_memory_figure(frames: list[Frame]) -> None:
     """The evaluation's memory column on a GPU is the mapper's torch.cuda.max_memory_allocated,
     reported by the session's status (and so in the mapper's stats gauges)."""
-    from memgs_ros.core.keyframes import KeyframeInput
-    from memgs_ros.core.session import MappingSession
+    from memgs_ros.core.mapping.keyframes import KeyframeInput
+    from memgs_ros.core.mapping.session import MappingSession
 
     cfg = MappingConfig(min_keyframes=2, pyramid_uses_per_level=2, merge_enabled=False, densify_start_iter=10_000)
     s = MappingSession(cfg, "cuda", free_running=False)

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.frame import Frame
-from memgs_ros.core.mapping import GaussianMapper, MappingConfig
-from memgs_ros.core.metrics import psnr
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
+from memgs_ros.core.metrics.image import psnr
 from memgs_ros.errors import ConfigError
 from memgs_ros.io.synthetic import generate_frames, parse_spec
 

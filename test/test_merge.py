@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from memgs_ros.core.gaussians import GaussianMap
-from memgs_ros.core.merge import (
+from memgs_ros.core.mapping.gaussians import GaussianMap
+from memgs_ros.core.merge.voxel_merge import (
     CHI2_3DOF_95,
     MergeConfig,
     candidate_mask,
@@ -20,7 +20,7 @@ from memgs_ros.core.merge import (
     voxel_keys,
     voxel_pairs,
 )
-from memgs_ros.core.wasserstein import (
+from memgs_ros.core.merge.wasserstein import (
     _w2_sq_eigh,
     covariance_from_scale_quat,
     precision_from_scale_quat,

@@ -18,9 +18,9 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
-from memgs_ros.core.frame import Frame  # noqa: E402
-from memgs_ros.core.gaussians import GaussianMap  # noqa: E402
-from memgs_ros.core.map_delta import DeltaOutbox, message_dtype  # noqa: E402
+from memgs_ros.core.geometry.frame import Frame  # noqa: E402
+from memgs_ros.core.mapping.gaussians import GaussianMap  # noqa: E402
+from memgs_ros.core.maps.map_delta import DeltaOutbox, message_dtype  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.nodes.tracker import KEYPOINT_DTYPE  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
@@ -514,7 +514,7 @@ def test_mapper_checkpoints_written_while_keyframes_arrive_are_whole(context, fr
     arrive must name each of its keyframes' stamps."""
     import threading
 
-    from memgs_ros.core import checkpoint
+    from memgs_ros.core.mapping import checkpoint
     from memgs_ros.nodes.mapper import MapperNode
 
     path = tmp_path / "ck.npz"

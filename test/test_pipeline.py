@@ -14,12 +14,12 @@ import torch
 
 pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install -e '.[ros]')")
 
-from memgs_ros.core.gaussians import GaussianMap  # noqa: E402
-from memgs_ros.core.geometry import invert_pose  # noqa: E402
-from memgs_ros.core.metrics import psnr  # noqa: E402
-from memgs_ros.core.ply import load_ply  # noqa: E402
+from memgs_ros.core.mapping.gaussians import GaussianMap  # noqa: E402
+from memgs_ros.core.geometry.poses import invert_pose  # noqa: E402
+from memgs_ros.core.metrics.image import psnr  # noqa: E402
+from memgs_ros.core.maps.ply import load_ply  # noqa: E402
 from memgs_ros.core.raster import rasterize  # noqa: E402
-from memgs_ros.core.trajectory import ate  # noqa: E402
+from memgs_ros.core.metrics.trajectory import ate  # noqa: E402
 from memgs_ros.io.bag_writer import write_bag  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.io.tum import read_trajectory  # noqa: E402

@@ -6,8 +6,8 @@ import math
 import pytest
 import torch
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.poses import quat_wxyz_to_rotmat_torch
 from memgs_ros.core.raster.projection import project_gaussians
 from memgs_ros.core.raster.values import Gaussians
 
@@ -21,7 +21,7 @@ CAM_OFFCENTRE = PinholeCamera(48, 40, 45.0, 40.0, 12.0, 31.0)
 @pytest.fixture(autouse=True)
 def _needs_numba() -> None:
     pytest.importorskip("numba")
-    from memgs_ros.core.runtime import numba_available
+    from memgs_ros.core.runtime.cpu import numba_available
 
     if not numba_available():
         pytest.skip("numba is disabled here (MEMGS_DISABLE_NUMBA)")

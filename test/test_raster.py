@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.poses import quat_wxyz_to_rotmat_torch
 from memgs_ros.core.raster import RenderOutput, _rasterize_reference, rasterize
 from memgs_ros.core.raster.composite import composite
 from memgs_ros.core.raster.rules import MIN_ALPHA
@@ -381,7 +381,7 @@ def test_opaque_front_gaussian_terminates() -> None:
 # ------------------------------------------------------------------ numba compositor
 def _numba() -> None:
     pytest.importorskip("numba")
-    from memgs_ros.core.runtime import numba_available
+    from memgs_ros.core.runtime.cpu import numba_available
 
     if not numba_available():
         pytest.skip("numba is disabled here (MEMGS_DISABLE_NUMBA)")

@@ -17,8 +17,8 @@ rr = pytest.importorskip("rerun", reason="the [viz] extra is not installed (pip 
 from rerun.chunk import RrdReader  # noqa: E402
 
 from memgs_ros.cli import main  # noqa: E402
-from memgs_ros.core.ply import load_ply, save_ply  # noqa: E402
-from memgs_ros.core.records import GaussianRecords  # noqa: E402
+from memgs_ros.core.maps.ply import load_ply, save_ply  # noqa: E402
+from memgs_ros.core.maps.records import GaussianRecords  # noqa: E402
 from memgs_ros.errors import ConfigError  # noqa: E402
 from memgs_ros.viz import RerunTarget  # noqa: E402
 from memgs_ros.viz import rerun_log as rl  # noqa: E402
@@ -162,7 +162,7 @@ def test_log_views_pairs_frame_and_render(tmp_path: Path) -> None:
 def test_map_follower_follows_deltas_and_repairs_gaps_from_full_maps() -> None:
     """The bridge's copy of the map: in step from deltas; a lost delta or a late start is repaired
     by a full map, and the deltas that arrived meanwhile are replayed on top of it."""
-    from memgs_ros.core.map_delta import DeltaOutbox, decode
+    from memgs_ros.core.maps.map_delta import DeltaOutbox, decode
     from memgs_ros.viz.map_follow import MapFollower
 
     out = DeltaOutbox(sh_degree=3, tolerance=0.0, epoch=5)

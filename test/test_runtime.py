@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from memgs_ros.core.runtime import release_free_memory
+from memgs_ros.core.runtime.cpu import release_free_memory
 
 
 def _rss_mb() -> float:

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from memgs_ros.core.camera import TUM_FR1, PinholeCamera
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry.camera import TUM_FR1, PinholeCamera
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.sampling import (
     PG_RGBD, SOURCE_KEYPOINT, SOURCE_PATCH_GRID, PatchGridConfig, SeedPoints, patch_grid_uv,
     seeds_mono, seeds_rgbd,
 )
-from memgs_ros.core.view import Undistorter, undistort_uv, view_preparation
+from memgs_ros.core.geometry.view import Undistorter, undistort_uv, view_preparation
 from memgs_ros.errors import ConfigError, DataError
 
 

@@ -1,4 +1,4 @@
-"""The map policies (core/strategies.py) on hand-made maps, without a mapper around them."""
+"""The map policies (core/mapping/strategies.py) on hand-made maps, without a mapper around them."""
 from __future__ import annotations
 
 import math
@@ -7,10 +7,10 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from memgs_ros.core.gaussians import GaussianMap
-from memgs_ros.core.mapping import MappingConfig
-from memgs_ros.core.merge import MergeConfig
-from memgs_ros.core.strategies import BudgetStrategy, DensifyStrategy, MergeSchedule
+from memgs_ros.core.mapping.gaussians import GaussianMap
+from memgs_ros.core.mapping.mapper import MappingConfig
+from memgs_ros.core.merge.voxel_merge import MergeConfig
+from memgs_ros.core.mapping.strategies import BudgetStrategy, DensifyStrategy, MergeSchedule
 
 
 def _map(n: int, log_scale: float = math.log(0.001), opacity: float = 0.5) -> GaussianMap:

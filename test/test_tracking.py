@@ -6,15 +6,15 @@ import itertools
 import numpy as np
 import pytest
 
-from memgs_ros.core.frame import Frame
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking import SparseMapStats, Tracker, TrackerConfig, TrackingState, make_tracker
 from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, _local_bundle_adjustment_scipy,
                                                        apply_left_update, local_bundle_adjustment,
                                                        optimize_pose)
 from memgs_ros.core.tracking.features import FrameFeatures, _hamming_pairs_table, hamming_pairs
 from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
-from memgs_ros.core.trajectory import ate, path_length_m
+from memgs_ros.core.metrics.trajectory import ate, path_length_m
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 

@@ -8,7 +8,7 @@ from concurrent.futures import Future
 import numpy as np
 import pytest
 
-from memgs_ros.core.frame import Frame
+from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.tracking import TrackerConfig, TrackingState, ba_problem, make_tracker
 from memgs_ros.core.tracking import backend as backend_module
 from memgs_ros.core.tracking.ba_problem import global_problem, local_problem
@@ -17,7 +17,7 @@ from memgs_ros.core.tracking.bundle_adjustment import apply_left_update
 from memgs_ros.core.tracking.corrections import BackendLink
 from memgs_ros.core.tracking.features import FrameFeatures
 from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
-from memgs_ros.core.worker import WorkerStopped
+from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
 K = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from memgs_ros.core.trajectory import align_umeyama, associate, ate, path_length_m, rpe
+from memgs_ros.core.metrics.trajectory import align_umeyama, associate, ate, path_length_m, rpe
 from memgs_ros.errors import DataError
 
 MS = 1_000_000

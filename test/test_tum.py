@@ -7,8 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from memgs_ros.core.camera import TUM_FR1, TUM_FR2, PinholeCamera
-from memgs_ros.core.geometry import pose_from_tq
+from memgs_ros.core.geometry.camera import TUM_FR1, TUM_FR2, PinholeCamera
+from memgs_ros.core.geometry.poses import pose_from_tq
 from memgs_ros.errors import DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames, write_tum_folder
 from memgs_ros.io.tum import TumFolder, associate, parse_stamp_ns, read_trajectory

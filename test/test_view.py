@@ -7,8 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from memgs_ros.core.camera import TUM_FR1, PinholeCamera
-from memgs_ros.core.view import Undistorter, valid_pixel_mask, view_preparation
+from memgs_ros.core.geometry.camera import TUM_FR1, PinholeCamera
+from memgs_ros.core.geometry.view import Undistorter, valid_pixel_mask, view_preparation
 from memgs_ros.errors import ConfigError, DataError
 
 PLAIN = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)

@@ -1,4 +1,4 @@
-"""The command worker (core/worker.py) and the mapping session's hazards it removes: no future
+"""The command worker (core/runtime/worker.py) and the mapping session's hazards it removes: no future
 ever hangs, whatever a command, a training step or the worker itself does.
 
 Every wait here is bounded: on the code before the worker base these tests failed by timing
@@ -12,11 +12,11 @@ from concurrent.futures import Future
 import numpy as np
 import pytest
 
-from memgs_ros.core.frame import Frame
-from memgs_ros.core.mapping import GaussianMapper, MappingConfig
-from memgs_ros.core.keyframes import KeyframeInput
-from memgs_ros.core.session import MappingSession, SessionError
-from memgs_ros.core.worker import CommandWorker, WorkerStopped
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
+from memgs_ros.core.mapping.keyframes import KeyframeInput
+from memgs_ros.core.mapping.session import MappingSession, SessionError
+from memgs_ros.core.runtime.worker import CommandWorker, WorkerStopped
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
 from frame_seeds import grid_seeds

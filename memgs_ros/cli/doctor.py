@@ -121,10 +121,10 @@ def _dds_profile(rmw: str) -> dict[str, Any]:
 def collect(check_gsplat: bool = True) -> dict[str, Any]:
     """Everything ``memgs doctor`` reports, as a JSON-ready dict with ``problems`` (the nodes
     cannot run as installed), ``warnings`` (they run, slower or surprising) and ``verdict``."""
-    from memgs_ros.core.mapping_config import MappingConfig
+    from memgs_ros.core.mapping.config import MappingConfig
     from memgs_ros.core.raster.backend_choice import choose_backend, device_label, resolve_device
     from memgs_ros.core.raster.gsplat_backend import gsplat_available
-    from memgs_ros.core.runtime import numba_available
+    from memgs_ros.core.runtime.cpu import numba_available
 
     problems: list[str] = []
     warnings: list[str] = []

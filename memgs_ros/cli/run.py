@@ -13,7 +13,7 @@ from pathlib import Path
 import yaml
 
 from memgs_ros.cli.rerun_options import add_rerun_arguments, rerun_target
-from memgs_ros.core.camera import PinholeCamera, calibration_differences, describe_camera
+from memgs_ros.core.geometry.camera import PinholeCamera, calibration_differences, describe_camera
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.orchestration.run_files import (
     GRAPH_NODE_NAMES,
@@ -246,7 +246,7 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
 def print_trajectory_error(source: str, trajectory_path: str) -> None:
     """When the source has ground truth (TUM folders and bags, the synthetic room), print the
     tracked trajectory's ATE after an SE(3) alignment; print nothing when it has none."""
-    from memgs_ros.core.trajectory import ate
+    from memgs_ros.core.metrics.trajectory import ate
     from memgs_ros.io.sources import open_source
     from memgs_ros.io.tum import read_trajectory
 

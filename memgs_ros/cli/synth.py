@@ -25,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from memgs_ros.core.frame import Frame
+    from memgs_ros.core.geometry.frame import Frame
     from memgs_ros.errors import ConfigError
     from memgs_ros.io.bag_writer import write_bag
     from memgs_ros.io.synthetic import generate_frames, parse_spec, write_tum_folder

@@ -11,8 +11,8 @@ get one: from the depth image (RGB-D) or from the nearest keypoint with a depth 
 Pixel convention (OpenCV): pixel (u, v) with integer u, v has its centre at (u, v), so a
 sub-pixel keypoint lies in pixel ``round(u), round(v)``. Samples are drawn on integer pixels,
 so their depth and colour are read exactly at the pixel they back-project from.
-All images here are undistorted: :func:`memgs_ros.core.view.view_preparation` makes them so, and
-:meth:`memgs_ros.core.view.Undistorter.from_pinhole_uv` puts the tracker's keypoints into them.
+All images here are undistorted: :func:`memgs_ros.core.geometry.view.view_preparation` makes them so, and
+:meth:`memgs_ros.core.geometry.view.Undistorter.from_pinhole_uv` puts the tracker's keypoints into them.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from typing import ClassVar
 import numpy as np
 from scipy.spatial import cKDTree
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.errors import ConfigError, DataError
 
 __all__ = [
@@ -206,7 +206,7 @@ def _check_keyframe(rgb: np.ndarray, camera: PinholeCamera, T_wc: np.ndarray,
         raise DataError(f"keyframe rgb must be uint8 [{h}, {w}, 3] to match the camera, got {rgb.dtype} {rgb.shape}")
     if camera.has_distortion:
         raise DataError("Patch-Grid seeds need an undistorted camera and images; prepare the keyframe with "
-                        "memgs_ros.core.view.view_preparation first")
+                        "memgs_ros.core.geometry.view.view_preparation first")
     T = np.asarray(T_wc, dtype=np.float64)
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise DataError(f"keyframe T_wc must be a finite 4x4 matrix, got shape {T.shape}")

@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.frame import Frame
-from memgs_ros.core.geometry import interpolate_poses, pose_from_tq
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.poses import interpolate_poses, pose_from_tq
 from memgs_ros.errors import ConfigError, DataError, MemgsError, MessageError
 from memgs_ros.io.bag_writer import (
     DEPTH_INFO_TOPIC,

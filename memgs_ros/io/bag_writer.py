@@ -35,9 +35,9 @@ from typing import Any
 
 import numpy as np
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.frame import Frame
-from memgs_ros.core.geometry import invert_pose, pose_from_tq, pose_to_tq
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.poses import invert_pose, pose_from_tq, pose_to_tq
 from memgs_ros.errors import DataError
 from memgs_ros.io.bag_stream import BagStream, _size, _tmp_sibling, ros2_typestore
 

@@ -30,7 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.errors import DataError, MessageError
 
 __all__ = [

@@ -16,8 +16,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.frame import Frame
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.bag_reader import BagSource, BagTopics
 from memgs_ros.io.image_decoding import DEFAULT_DEPTH_SCALE

@@ -45,9 +45,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from memgs_ros.core.camera import TUM_FR3, PinholeCamera
-from memgs_ros.core.frame import Frame
-from memgs_ros.core.geometry import pose_to_tq
+from memgs_ros.core.geometry.camera import TUM_FR3, PinholeCamera
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.poses import pose_to_tq
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic_scene import TEXEL_M, SyntheticScene, build_scene
 from memgs_ros.io.tum import CAMERA_JSON, format_stamp, write_camera_json

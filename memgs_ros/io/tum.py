@@ -23,10 +23,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from memgs_ros.core.camera import TUM_CAMERAS, TUM_DEPTH_FACTORS, PinholeCamera
-from memgs_ros.core.frame import Frame
-from memgs_ros.core.geometry import interpolate_poses, quat_xyzw_to_rotmat
-from memgs_ros.core.trajectory import associate as associate_stamps
+from memgs_ros.core.geometry.camera import TUM_CAMERAS, TUM_DEPTH_FACTORS, PinholeCamera
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.poses import interpolate_poses, quat_xyzw_to_rotmat
+from memgs_ros.core.metrics.trajectory import associate as associate_stamps
 from memgs_ros.errors import DataError
 from memgs_ros.io.skips import SkipLog
 

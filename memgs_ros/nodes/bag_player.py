@@ -40,8 +40,8 @@ from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Bool, Header
 
-from memgs_ros.core.camera import CameraCalibration, PinholeCamera
-from memgs_ros.core.frame import Frame
+from memgs_ros.core.geometry.camera import CameraCalibration, PinholeCamera
+from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.errors import ConfigError, MemgsError
 from memgs_ros.io.skips import SkipLog
 from memgs_ros.ros import codecs, qos

@@ -24,8 +24,8 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
+from memgs_ros.core.geometry.view import undistorter_for, view_preparation
 from memgs_ros.core.sampling import PatchGridConfig, seeds_mono, seeds_rgbd
-from memgs_ros.core.view import undistorter_for, view_preparation
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (

@@ -1,10 +1,10 @@
 """mapper node: turns keyframes, poses and requests into commands of a ``MappingSession``
-(core/session.py, the one owner of the Gaussian map) and publishes what it returns.
+(core/mapping/session.py, the one owner of the Gaussian map) and publishes what it returns.
 
 In: ``memgs/keyframe/{color,depth,camera_info,pose,seeds}`` (one stamp per keyframe),
 ``memgs/keyframe/refined_poses`` (bundle adjustment), ``memgs/keyframe/loop_corrected_poses``,
 ``memgs/pose`` (live view), ``memgs/render/view_pose``, ``memgs/tracker/processed`` (lockstep).
-Out: ``memgs/map/delta`` (core/map_delta.py), ``memgs/mapper/snapshot`` (latched, with a packed ``rgb`` colour),
+Out: ``memgs/map/delta`` (core/maps/map_delta.py), ``memgs/mapper/snapshot`` (latched, with a packed ``rgb`` colour),
 ``memgs/render/{color,depth,camera_info}``, ``memgs/frame_ack``, ``memgs/mapper/stats``; services
 ``memgs/mapper/publish_snapshot`` and ``memgs/mapper/finish``
 (answers ``seq=<n> gaussians=<n> epoch=<n>``). With ``checkpoint_path`` the session's state is
@@ -31,15 +31,15 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from memgs_ros.core import checkpoint, losses
-from memgs_ros.core.map_delta import message_dtype
-from memgs_ros.core.mapping import MappingConfig
-from memgs_ros.core.merge import MergeConfig
+from memgs_ros.core.mapping import checkpoint, losses
+from memgs_ros.core.mapping.mapper import MappingConfig
+from memgs_ros.core.mapping.session import MappingSession
+from memgs_ros.core.maps.map_delta import message_dtype
+from memgs_ros.core.merge.voxel_merge import MergeConfig
 from memgs_ros.core.raster import warm_up
 from memgs_ros.core.raster.backend_choice import choose_backend, device_label, resolve_device
-from memgs_ros.core.runtime import configure_cpu_runtime
-from memgs_ros.core.session import MappingSession
-from memgs_ros.core.worker import WorkerStopped
+from memgs_ros.core.runtime.cpu import configure_cpu_runtime
+from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (

@@ -34,9 +34,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
 from std_srvs.srv import Trigger
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.map_delta import ApplyStatus, MapMessage, MapReplica, MessageKind, decode, encode
-from memgs_ros.core.ply import save_ply
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.maps.map_delta import ApplyStatus, MapMessage, MapReplica, MessageKind, decode, encode
+from memgs_ros.core.maps.ply import save_ply
 from memgs_ros.errors import MemgsError, MessageError
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
@@ -268,7 +268,7 @@ class MergerNode(Node):
         # publishes and saves the map stays without them (~200 MB less resident memory).
         import torch
 
-        from memgs_ros.core.gaussians import render_tensors
+        from memgs_ros.core.mapping.gaussians import render_tensors
         from memgs_ros.core.raster import rasterize
 
         key = (self.replica.seq, len(self.replica))

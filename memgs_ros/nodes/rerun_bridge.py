@@ -36,8 +36,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.map_delta import MapMessage, decode
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.maps.map_delta import MapMessage, decode
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, decode_rgb
 from memgs_ros.nodes.registry import GRAPH

@@ -51,8 +51,8 @@ from rclpy.publisher import Publisher
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header, String
 
-from memgs_ros.core.camera import CameraCalibration, PinholeCamera, calibration_differences, describe_camera
-from memgs_ros.core.frame import Frame
+from memgs_ros.core.geometry.camera import CameraCalibration, PinholeCamera, calibration_differences, describe_camera
+from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.tracking import Tracker, TrackerConfig, TrackResult, make_tracker
 from memgs_ros.core.tracking.anchored_path import AnchoredPath
 from memgs_ros.errors import ConfigError, DataError, MessageError

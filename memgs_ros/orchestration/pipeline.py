@@ -30,10 +30,10 @@ from std_msgs.msg import Bool
 from std_srvs.srv import Trigger
 from tqdm import tqdm
 
-from memgs_ros.core.atomic import atomic_write
-from memgs_ros.core.geometry import pose_to_tq
-from memgs_ros.core.map_delta import decode
-from memgs_ros.core.runtime import MALLOC_ARENAS
+from memgs_ros.core.geometry.poses import pose_to_tq
+from memgs_ros.core.maps.map_delta import decode
+from memgs_ros.core.runtime.atomic import atomic_write
+from memgs_ros.core.runtime.cpu import MALLOC_ARENAS
 from memgs_ros.errors import ConfigError, PipelineError
 from memgs_ros.orchestration.processes import NODE_FACTORIES, NODE_MODULES, VIEW_NODE, NodeProcesses, open_context
 from memgs_ros.orchestration.run_files import (

@@ -20,7 +20,7 @@ from typing import Any
 
 import rclpy
 
-from memgs_ros.core.runtime import PARENT_PID_ENV
+from memgs_ros.core.runtime.cpu import PARENT_PID_ENV
 from memgs_ros.errors import PipelineError
 from memgs_ros.nodes.registry import NODES
 

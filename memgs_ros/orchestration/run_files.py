@@ -17,7 +17,7 @@ from typing import Any, NamedTuple
 
 import yaml
 
-from memgs_ros.core.camera import CameraCalibration, PinholeCamera
+from memgs_ros.core.geometry.camera import CameraCalibration, PinholeCamera
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.nodes.registry import GRAPH, NODES
 from memgs_ros.viz import RerunTarget

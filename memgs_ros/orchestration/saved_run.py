@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.ply import load_ply
-from memgs_ros.core.records import GaussianRecords
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.maps.ply import load_ply
+from memgs_ros.core.maps.records import GaussianRecords
 from memgs_ros.errors import DataError
 from memgs_ros.io.tum import read_trajectory
 from memgs_ros.orchestration.run_files import (

@@ -4,7 +4,7 @@ SIGTERM (what ``timeout``, systemd and CI send) and SIGHUP (the terminal went aw
 path Ctrl-C takes: :class:`StopRequested` (a ``KeyboardInterrupt``) is raised in the main
 thread, so the ``finally`` that stops the nodes (SIGINT, the merger saves its map) runs. Nodes
 run in sessions of their own (a Ctrl-C reaches the runner alone, which stops them in order) and
-end with the runner however it ends, SIGKILL included (``memgs_ros.core.runtime.die_with_parent``).
+end with the runner however it ends, SIGKILL included (``memgs_ros.core.runtime.cpu.die_with_parent``).
 """
 from __future__ import annotations
 

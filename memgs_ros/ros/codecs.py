@@ -27,8 +27,8 @@ from nav_msgs.msg import Odometry, Path
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.geometry import pose_from_tq, pose_to_tq
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.poses import pose_from_tq, pose_to_tq
 from memgs_ros.errors import MessageError
 from memgs_ros.io.image_decoding import IMAGE_ENCODINGS
 

@@ -14,7 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from std_msgs.msg import Header
 
-from memgs_ros.core.runtime import release_free_memory
+from memgs_ros.core.runtime.cpu import release_free_memory
 from memgs_ros.ros import qos
 
 

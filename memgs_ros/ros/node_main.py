@@ -15,7 +15,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, Si
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-from memgs_ros.core.runtime import PARENT_PID_ENV, die_with_parent
+from memgs_ros.core.runtime.cpu import PARENT_PID_ENV, die_with_parent
 from memgs_ros.errors import MemgsError
 from memgs_ros.ros.config_params import check_declared
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections import deque
 
-from memgs_ros.core.map_delta import ApplyStatus, MapMessage, MapReplica, MessageKind
+from memgs_ros.core.maps.map_delta import ApplyStatus, MapMessage, MapReplica, MessageKind
 
 __all__ = ["MapFollower"]
 

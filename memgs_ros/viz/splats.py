@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import expit
 
-from memgs_ros.core.records import PLY_F_REST, GaussianRecords
+from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords
 
 __all__ = ["SH_C0", "SplatArrays", "psnr_db", "sh_rest_rgb", "splat_arrays"]
 

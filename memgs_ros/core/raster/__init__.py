@@ -9,7 +9,7 @@ pair. ``_rasterize_reference`` (:mod:`.reference`) is its brute-force twin for t
 numba compositor, projection and SH run compiled as well (:mod:`.projection_numba`, twin of
 :func:`.projection.project_gaussians`).
 
-On a small shared CPU call :func:`memgs_ros.core.runtime.configure_cpu_runtime` once from the
+On a small shared CPU call :func:`memgs_ros.core.runtime.cpu.configure_cpu_runtime` once from the
 entry point: it keeps freed memory in the heap and sets torch to one intra-op thread, which
 makes the compositor spread its chunks over Python threads (one per core, up to 4).
 """
@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster.backend_choice import choose_backend
 from memgs_ros.core.raster.backends import REGISTRY
 from memgs_ros.core.raster.reference import _rasterize_reference

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster.composite import composite
 from memgs_ros.core.raster.gsplat_backend import gsplat_available, rasterize_gsplat
 from memgs_ros.core.raster.numba_backend import NUMBA_TILE_SIZE, composite_numba
@@ -23,7 +23,7 @@ from memgs_ros.core.raster.projection_numba import project_gaussians_numba
 from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.tiles import TILE_SIZE, TilePlan, build_tile_plan, pairs_per_chunk_for
 from memgs_ros.core.raster.values import Gaussians, RenderOutput
-from memgs_ros.core.runtime import numba_available
+from memgs_ros.core.runtime.cpu import numba_available
 
 # render(gaussians, T_cw [4, 4], camera, sh_degree, background [3] or None, near) -> RenderOutput
 RenderFn = Callable[[Gaussians, Tensor, PinholeCamera, int, "Tensor | None", float], RenderOutput]

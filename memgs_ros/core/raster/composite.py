@@ -22,7 +22,7 @@ How it stays fast and small on a CPU:
   than arithmetic on this CPU): the 1/255 skip is ``threshold_``, the termination mask a
   clamp + ceil; ``exp`` sees no argument below -30 (its slow path).
 - Chunks can run on several Python threads (torch releases the GIL inside each op); used when
-  torch's own intra-op pool is one thread (see :mod:`memgs_ros.core.runtime`).
+  torch's own intra-op pool is one thread (see :mod:`memgs_ros.core.runtime.cpu`).
 """
 from __future__ import annotations
 

@@ -32,7 +32,7 @@ from memgs_ros.core.raster.composite import _map
 from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.tiles import BIN_MARGIN, TilePlan
 from memgs_ros.core.raster.values import Splats2D
-from memgs_ros.core.runtime import numba_available
+from memgs_ros.core.runtime.cpu import numba_available
 from memgs_ros.errors import ConfigError
 
 __all__ = ["NUMBA_TILE_SIZE", "composite_numba", "cpu_threads"]

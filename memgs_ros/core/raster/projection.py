@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.poses import quat_wxyz_to_rotmat_torch
 from memgs_ros.core.raster.sh import eval_sh_colors
 from memgs_ros.core.raster.values import Gaussians, Splats2D
 

@@ -20,13 +20,13 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster.composite import _map
 from memgs_ros.core.raster.numba_backend import cpu_threads
 from memgs_ros.core.raster.projection import JACOBIAN_FOV_MARGIN, Projected
 from memgs_ros.core.raster.sh import num_sh_bases
 from memgs_ros.core.raster.values import Gaussians
-from memgs_ros.core.runtime import numba_available
+from memgs_ros.core.runtime.cpu import numba_available
 from memgs_ros.errors import ConfigError
 
 __all__ = ["project_gaussians_numba"]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster.projection import project_gaussians, screen_radii
 from memgs_ros.core.raster.rules import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
 from memgs_ros.core.raster.values import Gaussians, RenderOutput, Splats2D

@@ -28,7 +28,7 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
-from memgs_ros.core.runtime import numba_available
+from memgs_ros.core.runtime.cpu import numba_available
 from memgs_ros.errors import ConfigError
 
 # px. Pixel-Gaussian pairs per pixel on the benchmark scene (20k, 320x240, exact binning):

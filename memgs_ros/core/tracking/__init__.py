@@ -5,7 +5,7 @@
 """
 from __future__ import annotations
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.frontend import FeatureTracker
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker

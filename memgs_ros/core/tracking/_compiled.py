@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from memgs_ros.core.runtime import numba_available  # noqa: F401 - re-exported
+from memgs_ros.core.runtime.cpu import numba_available  # noqa: F401 - re-exported
 
 __all__ = ["match_by_projection_kernel", "numba_available", "optimize_pose_kernel", "warm_up"]
 

@@ -28,7 +28,8 @@ from typing import TypeVar
 
 import numpy as np
 
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry.poses import invert_pose
+from memgs_ros.core.runtime.worker import CommandWorker, WorkerStopped
 from memgs_ros.core.tracking.ba_problem import SnapshotProblem, global_problem, local_problem
 from memgs_ros.core.tracking.bundle_adjustment import BAAux, BAGeometry, BAState, local_bundle_adjustment
 from memgs_ros.core.tracking.config import TrackerConfig
@@ -38,7 +39,6 @@ from memgs_ros.core.tracking.loop_closing import LoopCorrection
 from memgs_ros.core.tracking.map_snapshot import MapSnapshot
 from memgs_ros.core.tracking.place_recognition import LoopStats, PlaceOutcome, PlaceRecognition
 from memgs_ros.core.tracking.vocabulary import Vocabulary
-from memgs_ros.core.worker import CommandWorker, WorkerStopped
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())

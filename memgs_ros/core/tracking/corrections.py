@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking.backend import GlobalBAOutcome, LocalBAOutcome, TrackingBackend
 from memgs_ros.core.tracking.config import TrackerConfig
 from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap

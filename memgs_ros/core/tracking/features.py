@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.tracking._compiled import match_by_projection_kernel, numba_available
 from memgs_ros.core.tracking.config import TrackerConfig
 

@@ -23,9 +23,9 @@ import time
 import cv2
 import numpy as np
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.frame import Frame
-from memgs_ros.core.geometry import invert_pose, nearest_pose_distance
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.poses import invert_pose, nearest_pose_distance
 from memgs_ros.core.tracking._compiled import warm_up
 from memgs_ros.core.tracking.backend import TrackingBackend
 from memgs_ros.core.tracking.bundle_adjustment import orthonormalized

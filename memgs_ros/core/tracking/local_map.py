@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking.features import FrameFeatures
 from memgs_ros.core.tracking.map_snapshot import MapSnapshot
 

@@ -27,7 +27,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial.transform import Rotation
 
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking.bundle_adjustment import (
     apply_left_update,
     optimize_pose,

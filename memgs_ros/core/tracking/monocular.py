@@ -8,7 +8,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from memgs_ros.core.frame import Frame
+from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.tracking.ba_problem import build_problem
 from memgs_ros.core.tracking.bundle_adjustment import CHI2_MONO, local_bundle_adjustment
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackingState

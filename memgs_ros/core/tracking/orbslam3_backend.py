@@ -18,9 +18,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.frame import Frame
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.features import OrbExtractor
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker

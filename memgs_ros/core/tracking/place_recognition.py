@@ -15,7 +15,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking.bundle_adjustment import _obs_pairs
 from memgs_ros.core.tracking.config import TrackerConfig
 from memgs_ros.core.tracking.features import FrameFeatures, match_by_projection

@@ -15,8 +15,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking.bundle_adjustment import optimize_pose, orthonormalized
 from memgs_ros.core.tracking.config import TrackerConfig
 from memgs_ros.core.tracking.features import FrameFeatures, match_by_projection, match_descriptors

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 if TYPE_CHECKING:
     import numpy as np
 
-    from memgs_ros.core.frame import Frame
+    from memgs_ros.core.geometry.frame import Frame
     from memgs_ros.core.tracking.config import TrackResult
 
 

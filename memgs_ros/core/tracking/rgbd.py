@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from memgs_ros.core.frame import Frame
-from memgs_ros.core.geometry import invert_pose
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackingState
 from memgs_ros.core.tracking.features import FrameFeatures
 from memgs_ros.core.tracking.frontend import FeatureTracker

@@ -1,6 +1,6 @@
-"""Compiled SSIM kernels (numba); imported only by :mod:`memgs_ros.core.ssim` when numba is available.
+"""Compiled SSIM kernels (numba); imported only by :mod:`memgs_ros.core.metrics.ssim` when numba is available.
 
-Same definition as :func:`memgs_ros.core.ssim._ssim_map` (Gaussian window, zero 'same' padding),
+Same definition as :func:`memgs_ros.core.metrics.ssim._ssim_map` (Gaussian window, zero 'same' padding),
 computed plane by plane (one plane = one channel of one image) and row by row:
 
 - forward: each input row gives its five statistic rows (x1, x2, x1^2, x2^2, x1 x2), filtered
@@ -17,7 +17,7 @@ Arithmetic is in the images' dtype (float32 or float64; constants are passed in 
 Python float literals would promote float32 work to float64). In float32 the map is within
 ~2e-6 of a float64 evaluation at 320x240 and the gradient within ~5e-7 of its largest entry,
 as close as the torch path. One division per pixel. The window must be symmetric (the horizontal
-pass adds mirrored taps before multiplying); :func:`memgs_ros.core.ssim.gaussian_window_1d` is, exactly.
+pass adds mirrored taps before multiplying); :func:`memgs_ros.core.metrics.ssim.gaussian_window_1d` is, exactly.
 
 Kernels release the GIL and run on the calling thread (no numba threading layer, see
 :mod:`memgs_ros.core.raster.numba_backend` for why).

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.errors import ConfigError, DataError
 
 __all__ = [

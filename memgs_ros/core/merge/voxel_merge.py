@@ -14,7 +14,7 @@ One pass, all vectorised (no Python loop over voxels or pairs):
    (torch.optim.LBFGS, strong Wolfe) initialised as the paper does (slerp of the rotations,
    mean scale + [1, 2, 3] mm), over the symmetric square root of Sk (default; well conditioned
    for a shared line search) or the paper's quaternion + scale; the result is returned as
-   quaternion + scale either way. ``memgs_ros.core.wasserstein`` holds the eigh-free,
+   quaternion + scale either way. ``memgs_ros.core.merge.wasserstein`` holds the eigh-free,
    repeated-eigenvalue-safe W2.
 6. ``merge_pass``: the map surgery. Each merged pair becomes ONE new Gaussian (fresh id, zero
    Adam moments and accumulators) with colour, SH and opacity from the older Gaussian (paper;
@@ -31,12 +31,12 @@ from typing import TYPE_CHECKING, ClassVar, Literal, NamedTuple
 
 import torch
 
-from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch, rotmat_to_quat_wxyz_torch
-from memgs_ros.core.wasserstein import precision_from_scale_quat, slerp_wxyz, trace_sqrt_spd3
+from memgs_ros.core.geometry.poses import quat_wxyz_to_rotmat_torch, rotmat_to_quat_wxyz_torch
+from memgs_ros.core.merge.wasserstein import precision_from_scale_quat, slerp_wxyz, trace_sqrt_spd3
 from memgs_ros.errors import ConfigError
 
 if TYPE_CHECKING:
-    from memgs_ros.core.gaussians import GaussianMap
+    from memgs_ros.core.mapping.gaussians import GaussianMap
 
 __all__ = [
     "CHI2_3DOF_95",

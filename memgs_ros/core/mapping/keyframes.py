@@ -20,7 +20,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.errors import DataError
 
 PYRAMID_FACTORS: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)  # coarse to fine

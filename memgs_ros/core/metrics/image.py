@@ -1,7 +1,7 @@
 """Image-quality metrics and the frame matching of the evaluation protocol (reference sec. 7).
 
 PSNR = -10 log10(MSE) over the whole image with values in [0, 1]; SSIM with data range 1
-(:mod:`memgs_ros.core.ssim`, zero-padded 11x11 Gaussian window); LPIPS (AlexNet) only when the
+(:mod:`memgs_ros.core.metrics.ssim`, zero-padded 11x11 Gaussian window); LPIPS (AlexNet) only when the
 ``lpips`` package is installed and the AlexNet weights are already in the torch hub cache
 (nothing is ever downloaded). Rendered frames are matched to ground-truth frames within 0.08 s.
 
@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from memgs_ros.core.ssim import ssim
-from memgs_ros.core.trajectory import associate
+from memgs_ros.core.metrics.ssim import ssim
+from memgs_ros.core.metrics.trajectory import associate
 
 __all__ = [
     "FRAME_MATCH_MAX_DT_S", "FrameScore", "make_lpips", "match_frames", "psnr", "score_frame",

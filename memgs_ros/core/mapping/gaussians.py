@@ -2,7 +2,7 @@
 
 Two types live here:
 
-- ``GaussianRecords`` (defined in ``core/records.py``, which imports no torch, re-exported here):
+- ``GaussianRecords`` (defined in ``core/maps/records.py``, which imports no torch, re-exported here):
   a frozen plain-numpy record of N Gaussians whose fields are named as the INRIA 3DGS PLY
   (reference section 10). PLY files, map deltas and the merger's replica all use it.
 - ``GaussianMap``: the trainable map. Parameters are stored pre-activation (log scales, opacity
@@ -34,8 +34,8 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
+from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords  # noqa: F401 - re-exported
 from memgs_ros.core.raster.values import Gaussians
-from memgs_ros.core.records import PLY_F_REST, GaussianRecords  # noqa: F401 - re-exported
 from memgs_ros.errors import ConfigError, DataError
 
 SH_C0 = 0.28209479177387814  # zeroth real spherical harmonic, Y_0^0

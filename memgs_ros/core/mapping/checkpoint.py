@@ -34,9 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from memgs_ros.core.atomic import atomic_write
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.gaussians import PLY_F_REST, GaussianRecords
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.mapping.gaussians import PLY_F_REST, GaussianRecords
+from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.errors import DataError
 
 FORMAT_VERSION = 1
@@ -58,7 +58,7 @@ class KeyframeState:
     depth_m: np.ndarray | None
     valid_mask: np.ndarray | None
     camera: PinholeCamera
-    exposure: tuple[float, ...] | None = None  # (gain offsets rgb, biases rgb), core/exposure.py
+    exposure: tuple[float, ...] | None = None  # (gain offsets rgb, biases rgb), core/mapping/exposure.py
 
 
 @dataclass(frozen=True, eq=False)

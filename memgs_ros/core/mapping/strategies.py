@@ -5,13 +5,13 @@ Each policy reads the map and changes it only through ``GaussianMap.add`` / ``Ga
 the per-Gaussian side arrays together):
 
 - ``DensifyStrategy``: 3DGS clone/split of high-gradient Gaussians, then the opacity/size prune;
-- ``MergeSchedule``: when the MemGS voxel merge runs (``memgs_ros.core.merge.merge_pass``) and the
+- ``MergeSchedule``: when the MemGS voxel merge runs (``memgs_ros.core.merge.voxel_merge.merge_pass``) and the
   relaxed merge configuration the memory budget uses;
 - ``BudgetStrategy``: the memory budget (a Gaussian count), enforced by relaxed merge passes and
   then pruning of the least contributing Gaussians; it also cuts densification to the room left.
 
 A policy holds its configuration and its own random generator, never the map: the mapping engine
-(``memgs_ros.core.mapping.GaussianMapper``) passes the map and the iteration to every call.
+(``memgs_ros.core.mapping.mapper.GaussianMapper``) passes the map and the iteration to every call.
 """
 from __future__ import annotations
 
@@ -23,11 +23,11 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
+from memgs_ros.core.geometry.poses import quat_wxyz_to_rotmat_torch
 
 if TYPE_CHECKING:
-    from memgs_ros.core.gaussians import GaussianMap
-    from memgs_ros.core.mapping_config import MappingConfig
+    from memgs_ros.core.mapping.config import MappingConfig
+    from memgs_ros.core.mapping.gaussians import GaussianMap
 
 logger = logging.getLogger(__name__)
 
@@ -51,9 +51,9 @@ MergeFn = Callable[..., Any]  # merge_pass(gmap, merge_cfg, newest_keyframe_id, 
 
 
 def load_merge() -> MergeFn | None:
-    """memgs_ros.core.merge.merge_pass, when that module is importable."""
+    """memgs_ros.core.merge.voxel_merge.merge_pass, when that module is importable."""
     try:
-        from memgs_ros.core import merge as merge_mod
+        from memgs_ros.core.merge import voxel_merge as merge_mod
     except ImportError:
         return None
     return getattr(merge_mod, "merge_pass", None)
@@ -89,7 +89,7 @@ class MergeSchedule:
         if self.merge_fn is None:
             return 0, 0
         if self.merge_cfg is None:
-            from memgs_ros.core import merge as merge_mod
+            from memgs_ros.core.merge import voxel_merge as merge_mod
 
             self.merge_cfg = merge_mod.MergeConfig()
         result = self.merge_fn(gmap, self.merge_cfg, newest_kf_id, iteration)
@@ -108,7 +108,7 @@ class MergeSchedule:
         """
         if self.merge_fn is None or not self.cfg.budget_merge:
             return None
-        from memgs_ros.core import merge as merge_mod
+        from memgs_ros.core.merge import voxel_merge as merge_mod
 
         base = self.merge_cfg if self.merge_cfg is not None else merge_mod.MergeConfig()
         if not isinstance(base, merge_mod.MergeConfig) or not base.enabled:

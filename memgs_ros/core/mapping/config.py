@@ -1,12 +1,12 @@
 """Every mapping parameter in one frozen config (reference section 5), apart from the engine that
-uses it (core/mapping.py) so the map policies (core/strategies.py) can take it without a cycle."""
+uses it (core/mapping/mapper.py) so the map policies (core/mapping/strategies.py) can take it without a cycle."""
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
 from typing import Any, ClassVar
 
-from memgs_ros.core.gaussians import GaussianLearningRates
+from memgs_ros.core.mapping.gaussians import GaussianLearningRates
 from memgs_ros.errors import ConfigError
 
 
@@ -24,14 +24,14 @@ class MappingConfig:
     1/``split_scale_factor``; then Gaussians with opacity < ``prune_opacity`` (and, when
     ``max_screen_size_px`` > 0, larger on screen than that or wider than 0.1 x extent) are pruned.
     Merge (reference section 4): every ``merge_interval`` iterations in [merge_start_iter,
-    merge_stop_iter] when ``merge_enabled`` and memgs_ros.core.merge is importable.
+    merge_stop_iter] when ``merge_enabled`` and memgs_ros.core.merge.voxel_merge is importable.
     ``mask_invalid_pixels``: leave the border that undistortion fills with black (no source
-    pixel, see ``memgs_ros.core.view.ViewPreparation.valid_mask``) out of the photometric and depth losses, so the map
-    is not taught that the scene is black wherever some view's border falls; the whole-image
+    pixel, see ``memgs_ros.core.geometry.view.ViewPreparation.valid_mask``) out of the photometric
+    and depth losses, so the map is not taught that the scene is black wherever some view's border falls; the whole-image
     evaluation still compares that border with black. ``seed_opacity``: initial opacity of
     keyframe seeds (3DGS and the paper: 0.1; higher makes short CPU runs converge faster).
     Memory budget (``max_gaussians`` / ``max_model_mbytes``, 0 = none; both set: the tighter
-    wins): see ``memgs_ros.core.strategies.BudgetStrategy``. The MiB budget is converted to a Gaussian
+    wins): see ``memgs_ros.core.mapping.strategies.BudgetStrategy``. The MiB budget is converted to a Gaussian
     count at a trained map's cost per Gaussian (parameters + gradients + both Adam moments,
     944 B at SH degree 3, ``GaussianMap.memory_bytes``), so seeds inserted before training
     already respect it.
@@ -56,7 +56,7 @@ class MappingConfig:
     mask_invalid_pixels: bool = True
     # Initial opacity of keyframe seeds (3DGS: 0.1)
     seed_opacity: float = 0.1
-    # Per-keyframe affine colour correction trained with the map (core/exposure.py); renders
+    # Per-keyframe affine colour correction trained with the map (core/mapping/exposure.py); renders
     # for evaluation and the rendered-view topics never use it. Off by default: on the fr1/rpy
     # head it cost 0.40 dB under the paper's protocol (docs/results.md, Map quality)
     exposure_compensation: bool = False
@@ -84,7 +84,7 @@ class MappingConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     raster_backend: str = "auto"
     near_m: float = 0.01
-    # Merge schedule (the merge itself: memgs_ros.core.merge.merge_pass)
+    # Merge schedule (the merge itself: memgs_ros.core.merge.voxel_merge.merge_pass)
     merge_enabled: bool = True
     merge_start_iter: int = 1000
     merge_interval: int = 1000
@@ -101,7 +101,7 @@ class MappingConfig:
     max_model_mbytes: float = 0.0  # budget in MiB of parameters + gradients + Adam moments (0 = none)
     # Cap in MiB on the mapper's accounted working memory (0 = none): model (as above) + stored
     # keyframes + the training step's buffers + the delta mirror and one full-map message
-    # (core/strategies.py, MemoryAccount). Over it the
+    # (core/mapping/strategies.py, MemoryAccount). Over it the
     # mapper first drops redundant keyframes (the max_keyframes rule, down to min_keyframes),
     # then merges/prunes the map like max_model_mbytes. Imports and code are not in it
     max_mapper_mbytes: float = 0.0

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from memgs_ros.core.camera import PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.errors import DataError
 
 

@@ -4,12 +4,12 @@
 training view (Photo-SLAM schedule, coarse-to-fine pyramid), renders it, applies the loss
 (photometric + isotropic + optional depth L1), back-propagates, accumulates densification and
 merge statistics, takes an Adam step and, on schedule, densifies/prunes (3DGS clone/split),
-merges (MemGS voxel merge, ``memgs_ros.core.merge.merge_pass``) and raises the SH degree.
+merges (MemGS voxel merge, ``memgs_ros.core.merge.voxel_merge.merge_pass``) and raises the SH degree.
 
-The policies that change the map's size live in ``memgs_ros.core.strategies`` (densify/prune,
+The policies that change the map's size live in ``memgs_ros.core.mapping.strategies`` (densify/prune,
 merge schedule, memory budget). ``GaussianMapper`` is single-threaded: it has no lock. A program
 that trains while other threads insert, render or read the map uses
-``memgs_ros.core.session.MappingSession``, the one owner of a mapper, whose worker thread runs
+``memgs_ros.core.mapping.session.MappingSession``, the one owner of a mapper, whose worker thread runs
 every call.
 
 Densification choices (documented differences from plain 3DGS): no opacity reset (reference
@@ -29,15 +29,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.checkpoint import ID_BLOCK, KeyframeState, MapperCheckpoint
-from memgs_ros.core.exposure import ExposureCompensation
-from memgs_ros.core.gaussians import GaussianMap, GaussianRecords
-from memgs_ros.core.geometry import invert_pose, nearest_pose_distance, rotmat_to_quat_wxyz_torch
-from memgs_ros.core.keyframes import KeyframeStore, TrainingKeyframe, make_keyframe
-from memgs_ros.core.losses import mapping_loss
-from memgs_ros.core.mapping_config import MappingConfig
-from memgs_ros.core.strategies import (
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.poses import invert_pose, nearest_pose_distance, rotmat_to_quat_wxyz_torch
+from memgs_ros.core.geometry.view import view_preparation
+from memgs_ros.core.mapping.checkpoint import ID_BLOCK, KeyframeState, MapperCheckpoint
+from memgs_ros.core.mapping.config import MappingConfig
+from memgs_ros.core.mapping.exposure import ExposureCompensation
+from memgs_ros.core.mapping.gaussians import GaussianMap, GaussianRecords
+from memgs_ros.core.mapping.keyframes import KeyframeStore, TrainingKeyframe, make_keyframe
+from memgs_ros.core.mapping.losses import mapping_loss
+from memgs_ros.core.mapping.strategies import (
     DELTA_BYTES_PER_GAUSSIAN,
     BudgetStrategy,
     DensifyStrategy,
@@ -46,7 +47,6 @@ from memgs_ros.core.strategies import (
     MergeSchedule,
     step_buffer_bytes,
 )
-from memgs_ros.core.view import view_preparation
 from memgs_ros.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
@@ -79,7 +79,7 @@ class StepStats:
 def prepare_keyframe(cfg: MappingConfig, device: torch.device, kf_id: int, stamp_ns: int, T_wc: np.ndarray,
                      rgb: np.ndarray, depth_m: np.ndarray | None, camera: PinholeCamera) -> TrainingKeyframe:
     """The keyframe as it is trained on: undistorted, resized to ``cfg.resolution_scale``, with its
-    valid-pixel mask and pyramid, on ``device`` (``core/view.py``, ``make_keyframe``). A pure
+    valid-pixel mask and pyramid, on ``device`` (``core/geometry/view.py``, ``make_keyframe``). A pure
     function of the config: any thread may call it while a mapper trains.
 
     T_wc: [4, 4] camera-to-world; rgb: [H, W, 3] uint8; depth_m: [H, W] float32 metres

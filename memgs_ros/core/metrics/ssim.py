@@ -8,8 +8,8 @@ family are computed this way, so we keep it for comparability).
 
 :func:`ssim_map` has two fast paths, both with a hand-written backward, and one plain twin:
 
-- CPU with numba (:func:`memgs_ros.core.runtime.numba_available`), float32/float64: compiled
-  kernels (:mod:`memgs_ros.core._ssim_numba`) that filter the five local statistics
+- CPU with numba (:func:`memgs_ros.core.runtime.cpu.numba_available`), float32/float64: compiled
+  kernels (:mod:`memgs_ros.core.metrics._ssim_numba`) that filter the five local statistics
   (x1, x2, x1^2, x2^2, x1 x2) row by row through a ring of K rows, compute the map and the
   per-pixel factors of the backward pass in the same sweep, and get the image gradients in one
   more sweep over 3-4 factor planes. About 3.5x cheaper than the torch path at 320x240x3
@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
-from memgs_ros.core.runtime import numba_available
+from memgs_ros.core.runtime.cpu import numba_available
 from memgs_ros.errors import ConfigError
 
 __all__ = ["gaussian_window_1d", "ssim", "ssim_map"]
@@ -159,7 +159,7 @@ class _SsimMapFunction(torch.autograd.Function):
 
 
 class _SsimMapNumbaFunction(torch.autograd.Function):
-    """SSIM map from the compiled kernels of :mod:`memgs_ros.core._ssim_numba` (CPU path of
+    """SSIM map from the compiled kernels of :mod:`memgs_ros.core.metrics._ssim_numba` (CPU path of
     :func:`ssim_map` when numba is available; twins: :class:`_SsimMapFunction`, :func:`_ssim_map`).
 
     Forward is one sweep per plane giving the map and, when an image needs a gradient, the
@@ -173,7 +173,7 @@ class _SsimMapNumbaFunction(torch.autograd.Function):
                 b: torch.Tensor,  # [B, C, H, W] same dtype
                 k: torch.Tensor,  # [K] symmetric window, same dtype
                 c1: float, c2: float) -> torch.Tensor:  # [B, C, H, W]
-        from memgs_ros.core import _ssim_numba as kern
+        from memgs_ros.core.metrics import _ssim_numba as kern
 
         B, C, H, W = a.shape
         need_a, need_b = bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1])
@@ -191,7 +191,7 @@ class _SsimMapNumbaFunction(torch.autograd.Function):
     @once_differentiable
     def backward(ctx: Any, v_s: torch.Tensor  # [B, C, H, W]
                  ) -> tuple[torch.Tensor | None, ...]:
-        from memgs_ros.core import _ssim_numba as kern
+        from memgs_ros.core.metrics import _ssim_numba as kern
 
         need_a, need_b = bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1])
         if not (need_a or need_b):

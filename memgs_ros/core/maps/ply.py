@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from memgs_ros.core.atomic import atomic_write
-from memgs_ros.core.records import PLY_F_REST, GaussianRecords
+from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords
+from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.errors import DataError
 
 logger = logging.getLogger(__name__)

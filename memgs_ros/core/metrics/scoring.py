@@ -7,7 +7,7 @@ Pure functions on arrays and a ``GaussianMap``: no files, no ROS, no plotting. T
   ``FRAME_MATCH_MAX_DT_S`` and score it (PSNR, SSIM, LPIPS when given a function; PSNR also
   over the pixels with image content);
 - :func:`score_trajectory`: ATE (SE(3), or Sim(3) for monocular) and rotation RMSE,
-  association within ``ATE_MAX_DT_S``, through :func:`memgs_ros.core.trajectory.ate`.
+  association within ``ATE_MAX_DT_S``, through :func:`memgs_ros.core.metrics.trajectory.ate`.
 """
 from __future__ import annotations
 
@@ -18,12 +18,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.gaussians import GaussianMap
-from memgs_ros.core.geometry import invert_pose
-from memgs_ros.core.metrics import FrameScore, LpipsFn, match_frames, score_frame, summarize_scores
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.poses import invert_pose
+from memgs_ros.core.mapping.gaussians import GaussianMap
+from memgs_ros.core.metrics.image import FrameScore, LpipsFn, match_frames, score_frame, summarize_scores
+from memgs_ros.core.metrics.trajectory import ate
 from memgs_ros.core.raster import rasterize
-from memgs_ros.core.trajectory import ate
 
 __all__ = [
     "ATE_MAX_DT_S", "FRAME_MATCH_MAX_DT_S", "QualityResult", "StripFrame", "TrajectoryResult",

@@ -12,7 +12,7 @@ another core: a keyframe's images are prepared (undistorted, resized, pyramid: a
 the config, ``prepare_keyframe``) in the caller's thread, and map snapshots the worker cut are
 diffed against what the receiver holds, encoded and published by the outbox, a second actor that
 alone owns the delta outbox and sends in the order cut. Both are ``CommandWorker``s
-(core/worker.py): an error in a command reaches its future, a failed training step is an event,
+(core/runtime/worker.py): an error in a command reaches its future, a failed training step is an event,
 and a worker that stops or dies fails every pending future, the outbox's included.
 
 Free-running (``free_running=True``): between commands the worker trains, one step at a time, so
@@ -41,14 +41,14 @@ from typing import Any, TypeVar
 import numpy as np
 import torch
 
-from memgs_ros.core.camera import PinholeCamera
-from memgs_ros.core.checkpoint import MapperCheckpoint
-from memgs_ros.core.gaussians import GaussianRecords
-from memgs_ros.core.keyframes import KeyframeInput, TrainingKeyframe
-from memgs_ros.core.map_delta import DeltaOutbox
-from memgs_ros.core.mapping import GaussianMapper, MappingConfig, StepStats, prepare_keyframe
-from memgs_ros.core.view import view_preparation
-from memgs_ros.core.worker import BACKGROUND_ERROR_PAUSE_S, Command, CommandWorker, WorkerStopped
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.view import view_preparation
+from memgs_ros.core.mapping.checkpoint import MapperCheckpoint
+from memgs_ros.core.mapping.gaussians import GaussianRecords
+from memgs_ros.core.mapping.keyframes import KeyframeInput, TrainingKeyframe
+from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig, StepStats, prepare_keyframe
+from memgs_ros.core.maps.map_delta import DeltaOutbox
+from memgs_ros.core.runtime.worker import BACKGROUND_ERROR_PAUSE_S, Command, CommandWorker, WorkerStopped
 from memgs_ros.errors import DataError
 
 logger = logging.getLogger(__name__)

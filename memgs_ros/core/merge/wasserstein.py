@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import torch
 
-from memgs_ros.core.geometry import quat_wxyz_to_rotmat_torch
+from memgs_ros.core.geometry.poses import quat_wxyz_to_rotmat_torch
 
 __all__ = [
     "adjugate_sym3",

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from memgs_ros.core.ssim import ssim, ssim_map
+from memgs_ros.core.metrics.ssim import ssim, ssim_map
 
 
 def _masked_mean(x: torch.Tensor,  # [C, H, W]
