@@ -27,8 +27,8 @@ class MappingConfig:
     merge_stop_iter] when ``merge_enabled`` and memgs_ros.core.merge.voxel_merge is importable.
     ``mask_invalid_pixels``: leave the border that undistortion fills with black (no source
     pixel, see ``memgs_ros.core.geometry.view.ViewPreparation.valid_mask``) out of the photometric
-    and depth losses, so the map is not taught that the scene is black wherever some view's border falls; the whole-image
-    evaluation still compares that border with black. ``seed_opacity``: initial opacity of
+    and depth losses, so the map is not taught that the scene is black wherever some view's border
+    falls; the whole-image evaluation still compares that border with black. ``seed_opacity``: initial opacity of
     keyframe seeds (3DGS and the paper: 0.1; higher makes short CPU runs converge faster).
     Memory budget (``max_gaussians`` / ``max_model_mbytes``, 0 = none; both set: the tighter
     wins): see ``memgs_ros.core.mapping.strategies.BudgetStrategy``. The MiB budget is converted to a Gaussian
