@@ -184,6 +184,21 @@ def align_umeyama(est: np.ndarray,  # [M, 3]
     return Sim3Alignment(R=R, t=t, s=s)
 
 
+def _trajectories(fn: str, est_stamps_ns: np.ndarray, est_T_wc: np.ndarray, gt_stamps_ns: np.ndarray,
+                  gt_T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(est stamps [M] int64, est poses [M, 4, 4], gt stamps [K], gt poses [K, 4, 4]) as float64 /
+    int64 arrays; AssertionError (naming ``fn``) when the shapes do not match."""
+    est_T = np.asarray(est_T_wc, dtype=np.float64)
+    gt_T = np.asarray(gt_T_wc, dtype=np.float64)
+    est_s = np.asarray(est_stamps_ns, dtype=np.int64)
+    gt_s = np.asarray(gt_stamps_ns, dtype=np.int64)
+    assert est_T.ndim == 3 and est_T.shape[1:] == (4, 4) and est_T.shape[0] == est_s.shape[0], (
+        f"{fn}: est_T_wc {est_T.shape} must be [M, 4, 4] with M = len(est_stamps_ns) = {est_s.shape[0]}")
+    assert gt_T.ndim == 3 and gt_T.shape[1:] == (4, 4) and gt_T.shape[0] == gt_s.shape[0], (
+        f"{fn}: gt_T_wc {gt_T.shape} must be [K, 4, 4] with K = len(gt_stamps_ns) = {gt_s.shape[0]}")
+    return est_s, est_T, gt_s, gt_T
+
+
 def ate(est_stamps_ns: np.ndarray,  # [M]
         est_T_wc: np.ndarray,  # [M, 4, 4]
         gt_stamps_ns: np.ndarray,  # [K]
@@ -196,14 +211,7 @@ def ate(est_stamps_ns: np.ndarray,  # [M]
     rotation angle between aligned estimate and ground truth, in degrees.
     Raises DataError when fewer than 3 pairs match.
     """
-    est_T = np.asarray(est_T_wc, dtype=np.float64)
-    gt_T = np.asarray(gt_T_wc, dtype=np.float64)
-    est_s = np.asarray(est_stamps_ns, dtype=np.int64)
-    gt_s = np.asarray(gt_stamps_ns, dtype=np.int64)
-    assert est_T.ndim == 3 and est_T.shape[1:] == (4, 4) and est_T.shape[0] == est_s.shape[0], (
-        f"ate: est_T_wc {est_T.shape} must be [M, 4, 4] with M = len(est_stamps_ns) = {est_s.shape[0]}")
-    assert gt_T.ndim == 3 and gt_T.shape[1:] == (4, 4) and gt_T.shape[0] == gt_s.shape[0], (
-        f"ate: gt_T_wc {gt_T.shape} must be [K, 4, 4] with K = len(gt_stamps_ns) = {gt_s.shape[0]}")
+    est_s, est_T, gt_s, gt_T = _trajectories("ate", est_stamps_ns, est_T_wc, gt_stamps_ns, gt_T_wc)
     finite = np.isfinite(est_T).all(axis=(1, 2))
     keep = np.flatnonzero(finite)
     ia, ib = associate(est_s[keep], gt_s, round(max_dt_s * 1e9))
@@ -244,14 +252,7 @@ def rpe(est_stamps_ns: np.ndarray,  # [M]
     """
     if delta < 1:
         raise ValueError(f"rpe: delta must be >= 1, got {delta}")
-    est_T = np.asarray(est_T_wc, dtype=np.float64)
-    gt_T = np.asarray(gt_T_wc, dtype=np.float64)
-    est_s = np.asarray(est_stamps_ns, dtype=np.int64)
-    gt_s = np.asarray(gt_stamps_ns, dtype=np.int64)
-    assert est_T.ndim == 3 and est_T.shape[1:] == (4, 4) and est_T.shape[0] == est_s.shape[0], (
-        f"rpe: est_T_wc {est_T.shape} must be [M, 4, 4] with M = len(est_stamps_ns) = {est_s.shape[0]}")
-    assert gt_T.ndim == 3 and gt_T.shape[1:] == (4, 4) and gt_T.shape[0] == gt_s.shape[0], (
-        f"rpe: gt_T_wc {gt_T.shape} must be [K, 4, 4] with K = len(gt_stamps_ns) = {gt_s.shape[0]}")
+    est_s, est_T, gt_s, gt_T = _trajectories("rpe", est_stamps_ns, est_T_wc, gt_stamps_ns, gt_T_wc)
     keep = np.flatnonzero(np.isfinite(est_T).all(axis=(1, 2)))
     ia, ib = associate(est_s[keep], gt_s, round(max_dt_s * 1e9))
     ia = keep[ia]
