@@ -18,7 +18,7 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 
-from memgs_ros.core import checkpoint  # noqa: E402
+from memgs_ros.core.mapping import checkpoint  # noqa: E402
 from memgs_ros.core.mapping.gaussians import GaussianMap  # noqa: E402
 from memgs_ros.core.maps.map_delta import DeltaOutbox  # noqa: E402
 from memgs_ros.core.maps.ply import load_ply  # noqa: E402
