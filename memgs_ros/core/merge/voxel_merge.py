@@ -38,20 +38,8 @@ from memgs_ros.errors import ConfigError
 if TYPE_CHECKING:
     from memgs_ros.core.mapping.gaussians import GaussianMap
 
-__all__ = [
-    "CHI2_3DOF_95",
-    "MergeConfig",
-    "MergeResult",
-    "VoxelPairs",
-    "candidate_mask",
-    "mahalanobis_sq",
-    "merge_covariance",
-    "merge_pass",
-    "merged_mean",
-    "select_min_pair_per_voxel",
-    "voxel_keys",
-    "voxel_pairs",
-]
+__all__ = ["CHI2_3DOF_95", "MergeConfig", "MergeResult", "VoxelPairs", "candidate_mask", "mahalanobis_sq",
+           "merge_covariance", "merge_pass", "merged_mean", "select_min_pair_per_voxel", "voxel_keys", "voxel_pairs"]
 
 CHI2_3DOF_95 = 7.815  # chi-square critical value, 3 degrees of freedom, 95 % confidence
 
