@@ -192,7 +192,7 @@ def test_a_player_that_ended_cleanly_ends_the_replay_even_if_its_done_message_wa
     from memgs_ros.orchestration import pipeline
 
     monkeypatch.setattr(pipeline, "_DONE_GRACE_S", 0.2)
-    procs = pipeline._Processes(tmp_path / "p.yaml", "", dict(os.environ), tmp_path)
+    procs = pipeline.NodeProcesses(tmp_path / "p.yaml", "", dict(os.environ), tmp_path)
     procs.procs["bag_player"] = subprocess.Popen([sys.executable, "-c", "import sys; sys.exit(0)"])
     procs.procs["bag_player"].wait()
     assert not pipeline._player_ended_unheard(procs)  # grace time starts now
