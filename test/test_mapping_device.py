@@ -15,13 +15,13 @@ import pytest
 import torch
 
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.core.mapping.losses import mapping_loss
 from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
 from memgs_ros.core.merge.voxel_merge import MergeConfig
 from memgs_ros.core.raster.gsplat_backend import gsplat_available
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
 from frame_seeds import grid_seeds
+from test_mapping import _full_res_loss
 
 CASES = [
     pytest.param("cpu", "torch", id="cpu-torch"),
@@ -62,18 +62,6 @@ def no_host_round_trip() -> Iterator[list[str]]:
                 if callable(getattr(mod, name)) and not name.startswith("_") and hasattr(getattr(mod, name), "py_func"):
                     mp.setattr(mod, name, refuse(f"{mod.__name__}.{name}"))
         yield calls
-
-
-def _full_res_loss(mapper: GaussianMapper) -> float:
-    """The training loss summed over the keyframes at full resolution (a step's own loss mixes
-    pyramid levels)."""
-    total = 0.0
-    for kf in mapper.keyframes.all():
-        out = mapper.render(kf.T_wc, kf.camera)
-        _, terms = mapping_loss(out.color, kf.image, mapper.gmap.log_scales.detach(), out.depth, kf.depth_m,
-                                depth_weight=mapper.cfg.depth_weight)
-        total += terms["total"]
-    return total
 
 
 @pytest.mark.parametrize("device,backend", CASES)

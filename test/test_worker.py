@@ -13,13 +13,11 @@ import numpy as np
 import pytest
 
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
-from memgs_ros.core.mapping.keyframes import KeyframeInput
+from memgs_ros.core.mapping.mapper import GaussianMapper
 from memgs_ros.core.mapping.session import MappingSession, SessionError
 from memgs_ros.core.runtime.worker import CommandWorker, WorkerStopped
-from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
-from frame_seeds import grid_seeds
+from test_session import _cfg, _kf, frames  # noqa: F401 - frames is a fixture
 
 WAIT_S = 20.0
 
@@ -137,21 +135,6 @@ def test_close_with_a_stuck_command_fails_what_is_queued_behind_it() -> None:
 
 
 # ------------------------------------------------------------------ the mapping session's hazards
-
-
-@pytest.fixture(scope="module")
-def frames() -> list[Frame]:
-    return list(generate_frames(SyntheticSpec(width=64, height=48, n_frames=30, seed=1)))[::5]
-
-
-def _cfg(**overrides: object) -> MappingConfig:
-    return MappingConfig(**{"min_keyframes": 2, "pyramid_uses_per_level": 2, "merge_enabled": False,
-                            "densify_start_iter": 10_000, **overrides})
-
-
-def _kf(f: Frame, stamp: int) -> KeyframeInput:
-    p, c = grid_seeds(f, 8)
-    return KeyframeInput(stamp, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
 
 
 def test_a_value_error_in_a_free_running_step_is_an_event_not_a_dead_worker(
