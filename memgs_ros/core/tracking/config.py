@@ -94,14 +94,14 @@ class TrackerConfig:
     new_segment_after_lost_frames: int = 30  # RGB-D: start a new map anchored at the last good pose
     # Place recognition (the shipped ORB vocabulary; relocalisation asks it too) and loop closure
     # (RGB-D only): consistent candidates outside the local map, PnP RANSAC verification, then a
-    # pose graph on the place-recognition thread; corrected keyframes go out as refined poses.
+    # pose graph on the tracking back-end (an actor); corrected keyframes go out as refined poses.
     loop_closure: bool = True
     loop_min_keyframe_gap: int = 20  # loop candidates are at least this many keyframes older than the query
     loop_consistency: int = 3  # consecutive keyframes whose candidates must agree (ORB-SLAM: 3)
     loop_min_inliers: int = 40  # PnP RANSAC and refinement inliers needed to accept a loop
     loop_covisibility_edge_points: int = 50  # shared points that make a covisibility edge of the pose graph
     loop_cooldown_keyframes: int = 10  # no new loop search for this many keyframes after a correction
-    # Global BA after each loop correction (same thread, tracking never waits): every keyframe but
+    # Global BA after each loop correction (on the back-end, one iteration at a time): every keyframe but
     # the first and every point seen twice, stopped after the iterations or the time budget.
     loop_global_ba: bool = True
     loop_global_ba_iterations: int = 10
