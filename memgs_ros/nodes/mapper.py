@@ -211,27 +211,27 @@ class MapperNode(Node):
             if not self.session.save_state(write, only_if_changed=not force).result():
                 return None
         except (OSError, DataError, WorkerStopped) as err:
-            self.stats.problem("checkpoint_failed", f"could not write checkpoint {ckpt.path}: {err}")
+            self.stats.post_problem("checkpoint_failed", f"could not write checkpoint {ckpt.path}: {err}")
             return None
-        self.stats.counters["checkpoints"] += 1
-        self.stats.gauges["checkpoint_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
+        self.stats.post_count("checkpoints")
+        self.stats.post_gauge("checkpoint_ms", round((time.perf_counter() - t0) * 1e3, 1))
         return self.ckpt.path
 
     def _part(self, part: str, msg) -> None:  # noqa: ANN001 - any bundle message type
         """A complete bundle is decoded and queued, or refused whole and counted by kind (bad_seeds...)."""
         stamp = stamp_to_ns(msg.header.stamp)
         b = self.intake.add(part, stamp, msg)
-        self.stats.counters["duplicate_keyframe_parts"] = self.intake.duplicate_parts
-        self.stats.gauges["dropped_keyframe_bundles"] = self.intake.dropped
+        self.stats.post_counter("duplicate_keyframe_parts", self.intake.duplicate_parts)
+        self.stats.post_gauge("dropped_keyframe_bundles", self.intake.dropped)
         if b is None:
             return
         try:
             kf = decode_keyframe_images(b, stamp, self.params.depth_scale)
             points, colors = decode_seeds(pointcloud2_to_structured(b["seeds"]))
         except KeyframeBundleError as err:
-            self.stats.problem(err.kind, f"keyframe {stamp} refused: {err}")
+            self.stats.post_problem(err.kind, f"keyframe {stamp} refused: {err}")
         except (MessageError, DataError) as err:
-            self.stats.problem("bad_seeds", f"keyframe {stamp} refused: {err}")
+            self.stats.post_problem("bad_seeds", f"keyframe {stamp} refused: {err}")
         else:
             self.session.insert_keyframe(replace(kf, points_w=points, colors=colors))
         if stamp in self.awaiting_keyframes:
@@ -244,7 +244,8 @@ class MapperNode(Node):
             try:
                 poses[stamp_to_ns(p.header.stamp)] = pose_to_matrix(p.pose)
             except (MessageError, DataError) as err:
-                self.stats.problem("bad_pose", f"refined pose of keyframe {stamp_to_ns(p.header.stamp)} ignored: {err}")
+                self.stats.post_problem("bad_pose",
+                                        f"refined pose of keyframe {stamp_to_ns(p.header.stamp)} ignored: {err}")
         return poses
 
     def on_refined(self, msg: Path) -> None:
@@ -267,7 +268,7 @@ class MapperNode(Node):
         stamp = stamp_to_ns(msg.stamp)
         if msg.frame_id == "keyframe":
             self.intake.announce(stamp, time.monotonic())
-            self.stats.counters["keyframes_announced"] += 1
+            self.stats.post_count("keyframes_announced")
         if not self.params.lockstep:
             return
         if msg.frame_id == "keyframe" and not self.intake.seen(stamp):
@@ -280,7 +281,9 @@ class MapperNode(Node):
         self.pub_ack.publish(make_header(stamp_ns, "mapper"))
 
     def _sync_stats(self) -> None:
-        """Session problems and status, and lost keyframes, into the stats (NodeStats: one writer)."""
+        """Session problems and status, and lost keyframes, into the stats: on the default callback
+        group, the stats' own, which also applies what the other groups posted."""
+        self.stats.apply_posted()
         self.stats.counters["keyframes_missed"] += self.intake.missed(time.monotonic())
         for ev in self.session.poll_events():
             self.stats.problem(ev.kind, ev.message)

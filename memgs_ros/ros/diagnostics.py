@@ -5,6 +5,7 @@ Every node's stats carry ``peak_rss_mb``, ``rss_mb``, ``cpu_s`` (its process's C
 from __future__ import annotations
 
 import os
+import queue
 import resource
 import time
 from collections import Counter
@@ -19,7 +20,14 @@ from memgs_ros.ros import qos
 
 
 class NodeStats:
-    """Counters and gauges a node publishes once a second, plus warn-once logging per problem kind."""
+    """Counters and gauges a node publishes once a second, plus warn-once logging per problem kind.
+
+    ``counters``, ``gauges`` and ``problem`` belong to the node's default callback group (where
+    the publish timer runs). A node whose callbacks run in several groups at once posts from
+    the others (``post_count``, ``post_counter``, ``post_gauge``, ``post_problem``): the updates
+    queue up and ``apply_posted`` (called by ``message``, or by a default-group callback) applies
+    them in order, so the dicts never have two writers.
+    """
 
     def __init__(self, node: Node, name: str, period_s: float = 1.0, trim_period_s: float = 30.0) -> None:
         self._node = node
@@ -29,6 +37,7 @@ class NodeStats:
         self.counters: Counter[str] = Counter()
         self.gauges: dict[str, float | int | str] = {}
         self._warned: set[str] = set()
+        self._posted: queue.SimpleQueue[tuple[str, str, object]] = queue.SimpleQueue()
         self._pub = node.create_publisher(DiagnosticArray, f"memgs/{name}/stats", qos.reliable(5))
         self._timer = node.create_timer(period_s, self.publish)
 
@@ -39,7 +48,40 @@ class NodeStats:
             self._warned.add(kind)
             self._node.get_logger().warning(f"{message} (further '{kind}' problems are only counted)")
 
+    def post_count(self, name: str, n: int = 1) -> None:
+        """From any thread: add ``n`` to counter ``name``."""
+        self._posted.put(("count", name, n))
+
+    def post_counter(self, name: str, value: int) -> None:
+        """From any thread: set counter ``name`` (a total kept elsewhere)."""
+        self._posted.put(("counter", name, value))
+
+    def post_gauge(self, name: str, value: float | int | str) -> None:
+        """From any thread: set gauge ``name``."""
+        self._posted.put(("gauge", name, value))
+
+    def post_problem(self, kind: str, message: str) -> None:
+        """From any thread: :meth:`problem`."""
+        self._posted.put(("problem", kind, message))
+
+    def apply_posted(self) -> None:
+        """Apply what other threads posted, in order (on the default callback group)."""
+        while True:
+            try:
+                op, name, value = self._posted.get_nowait()
+            except queue.Empty:
+                return
+            if op == "count":
+                self.counters[name] += int(value)  # type: ignore[call-overload]
+            elif op == "counter":
+                self.counters[name] = int(value)  # type: ignore[call-overload]
+            elif op == "gauge":
+                self.gauges[name] = value  # type: ignore[assignment]
+            else:
+                self.problem(name, str(value))
+
     def message(self) -> DiagnosticArray:
+        self.apply_posted()
         if self._trim_period_s > 0 and time.monotonic() - self._last_trim >= self._trim_period_s:
             self._last_trim = time.monotonic()
             release_free_memory()  # so rss_mb is what the node uses, not its heap's high-water mark

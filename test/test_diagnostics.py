@@ -1,0 +1,50 @@
+"""NodeStats with several writer threads: what they post is applied by one thread, in order,
+with nothing lost, while stats messages are built (the mapper writes from four callback groups)."""
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+
+from memgs_ros.ros.diagnostics import NodeStats, stats_values  # noqa: E402
+
+
+def test_posts_from_many_threads_are_applied_whole(context) -> None:  # noqa: ANN001
+    node = rclpy.create_node("stats_test", context=context)
+    try:
+        stats = NodeStats(node, "stats_test", period_s=3600.0)
+        n_threads, n_posts = 4, 2000
+        stop = threading.Event()
+        errors: list[BaseException] = []
+
+        def writer(k: int) -> None:
+            for i in range(n_posts):
+                stats.post_count("posted")
+                stats.post_gauge(f"g{k}.{i % 50}", i)  # new keys appear while messages are built
+            stats.post_problem(f"kind{k}", "a problem")
+
+        def reader() -> None:
+            try:
+                while not stop.is_set():
+                    stats.message()
+            except BaseException as err:  # noqa: BLE001 - the test reports it
+                errors.append(err)
+
+        r = threading.Thread(target=reader)
+        r.start()
+        writers = [threading.Thread(target=writer, args=(k,)) for k in range(n_threads)]
+        for w in writers:
+            w.start()
+        for w in writers:
+            w.join()
+        stop.set()
+        r.join()
+        values = stats_values(stats.message())
+        assert errors == []
+        assert int(values["posted"]) == n_threads * n_posts
+        assert all(int(values[f"problem.kind{k}"]) == 1 for k in range(n_threads))
+        assert int(values["g0.49"]) == n_posts - 1  # the last value posted wins
+    finally:
+        node.destroy_node()
