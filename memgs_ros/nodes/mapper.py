@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import functools
 import pathlib
+import queue
 import secrets
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from typing import ClassVar
@@ -170,6 +172,10 @@ class MapperNode(Node):
         self.create_subscription(PoseStamped, "memgs/render/view_pose", lambda m: self._render(m, True),
                                  qos.reliable(5))
         out = MutuallyExclusiveCallbackGroup()  # deltas, snapshots and the final flush leave in seq order
+        # The session's threads hand finished messages over here and never call ROS themselves;
+        # this group publishes them in the order they were handed over.
+        self._outgoing: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+        self._outgoing_ready = self.create_guard_condition(self._publish_outgoing, callback_group=out)
         self.create_service(Trigger, "memgs/mapper/publish_snapshot", self.on_snapshot_request, callback_group=out)
         self.create_service(Trigger, "memgs/mapper/finish", self.on_finish,
                             callback_group=MutuallyExclusiveCallbackGroup())
@@ -296,7 +302,11 @@ class MapperNode(Node):
     def send_delta(self, exact: bool = False) -> Future:
         """Queue a delta (exact: all, tolerance 0), published by the session in seq order. A timer never
         waits for the worker (it would starve the finish service): one periodic delta at a time."""
-        p, publish = self.params, lambda r: self.pub_delta.publish(self._cloud(r))
+        p = self.params
+
+        def publish(rows: np.ndarray) -> None:  # on the session's outbox thread
+            self._hand_over(lambda: self.pub_delta.publish(self._cloud(rows)))
+
         if exact:
             return self.session.delta(None, True, publish)
         if self._delta_pending is None or self._delta_pending.done():
@@ -305,12 +315,28 @@ class MapperNode(Node):
             self._delta_pending = self.session.delta(rows, False, publish)
         return self._delta_pending
 
+    def _hand_over(self, publish: Callable[[], None]) -> None:
+        """From the session's threads: queue a publication for the ``out`` callback group."""
+        self._outgoing.put(publish)
+        self._outgoing_ready.trigger()
+
+    def _publish_outgoing(self) -> None:
+        while True:
+            try:
+                publish = self._outgoing.get_nowait()
+            except queue.Empty:
+                return
+            publish()
+
     def _cloud(self, rows: np.ndarray) -> PointCloud2:
         return structured_to_pointcloud2(rows, self.get_clock().now().nanoseconds, self.params.world_frame)
 
     def publish_snapshot(self) -> Future:
         """Queue the whole map as a (latched) snapshot at the next seq: (size, seq)."""
-        return self.session.snapshot_message(lambda r: self.pub_snapshot.publish(self._cloud(r)))
+        def publish(rows: np.ndarray) -> None:  # on the session's outbox thread
+            self._hand_over(lambda: self.pub_snapshot.publish(self._cloud(rows)))
+
+        return self.session.snapshot_message(publish)
 
     def on_snapshot_request(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         res.success, res.message = True, "seq={2} gaussians={1}".format(*self.publish_snapshot().result())
@@ -334,10 +360,13 @@ class MapperNode(Node):
         if pose is None or (not requested and self._render_pending is not None and not self._render_pending.done()):
             return
         stamp = stamp_to_ns(pose.header.stamp)
-        def publish(view) -> None:  # noqa: ANN001 - RenderedView, on the session's worker
+        def send(view) -> None:  # noqa: ANN001 - RenderedView
             self.pub_color.publish(numpy_to_image(view.rgb, "rgb8", stamp, "render_camera"))
             self.pub_depth.publish(depth_to_image(view.depth, "32FC1", stamp, "render_camera"))
             self.pub_info.publish(camera_to_camera_info(view.camera, stamp, "render_camera"))
+
+        def publish(view) -> None:  # noqa: ANN001 - on the session's worker
+            self._hand_over(lambda: send(view))
         future = self.session.render(pose_to_matrix(pose.pose), publish=publish)
         self._render_pending = self._render_pending if requested else future
 
