@@ -40,6 +40,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:  # run as a script from a checkout without an install (a lent GPU machine)
+    sys.path.insert(0, str(ROOT))
 DEFAULT_TUM = ROOT.parent / "shared/data/tum/rgbd_dataset_freiburg1_rpy_head"
 STAGES = ("setup", "tests", "raster", "mapping", "eval", "live")
 RASTER_SIZES = (20_000, 100_000, 500_000)
@@ -161,7 +163,7 @@ def stage_raster(args: argparse.Namespace) -> dict[str, Any]:
     rows = []
     for n in args.raster_sizes:
         params, T, cam = build_scene(n, 640, 480)
-        params = [p.to(dev, torch.float32).requires_grad_() for p in params]
+        params = [p.detach().to(dev, torch.float32).requires_grad_() for p in params]  # leaves on the device
         T = T.to(dev, torch.float32)
         target = torch.rand(3, 480, 640, generator=torch.Generator().manual_seed(0)).to(dev)
         for backend in backends:
@@ -251,8 +253,15 @@ def stage_live(args: argparse.Namespace) -> dict[str, Any]:
     row: dict[str, Any] = {"returncode": rc, "wall_s": round(wall, 1)}
     if rc == 0 and summary.exists():
         s = json.loads(summary.read_text())
-        row.update(frames=s["frames"], poses=s["poses"], lost=s["lost_frames"], keyframes=s["keyframes"],
-                   tracked_fraction=round(s["poses"] / max(s["frames"], 1), 3), cpu_s=s.get("cpu_s"))
+        from memgs_ros.io.tum import TumFolder
+
+        # Tracked of the frames the source holds (the player's count where the run has it): a frame
+        # that never reached the tracker counts as not tracked.
+        played = s.get("frames_played") or len(TumFolder(args.tum))
+        if args.max_frames:
+            played = min(played, args.max_frames)
+        row.update(played=played, frames=s["frames"], poses=s["poses"], lost=s["lost_frames"], keyframes=s["keyframes"],
+                   tracked_fraction=round(s["poses"] / max(played, 1), 3), cpu_s=s.get("cpu_s"))
         from memgs_ros.evaluation import evaluate_run
 
         r = evaluate_run(out_dir, str(args.tum), use_lpips=False, device=args.device, progress=False,

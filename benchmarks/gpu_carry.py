@@ -16,9 +16,12 @@ then, on the GPU machine (carry ``gpu_carry``):
 
     python benchmarks/bench_gpu.py --tum gpu_carry/tum/<name> --wheels gpu_carry/wheels
 
-The carried paths may total 64 MiB: the ROS wheels and a 60-frame subset do not fit together,
-so a first run takes ``--no-ros`` (tests, raster, mapping) and a second the ROS wheels with a
-small subset (eval, live).
+The carried paths may total 64 MiB a call, and what a call installs or copies to /tmp stays
+while the machine is warm (30 s between calls). The 2026-11-26 H200 figures came from calls
+back to back: (1) the ROS wheels, installed; (2) gsplat's wheel and the head's first 95 frames
+with rgb.txt/depth.txt/groundtruth.txt, copied to /tmp/head and gsplat built; (3) the other 105
+frames into /tmp/head, then ``python3 benchmarks/bench_gpu.py --tum /tmp/head/<name>`` from the
+checkout's root (the script finds the package there without an install).
 """
 from __future__ import annotations
 

@@ -114,3 +114,15 @@ def test_a_page_without_the_block_is_refused_before_anything_is_written(
     assert code == 2 and not out.exists()
     err = capsys.readouterr().err
     assert "page.md has no '<!-- figures:load_30hz_640x480 -->' block; it is in docs/results.md" in err
+
+
+def test_the_gpu_table_in_the_docs_is_the_saved_runs() -> None:
+    """docs/results.md's GPU table is what ``bench_gpu.py --table`` prints for the JSON beside it,
+    so the numbers and the saved run change together."""
+    spec = importlib.util.spec_from_file_location("bench_gpu", ROOT / "benchmarks" / "bench_gpu.py")
+    assert spec is not None and spec.loader is not None
+    bench_gpu = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench_gpu)
+    saved = json.loads((ROOT / "docs" / "data" / "bench_gpu_h200.json").read_text())
+    assert bench_gpu.table(saved) in (ROOT / "docs" / "results.md").read_text()
+    assert saved["headline"] == bench_gpu.headline(saved)

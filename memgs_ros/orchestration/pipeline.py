@@ -394,7 +394,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
         merger_resyncs=sum(int(v) for k, v in obs.stats.get("merger", {}).items() if k.startswith("resync.")),
         restarts=restarts,
         replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render),
-        source_complete=obs.source_ok,
+        source_complete=obs.source_ok, frames_played=int(obs.stat("player", "frames_published")),
         skipped_frames={k.removeprefix("skipped."): int(float(v)) for k, v in obs.stats.get("player", {}).items()
                         if k.startswith("skipped.")})
     # The summary is a file of the run, so evaluation reads a finished run instead of watching it.

@@ -105,6 +105,7 @@ class RunSummary:
     source_complete: bool = True  # False: the source failed part-way; the map holds what was played
     cpu_s: dict[str, float] = field(default_factory=dict)  # per node process, from its last stats (s)
     skipped_frames: dict[str, int] = field(default_factory=dict)  # bad frames the player skipped, by kind
+    frames_played: int = 0  # frames the player published (``frames`` is what reached the tracker)
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
