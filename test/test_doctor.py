@@ -51,7 +51,7 @@ def test_text_report_names_the_real_versions_and_choice(capsys: pytest.CaptureFi
 
 def test_doctor_assumes_the_mappers_default_device() -> None:
     """doctor resolves "auto" rather than import the mapper node (rclpy) into its own process."""
-    from memgs_ros.nodes.mapper import MapperParams
+    from memgs_ros.nodes.params import MapperParams
 
     assert MapperParams().device == "auto"
 

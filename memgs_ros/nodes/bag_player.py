@@ -29,8 +29,6 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
-from typing import ClassVar
 
 import rclpy
 from geometry_msgs.msg import PoseStamped
@@ -40,12 +38,13 @@ from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Bool, Header
 
-from memgs_ros.core.geometry.camera import CameraCalibration, PinholeCamera
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.errors import ConfigError, MemgsError
 from memgs_ros.io.skips import SkipLog
+from memgs_ros.nodes.params import NODE_CONFIGS, BagPlayerParams
 from memgs_ros.ros import codecs, qos
-from memgs_ros.ros.camera_params import CAMERA_PREFIX, declare_calibration
+from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import started_by_runner
@@ -61,39 +60,7 @@ PROGRESS_EVERY_S = 5.0
 DEFAULT_PERIOD_NS = 33_333_333  # loop gap for a one-frame source (30 Hz)
 
 
-@dataclass(frozen=True)
-class BagPlayerParams:
-    """The player's own parameters (no prefix; the ``camera.*`` calibration is its own group).
-
-    wait_for_readers: comma-separated node names whose color and camera_info readers must be matched
-        before the first frame (memgs run names the tracker); at most start_delay_s
-    """
-
-    source: str = ""  # frame source: TUM folder, .bag, ROS 2 bag folder/.mcap, or 'synthetic:...' spec
-    rate: float = 1.0  # real-time factor (2.0 plays twice as fast); ignored in lockstep
-    loop: bool = False  # start over at the end (stamps keep increasing)
-    lockstep: bool = False  # publish the next frame only after the pipeline acks the current one
-    ack_topic: str = "memgs/frame_ack"  # std_msgs/Header acks (stamp of the finished frame), lockstep only
-    ack_timeout_s: float = 10.0  # lockstep: warn and go on when no ack arrives within this time
-    start_delay_s: float = 5.0  # wait at most this long for a color subscriber before the first frame
-    wait_for_readers: str = ""
-    max_frames: int = 0  # stop after this many frames, over all loops (0 = no limit)
-    depth_encoding: str = "32FC1"  # depth image encoding: 32FC1 metres or 16UC1 scaled units
-    depth_scale: float = 1000.0  # 16UC1 units per metre (1000 = millimetres)
-    frame_id: str = "camera_color_optical_frame"  # frame id of the images and camera info
-    world_frame_id: str = "world"  # frame id of the ground-truth poses
-    # stop at the first bad frame (unreadable or mis-sized image, stamp going backwards, a camera that
-    # changes mid-run) instead of skipping and counting it (skipped.<kind> in the stats)
-    strict: bool = False
-
-    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
-        "rate": (0.01, 1000.0), "ack_timeout_s": (0.05, 3600.0), "start_delay_s": (0.0, 600.0),
-        "max_frames": (0, 2**31 - 1), "depth_scale": (1.0, 100000.0),
-    }
-    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"depth_encoding": ("32FC1", "16UC1")}
-
-
-CONFIGS: tuple[tuple[str, type], ...] = (("", BagPlayerParams), (CAMERA_PREFIX, CameraCalibration))
+CONFIGS = NODE_CONFIGS["bag_player"]
 
 
 class BagPlayer(Node):

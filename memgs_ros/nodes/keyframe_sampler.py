@@ -16,8 +16,6 @@ depth pixel), ``bad_pose``, ``bad_keypoints`` (missing u/v/depth fields, wrong r
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
-from typing import ClassVar
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -27,6 +25,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from memgs_ros.core.geometry.view import undistorter_for, view_preparation
 from memgs_ros.core.sampling import PatchGridConfig, seeds_mono, seeds_rgbd
 from memgs_ros.errors import DataError, MessageError
+from memgs_ros.nodes.params import NODE_CONFIGS, KeyframeSamplerParams
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
     pointcloud2_to_structured,
@@ -40,20 +39,7 @@ from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.seed_cloud import encode_seeds
 from memgs_ros.ros.stamp_sync import StampBundler
 
-
-@dataclass(frozen=True)
-class KeyframeSamplerParams:
-    """The keyframe sampler's own parameters (no prefix)."""
-
-    mode: str = "rgbd"  # camera mode (mono: depth from the nearest keypoint)
-    depth_scale: float = 1000.0  # 16UC1 depth units per metre
-    world_frame: str = "map"  # frame id of the seed cloud
-
-    RANGES: ClassVar[dict[str, tuple[float, float]]] = {"depth_scale": (1e-3, 1e6)}
-    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": ("rgbd", "mono")}
-
-
-CONFIGS: tuple[tuple[str, type], ...] = (("", KeyframeSamplerParams), ("patch_grid", PatchGridConfig))
+CONFIGS = NODE_CONFIGS["keyframe_sampler"]
 
 
 class KeyframeSamplerNode(Node):

@@ -21,8 +21,7 @@ import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, replace
-from typing import ClassVar
+from dataclasses import replace
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -42,7 +41,8 @@ from memgs_ros.core.raster import warm_up
 from memgs_ros.core.raster.backend_choice import choose_backend, device_label, resolve_device
 from memgs_ros.core.runtime.cpu import configure_cpu_runtime
 from memgs_ros.core.runtime.worker import WorkerStopped
-from memgs_ros.errors import ConfigError, DataError, MessageError
+from memgs_ros.errors import DataError, MessageError
+from memgs_ros.nodes.params import NODE_CONFIGS, MapperParams
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
     camera_to_camera_info,
@@ -61,55 +61,7 @@ from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.seed_cloud import decode_seeds
 from memgs_ros.ros.stamp_sync import KeyframeIntake
 
-
-@dataclass(frozen=True)
-class MapperParams:
-    """The mapper's own parameters (no prefix); the map's are ``mapping.*`` and ``merge.*``.
-
-    final_densify: densify during the final iterations too (false: they only refine the map, which then
-        keeps its size)
-    delta_budget_kbytes_per_s: link budget for map deltas; the largest changes go first, the rest wait
-        (the final flush ignores it)
-    delta_tolerance: send a Gaussian again only when a parameter moved more than this (m, or
-        pre-activation units); the final flush is exact
-    checkpoint_period_s: write a checkpoint this often while the map changes (0 = only at finish/shutdown)
-    insert_queue: free-running: complete keyframes waiting for insertion; when full the oldest is dropped
-        and counted (problem.keyframe_overload)
-    """
-
-    mode: str = "rgbd"  # camera mode: rgbd, or mono (keyframes carry no depth)
-    depth_scale: float = 1000.0  # 16UC1 keyframe depth units per metre (the tracker publishes 32FC1 metres)
-    device: str = "auto"  # torch device for the map: auto (CUDA when present), cpu, cuda, cuda:N
-    lockstep: bool = False  # train a fixed number of iterations per frame and acknowledge each (deterministic replay)
-    lockstep_iterations: int = 10  # training iterations per frame in lockstep mode
-    final_iterations: int = 0  # extra training iterations run by the finish service before the final flush
-    final_densify: bool = True
-    delta_rate_hz: float = 1.0  # map deltas per second
-    delta_budget_kbytes_per_s: float = 500.0
-    delta_tolerance: float = 1e-3
-    snapshot_period_s: float = 0.0  # publish a full snapshot this often (0 = only on request)
-    render_rate_hz: float = 1.0  # live view renders per second (0 = off)
-    world_frame: str = "map"  # frame id of published maps and poses
-    ack_topic: str = "memgs/frame_ack"  # lockstep acknowledgement topic (to the player)
-    checkpoint_path: str = ""  # file for map + keyframe checkpoints (.npz); empty = no checkpoints
-    checkpoint_period_s: float = 30.0
-    resume: bool = True  # start from the checkpoint at checkpoint_path when one exists
-    insert_queue: int = 4
-
-    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
-        "depth_scale": (1e-3, 1e6), "lockstep_iterations": (0, 10000), "final_iterations": (0, 10**7),
-        "delta_rate_hz": (0.01, 100.0), "delta_budget_kbytes_per_s": (1.0, 1e7), "delta_tolerance": (0.0, 10.0),
-        "snapshot_period_s": (0.0, 1e6), "render_rate_hz": (0.0, 60.0), "checkpoint_period_s": (0.0, 1e6),
-        "insert_queue": (1, 1000),
-    }
-    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": ("rgbd", "mono")}
-
-    def __post_init__(self) -> None:  # CHOICES refuses a bad parameter; this, a bad direct construction
-        if self.mode not in self.CHOICES["mode"]:
-            raise ConfigError(f"mode must be rgbd or mono, got {self.mode!r}")
-
-
-CONFIGS: tuple[tuple[str, type], ...] = (("", MapperParams), ("mapping", MappingConfig), ("merge", MergeConfig))
+CONFIGS = NODE_CONFIGS["mapper"]
 
 
 class MapperNode(Node):

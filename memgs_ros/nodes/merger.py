@@ -24,9 +24,8 @@ from __future__ import annotations
 import sys
 import time
 from collections import deque
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -38,6 +37,7 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.maps.map_delta import ApplyStatus, MapMessage, MapReplica, MessageKind, decode, encode
 from memgs_ros.core.maps.ply import save_ply
 from memgs_ros.errors import MemgsError, MessageError
+from memgs_ros.nodes.params import NODE_CONFIGS, MergerParams
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
     depth_to_image,
@@ -55,33 +55,7 @@ if TYPE_CHECKING:
     from memgs_ros.core.raster import Gaussians
 
 
-@dataclass(frozen=True)
-class MergerParams:
-    """The merger's own parameters (no prefix)."""
-
-    map_path: str = "memgs_map.ply"  # where the map PLY is saved (atomically)
-    save_period_s: float = 60.0  # also save the PLY this often when it changed (0 = only on request and shutdown)
-    publish_period_s: float = 30.0  # publish the full map on memgs/map/gaussians this often (0 = only on request)
-    resync_interval_s: float = 1.0  # least time between snapshot requests (doubles, up to 8x, while unanswered)
-    max_buffered_deltas: int = 200  # deltas kept while resynchronising
-    world_frame: str = "map"  # frame id of the published map
-    fault_drop_every_nth_delta: int = 0  # fault injection for tests: ignore every n-th delta on arrival (0 = off)
-    render_width: int = 320  # render width (px) for view requests
-    render_height: int = 240  # render height (px) for view requests
-    render_fx: float = 258.65  # render focal length x (px)
-    render_fy: float = 258.23  # render focal length y (px)
-    render_cx: float = 159.32  # render principal point x (px)
-    render_cy: float = 127.66  # render principal point y (px)
-
-    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
-        "save_period_s": (0.0, 1e6), "publish_period_s": (0.0, 1e6), "resync_interval_s": (0.0, 3600.0),
-        "max_buffered_deltas": (1, 100000), "fault_drop_every_nth_delta": (0, 10**6),
-        "render_width": (1, 8192), "render_height": (1, 8192), "render_fx": (1e-3, 1e6), "render_fy": (1e-3, 1e6),
-        "render_cx": (-1e6, 1e6), "render_cy": (-1e6, 1e6),
-    }
-
-
-CONFIGS: tuple[tuple[str, type], ...] = (("", MergerParams),)
+CONFIGS = NODE_CONFIGS["merger"]
 
 
 class MergerNode(Node):

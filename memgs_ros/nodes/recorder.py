@@ -24,9 +24,8 @@ import importlib
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -34,53 +33,16 @@ from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.bag_stream import BackgroundBagStream, ros2_typestore
+from memgs_ros.nodes.params import DEFAULT_TOPICS, NODE_CONFIGS, RecorderParams
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import run_node
 
 __all__ = ["CONFIGS", "DEFAULT_TOPICS", "RecorderNode", "RecorderParams", "main"]
 
-# Every output of the graph, relative to the node's namespace (types as the nodes publish them).
-DEFAULT_TOPICS: tuple[str, ...] = (
-    # tracker
-    "memgs/pose",                            # geometry_msgs/PoseStamped, every frame tracked
-    "memgs/odom",                            # nav_msgs/Odometry
-    "memgs/path",                            # nav_msgs/Path (loop-corrected trajectory)
-    "memgs/tracking_state",                  # std_msgs/String
-    "memgs/keyframe/pose",                   # geometry_msgs/PoseStamped, at keyframe insertion
-    "memgs/keyframe/refined_poses",          # nav_msgs/Path (local BA)
-    "memgs/keyframe/loop_corrected_poses",   # nav_msgs/Path (loop closure)
-    # mapper
-    "memgs/map/delta",                       # sensor_msgs/PointCloud2
-    "memgs/mapper/snapshot",                 # sensor_msgs/PointCloud2 (latched, rgb)
-    "memgs/render/color",                    # sensor_msgs/Image
-    "memgs/render/depth",                    # sensor_msgs/Image
-    "memgs/render/camera_info",              # sensor_msgs/CameraInfo
-    # merger
-    "memgs/map/gaussians",                   # sensor_msgs/PointCloud2 (latched, rgb)
-    "memgs/merger/render/color",             # sensor_msgs/Image
-    "memgs/merger/render/depth",             # sensor_msgs/Image
-    # every node: diagnostic_msgs/DiagnosticArray
-    "memgs/tracker/stats", "memgs/keyframe_sampler/stats", "memgs/mapper/stats", "memgs/merger/stats",
-    "memgs/player/stats",
-)
 
 
-@dataclass(frozen=True)
-class RecorderParams:
-    """The recorder's own parameters (no prefix).
-
-    topics: topics to record, relative to the node's namespace or absolute (default: every memgs output)
-    """
-
-    path: str = ""  # the .mcap file to write (required); replaced atomically when the node stops
-    topics: tuple[str, ...] = DEFAULT_TOPICS
-    discovery_period_s: float = 0.2  # look for publishers of topics not yet recorded this often
-
-    RANGES: ClassVar[dict[str, tuple[float, float]]] = {"discovery_period_s": (0.01, 60.0)}
-
-
-CONFIGS: tuple[tuple[str, type], ...] = (("", RecorderParams),)
+CONFIGS = NODE_CONFIGS["recorder"]
 
 # A RELIABLE subscription keeps this many messages while the callback catches up; the callback
 # only appends bytes to a file, so the queue stays near empty.

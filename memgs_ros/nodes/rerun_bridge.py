@@ -24,9 +24,8 @@ from __future__ import annotations
 import sys
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
 from pathlib import Path as FsPath
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -40,6 +39,7 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.maps.map_delta import MapMessage, decode
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, decode_rgb
+from memgs_ros.nodes.params import NODE_CONFIGS, RerunBridgeParams
 from memgs_ros.nodes.registry import GRAPH
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pointcloud2_to_structured, pose_to_matrix, stamp_to_ns
@@ -50,42 +50,12 @@ from memgs_ros.viz import RerunTarget
 from memgs_ros.viz.map_follow import MapFollower
 
 # The stats plotted by default: map size and training progress, tracking speed, memory.
-DEFAULT_STATS_KEYS = ("gaussians,iteration,loss,keyframes,poses_out,track_ms,rss_mb,model_bytes,map_bytes,"
-                      "delta_bytes")
 STATS_NODES = GRAPH
 _FRAMES_KEPT = 30  # source frames held to pair with a render of the same stamp (renders lag < 1 s)
 _RESYNC_INTERVAL_S = 2.0  # least time between full-map requests while out of step
 
 
-@dataclass(frozen=True)
-class RerunBridgeParams:
-    """The bridge's own parameters (no prefix).
-
-    log_sh: send the map's degree 1..3 SH coefficients too (+90 B a Gaussian each time; the viewer then
-        shows view-dependent colour)
-    log_frames: subscribe to color_topic and log the frame beside each render (off on a thin link: the
-        renders alone are small)
-    """
-
-    spawn: bool = False  # spawn a local Rerun viewer (or use one listening on port 9876)
-    connect_url: str = ""  # stream to the Rerun viewer at this URL (rerun+http://HOST:9876/proxy); empty = none
-    save_path: str = ""  # also record to this .rrd file; empty = none
-    application_id: str = "memgs_ros"  # Rerun application id (the viewer groups recordings by it)
-    recording_name: str = ""  # Rerun recording name (empty: the node's namespace)
-    map_period_s: float = 5.0  # log the map this often when it changed (s); 0 = only full maps the merger publishes
-    log_sh: bool = False
-    jpeg_quality: int = 85  # JPEG quality of logged images (0 = raw pixels)
-    log_frames: bool = True
-    color_topic: str = "color/image_raw"  # the source colour images
-    stats_keys: str = DEFAULT_STATS_KEYS  # comma-separated stats keys to plot ('*' = all)
-    frustum_size_m: float = 0.08  # depth of the drawn keyframe frusta (m)
-
-    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
-        "map_period_s": (0.0, 3600.0), "jpeg_quality": (0, 100), "frustum_size_m": (1e-4, 100.0),
-    }
-
-
-CONFIGS: tuple[tuple[str, type], ...] = (("", RerunBridgeParams),)
+CONFIGS = NODE_CONFIGS["rerun_bridge"]
 
 
 class RerunBridgeNode(Node):

@@ -40,8 +40,6 @@ from __future__ import annotations
 import sys
 import time
 from collections import deque
-from dataclasses import dataclass
-from typing import ClassVar
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -51,14 +49,15 @@ from rclpy.publisher import Publisher
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header, String
 
-from memgs_ros.core.geometry.camera import CameraCalibration, PinholeCamera, calibration_differences, describe_camera
+from memgs_ros.core.geometry.camera import PinholeCamera, calibration_differences, describe_camera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.tracking import Tracker, TrackerConfig, TrackResult, make_tracker
 from memgs_ros.core.tracking.anchored_path import AnchoredPath
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb
+from memgs_ros.nodes.params import NODE_CONFIGS, TrackerParams
 from memgs_ros.ros import qos
-from memgs_ros.ros.camera_params import CAMERA_PREFIX, declare_calibration
+from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.codecs import (
     append_to_path,
     camera_to_camera_info,
@@ -78,48 +77,7 @@ from memgs_ros.ros.stamp_sync import NearestPairer
 KEYPOINT_DTYPE = np.dtype([("u", np.float32), ("v", np.float32), ("depth", np.float32), ("active", np.uint8)])
 
 
-@dataclass(frozen=True)
-class TrackerParams:
-    """The tracker node's own parameters (no prefix; the algorithm's are ``tracker.*``).
-
-    depth_topic: depth image input registered to colour (16UC1 or 32FC1); unused in mono mode
-    camera_info_topic: camera_info of the colour camera (plumb_bob or rational_polynomial)
-    input_reliability: camera subscriptions: best_effort (sensor-data QoS, live cameras: drop rather than
-        queue) or reliable (lockstep replays must not lose a frame)
-    path_rate_hz: memgs/path publications per second (the whole path each time; poses go out per frame on
-        memgs/pose and memgs/odom)
-    time_jump_back_s: a frame stamped more than this before the previous one is a time reset (bag loop):
-        tracking goes on from it; a smaller step back is a late frame and is dropped
-    camera_info_override: use the camera.* calibration instead of camera_info (whose intrinsics and
-        distortion are then ignored; TUM's bags carry placeholder ones)
-    """
-
-    color_topic: str = "camera/camera/color/image_raw"  # colour image input
-    depth_topic: str = "camera/camera/aligned_depth_to_color/image_raw"
-    camera_info_topic: str = "camera/camera/color/camera_info"
-    depth_scale: float = 1000.0  # 16UC1 depth units per metre (RealSense 1000, TUM 5000)
-    sync: str = "approximate"  # colour/depth pairing
-    max_sync_dt_s: float = 0.02  # largest colour/depth stamp difference paired (approximate)
-    world_frame: str = "map"  # frame id of published poses
-    camera_frame: str = "camera_color_optical_frame"  # child frame id of the odometry (camera optical frame)
-    input_reliability: str = "best_effort"
-    path_max_len: int = 10000  # poses kept in memgs/path (0 = all)
-    path_rate_hz: float = 1.0
-    time_jump_back_s: float = 1.0
-    max_stamp_ahead_s: float = 3600.0  # drop frames stamped more than this ahead of the node's clock (0 = no check)
-    camera_info_override: bool = False
-
-    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
-        "depth_scale": (1e-3, 1e6), "max_sync_dt_s": (0.0, 1.0), "path_max_len": (0, 10**7),
-        "path_rate_hz": (0.01, 100.0), "time_jump_back_s": (0.0, 1e6), "max_stamp_ahead_s": (0.0, 1e9),
-    }
-    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {
-        "sync": ("approximate", "exact"), "input_reliability": ("best_effort", "reliable"),
-    }
-
-
-# Parameter groups declared from core configs: "<prefix>.<field>".
-CONFIGS = (("", TrackerParams), ("tracker", TrackerConfig), (CAMERA_PREFIX, CameraCalibration))
+CONFIGS = NODE_CONFIGS["tracker"]
 
 
 class TrackerNode(Node):

@@ -9,12 +9,11 @@ from __future__ import annotations
 
 from rclpy.node import Node
 
-from memgs_ros.core.geometry.camera import CameraCalibration, PinholeCamera
+from memgs_ros.core.geometry.camera import CAMERA_PREFIX, CameraCalibration, PinholeCamera
 from memgs_ros.ros.config_params import declare_config
 
 __all__ = ["CAMERA_PREFIX", "declare_calibration"]
 
-CAMERA_PREFIX = "camera"
 
 
 def declare_calibration(node: Node) -> PinholeCamera | None:

@@ -10,6 +10,9 @@ import numpy as np
 
 from memgs_ros.errors import ConfigError, DataError
 
+# Prefix of a calibration in node parameters (CameraCalibration fields as "camera.fx", ...).
+CAMERA_PREFIX = "camera"
+
 # plumb_bob: k1 k2 p1 p2 k3; rational_polynomial adds k4 k5 k6. Both are OpenCV's order, so
 # dist_coeffs goes to cv2 as it is.
 DIST_LENS = (5, 8)

@@ -1,0 +1,260 @@
+"""Every node's parameters, as frozen dataclasses, and which config groups each node declares.
+
+The nodes declare these through rclpy (:func:`memgs_ros.ros.config_params.declare_config`); the
+runner, ``memgs eval`` and the parameter reference read them here, with no rclpy: a config is
+checked (names, types, ranges, choices) before any process starts, also where the ROS extra is
+not installed. ``RANGES``/``CHOICES`` on a class bound its fields; a node's ``CONFIGS`` is
+``NODE_CONFIGS[name]``: (prefix, config class) pairs, ``""`` for the node's own.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+from memgs_ros.core.geometry.camera import CAMERA_PREFIX, CameraCalibration
+from memgs_ros.core.mapping.mapper import MappingConfig
+from memgs_ros.core.merge.voxel_merge import MergeConfig
+from memgs_ros.core.sampling import PatchGridConfig
+from memgs_ros.core.tracking import TrackerConfig
+from memgs_ros.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class BagPlayerParams:
+    """The player's own parameters (no prefix; the ``camera.*`` calibration is its own group).
+
+    wait_for_readers: comma-separated node names whose color and camera_info readers must be matched
+        before the first frame (memgs run names the tracker); at most start_delay_s
+    """
+
+    source: str = ""  # frame source: TUM folder, .bag, ROS 2 bag folder/.mcap, or 'synthetic:...' spec
+    rate: float = 1.0  # real-time factor (2.0 plays twice as fast); ignored in lockstep
+    loop: bool = False  # start over at the end (stamps keep increasing)
+    lockstep: bool = False  # publish the next frame only after the pipeline acks the current one
+    ack_topic: str = "memgs/frame_ack"  # std_msgs/Header acks (stamp of the finished frame), lockstep only
+    ack_timeout_s: float = 10.0  # lockstep: warn and go on when no ack arrives within this time
+    start_delay_s: float = 5.0  # wait at most this long for a color subscriber before the first frame
+    wait_for_readers: str = ""
+    max_frames: int = 0  # stop after this many frames, over all loops (0 = no limit)
+    depth_encoding: str = "32FC1"  # depth image encoding: 32FC1 metres or 16UC1 scaled units
+    depth_scale: float = 1000.0  # 16UC1 units per metre (1000 = millimetres)
+    frame_id: str = "camera_color_optical_frame"  # frame id of the images and camera info
+    world_frame_id: str = "world"  # frame id of the ground-truth poses
+    # stop at the first bad frame (unreadable or mis-sized image, stamp going backwards, a camera that
+    # changes mid-run) instead of skipping and counting it (skipped.<kind> in the stats)
+    strict: bool = False
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "rate": (0.01, 1000.0), "ack_timeout_s": (0.05, 3600.0), "start_delay_s": (0.0, 600.0),
+        "max_frames": (0, 2**31 - 1), "depth_scale": (1.0, 100000.0),
+    }
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"depth_encoding": ("32FC1", "16UC1")}
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    """The tracker node's own parameters (no prefix; the algorithm's are ``tracker.*``).
+
+    depth_topic: depth image input registered to colour (16UC1 or 32FC1); unused in mono mode
+    camera_info_topic: camera_info of the colour camera (plumb_bob or rational_polynomial)
+    input_reliability: camera subscriptions: best_effort (sensor-data QoS, live cameras: drop rather than
+        queue) or reliable (lockstep replays must not lose a frame)
+    path_rate_hz: memgs/path publications per second (the whole path each time; poses go out per frame on
+        memgs/pose and memgs/odom)
+    time_jump_back_s: a frame stamped more than this before the previous one is a time reset (bag loop):
+        tracking goes on from it; a smaller step back is a late frame and is dropped
+    camera_info_override: use the camera.* calibration instead of camera_info (whose intrinsics and
+        distortion are then ignored; TUM's bags carry placeholder ones)
+    """
+
+    color_topic: str = "camera/camera/color/image_raw"  # colour image input
+    depth_topic: str = "camera/camera/aligned_depth_to_color/image_raw"
+    camera_info_topic: str = "camera/camera/color/camera_info"
+    depth_scale: float = 1000.0  # 16UC1 depth units per metre (RealSense 1000, TUM 5000)
+    sync: str = "approximate"  # colour/depth pairing
+    max_sync_dt_s: float = 0.02  # largest colour/depth stamp difference paired (approximate)
+    world_frame: str = "map"  # frame id of published poses
+    camera_frame: str = "camera_color_optical_frame"  # child frame id of the odometry (camera optical frame)
+    input_reliability: str = "best_effort"
+    path_max_len: int = 10000  # poses kept in memgs/path (0 = all)
+    path_rate_hz: float = 1.0
+    time_jump_back_s: float = 1.0
+    max_stamp_ahead_s: float = 3600.0  # drop frames stamped more than this ahead of the node's clock (0 = no check)
+    camera_info_override: bool = False
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "depth_scale": (1e-3, 1e6), "max_sync_dt_s": (0.0, 1.0), "path_max_len": (0, 10**7),
+        "path_rate_hz": (0.01, 100.0), "time_jump_back_s": (0.0, 1e6), "max_stamp_ahead_s": (0.0, 1e9),
+    }
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {
+        "sync": ("approximate", "exact"), "input_reliability": ("best_effort", "reliable"),
+    }
+
+
+@dataclass(frozen=True)
+class KeyframeSamplerParams:
+    """The keyframe sampler's own parameters (no prefix)."""
+
+    mode: str = "rgbd"  # camera mode (mono: depth from the nearest keypoint)
+    depth_scale: float = 1000.0  # 16UC1 depth units per metre
+    world_frame: str = "map"  # frame id of the seed cloud
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {"depth_scale": (1e-3, 1e6)}
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": ("rgbd", "mono")}
+
+
+@dataclass(frozen=True)
+class MapperParams:
+    """The mapper's own parameters (no prefix); the map's are ``mapping.*`` and ``merge.*``.
+
+    final_densify: densify during the final iterations too (false: they only refine the map, which then
+        keeps its size)
+    delta_budget_kbytes_per_s: link budget for map deltas; the largest changes go first, the rest wait
+        (the final flush ignores it)
+    delta_tolerance: send a Gaussian again only when a parameter moved more than this (m, or
+        pre-activation units); the final flush is exact
+    checkpoint_period_s: write a checkpoint this often while the map changes (0 = only at finish/shutdown)
+    insert_queue: free-running: complete keyframes waiting for insertion; when full the oldest is dropped
+        and counted (problem.keyframe_overload)
+    """
+
+    mode: str = "rgbd"  # camera mode: rgbd, or mono (keyframes carry no depth)
+    depth_scale: float = 1000.0  # 16UC1 keyframe depth units per metre (the tracker publishes 32FC1 metres)
+    device: str = "auto"  # torch device for the map: auto (CUDA when present), cpu, cuda, cuda:N
+    lockstep: bool = False  # train a fixed number of iterations per frame and acknowledge each (deterministic replay)
+    lockstep_iterations: int = 10  # training iterations per frame in lockstep mode
+    final_iterations: int = 0  # extra training iterations run by the finish service before the final flush
+    final_densify: bool = True
+    delta_rate_hz: float = 1.0  # map deltas per second
+    delta_budget_kbytes_per_s: float = 500.0
+    delta_tolerance: float = 1e-3
+    snapshot_period_s: float = 0.0  # publish a full snapshot this often (0 = only on request)
+    render_rate_hz: float = 1.0  # live view renders per second (0 = off)
+    world_frame: str = "map"  # frame id of published maps and poses
+    ack_topic: str = "memgs/frame_ack"  # lockstep acknowledgement topic (to the player)
+    checkpoint_path: str = ""  # file for map + keyframe checkpoints (.npz); empty = no checkpoints
+    checkpoint_period_s: float = 30.0
+    resume: bool = True  # start from the checkpoint at checkpoint_path when one exists
+    insert_queue: int = 4
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "depth_scale": (1e-3, 1e6), "lockstep_iterations": (0, 10000), "final_iterations": (0, 10**7),
+        "delta_rate_hz": (0.01, 100.0), "delta_budget_kbytes_per_s": (1.0, 1e7), "delta_tolerance": (0.0, 10.0),
+        "snapshot_period_s": (0.0, 1e6), "render_rate_hz": (0.0, 60.0), "checkpoint_period_s": (0.0, 1e6),
+        "insert_queue": (1, 1000),
+    }
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": ("rgbd", "mono")}
+
+    def __post_init__(self) -> None:  # CHOICES refuses a bad parameter; this, a bad direct construction
+        if self.mode not in self.CHOICES["mode"]:
+            raise ConfigError(f"mode must be rgbd or mono, got {self.mode!r}")
+
+
+@dataclass(frozen=True)
+class MergerParams:
+    """The merger's own parameters (no prefix)."""
+
+    map_path: str = "memgs_map.ply"  # where the map PLY is saved (atomically)
+    save_period_s: float = 60.0  # also save the PLY this often when it changed (0 = only on request and shutdown)
+    publish_period_s: float = 30.0  # publish the full map on memgs/map/gaussians this often (0 = only on request)
+    resync_interval_s: float = 1.0  # least time between snapshot requests (doubles, up to 8x, while unanswered)
+    max_buffered_deltas: int = 200  # deltas kept while resynchronising
+    world_frame: str = "map"  # frame id of the published map
+    fault_drop_every_nth_delta: int = 0  # fault injection for tests: ignore every n-th delta on arrival (0 = off)
+    render_width: int = 320  # render width (px) for view requests
+    render_height: int = 240  # render height (px) for view requests
+    render_fx: float = 258.65  # render focal length x (px)
+    render_fy: float = 258.23  # render focal length y (px)
+    render_cx: float = 159.32  # render principal point x (px)
+    render_cy: float = 127.66  # render principal point y (px)
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "save_period_s": (0.0, 1e6), "publish_period_s": (0.0, 1e6), "resync_interval_s": (0.0, 3600.0),
+        "max_buffered_deltas": (1, 100000), "fault_drop_every_nth_delta": (0, 10**6),
+        "render_width": (1, 8192), "render_height": (1, 8192), "render_fx": (1e-3, 1e6), "render_fy": (1e-3, 1e6),
+        "render_cx": (-1e6, 1e6), "render_cy": (-1e6, 1e6),
+    }
+
+
+# Every output of the graph, relative to the node's namespace (types as the nodes publish them).
+DEFAULT_TOPICS: tuple[str, ...] = (
+    # tracker
+    "memgs/pose",                            # geometry_msgs/PoseStamped, every frame tracked
+    "memgs/odom",                            # nav_msgs/Odometry
+    "memgs/path",                            # nav_msgs/Path (loop-corrected trajectory)
+    "memgs/tracking_state",                  # std_msgs/String
+    "memgs/keyframe/pose",                   # geometry_msgs/PoseStamped, at keyframe insertion
+    "memgs/keyframe/refined_poses",          # nav_msgs/Path (local BA)
+    "memgs/keyframe/loop_corrected_poses",   # nav_msgs/Path (loop closure)
+    # mapper
+    "memgs/map/delta",                       # sensor_msgs/PointCloud2
+    "memgs/mapper/snapshot",                 # sensor_msgs/PointCloud2 (latched, rgb)
+    "memgs/render/color",                    # sensor_msgs/Image
+    "memgs/render/depth",                    # sensor_msgs/Image
+    "memgs/render/camera_info",              # sensor_msgs/CameraInfo
+    # merger
+    "memgs/map/gaussians",                   # sensor_msgs/PointCloud2 (latched, rgb)
+    "memgs/merger/render/color",             # sensor_msgs/Image
+    "memgs/merger/render/depth",             # sensor_msgs/Image
+    # every node: diagnostic_msgs/DiagnosticArray
+    "memgs/tracker/stats", "memgs/keyframe_sampler/stats", "memgs/mapper/stats", "memgs/merger/stats",
+    "memgs/player/stats",
+)
+
+
+@dataclass(frozen=True)
+class RecorderParams:
+    """The recorder's own parameters (no prefix).
+
+    topics: topics to record, relative to the node's namespace or absolute (default: every memgs output)
+    """
+
+    path: str = ""  # the .mcap file to write (required); replaced atomically when the node stops
+    topics: tuple[str, ...] = DEFAULT_TOPICS
+    discovery_period_s: float = 0.2  # look for publishers of topics not yet recorded this often
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {"discovery_period_s": (0.01, 60.0)}
+
+
+DEFAULT_STATS_KEYS = ("gaussians,iteration,loss,keyframes,poses_out,track_ms,rss_mb,model_bytes,map_bytes,"
+                      "delta_bytes")
+
+
+@dataclass(frozen=True)
+class RerunBridgeParams:
+    """The bridge's own parameters (no prefix).
+
+    log_sh: send the map's degree 1..3 SH coefficients too (+90 B a Gaussian each time; the viewer then
+        shows view-dependent colour)
+    log_frames: subscribe to color_topic and log the frame beside each render (off on a thin link: the
+        renders alone are small)
+    """
+
+    spawn: bool = False  # spawn a local Rerun viewer (or use one listening on port 9876)
+    connect_url: str = ""  # stream to the Rerun viewer at this URL (rerun+http://HOST:9876/proxy); empty = none
+    save_path: str = ""  # also record to this .rrd file; empty = none
+    application_id: str = "memgs_ros"  # Rerun application id (the viewer groups recordings by it)
+    recording_name: str = ""  # Rerun recording name (empty: the node's namespace)
+    map_period_s: float = 5.0  # log the map this often when it changed (s); 0 = only full maps the merger publishes
+    log_sh: bool = False
+    jpeg_quality: int = 85  # JPEG quality of logged images (0 = raw pixels)
+    log_frames: bool = True
+    color_topic: str = "color/image_raw"  # the source colour images
+    stats_keys: str = DEFAULT_STATS_KEYS  # comma-separated stats keys to plot ('*' = all)
+    frustum_size_m: float = 0.08  # depth of the drawn keyframe frusta (m)
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "map_period_s": (0.0, 3600.0), "jpeg_quality": (0, 100), "frustum_size_m": (1e-4, 100.0),
+    }
+
+
+# node (the registry's name) -> its parameter groups: (prefix, frozen config class)
+NODE_CONFIGS: dict[str, tuple[tuple[str, type], ...]] = {
+    "bag_player": (("", BagPlayerParams), (CAMERA_PREFIX, CameraCalibration)),
+    "tracker": (("", TrackerParams), ("tracker", TrackerConfig), (CAMERA_PREFIX, CameraCalibration)),
+    "keyframe_sampler": (("", KeyframeSamplerParams), ("patch_grid", PatchGridConfig)),
+    "mapper": (("", MapperParams), ("mapping", MappingConfig), ("merge", MergeConfig)),
+    "merger": (("", MergerParams),),
+    "recorder": (("", RecorderParams),),
+    "rerun_bridge": (("", RerunBridgeParams),),
+}
