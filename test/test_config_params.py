@@ -12,10 +12,9 @@ from rclpy.parameter import Parameter
 from memgs_ros.core.geometry.camera import CameraCalibration
 from memgs_ros.errors import ConfigError
 from memgs_ros.nodes.bag_player import BagPlayer
-from memgs_ros.nodes.keyframe_sampler import KeyframeSamplerNode, KeyframeSamplerParams
-from memgs_ros.nodes.mapper import MapperParams
-from memgs_ros.nodes.merger import MergerNode, MergerParams
-from memgs_ros.nodes.recorder import DEFAULT_TOPICS, RecorderParams
+from memgs_ros.nodes.keyframe_sampler import KeyframeSamplerNode
+from memgs_ros.nodes.merger import MergerNode
+from memgs_ros.nodes.params import DEFAULT_TOPICS, KeyframeSamplerParams, MapperParams, MergerParams, RecorderParams
 from memgs_ros.ros.config_params import check_values, config_specs, parameter_names
 from memgs_ros.ros.params import ParamSpec
 
@@ -159,3 +158,24 @@ def test_every_number_of_every_config_has_a_range_a_user_can_reason_about() -> N
                 if numeric and f.name not in ranges:
                     missing.append(f"{node}: {prefix + '.' if prefix else ''}{f.name}")
     assert missing == [], missing
+
+
+def test_parameters_are_checked_without_rclpy() -> None:
+    """The runner checks a config before any node starts, from the parameter tables alone: with
+    rclpy unimportable the check still runs and still refuses an out-of-range value."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; sys.modules['rclpy'] = None\n"
+        "from memgs_ros.errors import ConfigError\n"
+        "from memgs_ros.orchestration.run_files import check_parameters\n"
+        "check_parameters({'mapper': {'mapping.resolution_scale': 0.5}, 'tracker': {'depth_scale': 5000.0}})\n"
+        "try:\n"
+        "    check_parameters({'mapper': {'mapping.resolution_scale': 50.0}})\n"
+        "except ConfigError as err:\n"
+        "    print(err)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "resolution_scale" in out.stdout and "50" in out.stdout, out.stdout

@@ -214,18 +214,16 @@ def check_parameters(params: Mapping[str, Mapping[str, Any]]) -> None:
     a name the node does not declare (rclpy would ignore it and the node would run on the
     default), a value of the wrong type, out of its range or not one of its choices, or a group
     its config refuses as a whole: what the node itself would refuse at start, in its words.
-    Imports the node modules (rclpy, torch) to read their parameter tables, but starts nothing."""
-    import importlib
-
-    from memgs_ros.ros.config_params import check_values, module_parameter_names, unknown_parameters
+    Reads the parameter tables (memgs_ros.nodes.params), not the nodes: no rclpy needed."""
+    from memgs_ros.nodes.params import NODE_CONFIGS
+    from memgs_ros.ros.config_params import check_values, parameter_names, unknown_parameters
 
     lines: list[str] = []
     for node, values in params.items():
         if node not in NODE_NAMES:
             raise ConfigError(f"parameters for '{node}': no such node (nodes: {', '.join(NODE_NAMES)})")
-        module = importlib.import_module(f"memgs_ros.nodes.{node}")
-        lines += unknown_parameters(node, values, module_parameter_names(module))
-        for prefix, config_cls in module.CONFIGS:
+        lines += unknown_parameters(node, values, parameter_names(NODE_CONFIGS[node]))
+        for prefix, config_cls in NODE_CONFIGS[node]:
             lines += check_values(config_cls, prefix, values, node=node)
     if lines:
         raise ConfigError("; ".join(lines))
