@@ -100,3 +100,47 @@ def test_tracker_survives_bad_frames_and_tracks_good_ones(context) -> None:  # n
         ex.shutdown()
         node.destroy_node()
         pub_node.destroy_node()
+
+
+def test_tracker_counts_undelivered_frames_and_drops_stale_ones(context) -> None:  # noqa: ANN001
+    """Live input: a gap in the colour publisher's sequence numbers is counted as skipped.busy; a
+    frame that waited longer than max_frame_age_s beyond the least wait seen is dropped as stale
+    (and acknowledged as processed). A constant clock offset between camera and tracker is not
+    staleness. Reliable input (lockstep replays) never drops a frame."""
+    params = [Parameter("max_frame_age_s", value=0.1), Parameter("sync", value="exact")]
+    node = TrackerNode(context=context, parameter_overrides=params)
+    handled: list[int] = []
+    node._handle = lambda color, depth: handled.append(color.header.stamp.sec)  # noqa: SLF001 - intake only
+    node.rgbd = False  # colour alone reaches _handle: no pairing in the way
+    try:
+        offset = -5_000_000_000  # the camera's clock 5 s behind the tracker's
+
+        def info(seq: int, waited_s: float) -> dict:
+            return {"source_timestamp": time.time_ns() + offset - int(waited_s * 1e9),
+                    "publication_sequence_number": seq}
+
+        def color(sec: int) -> Image:
+            msg = Image()
+            msg.header.stamp.sec = sec
+            return msg
+
+        node.on_color(color(1), info(1, 0.0))
+        node.on_color(color(2), info(2, 0.05))  # 50 ms later than the least wait: fresh
+        node.on_color(color(3), info(5, 0.0))  # sequence 3 and 4 never arrived
+        node.on_color(color(4), info(6, 0.5))  # waited 0.5 s: stale
+        assert handled == [1, 2, 3]
+        assert node.stats.counters["skipped.busy"] == 2
+        assert node.stats.counters["skipped.stale"] == 1
+    finally:
+        node.destroy_node()
+    reliable = TrackerNode(context=context, parameter_overrides=[*params, Parameter("input_reliability",
+                                                                                     value="reliable")])
+    seen: list[int] = []
+    reliable._handle = lambda color, depth: seen.append(color.header.stamp.sec)  # noqa: SLF001
+    reliable.rgbd = False
+    try:
+        reliable.on_color(color(1), info(1, 0.0))
+        reliable.on_color(color(2), info(2, 5.0))
+        assert seen == [1, 2] and reliable.stats.counters["skipped.stale"] == 0
+    finally:
+        reliable.destroy_node()

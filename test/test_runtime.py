@@ -27,3 +27,27 @@ def test_release_free_memory_returns_fragmented_heap_pages() -> None:
     after = _rss_mb()
     assert before - after > 40, (before, after)  # ~80 MB of holes
     assert float(sum(b[0] for b in blocks)) == 1000.0  # the live half is intact
+
+
+def test_lower_priority_reaches_every_thread_and_their_children() -> None:
+    """In a child process (the test's own niceness stays): threads started before the call are
+    lowered too, threads started after inherit it, and a lower value never raises the priority."""
+    import subprocess
+    import sys
+
+    code = (
+        "import os, threading\n"
+        "from memgs_ros.core.runtime.cpu import lower_priority\n"
+        "ev = threading.Event(); got = {}\n"
+        "def before():\n"
+        "    ev.wait(); got['before'] = os.getpriority(os.PRIO_PROCESS, 0)\n"
+        "t = threading.Thread(target=before); t.start()\n"
+        "assert lower_priority(7) == 7\n"
+        "assert lower_priority(3) == 7\n"
+        "ev.set(); t.join()\n"
+        "t2 = threading.Thread(target=lambda: got.update(after=os.getpriority(os.PRIO_PROCESS, 0))); t2.start(); t2.join()\n"
+        "print(got['before'], got['after'])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["7", "7"]

@@ -220,7 +220,13 @@ def player_error(out_dir: Path) -> str:
 def print_summary(summary: RunSummary, json_path: Path | None, record: Path | None = None) -> None:
     s = summary
     print(f"source        {s.source}")
-    print(f"frames        {s.frames} in, {s.poses} poses, {s.lost_frames} lost")
+    played = f"{s.frames_played} played, " if s.frames_played else ""
+    print(f"frames        {played}{s.frames} in, {s.poses} poses, {s.lost_frames} lost")
+    if any(s.tracker_skipped.values()):
+        print("not tracked   " + ", ".join(f"{n} {why}" for why, n in s.tracker_skipped.items() if n)
+              + " (stale: dropped to catch up with the camera; busy: never delivered while the tracker worked)")
+    if s.tracker_frame_cpu_ms:
+        print(f"tracker CPU   {s.tracker_frame_cpu_ms:.1f} ms a frame (median, message in to pose out)")
     print(f"keyframes     {s.keyframes}")
     print(f"Gaussians     {s.gaussians}")
     print(f"tracking      {s.tracking_fps:.1f} FPS")

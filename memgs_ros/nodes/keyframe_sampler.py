@@ -46,6 +46,7 @@ class KeyframeSamplerNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("keyframe_sampler", **node_kwargs)
         v = declare_config(self, KeyframeSamplerParams, "")
+        self.niceness = v.niceness  # applied by run_node to this node's process
         self.mode, self.depth_scale, self.world_frame = v.mode, v.depth_scale, v.world_frame
         self.cfg: PatchGridConfig = declare_config(self, PatchGridConfig, "patch_grid")
         self.stats = NodeStats(self, "keyframe_sampler")

@@ -68,6 +68,7 @@ class MapperNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("mapper", **node_kwargs)
         self.params = p = declare_config(self, MapperParams, "")
+        self.niceness = p.niceness  # applied by run_node to this node's process
         self.cfg: MappingConfig = declare_config(self, MappingConfig, "mapping")
         merge_cfg: MergeConfig = declare_config(self, MergeConfig, "merge")
         device = resolve_device(p.device)

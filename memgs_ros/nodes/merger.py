@@ -62,6 +62,7 @@ class MergerNode(Node):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("merger", **node_kwargs)
         v = declare_config(self, MergerParams, "")
+        self.niceness = v.niceness  # applied by run_node to this node's process
         self.map_path = Path(v.map_path)
         self.save_period, self.publish_period = v.save_period_s, v.publish_period_s
         self.resync_interval, self.max_buffered = v.resync_interval_s, v.max_buffered_deltas

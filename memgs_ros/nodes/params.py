@@ -65,6 +65,10 @@ class TrackerParams:
         tracking goes on from it; a smaller step back is a late frame and is dropped
     camera_info_override: use the camera.* calibration instead of camera_info (whose intrinsics and
         distortion are then ignored; TUM's bags carry placeholder ones)
+    max_frame_age_s: live input (best_effort) only: a colour frame that waited longer than this since it
+        was published, beyond the least wait seen, is stale (the tracker fell behind) and is dropped so that
+        tracking catches up with the camera (counted as skipped.stale); 0 = never drop. Reliable input
+        (lockstep replays) is never dropped
     """
 
     color_topic: str = "camera/camera/color/image_raw"  # colour image input
@@ -81,10 +85,12 @@ class TrackerParams:
     time_jump_back_s: float = 1.0
     max_stamp_ahead_s: float = 3600.0  # drop frames stamped more than this ahead of the node's clock (0 = no check)
     camera_info_override: bool = False
+    max_frame_age_s: float = 0.1
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "depth_scale": (1e-3, 1e6), "max_sync_dt_s": (0.0, 1.0), "path_max_len": (0, 10**7),
         "path_rate_hz": (0.01, 100.0), "time_jump_back_s": (0.0, 1e6), "max_stamp_ahead_s": (0.0, 1e9),
+        "max_frame_age_s": (0.0, 60.0),
     }
     CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {
         "sync": ("approximate", "exact"), "input_reliability": ("best_effort", "reliable"),
@@ -98,8 +104,9 @@ class KeyframeSamplerParams:
     mode: str = "rgbd"  # camera mode (mono: depth from the nearest keypoint)
     depth_scale: float = 1000.0  # 16UC1 depth units per metre
     world_frame: str = "map"  # frame id of the seed cloud
+    niceness: int = 5  # CPU niceness of the whole process (0..19): below the tracker, above the mapper
 
-    RANGES: ClassVar[dict[str, tuple[float, float]]] = {"depth_scale": (1e-3, 1e6)}
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {"depth_scale": (1e-3, 1e6), "niceness": (0, 19)}
     CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": ("rgbd", "mono")}
 
 
@@ -136,9 +143,11 @@ class MapperParams:
     checkpoint_period_s: float = 30.0
     resume: bool = True  # start from the checkpoint at checkpoint_path when one exists
     insert_queue: int = 4
+    niceness: int = 10  # CPU niceness of the whole process (0..19): the tracker (0) goes first on shared cores
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
-        "depth_scale": (1e-3, 1e6), "lockstep_iterations": (0, 10000), "final_iterations": (0, 10**7),
+        "niceness": (0, 19), "depth_scale": (1e-3, 1e6), "lockstep_iterations": (0, 10000),
+        "final_iterations": (0, 10**7),
         "delta_rate_hz": (0.01, 100.0), "delta_budget_kbytes_per_s": (1.0, 1e7), "delta_tolerance": (0.0, 10.0),
         "snapshot_period_s": (0.0, 1e6), "render_rate_hz": (0.0, 60.0), "checkpoint_period_s": (0.0, 1e6),
         "insert_queue": (1, 1000),
@@ -167,9 +176,11 @@ class MergerParams:
     render_fy: float = 258.23  # render focal length y (px)
     render_cx: float = 159.32  # render principal point x (px)
     render_cy: float = 127.66  # render principal point y (px)
+    niceness: int = 10  # CPU niceness of the whole process (0..19) where it shares the robot's cores
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
-        "save_period_s": (0.0, 1e6), "publish_period_s": (0.0, 1e6), "resync_interval_s": (0.0, 3600.0),
+        "niceness": (0, 19), "save_period_s": (0.0, 1e6), "publish_period_s": (0.0, 1e6),
+        "resync_interval_s": (0.0, 3600.0),
         "max_buffered_deltas": (1, 100000), "fault_drop_every_nth_delta": (0, 10**6),
         "render_width": (1, 8192), "render_height": (1, 8192), "render_fx": (1e-3, 1e6), "render_fy": (1e-3, 1e6),
         "render_cx": (-1e6, 1e6), "render_cy": (-1e6, 1e6),

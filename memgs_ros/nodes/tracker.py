@@ -40,6 +40,7 @@ from __future__ import annotations
 import sys
 import time
 from collections import deque
+from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -52,6 +53,7 @@ from std_msgs.msg import Header, String
 from memgs_ros.core.geometry.camera import PinholeCamera, calibration_differences, describe_camera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.tracking import Tracker, TrackerConfig, TrackResult, make_tracker
+from memgs_ros.core.tracking import warm_up as warm_up_tracking
 from memgs_ros.core.tracking.anchored_path import AnchoredPath
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb
@@ -74,6 +76,10 @@ from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.stamp_sync import NearestPairer
 
+# What rclpy hands a subscription callback that takes two arguments (rmw's message info):
+# source_timestamp (ns, the publisher's clock), received_timestamp, publication_sequence_number, ...
+MessageInfo = dict[str, Any]
+
 KEYPOINT_DTYPE = np.dtype([("u", np.float32), ("v", np.float32), ("depth", np.float32), ("active", np.uint8)])
 
 
@@ -91,6 +97,11 @@ class TrackerNode(Node):
         path_rate = v.path_rate_hz
         self.jump_back_ns = int(1e9 * v.time_jump_back_s)
         self.max_ahead_ns = int(1e9 * v.max_stamp_ahead_s)
+        # Live input only: lockstep replays wait for every frame, so none is ever stale there.
+        self.max_age_ns = int(1e9 * v.max_frame_age_s) if v.input_reliability == "best_effort" else 0
+        self._least_wait_ns: int | None = None  # least publish-to-callback wait seen (transport + clock offset)
+        self._last_color_seq = 0  # the colour publisher's sequence number last seen (0 = none yet)
+        self._frame_cpu_ms: deque[float] = deque(maxlen=300)  # node CPU per tracked frame, message in to pose out
         self.cfg: TrackerConfig = declare_config(self, TrackerConfig, "tracker")
         override = v.camera_info_override
         calibration = declare_calibration(self)
@@ -137,6 +148,14 @@ class TrackerNode(Node):
         self.pub_refined = self.create_publisher(Path, "memgs/keyframe/refined_poses", qos.reliable(20))
         self.pub_loop = self.create_publisher(Path, "memgs/keyframe/loop_corrected_poses", qos.reliable(20))
 
+        # Build the tracker (its kernels compile or load from the cache, its vocabulary loads) before
+        # subscribing, not on the first frame while the camera already streams: a live source would
+        # lose the frames of those seconds. The player waits for these subscriptions.
+        self._fitted = False  # override mode: the configured camera checked against the image size
+        if self.calibration is not None:
+            self._set_camera(self.calibration, "the configured calibration (camera_info_override)")
+        else:
+            warm_up_tracking()
         sensor = qos.sensor() if self.input_reliability == "best_effort" else qos.reliable(5)
         self.create_subscription(CameraInfo, self.info_topic, self.on_camera_info, sensor)
         self.create_subscription(Image, self.color_topic, self.on_color, sensor)
@@ -190,16 +209,43 @@ class TrackerNode(Node):
         except DataError as err:
             self.stats.problem("camera_info", f"the configured calibration does not fit the images: {err}")
             return False
-        self._set_camera(cam, "the configured calibration (camera_info_override)")
+        self._fitted = True
+        if cam != self.camera:  # images of another size than the calibration's: scale it to them
+            if self.tracker is not None:
+                self.tracker.close()
+            self._set_camera(cam, f"the configured calibration fitted to {color.width}x{color.height}")
         return True
 
-    def on_color(self, msg: Image) -> None:
+    def on_color(self, msg: Image, info: MessageInfo) -> None:
+        if not self._take(msg, info):
+            return
         if not self.rgbd:
             self._handle(msg, None)
             return
         pair = self.pairer.add_a(stamp_to_ns(msg.header.stamp), msg)
         if pair is not None:
             self._handle(pair[1], pair[2])
+
+    def _take(self, msg: Image, info: MessageInfo) -> bool:
+        """Count the colour frames the camera published that never reached this callback (the
+        reader's queue overflowed while the tracker was busy, or best-effort transport lost them:
+        skipped.busy), and drop a stale one (skipped.stale). False: dropped."""
+        seq = int(info.get("publication_sequence_number") or 0)
+        if seq and self._last_color_seq and seq > self._last_color_seq + 1:
+            self.stats.counters["skipped.busy"] += seq - self._last_color_seq - 1
+        if seq:
+            self._last_color_seq = seq  # a smaller one: the publisher restarted; count from it
+        sent = int(info.get("source_timestamp") or 0)
+        if not self.max_age_ns or not sent:
+            return True
+        # The wait beyond the least wait seen: immune to a clock offset between camera and robot.
+        wait = time.time_ns() - sent
+        self._least_wait_ns = wait if self._least_wait_ns is None else min(self._least_wait_ns, wait)
+        if wait - self._least_wait_ns <= self.max_age_ns:
+            return True
+        self.stats.counters["skipped.stale"] += 1
+        self._processed(stamp_to_ns(msg.header.stamp), keyframe=False)
+        return False
 
     def on_depth(self, msg: Image) -> None:
         pair = self.pairer.add_b(stamp_to_ns(msg.header.stamp), msg)
@@ -218,7 +264,8 @@ class TrackerNode(Node):
             return None
 
     def _handle(self, color: Image, depth: Image | None) -> None:
-        if self.camera is None and self.calibration is not None and not self._calibrated_camera(color):
+        cpu0 = time.thread_time()  # this thread's CPU: the frame path alone, not the back-end's threads
+        if self.calibration is not None and not self._fitted and not self._calibrated_camera(color):
             self.stats.counters["frames_in"] += 1
             self._processed(stamp_to_ns(color.header.stamp), keyframe=False)
             return
@@ -272,6 +319,11 @@ class TrackerNode(Node):
             self._path_stale |= moved  # re-expressed at the next path publication
             self._path_changed = True
         self._processed(stamp, keyframe=result.keyframe is not None)
+        cost_ms = (time.thread_time() - cpu0) * 1e3
+        self._frame_cpu_ms.append(cost_ms)
+        self.stats.counters["frame_cpu_us_total"] += int(cost_ms * 1e3)
+        self.stats.gauges["frame_cpu_ms"] = round(cost_ms, 2)
+        self.stats.gauges["frame_cpu_ms_median"] = round(float(np.median(self._frame_cpu_ms)), 2)
 
     def _stamp_ok(self, stamp: int) -> bool:
         """Apply the stamp rules of the module docstring; False = drop the frame (counted)."""

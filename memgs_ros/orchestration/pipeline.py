@@ -395,6 +395,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
         restarts=restarts,
         replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render),
         source_complete=obs.source_ok, frames_played=int(obs.stat("player", "frames_published")),
+        tracker_skipped={k: int(obs.stat("tracker", f"skipped.{k}")) for k in ("stale", "busy")},
+        tracker_frame_cpu_ms=float(obs.stat("tracker", "frame_cpu_ms_median")),
         skipped_frames={k.removeprefix("skipped."): int(float(v)) for k, v in obs.stats.get("player", {}).items()
                         if k.startswith("skipped.")})
     # The summary is a file of the run, so evaluation reads a finished run instead of watching it.

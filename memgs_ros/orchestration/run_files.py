@@ -106,6 +106,10 @@ class RunSummary:
     cpu_s: dict[str, float] = field(default_factory=dict)  # per node process, from its last stats (s)
     skipped_frames: dict[str, int] = field(default_factory=dict)  # bad frames the player skipped, by kind
     frames_played: int = 0  # frames the player published (``frames`` is what reached the tracker)
+    # frames played but not tracked, by reason: stale (dropped by the tracker, which had fallen
+    # behind), busy (published, never delivered: the reader's queue overflowed or transport lost it)
+    tracker_skipped: dict[str, int] = field(default_factory=dict)
+    tracker_frame_cpu_ms: float = 0.0  # the tracker's CPU per frame, message in to pose out (median)
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)

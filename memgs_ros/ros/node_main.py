@@ -15,7 +15,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, Si
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-from memgs_ros.core.runtime.cpu import PARENT_PID_ENV, die_with_parent
+from memgs_ros.core.runtime.cpu import PARENT_PID_ENV, die_with_parent, lower_priority
 from memgs_ros.errors import MemgsError
 from memgs_ros.ros.config_params import check_declared
 
@@ -49,6 +49,10 @@ def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None 
                 raise
             return code  # Ctrl-C / SIGTERM arrived while the node was still being built
         check_declared(node)  # a misspelt parameter would otherwise run silently on its default
+        # A background node (mapper, sampler, merger) alone in its process yields the cores to the
+        # tracker: every thread it has, and every one started later, runs at its niceness.
+        if getattr(node, "niceness", 0):
+            lower_priority(int(getattr(node, "niceness", 0)))
         executor.add_node(node)
         try:
             executor.spin()

@@ -146,3 +146,30 @@ def die_with_parent(parent_pid: int, sig: int = 15) -> bool:
                 _log.warning("prctl(PR_SET_PDEATHSIG) failed: errno %d", ctypes.get_errno())
     # The parent may have died between fork and prctl: then nothing will ever be sent.
     return os.getppid() == parent_pid
+
+
+def lower_priority(niceness: int) -> int:
+    """Raise the niceness of every thread of this process to at least ``niceness`` (0..19); the
+    niceness now in force on the calling thread.
+
+    Linux keeps a niceness per thread and a new thread inherits its creator's, so this walks
+    /proc/self/task: the DDS threads rclpy started before the node existed are lowered too, and
+    the threads the node starts later (a training worker, torch's pool) inherit it. Background
+    nodes (mapper, keyframe sampler, merger) call it so that the tracker, at 0, wins the cores
+    whenever both want them: tracking is the real-time job and mapping takes what is left. A
+    process may always lower its own priority; raising it back needs CAP_SYS_NICE, so a value
+    below the current one changes nothing.
+    """
+    if not 0 <= niceness <= 19:
+        raise ValueError(f"niceness must be in 0..19, got {niceness}")
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:  # not Linux: the calling thread (and the threads it starts) only
+        tids = [0]
+    for tid in tids:
+        try:
+            if os.getpriority(os.PRIO_PROCESS, tid) < niceness:
+                os.setpriority(os.PRIO_PROCESS, tid, niceness)
+        except OSError:  # the thread ended meanwhile
+            continue
+    return os.getpriority(os.PRIO_PROCESS, 0)
