@@ -256,3 +256,23 @@ def test_keyframes_are_prepared_without_touching_the_mapper(frames: list[Frame],
         assert np.isfinite(s.status.keyframes)
     finally:
         s.close()
+
+
+def test_a_worker_thread_runs_at_its_own_niceness() -> None:
+    """A background actor (the tracking back-end) lowers its own thread's priority only: the
+    thread that created it keeps its own, so the frame path is not slowed."""
+    import os
+
+    class _Niced(CommandWorker):
+        def __init__(self) -> None:
+            super().__init__("niced", niceness=6)
+            self.start()
+
+    mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    w = _Niced()
+    try:
+        theirs = w.submit("priority", lambda: os.getpriority(os.PRIO_PROCESS, threading.get_native_id())).result(10)
+    finally:
+        w.close()
+    assert theirs == max(mine, 6)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == mine

@@ -69,6 +69,7 @@ class MapperNode(Node):
         super().__init__("mapper", **node_kwargs)
         self.params = p = declare_config(self, MapperParams, "")
         self.niceness = p.niceness  # applied by run_node to this node's process
+        self._rate_mark = (time.monotonic(), -1)  # (time, iteration) at the last stats sync; -1: none yet
         self.cfg: MappingConfig = declare_config(self, MappingConfig, "mapping")
         merge_cfg: MergeConfig = declare_config(self, MergeConfig, "merge")
         device = resolve_device(p.device)
@@ -249,6 +250,13 @@ class MapperNode(Node):
         st = self.session.status
         dict.update(self.stats.counters, st.counters)  # assigned, not added (Counter.update): totals
         self.stats.gauges.update(st.gauges())
+        # Training speed over the last stats period: what the cores left the mapper (it runs niced
+        # below the tracker, so this falls while tracking needs the CPU and rises when it idles).
+        now = time.monotonic()
+        last_t, last_it = self._rate_mark
+        if now > last_t and last_it >= 0:
+            self.stats.gauges["iterations_per_s"] = round((st.iteration - last_it) / (now - last_t), 1)
+        self._rate_mark = (now, st.iteration)
         # Peak resident memory above the start-up baseline (VmHWM, read 10 times a second).
         self.stats.gauges["working_peak_mb"] = round(max(peak_rss_mb() - self._rss_baseline_mb, 0.0), 1)
 

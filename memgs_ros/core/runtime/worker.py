@@ -21,6 +21,7 @@ keeps its own fields to the worker thread and hands out immutable values.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -59,8 +60,9 @@ class CommandWorker:
     ``_background``, ``_on_background_error`` and ``_after_command``.
     """
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, niceness: int = 0) -> None:
         self.name = name
+        self.niceness = niceness  # of the worker's thread alone (Linux keeps one per thread); 0: its creator's
         self._commands: deque[Command[Any]] = deque()
         self._cv = threading.Condition()
         self._closed = False
@@ -167,6 +169,12 @@ class CommandWorker:
 
     # ------------------------------------------------------------------ worker
     def _loop(self) -> None:
+        if self.niceness > 0:
+            try:
+                tid = threading.get_native_id()
+                os.setpriority(os.PRIO_PROCESS, tid, max(os.getpriority(os.PRIO_PROCESS, tid), self.niceness))
+            except OSError as err:  # a priority is a preference: the work still runs
+                logger.warning("%s: could not lower its priority: %s", self.name, err)
         try:
             self._serve()
         except BaseException as err:  # noqa: BLE001 - a dead worker must fail its futures, not hang them

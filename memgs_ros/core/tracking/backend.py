@@ -82,6 +82,11 @@ class _GlobalBAJob:
     spent_s: float = 0.0
 
 
+# The back-end's thread yields the core to the frame path (tracking is the real-time job; BA,
+# place recognition and loop closing take what is left, like the mapper).
+BACKEND_NICENESS = 5
+
+
 class TrackingBackend(CommandWorker):
     """See the module docstring. ``vocabulary`` None: no place recognition; ``loop_closure``:
     look for loops (RGB-D); ``ba_fixed_count``: window keyframes fixed when none outside is."""
@@ -89,7 +94,7 @@ class TrackingBackend(CommandWorker):
     def __init__(self, cfg: TrackerConfig, K: np.ndarray, bf: float, image_size: tuple[int, int],
                  inv_sigma_levels: np.ndarray, vocabulary: Vocabulary | None, loop_closure: bool,
                  ba_fixed_count: int, threaded: bool) -> None:
-        super().__init__("memgs-tracking-backend")
+        super().__init__("memgs-tracking-backend", niceness=BACKEND_NICENESS)
         self.cfg, self.K, self.bf, self.inv_sigma_levels = cfg, K, bf, inv_sigma_levels
         self.ba_fixed_count = ba_fixed_count
         self.threaded = threaded
