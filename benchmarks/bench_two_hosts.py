@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import itertools
 import json
 import os
@@ -685,8 +686,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--domain-id", type=int, default=None)
     p.add_argument("--timeout", type=float, default=1800.0)
     p.add_argument("--json", type=Path, default=None, help="also write the result as JSON here")
+    p.add_argument("--table", type=Path, default=None, metavar="JSON", help="print the table of a saved run and exit")
     p.add_argument("--ground-station", type=Path, default=None, help=argparse.SUPPRESS)  # the inner process
     args = p.parse_args(argv)
+    if args.table is not None:
+        saved = json.loads(args.table.read_text())["result"]
+        fields = {f.name for f in dataclasses.fields(TwoHostsResult)}
+        print(table(TwoHostsResult(**{k: (tuple(v) if isinstance(v, list) else v)
+                                      for k, v in saved.items() if k in fields})), end="")
+        return 0
     if args.ground_station is not None:
         return _ground_station_main(args.ground_station)
     overrides = {}

@@ -126,3 +126,15 @@ def test_the_gpu_table_in_the_docs_is_the_saved_runs() -> None:
     saved = json.loads((ROOT / "docs" / "data" / "bench_gpu_h200.json").read_text())
     assert bench_gpu.table(saved) in (ROOT / "docs" / "results.md").read_text()
     assert saved["headline"] == bench_gpu.headline(saved)
+
+
+def test_the_two_hosts_table_in_the_docs_is_the_saved_runs() -> None:
+    """docs/results.md's two-host table is what ``bench_two_hosts.py --table`` prints for its JSON."""
+    pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_two_hosts.py"), "--table",
+                          str(ROOT / "docs" / "data" / "two_hosts_5mbit.json")], capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    assert out.strip() and out in (ROOT / "docs" / "results.md").read_text()
