@@ -94,7 +94,7 @@ class MergerNode(Node):
         self.create_service(Trigger, "memgs/save_map", self.on_save)
         self.create_service(Trigger, "memgs/merger/publish_map", self.on_publish_map)
         if self.save_period > 0:
-            self.create_timer(self.save_period, self.save)
+            self.create_timer(self.save_period, self._save_periodic)
         if self.publish_period > 0:
             self.create_timer(self.publish_period, lambda: self.publish_map(force=False))
         self.create_timer(0.5, self._retry_resync)
@@ -209,6 +209,15 @@ class MergerNode(Node):
             self._saved_version = version
             self.stats.counters["saves"] += 1
         return self.map_path
+
+    def _save_periodic(self) -> None:
+        """The timer's save. A full or read-only disk must not end the node (the timer's exception
+        would, losing the map it holds): counted, logged once, retried next period; the last
+        complete PLY stays (atomic write)."""
+        try:
+            self.save()
+        except (MemgsError, OSError) as err:
+            self.stats.problem("save_failed", f"could not save {self.map_path}: {err}; the previous file stays")
 
     def on_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         try:

@@ -91,7 +91,10 @@ class NodeProcesses:
             code = p.poll()
             if code is not None and not (name == "bag_player" and (code == 0 or self.player_reported)):
                 tail = (self.log_dir / f"{name}.log").read_text(errors="replace").strip().splitlines()[-15:]
-                raise PipelineError(f"node {name} exited with code {code}:\n  " + "\n  ".join(tail))
+                # Name the signal (SIGKILL: the OOM killer, an operator) rather than a bare -9.
+                how = (f"was killed by {signal.Signals(-code).name}" if code < 0 and -code in set(signal.Signals)
+                       else f"exited with code {code}")
+                raise PipelineError(f"node {name} {how} before the run ended:\n  " + "\n  ".join(tail))
 
     def stop(self, timeout_s: float = 20.0) -> None:
         """SIGINT to every node (each saves what it holds), SIGKILL to those still running after

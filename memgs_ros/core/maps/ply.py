@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
 from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords
-from memgs_ros.core.runtime.atomic import atomic_write
+from memgs_ros.core.runtime.atomic import atomic_write_all
 from memgs_ros.errors import DataError
 
 logger = logging.getLogger(__name__)
@@ -62,8 +64,11 @@ def records_to_vertex_array(records: GaussianRecords) -> np.ndarray:
 def save_ply(records: GaussianRecords, path: str | os.PathLike[str], write_ids: bool = True) -> Path:
     """Write ``records`` as a standard 3DGS PLY at ``path`` (atomically); returns the path.
 
-    With ``write_ids`` the ids go to the ``<path>.ids.npy`` sidecar first, so a crash between
-    the two leaves at worst a sidecar that no longer matches (the loader then ignores it).
+    With ``write_ids`` the ids go to the ``<path>.ids.npy`` sidecar. Both files are written in
+    full before either replaces its old one (``atomic_write_all``): a disk that fills up half-way
+    leaves the previous pair, never a new sidecar beside the old PLY (whose rows it would
+    mislabel). Only a crash between the two renames leaves a sidecar that may not match (the
+    loader ignores one whose length differs).
     """
     path = Path(path)
     body = records_to_vertex_array(records).astype("<f4", copy=False)
@@ -73,10 +78,12 @@ def save_ply(records: GaussianRecords, path: str | os.PathLike[str], write_ids: 
         + [f"property float {name}" for name in PLY_PROPERTIES]
         + ["end_header"]
     ) + "\n"
+    files: list[tuple[Path, Callable[[BinaryIO], object]]] = []
     if write_ids:
-        atomic_write(ids_sidecar_path(path),
-                      lambda f: np.save(f, np.ascontiguousarray(records.ids, dtype=np.int64)))
-    atomic_write(path, lambda f: (f.write(header.encode("ascii")), f.write(body.tobytes())))
+        files.append((ids_sidecar_path(path),
+                      lambda f: np.save(f, np.ascontiguousarray(records.ids, dtype=np.int64))))
+    files.append((path, lambda f: (f.write(header.encode("ascii")), f.write(body.tobytes()))))
+    atomic_write_all(files)
     return path
 
 
