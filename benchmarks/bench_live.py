@@ -67,7 +67,11 @@ def run_graph(tum: Path, config: str, out: Path, rate: float | None, timeout: fl
     from memgs_ros.evaluation import evaluate_run
 
     r = evaluate_run(out, str(tum), use_lpips=False, progress=False)
-    played = s.get("frames_played") or s["frames"]
+    # Every frame of the folder is played in these runs (the player skips none that read); the
+    # summary's count comes from the player's 1 Hz stats and can lag its last frames.
+    from memgs_ros.io.tum import TumFolder
+
+    played = max(int(s.get("frames_played") or 0), len(TumFolder(tum)) if s.get("source_complete", True) else 0)
     row.update(played=played, received=s["frames"], tracked=s["poses"], lost=s["lost_frames"],
                stale=s.get("tracker_skipped", {}).get("stale", 0), busy=s.get("tracker_skipped", {}).get("busy", 0),
                tracked_fraction=round(s["poses"] / max(played, 1), 3),

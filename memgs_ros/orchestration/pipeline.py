@@ -232,7 +232,11 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
             procs.due = {name: time.monotonic() + delay for name, delay in delayed.items()}
         elif options.kill_after_s:
             raise ConfigError("fault injection (kill_after_s) needs separate processes")
-        summary = _drive(observer, options, procs, out, t0, progress)
+        try:
+            summary = _drive(observer, options, procs, out, t0, progress)
+        except BaseException as err:
+            _write_ended_summary(out, options, observer, err, time.monotonic() - t0)
+            raise
     finally:
         if procs is not None:
             procs.stop()
@@ -248,6 +252,26 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
     if options.record is not None and _file_identity(options.record) in (None, earlier_record):
         raise PipelineError(f"the recorder did not write {options.record} (see {out / LOGS_DIR / 'recorder.log'})")
     return summary
+
+
+def _write_ended_summary(out: Path, options: RunOptions, obs: _Observer, err: BaseException, wall_s: float) -> None:
+    """A run that ends early still says what happened in ``summary.json``: how it ended (the one
+    line the CLI prints) and what the graph had done by then. Best effort: the disk may be full."""
+    interrupted = isinstance(err, KeyboardInterrupt)  # StopRequested (SIGTERM, SIGHUP) is one
+    line = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    ended = {
+        "source": str(options.source), "outcome": "interrupted" if interrupted else "failed",
+        "error": line if not interrupted else f"interrupted ({line})", "wall_s": round(wall_s, 1),
+        "frames_played": int(obs.stat("player", "frames_published")), "frames": int(obs.stat("tracker", "frames_in")),
+        "poses": len(obs.trajectory), "lost_frames": int(obs.stat("tracker", "state.LOST")),
+        "keyframes": int(obs.stat("tracker", "keyframes")), "gaussians": int(obs.stat("mapper", "gaussians")),
+        "merger_seq": int(obs.stat("merger", "seq")), "source_complete": False,
+        "map_path": str(out / MAP_FILE),  # the merger saves the map it holds as it stops
+    }
+    try:
+        _write_text(out / SUMMARY_FILE, json.dumps(ended, indent=2) + "\n")
+    except OSError as write_err:
+        logger.warning("could not write %s: %s", out / SUMMARY_FILE, write_err)
 
 
 def _file_identity(path: Path | None) -> tuple[int, int] | None:

@@ -278,6 +278,8 @@ def read_summary(out_dir: str | os.PathLike[str]) -> RunSummary:
     path = Path(out_dir) / SUMMARY_FILE
     try:
         raw = json.loads(path.read_text(encoding="utf-8"))
+        if isinstance(raw, dict) and raw.get("outcome") in ("failed", "interrupted"):
+            raise DataError(f"the run in {Path(out_dir)} did not finish ({raw['outcome']}: {raw.get('error', '?')})")
         known = {f.name for f in fields(RunSummary)}
         data = {k: v for k, v in raw.items() if k in known}
         data["render_size"] = tuple(data.get("render_size", (0, 0)))
