@@ -694,7 +694,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-mount", action="store_true", help="inject ENOSPC and chmod instead of tmpfs mounts")
     ap.add_argument("--lanes", type=int, default=1, help="cases run at once (default 1: timings comparable)")
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
+    ap.add_argument("--table", type=Path, default=None, metavar="JSON", help="print the matrix of a saved run and exit")
     args = ap.parse_args(argv)
+    if args.table is not None:
+        saved = json.loads(args.table.read_text())
+        print(format_table([CaseResult(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in c.items()})
+                            for c in saved["cases"]], Totals(**saved["totals"])))
+        return 0
     faults = select(all_faults(), args.cases)
     if args.list or not faults:
         print("\n".join(f.name for f in faults) or f"no case matches {args.cases!r}")

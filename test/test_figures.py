@@ -138,3 +138,15 @@ def test_the_two_hosts_table_in_the_docs_is_the_saved_runs() -> None:
                           str(ROOT / "docs" / "data" / "two_hosts_5mbit.json")], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert out.strip() and out in (ROOT / "docs" / "results.md").read_text()
+
+
+def test_the_fault_matrix_in_the_docs_is_the_saved_runs() -> None:
+    """docs/results.md's fault matrix is what ``bench_faults.py --table`` prints for its JSON."""
+    pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_faults.py"), "--table",
+                          str(ROOT / "docs" / "data" / "faults_matrix.json")], capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    assert out.strip() and out.rstrip("\n") in (ROOT / "docs" / "results.md").read_text()
