@@ -330,6 +330,8 @@ class BagPlayer(Node):
             return
         now = time.monotonic()
         self.ok = ok
+        self._count_skips()
+        self.stats.publish()  # the final counts before "done": the runner's summary reads them
         self._pub_done.publish(Bool(data=ok))
         self._log_progress(now, final=True)
         self._finish_at = now + LINGER_S

@@ -144,6 +144,10 @@ class BackendLink:
             snap = smap.snapshot()
             self._request("local_ba", segment_id, lambda: self.backend.local_ba(snap, kf_id))
 
+    def in_flight(self, kinds: frozenset[str]) -> bool:
+        """Whether a request of ``kinds`` is still unanswered (never, with the back-end inline)."""
+        return any(r.kind in kinds and not r.future.done() for r in self._requests)
+
     def wait(self, smap: SparseMap, segment_id: int, kinds: frozenset[str], timeout_s: float) -> list[KeyframesMoved]:
         """Block until the requests of ``kinds`` are answered (new ones included: a committed loop
         asks for a global BA), committing every result; gives up after ``timeout_s``."""

@@ -13,7 +13,8 @@ immutable snapshot of the map with each request and answers through futures, whi
 ``corrections.BackendLink`` commits at the start of the next frame (keyframes, points and the
 last pose move together), so tracking never sees half a correction. Tracking waits for the
 back-end at one point only: a keyframe due while the previous keyframe's local BA still runs
-goes in once that result is committed (``_commit_backend``).
+goes in once that result is committed (``_commit_backend``); with depth (``RGBDTracker``) it is
+deferred to a later frame instead, so a live frame never waits for a BA.
 """
 from __future__ import annotations
 
@@ -55,6 +56,10 @@ class FeatureTracker(Tracker):
     """
 
     uses_depth = True
+    # A keyframe due while the previous local BA runs waits for its result (see _commit_backend);
+    # RGBDTracker defers the keyframe instead. keyframes_deferred counts those deferrals.
+    keyframe_waits_for_ba = True
+    keyframes_deferred = 0
     ba_fixed_keyframes = 1
     _SETTLE_TIMEOUT_S = 5.0  # a local BA takes ~0.1 s; past this the keyframe goes in without it
 
@@ -315,8 +320,13 @@ class FeatureTracker(Tracker):
             self._update_local_keyframes(outcome.point_ids)
             kf = None
             if self._need_keyframe(T, feats, outcome):
-                T = self._commit_backend(wait=True)
-                kf = self._insert_keyframe(frame, feats, T, outcome)
+                if not self.keyframe_waits_for_ba and self._link.in_flight(_WAIT_KINDS_BA):
+                    # Live: the frame does not wait for the local BA in flight; the keyframe is
+                    # due again at the next frame, by when the BA has usually landed.
+                    self.keyframes_deferred += 1
+                else:
+                    T = self._commit_backend(wait=True)
+                    kf = self._insert_keyframe(frame, feats, T, outcome)
             return T, kf, outcome.n_matches, len(outcome.point_ids)
         # Failure: coast on the velocity model for a few frames, then report no pose.
         self._lost_frames += 1

@@ -19,6 +19,9 @@ class RGBDTracker(FeatureTracker):
     """Frame-to-local-map ORB tracking with depth; see FeatureTracker for the per-frame steps."""
 
     uses_depth = True
+    # With depth a keyframe does not need the previous window refined first (the wait was for
+    # the monocular scale): a keyframe due while a local BA runs is deferred, not waited for.
+    keyframe_waits_for_ba = False
 
     def _initialise(self, frame: Frame, feats: FrameFeatures
                     ) -> tuple[np.ndarray | None, KeyframeInfo | None, int, int]:
