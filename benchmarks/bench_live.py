@@ -160,8 +160,8 @@ def table(res: dict[str, Any]) -> str:
     lines = [f"{res.get('source', '?')}, config {res.get('config', '?')}, {res.get('machine', '?')}; "
              "`python benchmarks/bench_live.py` "
              f"({res.get('date', '?')}).", "",
-             "| run | played | reached tracker | tracked | stale | busy | lost | ATE cm | PSNR dB | CPU s tracker / mapper "
-             "/ sampler / player | tracker ms/frame |",
+             "| run | played | reached tracker | tracked | stale | busy | lost | ATE cm | PSNR dB "
+             "| CPU s tracker / mapper / sampler / player | tracker ms/frame |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res.get("runs", []):
         if r.get("returncode") != 0:
@@ -169,7 +169,8 @@ def table(res: dict[str, Any]) -> str:
             continue
         c = r["cpu_s"]
         cpu = " / ".join(f"{c.get(n, float('nan')):.1f}" for n in ("tracker", "mapper", "keyframe_sampler", "player"))
-        lines.append(f"| {r['run']} | {r['played']} | {r['received']} | {r['tracked']} ({100 * r['tracked_fraction']:.0f} %) "
+        tracked = f"{r['tracked']} ({100 * r['tracked_fraction']:.0f} %)"
+        lines.append(f"| {r['run']} | {r['played']} | {r['received']} | {tracked} "
                      f"| {r['stale']} | {r['busy']} | {r['lost']} | {r['ate_cm']} | {r['psnr_db']} | {cpu} "
                      f"| {r['tracker_frame_cpu_ms']} |")
     cost = res.get("cost", {})
@@ -193,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=900.0, help="per run (s)")
     ap.add_argument("--out", type=Path, default=ROOT / "results/bench_live.json")
     ap.add_argument("--table", type=Path, default=None, metavar="JSON", help="print the table of a saved run and exit")
+    ap.add_argument("--reuse-lockstep", type=Path, default=None, metavar="JSON",
+                    help="take the lockstep row from this saved run (its run folder must still be there)")
     args = ap.parse_args(argv)
     if args.table is not None:
         print(table(json.loads(args.table.read_text())), end="")
@@ -203,7 +206,11 @@ def main(argv: list[str] | None = None) -> int:
     res: dict[str, Any] = {"date": time.strftime("%Y-%m-%d"), "source": args.tum.name, "config": args.config,
                            "machine": f"{os.cpu_count()} cores, {platform.machine()}", "runs": []}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    for rate in [None, *args.rates]:
+    reused = None
+    if args.reuse_lockstep is not None:
+        reused = next(r for r in json.loads(args.reuse_lockstep.read_text())["runs"] if r["run"] == "lockstep")
+        res["runs"].append({**reused, "reused_from": str(args.reuse_lockstep)})
+    for rate in ([] if reused else [None]) + list(args.rates):
         name = "lockstep" if rate is None else f"live_{rate:g}x"
         _log(f"run {name}")
         row = run_graph(args.tum, args.config, work / name, rate, args.timeout)

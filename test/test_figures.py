@@ -150,3 +150,14 @@ def test_the_fault_matrix_in_the_docs_is_the_saved_runs() -> None:
                           str(ROOT / "docs" / "data" / "faults_matrix.json")], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert out.strip() and out.rstrip("\n") in (ROOT / "docs" / "results.md").read_text()
+
+
+def test_the_live_table_in_the_readme_is_the_saved_runs() -> None:
+    """The README's live table is what ``bench_live.py --table`` prints for the JSON in docs/data."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_live.py"), "--table",
+                          str(ROOT / "docs" / "data" / "bench_live.json")], capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    assert out.strip() and out in (ROOT / "README.md").read_text()

@@ -65,10 +65,9 @@ class TrackerParams:
         tracking goes on from it; a smaller step back is a late frame and is dropped
     camera_info_override: use the camera.* calibration instead of camera_info (whose intrinsics and
         distortion are then ignored; TUM's bags carry placeholder ones)
-    max_frame_age_s: live input (best_effort) only: a colour frame that waited longer than this since it
-        was published, beyond the least wait seen, is stale (the tracker fell behind) and is dropped so that
-        tracking catches up with the camera (counted as skipped.stale); 0 = never drop. Reliable input
-        (lockstep replays) is never dropped
+    max_frame_age_s: a colour frame that waited longer than this since it was published, beyond the least
+        wait seen, is stale (the tracker fell behind) and is dropped so that tracking catches up with the
+        camera (counted as skipped.stale); 0 = never drop (memgs run's lockstep replays)
     """
 
     color_topic: str = "camera/camera/color/image_raw"  # colour image input

@@ -97,8 +97,7 @@ class TrackerNode(Node):
         path_rate = v.path_rate_hz
         self.jump_back_ns = int(1e9 * v.time_jump_back_s)
         self.max_ahead_ns = int(1e9 * v.max_stamp_ahead_s)
-        # Live input only: lockstep replays wait for every frame, so none is ever stale there.
-        self.max_age_ns = int(1e9 * v.max_frame_age_s) if v.input_reliability == "best_effort" else 0
+        self.max_age_ns = int(1e9 * v.max_frame_age_s)  # 0: never (the runner's lockstep replays)
         self._least_wait_ns: int | None = None  # least publish-to-callback wait seen (transport + clock offset)
         self._last_color_seq = 0  # the colour publisher's sequence number last seen (0 = none yet)
         self._frame_cpu_ms: deque[float] = deque(maxlen=300)  # node CPU per tracked frame, message in to pose out

@@ -160,6 +160,12 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         # Background BA would refine poses at timing-dependent moments: run it in step instead.
         params.setdefault("tracker", {}).setdefault("tracker.ba_threaded", False)
         params["tracker"].setdefault("input_reliability", "reliable")  # lockstep must not lose a frame
+        params["tracker"].setdefault("max_frame_age_s", 0.0)  # and never drops one as stale
+    else:
+        # The player is a reliable publisher on this host: a reliable reader gets each frame it
+        # reads whole (best effort lost half the 2 MB frames in transport, counted as busy), and
+        # its keep-last queue still lets a busy tracker skip frames; stale ones are dropped.
+        params.setdefault("tracker", {}).setdefault("input_reliability", "reliable")
     params.setdefault("merger", {})["map_path"] = str(map_path)
     if options.record is not None:
         params.setdefault("recorder", {})["path"] = str(Path(options.record).resolve())
