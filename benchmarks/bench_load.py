@@ -96,6 +96,20 @@ def summarise(timeline: list[dict], warmup_s: float) -> dict:
     return out
 
 
+def _orphans(domain_id: int) -> list[int]:
+    """Pids of memgs node processes still running with this run's ROS_DOMAIN_ID (Linux /proc)."""
+    left = []
+    for pid in (int(d) for d in os.listdir("/proc") if d.isdigit()):
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+            env = Path(f"/proc/{pid}/environ").read_bytes()
+        except OSError:
+            continue
+        if b"memgs_ros.nodes." in cmd and f"ROS_DOMAIN_ID={domain_id}\0".encode() in env + b"\0":
+            left.append(pid)
+    return left
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seconds", type=float, default=300.0, help="stream length (s of camera time)")
@@ -185,6 +199,18 @@ def main(argv: list[str] | None = None) -> int:
                   f"{tr_['last_min_median']:7.0f} ({tr_['last_min_peak']:4.0f}) {tr_['slope_mb_per_min']:+13.1f} "
                   f"{tr_['floors_mb'][0]:11.0f} / {tr_['floors_mb'][-1]:<9.0f} {tr_['floor_slope_mb_per_min']:+12.1f}")
     print(f"wall {wall:.0f} s, load {load0:.1f} -> {result['loadavg_after']:.1f}")
+    # The three sustained-load checks: keyframes the tracker made that the mapper never trained,
+    # the mapper's live memory trend, and node processes of this run still alive after it.
+    made = max(int(s.keyframes), 1)
+    lost_kf = sum(int(_num(mp, k)) if k in mp else 0 for k in ("problem.keyframe_overload", "keyframes_missed",
+                                                                  "dropped_keyframe_bundles"))
+    floor_slope = (nodes.get("mapper", {}).get("trend") or {}).get("floor_slope_mb_per_min")
+    orphans = _orphans(s.domain_id)
+    result["checks"] = {"keyframes_dropped": lost_kf, "keyframes_dropped_fraction": lost_kf / made,
+                        "mapper_floor_slope_mb_per_min": floor_slope, "orphans": orphans}
+    slope_txt = "n/a" if floor_slope is None else f"{floor_slope:+.2f}"
+    print(f"checks: keyframes dropped {lost_kf} of {made} ({100 * lost_kf / made:.2f} %, <= 1 %); mapper RSS floor "
+          f"slope {slope_txt} MB/min (<= 1); node processes left behind {len(orphans)} (0)")
     # The figure and its table are made together from this JSON (benchmarks/make_figures.py load):
     # keep the per-node RSS and the mapper's size over time, and the command.
     result["command"] = " ".join(["python benchmarks/bench_load.py", *(argv if argv is not None else sys.argv[1:])])
