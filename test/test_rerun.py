@@ -348,10 +348,11 @@ def test_run_rerun_save_end_to_end(tmp_path: Path, ros_domain_id: int) -> None:
         argv += ["--set", item]
     assert main(argv) == 0
     s = read_summary(out)
-    # The view runs at a lower priority than the graph (it yields the cores to mapping).
+    # Priorities: the tracker first, the mapper below it, the view below the mapper.
     rows_of = [json.loads(line) for line in (out / "stats_timeline.jsonl").read_text().splitlines()]
-    assert {int(r["nice"]) for r in rows_of if r["node"] == "rerun_bridge"} == {10}
-    assert {int(r["nice"]) for r in rows_of if r["node"] == "mapper"} == {0}
+    assert {int(r["nice"]) for r in rows_of if r["node"] == "rerun_bridge"} == {15}
+    assert {int(r["nice"]) for r in rows_of if r["node"] == "mapper"} == {10}
+    assert {int(r["nice"]) for r in rows_of if r["node"] == "tracker"} == {0}
     assert s.cpu_s["rerun_bridge"] > 0
     saved = load_ply(s.ply_path)
     rows = _rows(rrd)

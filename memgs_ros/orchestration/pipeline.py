@@ -256,7 +256,16 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
 
 def _write_ended_summary(out: Path, options: RunOptions, obs: _Observer, err: BaseException, wall_s: float) -> None:
     """A run that ends early still says what happened in ``summary.json``: how it ended (the one
-    line the CLI prints) and what the graph had done by then. Best effort: the disk may be full."""
+    line the CLI prints) and what the graph had done by then. Best effort: the disk may be full,
+    and nothing here may replace the error that ended the run."""
+    try:
+        _write_ended_summary_unguarded(out, options, obs, err, wall_s)
+    except Exception as write_err:  # noqa: BLE001 - the run's own error is the one to report
+        logger.warning("could not write %s: %s", out / SUMMARY_FILE, write_err)
+
+
+def _write_ended_summary_unguarded(out: Path, options: RunOptions, obs: _Observer, err: BaseException,
+                                   wall_s: float) -> None:
     interrupted = isinstance(err, KeyboardInterrupt)  # StopRequested (SIGTERM, SIGHUP) is one
     line = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
     ended = {
@@ -355,6 +364,10 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
             procs.start_due()
             procs.check()
             if _player_ended_unheard(procs):
+                total, played = obs.stat("player", "frames_total"), obs.stat("player", "frames_published")
+                if total and played < total:  # stopped from outside (Ctrl-C exits 0 too), not done
+                    logger.error("the bag player stopped after %d of %d frames: the map holds those", played, total)
+                    obs.source_ok = False
                 break
         if time.monotonic() > end:
             raise PipelineError(f"the source did not finish within {options.timeout_s:.0f} s")

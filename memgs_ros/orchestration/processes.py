@@ -35,7 +35,8 @@ NODE_FACTORIES: dict[str, Callable[..., Any]] = {
     name: getattr(NODE_MODULES[name], cls) for name, (_, cls) in NODES.items()}
 # The Rerun view yields the cores to mapping: on 2 cores its CPU (~3 % of a run's) otherwise
 # lengthens the run by as much. It still runs whenever a core idles (lockstep waits, I/O).
-NICENESS = {VIEW_NODE: 10}
+# Below the mapper, which runs at its own niceness (10, the node's parameter) below the tracker.
+NICENESS = {VIEW_NODE: 15}
 
 
 class NodeProcesses:

@@ -89,7 +89,7 @@ class NodeStats:
         self.gauges["rss_mb"] = round(rss_mb(), 1)
         self.gauges["cpu_s"] = round(time.process_time(), 2)  # of the process (in one process: of all nodes)
         if hasattr(os, "getpriority"):
-            self.gauges["nice"] = os.getpriority(os.PRIO_PROCESS, 0)  # the Rerun view runs at 10 under memgs run
+            self.gauges["nice"] = os.getpriority(os.PRIO_PROCESS, 0)  # the Rerun view runs at 15 under memgs run
         values: Mapping[str, object] = {**self.counters, **self.gauges}
         level = DiagnosticStatus.WARN if any(k.startswith("problem.") for k in self.counters) else DiagnosticStatus.OK
         status = DiagnosticStatus(
