@@ -53,7 +53,6 @@ from std_msgs.msg import Header, String
 from memgs_ros.core.geometry.camera import PinholeCamera, calibration_differences, describe_camera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.tracking import Tracker, TrackerConfig, TrackResult, make_tracker
-from memgs_ros.core.tracking import warm_up as warm_up_tracking
 from memgs_ros.core.tracking.anchored_path import AnchoredPath
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb
@@ -147,14 +146,7 @@ class TrackerNode(Node):
         self.pub_refined = self.create_publisher(Path, "memgs/keyframe/refined_poses", qos.reliable(20))
         self.pub_loop = self.create_publisher(Path, "memgs/keyframe/loop_corrected_poses", qos.reliable(20))
 
-        # Build the tracker (its kernels compile or load from the cache, its vocabulary loads) before
-        # subscribing, not on the first frame while the camera already streams: a live source would
-        # lose the frames of those seconds. The player waits for these subscriptions.
-        self._fitted = False  # override mode: the configured camera checked against the image size
-        if self.calibration is not None:
-            self._set_camera(self.calibration, "the configured calibration (camera_info_override)")
-        else:
-            warm_up_tracking()
+        self._fitted = False  # override mode: the configured camera fitted to the first image size
         sensor = qos.sensor() if self.input_reliability == "best_effort" else qos.reliable(5)
         self.create_subscription(CameraInfo, self.info_topic, self.on_camera_info, sensor)
         self.create_subscription(Image, self.color_topic, self.on_color, sensor)
