@@ -146,7 +146,6 @@ class TrackerNode(Node):
         self.pub_refined = self.create_publisher(Path, "memgs/keyframe/refined_poses", qos.reliable(20))
         self.pub_loop = self.create_publisher(Path, "memgs/keyframe/loop_corrected_poses", qos.reliable(20))
 
-        self._fitted = False  # override mode: the configured camera fitted to the first image size
         sensor = qos.sensor() if self.input_reliability == "best_effort" else qos.reliable(5)
         self.create_subscription(CameraInfo, self.info_topic, self.on_camera_info, sensor)
         self.create_subscription(Image, self.color_topic, self.on_color, sensor)
@@ -200,11 +199,7 @@ class TrackerNode(Node):
         except DataError as err:
             self.stats.problem("camera_info", f"the configured calibration does not fit the images: {err}")
             return False
-        self._fitted = True
-        if cam != self.camera:  # images of another size than the calibration's: scale it to them
-            if self.tracker is not None:
-                self.tracker.close()
-            self._set_camera(cam, f"the configured calibration fitted to {color.width}x{color.height}")
+        self._set_camera(cam, "the configured calibration (camera_info_override)")
         return True
 
     def on_color(self, msg: Image, info: MessageInfo) -> None:
@@ -256,7 +251,7 @@ class TrackerNode(Node):
 
     def _handle(self, color: Image, depth: Image | None) -> None:
         cpu0 = time.thread_time()  # this thread's CPU: the frame path alone, not the back-end's threads
-        if self.calibration is not None and not self._fitted and not self._calibrated_camera(color):
+        if self.camera is None and self.calibration is not None and not self._calibrated_camera(color):
             self.stats.counters["frames_in"] += 1
             self._processed(stamp_to_ns(color.header.stamp), keyframe=False)
             return

@@ -258,28 +258,20 @@ def _write_ended_summary(out: Path, options: RunOptions, obs: _Observer, err: Ba
     """A run that ends early still says what happened in ``summary.json``: how it ended (the one
     line the CLI prints) and what the graph had done by then. Best effort: the disk may be full,
     and nothing here may replace the error that ended the run."""
-    try:
-        _write_ended_summary_unguarded(out, options, obs, err, wall_s)
-    except Exception as write_err:  # noqa: BLE001 - the run's own error is the one to report
-        logger.warning("could not write %s: %s", out / SUMMARY_FILE, write_err)
-
-
-def _write_ended_summary_unguarded(out: Path, options: RunOptions, obs: _Observer, err: BaseException,
-                                   wall_s: float) -> None:
     interrupted = isinstance(err, KeyboardInterrupt)  # StopRequested (SIGTERM, SIGHUP) is one
     line = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-    ended = {
-        "source": str(options.source), "outcome": "interrupted" if interrupted else "failed",
-        "error": line if not interrupted else f"interrupted ({line})", "wall_s": round(wall_s, 1),
-        "frames_played": int(obs.stat("player", "frames_published")), "frames": int(obs.stat("tracker", "frames_in")),
-        "poses": len(obs.trajectory), "lost_frames": int(obs.stat("tracker", "state.LOST")),
-        "keyframes": int(obs.stat("tracker", "keyframes")), "gaussians": int(obs.stat("mapper", "gaussians")),
-        "merger_seq": int(obs.stat("merger", "seq")), "source_complete": False,
-        "map_path": str(out / MAP_FILE),  # the merger saves the map it holds as it stops
-    }
     try:
+        ended = {
+            "source": str(options.source), "outcome": "interrupted" if interrupted else "failed",
+            "error": line if not interrupted else f"interrupted ({line})", "wall_s": round(wall_s, 1),
+            "frames_played": int(obs.stat("player", "frames_published")),
+            "frames": int(obs.stat("tracker", "frames_in")), "poses": len(obs.trajectory),
+            "lost_frames": int(obs.stat("tracker", "state.LOST")), "keyframes": int(obs.stat("tracker", "keyframes")),
+            "gaussians": int(obs.stat("mapper", "gaussians")), "merger_seq": int(obs.stat("merger", "seq")),
+            "source_complete": False, "map_path": str(out / MAP_FILE),  # the merger saves its map as it stops
+        }
         _write_text(out / SUMMARY_FILE, json.dumps(ended, indent=2) + "\n")
-    except OSError as write_err:
+    except Exception as write_err:  # noqa: BLE001 - the run's own error is the one to report
         logger.warning("could not write %s: %s", out / SUMMARY_FILE, write_err)
 
 

@@ -6,7 +6,6 @@
 from __future__ import annotations
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.tracking._compiled import warm_up
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.frontend import FeatureTracker
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
@@ -20,7 +19,6 @@ __all__ = [
     "TrackerConfig",
     "TrackingState",
     "make_tracker",
-    "warm_up",
 ]
 
 
