@@ -204,3 +204,25 @@ def test_a_player_that_ended_cleanly_ends_the_replay_even_if_its_done_message_wa
     procs.player_exit_seen = None
     time.sleep(0.3)
     assert not pipeline._player_ended_unheard(procs)  # a failed source is reported by check()
+
+
+def test_a_kill_waits_until_the_node_has_state_to_lose() -> None:
+    """Fault injection kills a mapper only once a checkpoint holds Gaussians (or, never
+    checkpointing, once it maps), and a merger once it applied a delta; other nodes at once."""
+    from memgs_ros.orchestration.pipeline import _has_state_to_lose, _Observer
+
+    obs = _Observer.__new__(_Observer)  # the stats table alone, no rclpy node
+    obs.stats = {}
+    assert not _has_state_to_lose(obs, "mapper")  # no stats from it yet
+    obs.stats["mapper"] = {"checkpoint_period_s": "1.0", "gaussians": "5000", "checkpoint_gaussians": "0"}
+    assert not _has_state_to_lose(obs, "mapper")  # mapping, but its checkpoint is empty
+    obs.stats["mapper"]["checkpoint_gaussians"] = "4800"
+    assert _has_state_to_lose(obs, "mapper")
+    obs.stats["mapper"] = {"checkpoint_period_s": "0.0", "gaussians": "0"}
+    assert not _has_state_to_lose(obs, "mapper")
+    obs.stats["mapper"]["gaussians"] = "10"
+    assert _has_state_to_lose(obs, "mapper")
+    assert not _has_state_to_lose(obs, "merger")
+    obs.stats["merger"] = {"seq": "3"}
+    assert _has_state_to_lose(obs, "merger")
+    assert _has_state_to_lose(obs, "keyframe_sampler")

@@ -64,7 +64,8 @@ def add_graph_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON here")
     p.add_argument("--kill", action="append", default=[], metavar="NODE@SECONDS",
                    help="fault injection: SIGKILL NODE (mapper, merger, ...) this many seconds after the "
-                        "player starts and restart it at once (repeatable; separate processes only)")
+                        "player starts, once it has state to lose (the mapper a checkpoint with Gaussians, "
+                        "the merger a delta), and restart it at once (repeatable; separate processes only)")
     add_record_argument(p)
     add_rerun_arguments(p)
 

@@ -80,6 +80,8 @@ class MapperNode(Node):
         # freed step buffers a step, and at the default 30 s they piled up into the peak RSS.
         self.stats = NodeStats(self, "mapper", trim_period_s=2.0)
         self.stats.gauges["raster_backend"] = raster.backend
+        # Whether this mapper checkpoints (0: never): fault injection waits for a checkpoint to resume from.
+        self.stats.gauges["checkpoint_period_s"] = p.checkpoint_period_s if p.checkpoint_path else 0.0
         self.ckpt = (checkpoint.CheckpointFile(pathlib.Path(p.checkpoint_path).expanduser())
                      if p.checkpoint_path else None)
         resumed, why = self.ckpt.read_or_set_aside() if p.resume and self.ckpt else (None, None)
@@ -163,8 +165,12 @@ class MapperNode(Node):
         t0 = time.perf_counter()
         ckpt = self.ckpt
 
+        written = 0
+
         def write(state: checkpoint.MapperCheckpoint) -> bool:
+            nonlocal written
             ckpt.write(state)
+            written = len(state.gaussians)
             return True
 
         try:  # captured and written on the session's worker: a timer's save never overwrites the final one
@@ -174,6 +180,7 @@ class MapperNode(Node):
             self.stats.post_problem("checkpoint_failed", f"could not write checkpoint {ckpt.path}: {err}")
             return None
         self.stats.post_count("checkpoints")
+        self.stats.post_gauge("checkpoint_gaussians", written)
         self.stats.post_gauge("checkpoint_ms", round((time.perf_counter() - t0) * 1e3, 1))
         return self.ckpt.path
 

@@ -331,6 +331,22 @@ def _wait_for_graph(obs: _Observer, procs: NodeProcesses, nodes: list[str], dead
     time.sleep(0.5)  # endpoint matching between the nodes themselves settles just after discovery
 
 
+def _has_state_to_lose(obs: _Observer, name: str) -> bool:
+    """Whether killing ``name`` now tests its recovery: the mapper has written a checkpoint
+    holding Gaussians (or never checkpoints, and has Gaussians), the merger has applied a delta.
+    (A kill counted in seconds alone once hit a mapper that had not started mapping on a loaded
+    machine, and its second life resumed an empty checkpoint.)"""
+    if name == "mapper":
+        period = obs.stat("mapper", "checkpoint_period_s", -1.0)
+        if period < 0:  # no stats from it yet
+            return False
+        return (obs.stat("mapper", "checkpoint_gaussians") > 0 if period > 0
+                else obs.stat("mapper", "gaussians") > 0)
+    if name == "merger":
+        return obs.stat("merger", "seq") > 0
+    return True
+
+
 def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out: Path, t0: float,
            progress: bool) -> RunSummary:
     """Wait for the end of the source, finish the mapper, sync the merger, save, summarise."""
@@ -348,7 +364,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
     while not obs.done.is_set():
         if procs is not None:
             for name, after in list(kills.items()):
-                if time.monotonic() - play_start >= after:
+                if time.monotonic() - play_start >= after and _has_state_to_lose(obs, name):
                     logger.warning("fault injection: killing %s (SIGKILL) and restarting it", name)
                     procs.kill_and_restart(name)
                     restarts[name] = restarts.get(name, 0) + 1
@@ -369,6 +385,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
     if bar is not None:
         _show_progress(bar, obs)
         bar.close()
+    for name in kills:
+        logger.warning("fault injection: %s was not killed: the source ended before it had state to lose", name)
     if procs is not None:
         procs.player_reported = True
     if not obs.source_ok:

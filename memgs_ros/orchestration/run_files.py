@@ -63,7 +63,8 @@ class RunOptions:
     # joining mid-run; separate processes only).
     start_delays_s: Mapping[str, float] = field(default_factory=dict)
     # Fault injection (separate processes only): SIGKILL these nodes this many seconds after
-    # the player starts, and start them again at once (the mapper resumes from its checkpoint).
+    # the player starts and once each has state to lose (the mapper a checkpoint holding Gaussians,
+    # the merger a delta), and start them again at once (the mapper resumes from its checkpoint).
     kill_after_s: Mapping[str, float] = field(default_factory=dict)
     timeout_s: float = 1800.0
     # Stop at the first bad frame instead of skipping and counting it (the player's strict).
