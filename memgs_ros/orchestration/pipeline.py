@@ -227,6 +227,8 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
             if recording:
                 topics = node_params(params).get("recorder", {}).get("topics", NODE_MODULES["recorder"].DEFAULT_TOPICS)
                 _wait_for_recorder(observer, procs, topics, t0 + options.timeout_s)
+            if not options.lockstep and "tracker" in graph:
+                _wait_for_warm_tracker(observer, procs, t0 + options.timeout_s)
             procs.start("bag_player")
             # Counted from the start of the replay, as kills are; started by _drive's loop.
             procs.due = {name: time.monotonic() + delay for name, delay in delayed.items()}
@@ -329,6 +331,17 @@ def _wait_for_graph(obs: _Observer, procs: NodeProcesses, nodes: list[str], dead
         missing = [n for n in missing if obs.node.count_publishers(_READY_TOPICS[n]) == 0]
         time.sleep(0.1)
     time.sleep(0.5)  # endpoint matching between the nodes themselves settles just after discovery
+
+
+def _wait_for_warm_tracker(obs: _Observer, procs: NodeProcesses, deadline: float) -> None:
+    """A live replay does not wait for the tracker: start it once the tracker has its kernels
+    loaded (0.4 s from the disk cache, ~10 s compiled on a fresh install), or the first frame's
+    wait cost the next dozen frames and the track (fr1/rpy at 1x: 43 frames lost)."""
+    while obs.stat("tracker", "kernels_warm") < 1:
+        procs.check()
+        if time.monotonic() > deadline:
+            raise PipelineError("the tracker did not load its kernels in time")
+        time.sleep(0.05)
 
 
 def _has_state_to_lose(obs: _Observer, name: str) -> bool:

@@ -1,11 +1,13 @@
 """Front-end visual odometry (feature tracker for RGB-D and monocular cameras).
 
 ``make_tracker(cfg, camera)`` returns a :class:`Tracker`: ``track(frame) -> TrackResult``,
-``poll_refined_keyframes()``, ``map_stats()``, ``ba_time_s`` and ``close()``.
+``poll_refined_keyframes()``, ``map_stats()``, ``ba_time_s`` and ``close()``. ``warm_up()``
+loads (or on first use compiles) the compiled kernels ahead of the first frame.
 """
 from __future__ import annotations
 
 from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.tracking._compiled import warm_up
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.frontend import FeatureTracker
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
@@ -19,6 +21,7 @@ __all__ = [
     "TrackerConfig",
     "TrackingState",
     "make_tracker",
+    "warm_up",
 ]
 
 
