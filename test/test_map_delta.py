@@ -143,6 +143,28 @@ def test_outbox_snapshot_then_deltas() -> None:
     assert in_step.apply(decode(encode(MessageKind.DELTA, 3, 3, _records([9]), np.zeros(0), 3))) is ApplyStatus.GAP
 
 
+def test_a_snapshot_of_the_map_the_last_delta_made_keeps_its_seq() -> None:
+    """After the final flush the snapshot is the same map: a receiver that has the flush is done
+    (the snapshot is no news), one that lost it takes the snapshot; a snapshot after any change,
+    or after a delta that held rows back, takes a new seq."""
+    from memgs_ros.core.maps.map_delta import DeltaOutbox
+
+    out, has, lost = DeltaOutbox(sh_degree=3), MapReplica(), MapReplica()
+    first = decode(out.next_delta(_records([1, 2, 3], seed=1)))
+    assert has.apply(first) is ApplyStatus.APPLIED and lost.apply(first) is ApplyStatus.APPLIED
+    final = _records([1, 2, 4], seed=2)
+    flush = decode(out.next_delta(final, tolerance=0.0))
+    assert flush.seq == 2 and has.apply(flush) is ApplyStatus.APPLIED  # ``lost`` never gets it
+    snap = decode(out.snapshot(final))
+    assert snap.seq == 2
+    assert has.apply(snap) is ApplyStatus.APPLIED and has.seq == 2 and _same(has.records, final)
+    assert lost.apply(snap) is ApplyStatus.APPLIED and lost.seq == 2 and _same(lost.records, final)
+    changed = _records([1, 2, 4], seed=3)
+    assert decode(out.snapshot(changed)).seq == 3  # folds in a change no delta carried
+    out.next_delta(_records([1, 2, 4, 5, 6], seed=3), max_rows=1)  # rows held back
+    assert out.pending_rows > 0 and decode(out.snapshot(_records([1, 2, 4, 5, 6], seed=3))).seq == 5
+
+
 def test_restarted_sender_new_epoch_resyncs_from_its_snapshot() -> None:
     from memgs_ros.core.maps.map_delta import DeltaOutbox
 
@@ -158,7 +180,7 @@ def test_restarted_sender_new_epoch_resyncs_from_its_snapshot() -> None:
     assert d.epoch == (1 << 32) - 2 and d.seq == 1
     assert rep.apply(d) is ApplyStatus.NEW_EPOCH and rep.seq == 3  # untouched until the snapshot
     snap = decode(second.snapshot(restored))
-    assert snap.seq == 2 and rep.apply(snap) is ApplyStatus.APPLIED
+    assert snap.seq == 1 and rep.apply(snap) is ApplyStatus.APPLIED  # the map delta 1 made
     assert rep.epoch == second.epoch and _same(rep.records, restored)
     assert rep.apply(decode(second.next_delta(restored.select(np.array([0, 3]))))) is ApplyStatus.APPLIED
     assert rep.records.ids.tolist() == [1, 10]
