@@ -494,6 +494,9 @@ class TwoHostsResult:
     leftover_processes: int  # processes teardown had to kill (0: every node stopped when asked)
     netns: tuple[str, str]  # (air, ground), deleted at the end
     out_dir: str
+    # The final iterations' end (finish called + their time) until the merger's stats show the final
+    # map: the flush crossing the link (nan in results saved before it was measured).
+    after_final_map_s: float = float("nan")
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -617,7 +620,8 @@ def _result(opts: TwoHostsOptions, raw: Mapping[str, Any], wire: Sequence[tuple[
         tbf_drops={side: q.get("drops", 0) for side, q in qdisc.items()},
         render_views=int(raw["render_views"]), render_bytes=int(raw["render_bytes"]),
         replay_s=t_last - t0, finish_s=raw["t_finished"] - raw["t_finish"], final_training_s=_final_training_s(out),
-        convergence_s=t1 - t_last, identical=bool(raw["identical"]), max_abs_diff=float(raw["max_abs_diff"]),
+        convergence_s=t1 - t_last,
+        after_final_map_s=t1 - (raw["t_finish"] + _final_training_s(out)), identical=bool(raw["identical"]), max_abs_diff=float(raw["max_abs_diff"]),
         merger_resyncs=sum(int(float(v)) for k, v in stats.get("merger", {}).items() if k.startswith("resync.")),
         fault_dropped_deltas=stat("merger", "fault_dropped_deltas"), leftover_processes=len(link.leftover),
         netns=(link.air, link.ground), out_dir=str(out))
@@ -662,6 +666,8 @@ def table(r: TwoHostsResult) -> str:
         ("finish call (final iterations, exact flush, snapshot; over the link)",
          f"{r.finish_s:.1f} s, of which final iterations {r.final_training_s:.1f} s"),
         ("convergence after the last frame (merger stats, +-1 s)", f"{r.convergence_s:.1f} s"),
+        ("of which after the final iterations (the flush crossing the link)",
+         f"{r.after_final_map_s:.1f} s"),
         ("merger == mapper", f"{'yes' if r.identical else 'NO'} ({r.gaussians} Gaussians)"),
         ("max abs diff", f"{r.max_abs_diff:.3g}"),
         ("merger resyncs / deltas dropped (fault injection)", f"{r.merger_resyncs} / {r.fault_dropped_deltas}"),
