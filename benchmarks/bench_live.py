@@ -131,10 +131,15 @@ def node_cost(tum: Path, params: dict[str, Any], player: dict[str, Any], frames:
             "frames": len(node_ms)}
 
 
-def cost_stage(tum: Path, lockstep_out: Path, frames: int, niceness: int) -> dict[str, Any]:
-    from memgs_ros.orchestration.run_files import read_params
+def cost_stage(tum: Path, config: str, lockstep_out: Path, frames: int, niceness: int) -> dict[str, Any]:
+    from memgs_ros.orchestration.run_files import PARAMS_FILE, RunOptions, build_params, node_params, read_params
 
-    params = read_params(lockstep_out)
+    if (lockstep_out / PARAMS_FILE).exists():
+        params = read_params(lockstep_out)
+    else:  # a reused lockstep row whose run folder is gone: the parameters memgs run gives it
+        lockstep_out.mkdir(parents=True, exist_ok=True)
+        params = node_params(build_params(RunOptions(source=str(tum), config=config, out_dir=lockstep_out),
+                                          lockstep_out / "map.ply"))
     tracker, player = params.get("tracker", {}), params.get("bag_player", {})
     res: dict[str, Any] = {"idle": node_cost(tum, tracker, player, frames)}
     _log(f"tracker node cost, mapper idle: {res['idle']}")
@@ -195,7 +200,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "results/bench_live.json")
     ap.add_argument("--table", type=Path, default=None, metavar="JSON", help="print the table of a saved run and exit")
     ap.add_argument("--reuse-lockstep", type=Path, default=None, metavar="JSON",
-                    help="take the lockstep row from this saved run (its run folder must still be there)")
+                    help="take the lockstep row from this saved run")
+    ap.add_argument("--reuse-live", type=Path, default=None, metavar="JSON",
+                    help="also take the live rows from this saved run (then only the node cost runs)")
     args = ap.parse_args(argv)
     if args.table is not None:
         print(table(json.loads(args.table.read_text())), end="")
@@ -210,7 +217,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.reuse_lockstep is not None:
         reused = next(r for r in json.loads(args.reuse_lockstep.read_text())["runs"] if r["run"] == "lockstep")
         res["runs"].append({**reused, "reused_from": str(args.reuse_lockstep)})
-    for rate in ([] if reused else [None]) + list(args.rates):
+    if args.reuse_live is not None:
+        res["runs"] += [r for r in json.loads(args.reuse_live.read_text())["runs"] if r["run"] != "lockstep"]
+    for rate in ([] if reused else [None]) + ([] if args.reuse_live else list(args.rates)):
         name = "lockstep" if rate is None else f"live_{rate:g}x"
         _log(f"run {name}")
         row = run_graph(args.tum, args.config, work / name, rate, args.timeout)
@@ -218,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
         res["runs"].append(row)
         args.out.write_text(json.dumps(res, indent=2))
     if args.cost_frames:
-        res["cost"] = cost_stage(args.tum, work / "lockstep", args.cost_frames, args.mapper_niceness)
+        res["cost"] = cost_stage(args.tum, args.config, work / "lockstep", args.cost_frames, args.mapper_niceness)
     args.out.write_text(json.dumps(res, indent=2))
     print(table(res), end="")
     return 0
