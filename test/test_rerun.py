@@ -178,17 +178,18 @@ def test_map_follower_follows_deltas_and_repairs_gaps_from_full_maps() -> None:
     assert lost.seq == 5
     assert f.on_delta(decode(out.next_delta(maps[5])))  # seq 6: a gap, asks for a full map
     assert not f.in_step
-    full = decode(out.snapshot(maps[5]))  # the merger's map, seq 7, published late:
-    assert f.on_delta(decode(out.next_delta(maps[6])))  # seq 8 arrives first and waits
+    full = decode(out.snapshot(maps[5]))  # the merger's map, unchanged since seq 6 so it keeps seq 6,
+    assert full.seq == 6                   # published late:
+    assert f.on_delta(decode(out.next_delta(maps[6])))  # seq 7 arrives first and waits
     assert f.on_full_map(full)
-    assert f.in_step and f.version == (5, 8, 110)
+    assert f.in_step and f.version == (5, 7, 110)
     np.testing.assert_array_equal(f.replica.records.xyz, maps[6].xyz)
 
     late = MapFollower()  # started mid-run: nothing until a full map
     assert late.on_delta(decode(out.next_delta(maps[7]))) and not late.in_step
     assert not late.on_full_map(deltas[0])  # a delta is not a full map
-    assert late.on_full_map(decode(out.snapshot(maps[7])))
-    assert late.in_step and late.version == (5, 10, 120)
+    assert late.on_full_map(decode(out.snapshot(maps[7])))  # seq 8 again: the map has not changed
+    assert late.in_step and late.version == (5, 8, 120)
 
 
 # --------------------------------------------------------------------------- memgs view
