@@ -285,6 +285,41 @@ def test_source_failure_ends_with_done_false(ros_domain_id: int) -> None:
     assert rx.done == [False] and player.finished.result() is False
 
 
+class _OnceSource:
+    """A source that can be read once (a live stream would be): a replay of it after preloading
+    must not read it again."""
+
+    def __init__(self, frames: list[Frame]) -> None:
+        self.frames, self.reads = frames, 0
+
+    def __iter__(self) -> Iterator[Frame]:
+        self.reads += 1
+        yield from self.frames
+
+
+def test_preloaded_replay_publishes_the_same_frames_from_memory(ros_domain_id: int) -> None:
+    frames = make_frames(6)
+    source = _OnceSource(frames)
+    player, rx = play_in_process(source, ros_domain_id, lockstep=True, preload_mb=1)
+    assert source.reads == 1 and rx.done == [True]
+    for i, f in enumerate(frames):
+        _assert_frame_equal(rx, i, f, f.stamp_ns)
+
+
+def test_preload_refuses_a_source_over_its_budget_and_keeps_a_read_error_in_place() -> None:
+    from memgs_ros.nodes.bag_player import Preloaded
+
+    frames = make_frames(4)  # 32x24: 2304 + 3072 bytes a frame, 186 in 1 MB
+    with pytest.raises(ConfigError, match=r"preload_mb=1 MB \(186 frames did\)"):
+        Preloaded(make_frames(200), budget_mb=1)
+    assert len(Preloaded(frames, budget_mb=1, max_frames=3)) == 3
+    broken = Preloaded(_BrokenSource(frames), budget_mb=1)  # two frames, then a truncated chunk
+    it = iter(broken)
+    assert [next(it).stamp_ns, next(it).stamp_ns] == [f.stamp_ns for f in frames[:2]]
+    with pytest.raises(DataError, match="truncated chunk"):
+        next(it)
+
+
 def test_missing_source_path_is_a_data_error(ros_domain_id: int, tmp_path: Path) -> None:
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=ros_domain_id)

@@ -78,6 +78,11 @@ class BagPlayer(Node):
             source = open_source(self.cfg.source, default_camera=folder_camera, strict=self.cfg.strict)
             _ = source.camera  # a TUM folder with no camera fails here, before the first frame
             frames = source
+        if self.cfg.preload_mb > 0:
+            t0 = time.monotonic()
+            frames = Preloaded(frames, self.cfg.preload_mb, 0 if self.cfg.loop else self.cfg.max_frames)
+            self.get_logger().info(f"preloaded {len(frames)} frames ({frames.nbytes / 1e6:.0f} MB) "
+                                   f"in {time.monotonic() - t0:.1f} s")
         self._source = frames
         # Frames skipped here (stamp going backwards, camera changed); the source counts its own.
         self._skips = SkipLog("bag_player", self.cfg.strict)
@@ -343,6 +348,48 @@ class BagPlayer(Node):
             f"({self._published / elapsed:.1f} frames/s), last stamp {self._last_sent_ns * 1e-9:.3f} s, "
             f"ack timeouts {self._ack_timeouts}"
         )
+
+
+class Preloaded:
+    """The frames of ``source`` decoded into memory up front, so that a replay only publishes (a
+    camera's cost, not a file decoder's). Iterates like the source: a read error met while
+    preloading is raised where it happened, after the frames read before it.
+
+    Raises ConfigError when the frames need more than ``budget_mb``; ``max_frames`` > 0 stops
+    reading there.
+    """
+
+    def __init__(self, source: Iterable[Frame], budget_mb: int, max_frames: int = 0) -> None:
+        self._source = source
+        self.frames: list[Frame] = []
+        self.nbytes = 0
+        self.error: MemgsError | None = None
+        try:
+            for frame in source:
+                self.nbytes += frame.rgb.nbytes + (0 if frame.depth_m is None else frame.depth_m.nbytes)
+                if self.nbytes > budget_mb * 1e6:
+                    raise ConfigError(f"the source does not fit preload_mb={budget_mb} MB ({len(self.frames)} "
+                                      "frames did): raise preload_mb, or set it to 0 to decode frames as they go out")
+                self.frames.append(frame)
+                if max_frames and len(self.frames) >= max_frames:
+                    break
+        except ConfigError:
+            raise
+        except MemgsError as err:  # a strict source's bad frame: the replay fails there, as without preloading
+            self.error = err
+
+    @property
+    def skipped(self) -> dict[str, int]:
+        """The source's own count of skipped bad frames, by kind."""
+        return dict(getattr(self._source, "skipped", {}))
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __iter__(self) -> Iterator[Frame]:
+        yield from self.frames
+        if self.error is not None:
+            raise self.error
 
 
 def _frames_total(frames: Iterable[Frame], max_frames: int) -> int:

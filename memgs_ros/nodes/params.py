@@ -43,10 +43,13 @@ class BagPlayerParams:
     # stop at the first bad frame (unreadable or mis-sized image, stamp going backwards, a camera that
     # changes mid-run) instead of skipping and counting it (skipped.<kind> in the stats)
     strict: bool = False
+    # decode every frame into memory before the first goes out, at most this many MB (0 = decode each
+    # frame as it goes out): a live replay then costs the CPU a camera driver does, not a PNG decoder's
+    preload_mb: int = 0
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "rate": (0.01, 1000.0), "ack_timeout_s": (0.05, 3600.0), "start_delay_s": (0.0, 600.0),
-        "max_frames": (0, 2**31 - 1), "depth_scale": (1.0, 100000.0),
+        "max_frames": (0, 2**31 - 1), "depth_scale": (1.0, 100000.0), "preload_mb": (0, 1_000_000),
     }
     CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"depth_encoding": ("32FC1", "16UC1")}
 
