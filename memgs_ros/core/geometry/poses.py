@@ -6,6 +6,7 @@ wire); ``T_cw`` is its inverse. Quaternion order is always in the name: ``xyzw``
 """
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -22,11 +23,66 @@ def quat_xyzw_to_rotmat(q_xyzw: np.ndarray) -> np.ndarray:
 
 
 def rotmat_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices [..., 3, 3] to unit quaternions [..., 4] (x, y, z, w), w >= 0."""
+    """Rotation matrices [..., 3, 3] to unit quaternions [..., 4] (x, y, z, w), w >= 0.
+
+    Shepperd's method in numpy: the tracker converts a few poses every frame, and scipy's
+    ``Rotation.from_matrix`` spends ~0.3 ms on one matrix. Matrices slightly off SO(3) (products
+    of rotations) give the normalised quaternion; ``test_poses`` checks it against scipy.
+    """
     R = np.asarray(R, dtype=np.float64)
-    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
+    if R.shape == (3, 3):  # one matrix: numpy's per-call overhead would dominate
+        return np.array(_quat_xyzw_one(*R.ravel().tolist()))
+    m = R.reshape(-1, 9)
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m.T
+    # The largest of four candidate denominators keeps the division well conditioned.
+    cand = np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
+    k = cand.argmax(-1)
+    s = 2.0 * np.sqrt(np.maximum(np.take_along_axis(cand, k[:, None], -1)[:, 0], 1e-300))
+    opts = np.stack([
+        np.stack([(m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, s / 4], -1),
+        np.stack([s / 4, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s], -1),
+        np.stack([(m01 + m10) / s, s / 4, (m12 + m21) / s, (m02 - m20) / s], -1),
+        np.stack([(m02 + m20) / s, (m12 + m21) / s, s / 4, (m10 - m01) / s], -1),
+    ], 1)  # [N, 4 candidates, 4]
+    q = opts[np.arange(len(k)), k]
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
     q = np.where(q[:, 3:4] < 0, -q, q)
     return q.reshape(R.shape[:-2] + (4,))
+
+
+def _quat_xyzw_one(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float,
+                   m20: float, m21: float, m22: float) -> tuple[float, float, float, float]:
+    """``rotmat_to_quat_xyzw`` of one matrix, in Python floats (the same cases)."""
+    cand = (1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22)
+    k = max(range(4), key=cand.__getitem__)
+    s = 2.0 * math.sqrt(max(cand[k], 1e-300))
+    if k == 0:
+        q = ((m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, s / 4)
+    elif k == 1:
+        q = (s / 4, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s)
+    elif k == 2:
+        q = ((m01 + m10) / s, s / 4, (m12 + m21) / s, (m02 - m20) / s)
+    else:
+        q = ((m02 + m20) / s, (m12 + m21) / s, s / 4, (m10 - m01) / s)
+    n = math.sqrt(sum(c * c for c in q)) * (-1.0 if q[3] < 0 else 1.0)
+    return q[0] / n, q[1] / n, q[2] / n, q[3] / n
+
+
+def rotmat_to_rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] to rotation vectors [..., 3] (axis times angle in [0, pi])."""
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape == (3, 3):
+        x, y, z, w1 = _quat_xyzw_one(*R.ravel().tolist())
+        n1 = math.sqrt(x * x + y * y + z * z)
+        f1 = 2.0 / max(w1, 1e-300) if n1 < 1e-12 else 2.0 * math.atan2(n1, w1) / n1
+        return np.array((x * f1, y * f1, z * f1))
+    q = rotmat_to_quat_xyzw(R)
+    v, w = q[..., :3], q[..., 3]
+    n = np.linalg.norm(v, axis=-1)
+    # angle / sin(angle / 2) = 2 atan2(n, w) / n, which tends to 2 / w as n -> 0.
+    small = n < 1e-12
+    f = np.where(small, 2.0 / np.maximum(w, 1e-300), 2.0 * np.arctan2(n, w) / np.where(small, 1.0, n))
+    return v * f[..., None]
 
 
 def pose_from_tq(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:

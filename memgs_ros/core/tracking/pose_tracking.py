@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.geometry.poses import invert_pose
+from memgs_ros.core.geometry.poses import invert_pose, rotmat_to_rotvec
+from memgs_ros.core.tracking._compiled import numba_available
 from memgs_ros.core.tracking.bundle_adjustment import optimize_pose, orthonormalized
 from memgs_ros.core.tracking.config import TrackerConfig
 from memgs_ros.core.tracking.features import FrameFeatures, match_by_projection, match_descriptors
@@ -76,7 +76,7 @@ class MotionModel:
         R_wc(k) = R_wc(k-1) Exp(omega dt), and velocity = T_cw(k) T_cw(k-1)^-1, so
         Exp(omega dt) = R(velocity)^T.
         """
-        return Rotation.from_matrix(velocity[:3, :3].T).as_rotvec() / dt_s
+        return rotmat_to_rotvec(velocity[:3, :3].T) / dt_s
 
     def frame_angular_velocity(self, T_cw: np.ndarray, T_cw_prev: np.ndarray, dt_s: float) -> np.ndarray:
         """This interval's angular velocity [3], averaged with the previous interval's when known:
@@ -130,11 +130,14 @@ class LocalMapMatcher:
         uv, vis = self.project(p_w, T_init)
         idx = np.flatnonzero(vis)
         radius = radius_px / self.inv_sigma(octave[idx])
-        if self._kp_tree is None or self._kp_tree[0] is not feats:
-            self._kp_tree = (feats, cKDTree(feats.uv))  # one tree per frame, shared by the passes
+        tree = None
+        if not numba_available():  # only the plain matcher searches a k-d tree
+            if self._kp_tree is None or self._kp_tree[0] is not feats:
+                self._kp_tree = (feats, cKDTree(feats.uv))  # one tree per frame, shared by the passes
+            tree = self._kp_tree[1]
         pi, ki, _ = match_by_projection(uv[idx], desc[idx], feats, radius,
                                         self.cfg.max_descriptor_distance, self.cfg.match_ratio,
-                                        max_candidates=max_candidates, kp_tree=self._kp_tree[1])
+                                        max_candidates=max_candidates, kp_tree=tree)
         pi = idx[pi]
         if len(pi) < 4:
             return T_init, pi, ki, np.zeros(len(pi), bool)
