@@ -145,3 +145,23 @@ def test_rolling_shutter_readout_is_validated() -> None:
     with pytest.raises(ConfigError, match="rolling_shutter_readout_s"):
         TrackerConfig(rolling_shutter_readout_s=-0.01)
     assert TrackerConfig().rolling_shutter_readout_s == 0.0  # global shutter unless a camera says otherwise
+
+
+def test_the_motion_prediction_spans_a_gap_of_skipped_frames() -> None:
+    """Constant velocity over the elapsed time: a live tracker that dropped frames predicts the
+    whole gap, and frames at the velocity's own interval (lockstep replays) keep it as it is."""
+    from memgs_ros.core.tracking.pose_tracking import MotionModel
+
+    step = np.eye(4)
+    step[:3, :3] = Rotation.from_rotvec([0.0, 0.04, 0.01]).as_matrix()  # ~2.4 degrees a frame
+    step[:3, 3] = (0.01, 0.0, -0.005)
+    m = MotionModel()
+    assert m.motion_over(0.1) is m.velocity  # unknown velocity: the identity guess, unscaled
+    m.update(step @ np.eye(4), np.eye(4), 1 / 30)
+    for dt in (1 / 30, 1.2 / 30, 0.7 / 30):  # stamp jitter: the velocity itself
+        np.testing.assert_array_equal(m.motion_over(dt), m.velocity)
+    three = m.motion_over(3 / 30)  # two frames skipped
+    np.testing.assert_allclose(Rotation.from_matrix(three[:3, :3]).as_rotvec(), [0.0, 0.12, 0.03], atol=1e-9)
+    np.testing.assert_allclose(three, step @ step @ step, atol=1e-12)  # the screw motion, three times
+    half = m.motion_over(0.5 / 30)  # an interval half the velocity's: the square root
+    np.testing.assert_allclose(half @ half, step, atol=1e-12)

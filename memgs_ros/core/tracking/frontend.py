@@ -269,8 +269,8 @@ class FeatureTracker(Tracker):
                      ) -> tuple[np.ndarray | None, KeyframeInfo | None, int, int]:
         cfg, motion = self.cfg, self.motion
         assert self._T_cw_last is not None
-        T_pred = orthonormalized(motion.velocity @ self._T_cw_last)
         dt_s = motion.frame_dt_s(frame.stamp_ns)
+        T_pred = orthonormalized(motion.motion_over(dt_s) @ self._T_cw_last)
         rolling = cfg.rolling_shutter_readout_s > 0.0
         raw = feats
         if rolling:  # first guess: the angular velocity of the previous frame

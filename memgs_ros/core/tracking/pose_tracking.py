@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose, rotmat_to_rotvec
 from memgs_ros.core.tracking._compiled import numba_available
-from memgs_ros.core.tracking.bundle_adjustment import optimize_pose, orthonormalized
+from memgs_ros.core.tracking.bundle_adjustment import optimize_pose, orthonormalized, so3_exp
 from memgs_ros.core.tracking.config import TrackerConfig
 from memgs_ros.core.tracking.features import FrameFeatures, match_by_projection, match_descriptors
 from memgs_ros.core.tracking.local_map import SparseMap
@@ -26,6 +26,7 @@ _MIN_PROJECTION_MATCHES = 30  # below this the first pass is retried with a wide
 _WIDE_RADIUS_FACTOR = 3.0
 _NOMINAL_FRAME_DT_S = 1.0 / 30.0  # frame interval assumed until two stamps are known
 _MAX_FRAME_DT_S = 0.5  # longer gaps: the velocity says nothing about the motion inside a frame
+_GAP_RATIO = 1.5  # an interval this many times the velocity's spans a skipped frame: scale the motion
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,6 +45,17 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(c)))
 
 
+def _left_jacobian(phi: np.ndarray) -> np.ndarray:
+    """SO(3)'s left Jacobian [3, 3] at rotation vector ``phi`` [3]: SE(3)'s exp maps (phi, rho)
+    to translation V(phi) rho."""
+    theta2 = float(phi @ phi)
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    if theta2 < 1e-12:
+        return np.eye(3) + 0.5 * K
+    theta = np.sqrt(theta2)
+    return np.eye(3) + (1.0 - np.cos(theta)) / theta2 * K + (theta - np.sin(theta)) / (theta2 * theta) * (K @ K)
+
+
 class MotionModel:
     """Constant velocity: T_cw(k) = velocity @ T_cw(k-1), over ``dt_s`` seconds."""
 
@@ -56,6 +68,26 @@ class MotionModel:
     def reset(self) -> None:
         self.velocity = np.eye(4)
         self.known = False
+
+    def motion_over(self, dt_s: float) -> np.ndarray:
+        """The predicted motion [4, 4] (T_cw(k) T_cw(k-1)^-1) over ``dt_s`` seconds.
+
+        The velocity itself while frames come at the interval it spans; over a gap of a skipped
+        frame or more (a live tracker dropping stale frames) it is scaled to the gap as a screw
+        motion (the velocity twice for twice its interval): the unscaled velocity predicted a third of the motion after
+        two skipped frames on fr1/rpy, and such frames took the slow paths (wide search, PnP).
+        """
+        ratio = dt_s / self.dt_s
+        if not self.known or 1.0 / _GAP_RATIO < ratio < _GAP_RATIO:
+            return self.velocity
+        # The screw motion's power: rotation vector phi and translation t = V(phi) rho scale to
+        # ratio * phi and V(ratio * phi) ratio * rho (V: SO(3)'s left Jacobian).
+        phi = rotmat_to_rotvec(self.velocity[:3, :3])
+        rho = np.linalg.solve(_left_jacobian(phi), self.velocity[:3, 3])
+        out = np.eye(4)
+        out[:3, :3] = so3_exp(ratio * phi)
+        out[:3, 3] = _left_jacobian(ratio * phi) @ (ratio * rho)
+        return out
 
     def update(self, T_cw: np.ndarray, T_cw_prev: np.ndarray, dt_s: float) -> None:
         self.velocity = orthonormalized(T_cw @ invert_pose(T_cw_prev))
