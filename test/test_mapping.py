@@ -306,6 +306,10 @@ def test_not_ready_until_min_keyframes(tiny_frames: list[Frame]) -> None:
     assert not m.ready and m.step() is None
     with pytest.raises(ConfigError, match="needs 3 keyframes, has 2"):
         m.train(1, progress=False)
+    # The final iterations of a run that ended with fewer keyframes train on what there is.
+    st = m.step(final=True)
+    assert st is not None and m.iteration == 1
+    assert _mapper([]).step(final=True) is None  # nothing to train on
 
 
 def test_pose_update_changes_training(tiny_frames: list[Frame]) -> None:

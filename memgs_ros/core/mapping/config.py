@@ -77,7 +77,7 @@ class MappingConfig:
     prune_min_age_iters: int = 200
     max_screen_size_px: float = 0.0
     # Training views
-    min_keyframes: int = 10
+    min_keyframes: int = 10  # training starts with this many (the final iterations train on any number)
     new_keyframe_budget: int = 2
     pyramid_uses_per_level: int = 8
     resolution_scale: float = 1.0

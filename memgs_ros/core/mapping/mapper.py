@@ -332,14 +332,16 @@ class GaussianMapper:
         return rasterize(g.gaussians(), T_cw, camera, g.active_sh_degree, background=self._background,
                          near=self.cfg.near_m, backend=self.cfg.raster_backend)
 
-    def step(self, densify: bool = True) -> StepStats | None:
-        """One training iteration; None (and nothing done) until ``ready``.
+    def step(self, densify: bool = True, final: bool = False) -> StepStats | None:
+        """One training iteration; None (and nothing done) until ``ready``, or with ``final``
+        (the run has ended and no keyframe is coming) until there is one keyframe: a run that
+        ended with fewer than ``min_keyframes`` must not leave its map untrained.
 
         In an iteration where a merge is scheduled, densification waits for the next interval
         (merge and densification alternate, reference section 4). ``densify=False`` skips
         densification (a final polish of the map that should not grow it).
         """
-        if not self.ready:
+        if not (self.ready or (final and len(self.keyframes) > 0)):
             return None
         t0 = time.perf_counter()
         cfg = self.cfg

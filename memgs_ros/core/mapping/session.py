@@ -361,8 +361,9 @@ class MappingSession(CommandWorker):
         return self.submit("state_dict", lambda: self._state_dict(only_if_changed))
 
     def finish(self, final_iterations: int = 0, densify: bool = True) -> Future[FinishResult]:
-        """Run what is queued, stop free-running training, run ``final_iterations`` (once; with
-        ``densify=False`` they only refine, so the map does not grow at the end), and
+        """Run what is queued, stop free-running training, run ``final_iterations`` (once, on the
+        keyframes there are, fewer than ``min_keyframes`` too; with ``densify=False`` they only
+        refine, so the map does not grow at the end), and
         refuse keyframes from then on. Deltas, renders and state stay available."""
         return self.submit("finish", lambda: self._finish(int(final_iterations), bool(densify)))
 
@@ -526,12 +527,11 @@ class MappingSession(CommandWorker):
         if not self._finished:
             self._training = False
             self._finished = True
-            if self._mapper.ready:
-                for _ in range(final_iterations):
-                    st = self._mapper.step(densify=densify)
-                    if st is None:
-                        break
-                    self._after_step(st)
-                    ran += 1
+            for _ in range(final_iterations):  # on whatever keyframes there are, even fewer than min_keyframes
+                st = self._mapper.step(densify=densify, final=True)
+                if st is None:
+                    break
+                self._after_step(st)
+                ran += 1
         return FinishResult(self._epoch, len(self._mapper.gmap), ran,
                             time.perf_counter() - t0)
