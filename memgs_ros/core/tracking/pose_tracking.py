@@ -74,8 +74,9 @@ class MotionModel:
 
         The velocity itself while frames come at the interval it spans; over a gap of a skipped
         frame or more (a live tracker dropping stale frames) it is scaled to the gap as a screw
-        motion (the velocity twice for twice its interval): the unscaled velocity predicted a third of the motion after
-        two skipped frames on fr1/rpy, and such frames took the slow paths (wide search, PnP).
+        motion (the velocity twice for twice its interval): unscaled, it predicted a third of the
+        motion after two skipped frames on fr1/rpy, and such frames took the slow paths (wide
+        search, PnP).
         """
         ratio = dt_s / self.dt_s
         if not self.known or 1.0 / _GAP_RATIO < ratio < _GAP_RATIO:
