@@ -249,3 +249,19 @@ def test_final_iterations_densify_only_when_asked(frames: list[Frame], densify: 
     assert done.final_iterations == 20
     assert (done.gaussians > before) == densify, (before, done.gaussians)
     s.close()
+
+
+def test_final_budget_ends_the_final_iterations_early(frames: list[Frame]) -> None:
+    """finish(n, budget_s=b) stops once the final iterations have taken b seconds (checked after
+    each: at least one runs); a budget they fit in changes nothing."""
+    s = MappingSession(_cfg(), free_running=False)
+    for i, f in enumerate(frames[:2]):
+        s.insert_keyframe(_kf(f, 10 + i))
+    done = s.finish(50, budget_s=1e-6).result(120)
+    assert done.final_iterations == 1 and s.status.iteration == 1
+    s.close()
+    s = MappingSession(_cfg(), free_running=False)
+    for i, f in enumerate(frames[:2]):
+        s.insert_keyframe(_kf(f, 10 + i))
+    assert s.finish(4, budget_s=1e6).result(120).final_iterations == 4
+    s.close()

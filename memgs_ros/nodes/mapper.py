@@ -13,6 +13,7 @@ from it under a new delta epoch, publishing a snapshot so the merger replaces it
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import pathlib
 import queue
@@ -27,6 +28,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
@@ -62,6 +64,9 @@ from memgs_ros.ros.seed_cloud import decode_seeds
 from memgs_ros.ros.stamp_sync import KeyframeIntake
 
 CONFIGS = NODE_CONFIGS["mapper"]
+# How long the finish service waits for every receiver to acknowledge the final flush before the
+# closing snapshot goes anyway (a receiver that died stays matched until its lease runs out).
+FLUSH_ACK_TIMEOUT_S = 10.0
 
 
 class MapperNode(Node):
@@ -312,11 +317,21 @@ class MapperNode(Node):
 
     def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         """Insert what is queued, stop training, run the final iterations, flush every change."""
-        done = self.session.finish(self.params.final_iterations, self.params.final_densify).result()
+        p = self.params
+        done = self.session.finish(p.final_iterations, p.final_densify, p.final_budget_s).result()
         self.get_logger().info(f"final {done.final_iterations} iterations in {done.seconds:.1f} s")
-        self.send_delta(exact=True)
+        self.send_delta(exact=True).result()
         # A receiver cannot see that the last delta was lost (no later seq shows the gap): the
-        # latched snapshot after it lets every receiver end on the final map.
+        # latched snapshot after it lets every receiver end on the final map. It waits until the
+        # flush is acknowledged: sent at once, the two whole maps share a slow link and the flush,
+        # which every receiver in step needs, arrives later (a 2.9 MB flush over 5 Mbit/s: 8.4 s).
+        flushed: Future = Future()
+        self._hand_over(lambda: flushed.set_result(None))  # after the flush: one ordered queue
+        t0 = time.monotonic()
+        with contextlib.suppress(TimeoutError):  # waited long enough: the snapshot goes anyway
+            flushed.result(FLUSH_ACK_TIMEOUT_S)
+            left = FLUSH_ACK_TIMEOUT_S - (time.monotonic() - t0)
+            self.pub_delta.wait_for_all_acked(Duration(nanoseconds=int(max(left, 0.0) * 1e9)))
         _, _, seq = self.publish_snapshot().result()
         self.save_checkpoint()
         res.success = True

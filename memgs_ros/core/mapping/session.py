@@ -360,12 +360,17 @@ class MappingSession(CommandWorker):
         the last capture."""
         return self.submit("state_dict", lambda: self._state_dict(only_if_changed))
 
-    def finish(self, final_iterations: int = 0, densify: bool = True) -> Future[FinishResult]:
+    def finish(self, final_iterations: int = 0, densify: bool = True,
+               budget_s: float = 0.0) -> Future[FinishResult]:
         """Run what is queued, stop free-running training, run ``final_iterations`` (once, on the
         keyframes there are, fewer than ``min_keyframes`` too; with ``densify=False`` they only
         refine, so the map does not grow at the end), and
-        refuse keyframes from then on. Deltas, renders and state stay available."""
-        return self.submit("finish", lambda: self._finish(int(final_iterations), bool(densify)))
+        refuse keyframes from then on. Deltas, renders and state stay available.
+
+        ``budget_s`` > 0 ends the final iterations once they have taken that long (checked after
+        each, so at least one runs): a robot that must hand its map over by a deadline trades the
+        last polish for time."""
+        return self.submit("finish", lambda: self._finish(int(final_iterations), bool(densify), float(budget_s)))
 
     def call(self, fn: Callable[[GaussianMapper], T]) -> Future[T]:
         """Run ``fn(mapper)`` on the worker (tests, benchmarks and tools that need the engine);
@@ -521,7 +526,7 @@ class MappingSession(CommandWorker):
             self._render_camera = ckpt.keyframes[-1].camera  # prepared: undistorted and scaled
         self._captured = (self._mapper.iteration, len(self._stamps))
 
-    def _finish(self, final_iterations: int, densify: bool) -> FinishResult:
+    def _finish(self, final_iterations: int, densify: bool, budget_s: float = 0.0) -> FinishResult:
         t0 = time.perf_counter()
         ran = 0
         if not self._finished:
@@ -533,5 +538,7 @@ class MappingSession(CommandWorker):
                     break
                 self._after_step(st)
                 ran += 1
+                if budget_s > 0 and time.perf_counter() - t0 >= budget_s:
+                    break
         return FinishResult(self._epoch, len(self._mapper.gmap), ran,
                             time.perf_counter() - t0)
