@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import ctypes.util
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -51,3 +52,26 @@ def test_lower_priority_reaches_every_thread_and_their_children() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["7", "7"]
+
+
+@pytest.mark.skipif(not Path("/proc/self/autogroup").exists(), reason="no autogroup scheduling in this kernel")
+def test_lower_priority_lowers_the_autogroup_of_a_session_leader_only() -> None:
+    """With autogroup scheduling a thread's niceness counts only inside its session: a node in a
+    session of its own (as memgs run starts them) lowers its session's weight too; a process in
+    someone else's session (this test's) leaves that session's weight alone."""
+    import subprocess
+    import sys
+
+    code = ("from pathlib import Path\n"
+            "from memgs_ros.core.runtime.cpu import lower_priority\n"
+            "lower_priority(9)\n"
+            "print(Path('/proc/self/autogroup').read_text().split('nice')[1].strip())\n")
+    ours = Path("/proc/self/autogroup").read_text()
+    leader = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                            start_new_session=True)
+    assert leader.returncode == 0, leader.stderr
+    assert leader.stdout.strip() == "9"
+    member = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert member.returncode == 0, member.stderr
+    assert Path("/proc/self/autogroup").read_text() == ours  # the session it shares is untouched
+    assert member.stdout.strip() == ours.split("nice")[1].strip()

@@ -21,6 +21,7 @@ import logging
 import os
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 
 _log = logging.getLogger(__name__)
 
@@ -172,4 +173,26 @@ def lower_priority(niceness: int) -> int:
                 os.setpriority(os.PRIO_PROCESS, tid, niceness)
         except OSError:  # the thread ended meanwhile
             continue
+    _lower_autogroup(niceness)
     return os.getpriority(os.PRIO_PROCESS, 0)
+
+
+AUTOGROUP = Path("/proc/self/autogroup")
+
+
+def _lower_autogroup(niceness: int) -> None:
+    """With autogroup scheduling (``kernel.sched_autogroup_enabled``, on in most desktop and
+    Debian kernels) the CPU is shared fairly between sessions first and a thread's niceness
+    counts only inside its own session: a mapper in a session of its own (``memgs run`` starts
+    every node with ``setsid``) took as much CPU as the tracker whatever its niceness. So a
+    process that leads its own session lowers its session's weight too. One that does not (a
+    node in a terminal, or beside its siblings under ``ros2 launch``) leaves it alone: that
+    would lower every process of the session, the tracker's too."""
+    try:
+        if os.getsid(0) != os.getpid():
+            return
+        current = int(AUTOGROUP.read_text().split("nice")[1])
+        if current < niceness:
+            AUTOGROUP.write_text(f"{niceness}\n")
+    except (OSError, ValueError, IndexError):  # no autogroup here (disabled, not Linux, a cgroup-only kernel)
+        return
