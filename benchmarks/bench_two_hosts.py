@@ -193,12 +193,14 @@ class WireMeter:
                     self.samples.append((time.monotonic(), int(v[0]), int(v[8])))
 
 
-def write_profiles(out: Path) -> dict[str, str]:
-    """Fast DDS profiles of the two sides, both from the profile a run uses (the user's
-    FASTRTPS_DEFAULT_PROFILES_FILE, else config/fastdds.xml): the drone's as it is, the ground
-    station's with UDPv4 as its only transport. Why: the namespaces share /dev/shm, and a ground
-    participant offering shared memory could be reached past the shaped link, which a real
-    ground station, with only the radio between, never is."""
+def write_profiles(out: Path, namespace: str = "", pace_kbytes_per_s: float = 0.0) -> dict[str, str]:
+    """Fast DDS profiles of the two sides, from the profile a run uses (the user's
+    FASTRTPS_DEFAULT_PROFILES_FILE, else config/fastdds.xml). The ground station's has UDPv4 as its
+    only transport. Why: the namespaces share /dev/shm, and a ground participant offering shared
+    memory could be reached past the shaped link, which a real ground station, with only the radio
+    between, never is. The drone's is that profile as it is, or with ``pace_kbytes_per_s`` > 0
+    config/fastdds_radio.xml paced at that rate (kB/s), and ``paced`` is set: the mapper then
+    needs asynchronous writers."""
     base = Path(os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE") or config_path("fastdds.xml"))
     ET.register_namespace("", FASTDDS_NS)
     tree = ET.parse(base)
@@ -229,7 +231,22 @@ def write_profiles(out: Path) -> dict[str, str]:
     ground = out / "fastdds_ground.xml"
     ET.indent(tree)
     tree.write(ground, xml_declaration=True, encoding="UTF-8")
-    return {"air": str(base.resolve()), "ground": str(ground.resolve())}
+    if pace_kbytes_per_s <= 0:
+        return {"air": str(base.resolve()), "ground": str(ground.resolve())}
+    # The drone's: the package's radio profile, its flow controller set to the pace and its
+    # per-topic writer profiles moved under the run's namespace (they are named by topic).
+    tree = ET.parse(config_path("fastdds_radio.xml"))
+    root = tree.getroot()
+    for fc in root.iter(q("flow_controller_descriptor")):
+        period_ms = int(fc.findtext(q("period_ms")) or 100)
+        child(fc, "max_bytes_per_period").text = str(int(pace_kbytes_per_s * period_ms))
+    for w in root.findall(q("data_writer")):
+        if w.get("profile_name", "").startswith("/"):
+            w.set("profile_name", namespace + w.get("profile_name", ""))
+    air = out / "fastdds_air.xml"
+    ET.indent(tree)
+    tree.write(air, xml_declaration=True, encoding="UTF-8")
+    return {"air": str(air.resolve()), "ground": str(ground.resolve()), "paced": "1"}
 
 
 # ------------------------------------------------------------------- the ground station (in its namespace)
@@ -253,6 +270,10 @@ class TwoHostProcesses(NodeProcesses):
             cmd = ["ip", "netns", "exec", self._air, *cmd]
         profile = self._profiles[side]
         env = dict(self._node_env, FASTRTPS_DEFAULT_PROFILES_FILE=profile, FASTDDS_DEFAULT_PROFILES_FILE=profile)
+        if name == "mapper" and self._profiles.get("paced"):
+            # A flow controller needs an asynchronous writer; rmw_fastrtps makes every writer
+            # synchronous unless told otherwise (its default since Iron).
+            env["RMW_FASTRTPS_PUBLICATION_MODE"] = "ASYNCHRONOUS"
         with open(self.log_dir / f"{name}.log", "wb") as log:  # the child keeps its own descriptor
             self.procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
                                                 start_new_session=True)
@@ -451,6 +472,9 @@ class TwoHostsOptions:
     overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value
     drop_every: int = 0  # the merger ignores every n-th delta (loss on the link; 0 = none)
     render_view: bool = True  # a ground subscriber to the mapper's live render
+    # The mapper's writers that cross the link (deltas, snapshots, render) paced by config/fastdds_radio.xml's
+    # flow controller at this rate: None = 90 % of the link, as that profile; 0 = unpaced (config/fastdds.xml).
+    pace_kbytes_per_s: float | None = None
     out_dir: Path | None = None  # None = a new temporary folder (kept: logs, params, map)
     domain_id: int | None = None  # None = a random one
     timeout_s: float = 1800.0
@@ -497,6 +521,7 @@ class TwoHostsResult:
     # The final iterations' end (finish called + their time) until the merger's stats show the final
     # map: the flush crossing the link (nan in results saved before it was measured).
     after_final_map_s: float = float("nan")
+    pace_kbytes_per_s: float = 0.0  # the mapper's link writers paced to this (0: unpaced)
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -545,10 +570,12 @@ def run_two_hosts(opts: TwoHostsOptions) -> TwoHostsResult:
     (out / PARAMS_FILE).write_text(yaml.safe_dump(params, sort_keys=False))
     result_path = out / "two_hosts_ground.json"
     result_path.unlink(missing_ok=True)
+    pace = _pace(opts)
     qdisc: dict[str, dict[str, int]] = {}
     with Link(opts.rate_mbit) as link:
         spec = {"parent_pid": os.getpid(), "out_dir": str(out), "namespace": namespace, "domain_id": domain,
-                "params_file": str(out / PARAMS_FILE), "air_netns": link.air, "profiles": write_profiles(out),
+                "params_file": str(out / PARAMS_FILE), "air_netns": link.air,
+                "profiles": write_profiles(out, namespace, pace),
                 "render_view": opts.render_view, "timeout_s": opts.timeout_s, "result_path": str(result_path)}
         spec_path = out / "two_hosts_spec.json"
         spec_path.write_text(json.dumps(spec, indent=1))
@@ -604,7 +631,8 @@ def _result(opts: TwoHostsOptions, raw: Mapping[str, Any], wire: Sequence[tuple[
     up = [(t, float(tx)) for t, _, tx in wire]
     wire_rates = rates([s for s in down if t0 <= s[0] <= t1], 1.0)
     return TwoHostsResult(
-        link_mbit=opts.rate_mbit, source=opts.source, frames=stat("tracker", "frames_in"),
+        link_mbit=opts.rate_mbit, pace_kbytes_per_s=_pace(opts), source=opts.source,
+        frames=stat("tracker", "frames_in"),
         source_complete=bool(raw["source_ok"]), poses_on_ground=int(raw["poses"]),
         keyframes=stat("tracker", "keyframes"), gaussians=int(raw["gaussians"]),
         delta_messages=stat("merger", "deltas"), delta_bytes=stat("merger", "delta_bytes"),
@@ -621,10 +649,16 @@ def _result(opts: TwoHostsOptions, raw: Mapping[str, Any], wire: Sequence[tuple[
         render_views=int(raw["render_views"]), render_bytes=int(raw["render_bytes"]),
         replay_s=t_last - t0, finish_s=raw["t_finished"] - raw["t_finish"], final_training_s=_final_training_s(out),
         convergence_s=t1 - t_last,
-        after_final_map_s=t1 - (raw["t_finish"] + _final_training_s(out)), identical=bool(raw["identical"]), max_abs_diff=float(raw["max_abs_diff"]),
+        after_final_map_s=t1 - (raw["t_finish"] + _final_training_s(out)), identical=bool(raw["identical"]),
+        max_abs_diff=float(raw["max_abs_diff"]),
         merger_resyncs=sum(int(float(v)) for k, v in stats.get("merger", {}).items() if k.startswith("resync.")),
         fault_dropped_deltas=stat("merger", "fault_dropped_deltas"), leftover_processes=len(link.leftover),
         netns=(link.air, link.ground), out_dir=str(out))
+
+
+def _pace(opts: TwoHostsOptions) -> float:
+    """The mapper's link writers' pace, kB/s: 90 % of the link unless set (0: unpaced)."""
+    return 0.9 * opts.rate_mbit * 1e3 / 8 if opts.pace_kbytes_per_s is None else float(opts.pace_kbytes_per_s)
 
 
 def _final_training_s(out: Path) -> float:
@@ -644,6 +678,9 @@ def table(r: TwoHostsResult) -> str:
 
     rows = [
         ("link rate (tbf, each way)", f"{r.link_mbit:g} Mbit/s = {link / 1e3:.1f} kB/s"),
+        ("mapper's link writers paced to (config/fastdds_radio.xml)",
+         f"{r.pace_kbytes_per_s:.1f} kB/s = {100 * r.pace_kbytes_per_s * 1e3 / link:.0f} % of the link"
+         if r.pace_kbytes_per_s else "unpaced"),
         ("frames tracked / poses on the ground / keyframes",
          f"{r.frames} / {r.poses_on_ground} / {r.keyframes}" + ("" if r.source_complete else " (source failed)")),
         ("map deltas received", f"{r.delta_messages} messages, {r.delta_bytes / 1e6:.2f} MB"),
@@ -687,6 +724,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--config", default="", help="node config (default: from the source's name, as memgs run)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", help="override a parameter")
     p.add_argument("--drop-every", type=int, default=0, help="the merger ignores every n-th delta (0 = none)")
+    p.add_argument("--pace", type=float, default=None, metavar="KB/S",
+                   help="pace the mapper's writers that cross the link (config/fastdds_radio.xml; "
+                        "default 90%% of the link; 0 = unpaced, config/fastdds.xml)")
     p.add_argument("--no-render-view", action="store_true", help="no ground subscriber to the live render")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: a new temporary one)")
     p.add_argument("--domain-id", type=int, default=None)
@@ -711,6 +751,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         overrides[key.strip()] = yaml.safe_load(value)
     opts = TwoHostsOptions(source=args.source, frames=args.frames, rate_mbit=args.rate, config=args.config,
                            overrides=overrides, drop_every=args.drop_every, render_view=not args.no_render_view,
+                           pace_kbytes_per_s=args.pace,
                            out_dir=args.out, domain_id=args.domain_id, timeout_s=args.timeout)
     try:
         with stop_on_signals():  # SIGTERM/SIGHUP take Ctrl-C's path: the finally blocks tear everything down

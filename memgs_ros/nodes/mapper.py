@@ -107,6 +107,7 @@ class MapperNode(Node):
                                    f"{len(resumed.keyframes)} keyframes, iteration {resumed.iteration}")
         self.latest_pose: PoseStamped | None = None
         self._delta_pending: Future | None = None  # touched by the outputs' callback group only
+        self._finishing = False  # set once by the finish service, never cleared
         self._render_pending: Future | None = None  # touched by the default callback group only
         self._live_view: tuple[int, ...] = ()  # the last live render's (pose stamp, map version): same group
         self.awaiting_keyframes: set[int] = set()  # lockstep: announced, not yet complete
@@ -273,9 +274,10 @@ class MapperNode(Node):
         # Peak resident memory above the start-up baseline (VmHWM, read 10 times a second).
         self.stats.gauges["working_peak_mb"] = round(max(peak_rss_mb() - self._rss_baseline_mb, 0.0), 1)
 
-    def send_delta(self, exact: bool = False) -> Future:
+    def send_delta(self, exact: bool = False) -> Future | None:
         """Queue a delta (exact: all, tolerance 0), published by the session in seq order. A timer never
-        waits for the worker (it would starve the finish service): one periodic delta at a time."""
+        waits for the worker (it would starve the finish service): one periodic delta at a time, and
+        none while a receiver has not acknowledged the last (counted as ``delta_waits``)."""
         p = self.params
 
         def publish(rows: np.ndarray) -> None:  # on the session's outbox thread
@@ -283,6 +285,14 @@ class MapperNode(Node):
 
         if exact:
             return self.session.delta(None, True, publish)
+        if self._finishing:  # the final flush carries every change: a periodic delta now only delays it
+            return self._delta_pending
+        if not self.pub_delta.wait_for_all_acked(Duration(nanoseconds=0)):
+            # A receiver has not acknowledged the last one yet (a slow link): skip this tick, so that
+            # the next delta carries the map as it is then, rather than queue deltas that newer ones
+            # outdate and that the final flush would wait behind (5 deltas, 4.5 s at 5 Mbit/s).
+            self.stats.post_count("delta_waits")
+            return self._delta_pending
         if self._delta_pending is None or self._delta_pending.done():
             row_bytes = message_dtype(self.cfg.max_sh_degree).itemsize
             rows = max(1, int(p.delta_budget_kbytes_per_s * 1000.0 / p.delta_rate_hz / row_bytes))
@@ -319,9 +329,12 @@ class MapperNode(Node):
     def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         """Insert what is queued, stop training, run the final iterations, flush every change."""
         p = self.params
+        self._finishing = True  # a latch, read by the periodic delta timer
         done = self.session.finish(p.final_iterations, p.final_densify, p.final_budget_s).result()
         self.get_logger().info(f"final {done.final_iterations} iterations in {done.seconds:.1f} s")
-        self.send_delta(exact=True).result()
+        flush = self.send_delta(exact=True)
+        assert flush is not None  # an exact flush never waits
+        flush.result()
         # A receiver cannot see that the last delta was lost (no later seq shows the gap): the
         # latched snapshot after it lets every receiver end on the final map. It waits until the
         # flush is acknowledged: sent at once, the two whole maps share a slow link and the flush,
