@@ -78,6 +78,32 @@ def _terminate(proc: subprocess.Popen, log: Path) -> None:
     assert proc.returncode == 0, log.read_text()[-3000:]
 
 
+def send_one_keyframe(peer: _Peer, proc: subprocess.Popen, log: Path) -> tuple:
+    """Publish one synthetic keyframe (its five parts, seeds on a 4-pixel grid) to a mapper once
+    it listens: (frame, seed points, the messages sent)."""
+    frame = next(iter(generate_frames(parse_spec("synthetic:w=64,h=48,n=1,seed=4"))))
+    stamp = frame.stamp_ns
+    kf = qos.keyframes()
+    pubs = {name: peer.node.create_publisher(t, f"memgs/keyframe/{name}", kf) for name, t in
+            (("color", Image), ("depth", Image), ("camera_info", CameraInfo), ("pose", PoseStamped),
+             ("seeds", PointCloud2))}
+    v, u = np.mgrid[2:48:4, 2:64:4]
+    d = frame.depth_m[v.ravel(), u.ravel()]
+    pts = frame.camera.backproject(u.ravel(), v.ravel(), d) @ frame.T_wc_gt[:3, :3].T + frame.T_wc_gt[:3, 3]
+    cols = frame.rgb[v.ravel(), u.ravel()] / 255.0
+    msgs = {
+        "color": numpy_to_image(frame.rgb, "rgb8", stamp, "cam"),
+        "depth": depth_to_image(frame.depth_m, "32FC1", stamp, "cam"),
+        "camera_info": camera_to_camera_info(frame.camera, stamp, "cam"),
+        "pose": matrix_to_pose_stamped(frame.T_wc_gt, stamp, "map"),
+        "seeds": structured_to_pointcloud2(encode_seeds(pts, cols, np.zeros(len(pts), np.uint8)), stamp, "map"),
+    }
+    peer.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), proc, log)
+    for name, p in pubs.items():
+        p.publish(msgs[name])
+    return frame, pts, msgs
+
+
 def test_merger_saves_its_map_on_sigterm(tmp_path: Path, ros_domain_id: int) -> None:
     ply = tmp_path / "map.ply"
     log = tmp_path / "merger.log"
@@ -110,26 +136,8 @@ def test_mapper_writes_its_checkpoint_on_sigterm(tmp_path: Path, ros_domain_id: 
     proc = _start("memgs_ros.nodes.mapper", ros_domain_id, params, log)
     peer = _Peer(ros_domain_id, "mapper")
     try:
-        frame = next(iter(generate_frames(parse_spec("synthetic:w=64,h=48,n=1,seed=4"))))
+        frame, pts, msgs = send_one_keyframe(peer, proc, log)
         stamp = frame.stamp_ns
-        kf = qos.keyframes()
-        pubs = {name: peer.node.create_publisher(t, f"memgs/keyframe/{name}", kf) for name, t in
-                (("color", Image), ("depth", Image), ("camera_info", CameraInfo), ("pose", PoseStamped),
-                 ("seeds", PointCloud2))}
-        v, u = np.mgrid[2:48:4, 2:64:4]
-        d = frame.depth_m[v.ravel(), u.ravel()]
-        pts = frame.camera.backproject(u.ravel(), v.ravel(), d) @ frame.T_wc_gt[:3, :3].T + frame.T_wc_gt[:3, 3]
-        cols = frame.rgb[v.ravel(), u.ravel()] / 255.0
-        msgs = {
-            "color": numpy_to_image(frame.rgb, "rgb8", stamp, "cam"),
-            "depth": depth_to_image(frame.depth_m, "32FC1", stamp, "cam"),
-            "camera_info": camera_to_camera_info(frame.camera, stamp, "cam"),
-            "pose": matrix_to_pose_stamped(frame.T_wc_gt, stamp, "map"),
-            "seeds": structured_to_pointcloud2(encode_seeds(pts, cols, np.zeros(len(pts), np.uint8)), stamp, "map"),
-        }
-        peer.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), proc, log)
-        for name, p in pubs.items():
-            p.publish(msgs[name])
         peer.spin_until(lambda: int(peer.stats.get("iteration", "0")) >= 5, proc, log)
         assert not ck.exists()  # no periodic checkpoints: only the signal can write it
         _terminate(proc, log)
