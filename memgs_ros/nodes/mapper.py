@@ -337,8 +337,8 @@ class MapperNode(Node):
         flush.result()
         # A receiver cannot see that the last delta was lost (no later seq shows the gap): the
         # latched snapshot after it lets every receiver end on the final map. It waits until the
-        # flush is acknowledged: sent at once, the two whole maps share a slow link and the flush,
-        # which every receiver in step needs, arrives later (a 2.9 MB flush over 5 Mbit/s: 8.4 s).
+        # flush is acknowledged: sent at once, the two whole maps would share a slow link, and the
+        # flush, which every receiver in step needs, would arrive later.
         flushed: Future = Future()
         self._hand_over(lambda: flushed.set_result(None))  # after the flush: one ordered queue
         t0 = time.monotonic()
