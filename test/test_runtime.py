@@ -67,6 +67,8 @@ def test_lower_priority_lowers_the_autogroup_of_a_session_leader_only() -> None:
             "lower_priority(9)\n"
             "print(Path('/proc/self/autogroup').read_text().split('nice')[1].strip())\n")
     ours = Path("/proc/self/autogroup").read_text()
+    if "nice" not in ours:  # empty where the process sits in the root group (CI's container): none applies
+        pytest.skip("/proc/self/autogroup is empty: this process is in no autogroup")
     leader = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                             start_new_session=True)
     assert leader.returncode == 0, leader.stderr
