@@ -65,15 +65,17 @@ def test_lower_priority_lowers_the_autogroup_of_a_session_leader_only() -> None:
     code = ("from pathlib import Path\n"
             "from memgs_ros.core.runtime.cpu import lower_priority\n"
             "lower_priority(9)\n"
-            "print(Path('/proc/self/autogroup').read_text().split('nice')[1].strip())\n")
+            "print(Path('/proc/self/autogroup').read_text().strip())\n")
     ours = Path("/proc/self/autogroup").read_text()
     if "nice" not in ours:  # empty where the process sits in the root group (CI's container): none applies
         pytest.skip("/proc/self/autogroup is empty: this process is in no autogroup")
     leader = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                             start_new_session=True)
     assert leader.returncode == 0, leader.stderr
-    assert leader.stdout.strip() == "9"
+    if "nice" not in leader.stdout:
+        pytest.skip("a new session gets no autogroup here (/proc/self/autogroup is empty in it)")
+    assert leader.stdout.split("nice")[1].strip() == "9"
     member = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert member.returncode == 0, member.stderr
     assert Path("/proc/self/autogroup").read_text() == ours  # the session it shares is untouched
-    assert member.stdout.strip() == ours.split("nice")[1].strip()
+    assert member.stdout.strip() == ours.strip()
