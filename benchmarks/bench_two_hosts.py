@@ -59,7 +59,13 @@ from memgs_ros.errors import MemgsError, PipelineError
 from memgs_ros.nodes.bag_player import LINGER_S
 from memgs_ros.nodes.registry import GRAPH
 from memgs_ros.orchestration.pipeline import _compare_maps, _parse_kv, _wait_for_graph
-from memgs_ros.orchestration.processes import NODE_MODULES, NodeProcesses, open_context
+from memgs_ros.orchestration.processes import (
+    NODE_MODULES,
+    NodeProcesses,
+    open_context,
+    spin_in_background,
+    stop_spinning,
+)
 from memgs_ros.orchestration.run_files import LOGS_DIR, MAP_FILE, PARAMS_FILE, RunOptions, build_params, config_path
 from memgs_ros.orchestration.signals import exit_status, stop_on_signals
 from memgs_ros.ros import qos
@@ -382,11 +388,12 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
     context, _ = open_context(spec["domain_id"], ["--ros-args", "-r", f"__ns:={ns}"])
     executor = SingleThreadedExecutor(context=context)
     procs: TwoHostProcesses | None = None
+    spin: threading.Thread | None = None
     end = time.monotonic() + spec["timeout_s"]
     try:
         gs = GroundStation(context, spec["render_view"])
         executor.add_node(gs.node)
-        threading.Thread(target=executor.spin, daemon=True).start()
+        spin = spin_in_background(executor)
         procs = TwoHostProcesses(Path(spec["params_file"]), ns, env, out / LOGS_DIR, spec["air_netns"],
                                  spec["profiles"])
         for name in GRAPH:  # sinks first, as the runner starts them
@@ -441,7 +448,7 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
     finally:
         if procs is not None:
             procs.stop()  # SIGINT: the merger saves its PLY, the mapper its checkpoint
-        executor.shutdown()
+        stop_spinning(executor, spin)
         rclpy.try_shutdown(context=context)
 
 

@@ -128,3 +128,26 @@ def test_second_interrupt_kills_the_nodes_at_once(tmp_path: Path, ros_domain_id:
     assert code == 130, log[-2000:]
     assert "killing them" in log, log[-2000:]
     assert waited < 5.0
+
+
+
+def test_stop_spinning_returns_once_the_spin_thread_has_ended(context) -> None:  # noqa: ANN001
+    """The runner's observer spins on a thread of its own. A daemon spin thread still waiting in
+    rclpy's C++ wait set as the interpreter finalizes makes rclpy abort the process (exit -6,
+    "terminate called without an active exception": 29 of 30 tries of a bare script, and once a
+    SIGHUP'd runner in CI); stop_spinning returns only once that thread has ended."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from memgs_ros.orchestration.processes import spin_in_background, stop_spinning
+
+    node = rclpy.create_node("spin_exit_probe", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        thread = spin_in_background(executor)
+        time.sleep(0.3)  # the thread now waits inside the wait set
+        stop_spinning(executor, thread)
+        assert not thread.is_alive()
+    finally:
+        node.destroy_node()

@@ -35,7 +35,15 @@ from memgs_ros.core.maps.map_delta import decode
 from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.core.runtime.cpu import MALLOC_ARENAS
 from memgs_ros.errors import ConfigError, PipelineError
-from memgs_ros.orchestration.processes import NODE_FACTORIES, NODE_MODULES, VIEW_NODE, NodeProcesses, open_context
+from memgs_ros.orchestration.processes import (
+    NODE_FACTORIES,
+    NODE_MODULES,
+    VIEW_NODE,
+    NodeProcesses,
+    open_context,
+    spin_in_background,
+    stop_spinning,
+)
 from memgs_ros.orchestration.run_files import (
     CHECKPOINT_FILE,
     GRAPH_NODE_NAMES,
@@ -193,6 +201,8 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
                           else SingleThreadedExecutor(context=context))
     procs: NodeProcesses | None = None
     in_process: list[Any] = []
+    observer: _Observer | None = None
+    spin: threading.Thread | None = None
     t0 = time.monotonic()
     try:
         observer = _Observer(context)
@@ -204,8 +214,7 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
                 node = NODE_FACTORIES[name](context=context)
                 in_process.append(node)
                 executor.add_node(node)
-        spin = threading.Thread(target=executor.spin, daemon=True)
-        spin.start()
+        spin = spin_in_background(executor)
         if not options.single_process:
             env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1")
             # Threaded BLAS/OpenMP pools fight over a few shared cores (a 1 ms product took
@@ -246,9 +255,11 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
             hook = getattr(node, "on_shutdown", None)
             if hook is not None:
                 hook()
-        executor.shutdown()
+        stop_spinning(executor, spin)  # before the context ends, or rclpy may abort at exit
         for node in in_process:
             node.destroy_node()
+        if observer is not None:
+            observer.node.destroy_node()
         rclpy.try_shutdown(context=context)
     # The recorder stopped with the graph (its shutdown closes the file): in parallel, not after it.
     if options.record is not None and _file_identity(options.record) in (None, earlier_record):
