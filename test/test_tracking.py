@@ -132,6 +132,71 @@ def test_monocular_initialises_and_keeps_scale(frames: list[Frame]) -> None:
     assert res.rmse_m < 0.05 * path_length_m(gt), (res.rmse_m, path_length_m(gt))
 
 
+def test_monocular_fusion_adds_observations_that_reproject(frames: list[Frame],
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """A new keyframe's points are matched into its covisible keyframes: points get more
+    observations than the two triangulation gives them, and each lies where its keypoint is."""
+    from memgs_ros.core.tracking.monocular import MonocularTracker
+
+    mono = [Frame(f.stamp_ns, f.rgb, None, f.camera, f.T_wc_gt) for f in frames]
+
+    def observations(fuse: bool) -> tuple[float, np.ndarray]:
+        with monkeypatch.context() as m:
+            if not fuse:
+                m.setattr(MonocularTracker, "_fuse_into_neighbours", lambda self, kf: None)
+            tracker = make_tracker(TrackerConfig(mode="mono", ba_threaded=False), frames[0].camera)
+            try:
+                for f in mono:
+                    tracker.track(f)
+                smap, K = tracker.map, frames[0].camera.K
+                ids = smap.points_of(list(smap.keyframes))
+                errors = []
+                for pid in ids.tolist():
+                    p_w = smap.point_arrays(np.array([pid]))[0][0]
+                    for kf_id, i in smap.observations[pid].items():
+                        kf = smap.keyframes[kf_id]
+                        p_c = kf.T_cw[:3, :3] @ p_w + kf.T_cw[:3, 3]
+                        uv = (K @ p_c)[:2] / p_c[2]
+                        errors.append(np.linalg.norm(uv - kf.feats.uv[i]) / 1.2 ** kf.feats.octave[i])
+                return float(smap.n_observations(ids).mean()), np.array(errors)
+            finally:
+                tracker.close()
+
+    plain, _ = observations(fuse=False)
+    fused, errors = observations(fuse=True)
+    assert fused > plain + 0.3, (fused, plain)
+    assert np.percentile(errors, 95) < 3.0, np.percentile(errors, 95)  # pixels at level 0
+
+
+def test_monocular_frames_wait_for_a_local_ba_running_too_long(frames: list[Frame],
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bounded staleness: with a slow back-end, a frame mono_ba_max_frames_behind frames after a
+    keyframe waits for that keyframe's local BA (0: frames never wait)."""
+    import time
+
+    from memgs_ros.core.tracking.backend import TrackingBackend
+
+    slow = TrackingBackend._local_ba
+
+    def slow_ba(self, snap, kf_id):  # noqa: ANN001, ANN202
+        time.sleep(0.3)
+        return slow(self, snap, kf_id)
+
+    monkeypatch.setattr(TrackingBackend, "_local_ba", slow_ba)
+    mono = [Frame(f.stamp_ns, f.rgb, None, f.camera, f.T_wc_gt) for f in frames[:30]]
+    waits = {}
+    for behind in (0, 2):
+        tracker = make_tracker(TrackerConfig(mode="mono", mono_ba_max_frames_behind=behind), frames[0].camera)
+        try:
+            for f in mono:
+                tracker.track(f)
+            waits[behind] = tracker.ba_waits
+        finally:
+            tracker.close()
+    assert waits[0] == 0
+    assert waits[2] > 0
+
+
 def test_every_backend_is_a_tracker(frames: list[Frame]) -> None:
     import inspect
 

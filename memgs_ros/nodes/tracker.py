@@ -304,6 +304,7 @@ class TrackerNode(Node):
             self.stats.counters["ba_us_total"] += int(ba_dt * 1e6)
         self.stats.gauges["track_ms"] = round(dt * 1e3, 2)
         self.stats.gauges["keyframes_deferred"] = int(getattr(self.tracker, "keyframes_deferred", 0))
+        self.stats.gauges["ba_waits"] = int(getattr(self.tracker, "ba_waits", 0))
         self.stats.counters["track_us_total"] += int(dt * 1e6)
         smap = self.tracker.map_stats() if result.keyframe is not None else None  # None: ORB-SLAM3 has no map
         if smap is not None:
