@@ -124,3 +124,22 @@ def test_no_import_circles() -> None:
         if v not in index:
             visit(v)
     assert circles == [], f"modules importing each other in a circle: {circles}"
+
+
+def test_only_the_mapper_node_loads_torch() -> None:
+    """torch costs a node ~2.5 s of start-up and ~190 MB of memory: the nodes that do not train
+    (tracker, sampler, merger, player, recorder) must not import it, however indirectly."""
+    import subprocess
+    import sys
+
+    nodes = ("tracker", "keyframe_sampler", "merger", "bag_player", "recorder")
+    code = ("import sys\n"
+            + "".join(f"import memgs_ros.nodes.{n}\n" for n in nodes)
+            + "print(sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.')))\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    if "No module named 'rclpy'" in done.stderr:
+        import pytest
+
+        pytest.skip("the ROS extra is not installed")
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "[]", done.stdout[:500]

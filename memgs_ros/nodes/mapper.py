@@ -38,7 +38,7 @@ from memgs_ros.core.mapping import checkpoint, losses
 from memgs_ros.core.mapping.mapper import MappingConfig
 from memgs_ros.core.mapping.session import MappingSession
 from memgs_ros.core.maps.map_delta import message_dtype
-from memgs_ros.core.merge.voxel_merge import MergeConfig
+from memgs_ros.core.merge.config import MergeConfig
 from memgs_ros.core.raster import warm_up
 from memgs_ros.core.raster.backend_choice import choose_backend, device_label, resolve_device
 from memgs_ros.core.runtime.cpu import configure_cpu_runtime

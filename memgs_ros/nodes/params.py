@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from memgs_ros.core.geometry.camera import CAMERA_PREFIX, CameraCalibration
-from memgs_ros.core.mapping.mapper import MappingConfig
-from memgs_ros.core.merge.voxel_merge import MergeConfig
+from memgs_ros.core.mapping.config import MappingConfig
+from memgs_ros.core.merge.config import MergeConfig
 from memgs_ros.core.sampling import PatchGridConfig
 from memgs_ros.core.tracking import TrackerConfig
 from memgs_ros.errors import ConfigError

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from memgs_ros.core.mapping.keyframes import KeyframeInput
+from memgs_ros.core.mapping.keyframe_input import KeyframeInput
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.io.image_decoding import (
     DEFAULT_DEPTH_SCALE,

@@ -21,31 +21,10 @@ import torch
 import torch.nn.functional as F
 
 from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.mapping.keyframe_input import KeyframeInput  # noqa: F401 - re-exported
 from memgs_ros.errors import DataError
 
 PYRAMID_FACTORS: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)  # coarse to fine
-
-
-@dataclass(frozen=True, eq=False)
-class KeyframeInput:
-    """Stage boundary tracker -> keyframe_sampler / mapper: a keyframe as it arrives (a decoded
-    bundle, images as recorded, not yet prepared), owned by the receiving node. The sampler reads
-    its images; the mapper adds the sampler's seeds (``dataclasses.replace``) and hands it to the
-    mapping session, which prepares it into a ``TrainingKeyframe``.
-
-    stamp_ns: capture time (the keyframe's name on the wire); T_wc: [4, 4] camera-to-world;
-    rgb: [H, W, 3] uint8; depth_m: [H, W] float32 metres (NaN invalid) or None; camera: the
-    images' intrinsics with distortion; points_w: [M, 3] world seeds; colors: [M, 3] in [0, 1]
-    (None: no seeds).
-    """
-
-    stamp_ns: int
-    T_wc: np.ndarray
-    rgb: np.ndarray
-    depth_m: np.ndarray | None
-    camera: PinholeCamera
-    points_w: np.ndarray | None = None
-    colors: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
