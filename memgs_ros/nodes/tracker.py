@@ -113,6 +113,7 @@ class TrackerNode(Node):
         self.rgbd = self.cfg.mode == "rgbd"
 
         self.stats = NodeStats(self, "tracker")
+        self.stats.computed["frame_cpu_ms_median"] = self._frame_cpu_median  # a median per frame cost 0.4 ms
         self.camera: PinholeCamera | None = None
         self.tracker: Tracker | None = None
         self.last_stamp_ns = -1
@@ -328,7 +329,9 @@ class TrackerNode(Node):
         self._frame_cpu_ms.append(cost_ms)
         self.stats.counters["frame_cpu_us_total"] += int(cost_ms * 1e3)
         self.stats.gauges["frame_cpu_ms"] = round(cost_ms, 2)
-        self.stats.gauges["frame_cpu_ms_median"] = round(float(np.median(self._frame_cpu_ms)), 2)
+
+    def _frame_cpu_median(self) -> float:
+        return round(float(np.median(self._frame_cpu_ms)), 2) if self._frame_cpu_ms else 0.0
 
     def _stamp_ok(self, stamp: int) -> bool:
         """Apply the stamp rules of the module docstring; False = drop the frame (counted)."""

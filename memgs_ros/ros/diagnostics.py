@@ -9,7 +9,7 @@ import queue
 import resource
 import time
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
@@ -36,6 +36,8 @@ class NodeStats:
         self._name = name
         self.counters: Counter[str] = Counter()
         self.gauges: dict[str, float | int | str] = {}
+        # Gauges computed when the message is built, for those too costly to update per frame.
+        self.computed: dict[str, Callable[[], float | int | str]] = {}
         self._warned: set[str] = set()
         self._posted: queue.SimpleQueue[tuple[str, str, object]] = queue.SimpleQueue()
         self._pub = node.create_publisher(DiagnosticArray, f"memgs/{name}/stats", qos.reliable(5))
@@ -85,6 +87,8 @@ class NodeStats:
         if self._trim_period_s > 0 and time.monotonic() - self._last_trim >= self._trim_period_s:
             self._last_trim = time.monotonic()
             release_free_memory()  # so rss_mb is what the node uses, not its heap's high-water mark
+        for name, compute in self.computed.items():
+            self.gauges[name] = compute()
         self.gauges["peak_rss_mb"] = round(peak_rss_mb(), 1)
         self.gauges["rss_mb"] = round(rss_mb(), 1)
         self.gauges["cpu_s"] = round(time.process_time(), 2)  # of the process (in one process: of all nodes)
