@@ -22,6 +22,14 @@ _GiB = 1024.0 ** 3
 _STRIP_GAP_PX = 4  # white gap between tiles of the frame strip
 
 
+
+def _label_time_axes(ax: Axes, ylabel: str) -> None:
+    """Time on x, ``ylabel`` on y, a light grid and the legend."""
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(ylabel)
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+
 def plot_trajectory_top(ax: Axes,
                         est_xyz: np.ndarray,  # [M, 3] estimated positions (already aligned)
                         gt_xyz: np.ndarray | None = None,  # [K, 3] ground-truth positions
@@ -60,10 +68,7 @@ def plot_ate_errors(ax: Axes, stamps_s: np.ndarray,  # [n] seconds
     if e.size:
         rmse = float(np.sqrt(np.mean(e ** 2)))
         ax.axhline(rmse * 100.0, color="tab:red", linestyle=":", label=f"RMSE {rmse * 100:.2f} cm")
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("position error [cm]")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize="small")
+    _label_time_axes(ax, "position error [cm]")
 
 
 def plot_psnr_per_frame(ax: Axes, stamps_s: np.ndarray,  # [F] seconds
@@ -82,10 +87,7 @@ def plot_psnr_per_frame(ax: Axes, stamps_s: np.ndarray,  # [F] seconds
             kmean = float(p[kf & finite].mean()) if (kf & finite).any() else float("nan")
             ax.plot(t[kf], p[kf], marker="o", markersize=3, color="tab:orange", linestyle="none",
                     label=f"keyframes (mean {kmean:.2f} dB)")
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("PSNR [dB]")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize="small")
+    _label_time_axes(ax, "PSNR [dB]")
 
 
 def plot_map_size(ax: Axes, stamps_s: np.ndarray,  # [T] seconds
