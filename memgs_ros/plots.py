@@ -30,6 +30,7 @@ def _label_time_axes(ax: Axes, ylabel: str) -> None:
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize="small")
 
+
 def plot_trajectory_top(ax: Axes,
                         est_xyz: np.ndarray,  # [M, 3] estimated positions (already aligned)
                         gt_xyz: np.ndarray | None = None,  # [K, 3] ground-truth positions
