@@ -29,7 +29,7 @@ import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.core.geometry.poses import invert_pose, nearest_pose_distance
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking._compiled import warm_up
 from memgs_ros.core.tracking.backend import TrackingBackend
 from memgs_ros.core.tracking.bundle_adjustment import orthonormalized
@@ -204,8 +204,7 @@ class FeatureTracker(Tracker):
         return self.cfg.keyframe_tracked_ratio
 
     def _ba_max_frames_behind(self) -> int:
-        """Frames tracked on a map whose local BA is still running before a frame waits for it
-        (0: never; RGB-D: a live frame never waits for a BA)."""
+        """Frames a local BA may run before a frame waits for it (0: never, as with depth)."""
         return 0
 
     def _min_point_obs(self) -> int:
@@ -427,22 +426,10 @@ class FeatureTracker(Tracker):
         return self._finish_keyframe(kf)
 
     def _cap_keyframes(self, newest_id: int) -> None:
-        """Keep at most ``cfg.max_keyframes``: remove the most redundant keyframe outside the
-        local map and the newest BA window, then compact the points nobody sees any more."""
-        cap = self.cfg.max_keyframes
-        if cap <= 0 or len(self.map.keyframes) <= cap:
-            return
-        ids = sorted(self.map.keyframes)
-        protected = set(self._local_kfs) | set(ids[-self.cfg.ba_window:]) | {newest_id, self._last_kf_id}
-        while len(ids) > cap:
-            T_wc = invert_pose(np.stack([self.map.keyframes[i].T_cw for i in ids]))
-            nearest = nearest_pose_distance(T_wc)
-            nearest[[j for j, i in enumerate(ids) if i in protected]] = np.inf
-            j = int(np.argmin(nearest))
-            if not np.isfinite(nearest[j]):
-                break  # everything left is in use
-            self.map.remove_keyframe(ids.pop(j))
-        self.map.compact()
+        """Keep at most ``cfg.max_keyframes``, never one of the local map or the newest BA window."""
+        if 0 < self.cfg.max_keyframes < len(self.map.keyframes):
+            window = sorted(self.map.keyframes)[-self.cfg.ba_window:]
+            self.map.cap_keyframes(self.cfg.max_keyframes, {*self._local_kfs, *window, newest_id, self._last_kf_id})
 
     def _finish_keyframe(self, kf: SparseKeyframe) -> KeyframeInfo:
         """Make ``kf`` the reference keyframe and hand it to the back-end (BA, place recognition)."""

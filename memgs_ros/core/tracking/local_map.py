@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from memgs_ros.core.geometry.poses import invert_pose
+from memgs_ros.core.geometry.poses import invert_pose, nearest_pose_distance
 from memgs_ros.core.tracking.features import FrameFeatures
 from memgs_ros.core.tracking.map_snapshot import MapSnapshot
 
@@ -204,6 +204,19 @@ class SparseMap:
                 p.bad[pid] = True
                 p.n_obs[pid] = 0
         self.keyframes_removed += 1
+
+    def cap_keyframes(self, cap: int, protected: set[int]) -> None:
+        """Remove the most redundant keyframes (nearest pose to another) outside ``protected``
+        until at most ``cap`` remain, then compact the points nobody sees any more."""
+        ids = sorted(self.keyframes)
+        while len(ids) > cap:
+            nearest = nearest_pose_distance(invert_pose(np.stack([self.keyframes[i].T_cw for i in ids])))
+            nearest[[j for j, i in enumerate(ids) if i in protected]] = np.inf
+            j = int(np.argmin(nearest))
+            if not np.isfinite(nearest[j]):
+                break  # everything left is in use
+            self.remove_keyframe(ids.pop(j))
+        self.compact()
 
     def compact(self, min_bad: int = 1024, min_fraction: float = 0.5) -> bool:
         """Drop bad points once there are at least ``min_bad`` and ``min_fraction`` of the store
