@@ -3,6 +3,7 @@
 (PR_SET_PDEATHSIG), and a second Ctrl-C kills them at once. Real processes, real DDS."""
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -104,6 +105,9 @@ def test_runner_end_ends_every_node(tmp_path: Path, sig: signal.Signals, ros_dom
     assert code == (-signal.SIGKILL if sig == signal.SIGKILL else 128 + int(sig)), log[-2000:]
     if sig != signal.SIGKILL:
         assert f"interrupted ({sig.name})" in log, log[-2000:]
+        summary = json.loads((out / "summary.json").read_text())  # the run says how it ended
+        assert summary["outcome"] == "interrupted" and sig.name in summary["error"], summary
+    assert not list(out.glob(".*.tmp")), "atomic writes left temporary files"
     # SIGTERM / SIGHUP: the runner stopped the nodes; SIGKILL: the kernel's SIGTERM did. Either
     # way the merger saved the map it held.
     assert waited < 20.0
