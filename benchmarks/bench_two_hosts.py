@@ -57,10 +57,9 @@ from memgs_ros.cli.run import check_inputs, guess_config
 from memgs_ros.core.runtime.cpu import MALLOC_ARENAS, PARENT_PID_ENV, die_with_parent
 from memgs_ros.errors import MemgsError, PipelineError
 from memgs_ros.nodes.bag_player import LINGER_S
-from memgs_ros.nodes.registry import GRAPH
+from memgs_ros.nodes.registry import GRAPH, NODES
 from memgs_ros.orchestration.pipeline import _compare_maps, _parse_kv, _wait_for_graph
 from memgs_ros.orchestration.processes import (
-    NODE_MODULES,
     NodeProcesses,
     open_context,
     spin_in_background,
@@ -271,7 +270,7 @@ class TwoHostProcesses(NodeProcesses):
 
     def start(self, name: str) -> None:
         side = "air" if name in ONBOARD else "ground"
-        cmd = [sys.executable, "-m", NODE_MODULES[name].__name__, *self._cmd_tail]
+        cmd = [sys.executable, "-m", NODES[name][0], *self._cmd_tail]
         if side == "air":
             cmd = ["ip", "netns", "exec", self._air, *cmd]
         profile = self._profiles[side]

@@ -14,7 +14,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -29,11 +29,39 @@ logger = logging.getLogger(__name__)
 
 VIEW_NODE = "rerun_bridge"  # started after the graph when RunOptions.rerun is set
 
-# The graph, by module: a process runs ``python -m <module.__name__>`` (its ``main``); in one
-# process the module's Node class is built on a shared executor.
-NODE_MODULES: dict[str, ModuleType] = {name: importlib.import_module(module) for name, (module, _) in NODES.items()}
-NODE_FACTORIES: dict[str, Callable[..., Any]] = {
-    name: getattr(NODE_MODULES[name], cls) for name, (_, cls) in NODES.items()}
+
+
+class _NodeModules(Mapping[str, ModuleType]):
+    """The node modules by name, each imported when first asked for: a runner that starts its
+    nodes as processes never loads their code (the mapper's torch cost it ~2.5 s and ~190 MB)."""
+
+    def __getitem__(self, name: str) -> ModuleType:
+        return importlib.import_module(NODES[name][0])
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(NODES)
+
+    def __len__(self) -> int:
+        return len(NODES)
+
+
+class _NodeFactories(Mapping[str, Callable[..., Any]]):
+    """The node classes by name (for a graph in one process), imported when first asked for."""
+
+    def __getitem__(self, name: str) -> Callable[..., Any]:
+        return getattr(NODE_MODULES[name], NODES[name][1])
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(NODES)
+
+    def __len__(self) -> int:
+        return len(NODES)
+
+
+# The graph, by module: a process runs ``python -m <module>`` (its ``main``); in one process the
+# module's Node class is built on a shared executor.
+NODE_MODULES: Mapping[str, ModuleType] = _NodeModules()
+NODE_FACTORIES: Mapping[str, Callable[..., Any]] = _NodeFactories()
 # The Rerun view yields the cores to mapping: on 2 cores its CPU (~3 % of a run's) otherwise
 # lengthens the run by as much. It still runs whenever a core idles (lockstep waits, I/O).
 # Below the mapper, which runs at its own niceness (10, the node's parameter) below the tracker.
@@ -60,7 +88,7 @@ class NodeProcesses:
         self._env = dict(env, **{PARENT_PID_ENV: str(os.getpid())})
 
     def start(self, name: str) -> None:
-        cmd = [sys.executable, "-m", NODE_MODULES[name].__name__, "--ros-args", "--params-file", str(self._params_file)]
+        cmd = [sys.executable, "-m", NODES[name][0], "--ros-args", "--params-file", str(self._params_file)]
         if self._ns:
             cmd += ["-r", f"__ns:={self._ns}"]
         log = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 - owned by the child
