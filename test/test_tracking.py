@@ -179,11 +179,11 @@ def test_monocular_frames_wait_for_a_local_ba_running_too_long(frames: list[Fram
     slow = TrackingBackend._local_ba
 
     def slow_ba(self, snap, kf_id):  # noqa: ANN001, ANN202
-        time.sleep(0.3)
+        time.sleep(0.2)
         return slow(self, snap, kf_id)
 
     monkeypatch.setattr(TrackingBackend, "_local_ba", slow_ba)
-    mono = [Frame(f.stamp_ns, f.rgb, None, f.camera, f.T_wc_gt) for f in frames[:30]]
+    mono = [Frame(f.stamp_ns, f.rgb, None, f.camera, f.T_wc_gt) for f in frames[:20]]
     waits = {}
     for behind in (0, 2):
         tracker = make_tracker(TrackerConfig(mode="mono", mono_ba_max_frames_behind=behind), frames[0].camera)
