@@ -401,12 +401,14 @@ class Watch:
             return total > 0 and done >= LATE_FRACTION * total
         return total > 0 and done >= total
 
-    def wait_for(self, point: str, runner: subprocess.Popen, timeout_s: float) -> bool:
-        """Spin until the run reaches ``point``; False when the runner ended or time ran out first."""
+    def wait_for(self, point: str, runner: subprocess.Popen, timeout_s: float,
+                 also: Callable[[], bool] | None = None) -> bool:
+        """Spin until the run reaches ``point`` (and ``also`` holds); False when the runner ended
+        or time ran out first."""
         end = time.monotonic() + timeout_s
         while time.monotonic() < end and runner.poll() is None:
             self.executor.spin_once(timeout_sec=0.05)
-            if self.reached(point):
+            if self.reached(point) and (also is None or also()):
                 return True
         return False
 
@@ -523,7 +525,12 @@ def run_case(fault: Fault, work: Path, index: int, mount: bool, keep: bool = Fal
     fault_at, before, merger_held, reached, killed_merger = float("nan"), MapCheck(False), 0, True, False
     try:
         if fault.kind in ("signal", "disk_full", "read_only"):
-            reached = watch.wait_for(fault.at, runner, POINT_TIMEOUT_S)
+            # A late disk fault is about keeping the map saved before it: wait until one with
+            # Gaussians is on disk (saved each second; a short run reached 80 % of its frames
+            # before the merger's first map with content was saved, and kept an empty one).
+            keeps = fault.kind in ("disk_full", "read_only") and fault.at != "early"
+            reached = watch.wait_for(fault.at, runner, POINT_TIMEOUT_S,
+                                     also=(lambda: check_map(out).gaussians > 0) if keeps else None)
             if reached:
                 before = check_map(out)
                 merger_held = int(watch.stat("merger", "gaussians"))
