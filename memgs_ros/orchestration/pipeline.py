@@ -71,6 +71,7 @@ __all__ = ["GRAPH_NODES", "NODE_MODULES", "PipelineError", "RunOptions", "RunSum
 
 GRAPH_NODES = GRAPH_NODE_NAMES
 _STATS_NODES = (*GRAPH_NODES, "player", VIEW_NODE, "recorder")  # the names on memgs/<name>/stats
+_STATS_ROUND_S = 1.5  # every node publishes its stats once a second: one round, with margin
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -267,6 +268,19 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
     return summary
 
 
+def _wait_for_fresh_stats(obs: _Observer, names: Sequence[str], timeout_s: float = _STATS_ROUND_S) -> None:
+    """Wait for one more stats message from each of ``names`` (1 Hz each), at most ``timeout_s``
+    (a node that is gone sends none)."""
+    with obs._lock:
+        start = len(obs.timeline)
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        with obs._lock:
+            if {row["node"] for row in obs.timeline[start:]} >= set(names):
+                return
+        time.sleep(0.05)
+
+
 def _write_ended_summary(out: Path, options: RunOptions, obs: _Observer, err: BaseException, wall_s: float) -> None:
     """A run that ends early still says what happened in ``summary.json``: how it ended (the one
     line the CLI prints) and what the graph had done by then. Best effort: the disk may be full,
@@ -433,7 +447,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
     identical, max_diff = _compare_maps(obs, final_seq, epoch, end)
     if options.rerun is not None:
         _wait_for_view(obs, procs, final_seq, epoch, end)
-    time.sleep(1.5)  # one more round of the 1 Hz stats, so the summary sees the final counts
+    extra = (("recorder",) if options.record is not None else ()) + ((VIEW_NODE,) if options.rerun is not None else ())
+    _wait_for_fresh_stats(obs, (*GRAPH_NODES, *extra))  # so the summary sees the final counts
     saved = obs.call(obs.save_client, 120.0) if gaussians or final_seq else ""
     ply = saved.split()[0] if saved else ""
     wall = time.monotonic() - t0
