@@ -21,7 +21,7 @@ _MIN_COS_PARALLAX = 0.9998  # rays closer than ~1.1 deg give depth too uncertain
 _TRIANGULATION_NEIGHBOURS = 3
 # A new keyframe's points are searched for in this many covisible keyframes (ORB-SLAM's fusion):
 # a triangulated point otherwise starts with two observations, and local BA had too little to
-# hold the scale (synthetic mono, 4 seeds x 2 runs: median ATE 1.95 -> 1.26 cm).
+# hold the scale (the synthetic mono case was bimodal, 1.9-11 cm; see docs/results.md, Tracking).
 _FUSE_NEIGHBOURS = 5
 _FUSE_RADIUS_PX = 3.0  # at level 0; scaled with the point's octave
 
