@@ -197,6 +197,40 @@ def test_monocular_frames_wait_for_a_local_ba_running_too_long(frames: list[Fram
     assert waits[2] > 0
 
 
+def test_rgbd_keyframes_are_deferred_for_a_running_ba_a_bounded_number_of_frames(
+        frames: list[Frame], monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a slow back-end an RGB-D keyframe due while a local BA runs is deferred for at most
+    keyframe_max_deferred_frames frames, then goes in without that result: no frame waits for the
+    BA either way, and the keyframes keep their pace (unbounded, they fell far behind)."""
+    import time
+
+    from memgs_ros.core.tracking.backend import TrackingBackend
+
+    slow = TrackingBackend._local_ba
+
+    def slow_ba(self, snap, kf_id):  # noqa: ANN001, ANN202
+        time.sleep(0.3)
+        return slow(self, snap, kf_id)
+
+    monkeypatch.setattr(TrackingBackend, "_local_ba", slow_ba)
+    seen = {}
+    for cap in (1, 1000):
+        tracker = make_tracker(TrackerConfig(keyframe_max_deferred_frames=cap), frames[0].camera)
+        try:
+            longest, keyframes = 0.0, 0
+            for f in frames[:30]:
+                t0 = time.perf_counter()
+                keyframes += tracker.track(f).keyframe is not None
+                longest = max(longest, time.perf_counter() - t0)
+            seen[cap] = (keyframes, tracker.keyframes_deferred, longest)
+        finally:
+            tracker.close()
+    (kf_1, deferred_1, longest_1), (kf_inf, deferred_inf, longest_inf) = seen[1], seen[1000]
+    assert max(longest_1, longest_inf) < 0.25, seen  # never a wait for the 0.3 s BA
+    assert deferred_1 <= kf_1, seen  # each keyframe deferred once at most
+    assert deferred_inf > kf_inf and kf_1 > kf_inf, seen
+
+
 def test_every_backend_is_a_tracker(frames: list[Frame]) -> None:
     import inspect
 

@@ -75,6 +75,9 @@ class TrackerConfig:
     keyframe_min_frames: int = 1
     keyframe_max_rotation_deg: float = 15.0
     keyframe_max_translation_m: float = 0.15
+    # A live frame never waits for a BA: an RGB-D keyframe due while the previous local BA runs is
+    # deferred, for at most this many frames; then it goes in without that result.
+    keyframe_max_deferred_frames: int = 1  # RGB-D: frames a due keyframe is deferred for a running local BA
     # Local map and local bundle adjustment.
     local_map_keyframes: int = 10  # covisible keyframes whose points form the local map
     ba_window: int = 7  # keyframes optimised per local BA (oldest of them fixed)
@@ -132,7 +135,7 @@ class TrackerConfig:
         "max_translation_jump_m": (0.0, 100.0), "max_rotation_jump_deg": (0.0, 180.0),
         "keyframe_tracked_ratio": (0.0, 1.0), "keyframe_min_new_points": (0, 100_000),
         "keyframe_max_frames": (1, 100_000), "keyframe_min_frames": (0, 100_000),
-        "keyframe_max_rotation_deg": (0.0, 180.0), "keyframe_max_translation_m": (0.0, 100.0),
+        "keyframe_max_rotation_deg": (0.0, 180.0), "keyframe_max_deferred_frames": (0, 1000), "keyframe_max_translation_m": (0.0, 100.0),
         "local_map_keyframes": (1, 1000), "ba_window": (2, 1000), "ba_max_iterations": (0, 1000),
         "ba_huber_px": (0.1, 100.0), "point_min_found_ratio": (0.0, 1.0), "max_keyframes": (0, 10**6),
         "max_recently_lost_frames": (0, 10_000), "reloc_min_inliers": (4, 10_000), "reloc_max_keyframes": (1, 10_000),
