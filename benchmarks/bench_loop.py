@@ -1,12 +1,14 @@
 """Benchmark loop closure on the synthetic loop sequence: trajectory and map, with and without.
 
     python benchmarks/bench_loop.py [--runs 3] [--spec SPEC] [--n-features 300] [--iterations 600]
-        [--no-map] [--out results/bench_loop.json]
+        [--rate 0] [--out results/bench_loop.json]
 
 Sequence: ``synthetic:w=320,h=240,n=240,path=loop,noise=0.01,holes=0.05`` (once round the room,
 11 m, then back over the start views), tracked with a low feature budget (300 ORB features) so
 the uncorrected tracker drifts. Each run tracks the sequence twice, ``loop_closure`` on and off
-(threads as in the live system, so runs differ: medians over ``--runs``).
+(threads as in the live system, so runs differ: medians over ``--runs``). Frames go in back to
+back (``--rate 0``: the back-end lags furthest behind) or at ``--rate`` times the camera's rate
+(1: as a live camera delivers them).
 
 Trajectory numbers use the corrected trajectory (every frame re-expressed relative to its
 reference keyframe after BA and loop corrections: what ``memgs/path`` and ``trajectory.txt``
@@ -43,12 +45,16 @@ from memgs_ros.io.synthetic import generate_frames, loop_revisit_frames, parse_s
 DEFAULT_SPEC = "synthetic:w=320,h=240,n=240,path=loop,noise=0.01,holes=0.05"
 
 
-def track(frames: list, camera: object, cfg: TrackerConfig) -> dict:
-    """Track every frame; the corrected trajectory, keyframe poses and the loop counters."""
+def track(frames: list, camera: object, cfg: TrackerConfig, rate: float = 0.0) -> dict:
+    """Track every frame (``rate`` > 0: not before its stamp, replayed at that rate); the corrected
+    trajectory, keyframe poses and the loop counters."""
     tracker = make_tracker(cfg, camera)
     path = AnchoredPath()
     cpu, kf_stamps = [], {}
+    t_start = time.perf_counter()
     for f in frames:
+        if rate > 0:
+            time.sleep(max(0.0, t_start + (f.stamp_ns - frames[0].stamp_ns) * 1e-9 / rate - time.perf_counter()))
         c0 = time.thread_time()
         res = tracker.track(f)
         cpu.append(time.thread_time() - c0)
@@ -121,8 +127,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--n-features", type=int, default=300)
     ap.add_argument("--iterations", type=int, default=600, help="mapping steps per map (0: no map)")
+    ap.add_argument("--rate", type=float, default=0.0,
+                    help="replay rate as a multiple of the camera's (0: back to back)")
     ap.add_argument("--out", default="results/bench_loop.json")
     args = ap.parse_args(argv)
+    if not (args.rate >= 0 and np.isfinite(args.rate)):
+        ap.error(f"--rate must be >= 0, got {args.rate}")
     spec = parse_spec(args.spec)
     t0 = time.perf_counter()
     frames = list(generate_frames(spec))
@@ -132,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     for run in range(args.runs):
         for name, on in (("with", True), ("without", False)):
             cfg = TrackerConfig(n_features=args.n_features, loop_closure=on)
-            res = evaluate(frames, spec, track(frames, spec.camera, cfg), args.iterations > 0 and run == 0,
+            res = evaluate(frames, spec, track(frames, spec.camera, cfg, args.rate), args.iterations > 0 and run == 0,
                            args.iterations)
             rows[name].append(res)
             print(f"run {run} {name:>7} loop closure: " + ", ".join(
@@ -140,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     keys = [k for k in rows["with"][0] if isinstance(rows["with"][0][k], (int, float))]
     med = {n: {k: float(np.median([r[k] for r in rs if r.get(k) is not None]))
                for k in keys if any(r.get(k) is not None for r in rs)} for n, rs in rows.items()}
-    print(f"\nmedians over {args.runs} runs ({args.spec}, n_features={args.n_features}):")
+    feed = "back to back" if args.rate == 0 else f"at {args.rate:g}x the camera rate"
+    print(f"\nmedians over {args.runs} runs ({args.spec}, n_features={args.n_features}, frames {feed}):")
     print(f"{'':>22} | {'with':>9} | {'without':>9}")
     for k in med["with"]:
         print(f"{k:>22} | {med['with'][k]:9.2f} | {med['without'].get(k, float('nan')):9.2f}")
@@ -151,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"load average {load[0]:.2f} on {os.cpu_count()} cores")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps({"benchmark": "loop", "spec": args.spec, "n_features": args.n_features,
-                                          "runs": rows, "medians": med, "loadavg": load}, indent=2))
+                                          "rate": args.rate, "runs": rows, "medians": med, "loadavg": load}, indent=2))
     print(f"wrote {args.out}")
     return 0
 
