@@ -39,6 +39,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -101,10 +102,12 @@ def _thread_ms(fn: Any) -> float:
     return (time.thread_time() - t0) * 1e3
 
 
-def node_cost(tum: Path, params: dict[str, Any], player: dict[str, Any], frames: int) -> dict[str, float]:
+def node_cost(tum: Path, params: dict[str, Any], player: dict[str, Any], frames: int,
+              on_frame: Callable[[int, float, float], None] | None = None) -> dict[str, float]:
     """Median thread-CPU ms per frame of the TrackerNode's frame path (message in, pose out) and
     of cv2 ORB extraction (1000 features) on the same frames, interleaved frame by frame so that
-    both see the same conditions."""
+    both see the same conditions. ``on_frame(i, node_ms, orb_ms)`` after each frame (the stage
+    breakdown of ``bench_node_cost.py`` reads its timers there)."""
     import cv2
     import rclpy
     from rclpy.parameter import Parameter
@@ -131,6 +134,8 @@ def node_cost(tum: Path, params: dict[str, Any], player: dict[str, Any], frames:
             ms = _thread_ms(lambda c=color, d=depth: node._handle(c, d))  # noqa: SLF001 - the frame path itself
             grey = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
             o = _thread_ms(lambda g=grey: orb.detectAndCompute(g, None))
+            if on_frame is not None:
+                on_frame(i, ms, o)
             if i >= 5:  # the first frames build the map: not the steady cost
                 node_ms.append(ms)
                 orb_ms.append(o)

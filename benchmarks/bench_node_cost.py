@@ -1,0 +1,149 @@
+"""Benchmark: where the tracker node's frame path spends its CPU, stage by stage, in ORB units.
+
+    python benchmarks/bench_node_cost.py [--tum DIR] [--config tum_fr1] [--frames 150]
+        [--out results/bench_node_cost.json]
+
+Runs ``bench_live.node_cost`` (the real ``TrackerNode`` frame path, message in to pose out, with
+the tracker parameters of a live run, interleaved frame by frame with OpenCV's ORB extraction of
+1000 features on the same grey image; mapper idle) with a thread-CPU timer around each stage of
+the frame path. A stage's time excludes the stages nested in it (projection matching inside
+local-map tracking counts once, as matching), so the rows add up to the frame path; "the rest" is
+what no stage covers (the grey conversion, the tracker's bookkeeping, stamps, statistics). Means over the frames
+after the first five (the first frames build the map); the ORB unit is the mean ORB time of the
+same frames, and the issue's bound is 2 such units for the whole frame path (median).
+
+The timers cost about a microsecond each, a few dozen a frame: well under the rounding here.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import statistics
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import bench_live
+from bench_live import DEFAULT_TUM, ROOT
+
+# (label, module, attribute path): each one's thread CPU, less the stages called inside it. A
+# module-level name is patched where the frame path looks it up (the importing module).
+STAGES: list[tuple[str, str, str]] = [
+    ("decode (messages to a Frame)", "memgs_ros.nodes.tracker", "TrackerNode._frame"),
+    ("feature extraction (grid ORB)", "memgs_ros.core.tracking.features", "OrbExtractor.extract"),
+    ("rolling-shutter correction", "memgs_ros.core.tracking.frontend", "unroll_rolling_shutter"),
+    ("projection matching", "memgs_ros.core.tracking.pose_tracking", "match_by_projection"),
+    ("pose optimisation", "memgs_ros.core.tracking.pose_tracking", "LocalMapMatcher.optimise"),
+    ("local-map tracking, the rest (projection, point arrays)", "memgs_ros.core.tracking.pose_tracking",
+     "LocalMapMatcher.track"),
+    ("visible / found counts", "memgs_ros.core.tracking.pose_tracking", "LocalMapMatcher.count"),
+    ("local keyframes update", "memgs_ros.core.tracking.frontend", "FeatureTracker._update_local_keyframes"),
+    ("keyframe decision", "memgs_ros.core.tracking.frontend", "FeatureTracker._need_keyframe"),
+    ("keyframe insertion", "memgs_ros.core.tracking.frontend", "FeatureTracker._insert_keyframe"),
+    ("back-end results (poll, follow)", "memgs_ros.core.tracking.frontend", "FeatureTracker._follow"),
+    ("publishing (pose, odometry, state, keyframe)", "memgs_ros.nodes.tracker", "TrackerNode._publish"),
+    ("publishing refined / loop-corrected poses", "memgs_ros.nodes.tracker", "TrackerNode._publish_refined"),
+]
+REST = "the rest (grey conversion, tracker bookkeeping, stamps, statistics)"
+
+
+class StageTimer:
+    """Exclusive thread-CPU per stage: a stage's clock pauses while a nested stage runs."""
+
+    def __init__(self) -> None:
+        self.frame: dict[str, float] = defaultdict(float)  # seconds in this frame, per stage
+        self._stack: list[list[float]] = []  # per open stage: [start, seconds of nested stages]
+
+    def wrap(self, label: str, fn: Any) -> Any:
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            self._stack.append([time.thread_time(), 0.0])
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                start, nested = self._stack.pop()
+                total = time.thread_time() - start
+                self.frame[label] += total - nested
+                if self._stack:
+                    self._stack[-1][1] += total
+        return timed
+
+    def install(self) -> None:
+        for label, module, attr in STAGES:
+            owner: Any = importlib.import_module(module)
+            *path, name = attr.split(".")
+            for part in path:
+                owner = getattr(owner, part)
+            setattr(owner, name, self.wrap(label, getattr(owner, name)))
+
+
+def run(tum: Path, config: str, frames: int) -> dict[str, Any]:
+    from memgs_ros.orchestration.run_files import RunOptions, build_params, node_params
+
+    work = ROOT / "results" / "bench_node_cost_run"
+    work.mkdir(parents=True, exist_ok=True)
+    params = node_params(build_params(RunOptions(source=str(tum), config=config, out_dir=work, lockstep=False),
+                                      work / "map.ply"))
+    timer = StageTimer()
+    timer.install()
+    per_frame: list[dict[str, float]] = []
+
+    def on_frame(i: int, node_ms: float, orb_ms: float) -> None:
+        row = {k: v * 1e3 for k, v in timer.frame.items()}
+        row[REST] = node_ms - sum(row.values())
+        timer.frame.clear()
+        if i >= 5:
+            per_frame.append({**row, "_node": node_ms, "_orb": orb_ms})
+
+    summary = bench_live.node_cost(tum, params.get("tracker", {}), params.get("bag_player", {}), frames, on_frame)
+    orb = statistics.fmean(f["_orb"] for f in per_frame)
+    labels = [label for label, _, _ in STAGES] + [REST]
+    stages = {label: round(statistics.fmean(f.get(label, 0.0) for f in per_frame), 3) for label in labels}
+    return {"date": time.strftime("%Y-%m-%d"), "source": tum.name, "config": config, "frames": len(per_frame),
+            "median": summary, "mean_node_ms": round(statistics.fmean(f["_node"] for f in per_frame), 3),
+            "mean_orb_ms": round(orb, 3), "stages_ms": stages,
+            "stages_orb": {k: round(v / orb, 3) for k, v in stages.items()}}
+
+
+def table(res: dict[str, Any]) -> str:
+    lines = [f"{res['source']}, config {res['config']}, {res['frames']} frames, mapper idle; "
+             f"`python benchmarks/bench_node_cost.py` ({res['date']}).", "",
+             "| stage of the frame path | ms / frame (mean) | ORB units |", "|---|---|---|"]
+    for k, v in sorted(res["stages_ms"].items(), key=lambda kv: -kv[1]):
+        lines.append(f"| {k} | {v:.2f} | {res['stages_orb'][k]:.2f} |")
+    total = res["mean_node_ms"]
+    lines.append(f"| **frame path** | **{total:.2f}** | **{total / res['mean_orb_ms']:.2f}** |")
+    m = res["median"]
+    lines += ["", f"ORB extraction of 1000 features: {res['mean_orb_ms']:.2f} ms mean; medians: frame path "
+                  f"{m['node_ms']} ms, ORB {m['orb_ms']} ms, ratio {m['ratio']} (bound: 2)."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--tum", type=Path, default=DEFAULT_TUM)
+    ap.add_argument("--config", default="tum_fr1")
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--out", type=Path, default=ROOT / "results/bench_node_cost.json")
+    ap.add_argument("--table", type=Path, default=None, metavar="JSON", help="print the table of a saved run and exit")
+    args = ap.parse_args(argv)
+    if args.table is not None:
+        print(table(json.loads(args.table.read_text())), end="")
+        return 0
+    if not args.tum.is_dir():
+        print(f"error: no TUM folder at {args.tum} (pass --tum)", file=sys.stderr)
+        return 2
+    if args.frames < 10:
+        print("error: --frames must be at least 10 (the first five build the map)", file=sys.stderr)
+        return 2
+    res = run(args.tum, args.config, args.frames)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(res, indent=1) + "\n")
+    print(table(res), end="")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
