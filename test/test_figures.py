@@ -161,3 +161,15 @@ def test_the_live_table_in_the_readme_is_the_saved_runs() -> None:
                           str(ROOT / "docs" / "data" / "bench_live.json")], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert out.strip() and out in (ROOT / "README.md").read_text()
+
+
+def test_the_node_cost_table_in_the_results_is_the_saved_run() -> None:
+    """docs/results.md's frame-path breakdown is what ``bench_node_cost.py --table`` prints for the
+    JSON in docs/data."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_node_cost.py"), "--table",
+                          str(ROOT / "docs" / "data" / "bench_node_cost.json")], capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    assert out.strip() and out in (ROOT / "docs" / "results.md").read_text()
