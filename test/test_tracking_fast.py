@@ -127,6 +127,38 @@ def test_disabled_numba_falls_back_to_the_plain_path() -> None:
     assert out.returncode == 0, out.stderr
 
 
+@pytest.mark.parametrize("spec,cfg", [
+    ("synthetic:w=640,h=480,n=3,noise=0.01,holes=0.05", TrackerConfig()),
+    ("synthetic:w=320,h=240,n=3", TrackerConfig(n_features=300, n_levels=5, scale_factor=1.3, grid_cell_px=32)),
+    ("synthetic:w=160,h=120,n=3", TrackerConfig(n_features=300)),  # the top levels find nothing
+])
+def test_extract_matches_the_multi_level_orb_reference(spec: str, cfg: TrackerConfig) -> None:
+    """One pyramid with an ORB per level gives OpenCV's multi-level ORB's keypoints, octaves and
+    descriptors (another order), with undistortion and depth lookups on top."""
+    import cv2
+
+    from memgs_ros.core.tracking.features import OrbExtractor
+    from memgs_ros.io.synthetic import generate_frames, parse_spec
+
+    ex = OrbExtractor(cfg)
+    for f in generate_frames(parse_spec(spec)):
+        grey = cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY)
+        got, ref = ex.extract(grey, f.camera, f.depth_m), ex._extract_reference(grey, f.camera, f.depth_m)  # noqa: SLF001
+        assert len(got) == len(ref) > 0.25 * cfg.n_features
+        # Pair them by octave and position: OpenCV's level-to-image scaling differs by < 1e-3 px.
+        key_got = np.column_stack([got.uv_raw, 1e4 * got.octave])
+        key_ref = np.column_stack([ref.uv_raw, 1e4 * ref.octave])
+        dist = np.linalg.norm(key_ref[:, None, :] - key_got[None, :, :], axis=2)
+        j = dist.argmin(axis=1)
+        assert dist[np.arange(len(ref)), j].max() < 1e-3 and len(set(j.tolist())) == len(ref)
+        assert np.array_equal(got.desc[j], ref.desc) and np.array_equal(got.octave[j], ref.octave)
+        np.testing.assert_allclose(got.uv[j], ref.uv, atol=1e-3)
+        assert np.array_equal(np.isnan(got.depth_m[j]), np.isnan(ref.depth_m))
+    blank = np.full((120, 160), 128, np.uint8)  # no corner anywhere: empty, not an error
+    cam = next(iter(generate_frames(parse_spec("synthetic:w=160,h=120,n=1")))).camera
+    assert len(ex.extract(blank, cam, None)) == 0 and len(ex._extract_reference(blank, cam, None)) == 0  # noqa: SLF001
+
+
 def test_orthonormalized_matches_the_svd_reference() -> None:
     """The polar iteration's nearest rotation equals the SVD's, from rounding drift to a 10 %
     distortion (where it hands over to the SVD), and a reflection still comes out a rotation."""

@@ -5,6 +5,7 @@ undistorted, so every downstream step uses a plain pinhole model with ``camera.K
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import cv2
@@ -47,23 +48,36 @@ class OrbExtractor:
     One detection at ``fast_threshold`` over-asks for keypoints; each cell keeps its strongest
     share and the remaining budget goes to the strongest leftovers. Cells that found nothing
     are retried at ``fast_min_threshold`` only when the image is short of keypoints.
+
+    ``extract`` builds the image pyramid once and runs OpenCV's ORB on each level (one
+    single-level ORB per level, asked for that level's share of the over-ask as OpenCV splits
+    it): detection, then the descriptors of the kept keypoints on the same level images. OpenCV's
+    multi-level ORB builds its pyramid again for the descriptors (a third of the extraction's cost).
+    ``_extract_reference`` is that multi-level path; the two give the same keypoints (positions
+    within 1e-3 px), octaves and descriptors, in another order.
     """
 
     def __init__(self, cfg: TrackerConfig) -> None:
         self.cfg = cfg
-        self._orb = cv2.ORB_create(nfeatures=2 * cfg.n_features, scaleFactor=cfg.scale_factor,  # type: ignore[attr-defined]  # missing from OpenCV's stubs
-                                   nlevels=cfg.n_levels, edgeThreshold=19, patchSize=31,
-                                   fastThreshold=cfg.fast_threshold)
-        self._orb_low = cv2.ORB_create(nfeatures=2 * cfg.n_features, scaleFactor=cfg.scale_factor,  # type: ignore[attr-defined]  # missing from OpenCV's stubs
-                                       nlevels=cfg.n_levels, edgeThreshold=19, patchSize=31,
-                                       fastThreshold=cfg.fast_min_threshold)
+        self._orb = self._make_orb(2 * cfg.n_features, cfg.n_levels, cfg.fast_threshold)
+        self._orb_low = self._make_orb(2 * cfg.n_features, cfg.n_levels, cfg.fast_min_threshold)
+        counts = level_shares(2 * cfg.n_features, cfg.scale_factor, cfg.n_levels)
+        # Level k's scale, as OpenCV's ORB computes it (a float32 power).
+        self._scales = [float(np.float32(cfg.scale_factor ** k)) for k in range(cfg.n_levels)]
+        self._level_orb = [self._make_orb(max(c, 1), 1, cfg.fast_threshold) for c in counts]
+        self._level_orb_low = [self._make_orb(max(c, 1), 1, cfg.fast_min_threshold) for c in counts]
+        self._level_counts = counts
 
-    def _select(self, kps: list, width: int, height: int) -> list:
+    def _make_orb(self, n: int, levels: int, fast_threshold: int) -> cv2.ORB:
+        return cv2.ORB_create(nfeatures=n, scaleFactor=self.cfg.scale_factor, nlevels=levels,  # type: ignore[attr-defined]  # missing from OpenCV's stubs
+                              edgeThreshold=19, patchSize=31, fastThreshold=fast_threshold)
+
+    def _select_indices(self, pts: np.ndarray, resp: np.ndarray, width: int, height: int) -> np.ndarray:
+        """Indices of the keypoints (level-0 positions pts [N, 2], responses resp [N]) the grid keeps,
+        ascending."""
         n = self.cfg.n_features
-        if len(kps) <= n:
-            return list(kps)
-        pts = cv2.KeyPoint_convert(kps)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
-        resp = np.array([k.response for k in kps], dtype=np.float32)
+        if len(pts) <= n:
+            return np.arange(len(pts))
         cell = self.cfg.grid_cell_px
         gx = max(1, int(np.ceil(width / cell)))
         gy = max(1, int(np.ceil(height / cell)))
@@ -74,8 +88,8 @@ class OrbExtractor:
         order = order[np.argsort(cid[order], kind="stable")]
         cid_sorted = cid[order]
         start = np.searchsorted(cid_sorted, cid_sorted, side="left")
-        rank = np.empty(len(kps), dtype=np.int64)
-        rank[order] = np.arange(len(kps)) - start
+        rank = np.empty(len(pts), dtype=np.int64)
+        rank[order] = np.arange(len(pts)) - start
         per_cell = max(1, n // (gx * gy))
         chosen = rank < per_cell
         if chosen.sum() < n:
@@ -86,29 +100,89 @@ class OrbExtractor:
             idx = np.flatnonzero(chosen)
             drop = idx[np.argsort(resp[idx], kind="stable")][: int(chosen.sum()) - n]
             chosen[drop] = False
-        return [kps[i] for i in np.flatnonzero(chosen)]
+        return np.flatnonzero(chosen)
+
+    def _select(self, kps: list, width: int, height: int) -> list:
+        """The grid's keypoints among OpenCV keypoints (level-0 positions)."""
+        if len(kps) <= self.cfg.n_features:
+            return list(kps)
+        pts = cv2.KeyPoint_convert(kps)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
+        resp = np.array([k.response for k in kps], dtype=np.float32)
+        return [kps[i] for i in self._select_indices(pts, resp, width, height).tolist()]
+
+    def _pyramid(self, gray: np.ndarray) -> list[np.ndarray]:
+        """The level images, each resized from the one before, at OpenCV ORB's sizes and interpolation."""
+        levels = [gray]
+        for scale in self._scales[1:]:  # sizes rounded from float32 quotients, as OpenCV's
+            size = (round(float(np.float32(gray.shape[1]) / np.float32(scale))),
+                    round(float(np.float32(gray.shape[0]) / np.float32(scale))))
+            levels.append(cv2.resize(levels[-1], size, interpolation=cv2.INTER_LINEAR_EXACT))
+        return levels
 
     def extract(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None,
                 mask: np.ndarray | None = None) -> FrameFeatures:
-        """Keypoints of ``gray`` [H, W] uint8; depth [H, W] float32 (registered to gray) or None."""
+        """Keypoints of ``gray`` [H, W] uint8; depth [H, W] float32 (registered to gray) or None.
+        ``mask`` [H, W] uint8 (non-zero: where keypoints may lie) takes the reference path."""
+        if mask is not None:
+            return self._extract_reference(gray, camera, depth_m, mask)
+        pyr = self._pyramid(gray)
+        found = [orb.detect(img, None) for orb, img in zip(self._level_orb, pyr)]
+        if sum(len(k) for k in found) < self.cfg.n_features:
+            found = [orb.detect(img, None) for orb, img in zip(self._level_orb_low, pyr)]
+        sizes = [len(k) for k in found]
+        if sum(sizes) == 0:
+            return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
+        pts = np.concatenate([_positions(k) * np.float32(sc) for k, sc in zip(found, self._scales)])
+        resp = np.fromiter((k.response for level in found for k in level), np.float32, len(pts))
+        chosen = self._select_indices(pts, resp, gray.shape[1], gray.shape[0])
+        first = np.cumsum([0, *sizes])
+        uv, octave, desc = [], [], []
+        for k, orb in enumerate(self._level_orb):
+            idx = chosen[(chosen >= first[k]) & (chosen < first[k + 1])] - first[k]
+            if len(idx) == 0:
+                continue
+            kept, d = orb.compute(pyr[k], [found[k][i] for i in idx.tolist()])
+            if not kept or d is None:
+                continue
+            uv.append(_positions(kept) * np.float32(self._scales[k]))
+            octave.append(np.full(len(kept), k, np.int64))
+            desc.append(d)
+        if not uv:
+            return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
+        return self._finish(gray, camera, depth_m, np.concatenate(uv), np.concatenate(octave), np.concatenate(desc))
+
+    def _extract_reference(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None,
+                           mask: np.ndarray | None = None) -> FrameFeatures:
+        """Reference twin of ``extract``: OpenCV's multi-level ORB detects, the grid selects, and
+        the same ORB describes (building its pyramid a second time)."""
         kps = list(self._orb.detect(gray, mask))
         if len(kps) < self.cfg.n_features:
             kps = list(self._orb_low.detect(gray, mask))
         kps = self._select(kps, gray.shape[1], gray.shape[0])
+        desc = None
+        described: Sequence[cv2.KeyPoint] = kps
         if kps:
-            kps, desc = self._orb.compute(gray, kps)
-        if not kps or desc is None:
+            described, desc = self._orb.compute(gray, kps)
+        if not described or desc is None:
+            return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
+        octave = np.array([k.octave for k in described], dtype=np.int64)
+        return self._finish(gray, camera, depth_m, cv2.KeyPoint_convert(described), octave, desc)  # type: ignore[attr-defined]
+
+    def _finish(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None, pts: np.ndarray,
+                octave: np.ndarray, desc: np.ndarray | None) -> FrameFeatures:
+        """FrameFeatures from level-0 keypoint positions pts [M, 2] (as OpenCV scales them), octaves
+        [M] and descriptors [M, 32] (None when M = 0)."""
+        if desc is None or len(pts) == 0:
             empty2 = np.zeros((0, 2))
             return FrameFeatures(empty2.astype(np.float32), empty2, np.zeros(0, np.int64),
                                  np.zeros((0, DESCRIPTOR_BYTES), np.uint8), np.zeros(0))
-        octave = np.array([k.octave for k in kps], dtype=np.int64)
         # OpenCV scales level coordinates by s = scale^octave without the pixel-centre shift;
         # the centre of level pixel x is at (x + 0.5) s - 0.5 in level 0, a bias of 0.5 (s - 1)
         # (1.3 px at level 7) that differs between octaves of the same point.
         shift = 0.5 * (self.cfg.scale_factor ** octave - 1.0)
-        uv_raw = (cv2.KeyPoint_convert(kps).astype(np.float64) + shift[:, None]).astype(np.float32)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
+        uv_raw = (pts.astype(np.float64) + shift[:, None]).astype(np.float32)
         uv = undistort_points(uv_raw, camera)
-        depth = np.full(len(kps), np.nan)
+        depth = np.full(len(pts), np.nan)
         if depth_m is not None:
             ui = np.clip(np.round(uv_raw[:, 0]).astype(np.int64), 0, gray.shape[1] - 1)
             vi = np.clip(np.round(uv_raw[:, 1]).astype(np.int64), 0, gray.shape[0] - 1)
@@ -116,6 +190,26 @@ class OrbExtractor:
             ok = np.isfinite(d) & (d >= self.cfg.min_depth_m) & (d <= self.cfg.max_depth_m)
             depth[ok] = d[ok]
         return FrameFeatures(uv_raw, uv, octave, np.ascontiguousarray(desc), depth)
+
+
+def _positions(kps: Sequence[cv2.KeyPoint]) -> np.ndarray:
+    """Keypoint positions [N, 2] float32 (OpenCV returns an empty tuple for none)."""
+    if len(kps) == 0:
+        return np.zeros((0, 2), np.float32)
+    return np.asarray(cv2.KeyPoint_convert(kps), np.float32).reshape(-1, 2)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
+
+
+def level_shares(n: int, scale_factor: float, levels: int) -> list[int]:
+    """How OpenCV's ORB splits ``n`` keypoints over ``levels`` pyramid levels: a geometric share
+    per level (ratio 1 / scale_factor, rounded, in float32 as OpenCV does), the rest to the top."""
+    factor = np.float32(1.0 / scale_factor)
+    share = np.float32(n) * (np.float32(1.0) - factor) / (np.float32(1.0) - np.float32(float(factor) ** levels))
+    out: list[int] = []
+    for _ in range(levels - 1):
+        out.append(int(np.round(share)))
+        share = np.float32(share * factor)
+    out.append(max(n - sum(out), 0))
+    return out
 
 
 def undistort_points(uv_raw: np.ndarray, camera: PinholeCamera) -> np.ndarray:
