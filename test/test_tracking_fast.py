@@ -70,6 +70,27 @@ def test_match_by_projection_matches_reference(m: int, p: int) -> None:
         assert len(fast[0]) > 0.3 * min(m, p)  # the case exercises real matches
 
 
+def test_match_by_projection_breaks_ties_as_the_reference() -> None:
+    """Keypoints at one position (a corner found at two octaves) tie in distance: the kernel's
+    early-stopping ring scan still keeps the reference's nearest candidates and order. (At
+    max_candidates of 1-4 the reference's k-d tree cuts a tie its own way; the kernel keeps the
+    one a row-major scan of the window meets first, as before the ring scan.)"""
+    _needs_numba()
+    rng = np.random.default_rng(3)
+    for _ in range(60):
+        feats = _features(rng, 400)
+        uv = np.round(feats.uv, 1)
+        uv[rng.integers(0, 400, 130)] = uv[rng.integers(0, 400, 130)]  # shared positions
+        feats = FrameFeatures(uv.astype(np.float32), uv, feats.octave, feats.desc, feats.depth_m)
+        proj, desc = _map_points(rng, feats, 300)
+        proj = np.clip(np.round(proj, 1), 0.0, 639.0)
+        radius = rng.uniform(2.0, 60.0, 300)
+        fast = match_by_projection(proj, desc, feats, radius, 80, 0.9)
+        ref = _match_by_projection(proj, desc, feats, radius, 80, 0.9)
+        for a, b in zip(fast, ref, strict=True):
+            assert np.array_equal(a, b)
+
+
 def _pose_problem(rng: np.random.Generator, n: int) -> tuple:
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, 0.1, 3)).as_matrix()
