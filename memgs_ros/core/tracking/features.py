@@ -52,7 +52,8 @@ class OrbExtractor:
     ``extract`` builds the image pyramid once and runs OpenCV's ORB on each level (one
     single-level ORB per level, asked for that level's share of the over-ask as OpenCV splits
     it): detection, then the descriptors of the kept keypoints on the same level images. OpenCV's
-    multi-level ORB builds its pyramid again for the descriptors (a third of the extraction's cost).
+    multi-level ORB builds its pyramid again for the descriptors (on fr1/rpy the extraction took
+    1.67 times OpenCV's own of 1000 features that way, 1.47 this way).
     ``_extract_reference`` is that multi-level path; the two give the same keypoints (positions
     within 1e-3 px), octaves and descriptors, in another order.
     """
@@ -66,7 +67,6 @@ class OrbExtractor:
         self._scales = [float(np.float32(cfg.scale_factor ** k)) for k in range(cfg.n_levels)]
         self._level_orb = [self._make_orb(max(c, 1), 1, cfg.fast_threshold) for c in counts]
         self._level_orb_low = [self._make_orb(max(c, 1), 1, cfg.fast_min_threshold) for c in counts]
-        self._level_counts = counts
 
     def _make_orb(self, n: int, levels: int, fast_threshold: int) -> cv2.ORB:
         return cv2.ORB_create(nfeatures=n, scaleFactor=self.cfg.scale_factor, nlevels=levels,  # type: ignore[attr-defined]  # missing from OpenCV's stubs
