@@ -67,8 +67,8 @@ def _match(proj_uv, radius, point_desc, kp_uv, kp_desc, available, max_distance,
     for s in range(M):
         su[s] = kp_uv[order[s], 0]
         sv[s] = kp_uv[order[s], 1]
-    pd = point_desc.view(np.uint64)
-    kd = kp_desc.view(np.uint64)
+    pd = point_desc.view(np.uint64)  # [P, 4]
+    kd = kp_desc.view(np.uint64)  # [M, 4]
     K = max_candidates
     cand_d2 = np.empty(K, np.float64)
     cand_s = np.empty(K, np.int64)
@@ -128,6 +128,8 @@ def _match(proj_uv, radius, point_desc, kp_uv, kp_desc, available, max_distance,
                 dmin = min(dmin, (pcy + R + 1) * cell_px - v)
             if dmin >= 1e300 or dmin > r or (n == K and dmin * dmin > cand_d2[K - 1]):
                 break
+        # Best and second best Hamming among the candidates, nearest first on ties (the
+        # reference sorts by distance stably within a point).
         b1 = np.int64(1 << 30)
         b2 = np.int64(1 << 30)
         bj = -1
@@ -146,6 +148,7 @@ def _match(proj_uv, radius, point_desc, kp_uv, kp_desc, available, max_distance,
         if bj >= 0 and b1 <= max_distance and b1 <= ratio * (b2 if b2 < (1 << 30) else 1e9):
             best_k[i] = bj
             best_d[i] = b1
+    # One point per keypoint: the lowest distance, then the lowest point index.
     owner = np.full(M, -1, np.int64)
     for i in range(P):
         j = best_k[i]
