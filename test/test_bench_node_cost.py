@@ -48,3 +48,23 @@ def test_a_stage_that_raises_still_counts_and_unwinds() -> None:
     with pytest.raises(ValueError, match="x"):
         failing()
     assert timer.frame["boom"] >= 0.01 and timer._stack == []  # noqa: SLF001
+
+
+def test_the_opencv_floor_times_each_part_and_the_table_shows_what_remains(tmp_path: Path) -> None:
+    from bench_node_cost import FLOOR_PARTS, opencv_floor, table
+
+    from memgs_ros.io.synthetic import SyntheticSpec, generate_frames, write_tum_folder
+
+    write_tum_folder(generate_frames(SyntheticSpec(width=320, height=240, n_frames=8, seed=3)), tmp_path / "seq")
+    floor = opencv_floor(tmp_path / "seq", {"tracker.n_levels": 4, "color_topic": "ignored"}, 8)
+    assert set(floor) == {*FLOOR_PARTS, "orb"}
+    assert all(v > 0 for v in floor.values())
+    # The unit runs FAST and smooths too (on 8 levels against these 4): the floor stays below it.
+    assert sum(floor[k] for k in FLOOR_PARTS) < 2 * floor["orb"]
+    res = {"source": "seq", "config": "x", "frames": 3, "date": "d", "mean_node_ms": 6.0, "mean_orb_ms": 2.0,
+           "stages_ms": {"a": 6.0}, "stages_orb": {"a": 3.0}, "median": {"node_ms": 6, "orb_ms": 2, "ratio": 3},
+           "opencv_floor_ms": {**dict.fromkeys(FLOOR_PARTS, 0.5), "orb": 2.0},
+           "opencv_floor_orb": dict.fromkeys(FLOOR_PARTS, 0.25)}
+    text = table(res)
+    assert "| **floor** | **1.50** | **0.75** |" in text
+    assert "1.25 remain for everything else" in text and "spends 2.25 there" in text
