@@ -378,10 +378,14 @@ def optimize_pose_kernel(T_cw: np.ndarray, p_w: np.ndarray, obs_uvr: np.ndarray,
 
 
 def warm_up() -> None:
-    """Compile (or load from the disk cache) both kernels on tiny inputs, so that the first
-    tracked frame does not pay for it (~10 s of compilation on first use, ~0.2 s from the cache)."""
+    """Compile (or load from the disk cache) both kernels, and ORB's (``orb.warm_up``), on tiny
+    inputs, so that the first tracked frame does not pay for it (~10 s of compilation on first use,
+    ~0.2 s from the cache)."""
     if not numba_available():
         return
+    from memgs_ros.core.tracking import orb  # here: orb's module reads OpenCV at its first use
+
+    orb.warm_up()
     uv = np.array([[10.0, 10.0], [20.0, 20.0]])
     desc = np.zeros((2, 32), np.uint8)
     match_by_projection_kernel(uv, np.full(2, 5.0), desc, uv, desc, np.ones(2, bool), 80, 0.85, 2, 16.0, 32, 32)

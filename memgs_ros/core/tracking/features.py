@@ -13,10 +13,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.tracking import orb
 from memgs_ros.core.tracking._compiled import match_by_projection_kernel, numba_available
 from memgs_ros.core.tracking.config import TrackerConfig
 
 DESCRIPTOR_BYTES = 32
+EDGE_PX = 19  # keypoints keep this far from a level's border (ORB's edgeThreshold)
 # Bits set per byte value: Hamming distance of packed descriptors by table lookup.
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
 
@@ -49,13 +51,14 @@ class OrbExtractor:
     share and the remaining budget goes to the strongest leftovers. Cells that found nothing
     are retried at ``fast_min_threshold`` only when the image is short of keypoints.
 
-    ``extract`` builds the image pyramid once and runs OpenCV's ORB on each level (one
-    single-level ORB per level, asked for that level's share of the over-ask as OpenCV splits
-    it): detection, then the descriptors of the kept keypoints on the same level images. OpenCV's
-    multi-level ORB builds its pyramid again for the descriptors (on fr1/rpy the extraction took
-    1.67 times OpenCV's own of 1000 features that way, 1.47 this way).
-    ``_extract_reference`` is that multi-level path; the two give the same keypoints (positions
-    within 1e-3 px), octaves and descriptors, in another order.
+    ``extract`` builds the image pyramid once and does on each level what OpenCV's single-level
+    ORB does (``orb``'s kernels; OpenCV's own per-level ORB where numba is missing): detection,
+    then orientation and descriptors for the keypoints the grid keeps only. OpenCV's multi-level
+    ORB builds its pyramid again for the descriptors, and orients every keypoint it detects.
+    ``_extract_reference`` is that multi-level path. All three give the same keypoints (positions
+    within 1e-3 px), octaves and descriptors; the two per-level paths in the same order (row-major
+    within each level). The kernels orient by ``cv2.phase``, which can differ from ORB's own atan2
+    in the last float bit: about one descriptor in 100000 then differs by a bit.
     """
 
     def __init__(self, cfg: TrackerConfig) -> None:
@@ -65,12 +68,17 @@ class OrbExtractor:
         counts = level_shares(2 * cfg.n_features, cfg.scale_factor, cfg.n_levels)
         # Level k's scale, as OpenCV's ORB computes it (a float32 power).
         self._scales = [float(np.float32(cfg.scale_factor ** k)) for k in range(cfg.n_levels)]
-        self._level_orb = [self._make_orb(max(c, 1), 1, cfg.fast_threshold) for c in counts]
-        self._level_orb_low = [self._make_orb(max(c, 1), 1, cfg.fast_min_threshold) for c in counts]
+        self._counts = [max(c, 1) for c in counts]
+        self._level_orb = [self._make_orb(c, 1, cfg.fast_threshold) for c in self._counts]
+        self._level_orb_low = [self._make_orb(c, 1, cfg.fast_min_threshold) for c in self._counts]
+        # The kernels' stand-in for the per-level ORB, where numba and OpenCV's tests are at hand.
+        self._tests = orb.intensity_tests() if orb.compiled_orb_available() else None
+        self._fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
+        self._fast_low = cv2.FastFeatureDetector_create(cfg.fast_min_threshold, True)  # type: ignore[attr-defined]
 
     def _make_orb(self, n: int, levels: int, fast_threshold: int) -> cv2.ORB:
         return cv2.ORB_create(nfeatures=n, scaleFactor=self.cfg.scale_factor, nlevels=levels,  # type: ignore[attr-defined]  # missing from OpenCV's stubs
-                              edgeThreshold=19, patchSize=31, fastThreshold=fast_threshold)
+                              edgeThreshold=EDGE_PX, patchSize=31, fastThreshold=fast_threshold)
 
     def _select_indices(self, pts: np.ndarray, resp: np.ndarray, width: int, height: int) -> np.ndarray:
         """Indices of the keypoints (level-0 positions pts [N, 2], responses resp [N]) the grid keeps,
@@ -126,9 +134,41 @@ class OrbExtractor:
         if mask is not None:
             return self._extract_reference(gray, camera, depth_m, mask)
         pyr = self._pyramid(gray)
-        found = [orb.detect(img, None) for orb, img in zip(self._level_orb, pyr)]
+        if self._tests is not None:
+            return self._extract_compiled(gray, pyr, camera, depth_m)
+        return self._extract_levels(gray, pyr, camera, depth_m)
+
+    def _extract_compiled(self, gray: np.ndarray, pyr: list[np.ndarray], camera: PinholeCamera,
+                          depth_m: np.ndarray | None) -> FrameFeatures:
+        """``extract`` by ``orb``'s kernels: each level detected, the grid's keypoints described."""
+        assert self._tests is not None
+        found = [orb.detect_level(self._fast, img, c, EDGE_PX) for img, c in zip(pyr, self._counts)]
+        if sum(len(xy) for xy, _ in found) < self.cfg.n_features:
+            found = [orb.detect_level(self._fast_low, img, c, EDGE_PX) for img, c in zip(pyr, self._counts)]
+        sizes = [len(xy) for xy, _ in found]
+        if sum(sizes) == 0:
+            return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
+        pts = np.concatenate([xy.astype(np.float32) * np.float32(sc) for (xy, _), sc in zip(found, self._scales)])
+        chosen = orb.select_grid(pts, np.concatenate([r for _, r in found]), self.cfg.n_features,
+                                 self.cfg.grid_cell_px, gray.shape[1], gray.shape[0])
+        first = np.cumsum([0, *sizes])
+        octave, desc = [], []
+        for k, (xy, _) in enumerate(found):
+            idx = chosen[(chosen >= first[k]) & (chosen < first[k + 1])] - first[k]
+            if len(idx):
+                desc.append(orb.describe_level(pyr[k], xy[idx], self._tests))
+                octave.append(np.full(len(idx), k, np.int64))
+        return self._finish(gray, camera, depth_m, pts[chosen], np.concatenate(octave), np.concatenate(desc))
+
+    def _extract_levels(self, gray: np.ndarray, pyr: list[np.ndarray], camera: PinholeCamera,
+                        depth_m: np.ndarray | None) -> FrameFeatures:
+        """``extract`` by OpenCV's single-level ORB on each level (where numba is missing)."""
+        found = [det.detect(img, None) for det, img in zip(self._level_orb, pyr)]
         if sum(len(k) for k in found) < self.cfg.n_features:
-            found = [orb.detect(img, None) for orb, img in zip(self._level_orb_low, pyr)]
+            found = [det.detect(img, None) for det, img in zip(self._level_orb_low, pyr)]
+        # Row-major within each level, FAST's scan order and the kernels' (OpenCV's ORB hands them
+        # out in its cut's order): the grid then breaks ties alike, and both paths agree.
+        found = [[k[i] for i in np.lexsort(_positions(k).T).tolist()] for k in found]
         sizes = [len(k) for k in found]
         if sum(sizes) == 0:
             return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
@@ -137,11 +177,11 @@ class OrbExtractor:
         chosen = self._select_indices(pts, resp, gray.shape[1], gray.shape[0])
         first = np.cumsum([0, *sizes])
         uv, octave, desc = [], [], []
-        for k, orb in enumerate(self._level_orb):
+        for k, det in enumerate(self._level_orb):
             idx = chosen[(chosen >= first[k]) & (chosen < first[k + 1])] - first[k]
             if len(idx) == 0:
                 continue
-            kept, d = orb.compute(pyr[k], [found[k][i] for i in idx.tolist()])
+            kept, d = det.compute(pyr[k], [found[k][i] for i in idx.tolist()])
             if not kept or d is None:
                 continue
             uv.append(_positions(kept) * np.float32(self._scales[k]))
