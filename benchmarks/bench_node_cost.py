@@ -16,9 +16,9 @@ The timers cost about a microsecond each, a few dozen a frame: well under the ro
 
 It also times, on the same frames and interleaved with the same ORB, the OpenCV work that any
 ORB extraction of the tracker's pyramid pays whatever selects and describes the keypoints: the
-pyramid, FAST on every level and the smoothing of every level that the descriptors sample
-(OpenCV's ORB does each of them). That floor, less than the 2 units, leaves what the rest of the
-frame path may take.
+pyramid, FAST on every level (where keypoints may lie) and the smoothing of every level that the
+descriptors sample (OpenCV's ORB does each of them). That floor, less than the 2 units, leaves
+what the rest of the frame path may take.
 """
 from __future__ import annotations
 
@@ -91,8 +91,9 @@ def opencv_floor(tum: Path, tracker: dict[str, Any], frames: int) -> dict[str, f
     its levels (the tracker's extractor settings), and of the ORB unit, interleaved frame by frame."""
     import cv2
 
+    from memgs_ros.core.tracking import orb as orb_kernels
     from memgs_ros.core.tracking.config import TrackerConfig
-    from memgs_ros.core.tracking.features import OrbExtractor
+    from memgs_ros.core.tracking.features import EDGE_PX, OrbExtractor
     from memgs_ros.io.tum import TumFolder
 
     cfg = TrackerConfig(**{k.split(".", 1)[1]: v for k, v in tracker.items() if k.startswith("tracker.")})
@@ -109,10 +110,10 @@ def opencv_floor(tum: Path, tracker: dict[str, Any], frames: int) -> dict[str, f
             pyramid = extractor._pyramid(grey)  # noqa: SLF001 - the extractor's own pyramid
             t.append(time.thread_time())
             for level in pyramid:
-                fast.detect(level)
+                orb_kernels.fast_corners(fast, level, EDGE_PX)
             t.append(time.thread_time())
             for level in pyramid:  # ORB's smoothing before it samples the descriptor pattern
-                cv2.GaussianBlur(level, (7, 7), 2, 2, borderType=cv2.BORDER_REFLECT_101)
+                orb_kernels.smooth(level)
             t.append(time.thread_time())
             orb.detectAndCompute(grey, None)
             t.append(time.thread_time())

@@ -264,19 +264,27 @@ def disc_half_widths(radius: int = PATCH_RADIUS) -> np.ndarray:
 _HALF_WIDTHS = disc_half_widths()
 
 
+def fast_corners(fast: cv2.FastFeatureDetector, level: np.ndarray, edge: int) -> np.ndarray:
+    """OpenCV's FAST corners [N, 2] float32 (x, y; row-major) of ``level`` [H, W] uint8 that can lie
+    ``edge`` px inside it, or suppress one that does."""
+    # FAST only there: ``edge`` - 1 px in, plus the 3 px its circle needs (11 % of level 0's pixels
+    # and 35 % of the top level's go unscanned).
+    m = max(edge - 4, 0)
+    h, w = level.shape
+    kps = fast.detect(level[m:h - m, m:w - m]) if h > 2 * m and w > 2 * m else ()
+    if not kps:
+        return np.zeros((0, 2), np.float32)
+    return np.asarray(cv2.KeyPoint_convert(kps), np.float32).reshape(-1, 2) + np.float32(m)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
+
+
 def detect_level(fast: cv2.FastFeatureDetector, level: np.ndarray, n: int, edge: int
                  ) -> tuple[np.ndarray, np.ndarray]:
     """The keypoints OpenCV's single-level ORB (``n`` features, FAST detector ``fast``, border
     ``edge`` px, Harris score) finds in ``level`` [H, W] uint8: pixels [K, 2] int64 (x, y) in FAST's
     row-major order and their Harris responses [K] float32."""
-    # FAST only where a kept corner or a neighbour that could suppress it lies: ``edge`` - 1 px in,
-    # plus the 3 px its circle needs (11 % of level 0's pixels and 35 % of the top level's go unscanned).
-    m = max(edge - 4, 0)
-    h, w = level.shape
-    kps = fast.detect(level[m:h - m, m:w - m]) if h > 2 * m and w > 2 * m else ()
-    if not kps:
+    xy = fast_corners(fast, level, edge)
+    if len(xy) == 0:
         return np.zeros((0, 2), np.int64), np.zeros(0, np.float32)
-    xy = np.asarray(cv2.KeyPoint_convert(kps), np.float32).reshape(-1, 2) + np.float32(m)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
     return _detect(level, xy, n, edge, HARRIS_K)
 
 
@@ -413,5 +421,5 @@ def compiled_orb_available() -> bool:
     return numba_available() and intensity_tests() is not None
 
 
-__all__ = ["compiled_orb_available", "describe_level", "detect_level", "disc_half_widths", "intensity_tests",
-           "select_grid", "smooth", "warm_up"]
+__all__ = ["compiled_orb_available", "describe_level", "detect_level", "disc_half_widths", "fast_corners",
+           "intensity_tests", "select_grid", "smooth", "warm_up"]
