@@ -16,8 +16,9 @@ The timers cost about a microsecond each, a few dozen a frame: well under the ro
 
 It also times, on the same frames and interleaved with the same ORB, the OpenCV work that any
 ORB extraction of the tracker's pyramid pays whatever selects and describes the keypoints: the
-pyramid, FAST on every level (where keypoints may lie) and the smoothing of every level that the
-descriptors sample (OpenCV's ORB does each of them). That floor, less than the 2 units, leaves
+pyramid, FAST on every level and the smoothing of every level that the descriptors sample
+(OpenCV's ORB does each of them; the smoothing as ``orb.smooth`` does it, which gives ORB's
+values at less cost). That floor, less than the 2 units, leaves
 what the rest of the frame path may take.
 """
 from __future__ import annotations
@@ -93,7 +94,7 @@ def opencv_floor(tum: Path, tracker: dict[str, Any], frames: int) -> dict[str, f
 
     from memgs_ros.core.tracking import orb as orb_kernels
     from memgs_ros.core.tracking.config import TrackerConfig
-    from memgs_ros.core.tracking.features import EDGE_PX, OrbExtractor
+    from memgs_ros.core.tracking.features import OrbExtractor
     from memgs_ros.io.tum import TumFolder
 
     cfg = TrackerConfig(**{k.split(".", 1)[1]: v for k, v in tracker.items() if k.startswith("tracker.")})
@@ -110,7 +111,7 @@ def opencv_floor(tum: Path, tracker: dict[str, Any], frames: int) -> dict[str, f
             pyramid = extractor._pyramid(grey)  # noqa: SLF001 - the extractor's own pyramid
             t.append(time.thread_time())
             for level in pyramid:
-                orb_kernels.fast_corners(fast, level, EDGE_PX)
+                fast.detect(level)
             t.append(time.thread_time())
             for level in pyramid:  # ORB's smoothing before it samples the descriptor pattern
                 orb_kernels.smooth(level)

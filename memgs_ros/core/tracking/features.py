@@ -51,14 +51,14 @@ class OrbExtractor:
     share and the remaining budget goes to the strongest leftovers. Cells that found nothing
     are retried at ``fast_min_threshold`` only when the image is short of keypoints.
 
-    ``extract`` builds the image pyramid once and does on each level what OpenCV's single-level
-    ORB does (``orb``'s kernels; OpenCV's own per-level ORB where numba is missing): detection,
-    then orientation and descriptors for the keypoints the grid keeps only. OpenCV's multi-level
-    ORB builds its pyramid again for the descriptors, and orients every keypoint it detects.
-    ``_extract_reference`` is that multi-level path. All three give the same keypoints (positions
-    within 1e-3 px), octaves and descriptors; the two per-level paths in the same order (row-major
-    within each level). The kernels orient by ``cv2.phase``, which can differ from ORB's own atan2
-    in the last float bit: about one descriptor in 100000 then differs by a bit.
+    ``extract`` builds the image pyramid once and runs OpenCV's single-level ORB on each level to
+    detect; the grid's keypoints are then described on the same level images, by ``orb.describe``
+    (a numba kernel on the level smoothed once, as exact as OpenCV's ``compute``, which copies and
+    smooths each level again; where numba is missing, by ``compute``). OpenCV's multi-level ORB
+    builds its pyramid a second time to describe (on fr1/rpy the extraction took 1.67 times
+    OpenCV's own of 1000 features that way, 1.47 with one pyramid and ``compute``, 1.35 with the
+    kernel). ``_extract_reference`` is that multi-level path; all give the same keypoints
+    (positions within 1e-3 px), octaves and descriptors, the per-level paths in the same order.
     """
 
     def __init__(self, cfg: TrackerConfig) -> None:
@@ -68,13 +68,11 @@ class OrbExtractor:
         counts = level_shares(2 * cfg.n_features, cfg.scale_factor, cfg.n_levels)
         # Level k's scale, as OpenCV's ORB computes it (a float32 power).
         self._scales = [float(np.float32(cfg.scale_factor ** k)) for k in range(cfg.n_levels)]
-        self._counts = [max(c, 1) for c in counts]
-        self._level_orb = [self._make_orb(c, 1, cfg.fast_threshold) for c in self._counts]
-        self._level_orb_low = [self._make_orb(c, 1, cfg.fast_min_threshold) for c in self._counts]
-        # The kernels' stand-in for the per-level ORB, where numba and OpenCV's tests are at hand.
+        self._level_orb = [self._make_orb(max(c, 1), 1, cfg.fast_threshold) for c in counts]
+        self._level_orb_low = [self._make_orb(max(c, 1), 1, cfg.fast_min_threshold) for c in counts]
+        # ORB's intensity tests for ``orb.describe``, where numba and the tests are at hand (else
+        # OpenCV's ``compute`` describes).
         self._tests = orb.intensity_tests() if orb.compiled_orb_available() else None
-        self._fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
-        self._fast_low = cv2.FastFeatureDetector_create(cfg.fast_min_threshold, True)  # type: ignore[attr-defined]
 
     def _make_orb(self, n: int, levels: int, fast_threshold: int) -> cv2.ORB:
         return cv2.ORB_create(nfeatures=n, scaleFactor=self.cfg.scale_factor, nlevels=levels,  # type: ignore[attr-defined]  # missing from OpenCV's stubs
@@ -134,58 +132,37 @@ class OrbExtractor:
         if mask is not None:
             return self._extract_reference(gray, camera, depth_m, mask)
         pyr = self._pyramid(gray)
-        if self._tests is not None:
-            return self._extract_compiled(gray, pyr, camera, depth_m)
-        return self._extract_levels(gray, pyr, camera, depth_m)
-
-    def _extract_compiled(self, gray: np.ndarray, pyr: list[np.ndarray], camera: PinholeCamera,
-                          depth_m: np.ndarray | None) -> FrameFeatures:
-        """``extract`` by ``orb``'s kernels: each level detected, the grid's keypoints described."""
-        assert self._tests is not None
-        found = [orb.detect_level(self._fast, img, c, EDGE_PX) for img, c in zip(pyr, self._counts)]
-        if sum(len(xy) for xy, _ in found) < self.cfg.n_features:
-            found = [orb.detect_level(self._fast_low, img, c, EDGE_PX) for img, c in zip(pyr, self._counts)]
-        sizes = [len(xy) for xy, _ in found]
-        if sum(sizes) == 0:
-            return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
-        pts = np.concatenate([xy.astype(np.float32) * np.float32(sc) for (xy, _), sc in zip(found, self._scales)])
-        chosen = orb.select_grid(pts, np.concatenate([r for _, r in found]), self.cfg.n_features,
-                                 self.cfg.grid_cell_px, gray.shape[1], gray.shape[0])
-        first = np.cumsum([0, *sizes])
-        octave, desc = [], []
-        for k, (xy, _) in enumerate(found):
-            idx = chosen[(chosen >= first[k]) & (chosen < first[k + 1])] - first[k]
-            if len(idx):
-                desc.append(orb.describe_level(pyr[k], xy[idx], self._tests))
-                octave.append(np.full(len(idx), k, np.int64))
-        return self._finish(gray, camera, depth_m, pts[chosen], np.concatenate(octave), np.concatenate(desc))
-
-    def _extract_levels(self, gray: np.ndarray, pyr: list[np.ndarray], camera: PinholeCamera,
-                        depth_m: np.ndarray | None) -> FrameFeatures:
-        """``extract`` by OpenCV's single-level ORB on each level (where numba is missing)."""
         found = [det.detect(img, None) for det, img in zip(self._level_orb, pyr)]
         if sum(len(k) for k in found) < self.cfg.n_features:
             found = [det.detect(img, None) for det, img in zip(self._level_orb_low, pyr)]
-        # Row-major within each level, FAST's scan order and the kernels' (OpenCV's ORB hands them
-        # out in its cut's order): the grid then breaks ties alike, and both paths agree.
-        found = [[k[i] for i in np.lexsort(_positions(k).T).tolist()] for k in found]
         sizes = [len(k) for k in found]
         if sum(sizes) == 0:
             return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
         pts = np.concatenate([_positions(k) * np.float32(sc) for k, sc in zip(found, self._scales)])
         resp = np.fromiter((k.response for level in found for k in level), np.float32, len(pts))
-        chosen = self._select_indices(pts, resp, gray.shape[1], gray.shape[0])
+        if self._tests is not None:
+            chosen = orb.select_grid(pts, resp, self.cfg.n_features, self.cfg.grid_cell_px, gray.shape[1],
+                                     gray.shape[0])
+        else:
+            chosen = self._select_indices(pts, resp, gray.shape[1], gray.shape[0])
         first = np.cumsum([0, *sizes])
         uv, octave, desc = [], [], []
         for k, det in enumerate(self._level_orb):
             idx = chosen[(chosen >= first[k]) & (chosen < first[k + 1])] - first[k]
             if len(idx) == 0:
                 continue
-            kept, d = det.compute(pyr[k], [found[k][i] for i in idx.tolist()])
-            if not kept or d is None:
-                continue
-            uv.append(_positions(kept) * np.float32(self._scales[k]))
-            octave.append(np.full(len(kept), k, np.int64))
+            kps = [found[k][i] for i in idx.tolist()]
+            if self._tests is not None:
+                xy = _positions(kps)
+                angle = np.fromiter((kp.angle for kp in kps), np.float32, len(kps))
+                d = orb.describe(orb.smooth(pyr[k]), np.rint(xy).astype(np.int64), angle, self._tests)
+            else:
+                kept, d = det.compute(pyr[k], kps)
+                if not kept or d is None:
+                    continue
+                xy = _positions(kept)
+            uv.append(xy * np.float32(self._scales[k]))
+            octave.append(np.full(len(xy), k, np.int64))
             desc.append(d)
         if not uv:
             return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)

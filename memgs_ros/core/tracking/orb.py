@@ -1,23 +1,19 @@
-"""ORB keypoints and descriptors from numba kernels, equal to OpenCV's ORB on the same pyramid level.
+"""ORB descriptors from a numba kernel, equal to OpenCV's for the keypoints OpenCV's ORB detects.
 
-What OpenCV's single-level ORB does on a pyramid level, and so what this module reproduces:
-FAST corners (3x3 non-maximum suppression), those within ``edge`` px of the border dropped, the
-strongest 2n by FAST score kept (ties at the cut kept too), Harris responses on those (7x7 block
-of Sobel gradients, k = 0.04), the strongest n by response; the orientation of each keypoint is
-the direction of its intensity centroid over a 31 px disc; its descriptor is 256 intensity tests
-between pairs of pixels of the level smoothed by a 7x7 Gaussian (sigma 2), the pairs rotated by
-the orientation.
-
-FAST stays OpenCV's (its vectorised scan is ten times a scalar one). The rest runs in kernels on
-arrays of keypoints, and orientation and descriptors only for the keypoints the caller keeps:
-OpenCV's ORB orients every keypoint it detects, copies every level with a border twice (to
-detect, then to describe) and hands every keypoint through Python objects.
+OpenCV's ORB describes a keypoint by 256 intensity tests between pairs of pixels of the level
+smoothed by a 7x7 Gaussian (sigma 2), the pairs rotated by the keypoint's orientation. Its
+``compute`` copies the level with a border, smooths it all at a fixed-point precision it does not
+use, and hands the keypoints through Python objects both ways. Here the level is smoothed once
+(``smooth``: the separable filter whose values ORB's tests compare, which is also the cheaper
+one) and ``describe`` runs the tests in a kernel, at the keypoints' own orientations.
 
 The 256 test pairs are not a table from anywhere: :func:`intensity_tests` reads them off the
 installed OpenCV by describing random images (each test's pair is the one pair of pixels whose
 comparisons agree with that bit in every image) and checks them against OpenCV's descriptors at
 random orientations before they are used. Where numba is missing or the check fails,
-:func:`compiled_orb_available` is False and the extractor keeps OpenCV's ORB.
+:func:`compiled_orb_available` is False and the extractor keeps OpenCV's ``compute``.
+
+``select_grid`` is the compiled twin of the extractor's grid selection.
 """
 from __future__ import annotations
 
@@ -31,76 +27,12 @@ from memgs_ros.core.runtime.cpu import numba_available
 
 _log = logging.getLogger(__name__)
 
-HARRIS_K = np.float32(0.04)
-PATCH_RADIUS = 15  # half of ORB's 31 px patch: the orientation disc and the test pairs lie within it
+PATCH_RADIUS = 15  # half of ORB's 31 px patch: the test pairs lie within it
 # Adding and subtracting 1.5 * 2^23 rounds a float32 to the nearest integer, halves to even (as
 # OpenCV's rounding does), for |x| < 2^22.
 _ROUND_MAGIC = np.float32(12582912.0)
 _DEG_TO_RAD = np.float32(np.pi / 180.0)
 _SMOOTH_KERNEL = cv2.getGaussianKernel(7, 2.0, cv2.CV_64F)  # ORB's descriptor smoothing, 7x7, sigma 2
-
-
-def _harris(img, xs, ys, k):
-    """Harris responses [N] float32 at integer pixels (xs [N], ys [N]) of a uint8 image [H, W]:
-    det - k trace^2 of the 7x7 sum of Sobel gradient products, scaled as OpenCV's ORB scales it."""
-    n = xs.shape[0]
-    out = np.empty(n, np.float32)
-    scale = np.float32(1.0) / np.float32(4 * 7 * 255.0)
-    scale4 = scale * scale * scale * scale
-    for i in range(n):
-        x0 = xs[i]
-        y0 = ys[i]
-        a = 0
-        b = 0
-        c = 0
-        for y in range(y0 - 3, y0 + 4):
-            up = img[y - 1]
-            mid = img[y]
-            dn = img[y + 1]
-            for x in range(x0 - 3, x0 + 4):
-                ix = ((np.int32(mid[x + 1]) - np.int32(mid[x - 1])) * 2 + (np.int32(up[x + 1]) - np.int32(up[x - 1]))
-                      + (np.int32(dn[x + 1]) - np.int32(dn[x - 1])))
-                iy = ((np.int32(dn[x]) - np.int32(up[x])) * 2 + (np.int32(dn[x - 1]) - np.int32(up[x - 1]))
-                      + (np.int32(dn[x + 1]) - np.int32(up[x + 1])))
-                a += ix * ix
-                b += iy * iy
-                c += ix * iy
-        fa = np.float32(a)
-        fb = np.float32(b)
-        fc = np.float32(c)
-        out[i] = (fa * fb - fc * fc - k * (fa + fb) * (fa + fb)) * scale4
-    return out
-
-
-# FAST's 16 pixels on a radius-3 circle, in order around it (dx, dy).
-_CIRCLE = np.array([(0, -3), (1, -3), (2, -2), (3, -1), (3, 0), (3, 1), (2, 2), (1, 3),
-                    (0, 3), (-1, 3), (-2, 2), (-3, 1), (-3, 0), (-3, -1), (-2, -2), (-1, -3)], np.int64)
-
-
-def _fast_scores(img, xy, circle):
-    """FAST-9 scores [N] float32 of corners xy [N, 2] float32 of ``img``: the largest threshold at
-    which 9 contiguous circle pixels are all brighter, or all darker, than the centre, less one
-    (OpenCV's score; its keypoint objects carry it, but reading it there costs more)."""
-    n = xy.shape[0]
-    out = np.empty(n, np.float32)
-    d = np.empty(16, np.int32)
-    for i in range(n):
-        x = np.int64(xy[i, 0])
-        y = np.int64(xy[i, 1])
-        c = np.int32(img[y, x])
-        for k in range(16):
-            d[k] = np.int32(img[y + circle[k, 1], x + circle[k, 0]]) - c
-        best = 0
-        for start in range(16):
-            lo = d[start]
-            hi = d[start]
-            for j in range(1, 9):
-                v = d[(start + j) & 15]
-                lo = min(lo, v)
-                hi = max(hi, v)
-            best = max(best, lo, -hi)
-        out[i] = best - 1
-    return out
 
 
 def _select_grid(pts, resp, n, cell, gx, gy):
@@ -135,73 +67,6 @@ def _select_grid(pts, resp, n, cell, gx, gy):
                 chosen[i] = False
                 total -= 1
     return np.flatnonzero(chosen)
-
-
-def _nth_largest_cut(score, n):
-    """The n-th largest of score [N] (n < N): what keeps the best n, ties at the cut included."""
-    return np.partition(score, score.shape[0] - n)[score.shape[0] - n]
-
-
-def _detect(img, xy, n, edge, k):
-    """Keypoints of ``img`` [H, W] uint8 among FAST corners xy [N, 2] float32 (row-major order):
-    those at least ``edge`` px inside, the best 2n by FAST score (ties kept), then the best n (ties
-    kept) by Harris response. Returns (pixels [K, 2] int64, responses [K] float32)."""
-    h, w = img.shape
-    m = xy.shape[0]
-    keep = np.empty(m, np.int64)
-    count = 0
-    for i in range(m):
-        if edge <= xy[i, 0] < w - edge and edge <= xy[i, 1] < h - edge:
-            keep[count] = i
-            count += 1
-    keep = keep[:count]
-    if 0 < 2 * n < count:
-        s = _fast_scores(img, xy[keep], _CIRCLE)
-        cut = _nth_largest_cut(s, 2 * n)
-        keep = keep[s >= cut]
-    xs = np.empty(keep.shape[0], np.int64)
-    ys = np.empty(keep.shape[0], np.int64)
-    for i in range(keep.shape[0]):
-        xs[i] = np.int64(xy[keep[i], 0])
-        ys[i] = np.int64(xy[keep[i], 1])
-    response = _harris(img, xs, ys, k)
-    if 0 < n < response.shape[0]:
-        best = response >= _nth_largest_cut(response, n)
-        xs, ys, response = xs[best], ys[best], response[best]
-    pix = np.empty((xs.shape[0], 2), np.int64)
-    pix[:, 0] = xs
-    pix[:, 1] = ys
-    return pix, response
-
-
-def _moments(img, xs, ys, half_width):
-    """First intensity moments (m01, m10) [N] float32 over the disc around each pixel: row v of
-    the disc spans |u| <= half_width[|v|]. Rows v and -v are summed together."""
-    n = xs.shape[0]
-    m01 = np.empty(n, np.float32)
-    m10 = np.empty(n, np.float32)
-    for i in range(n):
-        x0 = xs[i]
-        y0 = ys[i]
-        row = img[y0]
-        a = 0
-        for u in range(-half_width[0], half_width[0] + 1):
-            a += u * np.int32(row[x0 + u])
-        b = 0
-        for v in range(1, half_width.shape[0]):
-            above = img[y0 - v]
-            below = img[y0 + v]
-            w = half_width[v]
-            s = 0
-            for u in range(-w, w + 1):
-                p = np.int32(below[x0 + u])
-                q = np.int32(above[x0 + u])
-                s += p - q
-                a += u * (p + q)
-            b += v * s
-        m10[i] = a
-        m01[i] = b
-    return m01, m10
 
 
 def _describe(smoothed, xs, ys, cos_a, sin_a, tests):
@@ -241,51 +106,8 @@ if numba_available():
     import numba
 
     _jit = numba.njit(cache=True, nogil=True)
-    _harris = _jit(_harris)
-    _fast_scores = _jit(_fast_scores)
     _select_grid = _jit(_select_grid)
-    _nth_largest_cut = _jit(_nth_largest_cut)
-    _detect = _jit(_detect)
-    _moments = _jit(_moments)
     _describe = _jit(_describe)
-
-
-def disc_half_widths(radius: int = PATCH_RADIUS) -> np.ndarray:
-    """Half widths [radius + 1] int64 of a digital disc symmetric under swapping x and y: rows up
-    to 45 degrees are round(sqrt(r^2 - v^2)); the steeper rows are the transposes of those columns."""
-    corner = int(np.floor(radius * np.sqrt(2.0) / 2.0 + 1.0))
-    w = [int(np.round(np.sqrt(radius * radius - v * v))) for v in range(corner + 1)]
-    out = np.array(w + [0] * (radius - corner), np.int64)
-    for v in range(int(np.ceil(radius * np.sqrt(2.0) / 2.0)), radius + 1):
-        out[v] = max(u for u in range(corner + 1) if w[u] >= v)
-    return out
-
-
-_HALF_WIDTHS = disc_half_widths()
-
-
-def fast_corners(fast: cv2.FastFeatureDetector, level: np.ndarray, edge: int) -> np.ndarray:
-    """OpenCV's FAST corners [N, 2] float32 (x, y; row-major) of ``level`` [H, W] uint8 that can lie
-    ``edge`` px inside it, or suppress one that does."""
-    # FAST only there: ``edge`` - 1 px in, plus the 3 px its circle needs (11 % of level 0's pixels
-    # and 35 % of the top level's go unscanned).
-    m = max(edge - 4, 0)
-    h, w = level.shape
-    kps = fast.detect(level[m:h - m, m:w - m]) if h > 2 * m and w > 2 * m else ()
-    if not kps:
-        return np.zeros((0, 2), np.float32)
-    return np.asarray(cv2.KeyPoint_convert(kps), np.float32).reshape(-1, 2) + np.float32(m)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
-
-
-def detect_level(fast: cv2.FastFeatureDetector, level: np.ndarray, n: int, edge: int
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """The keypoints OpenCV's single-level ORB (``n`` features, FAST detector ``fast``, border
-    ``edge`` px, Harris score) finds in ``level`` [H, W] uint8: pixels [K, 2] int64 (x, y) in FAST's
-    row-major order and their Harris responses [K] float32."""
-    xy = fast_corners(fast, level, edge)
-    if len(xy) == 0:
-        return np.zeros((0, 2), np.int64), np.zeros(0, np.float32)
-    return _detect(level, xy, n, edge, HARRIS_K)
 
 
 def select_grid(pts: np.ndarray, resp: np.ndarray, n: int, cell: float, width: int, height: int) -> np.ndarray:
@@ -303,13 +125,16 @@ def smooth(level: np.ndarray) -> np.ndarray:
     return cv2.sepFilter2D(level, -1, _SMOOTH_KERNEL, _SMOOTH_KERNEL, borderType=cv2.BORDER_REFLECT_101)
 
 
-def describe_level(level: np.ndarray, pix: np.ndarray, tests: np.ndarray) -> np.ndarray:
-    """ORB descriptors [K, 32] uint8 of keypoints at pixels ``pix`` [K, 2] int64 of ``level`` (at
-    least ``PATCH_RADIUS`` + 6 px inside it), oriented by their intensity centroids."""
-    xs, ys = np.ascontiguousarray(pix[:, 0]), np.ascontiguousarray(pix[:, 1])
-    m01, m10 = _moments(level, xs, ys, _HALF_WIDTHS)
-    angle = cv2.phase(m10, m01, angleInDegrees=True).reshape(-1) * _DEG_TO_RAD  # OpenCV's fast atan2, as ORB
-    return _describe(smooth(level), xs, ys, np.cos(angle), np.sin(angle), tests)
+def describe(smoothed: np.ndarray, pix: np.ndarray, angle_deg: np.ndarray, tests: np.ndarray) -> np.ndarray:
+    """ORB descriptors [K, 32] uint8 of keypoints at pixels ``pix`` [K, 2] int64 (at least
+    ``PATCH_RADIUS`` + 6 px inside the level), oriented ``angle_deg`` [K] (OpenCV's keypoint angles),
+    on the level ``smooth`` made."""
+    rad = np.asarray(angle_deg, np.float32) * _DEG_TO_RAD  # float32, as ORB converts it
+    # cos and sin rounded once to float32, as ORB's are: numpy's float32 cos can be an ulp off,
+    # which moves a rotated test pixel that sits on a half.
+    rad64 = rad.astype(np.float64)
+    return _describe(smoothed, np.ascontiguousarray(pix[:, 0], np.int64), np.ascontiguousarray(pix[:, 1], np.int64),
+                     np.cos(rad64).astype(np.float32), np.sin(rad64).astype(np.float32), tests)
 
 
 # ---------------------------------------------------------------------------- the test pattern
@@ -367,21 +192,20 @@ def _derive_test_pattern(seed: int = 0, rounds: int = 3) -> np.ndarray:
     return np.ascontiguousarray(np.stack([first[:, 0], first[:, 1], second[:, 0], second[:, 1]]), np.float32)
 
 
-def _check_test_pattern(tests: np.ndarray, seed: int = 1) -> int:
-    """Descriptors (of 400 at random positions and angles on a random image) where these tests and
-    OpenCV's ORB disagree."""
+def _check_test_pattern(tests: np.ndarray, seed: int = 1, n: int = 2000) -> int:
+    """Descriptors (of ``n`` at random positions and angles on a random image) where ``describe``
+    with these tests and OpenCV's ORB disagree."""
     rng = np.random.default_rng(seed)
     img = cv2.GaussianBlur(rng.integers(0, 256, (400, 400), dtype=np.uint8), (3, 3), 0)
-    xy = rng.integers(48, 352, (400, 2))
-    angles = rng.uniform(0.0, 360.0, 400).astype(np.float32)
+    xy = rng.integers(48, 352, (n, 2))
+    angles = rng.uniform(0.0, 360.0, n).astype(np.float32)
     ref_orb = cv2.ORB_create(nfeatures=1, nlevels=1, edgeThreshold=31, patchSize=31)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
     probes = [cv2.KeyPoint(float(x), float(y), 31.0, float(a)) for (x, y), a in zip(xy, angles)]
     kept, ref = ref_orb.compute(img, probes)
-    if ref is None or len(kept) != len(xy):
-        return len(xy)
-    rad = np.array([k.angle for k in kept], np.float32) * _DEG_TO_RAD
-    pix = np.array([k.pt for k in kept]).round().astype(np.int64)
-    ours = _describe(smooth(img), pix[:, 0].copy(), pix[:, 1].copy(), np.cos(rad), np.sin(rad), tests)
+    if ref is None or len(kept) != n:
+        return n
+    pix = np.rint([k.pt for k in kept]).astype(np.int64)
+    ours = describe(smooth(img), pix, np.array([k.angle for k in kept], np.float32), tests)
     return int((ours != ref).any(axis=1).sum())
 
 
@@ -396,30 +220,22 @@ def intensity_tests() -> np.ndarray | None:
         _log.info("ORB descriptors stay OpenCV's: %s", err)
         return None
     if wrong:
-        _log.info("ORB descriptors stay OpenCV's: the derived tests disagree on %d of 400 descriptors", wrong)
+        _log.info("ORB descriptors stay OpenCV's: the derived tests disagree on %d of 2000 descriptors", wrong)
         return None
     return tests
 
 
 def warm_up() -> None:
-    """Compile (or load from the disk cache) the kernels on a small image, and read off the tests,
-    so that the first tracked frame pays for neither."""
-    if not compiled_orb_available():
-        return
-    tests = intensity_tests()
-    assert tests is not None
-    img = cv2.GaussianBlur(np.random.default_rng(0).integers(0, 256, (96, 96), dtype=np.uint8), (3, 3), 0)
-    fast = cv2.FastFeatureDetector_create(10, True)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
-    pix, _ = detect_level(fast, img, 4, 24)
-    if len(pix):
-        describe_level(img, pix, tests)
-    select_grid(np.zeros((3, 2), np.float32), np.ones(3, np.float32), 1, 16.0, 96, 96)
+    """Read off the tests (which compiles, or loads from the disk cache, the descriptor kernel) and
+    compile the grid selection, so that the first tracked frame pays for neither."""
+    if compiled_orb_available():
+        select_grid(np.zeros((3, 2), np.float32), np.ones(3, np.float32), 1, 16.0, 96, 96)
 
 
 def compiled_orb_available() -> bool:
-    """Whether :func:`detect_level` and :func:`describe_level` can stand in for OpenCV's ORB here."""
+    """Whether :func:`describe` and :func:`select_grid` can stand in for OpenCV's ``compute`` and the
+    extractor's numpy selection here."""
     return numba_available() and intensity_tests() is not None
 
 
-__all__ = ["compiled_orb_available", "describe_level", "detect_level", "disc_half_widths", "fast_corners",
-           "intensity_tests", "select_grid", "smooth", "warm_up"]
+__all__ = ["compiled_orb_available", "describe", "intensity_tests", "select_grid", "smooth", "warm_up"]
