@@ -56,8 +56,8 @@ class OrbExtractor:
     (a numba kernel on the level smoothed once, as exact as OpenCV's ``compute``, which copies and
     smooths each level again; where numba is missing, by ``compute``). OpenCV's multi-level ORB
     builds its pyramid a second time to describe (on fr1/rpy the extraction took 1.67 times
-    OpenCV's own of 1000 features that way, 1.47 with one pyramid and ``compute``, 1.35 with the
-    kernel). ``_extract_reference`` is that multi-level path; all give the same keypoints
+    OpenCV's own of 1000 features that way, 1.35-1.38 with one pyramid and ``compute``, 1.23-1.27
+    with the kernel). ``_extract_reference`` is that multi-level path; all give the same keypoints
     (positions within 1e-3 px), octaves and descriptors, the per-level paths in the same order.
     """
 
