@@ -123,3 +123,14 @@ def test_without_numba_the_extractor_keeps_opencvs_compute() -> None:
     env = {**os.environ, "MEMGS_DISABLE_NUMBA": "1"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120, check=False)
     assert out.returncode == 0, out.stderr
+
+
+def test_describe_refuses_keypoints_too_near_the_border() -> None:
+    tests = orb.intensity_tests()
+    assert tests is not None
+    smoothed = orb.smooth(np.zeros((100, 120), np.uint8))
+    for x, y in ((18, 50), (60, 18), (101, 50), (60, 81)):
+        with pytest.raises(ValueError, match="19 px inside the 120x100 level"):
+            orb.describe(smoothed, np.array([[x, y]]), np.zeros(1, np.float32), tests)
+    assert orb.describe(smoothed, np.array([[19, 19], [100, 80]]), np.zeros(2, np.float32), tests).shape == (2, 32)
+    assert orb.describe(smoothed, np.zeros((0, 2), np.int64), np.zeros(0, np.float32), tests).shape == (0, 32)

@@ -2,10 +2,11 @@
 
 OpenCV's ORB describes a keypoint by 256 intensity tests between pairs of pixels of the level
 smoothed by a 7x7 Gaussian (sigma 2), the pairs rotated by the keypoint's orientation. Its
-``compute`` copies the level with a border, smooths it all at a fixed-point precision it does not
-use, and hands the keypoints through Python objects both ways. Here the level is smoothed once
-(``smooth``: the separable filter whose values ORB's tests compare, which is also the cheaper
-one) and ``describe`` runs the tests in a kernel, at the keypoints' own orientations.
+``compute`` copies the level with a border and smooths the copy at every call, and hands the
+keypoints through Python objects both ways. Here the level is smoothed once by ``smooth`` (a
+separable filter with the Gaussian's float kernel: its values are the ones ORB's tests compare,
+where ``cv2.GaussianBlur``'s fixed-point rounding differs by one here and there, and it is the
+cheaper of the two) and ``describe`` runs the tests in a kernel, at the keypoints' own orientations.
 
 The 256 test pairs are not a table from anywhere: :func:`intensity_tests` reads them off the
 installed OpenCV by describing random images (each test's pair is the one pair of pixels whose
@@ -126,9 +127,14 @@ def smooth(level: np.ndarray) -> np.ndarray:
 
 
 def describe(smoothed: np.ndarray, pix: np.ndarray, angle_deg: np.ndarray, tests: np.ndarray) -> np.ndarray:
-    """ORB descriptors [K, 32] uint8 of keypoints at pixels ``pix`` [K, 2] int64 (at least
-    ``PATCH_RADIUS`` + 6 px inside the level), oriented ``angle_deg`` [K] (OpenCV's keypoint angles),
-    on the level ``smooth`` made."""
+    """ORB descriptors [K, 32] uint8 of keypoints at pixels ``pix`` [K, 2] int64 (x, y), oriented
+    ``angle_deg`` [K] (OpenCV's keypoint angles), on the level ``smooth`` made [H, W] uint8.
+    ValueError when a keypoint is too near the border for its rotated tests (ORB keeps its
+    keypoints 19 px inside, beyond the farthest test's 18.4 px)."""
+    h, w = smoothed.shape
+    reach = int(np.ceil(np.hypot(tests[0::2], tests[1::2]).max()))  # the farthest test pixel, any rotation
+    if len(pix) and (pix.min() < reach or pix[:, 0].max() >= w - reach or pix[:, 1].max() >= h - reach):
+        raise ValueError(f"ORB keypoints must lie {reach} px inside the {w}x{h} level for their tests")
     rad = np.asarray(angle_deg, np.float32) * _DEG_TO_RAD  # float32, as ORB converts it
     # cos and sin rounded once to float32, as ORB's are: numpy's float32 cos can be an ulp off,
     # which moves a rotated test pixel that sits on a half.
