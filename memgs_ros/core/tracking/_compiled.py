@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from memgs_ros.core.runtime.cpu import numba_available  # noqa: F401 - re-exported
+from memgs_ros.core.tracking import orb
 
 __all__ = ["match_by_projection_kernel", "numba_available", "optimize_pose_kernel", "warm_up"]
 
@@ -383,8 +384,6 @@ def warm_up() -> None:
     ~0.2 s from the cache)."""
     if not numba_available():
         return
-    from memgs_ros.core.tracking import orb  # here: orb's module reads OpenCV at its first use
-
     orb.warm_up()
     uv = np.array([[10.0, 10.0], [20.0, 20.0]])
     desc = np.zeros((2, 32), np.uint8)
