@@ -2,10 +2,6 @@
 OpenCV's ORB and the extractor's numpy selection, their references."""
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-
 import cv2
 import numpy as np
 import pytest
@@ -105,24 +101,6 @@ def test_the_kernel_and_opencvs_compute_give_the_same_features_in_the_same_order
         assert len(a) == len(b) == cfg.n_features
         for field in ("uv_raw", "uv", "octave", "desc", "depth_m"):
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
-
-
-def test_without_numba_the_extractor_keeps_opencvs_compute() -> None:
-    """MEMGS_DISABLE_NUMBA=1: no kernel is compiled or called, OpenCV's ORB describes."""
-    code = ("import cv2, numpy as np\n"
-            "from memgs_ros.core.tracking import TrackerConfig, orb\n"
-            "from memgs_ros.core.tracking.features import OrbExtractor\n"
-            "from memgs_ros.io.synthetic import generate_frames, parse_spec\n"
-            "assert not orb.compiled_orb_available()\n"
-            "ex = OrbExtractor(TrackerConfig(n_features=300))\n"
-            "assert ex._tests is None\n"
-            "f = next(iter(generate_frames(parse_spec('synthetic:w=320,h=240,n=1'))))\n"
-            "feats = ex.extract(cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY), f.camera, f.depth_m)\n"
-            "assert len(feats) == 300, len(feats)\n"
-            "assert not hasattr(orb._describe, 'signatures')\n")
-    env = {**os.environ, "MEMGS_DISABLE_NUMBA": "1"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120, check=False)
-    assert out.returncode == 0, out.stderr
 
 
 def test_describe_refuses_keypoints_too_near_the_border() -> None:

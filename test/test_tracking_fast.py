@@ -135,10 +135,20 @@ def test_optimize_pose_degenerate_inputs_match_reference() -> None:
 
 
 def test_disabled_numba_falls_back_to_the_plain_path() -> None:
-    code = ("import numpy as np\n"
-            "from memgs_ros.core.tracking import _compiled, bundle_adjustment as ba\n"
-            "assert not _compiled.numba_available()\n"
+    """MEMGS_DISABLE_NUMBA=1: no kernel is compiled or called; pose optimisation runs its plain twin
+    and OpenCV's ORB describes the extractor's keypoints."""
+    code = ("import cv2, numpy as np\n"
+            "from memgs_ros.core.tracking import TrackerConfig, _compiled, orb, bundle_adjustment as ba\n"
+            "from memgs_ros.core.tracking.features import OrbExtractor\n"
+            "from memgs_ros.io.synthetic import generate_frames, parse_spec\n"
+            "assert not _compiled.numba_available() and not orb.compiled_orb_available()\n"
+            "ex = OrbExtractor(TrackerConfig(n_features=300))\n"
+            "assert ex._tests is None\n"
+            "f = next(iter(generate_frames(parse_spec('synthetic:w=320,h=240,n=1'))))\n"
+            "feats = ex.extract(cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY), f.camera, f.depth_m)\n"
+            "assert len(feats) == 300, len(feats)\n"
             "assert not hasattr(_compiled._match, 'signatures')  # never compiled\n"
+            "assert not hasattr(orb._describe, 'signatures')\n"
             "T, inl = ba.optimize_pose(np.eye(4), np.array([[0, 0, 2.0], [1, 0, 2], [0, 1, 2], [1, 1, 3]]),\n"
             "    np.array([[320, 240.0], [570, 240], [320, 490], [320 + 500 / 3, 240 + 500 / 3]]), np.full(4, np.nan),\n"
             "    np.ones(4), np.array([[500, 0, 320], [0, 500, 240], [0, 0, 1.0]]), 40.0)\n"
