@@ -84,6 +84,7 @@ KEYPOINT_DTYPE = np.dtype([("u", np.float32), ("v", np.float32), ("depth", np.fl
 
 
 CONFIGS = NODE_CONFIGS["tracker"]
+_WARM_UP_JOIN_S = 10.0  # how long a node being destroyed waits for its warm-up thread
 
 
 class TrackerNode(Node):
@@ -162,7 +163,8 @@ class TrackerNode(Node):
         # deadline. The runner starts a live replay once ``kernels_warm`` is 1; a frame that comes
         # first waits for the kernels inside make_tracker (numba compiles one signature at a time).
         self.stats.gauges["kernels_warm"] = 0
-        threading.Thread(target=self._warm_up, name="tracker-warm-up", daemon=True).start()
+        self._warm_thread = threading.Thread(target=self._warm_up, name="tracker-warm-up", daemon=True)
+        self._warm_thread.start()
 
     def _warm_up(self) -> None:
         t0 = time.perf_counter()
@@ -413,6 +415,13 @@ class TrackerNode(Node):
     def on_shutdown(self) -> None:
         if self.tracker is not None:
             self.tracker.close()
+
+    def destroy_node(self) -> None:
+        # The warm-up starts by reading ORB's tests off OpenCV (~0.5 s, in OpenCV's native code): a
+        # process that exits under it aborts ("terminate called without an active exception").
+        # Bounded: a first compile of the kernels after that can take ~10 s.
+        self._warm_thread.join(timeout=_WARM_UP_JOIN_S)
+        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:
