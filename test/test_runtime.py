@@ -79,3 +79,39 @@ def test_lower_priority_lowers_the_autogroup_of_a_session_leader_only() -> None:
     assert member.returncode == 0, member.stderr
     assert Path("/proc/self/autogroup").read_text() == ours  # the session it shares is untouched
     assert member.stdout.strip() == ours.strip()
+
+
+def test_parallel_map_keeps_job_order_reuses_its_threads_and_runs_nested_calls_inline() -> None:
+    import threading
+
+    from memgs_ros.core.runtime.pool import parallel_map
+
+    names: set[str] = set()
+
+    def job(i: int) -> int:
+        names.add(threading.current_thread().name)
+        inner = parallel_map(lambda k: k * 10, [1, 2, 3], 2)  # inline on a pool thread: no self-wait
+        return i * 2 + sum(inner)
+
+    first = parallel_map(job, list(range(9)), 2)
+    assert first == [i * 2 + 60 for i in range(9)]
+    seen = set(names)
+    assert all(n.startswith("memgs-kernels") for n in seen) and 1 <= len(seen) <= 2
+    assert parallel_map(job, list(range(9)), 2) == first
+    assert len(names) <= 4 and all(n.startswith("memgs-kernels") for n in names)  # one pool per process
+
+
+def test_parallel_map_raises_a_jobs_error_after_the_other_jobs_ran() -> None:
+    from memgs_ros.core.runtime.pool import parallel_map
+
+    done: list[int] = []
+
+    def job(i: int) -> int:
+        if i == 3:
+            raise ValueError("job 3")
+        done.append(i)
+        return i
+
+    with pytest.raises(ValueError, match="job 3"):
+        parallel_map(job, list(range(8)), 2)
+    assert sorted(done) == [0, 1, 2, 4, 5, 6, 7]  # the other runner drained the rest

@@ -26,9 +26,7 @@ How it stays fast and small on a CPU:
 """
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar
 
 import torch
@@ -38,6 +36,7 @@ from torch.autograd.function import once_differentiable
 from memgs_ros.core.raster.rules import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
 from memgs_ros.core.raster.tiles import Chunk, TilePlan
 from memgs_ros.core.raster.values import Splats2D
+from memgs_ros.core.runtime.pool import cpu_threads, parallel_map
 
 # exp() of very negative arguments takes a slow path (~14x); below -30 alpha is 0 anyway.
 MIN_POWER = -30.0
@@ -52,19 +51,12 @@ def default_workers(device: torch.device) -> int:
     """Python threads for the chunk loop: >1 only on CPU when torch runs single-threaded ops."""
     if device.type != "cpu" or torch.get_num_threads() != 1:
         return 1
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(cores, 4))
+    return cpu_threads()
 
 
 def _map(fn: Callable[[_In], _Out], jobs: Sequence[_In], workers: int) -> list[_Out]:
-    """[fn(j) for j in jobs], on up to ``workers`` threads (results in job order)."""
-    if workers <= 1 or len(jobs) <= 1:
-        return [fn(j) for j in jobs]
-    with ThreadPoolExecutor(max_workers=min(workers, len(jobs))) as pool:
-        return list(pool.map(fn, jobs))
+    """[fn(j) for j in jobs], on up to ``workers`` threads of the process's kernel pool."""
+    return parallel_map(fn, jobs, workers)
 
 
 def _pixel_features(tile_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:

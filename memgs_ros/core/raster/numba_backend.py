@@ -20,7 +20,6 @@ Python threads have neither problem.
 """
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import numpy as np
@@ -33,6 +32,7 @@ from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.tiles import BIN_MARGIN, TilePlan
 from memgs_ros.core.raster.values import Splats2D
 from memgs_ros.core.runtime.cpu import numba_available
+from memgs_ros.core.runtime.pool import cpu_threads
 from memgs_ros.errors import ConfigError
 
 __all__ = ["NUMBA_TILE_SIZE", "composite_numba", "cpu_threads"]
@@ -47,15 +47,6 @@ NUMBA_TILE_SIZE = 16
 JOBS_PER_THREAD = 4
 
 
-
-
-def cpu_threads() -> int:
-    """Python threads for one compositing call: the cores this process may run on, up to 4."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(cores, 4))
 
 
 def _tile_jobs(plan: TilePlan, threads: int) -> list[np.ndarray]:

@@ -21,12 +21,11 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.raster.composite import _map
-from memgs_ros.core.raster.numba_backend import cpu_threads
 from memgs_ros.core.raster.projection import JACOBIAN_FOV_MARGIN, Projected
 from memgs_ros.core.raster.sh import num_sh_bases
 from memgs_ros.core.raster.values import Gaussians
 from memgs_ros.core.runtime.cpu import numba_available
+from memgs_ros.core.runtime.pool import cpu_threads, parallel_map
 from memgs_ros.errors import ConfigError
 
 __all__ = ["project_gaussians_numba"]
@@ -124,7 +123,7 @@ class _ProjectNumbaFn(torch.autograd.Function):
         outs = (means2d.numpy(), cov2d.numpy(), conics.numpy(), depths.numpy(), opac.numpy(), colors.numpy(),
                 in_front.numpy())
         jobs = _ranges(n, threads)
-        _map(lambda j: k.project_forward(j[1], j[2], *args, *outs), jobs, threads)
+        parallel_map(lambda j: k.project_forward(j[1], j[2], *args, *outs), jobs, threads)
         ctx.args = args
         ctx.jobs = jobs
         ctx.threads = threads
@@ -174,7 +173,8 @@ class _ProjectNumbaFn(torch.autograd.Function):
             v_dc.numpy().reshape(n, 3),
             v_rest.numpy(),
         )
-        _map(lambda j: k.project_backward(j[1], j[2], *ctx.args, *cot, *grads, acc[j[0]]), ctx.jobs, ctx.threads)
+        parallel_map(lambda j: k.project_backward(j[1], j[2], *ctx.args, *cot, *grads, acc[j[0]]),
+                     ctx.jobs, ctx.threads)
         v_T = None
         if ctx.needs_input_grad[6]:
             g = acc.sum(0)  # [ACC_COLS], summed in range order (deterministic)
