@@ -30,11 +30,10 @@ from memgs_ros.errors import ConfigError
 
 __all__ = ["project_gaussians_numba"]
 
-# Rows per Python thread at least (fewer threads otherwise): at 20k Gaussians the whole pass is
-# ~8 ms of CPU on one thread and a split bought nothing. At 100k on 2 cores busy with another
-# process (load ~3) two threads were not faster either (wall 50 vs 46 ms, CPU +5%); the split is
-# kept for idle multi-core machines, where it was not measured.
-MIN_ROWS_PER_THREAD = 16384
+# Rows per Python thread at least (fewer threads otherwise). With threads made per call a split
+# bought nothing at 20k Gaussians; on the process's persistent pool (core/runtime/pool.py) the
+# backward pass of a 30k-Gaussian step at 320x240 went from 5.7 to 3.4 ms on 2 cores.
+MIN_ROWS_PER_THREAD = 4096
 
 
 def _kernels() -> Any:
