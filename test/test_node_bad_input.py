@@ -253,6 +253,51 @@ def test_mapper_refuses_bad_bundles_without_touching_the_map(context, frames) ->
         feeder.close()
 
 
+def _tum_units_bundle(f: Frame, stamp: int) -> Bundle:
+    """A bundle whose depth travels as TUM stores it (16UC1, 5000 units a metre) and whose seeds
+    sit on that depth: what a tracker forwarding TUM's depth and a sampler reading it send."""
+    b = _bundle(f, stamp)
+    b.depth = depth_to_image(f.depth_m, "16UC1", stamp, "cam", 5000.0)
+    v, u = np.mgrid[4:f.camera.height - 4:4, 4:f.camera.width - 4:4]
+    d = f.depth_m[v, u]
+    ok = np.isfinite(d) & (d > 0)
+    p_c = f.camera.backproject(u[ok], v[ok], d[ok])
+    p_w = p_c @ f.T_wc_gt[:3, :3].T + f.T_wc_gt[:3, 3]
+    b.seeds = structured_to_pointcloud2(encode_seeds(p_w, np.full((len(p_w), 3), 0.5), np.ones(len(p_w), np.uint8)),
+                                        stamp, "map")
+    return b
+
+
+@pytest.mark.parametrize("node_name", ["keyframe_sampler", "mapper"])
+def test_a_depth_scale_that_disagrees_with_the_trackers_is_refused(context, frames, node_name: str) -> None:  # noqa: ANN001
+    """Keyframe depth travels in the camera's units: a sampler or mapper reading it with another
+    depth_scale than the tracker (whose keypoint depths, and the sampler's seeds, are metres)
+    refuses the keyframe (problem.depth_scale) instead of building a map at 1/5 of its size."""
+    from memgs_ros.nodes.keyframe_sampler import KeyframeSamplerNode
+    from memgs_ros.nodes.mapper import MapperNode
+
+    def make(scale: float):  # noqa: ANN202
+        common = [Parameter("depth_scale", value=scale)]
+        if node_name == "mapper":
+            return MapperNode(context=context, parameter_overrides=common + [
+                Parameter("lockstep", value=True), Parameter("device", value="cpu"),
+                Parameter("render_rate_hz", value=0.0)])
+        return KeyframeSamplerNode(context=context, parameter_overrides=common)
+
+    parts = ("color", "depth", "info", "pose") + (("seeds",) if node_name == "mapper" else ("keypoints",))
+    for scale, accepted in ((1000.0, False), (5000.0, True)):
+        feeder = _Feeder(context, make(scale), parts)
+        c = feeder.node.stats.counters
+        try:
+            f = frames[1]
+            feeder.send(_tum_units_bundle(f, f.stamp_ns), lambda: c["keyframes"] + _problems(c) == 1)
+            assert (c["keyframes"], c["problem.depth_scale"]) == ((1, 0) if accepted else (0, 1)), dict(c)
+        finally:
+            if node_name == "mapper":
+                feeder.node.on_shutdown()
+            feeder.close()
+
+
 def test_free_running_mapper_drops_and_counts_keyframes_it_cannot_insert(context, frames) -> None:  # noqa: ANN001
     """Keyframes arriving faster than the mapper inserts them: the bounded insert queue keeps the
     newest, drops the oldest whole and counts each; the executor keeps draining the topics."""
@@ -262,7 +307,8 @@ def test_free_running_mapper_drops_and_counts_keyframes_it_cannot_insert(context
 
     node = MapperNode(context=context, parameter_overrides=[
         Parameter("insert_queue", value=1), Parameter("device", value="cpu"), Parameter("render_rate_hz", value=0.0),
-        Parameter("mapping.min_keyframes", value=100)])  # no training: only insertion is exercised
+        Parameter("mapping.min_keyframes", value=100),
+        Parameter("mapping.live_min_keyframes", value=100)])  # no training: only insertion is exercised
     gate = threading.Event()
     started: list[int] = []
 
@@ -521,7 +567,8 @@ def test_mapper_checkpoints_written_while_keyframes_arrive_are_whole(context, fr
     node = MapperNode(context=context, parameter_overrides=[
         Parameter("device", value="cpu"), Parameter("render_rate_hz", value=0.0),
         Parameter("checkpoint_path", value=str(path)), Parameter("checkpoint_period_s", value=0.0),
-        Parameter("mapping.min_keyframes", value=100)])  # no training: insertions back to back
+        Parameter("mapping.min_keyframes", value=100),
+        Parameter("mapping.live_min_keyframes", value=100)])  # no training: insertions back to back
     feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "seeds"))
     c = node.stats.counters
     stop = threading.Event()

@@ -162,3 +162,40 @@ def test_tracker_loads_its_kernels_before_the_first_frame(context) -> None:  # n
         assert node.tracker is None  # built on the first frame, from warm kernels
     finally:
         node.destroy_node()
+
+
+def test_tracker_forwards_keyframe_images_as_received(context) -> None:  # noqa: ANN001
+    """A keyframe's images leave as they came in: 16UC1 depth stays 16UC1 with the same bytes (not
+    32FC1 metres), the colour message is the camera's, and a depth paired from a nearby stamp
+    takes the colour's stamp, which names the keyframe's bundle."""
+    params = [Parameter("color_topic", value="color/image_raw"), Parameter("depth_topic", value="depth/image_raw"),
+              Parameter("camera_info_topic", value="color/camera_info"), Parameter("depth_scale", value=5000.0),
+              Parameter("max_sync_dt_s", value=0.02)]
+    node = TrackerNode(context=context, parameter_overrides=params)
+    peer = rclpy.create_node("kf_peer", context=context)
+    pc = peer.create_publisher(Image, "color/image_raw", qos.reliable(50))
+    pd = peer.create_publisher(Image, "depth/image_raw", qos.reliable(50))
+    pi = peer.create_publisher(CameraInfo, "color/camera_info", qos.reliable(50))
+    got: dict[str, list[Image]] = {"color": [], "depth": []}
+    for part in got:
+        peer.create_subscription(Image, f"memgs/keyframe/{part}", got[part].append, qos.keyframes())
+    ex = SingleThreadedExecutor(context=context)
+    ex.add_node(node)
+    ex.add_node(peer)
+    try:
+        assert _spin_until(ex, lambda: pc.get_subscription_count() and pd.get_subscription_count()
+                           and pi.get_subscription_count() and node.stats.gauges.get("kernels_warm") == 1, 60.0)
+        f = next(iter(generate_frames(parse_spec("synthetic:w=128,h=96,n=1,seed=2"))))
+        pi.publish(camera_to_camera_info(f.camera, f.stamp_ns, "cam"))
+        color = numpy_to_image(f.rgb, "bgr8", f.stamp_ns, "cam")  # a camera's channel order, kept
+        depth = depth_to_image(f.depth_m, "16UC1", f.stamp_ns - 5_000_000, "cam", 5000.0)  # 5 ms earlier
+        pc.publish(color)
+        pd.publish(depth)
+        assert _spin_until(ex, lambda: got["color"] and got["depth"], 30.0), "the first frame made no keyframe"
+        kc, kd = got["color"][0], got["depth"][0]
+        assert (kc.encoding, bytes(kc.data)) == ("bgr8", bytes(color.data))
+        assert (kd.encoding, kd.step, bytes(kd.data)) == ("16UC1", depth.step, bytes(depth.data))
+        assert kd.header.stamp == kc.header.stamp == color.header.stamp
+    finally:
+        node.destroy_node()
+        peer.destroy_node()

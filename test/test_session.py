@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -128,7 +129,7 @@ def test_lockstep_is_train_then_acknowledge_and_deterministic(frames: list[Frame
 
 
 def test_full_insert_queue_drops_the_oldest_whole_and_counts_it(frames: list[Frame]) -> None:
-    s = MappingSession(_cfg(min_keyframes=100), insert_queue=1)
+    s = MappingSession(_cfg(min_keyframes=100, live_min_keyframes=100), insert_queue=1)
     gate = threading.Event()
     busy = s.call(lambda _m: gate.wait(30))  # the worker is held: insertions wait in the queue
     futures = [s.insert_keyframe(_kf(frames[i], 100 + i)) for i in range(3)]
@@ -265,3 +266,58 @@ def test_final_budget_ends_the_final_iterations_early(frames: list[Frame]) -> No
         s.insert_keyframe(_kf(f, 10 + i))
     assert s.finish(4, budget_s=1e6).result(120).final_iterations == 4
     s.close()
+
+
+def test_live_training_starts_at_the_first_keyframe_and_times_each_keyframe(frames: list[Frame]) -> None:
+    """Free-running, the worker trains from live_min_keyframes (1) keyframes, not min_keyframes;
+    each keyframe's intake CPU and its latency from the tracker's decision to its first training
+    step are in the status; finish counts its own iterations apart."""
+    s = MappingSession(_cfg(min_keyframes=50))
+    try:
+        decided = time.time_ns()
+        s.insert_keyframe(_kf(frames[0], 100), received_cpu_s=0.002).result(30)
+        end = time.monotonic() + 30
+        while s.status.iteration < 3 and time.monotonic() < end:
+            time.sleep(0.01)
+        st = s.status
+        assert st.iteration >= 3 and st.keyframes == 1  # 1 of min_keyframes=50: live does not wait
+        s.insert_keyframe(replace(_kf(frames[1], 200), decided_ns=decided)).result(30)
+        while s.status.keyframe_timing.used < 2 and time.monotonic() < end:
+            time.sleep(0.01)
+        t = s.status.keyframe_timing
+        assert t.used == 2 and t.waiting == 0
+        assert t.intake_ms_p95 is not None and t.intake_ms_p95 >= 2.0  # the caller's 2 ms counted
+        assert t.latency_ms_median is not None and 0.0 < t.latency_ms_median < 30_000.0
+        done = s.finish(7).result(60)
+        assert done.final_iterations == 7 and s.status.iterations_final == 7
+        gauges = s.status.gauges()
+        assert gauges["keyframes_used"] == 2 and "keyframe_latency_ms_p95" in gauges
+    finally:
+        s.close()
+
+
+def test_lockstep_waits_for_min_keyframes_whatever_live_would_do(frames: list[Frame]) -> None:
+    s = MappingSession(_cfg(min_keyframes=2, live_min_keyframes=1), free_running=False)
+    try:
+        s.insert_keyframe(_kf(frames[0], 100)).result(30)
+        assert s.train(3).result(30) is None and s.status.iteration == 0
+        s.insert_keyframe(_kf(frames[1], 200)).result(30)
+        assert s.train(3).result(30) is not None and s.status.iteration == 3
+    finally:
+        s.close()
+
+
+def test_keyframe_timings_count_the_first_draw_only() -> None:
+    from memgs_ros.core.mapping.keyframe_timing import KeyframeTimings
+
+    t = KeyframeTimings()
+    t.inserted(0, 1_000_000_000, 5.0)
+    t.inserted(1, 0, 15.0)  # decision time unknown: no latency
+    t.trained(0, now_ns=1_050_000_000)
+    t.trained(0, now_ns=9_000_000_000)  # a later draw of the same keyframe is no new latency
+    t.trained(7)  # not inserted here (resumed from a checkpoint)
+    s = t.summary()
+    assert (s.used, s.waiting) == (1, 1)
+    assert s.latency_ms_median == 50.0 and s.intake_ms_median == 10.0 and s.intake_ms_p95 == 14.5
+    t.trained(1)
+    assert (t.summary().used, t.summary().waiting, t.summary().latency_ms_median) == (2, 0, 50.0)

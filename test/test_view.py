@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from memgs_ros.core.geometry.camera import TUM_FR1, PinholeCamera
-from memgs_ros.core.geometry.view import Undistorter, valid_pixel_mask, view_preparation
+from memgs_ros.core.geometry.view import (
+    Undistorter,
+    check_depth_scale,
+    depth_scale_ratio,
+    depth_to_metres,
+    valid_pixel_mask,
+    view_preparation,
+)
 from memgs_ros.errors import ConfigError, DataError
 
 PLAIN = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
@@ -115,3 +122,74 @@ def test_wrong_image_is_a_data_error() -> None:
         view(np.zeros((48, 64, 3), np.float32))
     with pytest.raises(DataError, match="depth is 10x48 but the camera is 64x48"):
         view(np.zeros((48, 64, 3), np.uint8), np.zeros((48, 10), np.float32))
+
+
+FR1 = TUM_FR1
+
+
+def _images(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    rgb = cv2.GaussianBlur(rng.integers(0, 256, (480, 640, 3)).astype(np.uint8), (0, 0), 2.0)
+    raw = rng.integers(2000, 20000, (480, 640)).astype(np.uint16)
+    raw[rng.random((480, 640)) < 0.2] = 0  # no measurement
+    return rgb, raw
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_raw_16_bit_depth_prepares_like_its_metres(scale: float) -> None:
+    """16-bit depth goes through undistortion and resize as units and becomes metres at the output
+    size: the same depths as preparing the metres (0 units -> NaN, a missing measurement)."""
+    rgb, raw = _images()
+    prep = view_preparation(FR1, scale)
+    _, from_raw = prep(rgb, raw, 5000.0)
+    _, from_metres = prep(rgb, depth_to_metres(raw, 5000.0))
+    assert from_raw.dtype == np.float32 and from_raw.shape == (prep.camera.height, prep.camera.width)
+    np.testing.assert_array_equal(from_raw, from_metres)
+    assert np.isnan(from_raw).mean() > 0.1
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_device_preparation_matches_opencv(scale: float) -> None:
+    """The torch twin (what a GPU runs on the uploaded compact images) against OpenCV on the host:
+    depth bit for bit, colour within OpenCV's fixed-point rounding, the same mask."""
+    import torch
+
+    from memgs_ros.core.mapping.device_view import device_view
+
+    rgb, raw = _images(1)
+    prep = view_preparation(FR1, scale)
+    ref_rgb, ref_depth = prep(rgb, raw, 5000.0)
+    view = device_view(prep, "cpu")
+    assert device_view(prep, "cpu") is view  # one set of tables per preparation and device
+    out_rgb, out_depth = view(torch.from_numpy(rgb), torch.from_numpy(raw), 5000.0)
+    diff = np.abs(out_rgb.permute(1, 2, 0).numpy().astype(int) - ref_rgb.astype(int))
+    assert diff.max() <= 2 and diff.mean() < 0.5, (diff.max(), diff.mean())
+    np.testing.assert_array_equal(out_depth.numpy(), np.nan_to_num(ref_depth, nan=0.0))
+    np.testing.assert_array_equal(view.valid_mask.numpy(), prep.valid_mask)
+    # float metres in, the same metres out
+    _, from_metres = view(torch.from_numpy(rgb), torch.from_numpy(depth_to_metres(raw, 5000.0)))
+    np.testing.assert_array_equal(from_metres.numpy(), out_depth.numpy())
+
+
+def test_depth_source_index_is_the_opencv_depth_path_as_a_gather() -> None:
+    rgb, raw = _images(2)
+    prep = view_preparation(FR1, 0.5)
+    idx = prep.depth_source_index
+    assert idx.shape == (240, 320) and idx.min() >= -1 and idx.max() < 640 * 480
+    _, ref = prep(rgb, raw.astype(np.float32))  # floats: 0 stays 0
+    gathered = np.where(idx >= 0, raw.reshape(-1)[np.maximum(idx, 0)], 0).astype(np.float32)
+    np.testing.assert_array_equal(np.nan_to_num(ref, nan=0.0), gathered)
+
+
+def test_a_depth_image_read_at_another_scale_is_refused_with_the_scale_that_matches() -> None:
+    rng = np.random.default_rng(3)
+    depth_m = rng.uniform(0.5, 4.0, (48, 64)).astype(np.float32)
+    uv = rng.uniform(0, [63, 47], (200, 2))
+    z = depth_m[np.rint(uv[:, 1]).astype(int), np.rint(uv[:, 0]).astype(int)]
+    assert depth_scale_ratio(depth_m, uv, z) == pytest.approx(1.0)
+    check_depth_scale(depth_m, uv, z * 1.1, "the keypoints", 1000.0)  # noise and edges pass
+    with pytest.raises(DataError, match=r"reads 5.00x the keypoints: depth_scale 1000 .* depth_scale 5000"):
+        check_depth_scale(depth_m * 5.0, uv, z, "the keypoints", 1000.0)
+    raw = np.rint(depth_m * 5000.0).astype(np.uint16)  # raw units read with their own scale agree
+    assert depth_scale_ratio(raw, uv, z, 5000.0) == pytest.approx(1.0, abs=1e-3)
+    assert depth_scale_ratio(depth_m, uv[:10], z[:10]) is None  # too few to judge

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.view import depth_to_metres
 from memgs_ros.errors import DataError, MessageError
 
 __all__ = [
@@ -43,7 +44,10 @@ __all__ = [
     "decode_camera_info",
     "decode_depth",
     "decode_rgb",
+    "depth_view",
+    "has_valid_depth",
     "image_to_numpy",
+    "rgb_view",
 ]
 
 # encoding -> (element dtype, channels), native byte order; the wire order is is_bigendian's.
@@ -153,16 +157,44 @@ def image_to_numpy(msg: Any, allowed: Collection[str] = tuple(IMAGE_ENCODINGS)) 
     return arr[:, :, 0] if channels == 1 else arr
 
 
-def decode_rgb(msg: Any) -> np.ndarray:
-    """Colour image (one of :data:`COLOR_ENCODINGS`) -> [H, W, 3] uint8 RGB, a new array."""
+def rgb_view(msg: Any) -> np.ndarray:
+    """Colour image (one of :data:`COLOR_ENCODINGS`) -> [H, W, 3] uint8 RGB: for rgb8 a read-only
+    view on the message buffer (no copy: for a consumer that transforms it at once and keeps the
+    message alive while it does), otherwise a converted new array."""
     enc = str(_field(msg, "encoding"))
     if enc not in COLOR_ENCODINGS:
         why = " (no channel order: publish rgb8 or bgr8)" if enc == "8UC3" else ""
         raise MessageError(f"image encoding '{enc}' is not a colour encoding ({', '.join(COLOR_ENCODINGS)}){why}")
     a = image_to_numpy(msg, COLOR_ENCODINGS)
     if enc == "rgb8":
-        return np.array(a, copy=True, order="C")  # never hand out a view on the message
+        a.flags.writeable = False
+        return a
     return cv2.cvtColor(a, _TO_RGB[enc])
+
+
+def decode_rgb(msg: Any) -> np.ndarray:
+    """Colour image (one of :data:`COLOR_ENCODINGS`) -> [H, W, 3] uint8 RGB, a new array."""
+    a = rgb_view(msg)
+    return np.array(a, copy=True, order="C") if not a.flags.writeable else a
+
+
+def depth_view(msg: Any, depth_scale: float = DEFAULT_DEPTH_SCALE) -> tuple[np.ndarray, float]:
+    """Depth image -> (raw [H, W], units per metre), checked but not converted: 16UC1 / mono16 as
+    uint16 with ``depth_scale``, 32FC1 as float32 metres with 1.0. A read-only view on the message
+    buffer where the byte order allows; :func:`memgs_ros.core.geometry.view.depth_to_metres` turns
+    it into metres (the view preparation does, at its output size)."""
+    enc = str(_field(msg, "encoding"))
+    if enc not in DEPTH_ENCODINGS:
+        raise MessageError(f"image encoding '{enc}' is not a depth encoding ({', '.join(DEPTH_ENCODINGS)})")
+    if not (np.isfinite(depth_scale) and depth_scale > 0):
+        raise MessageError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
+    a = image_to_numpy(msg, DEPTH_ENCODINGS)
+    if a.dtype == np.uint16 and _holds_float_metres(msg):
+        raise MessageError(
+            f"{enc} depth {a.shape[1]}x{a.shape[0]} with step {int(msg.step)} holds 32-bit floats of "
+            f"plausible metres: 32FC1 data labelled {enc}? Refused rather than read as garbage")
+    a.flags.writeable = False
+    return a, (float(depth_scale) if a.dtype == np.uint16 else 1.0)
 
 
 def decode_depth(msg: Any, depth_scale: float = DEFAULT_DEPTH_SCALE) -> np.ndarray:
@@ -171,24 +203,15 @@ def decode_depth(msg: Any, depth_scale: float = DEFAULT_DEPTH_SCALE) -> np.ndarr
     16UC1 / mono16: integer units, ``depth_scale`` units per metre (RealSense 1000, TUM 5000),
     0 = no measurement. 32FC1: metres. Zero, negative and non-finite values become NaN.
     """
-    enc = str(_field(msg, "encoding"))
-    if enc not in DEPTH_ENCODINGS:
-        raise MessageError(f"image encoding '{enc}' is not a depth encoding ({', '.join(DEPTH_ENCODINGS)})")
-    if not (np.isfinite(depth_scale) and depth_scale > 0):
-        raise MessageError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
-    a = image_to_numpy(msg, DEPTH_ENCODINGS)
-    if a.dtype == np.uint16:
-        if _holds_float_metres(msg):
-            raise MessageError(
-                f"{enc} depth {a.shape[1]}x{a.shape[0]} with step {int(msg.step)} holds 32-bit floats of "
-                f"plausible metres: 32FC1 data labelled {enc}? Refused rather than read as garbage")
-        d = a.astype(np.float32) / np.float32(depth_scale)
-        d[a == 0] = np.nan
-        return d
-    d = np.array(a, dtype=np.float32)  # copy: never edit the message buffer
+    return depth_to_metres(*depth_view(msg, depth_scale))
+
+
+def has_valid_depth(depth: np.ndarray) -> bool:
+    """Whether a raw depth image (uint16 units or float metres) holds one valid measurement."""
+    if depth.dtype == np.uint16:
+        return bool(depth.any())
     with np.errstate(invalid="ignore"):
-        d[~(d > 0) | ~np.isfinite(d)] = np.nan
-    return d
+        return bool(np.any(np.isfinite(depth) & (depth > 0)))
 
 
 def _depth_mixup_hint(enc: str, w: int, h: int, n_bytes: int) -> str:

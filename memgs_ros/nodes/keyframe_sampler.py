@@ -22,7 +22,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
-from memgs_ros.core.geometry.view import undistorter_for, view_preparation
+from memgs_ros.core.geometry.view import check_depth_scale, undistorter_for, view_preparation
 from memgs_ros.core.sampling import PatchGridConfig, seeds_mono, seeds_rgbd
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.nodes.params import NODE_CONFIGS, KeyframeSamplerParams
@@ -75,7 +75,7 @@ class KeyframeSamplerNode(Node):
         stage = "bad_keypoints"
         try:
             kf = decode_keyframe_images(b, stamp_ns, self.depth_scale)
-            cam, rgb, depth, T_wc = kf.camera, kf.rgb, kf.depth_m, kf.T_wc
+            cam, T_wc = kf.camera, kf.T_wc
             kps = pointcloud2_to_structured(b["keypoints"], required=("u", "v", "depth"))
             uv = np.stack([kps["u"], kps["v"]], axis=1).astype(np.float32)
             kp_depth = kps["depth"].astype(np.float32)
@@ -84,11 +84,14 @@ class KeyframeSamplerNode(Node):
             stage = "bad_keyframe"
             kf_id = self.n_keyframes
             view = view_preparation(cam)  # full size: seeds are back-projected at source resolution
-            rgb, depth = view(rgb, depth)
+            rgb, depth = view(kf.rgb, kf.depth, kf.depth_scale)
             # Keypoints come undistorted in the source K; move them into the prepared view.
             uv = undistorter_for(cam).from_pinhole_uv(uv).astype(np.float32)
             cam = view.camera
             if depth is not None:
+                stage = "depth_scale"
+                check_depth_scale(depth, uv, kp_depth, "the tracker's keypoint depths", self.depth_scale)
+                stage = "bad_keyframe"
                 seeds = seeds_rgbd(rgb, depth, cam, T_wc, kf_id, uv, kp_depth, self.cfg)  # rng from (seed, kf_id)
             else:
                 seeds = seeds_mono(rgb, cam, T_wc, kf_id, uv, kp_depth, self.cfg)

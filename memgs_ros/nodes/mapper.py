@@ -35,6 +35,7 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.mapping import checkpoint, losses
+from memgs_ros.core.mapping.keyframe_input import check_seed_depths
 from memgs_ros.core.mapping.mapper import MappingConfig
 from memgs_ros.core.mapping.session import MappingSession
 from memgs_ros.core.maps.map_delta import message_dtype
@@ -111,6 +112,7 @@ class MapperNode(Node):
         self._render_pending: Future | None = None  # touched by the default callback group only
         self._live_view: tuple[int, ...] = ()  # the last live render's (pose stamp, map version): same group
         self.awaiting_keyframes: set[int] = set()  # lockstep: announced, not yet complete
+        self._decided: dict[int, int] = {}  # keyframe stamp -> its pose's publication time (ns), until complete
         topics = {"color": Image, "camera_info": CameraInfo, "pose": PoseStamped, "seeds": PointCloud2,
                   **({"depth": Image} if p.mode == "rgbd" else {})}
         self.intake = KeyframeIntake(set(topics), known=self.session.resumed_stamps)
@@ -123,8 +125,9 @@ class MapperNode(Node):
         io = MutuallyExclusiveCallbackGroup()  # keyframe parts, poses and lockstep stay ordered
         kfq = qos.keyframes()  # a resumed mapper gets the keyframes sent while it was down
         for part, msg_type in topics.items():
-            self.create_subscription(msg_type, f"memgs/keyframe/{part}", lambda m, p=part: self._part(p, m), kfq,
-                                     callback_group=io)
+            # The pose's publication time is the tracker's decision: the keyframe's latency counts from it.
+            self.create_subscription(msg_type, f"memgs/keyframe/{part}", lambda m, info, p=part: self._part(p, m, info),
+                                     kfq, callback_group=io)
         self.create_subscription(Path, "memgs/keyframe/refined_poses", self.on_refined, qos.reliable(20),
                                  callback_group=io)
         self.create_subscription(Path, "memgs/keyframe/loop_corrected_poses", self.on_loop_corrected,
@@ -191,26 +194,45 @@ class MapperNode(Node):
         self.stats.post_gauge("checkpoint_ms", round((time.perf_counter() - t0) * 1e3, 1))
         return self.ckpt.path
 
-    def _part(self, part: str, msg) -> None:  # noqa: ANN001 - any bundle message type
+    def _part(self, part: str, msg, info: dict) -> None:  # noqa: ANN001 - any bundle message type
         """A complete bundle is decoded and queued, or refused whole and counted by kind (bad_seeds...)."""
+        cpu0 = time.thread_time()
         stamp = stamp_to_ns(msg.header.stamp)
+        if part == "pose":
+            self._decided[stamp] = int(info.get("source_timestamp") or 0)
         b = self.intake.add(part, stamp, msg)
         self.stats.post_counter("duplicate_keyframe_parts", self.intake.duplicate_parts)
         self.stats.post_gauge("dropped_keyframe_bundles", self.intake.dropped)
         if b is None:
             return
+        stage = "bad_seeds"
         try:
-            kf = decode_keyframe_images(b, stamp, self.params.depth_scale)
+            kf = decode_keyframe_images(b, stamp, self.params.depth_scale, self._decided.pop(stamp, 0))
             points, colors = decode_seeds(pointcloud2_to_structured(b["seeds"]))
+            kf = replace(kf, points_w=points, colors=colors)
+            stage = "depth_scale"
+            check_seed_depths(kf, self.params.depth_scale)
         except KeyframeBundleError as err:
             self.stats.post_problem(err.kind, f"keyframe {stamp} refused: {err}")
         except (MessageError, DataError) as err:
-            self.stats.post_problem("bad_seeds", f"keyframe {stamp} refused: {err}")
+            self.stats.post_problem(stage, f"keyframe {stamp} refused: {err}")
         else:
-            self.session.insert_keyframe(replace(kf, points_w=points, colors=colors))
+            inserted = self.session.insert_keyframe(kf, time.thread_time() - cpu0)
+            inserted.add_done_callback(self._report_failure("insert_keyframe"))
         if stamp in self.awaiting_keyframes:
             self.awaiting_keyframes.discard(stamp)
             self._lockstep_ack(stamp)
+        if len(self._decided) > 64:  # poses whose bundle never completed
+            self._decided = dict(list(self._decided.items())[-32:])
+
+    def _report_failure(self, command: str) -> Callable[[Future], None]:
+        """A done-callback for a session command nobody waits on: its error reaches the stats
+        (``problem.command_failed``) instead of vanishing with the future."""
+        def done(future: Future) -> None:
+            err = None if future.cancelled() else future.exception()
+            if err is not None and not isinstance(err, WorkerStopped):  # stopped: the node is shutting down
+                self.stats.post_problem("command_failed", f"{command} failed: {type(err).__name__}: {err}")
+        return done
 
     def _keyframe_poses(self, msg: Path) -> dict[int, np.ndarray]:
         poses: dict[int, np.ndarray] = {}
@@ -227,14 +249,14 @@ class MapperNode(Node):
         (the session ignores unknown stamps)."""
         poses = self._keyframe_poses(msg)
         if poses:
-            self.session.update_poses(poses)
+            self.session.update_poses(poses).add_done_callback(self._report_failure("update_poses"))
 
     def on_loop_corrected(self, msg: Path) -> None:
         """Keyframe poses a loop closure corrected: each keyframe's Gaussians move with it and
         it is retrained first (``MappingSession.correct_keyframes``)."""
         poses = self._keyframe_poses(msg)
         if poses:
-            self.session.correct_keyframes(poses)
+            self.session.correct_keyframes(poses).add_done_callback(self._report_failure("correct_keyframes"))
 
     def on_processed(self, msg: Header) -> None:
         """Lockstep: acknowledge a frame once its keyframe (if any) is queued and training ran.
@@ -373,6 +395,7 @@ class MapperNode(Node):
         def publish(view) -> None:  # noqa: ANN001 - on the session's worker
             self._hand_over(lambda: send(view))
         future = self.session.render(pose_to_matrix(pose.pose), publish=publish)
+        future.add_done_callback(self._report_failure("render"))
         self._render_pending = self._render_pending if requested else future
 
     def on_shutdown(self) -> None:

@@ -104,7 +104,7 @@ class KeyframeSamplerParams:
     """The keyframe sampler's own parameters (no prefix)."""
 
     mode: str = "rgbd"  # camera mode (mono: depth from the nearest keypoint)
-    depth_scale: float = 1000.0  # 16UC1 depth units per metre
+    depth_scale: float = 1000.0  # 16UC1 keyframe depth units per metre: the tracker's (depth travels as sent)
     world_frame: str = "map"  # frame id of the seed cloud
     niceness: int = 5  # CPU niceness of the whole process (0..19): below the tracker, above the mapper
 
@@ -130,7 +130,7 @@ class MapperParams:
     """
 
     mode: str = "rgbd"  # camera mode: rgbd, or mono (keyframes carry no depth)
-    depth_scale: float = 1000.0  # 16UC1 keyframe depth units per metre (the tracker publishes 32FC1 metres)
+    depth_scale: float = 1000.0  # 16UC1 keyframe depth units per metre: the tracker's (depth travels as sent)
     device: str = "auto"  # torch device for the map: auto (CUDA when present), cpu, cuda, cuda:N
     lockstep: bool = False  # train a fixed number of iterations per frame and acknowledge each (deterministic replay)
     lockstep_iterations: int = 10  # training iterations per frame in lockstep mode

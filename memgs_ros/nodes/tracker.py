@@ -63,11 +63,9 @@ from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.codecs import (
     append_to_path,
     camera_to_camera_info,
-    depth_to_image,
     make_header,
     matrix_to_odometry,
     matrix_to_pose_stamped,
-    numpy_to_image,
     stamp_to_ns,
     structured_to_pointcloud2,
 )
@@ -318,7 +316,7 @@ class TrackerNode(Node):
                 self.kf_stamps = {i: s for i, s in self.kf_stamps.items() if i in smap.keyframe_ids}
         refined = self.tracker.poll_refined_keyframes()
         corrected = self.tracker.poll_loop_corrected_keyframes()
-        self._publish(frame, result, color.header.frame_id or self.camera_frame)
+        self._publish(frame, result, color, depth)
         self._publish_refined(refined, self.pub_refined, "refined_keyframe_poses")
         self._publish_refined(corrected, self.pub_loop, "loop_corrected_keyframe_poses")
         loops = self.tracker.poll_loop_corrections()
@@ -360,7 +358,8 @@ class TrackerNode(Node):
     def _processed(self, stamp_ns: int, keyframe: bool) -> None:
         self.pub_processed.publish(make_header(stamp_ns, "keyframe" if keyframe else "frame"))
 
-    def _publish(self, frame: Frame, result: TrackResult, camera_frame: str) -> None:
+    def _publish(self, frame: Frame, result: TrackResult, color: Image, depth: Image | None) -> None:
+        camera_frame = color.header.frame_id or self.camera_frame
         self.pub_state.publish(String(data=result.state.name))
         self.stats.counters[f"state.{result.state.name}"] += 1
         self.stats.gauges["segment"] = result.segment_id
@@ -373,7 +372,7 @@ class TrackerNode(Node):
         self._path_changed = True
         self.stats.counters["poses_out"] += 1
         if result.keyframe is not None:
-            self._publish_keyframe(frame, result, camera_frame)
+            self._publish_keyframe(frame, result, camera_frame, color, depth)
 
     def _publish_path(self) -> None:
         if self._path_changed:
@@ -386,19 +385,22 @@ class TrackerNode(Node):
                     self.path.poses[i] = matrix_to_pose_stamped(T, stamp_to_ns(old.header.stamp), self.world_frame)
             self.pub_path.publish(self.path)
 
-    def _publish_keyframe(self, frame: Frame, result: TrackResult, camera_frame: str) -> None:
+    def _publish_keyframe(self, frame: Frame, result: TrackResult, camera_frame: str, color: Image,
+                          depth: Image | None) -> None:
         kf = result.keyframe
         assert kf is not None and self.camera is not None
         stamp = frame.stamp_ns
         kps = np.zeros(len(kf.keypoints_uv), dtype=KEYPOINT_DTYPE)
         kps["u"], kps["v"] = kf.keypoints_uv[:, 0], kf.keypoints_uv[:, 1]
         kps["depth"], kps["active"] = kf.keypoint_depth, kf.keypoint_active
-        # The images go out as recorded, with the camera's distortion: each consumer undistorts
-        # and so knows which pixels of the undistorted image hold real content.
+        # The image messages go out as they came in (each consumer decodes and undistorts them once
+        # and knows which pixels of the undistorted image hold real content); a depth message paired
+        # from another stamp takes the colour's, which names the keyframe's bundle.
         self.pub_kf_info.publish(camera_to_camera_info(self.camera, stamp, camera_frame))
-        self.pub_kf_color.publish(numpy_to_image(frame.rgb, "rgb8", stamp, camera_frame))
-        if frame.depth_m is not None:
-            self.pub_kf_depth.publish(depth_to_image(frame.depth_m, "32FC1", stamp, camera_frame))
+        self.pub_kf_color.publish(color)
+        if depth is not None:
+            depth.header.stamp = color.header.stamp
+            self.pub_kf_depth.publish(depth)
         self.pub_kf_kps.publish(structured_to_pointcloud2(kps, stamp, camera_frame))
         self.pub_kf_pose.publish(matrix_to_pose_stamped(kf.T_wc, stamp, self.world_frame))
         self.kf_stamps[kf.keyframe_id] = stamp

@@ -236,8 +236,31 @@ def check_parameters(params: Mapping[str, Mapping[str, Any]]) -> None:
         lines += unknown_parameters(node, values, parameter_names(NODE_CONFIGS[node]))
         for prefix, config_cls in NODE_CONFIGS[node]:
             lines += check_values(config_cls, prefix, values, node=node)
+    if not lines:
+        lines += _depth_scale_disagreements(params)
     if lines:
         raise ConfigError("; ".join(lines))
+
+
+def _depth_scale_disagreements(params: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """One line when the graph's nodes (those in ``params``) would read 16-bit depth with different
+    scales: the tracker forwards keyframe depth as it receives it, so sampler and mapper read the
+    camera's units too (and the player, when it publishes 16UC1, writes them)."""
+    from memgs_ros.nodes.params import NODE_CONFIGS
+
+    def scale(node: str) -> float:
+        own = dict(NODE_CONFIGS[node])[""]
+        return float(params.get(node, {}).get("depth_scale", own.depth_scale))
+
+    scales = {node: scale(node) for node in ("tracker", "keyframe_sampler", "mapper") if node in params}
+    player = params.get("bag_player", {})
+    if "bag_player" in params and player.get("depth_encoding", "32FC1") == "16UC1":
+        scales["bag_player"] = scale("bag_player")
+    if len(set(scales.values())) <= 1:
+        return []
+    listed = ", ".join(f"{n} {v:g}" for n, v in scales.items())
+    return [f"depth_scale differs between nodes ({listed}): keyframe depth travels as the camera sent it, so "
+            "every node must read 16-bit depth with one scale (set depth_scale the same for each)"]
 
 
 def configured_camera(params: Mapping[str, Mapping[str, Any]]) -> ConfiguredCamera:

@@ -9,16 +9,15 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
-
 from memgs_ros.core.mapping.keyframe_input import KeyframeInput
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.io.image_decoding import (
     DEFAULT_DEPTH_SCALE,
     check_image_sizes,
     decode_camera_info,
-    decode_depth,
-    decode_rgb,
+    depth_view,
+    has_valid_depth,
+    rgb_view,
 )
 from memgs_ros.ros.codecs import pose_to_matrix
 
@@ -32,25 +31,28 @@ class KeyframeBundleError(MessageError):
 
 
 def decode_keyframe_images(bundle: Mapping[str, Any], stamp_ns: int,
-                           depth_scale: float = DEFAULT_DEPTH_SCALE) -> KeyframeInput:
+                           depth_scale: float = DEFAULT_DEPTH_SCALE, decided_ns: int = 0) -> KeyframeInput:
     """Decode ``camera_info``, ``color``, ``pose`` and, when present, ``depth`` of the bundle of
     keyframe ``stamp_ns`` (no seeds: the mapper adds the sampler's).
 
+    The images stay as the tracker forwarded them: colour a read-only view on the message where
+    it is rgb8, depth its raw 16-bit units (``depth_scale`` per metre) or float metres. The
+    bundle's messages must outlive the returned keyframe's use (the caller holds them).
     Raises KeyframeBundleError naming the kind of the first check that fails.
     """
     kind = "camera_info"
     try:
         camera = decode_camera_info(bundle["camera_info"])
         kind = "bad_image"
-        rgb = decode_rgb(bundle["color"])
-        depth = decode_depth(bundle["depth"], depth_scale) if "depth" in bundle else None
+        rgb = rgb_view(bundle["color"])
+        depth, scale = depth_view(bundle["depth"], depth_scale) if "depth" in bundle else (None, 1.0)
         kind = "size_mismatch"
         check_image_sizes(rgb, depth, camera)
-        if depth is not None and not np.isfinite(depth).any():
+        if depth is not None and not has_valid_depth(depth):
             kind = "empty_depth"
             raise MessageError("depth has no valid pixel (all zero, NaN, inf or negative)")
         kind = "bad_pose"
         T_wc = pose_to_matrix(bundle["pose"].pose)
     except (MessageError, DataError) as err:
         raise KeyframeBundleError(kind, str(err)) from err
-    return KeyframeInput(stamp_ns, T_wc, rgb, depth, camera)
+    return KeyframeInput(stamp_ns, T_wc, rgb, depth, camera, depth_scale=scale, decided_ns=decided_ns)

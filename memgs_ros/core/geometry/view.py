@@ -10,8 +10,13 @@ output camera is OpenCV's optimal new camera matrix at alpha 0, see :class:`Undi
 resize by ``resolution_scale`` (colour area-averaged, depth nearest). The valid mask marks the
 output pixels whose full-resolution pixels all sampled the source image.
 
+Depth comes in as metres (float, NaN/0 invalid) or as the camera's raw 16-bit units with a
+``depth_scale`` (units per metre, 0 invalid; :func:`depth_to_metres`): raw depth is undistorted
+and resized as it is (2 bytes a pixel) and turned into metres once, at the output size.
+
 This module is also the one home of the undistortion pieces (:class:`Undistorter`,
-:func:`undistorter_for`, :func:`undistort_uv`).
+:func:`undistorter_for`, :func:`undistort_uv`) and of the check that a keyframe's depth image
+and the depths its producer measured agree (:func:`depth_scale_ratio`).
 """
 from __future__ import annotations
 
@@ -26,14 +31,79 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.errors import ConfigError, DataError
 
 __all__ = [
-    "Undistorter", "ViewPreparation", "undistort_uv", "undistorter_for", "valid_pixel_mask",
-    "view_preparation",
+    "Undistorter", "ViewPreparation", "check_depth_scale", "depth_scale_ratio", "depth_to_metres", "undistort_uv",
+    "undistorter_for", "valid_pixel_mask", "view_preparation",
 ]
 
 # A pixel of the resized image is valid when at least this fraction of the full-resolution
 # pixels it averages carry content: all of them (a partly black pixel is no clean observation).
 DEFAULT_MIN_VALID_FRACTION = 0.999
 _CACHE_SIZE = 16  # (camera, scale) pairs: a few cameras x a few scales in one process
+
+
+def depth_to_metres(depth: np.ndarray,  # [H, W] uint16 units or float metres
+                    depth_scale: float = 1.0) -> np.ndarray:
+    """Raw depth -> [H, W] float32 metres, NaN where invalid, a new array.
+
+    uint16 (16UC1, mono16): ``depth_scale`` units per metre, 0 = no measurement. Float: metres
+    (``depth_scale`` 1.0); zero, negative and non-finite values become NaN.
+    """
+    if depth.dtype == np.uint16:
+        d = depth.astype(np.float32) / np.float32(depth_scale)
+        d[depth == 0] = np.nan
+        return d
+    d = np.array(depth, dtype=np.float32)
+    if depth_scale != 1.0:
+        d /= np.float32(depth_scale)
+    with np.errstate(invalid="ignore"):
+        d[~(d > 0) | ~np.isfinite(d)] = np.nan
+    return d
+
+
+def depth_scale_ratio(depth: np.ndarray,  # [H, W] float metres (NaN/0 invalid) or uint16 raw units
+                      uv: np.ndarray,  # [M, 2] pixel positions in depth's image
+                      z: np.ndarray,  # [M] metres measured there by the keyframe's producer
+                      depth_scale: float = 1.0,  # raw units per metre (uint16 depth)
+                      min_points: int = 20) -> float | None:
+    """Median of depth image / measured depth at the given pixels: ~1.0 when both read the depth
+    with the same scale, 5.0 when one side took TUM's 5000 units per metre for millimetres. None
+    with fewer than ``min_points`` pixels that have both depths (nothing to judge by).
+
+    Nodes that receive a keyframe's raw depth and its producer's metric depths (keypoints, seeds)
+    call it to refuse a depth_scale that disagrees with the tracker's, instead of building a map
+    at the wrong scale.
+    """
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    z = np.asarray(z, dtype=np.float64).reshape(-1)
+    h, w = depth.shape
+    with np.errstate(invalid="ignore"):
+        px = np.rint(np.nan_to_num(uv, nan=-1.0)).astype(np.int64)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h) & np.isfinite(z) & (z > 0)
+    if np.count_nonzero(inside) < min_points:
+        return None
+    d = np.asarray(depth[px[inside, 1], px[inside, 0]], dtype=np.float64) / depth_scale
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(d) & (d > 0)
+    if np.count_nonzero(ok) < min_points:
+        return None
+    return float(np.median(d[ok] / z[inside][ok]))
+
+
+DEPTH_SCALE_TOLERANCE = 1.25  # a ratio beyond 1.25 either way is a scale, not noise or edges
+
+
+def check_depth_scale(depth: np.ndarray, uv: np.ndarray, z: np.ndarray, reference: str,
+                      depth_scale: float, raw_scale: float = 1.0) -> None:
+    """DataError when the keyframe's depth image and ``reference``'s depths at ``uv`` disagree by a
+    scale (:func:`depth_scale_ratio` outside 1/1.25..1.25): the message names the factor and the
+    ``depth_scale`` parameter that would match. ``raw_scale``: units per metre of ``depth`` when
+    it is raw (the caller's ``depth_scale`` then), 1.0 for metres."""
+    ratio = depth_scale_ratio(depth, uv, z, raw_scale)
+    if ratio is None or 1.0 / DEPTH_SCALE_TOLERANCE <= ratio <= DEPTH_SCALE_TOLERANCE:
+        return
+    raise DataError(f"the depth image reads {ratio:.2f}x {reference}: depth_scale {depth_scale:g} disagrees with "
+                    f"the tracker's (this keyframe matches depth_scale {depth_scale * ratio:.0f}); give tracker, "
+                    "keyframe_sampler and mapper one depth_scale")
 
 
 class Undistorter:
@@ -67,9 +137,10 @@ class Undistorter:
                 K, camera.dist_coeffs, None, K_out, size, cv2.CV_32FC1)
 
     def __call__(self, rgb: np.ndarray,  # [H, W, 3] uint8
-                 depth_m: np.ndarray | None = None,  # [H, W] float32 metres, or None
+                 depth_m: np.ndarray | None = None,  # [H, W] float32 metres or uint16 raw units, or None
                  ) -> tuple[np.ndarray, np.ndarray | None, PinholeCamera]:
-        """Returns (rgb [H, W, 3] uint8, depth_m [H, W] float32 or None, undistorted camera)."""
+        """Returns (rgb [H, W, 3] uint8, depth [H, W] (float32, or uint16 as given) or None,
+        undistorted camera). Pixels no source pixel reaches: black, depth NaN (uint16: 0)."""
         h, w = self.camera.height, self.camera.width
         if rgb.shape[:2] != (h, w):
             raise DataError(f"image is {rgb.shape[1]}x{rgb.shape[0]} but the camera is {w}x{h}")
@@ -81,10 +152,16 @@ class Undistorter:
         rgb_u = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         depth_u = None
         if depth_m is not None:
-            depth_u = cv2.remap(np.ascontiguousarray(depth_m, dtype=np.float32), mx, my,
+            raw = depth_m.dtype == np.uint16
+            depth_u = cv2.remap(depth_m if raw else np.ascontiguousarray(depth_m, dtype=np.float32), mx, my,
                                 cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                                borderValue=float("nan"))
+                                borderValue=0 if raw else float("nan"))
         return rgb_u, depth_u, self.camera_undistorted
+
+    @property
+    def maps(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The remap tables (x, y: [H, W] float32 source positions), None without distortion."""
+        return self._maps
 
     def undistort_uv(self, uv: np.ndarray) -> np.ndarray:
         """Distorted pixel positions [M, 2] -> [M, 2] float64 in the output image."""
@@ -178,26 +255,52 @@ class ViewPreparation:
     _undistorter: Undistorter = field(repr=False)
 
     def __call__(self, rgb: np.ndarray,  # [H, W, 3] uint8 at source size
-                 depth_m: np.ndarray | None = None,  # [H, W] float metres or None
+                 depth: np.ndarray | None = None,  # [H, W] float metres or uint16 raw units, or None
+                 depth_scale: float = 1.0,  # raw units per metre (uint16 depth)
                  ) -> tuple[np.ndarray, np.ndarray | None]:
-        """rgb [H, W, 3] uint8 and depth_m [H, W] (NaN/0 invalid) at the source size ->
-        (rgb [h, w, 3] uint8, depth_m [h, w] float32 or None) at the output size.
+        """rgb [H, W, 3] uint8 and depth [H, W] at the source size -> (rgb [h, w, 3] uint8,
+        depth_m [h, w] float32 metres or None) at the output size.
 
         Colour: bilinear undistortion then area-averaged resize; depth: nearest for both, so no
-        depth is invented across an edge. Pixels outside ``valid_mask`` are black / NaN.
+        depth is invented across an edge (raw depth goes through both steps as 16-bit units and
+        becomes metres at the output size). Pixels outside ``valid_mask`` are black / NaN.
         """
         h, w = self.source.height, self.source.width
         if rgb.dtype != np.uint8 or rgb.shape != (h, w, 3):
             raise DataError(f"image must be uint8 [{h}, {w}, 3] to match the camera "
                             f"({w}x{h}), got {rgb.dtype} {list(rgb.shape)}")
-        depth = None if depth_m is None else np.asarray(depth_m, dtype=np.float32)
+        if depth is not None and depth.dtype != np.uint16:
+            depth = np.asarray(depth, dtype=np.float32)
         rgb_u, depth_u, _ = self._undistorter(rgb, depth)
         if self.resolution_scale != 1.0:
             size = (self.camera.width, self.camera.height)
             rgb_u = cv2.resize(rgb_u, size, interpolation=cv2.INTER_AREA)
             if depth_u is not None:
                 depth_u = cv2.resize(depth_u, size, interpolation=cv2.INTER_NEAREST)
+        if depth_u is not None and (depth_u.dtype == np.uint16 or depth_scale != 1.0):
+            depth_u = depth_to_metres(depth_u, depth_scale)
         return np.ascontiguousarray(rgb_u), depth_u
+
+    def undistortion_maps(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The full-size remap tables (x, y source positions [H, W] float32 per output pixel), None
+        without distortion. Read them, do not write them."""
+        return self._undistorter.maps
+
+    @functools.cached_property
+    def depth_source_index(self) -> np.ndarray:
+        """[h, w] int64: the source pixel (row-major linear index) each output depth pixel takes,
+        -1 where none (the border undistortion leaves). Made with the very remap and resize
+        ``__call__`` applies, so a gather with it is that depth path exactly (the device
+        preparation gathers with it)."""
+        h, w = self.source.height, self.source.width
+        if h * w >= 2**24:
+            raise DataError(f"a {w}x{h} image is too large for a float32 pixel index")
+        index = np.arange(1, h * w + 1, dtype=np.float32).reshape(h, w)  # exact below 2**24; 0 is no pixel
+        _, idx, _ = self._undistorter(np.zeros((h, w, 3), np.uint8), index)  # the border becomes NaN
+        assert idx is not None
+        if self.resolution_scale != 1.0:
+            idx = cv2.resize(idx, (self.camera.width, self.camera.height), interpolation=cv2.INTER_NEAREST)
+        return np.where(np.isfinite(idx), idx, 0.0).astype(np.int64) - 1
 
 
 def view_preparation(camera: PinholeCamera, resolution_scale: float = 1.0) -> ViewPreparation:

@@ -104,7 +104,10 @@ class MappingConfig:
     prune_min_age_iters: int = 200
     max_screen_size_px: float = 0.0
     # Training views
-    min_keyframes: int = 10  # training starts with this many (the final iterations train on any number)
+    min_keyframes: int = 10  # lockstep training starts with this many (the final iterations train on any number)
+    # Live (free-running) training starts with this many: the map is for use in flight, and a mapper
+    # that waited for min_keyframes trained nothing while the camera moved
+    live_min_keyframes: int = 1
     new_keyframe_budget: int = 2
     pyramid_uses_per_level: int = 8
     resolution_scale: float = 1.0
@@ -149,7 +152,8 @@ class MappingConfig:
         "densify_start_iter": (0, 10**8), "densify_stop_iter": (0, 10**8), "densify_interval": (1, 10**8),
         "densify_grad_threshold": (0.0, 1.0), "percent_dense": (0.0, 1.0), "split_children": (2, 16),
         "split_scale_factor": (1.0, 100.0), "prune_opacity": (0.0, 1.0), "prune_min_age_iters": (0, 10**8),
-        "max_screen_size_px": (0.0, 1e5), "min_keyframes": (1, 10**5), "new_keyframe_budget": (1, 10**4),
+        "max_screen_size_px": (0.0, 1e5), "min_keyframes": (1, 10**5),
+        "live_min_keyframes": (1, 10**5), "new_keyframe_budget": (1, 10**4),
         "pyramid_uses_per_level": (0, 10**4), "resolution_scale": (0.01, 2.0), "near_m": (1e-4, 100.0),
         "merge_start_iter": (0, 10**8), "merge_interval": (1, 10**8), "merge_stop_iter": (0, 10**8),
         "seed": (0, 2**31 - 1), "max_gaussians": (0, 10**9), "max_keyframes": (0, 10**5),

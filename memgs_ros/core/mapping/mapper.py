@@ -34,6 +34,7 @@ from memgs_ros.core.geometry.poses import invert_pose, nearest_pose_distance, ro
 from memgs_ros.core.geometry.view import view_preparation
 from memgs_ros.core.mapping.checkpoint import ID_BLOCK, KeyframeState, MapperCheckpoint
 from memgs_ros.core.mapping.config import MappingConfig
+from memgs_ros.core.mapping.device_view import device_view
 from memgs_ros.core.mapping.exposure import ExposureCompensation
 from memgs_ros.core.mapping.gaussians import GaussianMap, GaussianRecords
 from memgs_ros.core.mapping.keyframes import KeyframeStore, TrainingKeyframe, make_keyframe
@@ -77,30 +78,49 @@ class StepStats:
 
 
 def prepare_keyframe(cfg: MappingConfig, device: torch.device, kf_id: int, stamp_ns: int, T_wc: np.ndarray,
-                     rgb: np.ndarray, depth_m: np.ndarray | None, camera: PinholeCamera) -> TrainingKeyframe:
+                     rgb: np.ndarray, depth: np.ndarray | None, camera: PinholeCamera,
+                     depth_scale: float = 1.0, on_device: bool | None = None) -> TrainingKeyframe:
     """The keyframe as it is trained on: undistorted, resized to ``cfg.resolution_scale``, with its
-    valid-pixel mask and pyramid, on ``device`` (``core/geometry/view.py``, ``make_keyframe``). A pure
-    function of the config: any thread may call it while a mapper trains.
+    valid-pixel mask, on ``device`` (``core/geometry/view.py``, ``make_keyframe``). A pure function
+    of the config: any thread may call it while a mapper trains.
 
-    T_wc: [4, 4] camera-to-world; rgb: [H, W, 3] uint8; depth_m: [H, W] float32 metres
-    (NaN/0 invalid) or None; camera: intrinsics of rgb (with its distortion).
+    T_wc: [4, 4] camera-to-world; rgb: [H, W, 3] uint8; depth: [H, W] float32 metres (NaN/0
+    invalid) or uint16 raw units (``depth_scale`` per metre), or None; camera: intrinsics of rgb
+    (with its distortion). ``on_device`` (default: on any device but the CPU) uploads the images as
+    they are and prepares them there (``DeviceView``); otherwise OpenCV prepares them on the host.
     """
     if rgb.dtype != np.uint8 or rgb.shape != (camera.height, camera.width, 3):
         raise DataError(f"keyframe {kf_id}: rgb must be uint8 [{camera.height}, {camera.width}, 3], "
                         f"got {rgb.dtype} {rgb.shape}")
-    if depth_m is not None and depth_m.shape != (camera.height, camera.width):
-        raise DataError(f"keyframe {kf_id}: depth must be [{camera.height}, {camera.width}], got {depth_m.shape}")
+    if depth is not None and depth.shape != (camera.height, camera.width):
+        raise DataError(f"keyframe {kf_id}: depth must be [{camera.height}, {camera.width}], got {depth.shape}")
+    device = torch.device(device)
     prep = view_preparation(camera, cfg.resolution_scale)
-    rgb, depth = prep(rgb, depth_m)
-    image = torch.from_numpy(np.ascontiguousarray(rgb)).to(device).permute(2, 0, 1)  # uint8, stored as is
-    depth_t = None
-    if depth is not None:
-        d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
-        depth_t = torch.from_numpy(d).to(device)
     mask_t = None
-    if cfg.mask_invalid_pixels and prep.valid_mask is not None:
-        mask_t = torch.from_numpy(prep.valid_mask).to(device)
+    if on_device if on_device is not None else device.type != "cpu":
+        view = device_view(prep, device)
+        raw = None if depth is None else torch.from_numpy(_torch_compatible(depth)).to(device)
+        image, depth_t = view(torch.from_numpy(_torch_compatible(rgb)).to(device), raw, depth_scale)
+        if cfg.mask_invalid_pixels:
+            mask_t = view.valid_mask
+    else:
+        rgb_p, depth_p = prep(rgb, depth, depth_scale)
+        image = torch.from_numpy(_torch_compatible(rgb_p)).to(device).permute(2, 0, 1)  # uint8, stored as is
+        depth_t = None
+        if depth_p is not None:
+            d = np.where(np.isfinite(depth_p) & (depth_p > 0), depth_p, 0.0).astype(np.float32)
+            depth_t = torch.from_numpy(d).to(device)
+        if cfg.mask_invalid_pixels and prep.valid_mask is not None:
+            mask_t = torch.from_numpy(prep.valid_mask).to(device)
     return make_keyframe(kf_id, stamp_ns, T_wc, image.contiguous(), depth_t, prep.camera, valid_mask=mask_t)
+
+
+def _torch_compatible(a: np.ndarray) -> np.ndarray:
+    """An image array torch.from_numpy takes: C-contiguous, native byte order, writeable (a view
+    on a received message is read-only: copied then, in its compact type)."""
+    if a.flags.c_contiguous and a.flags.writeable and a.dtype.isnative:
+        return a
+    return np.array(a, dtype=a.dtype.newbyteorder("="), order="C")
 
 
 class GaussianMapper:
@@ -191,9 +211,10 @@ class GaussianMapper:
         return self.add_prepared_keyframe(kf, points_w, colors, enforce_budget)
 
     def prepare_keyframe(self, kf_id: int, stamp_ns: int, T_wc: np.ndarray, rgb: np.ndarray,
-                         depth_m: np.ndarray | None, camera: PinholeCamera) -> TrainingKeyframe:
+                         depth: np.ndarray | None, camera: PinholeCamera,
+                         depth_scale: float = 1.0) -> TrainingKeyframe:
         """:func:`prepare_keyframe` with this mapper's config and device."""
-        return prepare_keyframe(self.cfg, self.device, kf_id, stamp_ns, T_wc, rgb, depth_m, camera)
+        return prepare_keyframe(self.cfg, self.device, kf_id, stamp_ns, T_wc, rgb, depth, camera, depth_scale)
 
     def add_prepared_keyframe(self, kf: TrainingKeyframe, points_w: np.ndarray | None = None,
                               colors: np.ndarray | None = None, enforce_budget: bool = True) -> int:
@@ -332,16 +353,18 @@ class GaussianMapper:
         return rasterize(g.gaussians(), T_cw, camera, g.active_sh_degree, background=self._background,
                          near=self.cfg.near_m, backend=self.cfg.raster_backend)
 
-    def step(self, densify: bool = True, final: bool = False) -> StepStats | None:
+    def step(self, densify: bool = True, final: bool = False, min_keyframes: int | None = None) -> StepStats | None:
         """One training iteration; None (and nothing done) until ``ready``, or with ``final``
         (the run has ended and no keyframe is coming) until there is one keyframe: a run that
         ended with fewer than ``min_keyframes`` must not leave its map untrained.
+        ``min_keyframes`` replaces the config's start gate (a live mapper starts at 1).
 
         In an iteration where a merge is scheduled, densification waits for the next interval
         (merge and densification alternate, reference section 4). ``densify=False`` skips
         densification (a final polish of the map that should not grow it).
         """
-        if not (self.ready or (final and len(self.keyframes) > 0)):
+        gate = 1 if final else (self.cfg.min_keyframes if min_keyframes is None else min_keyframes)
+        if len(self.keyframes) < max(gate, 1):
             return None
         t0 = time.perf_counter()
         cfg = self.cfg

@@ -45,6 +45,7 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.view import view_preparation
 from memgs_ros.core.mapping.checkpoint import MapperCheckpoint
 from memgs_ros.core.mapping.gaussians import GaussianRecords
+from memgs_ros.core.mapping.keyframe_timing import KeyframeTimings, KeyframeTimingSummary
 from memgs_ros.core.mapping.keyframes import KeyframeInput, TrainingKeyframe
 from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig, StepStats, prepare_keyframe
 from memgs_ros.core.maps.map_delta import DeltaOutbox
@@ -123,6 +124,8 @@ class SessionStatus:
     alive: bool = True  # the worker and the outbox run commands (False once closed or dead)
     render_camera: PinholeCamera | None = None
     counters: Mapping[str, int] = field(default_factory=dict)
+    keyframe_timing: KeyframeTimingSummary = field(default_factory=KeyframeTimingSummary)
+    iterations_final: int = 0  # run by ``finish`` (the rest ran while keyframes arrived)
 
     def gauges(self) -> dict[str, int | float]:
         """The values a node reports as gauges (the counters are reported as counters); the map's
@@ -139,6 +142,12 @@ class SessionStatus:
             out["loss"] = self.loss
         if self.cuda_max_allocated is not None:
             out["cuda_max_allocated"] = self.cuda_max_allocated
+        t = self.keyframe_timing
+        out.update(keyframes_used=t.used, keyframes_waiting=t.waiting, iterations_final=self.iterations_final)
+        for name in ("intake_ms_median", "intake_ms_p95", "latency_ms_median", "latency_ms_p95"):
+            value = getattr(t, name)
+            if value is not None:
+                out[f"keyframe_{name}"] = value
         return out
 
 
@@ -240,6 +249,8 @@ class MappingSession(CommandWorker):
         self._captured: tuple[int, int] | None = None  # (iteration, keyframes) of the last state_dict
         self._pending_inserts = 0  # changed under the worker's condition only
         self._events: queue.SimpleQueue[SessionEvent] = queue.SimpleQueue()
+        self._intake = KeyframeTimings()
+        self._iterations_final = 0
         if checkpoint is not None:
             self._load(checkpoint)
         self.resumed_stamps: frozenset[int] = frozenset(self._stamps)
@@ -275,18 +286,26 @@ class MappingSession(CommandWorker):
                 return out
 
     # ----------------------------------------------------------------- commands
-    def insert_keyframe(self, kf: KeyframeInput) -> Future[int | None]:
+    def insert_keyframe(self, kf: KeyframeInput, received_cpu_s: float = 0.0) -> Future[int | None]:
         """Queue a keyframe. The future gives the Gaussians seeded, or None when the keyframe was
-        refused (counted as an event), dropped for overload, or came after ``finish``."""
-        try:  # a pure function of the config: here, overlapping the worker's training step
-            prepared = prepare_keyframe(self.cfg, self.device, -1, kf.stamp_ns, kf.T_wc, kf.rgb, kf.depth_m,
-                                        kf.camera)
-        except DataError as err:
-            self._event("bad_keyframe", f"keyframe {kf.stamp_ns} refused: {err}")
-            refused: Future[int | None] = Future()
-            refused.set_result(None)
-            return refused
-        cmd: Command[int | None] = Command("insert", lambda: self._insert(kf, prepared))
+        refused (counted as an event), dropped for overload, or came after ``finish``.
+
+        On the CPU the images are prepared here, in the caller's thread, overlapping the worker's
+        training step; on a GPU the worker uploads the compact images and prepares them on the
+        device between two steps. ``received_cpu_s``: CPU the caller spent receiving it (decoding
+        the messages), added to the keyframe's intake time (``SessionStatus.intake_ms_*``)."""
+        cpu0 = time.thread_time()
+        prepared: TrainingKeyframe | None = None
+        if self.device.type == "cpu":
+            try:
+                prepared = self._prepare(kf)
+            except DataError as err:
+                self._event("bad_keyframe", f"keyframe {kf.stamp_ns} refused: {err}")
+                refused: Future[int | None] = Future()
+                refused.set_result(None)
+                return refused
+        spent = received_cpu_s + time.thread_time() - cpu0
+        cmd: Command[int | None] = Command("insert", lambda: self._insert(kf, prepared, spent))
         with self._condition:
             self._check_open()
             if self.free_running and self._pending_inserts >= self.insert_queue:
@@ -405,7 +424,9 @@ class MappingSession(CommandWorker):
         return self._training and not self._finished
 
     def _background(self) -> float:
-        st = self._mapper.step()
+        # Live, training starts at live_min_keyframes (1): the map is for use in flight. Lockstep
+        # replays keep min_keyframes (their train commands), so they reproduce the offline schedule.
+        st = self._mapper.step(min_keyframes=self.cfg.live_min_keyframes)
         if st is None:
             return _IDLE_WAIT_S
         self._after_step(st)
@@ -416,6 +437,7 @@ class MappingSession(CommandWorker):
         return BACKGROUND_ERROR_PAUSE_S
 
     def _after_step(self, st: StepStats) -> None:
+        self._intake.trained(st.kf_id)
         c = self._counters
         c["merged_removed"] += st.merged_removed
         c["merged_added"] += st.merged_added
@@ -437,6 +459,7 @@ class MappingSession(CommandWorker):
             budget_gaussians=m.budget_gaussians, model_bytes=model, model_bytes_peak=self._peaks[0],
             keyframe_bytes=account.keyframes, accounted_bytes=account.total, accounted_bytes_peak=self._peaks[2],
             gaussians_peak=self._peaks[1], loss=self._last_loss, cuda_max_allocated=cuda,
+            keyframe_timing=self._intake.summary(), iterations_final=self._iterations_final,
             insert_queue=self._pending_inserts,
             finished=self._finished, render_camera=self._render_camera, counters=dict(self._counters))
 
@@ -444,15 +467,21 @@ class MappingSession(CommandWorker):
         self._events.put(SessionEvent(kind, message))
 
     # --------------------------------------------------------- command bodies
-    def _insert(self, kf: KeyframeInput, prepared: TrainingKeyframe) -> int | None:
+    def _prepare(self, kf: KeyframeInput) -> TrainingKeyframe:
+        return prepare_keyframe(self.cfg, self.device, -1, kf.stamp_ns, kf.T_wc, kf.rgb, kf.depth, kf.camera,
+                                kf.depth_scale)
+
+    def _insert(self, kf: KeyframeInput, prepared: TrainingKeyframe | None, spent_cpu_s: float) -> int | None:
         if self._finished:
             return None
         if kf.stamp_ns in self._stamps:
             self._counters["duplicate_keyframes"] += 1
             return None
         kf_id = len(self._stamps)
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.thread_time()
         try:
+            if prepared is None:  # on a GPU: uploaded and prepared here, between two steps
+                prepared = self._prepare(kf)
             # Free-running, the budget is enforced by the next training step: an insertion that
             # must keep up with the tracker pays ~35 ms instead of ~180 ms on a 60k map (CPU).
             added = self._mapper.add_prepared_keyframe(replace(prepared, kf_id=kf_id), kf.points_w, kf.colors,
@@ -466,6 +495,7 @@ class MappingSession(CommandWorker):
         self._counters["keyframes"] += 1
         self._counters["seeded_gaussians"] += added
         self._counters["insert_ms_total"] += round(1e3 * (time.perf_counter() - t0))
+        self._intake.inserted(kf_id, kf.decided_ns, 1e3 * (spent_cpu_s + time.thread_time() - cpu0))
         return added
 
     def _ids_of(self, poses: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
@@ -536,6 +566,7 @@ class MappingSession(CommandWorker):
                 st = self._mapper.step(densify=densify, final=True)
                 if st is None:
                     break
+                self._iterations_final += 1
                 self._after_step(st)
                 ran += 1
                 if budget_s > 0 and time.perf_counter() - t0 >= budget_s:
