@@ -131,6 +131,9 @@ class MemoryResult:
     mapper_working_peak_bytes: int | None = None  # peak RSS above the start-up baseline (CPU)
     mapper_rss_baseline_mb: float | None = None
     accounted_bytes_peak: int | None = None  # model + keyframes + step buffers (max_mapper_mbytes)
+    # the whole graph as a Jetson's one memory counts it: each node process's peak RSS (the one
+    # process's when composed) plus the CUDA peak
+    graph_mb: float | None = None
 
     @property
     def headline_bytes(self) -> int:
@@ -458,7 +461,8 @@ def evaluate_run(out_dir: str | os.PathLike[str], source: str | None = None, mod
                           peak_rss_source=rss_source, peak_rss_mb_node_stats=node_stats_rss,
                           mapper_working_peak_bytes=None if working is None else int(working * 2**20),
                           mapper_rss_baseline_mb=baseline,
-                          accounted_bytes_peak=None if accounted is None else int(accounted))
+                          accounted_bytes_peak=None if accounted is None else int(accounted),
+                          graph_mb=summary.graph_memory_mb or None)
     if not samples:
         notes.append("no mapper stats were recorded during the run (map size over time unavailable)")
     result = EvalResult(

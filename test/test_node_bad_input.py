@@ -578,7 +578,7 @@ def test_mapper_checkpoints_written_while_keyframes_arrive_are_whole(context, fr
     def save_while_inserting() -> None:
         while not stop.is_set():
             try:
-                if node.save_checkpoint(force=True) is not None:
+                if node.save_checkpoint(force=True).result(30) is not None:
                     written.append(checkpoint.load(path))
             except BaseException as err:  # noqa: BLE001 - reported to the test thread
                 errors.append(err)

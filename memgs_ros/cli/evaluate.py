@@ -80,8 +80,9 @@ def _print_result(r: EvalResult) -> None:
               f"rotation {r.trajectory.rotation_rmse_deg:.2f} deg "
               f"({r.trajectory.n_matched} poses)")
     rss = ", ".join(f"{n} {v:.0f}" for n, v in m.peak_rss_mb.items())
+    graph = "" if m.graph_mb is None else f"; the graph {m.graph_mb:.0f} MB (peak RSS + CUDA peak)"
     print(f"[{r.variant}] Gaussians {r.gaussians} (peak {r.gaussians_peak}), memory {m.headline_kind} "
-          f"{m.headline_bytes / 1e6:.1f} MB, peak RSS MB: {rss}")
+          f"{m.headline_bytes / 1e6:.1f} MB, peak RSS MB: {rss}{graph}")
     rate = r.mapping_iters_per_s_training
     print(f"[{r.variant}] tracking {r.tracking_fps:.1f} FPS, mapping {r.mapping_iterations} iterations "
           f"({'n/a' if rate is None else f'{rate:.2f}'} it/s while training, "

@@ -229,6 +229,15 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
     if s.tracker_frame_cpu_ms:
         print(f"tracker CPU   {s.tracker_frame_cpu_ms:.1f} ms a frame (median, message in to pose out)")
     print(f"keyframes     {s.keyframes}")
+    print(f"mapping       {s.mapping_iterations} iterations: {s.mapping_iterations_replay} while frames came, "
+          f"{s.mapping_iterations_final} final; {s.keyframes_trained} of {s.keyframes} keyframes trained")
+    if s.keyframe_intake_ms or s.keyframe_latency_ms:
+        i, lat = s.keyframe_intake_ms, s.keyframe_latency_ms
+        print(f"keyframe      intake {i.get('median', 0):.1f} ms CPU (p95 {i.get('p95', 0):.1f}); decision to first "
+              f"training step {lat.get('median', 0):.0f} ms (p95 {lat.get('p95', 0):.0f})")
+    print(f"memory        {s.graph_memory_mb:.0f} MB for the graph: peak RSS "
+          + ", ".join(f"{n} {v:.0f}" for n, v in s.peak_rss_mb.items())
+          + ("" if s.cuda_peak_mb is None else f", CUDA peak {s.cuda_peak_mb:.0f}"))
     print(f"Gaussians     {s.gaussians}")
     print(f"tracking      {s.tracking_fps:.1f} FPS")
     print(f"map deltas    {s.delta_messages} messages, {s.delta_bytes / 1e6:.2f} MB, "

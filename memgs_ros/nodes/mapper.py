@@ -23,19 +23,23 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import replace
+from typing import TypeVar
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.duration import Duration
 from rclpy.node import Node
+from rclpy.task import Future as RclpyFuture
+from rclpy.timer import Timer
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.mapping import checkpoint, losses
 from memgs_ros.core.mapping.keyframe_input import check_seed_depths
+from memgs_ros.core.mapping.lockstep import LockstepAcks
 from memgs_ros.core.mapping.mapper import MappingConfig
 from memgs_ros.core.mapping.session import MappingSession
 from memgs_ros.core.maps.map_delta import message_dtype
@@ -68,6 +72,14 @@ CONFIGS = NODE_CONFIGS["mapper"]
 # How long the finish service waits for every receiver to acknowledge the final flush before the
 # closing snapshot goes anyway (a receiver that died stays matched until its lease runs out).
 FLUSH_ACK_TIMEOUT_S = 10.0
+SHUTDOWN_SAVE_TIMEOUT_S = 15.0  # within the runner's stop deadline (20 s)
+T = TypeVar("T")
+
+
+def _resolved(value: T) -> Future[T]:
+    f: Future[T] = Future()
+    f.set_result(value)
+    return f
 
 
 class MapperNode(Node):
@@ -107,11 +119,12 @@ class MapperNode(Node):
             self.get_logger().info(f"resumed from {self.ckpt.path}: {len(resumed.gaussians)} Gaussians, "
                                    f"{len(resumed.keyframes)} keyframes, iteration {resumed.iteration}")
         self.latest_pose: PoseStamped | None = None
-        self._delta_pending: Future | None = None  # touched by the outputs' callback group only
+        self._delta_pending: Future | None = None  # these four: the executor's thread only
         self._finishing = False  # set once by the finish service, never cleared
-        self._render_pending: Future | None = None  # touched by the default callback group only
-        self._live_view: tuple[int, ...] = ()  # the last live render's (pose stamp, map version): same group
+        self._render_pending: Future | None = None
+        self._live_view: tuple[int, ...] = ()  # the last live render's (pose stamp, map version)
         self.awaiting_keyframes: set[int] = set()  # lockstep: announced, not yet complete
+        self._acks = LockstepAcks(p.lockstep_window)
         self._decided: dict[int, int] = {}  # keyframe stamp -> its pose's publication time (ns), until complete
         topics = {"color": Image, "camera_info": CameraInfo, "pose": PoseStamped, "seeds": PointCloud2,
                   **({"depth": Image} if p.mode == "rgbd" else {})}
@@ -122,35 +135,36 @@ class MapperNode(Node):
         self.pub_depth = self.create_publisher(Image, "memgs/render/depth", qos.reliable(2))
         self.pub_info = self.create_publisher(CameraInfo, "memgs/render/camera_info", qos.reliable(2))
         self.pub_ack = self.create_publisher(Header, p.ack_topic, qos.reliable(100))
-        io = MutuallyExclusiveCallbackGroup()  # keyframe parts, poses and lockstep stay ordered
+        # One thread runs every callback (run_node's single-threaded executor) and none of them waits:
+        # training, deltas and renders run on the session's threads, whose results are handed back
+        # through one queue; the services that must wait for them are coroutines, each in a group of
+        # its own, so everything else goes on meanwhile. (A multi-threaded executor took ~30 ms, at
+        # times seconds, to pick up a message here: every lockstep frame waited on it.)
         kfq = qos.keyframes()  # a resumed mapper gets the keyframes sent while it was down
         for part, msg_type in topics.items():
             # The pose's publication time is the tracker's decision: the keyframe's latency counts from it.
             self.create_subscription(msg_type, f"memgs/keyframe/{part}", lambda m, info, p=part: self._part(p, m, info),
-                                     kfq, callback_group=io)
-        self.create_subscription(Path, "memgs/keyframe/refined_poses", self.on_refined, qos.reliable(20),
-                                 callback_group=io)
+                                     kfq)
+        self.create_subscription(Path, "memgs/keyframe/refined_poses", self.on_refined, qos.reliable(20))
         self.create_subscription(Path, "memgs/keyframe/loop_corrected_poses", self.on_loop_corrected,
-                                 qos.reliable(20), callback_group=io)
-        self.create_subscription(Header, "memgs/tracker/processed", self.on_processed, qos.reliable(100),
-                                 callback_group=io)
+                                 qos.reliable(20))
+        self.create_subscription(Header, "memgs/tracker/processed", self.on_processed, qos.reliable(100))
         self.create_subscription(PoseStamped, "memgs/pose", lambda m: setattr(self, "latest_pose", m), qos.reliable(5))
         self.create_subscription(PoseStamped, "memgs/render/view_pose", lambda m: self._render(m, True),
                                  qos.reliable(5))
-        out = MutuallyExclusiveCallbackGroup()  # deltas, snapshots and the final flush leave in seq order
         # The session's threads hand finished messages over here and never call ROS themselves;
-        # this group publishes them in the order they were handed over.
+        # they are published in the order they were handed over (deltas, snapshots and the final
+        # flush leave in seq order).
         self._outgoing: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
-        self._outgoing_ready = self.create_guard_condition(self._publish_outgoing, callback_group=out)
-        self.create_service(Trigger, "memgs/mapper/publish_snapshot", self.on_snapshot_request, callback_group=out)
-        self.create_service(Trigger, "memgs/mapper/finish", self.on_finish,
-                            callback_group=MutuallyExclusiveCallbackGroup())
-        self.create_timer(1.0 / p.delta_rate_hz, self.send_delta, callback_group=out)
+        self._outgoing_ready = self.create_guard_condition(self._publish_outgoing)
+        self.create_service(Trigger, "memgs/mapper/publish_snapshot", self.on_snapshot_request,
+                            callback_group=ReentrantCallbackGroup())
+        self.create_service(Trigger, "memgs/mapper/finish", self.on_finish, callback_group=ReentrantCallbackGroup())
+        self.create_timer(1.0 / p.delta_rate_hz, self.send_delta)
         if p.snapshot_period_s > 0:
-            self.create_timer(p.snapshot_period_s, self.publish_snapshot, callback_group=out)
+            self.create_timer(p.snapshot_period_s, self.publish_snapshot)
         if self.ckpt is not None and p.checkpoint_period_s > 0:
-            self.create_timer(p.checkpoint_period_s, self.save_checkpoint,
-                              callback_group=MutuallyExclusiveCallbackGroup())
+            self.create_timer(p.checkpoint_period_s, self.save_checkpoint)
         if resumed is not None:
             self.publish_snapshot()  # latched: the merger takes the resumed map and its epoch
         if p.render_rate_hz > 0:
@@ -168,31 +182,33 @@ class MapperNode(Node):
             self.get_logger().warning("CUDA without gsplat: the torch fallback rasterizer is several times slower; "
                                       "install gsplat (README 'On a Jetson')")
 
-    def save_checkpoint(self, force: bool = False) -> pathlib.Path | None:
-        """Write the session's state atomically when it changed since the last write."""
+    def save_checkpoint(self, force: bool = False) -> Future[pathlib.Path | None]:
+        """Write the session's state atomically when it changed since the last write, on the
+        session's worker (a timer's save never overwrites the final one). The future gives the
+        path, or None (unchanged, no checkpoint file, or failed: counted as checkpoint_failed)."""
         if self.ckpt is None:
-            return None
-        t0 = time.perf_counter()
-        ckpt = self.ckpt
+            return _resolved(None)
+        ckpt, t0 = self.ckpt, time.perf_counter()
 
-        written = 0
-
-        def write(state: checkpoint.MapperCheckpoint) -> bool:
-            nonlocal written
+        def write(state: checkpoint.MapperCheckpoint) -> pathlib.Path:
             ckpt.write(state)
-            written = len(state.gaussians)
-            return True
+            self.stats.post_count("checkpoints")
+            self.stats.post_gauge("checkpoint_gaussians", len(state.gaussians))
+            self.stats.post_gauge("checkpoint_ms", round((time.perf_counter() - t0) * 1e3, 1))
+            return ckpt.path
 
-        try:  # captured and written on the session's worker: a timer's save never overwrites the final one
-            if not self.session.save_state(write, only_if_changed=not force).result():
-                return None
-        except (OSError, DataError, WorkerStopped) as err:
+        def failed(f: Future) -> None:
+            err = None if f.cancelled() else f.exception()
+            if err is not None:
+                self.stats.post_problem("checkpoint_failed", f"could not write checkpoint {ckpt.path}: {err}")
+
+        try:
+            saved = self.session.save_state(write, only_if_changed=not force)
+        except WorkerStopped as err:
             self.stats.post_problem("checkpoint_failed", f"could not write checkpoint {ckpt.path}: {err}")
-            return None
-        self.stats.post_count("checkpoints")
-        self.stats.post_gauge("checkpoint_gaussians", written)
-        self.stats.post_gauge("checkpoint_ms", round((time.perf_counter() - t0) * 1e3, 1))
-        return self.ckpt.path
+            return _resolved(None)
+        saved.add_done_callback(failed)
+        return saved
 
     def _part(self, part: str, msg, info: dict) -> None:  # noqa: ANN001 - any bundle message type
         """A complete bundle is decoded and queued, or refused whole and counted by kind (bad_seeds...)."""
@@ -273,12 +289,24 @@ class MapperNode(Node):
         self._lockstep_ack(stamp)
 
     def _lockstep_ack(self, stamp_ns: int) -> None:
-        self.session.train(self.params.lockstep_iterations).result()  # after the keyframe's insertion: one queue
-        self.pub_ack.publish(make_header(stamp_ns, "mapper"))
+        """Queue the frame's training (after its keyframe's insertion: one queue) and acknowledge
+        the frame once at most ``lockstep_window`` frames' training is unfinished (LockstepAcks)."""
+        trained = self.session.train(self.params.lockstep_iterations)
+        trained.add_done_callback(self._report_failure("train"))
+        trained.add_done_callback(lambda _f: self._hand_over(self._send_due_acks))
+        self._hand_over(functools.partial(self._send_due_acks, (stamp_ns, trained)))
+
+    def _send_due_acks(self, queued: tuple[int, Future] | None = None) -> None:
+        """Handed over (the executor's thread touches ``_acks``): take a newly queued frame's
+        training, then acknowledge what is due."""
+        if queued is not None:
+            self._acks.submitted(*queued)
+        for stamp in self._acks.due():
+            self.pub_ack.publish(make_header(stamp, "mapper"))
 
     def _sync_stats(self) -> None:
-        """Session problems and status, and lost keyframes, into the stats: on the default callback
-        group, the stats' own, which also applies what the other groups posted."""
+        """Session problems and status, and lost keyframes, into the stats; also applies what the
+        session's threads posted."""
         self.stats.apply_posted()
         self.stats.counters["keyframes_missed"] += self.intake.missed(time.monotonic())
         for ev in self.session.poll_events():
@@ -322,7 +350,7 @@ class MapperNode(Node):
         return self._delta_pending
 
     def _hand_over(self, publish: Callable[[], None]) -> None:
-        """From the session's threads: queue a publication for the ``out`` callback group."""
+        """From the session's threads: queue a publication (or any ROS call) for the executor's thread."""
         self._outgoing.put(publish)
         self._outgoing_ready.trigger()
 
@@ -344,32 +372,51 @@ class MapperNode(Node):
 
         return self.session.snapshot_message(publish)
 
-    def on_snapshot_request(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        res.success, res.message = True, "seq={2} gaussians={1}".format(*self.publish_snapshot().result())
+    async def _done(self, future: Future[T]) -> T:
+        """Await a session future in a coroutine callback without holding the executor: the
+        future's completion is handed over, whose guard condition wakes the executor."""
+        woken = RclpyFuture()
+        future.add_done_callback(lambda _f: self._hand_over(lambda: woken.set_result(None)))
+        await woken
+        return future.result(timeout=0)
+
+    async def _sleep(self, seconds: float) -> None:
+        woken = RclpyFuture()
+        timer: Timer | None = None
+
+        def fire() -> None:
+            assert timer is not None
+            timer.cancel()
+            self.destroy_timer(timer)
+            woken.set_result(None)
+
+        timer = self.create_timer(seconds, fire)
+        await woken
+
+    async def on_snapshot_request(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        _, n, seq = await self._done(self.publish_snapshot())
+        res.success, res.message = True, f"seq={seq} gaussians={n}"
         return res
 
-    def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+    async def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         """Insert what is queued, stop training, run the final iterations, flush every change."""
         p = self.params
         self._finishing = True  # a latch, read by the periodic delta timer
-        done = self.session.finish(p.final_iterations, p.final_densify, p.final_budget_s).result()
+        done = await self._done(self.session.finish(p.final_iterations, p.final_densify, p.final_budget_s))
         self.get_logger().info(f"final {done.final_iterations} iterations in {done.seconds:.1f} s")
         flush = self.send_delta(exact=True)
         assert flush is not None  # an exact flush never waits
-        flush.result()
+        await self._done(flush)  # handed over after the flush's messages: they are out
         # A receiver cannot see that the last delta was lost (no later seq shows the gap): the
         # latched snapshot after it lets every receiver end on the final map. It waits until the
         # flush is acknowledged: sent at once, the two whole maps would share a slow link, and the
         # flush, which every receiver in step needs, would arrive later.
-        flushed: Future = Future()
-        self._hand_over(lambda: flushed.set_result(None))  # after the flush: one ordered queue
-        t0 = time.monotonic()
-        with contextlib.suppress(TimeoutError):  # waited long enough: the snapshot goes anyway
-            flushed.result(FLUSH_ACK_TIMEOUT_S)
-            left = FLUSH_ACK_TIMEOUT_S - (time.monotonic() - t0)
-            self.pub_delta.wait_for_all_acked(Duration(nanoseconds=int(max(left, 0.0) * 1e9)))
-        _, _, seq = self.publish_snapshot().result()
-        self.save_checkpoint()
+        end = time.monotonic() + FLUSH_ACK_TIMEOUT_S  # waited long enough: the snapshot goes anyway
+        while not self.pub_delta.wait_for_all_acked(Duration(nanoseconds=0)) and time.monotonic() < end:
+            await self._sleep(0.02)
+        _, _, seq = await self._done(self.publish_snapshot())
+        with contextlib.suppress(OSError, DataError, WorkerStopped):  # counted as checkpoint_failed
+            await self._done(self.save_checkpoint())
         res.success = True
         res.message = f"seq={seq} gaussians={self.session.status.gaussians} epoch={done.epoch}"
         return res
@@ -399,14 +446,21 @@ class MapperNode(Node):
         self._render_pending = self._render_pending if requested else future
 
     def on_shutdown(self) -> None:
-        if self.save_checkpoint() is not None:
+        try:  # bounded: the runner kills a node that takes longer than its stop deadline
+            saved = self.save_checkpoint().result(timeout=SHUTDOWN_SAVE_TIMEOUT_S)
+        except TimeoutError:
+            self.get_logger().error(f"the checkpoint was not written within {SHUTDOWN_SAVE_TIMEOUT_S:.0f} s")
+            saved = None
+        except (OSError, DataError, WorkerStopped):  # counted by save_checkpoint
+            saved = None
+        if saved is not None:
             self.get_logger().info(f"checkpoint written to {self.ckpt.path} "
                                    f"({self.session.status.gaussians} Gaussians)")
         self.session.close()
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(MapperNode, "mapper", args, threads=4)
+    return run_node(MapperNode, "mapper", args)
 
 
 if __name__ == "__main__":

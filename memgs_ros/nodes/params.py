@@ -127,6 +127,9 @@ class MapperParams:
     checkpoint_period_s: write a checkpoint this often while the map changes (0 = only at finish/shutdown)
     insert_queue: free-running: complete keyframes waiting for insertion; when full the oldest is dropped
         and counted (problem.keyframe_overload)
+    lockstep_window: lockstep: a frame is acknowledged once at most this many frames' training (its own
+        included) is unfinished, so the tracker works on the next frame while the mapper trains (1); 0 waits
+        for the frame's own training. The map is the same either way (core/mapping/lockstep.py)
     """
 
     mode: str = "rgbd"  # camera mode: rgbd, or mono (keyframes carry no depth)
@@ -134,6 +137,7 @@ class MapperParams:
     device: str = "auto"  # torch device for the map: auto (CUDA when present), cpu, cuda, cuda:N
     lockstep: bool = False  # train a fixed number of iterations per frame and acknowledge each (deterministic replay)
     lockstep_iterations: int = 10  # training iterations per frame in lockstep mode
+    lockstep_window: int = 1
     final_iterations: int = 0  # extra training iterations run by the finish service before the final flush
     final_densify: bool = True
     final_budget_s: float = 0.0
@@ -152,6 +156,7 @@ class MapperParams:
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "niceness": (0, 19), "depth_scale": (1e-3, 1e6), "lockstep_iterations": (0, 10000),
+        "lockstep_window": (0, 100),
         "final_iterations": (0, 10**7), "final_budget_s": (0.0, 1e6),
         "delta_rate_hz": (0.01, 100.0), "delta_budget_kbytes_per_s": (1.0, 1e7), "delta_tolerance": (0.0, 10.0),
         "snapshot_period_s": (0.0, 1e6), "render_rate_hz": (0.0, 60.0), "checkpoint_period_s": (0.0, 1e6),

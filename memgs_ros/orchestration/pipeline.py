@@ -484,10 +484,28 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
         tracker_skipped={k: int(obs.stat("tracker", f"skipped.{k}")) for k in ("stale", "busy")},
         tracker_frame_cpu_ms=float(obs.stat("tracker", "frame_cpu_ms_median")),
         skipped_frames={k.removeprefix("skipped."): int(float(v)) for k, v in obs.stats.get("player", {}).items()
-                        if k.startswith("skipped.")})
+                        if k.startswith("skipped.")},
+        **_mapper_figures(obs, options.single_process))
     # The summary is a file of the run, so evaluation reads a finished run instead of watching it.
     _write_text(out / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2) + "\n")
     return summary
+
+
+def _mapper_figures(obs: _Observer, single_process: bool) -> dict[str, Any]:
+    """The mapper's keyframe and iteration figures and the graph's memory, for RunSummary."""
+    def pair(name: str) -> dict[str, float]:
+        return {q: obs.stat("mapper", f"keyframe_{name}_{q}") for q in ("median", "p95")
+                if f"keyframe_{name}_{q}" in obs.stats.get("mapper", {})}
+
+    cuda = obs.stat("mapper", "cuda_max_allocated", -1.0)
+    cuda_mb = round(cuda / 2**20, 1) if cuda >= 0 else None
+    rss = [obs.stat(n, "peak_rss_mb") for n in GRAPH_NODES]
+    host = max(rss, default=0.0) if single_process else sum(rss)
+    return {"mapping_iterations_final": int(obs.stat("mapper", "iterations_final")),
+            "keyframes_mapped": int(obs.stat("mapper", "keyframes")),
+            "keyframes_trained": int(obs.stat("mapper", "keyframes_used")),
+            "keyframe_intake_ms": pair("intake_ms"), "keyframe_latency_ms": pair("latency_ms"),
+            "cuda_peak_mb": cuda_mb, "graph_memory_mb": round(host + (cuda_mb or 0.0), 1)}
 
 
 def _cpu_times(obs: _Observer, procs: NodeProcesses | None) -> dict[str, float]:

@@ -111,9 +111,25 @@ class RunSummary:
     # behind), busy (published, never delivered: the reader's queue overflowed or transport lost it)
     tracker_skipped: dict[str, int] = field(default_factory=dict)
     tracker_frame_cpu_ms: float = 0.0  # the tracker's CPU per frame, message in to pose out (median)
+    mapping_iterations_final: int = 0  # of mapping_iterations, run by the finish (the rest while frames came)
+    keyframes_mapped: int = 0  # keyframes the mapper inserted into its map
+    keyframes_trained: int = 0  # of those, drawn by at least one training step
+    # per keyframe, median and p95: the mapper's intake CPU (decode, prepare, upload, insert), and
+    # the wall time from the tracker's decision to the first training step that drew it
+    keyframe_intake_ms: dict[str, float] = field(default_factory=dict)
+    keyframe_latency_ms: dict[str, float] = field(default_factory=dict)
+    cuda_peak_mb: float | None = None  # the mapper's torch.cuda.max_memory_allocated (None on the CPU)
+    # what the graph held at its peaks: every node process's peak RSS (one process when composed)
+    # plus the CUDA peak; on a Jetson both come out of one memory
+    graph_memory_mb: float = 0.0
+
+    @property
+    def mapping_iterations_replay(self) -> int:
+        """Training steps run while the source played (live: while the camera moved)."""
+        return self.mapping_iterations - self.mapping_iterations_final
 
     def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        return {**asdict(self), "mapping_iterations_replay": self.mapping_iterations_replay}
 
 
 def config_path(name_or_path: str) -> Path:
