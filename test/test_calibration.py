@@ -291,6 +291,7 @@ def test_tracker_hands_on_the_configured_camera(context, override: bool) -> None
     try:
         assert _spin_until(ex, lambda: pc.get_subscription_count() and pd.get_subscription_count()
                            and pi.get_subscription_count())
+        assert node.wait_until_warm(120)  # a live frame before it is "warming"
         f = frames[0]
         pi.publish(camera_to_camera_info(wrong, f.stamp_ns, "cam"))
         assert _spin_until(ex, lambda: node.camera is not None or node.stats.counters["camera_info_differs"], 5.0)

@@ -168,3 +168,34 @@ def test_a_gsplat_that_does_not_run_is_an_error(monkeypatch: pytest.MonkeyPatch)
     r = doctor.collect()
     assert r["backends"]["gsplat"]["cuda_extension"] == "ok" and not any("gsplat" in p for p in r["problems"])
     assert r["verdict"] == "mapper will run on cuda (Orin) with gsplat"
+
+
+def test_warm_compiles_every_kernel_group_into_the_cache_the_nodes_read() -> None:
+    """``memgs doctor --warm``: each group (tracker, rasterizer, SSIM) loads or compiles, the total is
+    printed, and the kernels land in NUMBA_CACHE_DIR (the cache the nodes read)."""
+    proc = subprocess.run([sys.executable, "-m", "memgs_ros", "doctor", "--warm", "--json", "--no-gsplat-check"],
+                          capture_output=True, text=True, timeout=600, env=dict(os.environ))
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    r = json.loads(proc.stdout)
+    assert [g["name"] for g in r["warm"]["groups"]] == ["tracker", "rasterizer", "SSIM loss"]
+    assert r["warm"]["ok"] and all(g["error"] is None for g in r["warm"]["groups"])
+    cache = r["kernel_cache"]["dir"]
+    assert cache == os.environ.get("NUMBA_CACHE_DIR", cache) and r["kernel_cache"]["writable"]
+    if numba_available():
+        assert any(name.endswith(".nbi") for _, _, files in os.walk(cache) for name in files)
+
+
+def test_the_kernel_cache_is_per_user_unless_numba_cache_dir_says_otherwise(tmp_path) -> None:  # noqa: ANN001
+    """numba's default cache sits beside the sources, read-only in an installed package: memgs_ros
+    points it at $XDG_CACHE_HOME (or ~/.cache)/memgs_ros/numba, and NUMBA_CACHE_DIR still wins."""
+    code = ("import os, memgs_ros, numba.core.config as c; print(os.environ['NUMBA_CACHE_DIR'], c.CACHE_DIR)")
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env={**env, "HOME": str(tmp_path)}).stdout.split()
+    assert out == [str(tmp_path / ".cache/memgs_ros/numba")] * 2
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env={**env, "XDG_CACHE_HOME": str(tmp_path / "xdg")}).stdout.split()
+    assert out == [str(tmp_path / "xdg/memgs_ros/numba")] * 2
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env={**env, "NUMBA_CACHE_DIR": str(tmp_path / "mine")}).stdout.split()
+    assert out == [str(tmp_path / "mine")] * 2

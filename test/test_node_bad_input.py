@@ -393,6 +393,7 @@ def test_tracker_stamp_rules(context) -> None:  # noqa: ANN001
     try:
         assert _spin_until(ex, lambda: pc.get_subscription_count() and pd.get_subscription_count()
                            and pi.get_subscription_count())
+        assert node.wait_until_warm(120)  # a live frame before it is "warming"
         pi.publish(camera_to_camera_info(frames[0].camera, frames[0].stamp_ns, "cam"))
         assert _spin_until(ex, lambda: node.camera is not None)
 

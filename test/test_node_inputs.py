@@ -46,6 +46,7 @@ def test_tracker_survives_bad_frames_and_tracks_good_ones(context) -> None:  # n
     try:
         assert _spin_until(ex, lambda: pc.get_subscription_count() and pd.get_subscription_count()
                            and pi.get_subscription_count())
+        assert node.wait_until_warm(120)  # a live frame before it is "warming"
         frames = list(generate_frames(parse_spec("synthetic:w=128,h=96,n=6,seed=2")))
         f0 = frames[0]
         bad_info = camera_to_camera_info(f0.camera, f0.stamp_ns, "cam")
@@ -113,6 +114,7 @@ def test_tracker_counts_undelivered_frames_and_drops_stale_ones(context) -> None
     node._handle = lambda color, depth: handled.append(color.header.stamp.sec)  # noqa: SLF001 - intake only
     node.rgbd = False  # colour alone reaches _handle: no pairing in the way
     try:
+        assert node.wait_until_warm(120)  # a live frame before it is "warming"
         offset = -5_000_000_000  # the camera's clock 5 s behind the tracker's
 
         def info(seq: int, waited_s: float) -> dict:
@@ -144,6 +146,39 @@ def test_tracker_counts_undelivered_frames_and_drops_stale_ones(context) -> None
         assert seen == [1, 2] and reliable.stats.counters["skipped.stale"] == 0
     finally:
         reliable.destroy_node()
+
+
+def test_live_frames_before_the_kernels_are_in_are_counted_as_warming(context, monkeypatch) -> None:  # noqa: ANN001
+    """A live camera does not wait for a fresh install's compile: its frames that come before the
+    kernels are dropped, counted (skipped.warming) and answered on memgs/tracker/processed; the
+    first frame after them is tracked. A lockstep replay's frame waits instead (not counted)."""
+    import threading
+
+    import memgs_ros.nodes.tracker as tracker_module
+
+    gate = threading.Event()
+    monkeypatch.setattr(tracker_module, "warm_up", lambda: gate.wait(60))  # a compile that takes its time
+    node = TrackerNode(context=context, parameter_overrides=[Parameter("max_frame_age_s", value=0.1)])
+    handled: list[int] = []
+    answered: list[int] = []
+    node._handle = lambda color, depth: handled.append(color.header.stamp.sec)  # noqa: SLF001 - intake only
+    node._processed = lambda stamp, keyframe: answered.append(stamp)  # noqa: SLF001
+    node.rgbd = False
+    try:
+        for sec in (1, 2):
+            msg = Image()
+            msg.header.stamp.sec = sec
+            node.on_color(msg, {"source_timestamp": time.time_ns(), "publication_sequence_number": sec})
+        assert handled == [] and node.stats.counters["skipped.warming"] == 2 and len(answered) == 2
+        gate.set()
+        assert node.wait_until_warm(30)
+        msg = Image()
+        msg.header.stamp.sec = 3
+        node.on_color(msg, {"source_timestamp": time.time_ns(), "publication_sequence_number": 3})
+        assert handled == [3] and node.stats.counters["skipped.warming"] == 2
+    finally:
+        gate.set()
+        node.destroy_node()
 
 
 def test_tracker_loads_its_kernels_before_the_first_frame(context) -> None:  # noqa: ANN001
@@ -184,7 +219,8 @@ def test_tracker_forwards_keyframe_images_as_received(context) -> None:  # noqa:
     ex.add_node(peer)
     try:
         assert _spin_until(ex, lambda: pc.get_subscription_count() and pd.get_subscription_count()
-                           and pi.get_subscription_count() and node.stats.gauges.get("kernels_warm") == 1, 60.0)
+                           and pi.get_subscription_count(), 60.0)
+        assert node.wait_until_warm(120)
         f = next(iter(generate_frames(parse_spec("synthetic:w=128,h=96,n=1,seed=2"))))
         pi.publish(camera_to_camera_info(f.camera, f.stamp_ns, "cam"))
         color = numpy_to_image(f.rgb, "bgr8", f.stamp_ns, "cam")  # a camera's channel order, kept

@@ -30,6 +30,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--strict", action="store_true",
                    help="exit 1 when something the nodes need is missing or broken (rclpy, rosbags, mcap, "
                         "OpenCV, a gsplat that imports but does not run)")
+    p.add_argument("--warm", action="store_true",
+                   help="then compile every kernel the nodes run into the kernel cache (a fresh install's first "
+                        "run would otherwise compile them while the camera's frames arrive), and print the time")
     p.add_argument("--no-gsplat-check", action="store_true",
                    help="on CUDA, skip rendering a tiny scene with gsplat (its first use may compile its "
                         "CUDA extension: minutes)")
@@ -161,6 +164,10 @@ def collect(check_gsplat: bool = True) -> dict[str, Any]:
     elif torch_info["cuda_build"] and not torch_info["cuda_available"]:
         warnings.append(f"torch is built for CUDA {torch_info['cuda_build']} but sees no GPU (driver?): "
                         "the mapper runs on the CPU")
+    cache = _kernel_cache()
+    if numba_available() and not cache["writable"]:
+        warnings.append(f"the kernel cache {cache['dir'] or '(numba default)'} is not writable: every node start "
+                        "compiles its kernels anew; set NUMBA_CACHE_DIR to a writable folder")
     dds = _dds_profile(rclpy_info["rmw"])
     if dds["file"] and not dds["exists"]:
         warnings.append(f"FASTRTPS_DEFAULT_PROFILES_FILE names a missing file ({dds['file']}): Fast DDS cannot load it")
@@ -180,10 +187,25 @@ def collect(check_gsplat: bool = True) -> dict[str, Any]:
         "ros": {"rclpy": rclpy_info, "rmw_implementation": rclpy_info["rmw"], "rmw_source": rclpy_info["rmw_source"],
                 "ros_domain_id": os.environ.get("ROS_DOMAIN_ID"), "dds_profile": dds},
         "packages": packages,
+        "kernel_cache": cache,
         "problems": problems,
         "warnings": warnings,
         "verdict": verdict,
     }
+
+
+def _kernel_cache() -> dict[str, Any]:
+    """numba's cache folder for the nodes (NUMBA_CACHE_DIR; memgs_ros sets a per-user default)
+    and whether this user can write it (made if missing)."""
+    from memgs_ros.core.kernels import numba_cache_dir
+
+    path = numba_cache_dir()
+    writable = False
+    if path:
+        with contextlib.suppress(OSError):
+            Path(path).mkdir(parents=True, exist_ok=True)
+        writable = os.access(path, os.W_OK)
+    return {"dir": path, "writable": writable}
 
 
 def _yes(flag: bool) -> str:
@@ -224,6 +246,8 @@ def format_report(r: dict[str, Any]) -> str:
         ("dds", f"{dds['file'] or '-'} [{dds['source']}]"
                 + ("" if dds["exists"] or not dds["file"] else " MISSING FILE")),
         *((name, _ver(info)) for name, info in r["packages"].items()),
+        ("kernels", f"cache {r['kernel_cache']['dir'] or '-'}"
+                    + ("" if r["kernel_cache"]["writable"] else " (NOT WRITABLE)")),
     ]
     width = max(len(k) for k, _ in rows)
     lines = [f"{k:<{width}}  {v}" for k, v in rows]
@@ -232,7 +256,32 @@ def format_report(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def warm(device: str, backend: str, quiet: bool) -> dict[str, Any]:
+    """Compile every kernel the nodes run (``core/kernels.py``); per group and total seconds."""
+    from memgs_ros.core.kernels import KernelGroup, warm_kernels
+
+    def show(g: KernelGroup) -> None:
+        if not quiet:
+            print(f"  {g.name:<11} {g.seconds:6.1f} s" + (f"  FAILED: {g.error}" if g.error else ""), flush=True)
+
+    if not quiet:
+        print(f"compiling the kernels (loaded from the cache where they are there already) for {device}:", flush=True)
+    groups = warm_kernels(device, backend, on_group=show)
+    total = round(sum(g.seconds for g in groups), 1)
+    if not quiet:
+        print(f"kernels warm in {total:.1f} s")
+    return {"groups": [{"name": g.name, "seconds": g.seconds, "error": g.error} for g in groups],
+            "seconds": total, "ok": all(g.error is None for g in groups)}
+
+
 def run(args: argparse.Namespace) -> int:
     report = collect(check_gsplat=not args.no_gsplat_check)
-    print(json.dumps(report, indent=2) if args.json else format_report(report))
-    return 1 if args.strict and report["problems"] else 0
+    if not args.json:
+        print(format_report(report))
+    warmed = True
+    if args.warm:
+        report["warm"] = warm(report["mapper"]["device"], report["mapper"]["raster_backend"], quiet=args.json)
+        warmed = report["warm"]["ok"]
+    if args.json:
+        print(json.dumps(report, indent=2))
+    return 1 if (args.strict and report["problems"]) or not warmed else 0

@@ -225,7 +225,8 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
     print(f"frames        {played}{s.frames} in, {s.poses} poses, {s.lost_frames} lost")
     if any(s.tracker_skipped.values()):
         print("not tracked   " + ", ".join(f"{n} {why}" for why, n in s.tracker_skipped.items() if n)
-              + " (stale: dropped to catch up with the camera; busy: never delivered while the tracker worked)")
+              + " (warming: came before the tracker's kernels were in; stale: dropped to catch up with the "
+                "camera; busy: never delivered while the tracker worked)")
     if s.tracker_frame_cpu_ms:
         print(f"tracker CPU   {s.tracker_frame_cpu_ms:.1f} ms a frame (median, message in to pose out)")
     print(f"keyframes     {s.keyframes}")

@@ -50,6 +50,7 @@ class KeyframeSamplerNode(Node):
         self.mode, self.depth_scale, self.world_frame = v.mode, v.depth_scale, v.world_frame
         self.cfg: PatchGridConfig = declare_config(self, PatchGridConfig, "patch_grid")
         self.stats = NodeStats(self, "keyframe_sampler")
+        self.stats.gauges["kernels_warm"] = 1  # nothing to compile: warm as soon as it runs
         parts = {"color", "camera_info", "pose", "keypoints"} | ({"depth"} if self.mode == "rgbd" else set())
         self.bundler = StampBundler(parts, max_pending=16)
         self.n_keyframes = 0

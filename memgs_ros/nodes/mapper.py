@@ -73,6 +73,7 @@ CONFIGS = NODE_CONFIGS["mapper"]
 # closing snapshot goes anyway (a receiver that died stays matched until its lease runs out).
 FLUSH_ACK_TIMEOUT_S = 10.0
 SHUTDOWN_SAVE_TIMEOUT_S = 15.0  # within the runner's stop deadline (20 s)
+SESSION_CLOSE_TIMEOUT_S = 30.0  # the step or command in progress ends first (a cold warm-up: ~20 s)
 T = TypeVar("T")
 
 
@@ -169,12 +170,13 @@ class MapperNode(Node):
             self.publish_snapshot()  # latched: the merger takes the resumed map and its epoch
         if p.render_rate_hz > 0:
             self.create_timer(1.0 / p.render_rate_hz, lambda: self._render(self.latest_pose))
-        # The memory baseline: imports, node, session and the compiled kernels of rasterizer and
-        # SSIM (loaded now, not inside the first training step); the working memory is above it.
-        warm_up(device, self.cfg.raster_backend, self.cfg.max_sh_degree)
-        losses.warm_up(device)
-        self._rss_baseline_mb = rss_mb()
-        self.stats.gauges["rss_baseline_mb"] = round(self._rss_baseline_mb, 1)
+        # The rasterizer's and SSIM's compiled kernels load (on a fresh install: compile) as the
+        # session's first command, on its worker, while the node already spins (a stop is answered
+        # meanwhile) and keyframes queue behind it; kernels_warm says when they are in.
+        self._rss_baseline_mb: float | None = None
+        self.stats.gauges["kernels_warm"] = 0
+        warmed = self.session.call(functools.partial(self._warm_up, device, time.perf_counter()))
+        warmed.add_done_callback(self._warm_up_failed)
         self.create_timer(0.1, self._sync_stats)
         self.get_logger().info(f"mapper on {device_label(device)}, rasterizer {raster.backend}, "
                                f"{'lockstep' if p.lockstep else 'free-running'} training")
@@ -209,6 +211,23 @@ class MapperNode(Node):
             return _resolved(None)
         saved.add_done_callback(failed)
         return saved
+
+    def _warm_up(self, device: str, t0: float, _mapper: object) -> None:
+        """On the session's worker: load the kernels, then take the memory baseline (imports, node,
+        session and kernels; the working memory is above it)."""
+        warm_up(device, self.cfg.raster_backend, self.cfg.max_sh_degree)
+        losses.warm_up(device)
+        self._rss_baseline_mb = rss_mb()
+        self.stats.post_gauge("rss_baseline_mb", round(self._rss_baseline_mb, 1))
+        self.stats.post_gauge("warm_up_s", round(time.perf_counter() - t0, 2))
+        self.stats.post_gauge("kernels_warm", 1)
+
+    def _warm_up_failed(self, future: Future) -> None:
+        err = None if future.cancelled() else future.exception()
+        if err is not None and not isinstance(err, WorkerStopped):
+            # The run goes on (a training step will meet the same error and report it) rather than wait.
+            self.stats.post_problem("warm_up", f"could not load the mapping kernels: {type(err).__name__}: {err}")
+            self.stats.post_gauge("kernels_warm", 1)
 
     def _part(self, part: str, msg, info: dict) -> None:  # noqa: ANN001 - any bundle message type
         """A complete bundle is decoded and queued, or refused whole and counted by kind (bad_seeds...)."""
@@ -322,7 +341,8 @@ class MapperNode(Node):
             self.stats.gauges["iterations_per_s"] = round((st.iteration - last_it) / (now - last_t), 1)
         self._rate_mark = (now, st.iteration)
         # Peak resident memory above the start-up baseline (VmHWM, read 10 times a second).
-        self.stats.gauges["working_peak_mb"] = round(max(peak_rss_mb() - self._rss_baseline_mb, 0.0), 1)
+        if self._rss_baseline_mb is not None:
+            self.stats.gauges["working_peak_mb"] = round(max(peak_rss_mb() - self._rss_baseline_mb, 0.0), 1)
 
     def send_delta(self, exact: bool = False) -> Future | None:
         """Queue a delta (exact: all, tolerance 0), published by the session in seq order. A timer never
@@ -456,7 +476,13 @@ class MapperNode(Node):
         if saved is not None:
             self.get_logger().info(f"checkpoint written to {self.ckpt.path} "
                                    f"({self.session.status.gaussians} Gaussians)")
-        self.session.close()
+        self.session.close(SESSION_CLOSE_TIMEOUT_S)
+
+    def destroy_node(self) -> None:
+        # The session's threads end with the node (idempotent after on_shutdown): a worker still in
+        # native code (a warm-up's compile) when the process exits aborts it.
+        self.session.close(SESSION_CLOSE_TIMEOUT_S)
+        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:

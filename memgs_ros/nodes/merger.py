@@ -72,6 +72,8 @@ class MergerNode(Node):
 
         self.replica = MapReplica()
         self.stats = NodeStats(self, "merger")
+        # The map's deltas need no compiled code; the renders on request load theirs when first asked.
+        self.stats.gauges["kernels_warm"] = 1
         self.buffer: deque[MapMessage] = deque(maxlen=self.max_buffered)
         self.resyncing = False
         self._last_request = 0.0

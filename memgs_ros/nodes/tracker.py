@@ -158,9 +158,11 @@ class TrackerNode(Node):
         # Load (on a fresh install: compile, ~10 s) the tracking kernels beside the executor, not on
         # the first frame: a live camera does not wait, and 0.4 s of loading on frame 1 cost the next
         # dozen frames and the track. Not in __init__ either: a node still compiling missed its stop
-        # deadline. The runner starts a live replay once ``kernels_warm`` is 1; a frame that comes
-        # first waits for the kernels inside make_tracker (numba compiles one signature at a time).
+        # deadline. The runner starts a replay once ``kernels_warm`` is 1. A live camera's frame that
+        # comes first is counted (skipped.warming) and dropped: waiting for the kernels would make it
+        # and the frames queued behind it stale anyway. A lockstep frame waits (inside make_tracker).
         self.stats.gauges["kernels_warm"] = 0
+        self._kernels_ready = threading.Event()
         self._warm_thread = threading.Thread(target=self._warm_up, name="tracker-warm-up", daemon=True)
         self._warm_thread.start()
 
@@ -172,6 +174,11 @@ class TrackerNode(Node):
             self.stats.post_problem("warm_up", f"could not load the tracking kernels ahead of time: {err}")
         self.stats.post_gauge("warm_up_s", round(time.perf_counter() - t0, 2))
         self.stats.post_gauge("kernels_warm", 1)
+        self._kernels_ready.set()
+
+    def wait_until_warm(self, timeout_s: float) -> bool:
+        """Whether the kernels are in within ``timeout_s`` (a live frame before that is "warming")."""
+        return self._kernels_ready.wait(timeout_s)
 
     # ------------------------------------------------------------------ inputs
     def on_camera_info(self, msg: CameraInfo) -> None:
@@ -233,12 +240,17 @@ class TrackerNode(Node):
     def _take(self, msg: Image, info: MessageInfo) -> bool:
         """Count the colour frames the camera published that never reached this callback (the
         reader's queue overflowed while the tracker was busy, or best-effort transport lost them:
-        skipped.busy), and drop a stale one (skipped.stale). False: dropped."""
+        skipped.busy), and drop a live frame that came before the kernels (skipped.warming) or
+        stale (skipped.stale). False: dropped."""
         seq = int(info.get("publication_sequence_number") or 0)
         if seq and self._last_color_seq and seq > self._last_color_seq + 1:
             self.stats.counters["skipped.busy"] += seq - self._last_color_seq - 1
         if seq:
             self._last_color_seq = seq  # a smaller one: the publisher restarted; count from it
+        if self.max_age_ns and not self._kernels_ready.is_set():
+            self.stats.counters["skipped.warming"] += 1
+            self._processed(stamp_to_ns(msg.header.stamp), keyframe=False)
+            return False
         sent = int(info.get("source_timestamp") or 0)
         if not self.max_age_ns or not sent:
             return True

@@ -237,8 +237,7 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
             if recording:
                 topics = node_params(params).get("recorder", {}).get("topics", NODE_MODULES["recorder"].DEFAULT_TOPICS)
                 _wait_for_recorder(observer, procs, topics, t0 + options.timeout_s)
-            if not options.lockstep and "tracker" in graph:
-                _wait_for_warm_tracker(observer, procs, t0 + options.timeout_s)
+            _wait_for_warm_graph(observer, procs, [n for n in GRAPH_NODES if n not in delayed], t0 + options.timeout_s)
             procs.start("bag_player")
             # Counted from the start of the replay, as kills are; started by _drive's loop.
             procs.due = {name: time.monotonic() + delay for name, delay in delayed.items()}
@@ -358,14 +357,25 @@ def _wait_for_graph(obs: _Observer, procs: NodeProcesses, nodes: list[str], dead
     time.sleep(0.5)  # endpoint matching between the nodes themselves settles just after discovery
 
 
-def _wait_for_warm_tracker(obs: _Observer, procs: NodeProcesses, deadline: float) -> None:
-    """A live replay does not wait for the tracker: start it once the tracker has its kernels
-    loaded (0.4 s from the disk cache, ~10 s compiled on a fresh install), or the first frame's
-    wait cost the next dozen frames and the track (fr1/rpy at 1x: 43 frames lost)."""
-    while obs.stat("tracker", "kernels_warm") < 1:
-        procs.check()
-        if time.monotonic() > deadline:
-            raise PipelineError("the tracker did not load its kernels in time")
+_SLOW_WARM_UP_S = 5.0  # warm-ups from the kernel cache take ~1 s; longer means compiling
+
+
+def _wait_for_warm_graph(obs: _Observer, procs: NodeProcesses | None, nodes: Sequence[str], deadline: float) -> None:
+    """The player starts once every node has its compiled kernels in (stats ``kernels_warm``):
+    from the kernel cache in about a second; on a fresh install they compile first (a minute on 2
+    cores, which ``memgs doctor --warm`` does ahead). A frame played before that would be dropped
+    by a live tracker (skipped.warming) or wait in lockstep, and cost the track the next dozen."""
+    start, told = time.monotonic(), False
+    while missing := [n for n in nodes if obs.stat(n, "kernels_warm") < 1]:
+        if procs is not None:
+            procs.check()
+        now = time.monotonic()
+        if now > deadline:
+            raise PipelineError(f"{', '.join(missing)} did not load their kernels in time")
+        if not told and now - start > _SLOW_WARM_UP_S:
+            told = True
+            logger.warning("waiting for %s to compile their kernels (the first run after an install; "
+                           "`memgs doctor --warm` does it ahead, once)", ", ".join(missing))
         time.sleep(0.05)
 
 
@@ -481,7 +491,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
         restarts=restarts,
         replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render),
         source_complete=obs.source_ok, frames_played=int(obs.stat("player", "frames_published")),
-        tracker_skipped={k: int(obs.stat("tracker", f"skipped.{k}")) for k in ("stale", "busy")},
+        tracker_skipped={k: int(obs.stat("tracker", f"skipped.{k}")) for k in ("warming", "stale", "busy")},
         tracker_frame_cpu_ms=float(obs.stat("tracker", "frame_cpu_ms_median")),
         skipped_frames={k.removeprefix("skipped."): int(float(v)) for k, v in obs.stats.get("player", {}).items()
                         if k.startswith("skipped.")},

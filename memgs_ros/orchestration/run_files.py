@@ -107,8 +107,9 @@ class RunSummary:
     cpu_s: dict[str, float] = field(default_factory=dict)  # per node process, from its last stats (s)
     skipped_frames: dict[str, int] = field(default_factory=dict)  # bad frames the player skipped, by kind
     frames_played: int = 0  # frames the player published (``frames`` is what reached the tracker)
-    # frames played but not tracked, by reason: stale (dropped by the tracker, which had fallen
-    # behind), busy (published, never delivered: the reader's queue overflowed or transport lost it)
+    # frames played but not tracked, by reason: warming (came before the tracker's kernels were in),
+    # stale (dropped by the tracker, which had fallen behind), busy (published, never delivered: the
+    # reader's queue overflowed or transport lost it)
     tracker_skipped: dict[str, int] = field(default_factory=dict)
     tracker_frame_cpu_ms: float = 0.0  # the tracker's CPU per frame, message in to pose out (median)
     mapping_iterations_final: int = 0  # of mapping_iterations, run by the finish (the rest while frames came)

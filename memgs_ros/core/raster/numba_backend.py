@@ -53,7 +53,8 @@ def _tile_jobs(plan: TilePlan, threads: int) -> list[np.ndarray]:
     """The non-empty tiles as interleaved id sets ([T_k] int64 each), JOBS_PER_THREAD per thread."""
     tiles = np.flatnonzero(plan.tile_count.numpy())
     n_jobs = min(len(tiles), 1 if threads <= 1 else threads * JOBS_PER_THREAD)
-    return [tiles[k::n_jobs] for k in range(n_jobs)]
+    # contiguous: the kernels are compiled for one layout (a strided set compiled a second one)
+    return [np.ascontiguousarray(tiles[k::n_jobs]) for k in range(n_jobs)]
 
 
 def _run_tiles(kernel: Any, jobs: list[np.ndarray], threads: int, *args: Any) -> None:

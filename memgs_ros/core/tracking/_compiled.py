@@ -351,6 +351,14 @@ if numba_available():
     _optimize = _jit(_optimize)
 
 
+def _arg(a: np.ndarray, dtype: type) -> np.ndarray:
+    """The one array layout the kernels are compiled for: C-contiguous, writable, ``dtype``. numba
+    compiles a signature per layout, and a read-only array (a view a caller kept read-only) made a
+    live run's first frame compile a second one for 1.7 s."""
+    out: np.ndarray = np.ascontiguousarray(a, dtype)
+    return out if out.flags.writeable else out.copy()
+
+
 def match_by_projection_kernel(proj_uv: np.ndarray, radius: np.ndarray, point_desc: np.ndarray,
                                kp_uv: np.ndarray, kp_desc: np.ndarray, available: np.ndarray,
                                max_distance: int, ratio: float, max_candidates: int, cell_px: float,
@@ -359,11 +367,9 @@ def match_by_projection_kernel(proj_uv: np.ndarray, radius: np.ndarray, point_de
     point_desc: [P, 32] uint8; kp_uv: [M, 2] float64; kp_desc: [M, 32] uint8; available: [M] bool;
     cell_px: grid cell size; width/height: the image the keypoints lie in (cells outside are clamped).
     Returns (point_index [K], keypoint_index [K], hamming [K]) int64, sorted by keypoint index."""
-    return _match(np.ascontiguousarray(proj_uv, np.float64), np.ascontiguousarray(radius, np.float64),
-                               np.ascontiguousarray(point_desc, np.uint8), np.ascontiguousarray(kp_uv, np.float64),
-                               np.ascontiguousarray(kp_desc, np.uint8), np.ascontiguousarray(available, np.bool_),
-                               int(max_distance), float(ratio), int(max_candidates), float(cell_px),
-                               int(width), int(height))
+    return _match(_arg(proj_uv, np.float64), _arg(radius, np.float64), _arg(point_desc, np.uint8),
+                  _arg(kp_uv, np.float64), _arg(kp_desc, np.uint8), _arg(available, np.bool_),
+                  int(max_distance), float(ratio), int(max_candidates), float(cell_px), int(width), int(height))
 
 
 def optimize_pose_kernel(T_cw: np.ndarray, p_w: np.ndarray, obs_uvr: np.ndarray, has_depth: np.ndarray,
@@ -371,11 +377,10 @@ def optimize_pose_kernel(T_cw: np.ndarray, p_w: np.ndarray, obs_uvr: np.ndarray,
                          rounds: int, iterations: int) -> tuple[np.ndarray, np.ndarray]:
     """Compiled core of ``_optimize_pose``. T_cw: [4, 4]; p_w: [N, 3]; obs_uvr: [N, 3] (u, v, u - bf/z);
     has_depth: [N] bool; w2: [N] squared 1/sigma. Returns (T_cw [4, 4] not re-orthonormalised, inlier [N])."""
-    return _optimize(np.ascontiguousarray(T_cw, np.float64), np.ascontiguousarray(p_w, np.float64),
-                                  np.ascontiguousarray(obs_uvr, np.float64), np.ascontiguousarray(has_depth, np.bool_),
-                                  np.ascontiguousarray(w2, np.float64), float(K[0, 0]), float(K[1, 1]),
-                                  float(K[0, 2]), float(K[1, 2]), float(bf), float(th_mono), float(th_stereo),
-                                  int(rounds), int(iterations))
+    return _optimize(_arg(T_cw, np.float64), _arg(p_w, np.float64), _arg(obs_uvr, np.float64),
+                     _arg(has_depth, np.bool_), _arg(w2, np.float64), float(K[0, 0]), float(K[1, 1]),
+                     float(K[0, 2]), float(K[1, 2]), float(bf), float(th_mono), float(th_stereo),
+                     int(rounds), int(iterations))
 
 
 def warm_up() -> None:
