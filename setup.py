@@ -12,8 +12,9 @@ from setuptools import find_packages, setup
 PACKAGE = "memgs_ros"
 
 # The node list lives in memgs_ros/nodes/registry.py (literals: read without importing the package).
-NODES = {name: f"{module}:main" for name, (module, _) in
-         runpy.run_path(str(Path(__file__).resolve().parent / "memgs_ros/nodes/registry.py"))["NODES"].items()}
+_REGISTRY = runpy.run_path(str(Path(__file__).resolve().parent / "memgs_ros/nodes/registry.py"))
+NODES = {name: f"{module}:main" for name, (module, _) in _REGISTRY["NODES"].items()}
+NODES.update({name: f"{module}:main" for name, module in _REGISTRY["COMPOSED"].items()})
 
 setup(
     name=PACKAGE,

@@ -491,7 +491,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
              out_dir: str | os.PathLike[str] = "memgs_eval",
              overrides: Mapping[str, Any] | None = None, *, max_frames: int = 0,
              domain_id: int | None = None, namespace: str = "", timeout_s: float = 3600.0,
-             single_process: bool = False, variant: str = "full", use_lpips: bool = True,
+             composed: bool = False, variant: str = "full", use_lpips: bool = True,
              device: str | None = None, progress: bool = True, record: Path | None = None,
              rerun: RerunTarget | None = None) -> EvalResult:
     """Run the graph on ``source`` in lockstep, then :func:`evaluate_run` on its output.
@@ -518,7 +518,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
             raise ConfigError(f"resolution_scale must be positive, got {resolution_scale}")
         run_overrides["mapper.mapping.resolution_scale"] = float(resolution_scale)
     run_overrides.update(dict(overrides or {}))
-    options = RunOptions(source=str(source), config=config, out_dir=out, single_process=single_process,
+    options = RunOptions(source=str(source), config=config, out_dir=out, composed=composed,
                          lockstep=True, namespace=namespace, domain_id=domain_id,
                          max_frames=int(max_frames), overrides=run_overrides, timeout_s=timeout_s,
                          record=record, rerun=rerun)

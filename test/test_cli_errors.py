@@ -123,7 +123,7 @@ _MISTAKES = [
     (["--set", "mapper.merge.colour_from=oldest"], ("'oldest' is not one of ['older', 'newer']",)),
     (["--kill", "mappr@5"], ("--kill mappr@5", "no node 'mappr'", "did you mean mapper")),
     (["--kill", "mapper@-1"], ("--kill needs NODE@SECONDS",)),
-    (["--kill", "mapper@5", "--single-process"], ("--kill needs separate processes",)),
+    (["--kill", "mapper@5", "--composed"], ("--kill needs separate processes",)),
 ]
 
 

@@ -133,12 +133,12 @@ def test_killed_mapper_resumes_from_checkpoint_and_killed_merger_resyncs(bag: Pa
 
 
 def test_namespaced_instances_do_not_cross_talk(tmp_path: Path, ros_domain_id: int) -> None:
-    """Two single-process graphs in one ROS domain, each on its own namespace and sequence."""
+    """Two composed graphs in one ROS domain, each on its own namespace and sequence."""
     procs = {}
     for ns, n in (("/uav_a", 12), ("/uav_b", 20)):
         out = tmp_path / ns.strip("/")
         cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", f"synthetic:w=128,h=96,n={n},seed=1",
-               "--config", "synthetic", "--single-process", "--namespace", ns, "--domain-id", str(ros_domain_id),
+               "--config", "synthetic", "--composed", "--namespace", ns, "--domain-id", str(ros_domain_id),
                "--out", str(out), "--json", str(out / "summary.json"), "--set", "mapper.lockstep_iterations=1",
                "--set", "mapper.mapping.merge_enabled=false", "--timeout", "500"]
         out.mkdir()
@@ -167,7 +167,7 @@ def test_a_corrupt_frame_is_skipped_and_counted_or_with_strict_ends_the_run(tmp_
     rgb[10].write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 40)  # a header and nothing else
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", str(folder), "--config", "synthetic",
-           "--single-process", "--domain-id", str(ros_domain_id), "--namespace", _own_ns(), "--out", str(out), "--json",
+           "--composed", "--domain-id", str(ros_domain_id), "--namespace", _own_ns(), "--out", str(out), "--json",
            str(tmp_path / "summary.json"), "--set", "mapper.lockstep_iterations=1",
            "--set", "mapper.mapping.merge_enabled=false", "--timeout", "400", *(["--strict"] if strict else [])]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300)

@@ -49,7 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--domain-id", type=int, default=None,
                    help="ROS_DOMAIN_ID (default: a random one no other node is using)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up a run after this many seconds")
-    p.add_argument("--single-process", action="store_true", help="run the nodes in this process")
+    p.add_argument("--composed", "--single-process", dest="composed", action="store_true",
+                   help="the nodes as components of one process (this one): the libraries load once")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS even when the lpips package is there")
     p.add_argument("--no-plots", action="store_true", help="write JSON and tables only")
     add_record_argument(p)
@@ -124,7 +125,7 @@ def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dic
     if not torch.cuda.is_available():
         configure_cpu_runtime()  # this process renders every frame on CPU
     kwargs = {"max_frames": args.max_frames, "domain_id": args.domain_id, "timeout_s": args.timeout,
-                  "single_process": args.single_process, "use_lpips": not args.no_lpips, "rerun": rerun}
+                  "composed": args.composed, "use_lpips": not args.no_lpips, "rerun": rerun}
     if args.record is not None:
         kwargs["record"] = args.record
     out = Path(args.out)

@@ -47,8 +47,9 @@ def add_graph_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("memgs_out"),
                    help="output folder: map.ply, trajectory.txt, keyframes.txt, summary.json, logs/ "
                         "(README, 'Outputs'; default: %(default)s)")
-    p.add_argument("--single-process", action="store_true",
-                   help="run all nodes in this process on one multi-threaded executor")
+    p.add_argument("--composed", "--single-process", dest="composed", action="store_true",
+                   help="the nodes as components of one process (this one), on one executor: the libraries load "
+                        "once (a Jetson's CPU and GPU share its memory); default: one process per node")
     p.add_argument("--realtime", action="store_true",
                    help="replay at the recorded rate (frames may be dropped) instead of lockstep")
     p.add_argument("--rate", type=float, default=1.0, help="real-time factor with --realtime")
@@ -100,8 +101,8 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
             close = difflib.get_close_matches(node, GRAPH_NODE_NAMES, 1)
             raise ConfigError(f"--kill {item}: no node '{node}'{f' (did you mean {close[0]}?)' if close else ''}; "
                               f"nodes: {', '.join(GRAPH_NODE_NAMES)}")
-    if kills and args.single_process:
-        raise ConfigError("--kill needs separate processes: drop --single-process")
+    if kills and args.composed:
+        raise ConfigError("--kill needs separate processes: drop --composed")
     if not args.rate > 0 or not args.timeout > 0 or args.max_frames < 0:
         raise ConfigError(f"--rate and --timeout must be positive and --max-frames >= 0, got {args.rate}, "
                           f"{args.timeout}, {args.max_frames}")
@@ -113,7 +114,7 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
         overrides[key.strip()] = yaml.safe_load(value)
     return RunOptions(
         source=source, config=args.config or guess_config(source), out_dir=args.out,
-        single_process=args.single_process, lockstep=not args.realtime, rate=args.rate,
+        composed=args.composed, lockstep=not args.realtime, rate=args.rate,
         namespace=args.namespace, domain_id=args.domain_id, max_frames=args.max_frames,
         overrides=overrides, timeout_s=args.timeout, kill_after_s=kills, strict=args.strict,
         record=check_record_path(args.record) if getattr(args, "record", None) is not None else None,

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.errors import ConfigError, DataError
@@ -291,6 +290,8 @@ def seeds_mono(rgb: np.ndarray,  # [H, W, 3] uint8, undistorted
         s_uv = patch_grid_uv(uv, w, h, cfg.grid_size, cfg.num_thr, cfg.margin_px,
                              cfg.skip_short_px, rng)
         if s_uv.shape[0] > 0:
+            from scipy.spatial import cKDTree  # here: nodes that read PatchGridConfig need no scipy
+
             tree = cKDTree(uv[ok])
             dist, idx = tree.query(s_uv, k=1, distance_upper_bound=cfg.max_px_dist)
             near = np.isfinite(dist)  # misses come back as inf with idx == n

@@ -107,7 +107,7 @@ class MapperNode(Node):
         # A new delta epoch every start: a merger that held the map of an earlier life resynchronises.
         start = functools.partial(MappingSession, self.cfg, device, merge_cfg=merge_cfg, free_running=not p.lockstep,
                                   insert_queue=p.insert_queue, delta_tolerance=p.delta_tolerance,
-                                  delta_epoch=secrets.randbits(32))
+                                  delta_epoch=secrets.randbits(32), niceness=p.niceness)
         try:
             self.session = start(checkpoint=resumed)
         except DataError as err:  # read, but not a state this mapper can take: set it aside

@@ -18,3 +18,5 @@ NODES: dict[str, tuple[str, str]] = {
 # The mapping graph (what a robot runs), in the runner's start order: sinks first, so that
 # nothing a source publishes is lost.
 GRAPH: tuple[str, ...] = ("merger", "mapper", "keyframe_sampler", "tracker")
+# Executables that run several nodes: name -> module (its ``main``).
+COMPOSED: dict[str, str] = {"composed": "memgs_ros.nodes.composed"}

@@ -1,7 +1,7 @@
 """Run the whole graph on a recorded source: player -> tracker -> sampler -> mapper -> merger.
 
 ``run_pipeline(options)`` starts the five nodes either as separate processes over real DDS
-(the default, as on a robot) or in this process on one multi-threaded executor, watches them
+(the default, as on a robot) or composed in this process on one executor, watches them
 through an observer node, and at the end of the source finishes the mapper (final flush),
 waits for the merger to hold the mapper's last delta, saves the map and returns a summary.
 It is what ``memgs run`` / ``memgs demo`` and the end-to-end tests call.
@@ -23,7 +23,7 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as NavPath
-from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
 from std_msgs.msg import Bool
@@ -196,10 +196,10 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
     ros_args = ["--ros-args", "--params-file", str(params_file)] + (["-r", f"__ns:={ns}"] if ns else [])
     context, domain = open_context(options.domain_id, ros_args)
     os.environ["ROS_DOMAIN_ID"] = str(domain)
-    # The observer alone needs one thread; its callbacks only store what arrives. (rclpy's
-    # multi-threaded executor spends CPU on every wake-up: the runner used 11 s over a 156 s run.)
-    executor: Executor = (MultiThreadedExecutor(num_threads=8, context=context) if options.single_process
-                          else SingleThreadedExecutor(context=context))
+    # One thread: the observer's callbacks only store what arrives, and composed nodes' callbacks
+    # never wait (their work runs on their own threads). rclpy's multi-threaded executor spent CPU
+    # on every wake-up (11 s over a 156 s run) and took ~30 ms to pick up a message.
+    executor: Executor = SingleThreadedExecutor(context=context)
     procs: NodeProcesses | None = None
     in_process: list[Any] = []
     observer: _Observer | None = None
@@ -210,13 +210,18 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
         executor.add_node(observer.node)
         recording = ("recorder",) if options.record is not None else ()
         graph = (*GRAPH_NODES, VIEW_NODE) if options.rerun is not None else GRAPH_NODES
-        if options.single_process:
-            for name in (*graph, *recording, "bag_player"):  # the recorder sees the graph's publishers
-                node = NODE_FACTORIES[name](context=context)
-                in_process.append(node)
-                executor.add_node(node)
+        if options.composed and options.kill_after_s:
+            raise ConfigError("fault injection (kill_after_s) needs separate processes")
+        if options.composed:
+            for name in (*graph, *recording):  # the recorder sees the graph's publishers
+                in_process.append(NODE_FACTORIES[name](context=context))
+                executor.add_node(in_process[-1])
         spin = spin_in_background(executor)
-        if not options.single_process:
+        if options.composed:
+            _wait_for_warm_graph(observer, None, GRAPH_NODES, t0 + options.timeout_s)
+            in_process.append(NODE_FACTORIES["bag_player"](context=context))
+            executor.add_node(in_process[-1])
+        else:
             env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1")
             # Threaded BLAS/OpenMP pools fight over a few shared cores (a 1 ms product took
             # 460 ms under load): one thread per node unless the user asked otherwise.
@@ -241,8 +246,6 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
             procs.start("bag_player")
             # Counted from the start of the replay, as kills are; started by _drive's loop.
             procs.due = {name: time.monotonic() + delay for name, delay in delayed.items()}
-        elif options.kill_after_s:
-            raise ConfigError("fault injection (kill_after_s) needs separate processes")
         try:
             summary = _drive(observer, options, procs, out, t0, progress)
         except BaseException as err:
@@ -495,13 +498,13 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
         tracker_frame_cpu_ms=float(obs.stat("tracker", "frame_cpu_ms_median")),
         skipped_frames={k.removeprefix("skipped."): int(float(v)) for k, v in obs.stats.get("player", {}).items()
                         if k.startswith("skipped.")},
-        **_mapper_figures(obs, options.single_process))
+        **_mapper_figures(obs, options.composed))
     # The summary is a file of the run, so evaluation reads a finished run instead of watching it.
     _write_text(out / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2) + "\n")
     return summary
 
 
-def _mapper_figures(obs: _Observer, single_process: bool) -> dict[str, Any]:
+def _mapper_figures(obs: _Observer, composed: bool) -> dict[str, Any]:
     """The mapper's keyframe and iteration figures and the graph's memory, for RunSummary."""
     def pair(name: str) -> dict[str, float]:
         return {q: obs.stat("mapper", f"keyframe_{name}_{q}") for q in ("median", "p95")
@@ -510,7 +513,7 @@ def _mapper_figures(obs: _Observer, single_process: bool) -> dict[str, Any]:
     cuda = obs.stat("mapper", "cuda_max_allocated", -1.0)
     cuda_mb = round(cuda / 2**20, 1) if cuda >= 0 else None
     rss = [obs.stat(n, "peak_rss_mb") for n in GRAPH_NODES]
-    host = max(rss, default=0.0) if single_process else sum(rss)
+    host = max(rss, default=0.0) if composed else sum(rss)
     return {"mapping_iterations_final": int(obs.stat("mapper", "iterations_final")),
             "keyframes_mapped": int(obs.stat("mapper", "keyframes")),
             "keyframes_trained": int(obs.stat("mapper", "keyframes_used")),
@@ -520,7 +523,7 @@ def _mapper_figures(obs: _Observer, single_process: bool) -> dict[str, Any]:
 
 def _cpu_times(obs: _Observer, procs: NodeProcesses | None) -> dict[str, float]:
     """CPU seconds of each node process so far (from its last stats) and of this runner; in one
-    process (``--single-process``) the process's total."""
+    process (``--composed``) the process's total."""
     if procs is None:
         return {"all nodes": round(time.process_time(), 2)}
     names = [n for n in _STATS_NODES if obs.stat(n, "cpu_s") > 0]

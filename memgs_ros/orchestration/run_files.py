@@ -52,7 +52,7 @@ class RunOptions:
     source: str
     config: str = "synthetic"
     out_dir: Path = Path("memgs_out")
-    single_process: bool = False
+    composed: bool = False  # the nodes as components of the runner's process, on one executor
     lockstep: bool = True
     rate: float = 1.0
     namespace: str = ""

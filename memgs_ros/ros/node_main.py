@@ -1,4 +1,5 @@
-"""One ``main()`` for every node: init, spin, clean shutdown on Ctrl-C or SIGTERM.
+"""One ``main()`` for every node, and for the nodes composed in one process: init, spin, clean
+shutdown on Ctrl-C or SIGTERM.
 
 A node may define ``on_shutdown()`` (save the map, stop threads); it runs before
 ``destroy_node()`` whether the node ends normally, by signal, or by error. A
@@ -11,7 +12,7 @@ import signal
 from collections.abc import Callable, Sequence
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
@@ -28,9 +29,19 @@ def started_by_runner() -> bool:
     return not parent.isdigit() or die_with_parent(int(parent), signal.SIGTERM)
 
 
-def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None = None,
-             threads: int = 1) -> int:
-    """Create the node with ``factory`` after rclpy.init and spin it until shutdown."""
+def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None = None) -> int:
+    """Create the node with ``factory`` after rclpy.init and spin it until shutdown. A background
+    node (mapper, sampler, merger) alone in its process yields the cores to the tracker: every
+    thread it has, and every one started later, runs at its ``niceness``."""
+    return run_nodes([factory], name, args, lower_process=True)
+
+
+def run_nodes(factories: Sequence[Callable[[], Node]], name: str, args: Sequence[str] | None = None,
+              lower_process: bool = False) -> int:
+    """Create the nodes (in order) after rclpy.init and spin them on one single-threaded executor
+    until shutdown; each node's ``on_shutdown()`` runs before ``destroy_node()``, in reverse order.
+    ``lower_process``: apply the (one) node's ``niceness`` to the whole process. Nodes sharing a
+    process (composed) lower their own background threads instead."""
     if not started_by_runner():
         return 0
     # rclpy's own handlers (SignalHandlerOptions.ALL) turn SIGINT and SIGTERM into a context
@@ -38,22 +49,25 @@ def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None 
     # (A Python handler that shuts the context down could land while the executor builds its
     # wait set, which then fails with RCLError instead of ending cleanly.)
     rclpy.init(args=list(args) if args is not None else None, signal_handler_options=SignalHandlerOptions.ALL)
-    node: Node | None = None
-    executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
+    # One thread runs every callback: none of the nodes' callbacks waits (their work runs on their
+    # own workers), and rclpy's multi-threaded executor took ~30 ms to pick up a message.
+    executor = SingleThreadedExecutor()
+    nodes: list[Node] = []
     code = 0
     try:
         try:
-            node = factory()
+            for factory in factories:
+                nodes.append(factory())
         except Exception:
             if rclpy.ok():
                 raise
-            return code  # Ctrl-C / SIGTERM arrived while the node was still being built
-        check_declared(node)  # a misspelt parameter would otherwise run silently on its default
-        # A background node (mapper, sampler, merger) alone in its process yields the cores to the
-        # tracker: every thread it has, and every one started later, runs at its niceness.
-        if getattr(node, "niceness", 0):
-            lower_priority(int(getattr(node, "niceness", 0)))
-        executor.add_node(node)
+            return code  # Ctrl-C / SIGTERM arrived while the nodes were still being built
+        for node in nodes:
+            check_declared(node)  # a misspelt parameter would otherwise run silently on its default
+        if lower_process and nodes and getattr(nodes[0], "niceness", 0):
+            lower_priority(int(getattr(nodes[0], "niceness", 0)))
+        for node in nodes:
+            executor.add_node(node)
         try:
             executor.spin()
         except Exception:
@@ -67,15 +81,16 @@ def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None 
         rclpy.logging.get_logger(name).fatal(str(err))
         code = 2
     finally:
-        if node is not None:
+        for node in reversed(nodes):
             hook = getattr(node, "on_shutdown", None)
             if hook is not None:
                 try:
                     hook()
                 except Exception as err:  # noqa: BLE001 - shutdown must finish; say what failed
-                    rclpy.logging.get_logger(name).error(f"shutdown hook failed: {err}")
+                    rclpy.logging.get_logger(node.get_name()).error(f"shutdown hook failed: {err}")
                     code = code or 1
-            executor.shutdown()
+        executor.shutdown()
+        for node in reversed(nodes):
             node.destroy_node()
         rclpy.try_shutdown()
     return code

@@ -10,7 +10,6 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 if TYPE_CHECKING:  # torch is imported only by the torch helpers, so light nodes start fast
     import torch
@@ -18,6 +17,8 @@ if TYPE_CHECKING:  # torch is imported only by the torch helpers, so light nodes
 
 def quat_xyzw_to_rotmat(q_xyzw: np.ndarray) -> np.ndarray:
     """Unit or unnormalised quaternions [..., 4] (x, y, z, w) to rotation matrices [..., 3, 3]."""
+    from scipy.spatial.transform import Rotation  # here: the light nodes (merger, sampler) need no scipy
+
     q = np.asarray(q_xyzw, dtype=np.float64)
     return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
 
@@ -153,6 +154,8 @@ def interpolate_poses(stamps_ns: np.ndarray, poses: np.ndarray, query_ns: np.nda
         return out, valid
     t_s = (stamps - stamps[0]).astype(np.float64) * 1e-9
     qs = (q[valid] - stamps[0]).astype(np.float64) * 1e-9
+    from scipy.spatial.transform import Rotation, Slerp
+
     rot = Slerp(t_s, Rotation.from_matrix(poses[:, :3, :3]))(qs).as_matrix()
     i0, i1 = idx[valid], nxt[valid]
     span = np.maximum(t_s[i1] - t_s[i0], 1e-12)

@@ -175,8 +175,8 @@ class _Outbox(CommandWorker):
     """The actor that owns the delta outbox: diffs, encodes and publishes the snapshots the
     session's worker cut, in the order cut (one queue). ``sent`` is an immutable value."""
 
-    def __init__(self, max_sh_degree: int, tolerance: float, epoch: int) -> None:
-        super().__init__("mapping-session-outbox")
+    def __init__(self, max_sh_degree: int, tolerance: float, epoch: int, niceness: int = 0) -> None:
+        super().__init__("mapping-session-outbox", niceness)
         self._box = DeltaOutbox(max_sh_degree, tolerance, epoch=epoch)
         self.sent = _Sent()  # replaced whole by the worker
         self.start()
@@ -223,16 +223,18 @@ class MappingSession(CommandWorker):
     """The one owner of a live Gaussian map (see module docstring).
 
     ``checkpoint``: a state to start from (``state_dict`` of an earlier session); ``delta_epoch`` /
-    ``delta_tolerance``: the delta outbox's epoch and tolerance; ``merge_cfg``: the MergeConfig.
+    ``delta_tolerance``: the delta outbox's epoch and tolerance; ``merge_cfg``: the MergeConfig;
+    ``niceness``: of the worker and outbox threads (and the kernel threads they start), so that a
+    mapper sharing its process with the tracker still yields the cores to it.
     """
 
     def __init__(self, cfg: MappingConfig | None = None, device: torch.device | str = "cpu", *,
                  merge_cfg: Any = None, free_running: bool = True, insert_queue: int = 4,
                  delta_tolerance: float = 1e-3, delta_epoch: int = 0,
-                 checkpoint: MapperCheckpoint | None = None) -> None:
+                 checkpoint: MapperCheckpoint | None = None, niceness: int = 0) -> None:
         if insert_queue < 1:
             raise DataError(f"insert_queue must be >= 1, got {insert_queue}")
-        super().__init__("mapping-session")
+        super().__init__("mapping-session", niceness)
         self.cfg = cfg if cfg is not None else MappingConfig()
         self.free_running = free_running
         self.insert_queue = int(insert_queue)
@@ -256,7 +258,7 @@ class MappingSession(CommandWorker):
         self.resumed_stamps: frozenset[int] = frozenset(self._stamps)
         self._status = SessionStatus()
         self._publish_status()
-        self._outbox = _Outbox(self.cfg.max_sh_degree, delta_tolerance, delta_epoch)
+        self._outbox = _Outbox(self.cfg.max_sh_degree, delta_tolerance, delta_epoch, niceness)
         self.start()
 
     # ------------------------------------------------------------------ readers

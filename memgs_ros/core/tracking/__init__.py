@@ -6,11 +6,15 @@ loads (or on first use compiles) the compiled kernels ahead of the first frame.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.tracking._compiled import warm_up
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
-from memgs_ros.core.tracking.frontend import FeatureTracker
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
+
+if TYPE_CHECKING:
+    from memgs_ros.core.tracking._compiled import warm_up
+    from memgs_ros.core.tracking.frontend import FeatureTracker
 
 __all__ = [
     "FeatureTracker",
@@ -23,6 +27,20 @@ __all__ = [
     "make_tracker",
     "warm_up",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """The compiled kernels (numba, scipy) load when first asked for: nodes that only read the
+    tracker's parameters (every node's parameter table names it) do not pay ~100 MB for them."""
+    if name == "warm_up":
+        from memgs_ros.core.tracking._compiled import warm_up
+
+        return warm_up
+    if name == "FeatureTracker":
+        from memgs_ros.core.tracking.frontend import FeatureTracker
+
+        return FeatureTracker
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def make_tracker(cfg: TrackerConfig, camera: PinholeCamera) -> Tracker:
