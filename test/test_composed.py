@@ -1,6 +1,6 @@
 """The composed executable (``ros2 run memgs_ros composed``): the four graph nodes as components of
 one process, each under its own name with its own section of the params file, all of them warm,
-and a clean stop on SIGINT (exit 0, the merger's map saved). Real process, real DDS."""
+a node's own --param, and a clean stop on SIGINT (exit 0). Real process, real DDS."""
 from __future__ import annotations
 
 import os
@@ -17,6 +17,7 @@ rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
 
 from memgs_ros.nodes.registry import GRAPH  # noqa: E402
 from memgs_ros.orchestration.run_files import RunOptions, build_params  # noqa: E402
@@ -34,7 +35,8 @@ def test_composed_process_hosts_the_graph_and_stops_cleanly(tmp_path: Path, ros_
     params_file.write_text(yaml.safe_dump(params))
     env = {**os.environ, "ROS_DOMAIN_ID": str(ros_domain_id)}
     log = open(tmp_path / "composed.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "memgs_ros.nodes.composed", "--ros-args", "--params-file",
+    proc = subprocess.Popen([sys.executable, "-m", "memgs_ros.nodes.composed",
+                             "--param", f"merger:map_path:={tmp_path / 'mine.ply'}", "--ros-args", "--params-file",
                              str(params_file), "-r", f"__ns:={ns}"], env=env, stdout=log, stderr=subprocess.STDOUT)
     peer = rclpy.create_node("composed_peer", context=context)
     warm: dict[str, int] = {}
@@ -54,6 +56,12 @@ def test_composed_process_hosts_the_graph_and_stops_cleanly(tmp_path: Path, ros_
         assert warm == dict.fromkeys(GRAPH, 1), warm
         nodes = {(n, s) for n, s in peer.get_node_names_and_namespaces() if s == ns}
         assert nodes == {(name, ns) for name in GRAPH}  # each under its own name: one process, four nodes
+        # --param reached the merger alone (a namespaced node, which ROS's -p node:name:= misses).
+        saved = peer.create_client(Trigger, f"{ns}/memgs/save_map")
+        assert saved.wait_for_service(timeout_sec=30)
+        future = saved.call_async(Trigger.Request())
+        ex.spin_until_future_complete(future, timeout_sec=30)
+        assert future.result() is not None and future.result().message.startswith(str(tmp_path / "mine.ply"))
         proc.send_signal(signal.SIGINT)
         assert proc.wait(60) == 0, (tmp_path / "composed.log").read_text()[-3000:]
         text = (tmp_path / "composed.log").read_text()

@@ -30,6 +30,7 @@ from colcon_install import PKG, REPO, install_env
 LAUNCH_NAME = "memgs.launch.py"
 LAUNCH_FILE = REPO / "launch" / LAUNCH_NAME
 GRAPH = ("tracker", "keyframe_sampler", "mapper", "merger")  # what a robot runs: registry.GRAPH, as a set
+COMPOSED = "composed"  # the executable that runs the graph in one process (registry.COMPOSED)
 # Declared by rclpy itself on every node.
 BUILTIN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
 
@@ -57,6 +58,17 @@ class _Node:
         self.kwargs = kwargs
 
 
+class _IfCondition:
+    def __init__(self, predicate_expression: object) -> None:
+        self.predicate, self.negate = predicate_expression, False
+
+
+class _UnlessCondition(_IfCondition):
+    def __init__(self, predicate_expression: object) -> None:
+        super().__init__(predicate_expression)
+        self.negate = True
+
+
 class _LaunchDescription:
     def __init__(self, initial_entities: list[object] | None = None) -> None:
         self.entities = list(initial_entities or [])
@@ -71,6 +83,7 @@ def _stub_modules(share_dirs: Mapping[str, Path]) -> dict[str, types.ModuleType]
     spec = {
         "launch": {"LaunchDescription": _LaunchDescription},
         "launch.actions": {"DeclareLaunchArgument": _DeclareLaunchArgument},
+        "launch.conditions": {"IfCondition": _IfCondition, "UnlessCondition": _UnlessCondition},
         "launch.substitutions": {"LaunchConfiguration": _LaunchConfiguration},
         "launch_ros": {},
         "launch_ros.actions": {"Node": _Node},
@@ -116,8 +129,10 @@ class LaunchedNode:
     name: str
     namespace: str
     param_files: list[str]
-    params: dict[str, object]
+    params: dict[str, object]  # to every node the process hosts
     env: dict[str, str]
+    hosts: tuple[str, ...] = ()  # the nodes the process runs: (name,), or the graph when composed
+    node_params: dict[str, dict[str, object]] = field(default_factory=dict)  # --param node:param:=value
 
 
 @dataclass
@@ -144,6 +159,8 @@ def load_launch(path: Path, share_dirs: Mapping[str, Path], overrides: Mapping[s
     launch.problems += [f"override of an undeclared launch argument: {name}" for name in overrides]
 
     def resolve(value: object) -> object:
+        if isinstance(value, list):  # substitutions joined, as launch does
+            return "".join(str(resolve(v)) for v in value)
         if isinstance(value, _LaunchConfiguration):
             if value.name not in launch.arguments:
                 launch.problems.append(f"undeclared launch argument: {value.name}")
@@ -166,6 +183,13 @@ def load_launch(path: Path, share_dirs: Mapping[str, Path], overrides: Mapping[s
             launch.problems.append(f"unexpected launch entity {type(entity).__name__}")
             continue
         kw = entity.kwargs
+        condition = kw.get("condition")
+        if isinstance(condition, _IfCondition):
+            flag = str(resolve(condition.predicate)).lower()
+            if flag not in ("true", "false"):
+                launch.problems.append(f"condition {flag!r} is not true or false")
+            if (flag == "true") == condition.negate:
+                continue
         files: list[str] = []
         params: dict[str, object] = {}
         for item in kw.get("parameters") or []:
@@ -178,11 +202,25 @@ def load_launch(path: Path, share_dirs: Mapping[str, Path], overrides: Mapping[s
         namespace = str(resolve(kw.get("namespace") or ""))
         if namespace and not namespace.startswith("/"):
             namespace = "/" + namespace  # launch_ros makes a relative namespace absolute
+        node_params: dict[str, dict[str, object]] = {}
+        if kw.get("ros_arguments"):
+            launch.problems.append(f"{kw.get('executable')}: ros_arguments are not checked by this test")
+        args = [str(resolve(a)) for a in kw.get("arguments") or []]
+        for flag, arg in zip(args[::2], args[1::2]):
+            node, sep, rest = arg.partition(":")
+            param, eq, value = rest.partition(":=")
+            if flag != "--param" or not sep or not eq:
+                launch.problems.append(f"{kw.get('executable')}: argument {flag} {arg} is not --param node:param:=value")
+                continue
+            node_params.setdefault(node, {})[param] = yaml.safe_load(value)
+        executable = str(resolve(kw.get("executable")))
         launch.nodes.append(LaunchedNode(
-            package=str(resolve(kw.get("package"))), executable=str(resolve(kw.get("executable"))),
-            name=str(resolve(kw.get("name") or kw.get("executable"))), namespace=namespace,
+            package=str(resolve(kw.get("package"))), executable=executable,
+            name=str(resolve(kw.get("name") or executable)), namespace=namespace,
             param_files=files, params=params,
             env={str(k): str(resolve(v)) for k, v in (kw.get("additional_env") or {}).items()},
+            hosts=GRAPH if executable == COMPOSED else (str(resolve(kw.get("name") or executable)),),
+            node_params=node_params,
         ))
     return launch
 
@@ -212,28 +250,31 @@ def check_launch(launch: Launch, executables: set[str], declared: Mapping[str, s
     """Everything ``launch`` names that the install lacks: one line each (empty: all present)."""
     problems = list(launch.problems)
     started = sorted(n.executable for n in launch.nodes)
-    if started != sorted(GRAPH):
-        problems.append(f"the launch starts {started}, not the graph {sorted(GRAPH)}")
+    if started not in (sorted(GRAPH), [COMPOSED]):
+        problems.append(f"the launch starts {started}, not the graph {sorted(GRAPH)} (or {COMPOSED!r})")
     for node in launch.nodes:
         if node.package != PKG:
             problems.append(f"{node.executable}: package {node.package!r}, not {PKG!r}")
         if node.executable not in executables:
             problems.append(f"executable {node.executable!r} is not installed")
             continue
-        known = declared.get(node.name, set()) | BUILTIN_PARAMETERS
-        for name in node.params:
-            if name not in known:
-                problems.append(f"{node.name}: parameter {name!r} is not declared by the node")
-        for f in node.param_files:
-            if not Path(f).is_file():
-                problems.append(f"{node.name}: params file {f} does not exist")
-                continue
-            for name in sorted(params_file_keys(Path(f), node.name) - known):
-                problems.append(f"{node.name}: {Path(f).name} sets {name!r}, which the node does not declare")
+        for name in sorted(set(node.node_params) - set(node.hosts)):
+            problems.append(f"{node.executable}: parameters for {name!r}, which it does not run")
+        for hosted in node.hosts:
+            known = declared.get(hosted, set()) | BUILTIN_PARAMETERS
+            for name in [*node.params, *node.node_params.get(hosted, {})]:
+                if name not in known:
+                    problems.append(f"{hosted}: parameter {name!r} is not declared by the node")
+            for f in node.param_files:
+                if not Path(f).is_file():
+                    problems.append(f"{hosted}: params file {f} does not exist")
+                    continue
+                for name in sorted(params_file_keys(Path(f), hosted) - known):
+                    problems.append(f"{hosted}: {Path(f).name} sets {name!r}, which the node does not declare")
         for var, value in node.env.items():
             if value.startswith("/") and not Path(value).is_file():
                 problems.append(f"{node.name}: {var}={value} does not exist")
-    return problems
+    return sorted(set(problems), key=problems.index)
 
 
 # ----------------------------------------------------------------------------- checker units (no ROS)
@@ -289,6 +330,25 @@ def test_checker_reports_a_wrong_name(tmp_path: Path, monkeypatch: pytest.Monkey
     assert any(expected in p for p in problems), problems
 
 
+def test_composed_runs_the_graph_in_one_process_each_node_with_its_own_parameters() -> None:
+    launch = load_launch(LAUNCH_FILE, {PKG: REPO}, {"composed": "true", "map_path": "/data/m.ply"})
+    assert [(n.executable, n.hosts) for n in launch.nodes] == [(COMPOSED, GRAPH)]
+    (node,) = launch.nodes
+    assert node.node_params == {"tracker": {"color_topic": "/camera/camera/color/image_raw",
+                                            "depth_topic": "/camera/camera/aligned_depth_to_color/image_raw",
+                                            "camera_info_topic": "/camera/camera/color/camera_info"},
+                                "merger": {"map_path": "/data/m.ply"}}
+    assert node.params == {"use_sim_time": False}  # the one parameter every node declares
+    assert check_launch(launch, {COMPOSED}, _declared_by_source()) == []
+    assert check_launch(launch, set(GRAPH), _declared_by_source()) == ["executable 'composed' is not installed"]
+
+
+def test_checker_reports_a_composed_parameter_sent_to_the_wrong_node(tmp_path: Path) -> None:
+    path = _mutated(tmp_path, '("--param", [f"{node}:{param}:="', '("--param", [f"tracker:{param}:="')
+    problems = check_launch(load_launch(path, {PKG: REPO}, {"composed": "true"}), {COMPOSED}, _declared_by_source())
+    assert problems == ["tracker: parameter 'map_path' is not declared by the node"]
+
+
 def test_checker_reports_a_params_file_key_no_node_declares(tmp_path: Path) -> None:
     config = tmp_path / "mine.yaml"
     config.write_text((REPO / "config" / "realsense_d435i.yaml").read_text()
@@ -321,7 +381,9 @@ for n in spec["nodes"]:
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=spec["domain"])
     try:
-        node = cls(context=ctx, cli_args=n["cli_args"])
+        from rclpy.parameter import Parameter
+        node = cls(context=ctx, cli_args=n["cli_args"],
+                   parameter_overrides=[Parameter(k, value=v) for k, v in n["overrides"].items()])
     except Exception as err:
         out[n["name"]] = {"error": f"{type(err).__name__}: {err}"}
     else:
@@ -343,13 +405,19 @@ def probe_nodes(prefix: Path, launch: Launch, workdir: Path) -> dict[str, dict]:
     for i, node in enumerate(launch.nodes):
         own = workdir / f"launch_params_{i}.yaml"
         own.write_text(yaml.safe_dump({"/**": {"ros__parameters": node.params}}))
-        cli = ["--ros-args", "-r", f"__node:={node.name}"]
+        cli = ["--ros-args"]
+        if node.hosts == (node.name,):
+            cli += ["-r", f"__node:={node.name}"]  # one node in the process: launch names it
         if node.namespace:
             cli += ["-r", f"__ns:={node.namespace}"]
         for f in [*node.param_files, str(own)]:
             cli += ["--params-file", f]
-        nodes.append({"name": node.name, "executable": node.executable, "cli_args": cli,
-                      "check_values": sorted(node.params)})
+        # A composed process runs each hosted node with the process's arguments and its own
+        # --param values as the node's parameter overrides (memgs_ros/nodes/composed.py).
+        for hosted in node.hosts:
+            own_values = node.node_params.get(hosted, {})
+            nodes.append({"name": hosted, "executable": hosted, "cli_args": cli, "overrides": own_values,
+                          "check_values": sorted({*node.params, *own_values})})
     domain = random.Random().randrange(100, 200)
     proc = subprocess.run([sys.executable, "-c", _PROBE, json.dumps({"domain": domain, "nodes": nodes})],
                           env=install_env(prefix, domain), cwd=workdir, capture_output=True, text=True,
@@ -393,8 +461,16 @@ def test_installed_launch_names_only_what_the_install_has(colcon_prefix: Path, i
     default = load_launch(path, {PKG: installed_share})
     assert default.arguments["params_file"] == str(installed_share / "config" / "realsense_d435i.yaml")
     # As a robot user would start it: namespaced, on a replayed bag's clock.
-    launch = load_launch(path, {PKG: installed_share}, {"namespace": "/uav1", "use_sim_time": "true"})
     executables = {p.name for p in (colcon_prefix / PKG / "lib" / PKG).iterdir() if p.is_file()}
+    for composed in ("false", "true"):
+        launch = load_launch(path, {PKG: installed_share},
+                             {"namespace": "/uav1", "use_sim_time": "true", "composed": composed})
+        _check_installed_launch(colcon_prefix, launch, default, executables, tmp_path / composed)
+
+
+def _check_installed_launch(colcon_prefix: Path, launch: Launch, default: Launch, executables: set[str],
+                            tmp_path: Path) -> None:
+    tmp_path.mkdir()
     report = probe_nodes(colcon_prefix, launch, tmp_path)
     refused = {name: r["error"] for name, r in report.items() if "error" in r}
     assert not refused, f"nodes refused the launch's parameters: {refused}"
