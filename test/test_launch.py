@@ -320,7 +320,7 @@ def test_checker_accepts_the_launch_file_against_the_source_tree() -> None:
     ('"realsense_d435i.yaml"', '"realsense_d435.yaml"', "realsense_d435.yaml does not exist"),
     ('LaunchConfiguration("params_file")', 'LaunchConfiguration("param_file")', "undeclared launch argument: param_file"),
     ('"fastdds.xml"', '"fast_dds.xml"', "FASTRTPS_DEFAULT_PROFILES_FILE="),
-    ('package=PACKAGE', 'package="memgs"', "package 'memgs', not 'memgs_ros'"),
+    ('"package": PACKAGE', '"package": "memgs"', "package 'memgs', not 'memgs_ros'"),
 ], ids=["executable", "tracker-param", "merger-param", "params-file", "launch-arg", "dds-profile", "package"])
 def test_checker_reports_a_wrong_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                       old: str, new: str, expected: str) -> None:
