@@ -1,57 +1,73 @@
 """Warm from the first frame: the warm-ups compile the very kernel signatures a run uses, so that no
 frame compiles one (a second signature for a read-only or strided array cost a live run's first
-frame 1.7 s and 49 frames). Runs the real kernels on synthetic frames."""
+frame 1.7 s and 49 frames). Runs the real kernels on synthetic frames, each check in a fresh
+process (another test's calls would have compiled signatures of their own)."""
 from __future__ import annotations
 
-import numpy as np
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
 import pytest
-import torch
 
 from memgs_ros.core.runtime.cpu import numba_available
 
 pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is not installed")
 
+SIGNATURES = """
+def signatures(*modules):
+    return {f"{m.__name__}.{n}": len(getattr(m, n).signatures) for m in modules for n in dir(m)
+            if len(getattr(getattr(m, n), "signatures", ()) or ()) > 0}
+"""
 
-def _signatures(*modules) -> dict[str, int]:  # noqa: ANN002
-    return {f"{m.__name__}.{n}": len(f.signatures) for m in modules for n in dir(m)
-            if len(getattr(getattr(m, n), "signatures", ()) or ()) > 0 for f in [getattr(m, n)]}
+TRACKING = SIGNATURES + """
+from memgs_ros.core.tracking import TrackerConfig, _compiled, make_tracker, orb, warm_up
+from memgs_ros.io.synthetic import generate_frames, parse_spec
+
+warm_up()
+before = signatures(_compiled, orb)
+assert before and all(v == 1 for v in before.values()), before
+frames = list(generate_frames(parse_spec("synthetic:w=320,h=240,n=8,seed=4")))
+tracker = make_tracker(TrackerConfig(mode="rgbd", ba_threaded=False), frames[0].camera)
+for f in frames:
+    tracker.track(f)
+tracker.close()
+after = signatures(_compiled, orb)
+assert after == before, (before, after)
+print("OK", sorted(before))
+"""
+
+MAPPING = SIGNATURES + """
+import numpy as np, torch
+from memgs_ros.core.mapping import losses
+from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
+from memgs_ros.core.metrics import _ssim_numba
+from memgs_ros.core.raster import _numba_kernels, _numba_projection, warm_up
+from memgs_ros.io.synthetic import generate_frames, parse_spec
+from frame_seeds import grid_seeds
+
+warm_up("cpu", "numba")
+losses.warm_up("cpu")
+before = signatures(_numba_kernels, _numba_projection, _ssim_numba)
+assert before and all(v == 1 for v in before.values()), before
+frames = list(generate_frames(parse_spec("synthetic:w=160,h=120,n=4,seed=4")))
+m = GaussianMapper(MappingConfig(min_keyframes=1, raster_backend="numba"))
+for i, f in enumerate(frames):
+    m.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, *grid_seeds(f, 4))
+for _ in range(12):
+    m.step()
+with torch.no_grad():
+    m.render(frames[0].T_wc_gt, m.keyframes.all()[0].camera)
+assert np.isfinite(m.gmap.means.detach().numpy()).all()
+after = signatures(_numba_kernels, _numba_projection, _ssim_numba)
+assert after == before, (before, after)
+print("OK", sorted(before))
+"""
 
 
-def test_tracking_compiles_nothing_after_its_warm_up() -> None:
-    from memgs_ros.core.tracking import TrackerConfig, _compiled, make_tracker, orb, warm_up
-    from memgs_ros.io.synthetic import generate_frames, parse_spec
-
-    warm_up()
-    before = _signatures(_compiled, orb)
-    assert before and all(v == 1 for v in before.values()), before
-    frames = list(generate_frames(parse_spec("synthetic:w=320,h=240,n=8,seed=4")))
-    tracker = make_tracker(TrackerConfig(mode="rgbd", ba_threaded=False), frames[0].camera)
-    for f in frames:
-        tracker.track(f)
-    tracker.close()
-    assert _signatures(_compiled, orb) == before
-
-
-def test_mapping_compiles_nothing_after_its_warm_up() -> None:
-    from memgs_ros.core.mapping import losses
-    from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
-    from memgs_ros.core.metrics import _ssim_numba
-    from memgs_ros.core.raster import _numba_kernels, _numba_projection, warm_up
-    from memgs_ros.io.synthetic import generate_frames, parse_spec
-
-    from frame_seeds import grid_seeds
-
-    warm_up("cpu", "numba")
-    losses.warm_up("cpu")
-    before = _signatures(_numba_kernels, _numba_projection, _ssim_numba)
-    assert before and all(v == 1 for v in before.values()), before
-    frames = list(generate_frames(parse_spec("synthetic:w=160,h=120,n=4,seed=4")))
-    m = GaussianMapper(MappingConfig(min_keyframes=1, raster_backend="numba"))
-    for i, f in enumerate(frames):
-        m.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, *grid_seeds(f, 4))
-    for _ in range(12):
-        m.step()
-    with torch.no_grad():
-        m.render(frames[0].T_wc_gt, m.keyframes.all()[0].camera)
-    assert np.isfinite(m.gmap.means.detach().numpy()).all()
-    assert _signatures(_numba_kernels, _numba_projection, _ssim_numba) == before
+@pytest.mark.parametrize("check", [TRACKING, MAPPING], ids=["tracking", "mapping"])
+def test_a_run_compiles_nothing_after_the_warm_up(check: str) -> None:
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(check)], capture_output=True, text=True,
+                          timeout=600, cwd=Path(__file__).parent)
+    assert proc.returncode == 0 and proc.stdout.startswith("OK"), proc.stdout[-2000:] + proc.stderr[-3000:]
