@@ -237,6 +237,11 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
         i, lat = s.keyframe_intake_ms, s.keyframe_latency_ms
         print(f"keyframe      intake {i.get('median', 0):.1f} ms CPU (p95 {i.get('p95', 0):.1f}); decision to first "
               f"training step {lat.get('median', 0):.0f} ms (p95 {lat.get('p95', 0):.0f})")
+    if s.lockstep_ms:
+        t = s.lockstep_ms
+        print(f"lockstep      a frame {t['frame']:.0f} ms (median): tracker {t['tracker']:.0f} ms, mapper's "
+              f"acknowledgement {t['mapper']:.0f} ms after it (training {t['training']:.0f} ms a frame); the rest "
+              "is messages and handshakes")
     print(f"memory        {s.graph_memory_mb:.0f} MB for the graph: peak RSS "
           + ", ".join(f"{n} {v:.0f}" for n, v in s.peak_rss_mb.items())
           + ("" if s.cuda_peak_mb is None else f", CUDA peak {s.cuda_peak_mb:.0f}"))

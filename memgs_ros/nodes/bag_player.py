@@ -46,7 +46,7 @@ from memgs_ros.nodes.params import NODE_CONFIGS, BagPlayerParams
 from memgs_ros.ros import codecs, qos
 from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
 from memgs_ros.ros.node_main import started_by_runner
 
 # The tick sleeps until the next frame is due (real time; at least MIN_TICK_S) or, in lockstep,
@@ -116,6 +116,8 @@ class BagPlayer(Node):
         self._last_sent_ns = 0
         self._awaiting_ns: int | None = None  # lockstep: stamp of the frame we wait an ack for
         self._sent_at = 0.0
+        self._ack_wait_ms = RollingMedian()  # lockstep: publication to acknowledgement, per frame
+        self.stats.computed["ack_wait_ms_median"] = self._ack_wait_ms
         self._ack_timeouts = 0
         self._created_at = time.monotonic()
         self._frame_pubs = (self._pub_color, self._pub_depth, self._pub_info, self._pub_gt)
@@ -247,6 +249,7 @@ class BagPlayer(Node):
             self.get_logger().debug(f"ignoring ack for stamp {stamp_ns} (waiting for {self._awaiting_ns})")
             return
         self._awaiting_ns = None
+        self._ack_wait_ms.add((time.monotonic() - self._sent_at) * 1e3)
         if self._finish_at is None:
             self._publish_next()
 

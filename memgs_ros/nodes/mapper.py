@@ -62,7 +62,7 @@ from memgs_ros.ros.codecs import (
     structured_to_pointcloud2,
 )
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import NodeStats, peak_rss_mb, rss_mb
+from memgs_ros.ros.diagnostics import NodeStats, RollingMedian, peak_rss_mb, rss_mb
 from memgs_ros.ros.keyframe_bundle import KeyframeBundleError, decode_keyframe_images
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.seed_cloud import decode_seeds
@@ -126,6 +126,9 @@ class MapperNode(Node):
         self._live_view: tuple[int, ...] = ()  # the last live render's (pose stamp, map version)
         self.awaiting_keyframes: set[int] = set()  # lockstep: announced, not yet complete
         self._acks = LockstepAcks(p.lockstep_window)
+        self._announced_at: dict[int, float] = {}  # lockstep: when the tracker's word on a frame came
+        self._ack_ms = RollingMedian()  # ... to its acknowledgement: a lockstep frame's time here
+        self.stats.computed["lockstep_ack_ms_median"] = self._ack_ms
         self._decided: dict[int, int] = {}  # keyframe stamp -> its pose's publication time (ns), until complete
         topics = {"color": Image, "camera_info": CameraInfo, "pose": PoseStamped, "seeds": PointCloud2,
                   **({"depth": Image} if p.mode == "rgbd" else {})}
@@ -302,6 +305,7 @@ class MapperNode(Node):
             self.stats.post_count("keyframes_announced")
         if not self.params.lockstep:
             return
+        self._announced_at[stamp] = time.perf_counter()
         if msg.frame_id == "keyframe" and not self.intake.seen(stamp):
             self.awaiting_keyframes.add(stamp)
             return
@@ -322,6 +326,9 @@ class MapperNode(Node):
             self._acks.submitted(*queued)
         for stamp in self._acks.due():
             self.pub_ack.publish(make_header(stamp, "mapper"))
+            announced = self._announced_at.pop(stamp, None)
+            if announced is not None:
+                self._ack_ms.add((time.perf_counter() - announced) * 1e3)
 
     def _sync_stats(self) -> None:
         """Session problems and status, and lost keyframes, into the stats; also applies what the

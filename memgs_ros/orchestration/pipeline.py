@@ -514,7 +514,12 @@ def _mapper_figures(obs: _Observer, composed: bool) -> dict[str, Any]:
     cuda_mb = round(cuda / 2**20, 1) if cuda >= 0 else None
     rss = [obs.stat(n, "peak_rss_mb") for n in GRAPH_NODES]
     host = max(rss, default=0.0) if composed else sum(rss)
-    return {"mapping_iterations_final": int(obs.stat("mapper", "iterations_final")),
+    commands = obs.stat("mapper", "train_commands")
+    lockstep = {} if commands <= 0 else {
+        "frame": obs.stat("player", "ack_wait_ms_median"), "tracker": obs.stat("tracker", "frame_ms_median"),
+        "mapper": obs.stat("mapper", "lockstep_ack_ms_median"),
+        "training": round(obs.stat("mapper", "train_ms_total") / commands, 2)}
+    return {"lockstep_ms": lockstep, "mapping_iterations_final": int(obs.stat("mapper", "iterations_final")),
             "keyframes_mapped": int(obs.stat("mapper", "keyframes")),
             "keyframes_trained": int(obs.stat("mapper", "keyframes_used")),
             "keyframe_intake_ms": pair("intake_ms"), "keyframe_latency_ms": pair("latency_ms"),

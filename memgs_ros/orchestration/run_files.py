@@ -123,6 +123,11 @@ class RunSummary:
     # what the graph held at its peaks: every node process's peak RSS (one process when composed)
     # plus the CUDA peak; on a Jetson both come out of one memory
     graph_memory_mb: float = 0.0
+    # lockstep: where a frame's time goes (ms): ``frame`` the player's wait from publishing it to
+    # its acknowledgement (median), ``tracker`` the tracker's time on it (median), ``mapper`` from
+    # the tracker's word on it to the mapper's acknowledgement (median), ``training`` the mapper's
+    # training per frame (mean); what ``frame`` holds beyond them is messages and handshakes
+    lockstep_ms: dict[str, float] = field(default_factory=dict)
 
     @property
     def mapping_iterations_replay(self) -> int:

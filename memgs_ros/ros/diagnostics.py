@@ -8,7 +8,7 @@ import os
 import queue
 import resource
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Mapping
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -17,6 +17,25 @@ from std_msgs.msg import Header
 
 from memgs_ros.core.runtime.cpu import release_free_memory
 from memgs_ros.ros import qos
+
+
+class RollingMedian:
+    """The median of the last ``window`` values, for a computed gauge (``NodeStats.computed``):
+    per-event costs are appended as they happen and the median taken once a second."""
+
+    def __init__(self, window: int = 300) -> None:
+        self._values: deque[float] = deque(maxlen=window)
+
+    def add(self, value: float) -> None:
+        self._values.append(float(value))
+
+    def __call__(self) -> float:
+        if not self._values:
+            return 0.0
+        ordered = sorted(self._values)
+        n = len(ordered)
+        mid = ordered[n // 2] if n % 2 else 0.5 * (ordered[n // 2 - 1] + ordered[n // 2])
+        return round(mid, 2)
 
 
 class NodeStats:

@@ -516,6 +516,7 @@ class MappingSession(CommandWorker):
         return corrected, moved
 
     def _train(self, iterations: int) -> StepStats | None:
+        t0 = time.perf_counter()
         last = None
         for _ in range(iterations):
             st = self._mapper.step()
@@ -523,6 +524,9 @@ class MappingSession(CommandWorker):
                 break
             self._after_step(st)
             last = st
+        # A lockstep frame's training time: train_ms_total / train_commands.
+        self._counters["train_commands"] += 1
+        self._counters["train_ms_total"] += round(1e3 * (time.perf_counter() - t0))
         return last
 
     def _render(self, T_wc: np.ndarray, camera: PinholeCamera | None,
