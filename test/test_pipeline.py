@@ -91,12 +91,15 @@ def generate_stamps_and_poses() -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_late_merger_with_dropped_deltas_resyncs(bag: Path, tmp_path: Path, ros_domain_id: int) -> None:
-    """The merger process starts 1 s into the replay and drops every 3rd delta: it resyncs from
+    """The merger process starts 1 s into the replay and drops every 2nd delta: it resyncs from
     snapshots and ends with the mapper's map. (Counted from the replay start: the replay takes
     only ~6 s on an idle machine, and a delay counted from process launch once let the whole run
     finish before the merger came up, leaving nothing to resync; the final iterations send more
     deltas after the replay.)"""
-    overrides = {**FAST, "merger.fault_drop_every_nth_delta": 3, "mapper.delta_rate_hz": 4.0}
+    # 8 iterations a frame: the replay lasts long enough for a few periodic deltas after the late
+    # start (no periodic delta leaves during the final iterations: the final flush carries all).
+    overrides = {**FAST, "mapper.lockstep_iterations": 8, "merger.fault_drop_every_nth_delta": 2,
+                 "mapper.delta_rate_hz": 4.0}
     s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path, domain_id=ros_domain_id,
                                 namespace=_own_ns(), overrides=overrides, start_delays_s={"merger": 1.0}, timeout_s=600),
                      progress=False)
