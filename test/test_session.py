@@ -321,3 +321,22 @@ def test_keyframe_timings_count_the_first_draw_only() -> None:
     assert s.latency_ms_median == 50.0 and s.intake_ms_median == 10.0 and s.intake_ms_p95 == 14.5
     t.trained(1)
     assert (t.summary().used, t.summary().waiting, t.summary().latency_ms_median) == (2, 0, 50.0)
+
+
+def test_the_work_that_set_the_device_peak_is_named() -> None:
+    """PeakAttribution keeps, per kind of work, the highest peak it raised the allocator to (read
+    from the device; here a stand-in counter, as a CPU has no allocator statistics)."""
+    from memgs_ros.core.mapping.device_peaks import PeakAttribution
+
+    peak = [100]
+    p = PeakAttribution(torch.device("cpu"), read_peak=lambda: peak[0])
+    with p.work("forward"):
+        peak[0] = 300
+    with p.work("merge"):
+        peak[0] = 900
+    with p.work("forward"):
+        pass  # below the peak: nothing to attribute
+    with p.work("backward"):
+        peak[0] = 950
+    assert p.by_work == {"forward": 300, "merge": 900, "backward": 950} and p.peak_setter() == "backward"
+    assert not PeakAttribution(torch.device("cpu")).enabled  # no allocator statistics on a CPU

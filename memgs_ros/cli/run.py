@@ -245,6 +245,10 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
     print(f"memory        {s.graph_memory_mb:.0f} MB for the graph: peak RSS "
           + ", ".join(f"{n} {v:.0f}" for n, v in s.peak_rss_mb.items())
           + ("" if s.cuda_peak_mb is None else f", CUDA peak {s.cuda_peak_mb:.0f}"))
+    if s.cuda_peak_by_work_mb:
+        by = sorted(s.cuda_peak_by_work_mb.items(), key=lambda kv: -kv[1])
+        print(f"CUDA peak     set during {by[0][0]}; the highest during each kind of work (MB): "
+              + ", ".join(f"{w} {v:.0f}" for w, v in by))
     print(f"Gaussians     {s.gaussians}")
     print(f"tracking      {s.tracking_fps:.1f} FPS")
     print(f"map deltas    {s.delta_messages} messages, {s.delta_bytes / 1e6:.2f} MB, "

@@ -523,7 +523,9 @@ def _mapper_figures(obs: _Observer, composed: bool) -> dict[str, Any]:
             "keyframes_mapped": int(obs.stat("mapper", "keyframes")),
             "keyframes_trained": int(obs.stat("mapper", "keyframes_used")),
             "keyframe_intake_ms": pair("intake_ms"), "keyframe_latency_ms": pair("latency_ms"),
-            "cuda_peak_mb": cuda_mb, "graph_memory_mb": round(host + (cuda_mb or 0.0), 1)}
+            "cuda_peak_mb": cuda_mb, "graph_memory_mb": round(host + (cuda_mb or 0.0), 1),
+            "cuda_peak_by_work_mb": {k.removeprefix("cuda_peak_mb."): obs.stat("mapper", k)
+                                     for k in obs.stats.get("mapper", {}) if k.startswith("cuda_peak_mb.")}}
 
 
 def _cpu_times(obs: _Observer, procs: NodeProcesses | None) -> dict[str, float]:

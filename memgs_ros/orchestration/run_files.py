@@ -120,6 +120,9 @@ class RunSummary:
     keyframe_intake_ms: dict[str, float] = field(default_factory=dict)
     keyframe_latency_ms: dict[str, float] = field(default_factory=dict)
     cuda_peak_mb: float | None = None  # the mapper's torch.cuda.max_memory_allocated (None on the CPU)
+    # per kind of mapper work (forward, backward, merge, keyframe upload...), the highest CUDA peak
+    # it raised the device to: the largest names the work that set the peak
+    cuda_peak_by_work_mb: dict[str, float] = field(default_factory=dict)
     # what the graph held at its peaks: every node process's peak RSS (one process when composed)
     # plus the CUDA peak; on a Jetson both come out of one memory
     graph_memory_mb: float = 0.0

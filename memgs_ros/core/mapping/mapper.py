@@ -34,6 +34,7 @@ from memgs_ros.core.geometry.poses import invert_pose, nearest_pose_distance, ro
 from memgs_ros.core.geometry.view import view_preparation
 from memgs_ros.core.mapping.checkpoint import ID_BLOCK, KeyframeState, MapperCheckpoint
 from memgs_ros.core.mapping.config import MappingConfig
+from memgs_ros.core.mapping.device_peaks import PeakAttribution
 from memgs_ros.core.mapping.device_view import device_view
 from memgs_ros.core.mapping.exposure import ExposureCompensation
 from memgs_ros.core.mapping.gaussians import GaussianMap, GaussianRecords
@@ -152,6 +153,7 @@ class GaussianMapper:
         self.densify = DensifyStrategy(self.cfg, generator)
         self.budget = BudgetStrategy(self.cfg, self.merge, generator)
         self._budget_pending = (0, 0)  # (merged, pruned) by the budget since the last StepStats
+        self.peaks = PeakAttribution(self.device)  # which work set the GPU's allocation peak
 
     # ----------------------------------------------------------- properties
     @property
@@ -229,6 +231,11 @@ class GaussianMapper:
         """
         if points_w is not None and len(points_w) and colors is None:
             raise DataError(f"keyframe {kf.kf_id}: points_w given without colors")
+        with self.peaks.work("keyframe insertion"):
+            return self._add_prepared(kf, points_w, colors, enforce_budget)
+
+    def _add_prepared(self, kf: TrainingKeyframe, points_w: np.ndarray | None, colors: np.ndarray | None,
+                      enforce_budget: bool) -> int:
         self._insert(kf)
         self._drop_redundant_keyframes()
         self._update_extent()
@@ -372,21 +379,26 @@ class GaussianMapper:
         if view is None or len(self.gmap) == 0:
             return None
         level = view.level
-        out = self._rasterize(view.keyframe.T_wc, level.camera)
+        peaks = self.peaks
+        with peaks.work("forward"):
+            out = self._rasterize(view.keyframe.T_wc, level.camera)
         color, exposure_reg = out.color, None
         if self.exposure is not None:
             color, exposure_reg = self.exposure.apply(view.keyframe.kf_id, color, train=level.factor == 1.0)
-        loss, terms = mapping_loss(color, level.image, self.gmap.log_scales, out.depth,
-                                   level.depth_m, ssim_lambda=cfg.ssim_lambda,
-                                   iso_weight=cfg.iso_weight, depth_weight=cfg.depth_weight,
-                                   mask=level.valid_mask)
-        if exposure_reg is not None:
-            loss = loss + exposure_reg
-        loss.backward()
+        with peaks.work("loss"):
+            loss, terms = mapping_loss(color, level.image, self.gmap.log_scales, out.depth,
+                                       level.depth_m, ssim_lambda=cfg.ssim_lambda,
+                                       iso_weight=cfg.iso_weight, depth_weight=cfg.depth_weight,
+                                       mask=level.valid_mask)
+            if exposure_reg is not None:
+                loss = loss + exposure_reg
+        with peaks.work("backward"):
+            loss.backward()
         grad2d = out.means2d.grad if out.means2d.grad is not None else None
         self.gmap.accumulate_stats(grad2d, out.visible, out.radii, level.camera.width, level.camera.height)
         self.gmap.update_learning_rate(self.iteration)
-        self.gmap.optimizer_step()
+        with peaks.work("optimizer"):
+            self.gmap.optimizer_step()
         if self.exposure is not None:
             self.exposure.step()
         self.iteration += 1
@@ -395,12 +407,15 @@ class GaussianMapper:
             self.gmap.raise_sh_degree()
         merged_removed = merged_added = densified = pruned = 0
         if self.merge.due(it):
-            merged_removed, merged_added = self.merge.run(self.gmap, self._newest_kf_id, it)
+            with peaks.work("merge"):
+                merged_removed, merged_added = self.merge.run(self.gmap, self._newest_kf_id, it)
         elif densify and self.densify.due(it):
-            self._record_budget(*self.budget.make_room_for_densification(self.gmap, self.densify, it,
-                                                                          self._newest_kf_id, self._fixed_bytes()))
-            densified, pruned = self.densify.densify_and_prune(self.gmap, it, self.budget_gaussians)
-        self._enforce_budget()
+            with peaks.work("densify"):
+                self._record_budget(*self.budget.make_room_for_densification(
+                    self.gmap, self.densify, it, self._newest_kf_id, self._fixed_bytes()))
+                densified, pruned = self.densify.densify_and_prune(self.gmap, it, self.budget_gaussians)
+        with peaks.work("budget"):
+            self._enforce_budget()
         (budget_merged, budget_pruned), self._budget_pending = self._budget_pending, (0, 0)
         return StepStats(it, view.keyframe.kf_id, level.factor, terms, len(self.gmap), densified,
                          pruned, merged_removed, merged_added, time.perf_counter() - t0,
@@ -445,7 +460,7 @@ class GaussianMapper:
     # -------------------------------------------------------------- outputs
     def render(self, T_wc: np.ndarray, camera: PinholeCamera):  # -> RenderOutput
         """Render the map from camera-to-world ``T_wc`` with undistorted ``camera`` (no grad)."""
-        with torch.no_grad():
+        with torch.no_grad(), self.peaks.work("render"):
             return self._rasterize(T_wc, camera)
 
     def render_keyframe(self, kf_id: int):  # -> RenderOutput
@@ -455,7 +470,8 @@ class GaussianMapper:
 
     def snapshot(self) -> GaussianRecords:
         """The whole map as records (host copies)."""
-        return self.gmap.to_records()
+        with self.peaks.work("snapshot"):
+            return self.gmap.to_records()
 
     # ----------------------------------------------------------- state
     def state_dict(self, extra: Mapping[str, Any] | None = None) -> MapperCheckpoint:

@@ -125,6 +125,7 @@ class SessionStatus:
     render_camera: PinholeCamera | None = None
     counters: Mapping[str, int] = field(default_factory=dict)
     keyframe_timing: KeyframeTimingSummary = field(default_factory=KeyframeTimingSummary)
+    cuda_peak_by_work: Mapping[str, int] = field(default_factory=dict)  # PeakAttribution.by_work (CUDA)
     iterations_final: int = 0  # run by ``finish`` (the rest ran while keyframes arrived)
 
     def gauges(self) -> dict[str, int | float]:
@@ -142,6 +143,8 @@ class SessionStatus:
             out["loss"] = self.loss
         if self.cuda_max_allocated is not None:
             out["cuda_max_allocated"] = self.cuda_max_allocated
+        for work, peak in self.cuda_peak_by_work.items():
+            out[f"cuda_peak_mb.{work}"] = round(peak / 2**20, 1)
         t = self.keyframe_timing
         out.update(keyframes_used=t.used, keyframes_waiting=t.waiting, iterations_final=self.iterations_final)
         for name in ("intake_ms_median", "intake_ms_p95", "latency_ms_median", "latency_ms_p95"):
@@ -462,6 +465,7 @@ class MappingSession(CommandWorker):
             keyframe_bytes=account.keyframes, accounted_bytes=account.total, accounted_bytes_peak=self._peaks[2],
             gaussians_peak=self._peaks[1], loss=self._last_loss, cuda_max_allocated=cuda,
             keyframe_timing=self._intake.summary(), iterations_final=self._iterations_final,
+            cuda_peak_by_work=dict(m.peaks.by_work),
             insert_queue=self._pending_inserts,
             finished=self._finished, render_camera=self._render_camera, counters=dict(self._counters))
 
@@ -483,7 +487,8 @@ class MappingSession(CommandWorker):
         t0, cpu0 = time.perf_counter(), time.thread_time()
         try:
             if prepared is None:  # on a GPU: uploaded and prepared here, between two steps
-                prepared = self._prepare(kf)
+                with self._mapper.peaks.work("keyframe upload"):
+                    prepared = self._prepare(kf)
             # Free-running, the budget is enforced by the next training step: an insertion that
             # must keep up with the tracker pays ~35 ms instead of ~180 ms on a 60k map (CPU).
             added = self._mapper.add_prepared_keyframe(replace(prepared, kf_id=kf_id), kf.points_w, kf.colors,
