@@ -340,3 +340,23 @@ def test_the_work_that_set_the_device_peak_is_named() -> None:
         peak[0] = 950
     assert p.by_work == {"forward": 300, "merge": 900, "backward": 950} and p.peak_setter() == "backward"
     assert not PeakAttribution(torch.device("cpu")).enabled  # no allocator statistics on a CPU
+
+
+def test_final_iterations_go_on_to_a_total_when_little_was_trained(frames: list[Frame]) -> None:
+    """finish(total_iterations=N): at least final_iterations, and more while the map has trained
+    fewer than N in all (a live mapper on a slow machine); a map past N gets final_iterations."""
+    s = MappingSession(_cfg(min_keyframes=1), free_running=False)
+    try:
+        s.insert_keyframe(_kf(frames[0], 100)).result(30)
+        s.train(5).result(30)
+        done = s.finish(3, total_iterations=20).result(60)
+        assert done.final_iterations == 15 and s.status.iteration == 20
+    finally:
+        s.close()
+    s = MappingSession(_cfg(min_keyframes=1), free_running=False)
+    try:
+        s.insert_keyframe(_kf(frames[0], 100)).result(30)
+        s.train(25).result(30)
+        assert s.finish(3, total_iterations=20).result(60).final_iterations == 3
+    finally:
+        s.close()

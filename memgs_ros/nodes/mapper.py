@@ -429,7 +429,8 @@ class MapperNode(Node):
         """Insert what is queued, stop training, run the final iterations, flush every change."""
         p = self.params
         self._finishing = True  # a latch, read by the periodic delta timer
-        done = await self._done(self.session.finish(p.final_iterations, p.final_densify, p.final_budget_s))
+        done = await self._done(self.session.finish(p.final_iterations, p.final_densify, p.final_budget_s,
+                                                    p.final_total_iterations))
         self.get_logger().info(f"final {done.final_iterations} iterations in {done.seconds:.1f} s")
         flush = self.send_delta(exact=True)
         assert flush is not None  # an exact flush never waits

@@ -118,6 +118,9 @@ class MapperParams:
 
     final_budget_s: end the final iterations once they have run this long (0 = all of them): the time
         to a map handed over, e.g. a ground station over a radio link, against the last polish
+    final_total_iterations: the final iterations go on while the map has trained fewer than this many in all
+        (0 = final_iterations only): a live run on a slow machine, which trained little while the camera moved,
+        still gets a lockstep replay's training (final_budget_s still bounds them)
     final_densify: densify during the final iterations too (false: they only refine the map, which then
         keeps its size)
     delta_budget_kbytes_per_s: link budget for map deltas; the largest changes go first, the rest wait
@@ -141,6 +144,7 @@ class MapperParams:
     final_iterations: int = 0  # extra training iterations run by the finish service before the final flush
     final_densify: bool = True
     final_budget_s: float = 0.0
+    final_total_iterations: int = 0
     delta_rate_hz: float = 1.0  # map deltas per second
     delta_budget_kbytes_per_s: float = 500.0
     delta_tolerance: float = 1e-3
@@ -157,7 +161,7 @@ class MapperParams:
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "niceness": (0, 19), "depth_scale": (1e-3, 1e6), "lockstep_iterations": (0, 10000),
         "lockstep_window": (0, 100),
-        "final_iterations": (0, 10**7), "final_budget_s": (0.0, 1e6),
+        "final_iterations": (0, 10**7), "final_budget_s": (0.0, 1e6), "final_total_iterations": (0, 10**8),
         "delta_rate_hz": (0.01, 100.0), "delta_budget_kbytes_per_s": (1.0, 1e7), "delta_tolerance": (0.0, 10.0),
         "snapshot_period_s": (0.0, 1e6), "render_rate_hz": (0.0, 60.0), "checkpoint_period_s": (0.0, 1e6),
         "insert_queue": (1, 1000),

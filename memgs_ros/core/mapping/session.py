@@ -385,7 +385,7 @@ class MappingSession(CommandWorker):
         return self.submit("state_dict", lambda: self._state_dict(only_if_changed))
 
     def finish(self, final_iterations: int = 0, densify: bool = True,
-               budget_s: float = 0.0) -> Future[FinishResult]:
+               budget_s: float = 0.0, total_iterations: int = 0) -> Future[FinishResult]:
         """Run what is queued, stop free-running training, run ``final_iterations`` (once, on the
         keyframes there are, fewer than ``min_keyframes`` too; with ``densify=False`` they only
         refine, so the map does not grow at the end), and
@@ -393,8 +393,11 @@ class MappingSession(CommandWorker):
 
         ``budget_s`` > 0 ends the final iterations once they have taken that long (checked after
         each, so at least one runs): a robot that must hand its map over by a deadline trades the
-        last polish for time."""
-        return self.submit("finish", lambda: self._finish(int(final_iterations), bool(densify), float(budget_s)))
+        last polish for time. ``total_iterations`` > 0 runs more final iterations while the map has
+        trained fewer in all: a live run on a slow machine, which trained little while the camera
+        moved, still gets the training a lockstep replay's map had."""
+        return self.submit("finish", lambda: self._finish(int(final_iterations), bool(densify), float(budget_s),
+                                                          int(total_iterations)))
 
     def call(self, fn: Callable[[GaussianMapper], T]) -> Future[T]:
         """Run ``fn(mapper)`` on the worker (tests, benchmarks and tools that need the engine);
@@ -567,12 +570,14 @@ class MappingSession(CommandWorker):
             self._render_camera = ckpt.keyframes[-1].camera  # prepared: undistorted and scaled
         self._captured = (self._mapper.iteration, len(self._stamps))
 
-    def _finish(self, final_iterations: int, densify: bool, budget_s: float = 0.0) -> FinishResult:
+    def _finish(self, final_iterations: int, densify: bool, budget_s: float = 0.0,
+                total_iterations: int = 0) -> FinishResult:
         t0 = time.perf_counter()
         ran = 0
         if not self._finished:
             self._training = False
             self._finished = True
+            final_iterations = max(final_iterations, total_iterations - self._mapper.iteration)
             for _ in range(final_iterations):  # on whatever keyframes there are, even fewer than min_keyframes
                 st = self._mapper.step(densify=densify, final=True)
                 if st is None:
