@@ -9,7 +9,7 @@ Stages (each can be skipped; each writes its part of one JSON, default results/b
            test_mapping_device.py (a full mapper step per backend stays on the GPU),
            test_gsplat_conventions.py (the adapter's conventions, CPU).
   raster   ``rasterize`` forward + backward of benchmarks/bench_raster.py's room scene at
-           640x480, SH degree 3, per backend (torch fallback, gsplat) and size (20k, 100k,
+           640x480, SH degree 3, per backend (torch fallback, gsplat, gsplat packed) and size (20k, 100k,
            500k Gaussians): median of ``--runs`` timed iterations after 3 untimed ones, each
            ended by torch.cuda.synchronize; the peak torch.cuda.max_memory_allocated.
   mapping  benchmarks/bench_mapping.py on the TUM head at resolution scale 1.0 (640x480) per
@@ -188,7 +188,7 @@ def stage_raster(args: argparse.Namespace) -> dict[str, Any]:
     from memgs_ros.core.raster.gsplat_backend import gsplat_available
 
     dev = args.device
-    backends = ["torch"] + (["gsplat"] if gsplat_available() and dev == "cuda" else [])
+    backends = ["torch"] + (["gsplat", "gsplat_packed"] if gsplat_available() and dev == "cuda" else [])
     rows = []
     for n in args.raster_sizes:
         params, T, cam = build_scene(n, 640, 480)

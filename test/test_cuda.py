@@ -43,13 +43,14 @@ def test_torch_rasterizer_on_cuda_matches_reference() -> None:
 
 @cuda
 @pytest.mark.skipif(not gsplat_available(), reason="gsplat is not installed")
-def test_gsplat_backend_matches_torch_forward_and_gradients() -> None:
+@pytest.mark.parametrize("backend", ["gsplat", "gsplat_packed"])
+def test_gsplat_backend_matches_torch_forward_and_gradients(backend: str) -> None:
     params, T = _scene(200, seed=5, sh_deg_max=1)
     p_t, Tc = _on(params, T, "cuda", torch.float32)
     p_g, _ = _on(params, T, "cuda", torch.float32)
     bg = torch.tensor([0.1, 0.2, 0.3], device="cuda")
     ours = rasterize(Gaussians(*p_t), Tc, CAM_64, 1, background=bg, backend="torch")
-    theirs = rasterize(Gaussians(*p_g), Tc, CAM_64, 1, background=bg, backend="gsplat")
+    theirs = rasterize(Gaussians(*p_g), Tc, CAM_64, 1, background=bg, backend=backend)
     # gsplat bins by a 3-sigma box on 16 px tiles: tails may differ by ~1/255 of alpha.
     for name in ("color", "depth", "alpha"):
         a, b = getattr(ours, name), getattr(theirs, name)

@@ -32,7 +32,7 @@ def _fake_rasterization(
 ):
     """gsplat.rasterization's contract for one camera (classic 3DGS, RGB+D)."""
     assert viewmats.shape == (1, 4, 4) and Ks.shape == (1, 3, 3)
-    assert render_mode == "RGB+D" and packed is False and sh_degree is not None
+    assert render_mode == "RGB+D" and sh_degree is not None
     assert opacities.dim() == 1 and scales.shape == means.shape  # activated, not logits
     K = Ks[0]
     cam = PinholeCamera(width, height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
@@ -42,13 +42,26 @@ def _fake_rasterization(
     bg = torch.zeros(3, dtype=means.dtype) if backgrounds is None else backgrounds[0]
     # gsplat's pixel (i, j) is evaluated at (j + 0.5, i + 0.5): the reference compositor (pixel
     # centres at (j, i)) draws that image from means moved by -0.5 px.
-    means2d = proj.means2d[None]  # [1, N, 2]: gsplat's meta["means2d"] is what its compositor reads
-    color, depth, alpha, hit = _composite_reference(proj.splats()._replace(means2d=means2d[0] - 0.5), bg,
+    hit_any = screen_radii(proj.cov2d) > 0
+    ids = torch.nonzero(hit_any).reshape(-1)
+    if packed:  # [nnz, 2] rows of the Gaussians the camera sees; what the compositor reads
+        packed_2d = proj.means2d[ids]
+        means2d_all = torch.zeros_like(proj.means2d).index_put((ids,), packed_2d)
+    else:  # [1, N, 2]
+        packed_2d = proj.means2d[None]
+        means2d_all = packed_2d[0]
+    # gsplat's pixel (i, j) is evaluated at (j + 0.5, i + 0.5): the reference compositor (pixel
+    # centres at (j, i)) draws that image from means moved by -0.5 px.
+    color, depth, alpha, hit = _composite_reference(proj.splats()._replace(means2d=means2d_all - 0.5), bg,
                                                     proj.in_front, width, height)
     renders = torch.cat([color.permute(1, 2, 0), depth[..., None]], dim=-1)[None]  # [1, H, W, 4]
     r = torch.where(hit, screen_radii(proj.cov2d), torch.zeros_like(hit, dtype=torch.int32))
-    radii = torch.stack([r, r], dim=-1)[None]  # [1, N, 2] (gsplat >= 1.5)
-    meta = {"means2d": means2d, "radii": radii}
+    radii = torch.stack([r, r], dim=-1)  # [N, 2] (gsplat >= 1.5)
+    if packed:
+        meta = {"means2d": packed_2d, "radii": radii[ids], "gaussian_ids": ids.int(),
+                "camera_ids": torch.zeros_like(ids)}
+    else:
+        meta = {"means2d": packed_2d, "radii": radii[None]}
     return renders, alpha[None, ..., None], meta
 
 
@@ -65,17 +78,24 @@ def _loss(out) -> torch.Tensor:
                for img in (out.color, out.depth, out.alpha))
 
 
+@pytest.mark.parametrize("backend", ["gsplat", "gsplat_packed"])
 @pytest.mark.parametrize("cam", [CAM_64, CAM_OFFCENTRE], ids=["centred", "offcentre"])
-def test_gsplat_adapter_renders_what_the_torch_backend_renders(fake_gsplat: None, cam: PinholeCamera) -> None:
+def test_gsplat_adapter_renders_what_the_torch_backend_renders(fake_gsplat: None, cam: PinholeCamera,
+                                                               backend: str) -> None:
     params, T = _scene(80, seed=5, sh_deg_max=1)
     p_t = [p.detach().clone().requires_grad_() for p in params]
     p_g = [p.detach().clone().requires_grad_() for p in params]
     bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
     ours = rasterize(Gaussians(*p_t), T, cam, 1, background=bg, backend="torch")
-    theirs = rasterize(Gaussians(*p_g), T, cam, 1, background=bg, backend="gsplat")
-    for name in ("color", "depth", "alpha", "means2d"):
+    theirs = rasterize(Gaussians(*p_g), T, cam, 1, background=bg, backend=backend)
+    for name in ("color", "depth", "alpha"):
         torch.testing.assert_close(getattr(theirs, name), getattr(ours, name), atol=1e-9, rtol=0, msg=name)
-    assert theirs.radii.dtype == torch.int32 and theirs.radii.shape == ours.radii.shape
+    seen = ours.visible  # packed: the Gaussians the camera does not see have no screen position
+    torch.testing.assert_close(theirs.means2d[seen], ours.means2d[seen], atol=1e-9, rtol=0)
+    if backend == "gsplat":
+        torch.testing.assert_close(theirs.means2d, ours.means2d, atol=1e-9, rtol=0)
+    assert 0 < int(seen.sum()) < len(seen)  # the scene has Gaussians on both sides
+    assert theirs.radii.dtype == torch.int32 and torch.equal(theirs.radii, ours.radii)
     assert torch.equal(theirs.visible, theirs.radii > 0)
     _loss(ours).backward()
     _loss(theirs).backward()

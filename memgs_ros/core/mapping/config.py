@@ -160,7 +160,8 @@ class MappingConfig:
         "max_model_mbytes": (0.0, 1e6), "max_mapper_mbytes": (0.0, 1e6), "budget_target_fraction": (0.1, 1.0),
         "budget_merge_voxel_scale": (1.0, 1e3),
     }
-    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"raster_backend": ("auto", "torch", "numba", "gsplat")}
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {
+        "raster_backend": ("auto", "torch", "numba", "gsplat", "gsplat_packed")}
 
     def __post_init__(self) -> None:
         for name in ("lr_means", "lr_means_final", "lr_sh_dc", "lr_sh_rest", "lr_opacity",

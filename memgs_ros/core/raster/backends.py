@@ -8,6 +8,7 @@ one :func:`register` call; nothing else changes.
 """
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -90,6 +91,9 @@ def _gsplat_why_not(_device: torch.device) -> str:
 # In order of preference for backend="auto".
 register(Backend("gsplat", rasterize_gsplat, _gsplat_why_not,
                  auto=lambda device: device.type == "cuda" and gsplat_available()))
+# gsplat's packed mode: per-camera arrays of the visible Gaussians only (by name, not "auto").
+register(Backend("gsplat_packed", functools.partial(rasterize_gsplat, packed=True), _gsplat_why_not,
+                 auto=lambda _device: False))
 # The compiled projection goes with the compiled compositor (same CPU, same dependency).
 register(Backend("numba", _tiled(project_gaussians_numba, composite_numba, NUMBA_TILE_SIZE), _numba_why_not,
                  auto=lambda device: not _numba_why_not(device)))

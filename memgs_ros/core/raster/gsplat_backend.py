@@ -16,6 +16,10 @@ maps, and where gsplat's semantics differ from the torch backend:
   unchanged rendered every image half a pixel off: the cause of the first GPU parity failure.)
 - ``means2d`` is a detached [N, 2] copy of gsplat's ``meta["means2d"]`` whose ``.grad`` a
   backward hook fills (it is not part of the graph: do not differentiate through it).
+- ``packed=True`` (the registry's ``gsplat_packed``): gsplat keeps only the Gaussians a camera
+  sees ([nnz] rows with ``meta["gaussian_ids"]``) instead of dense [C, N] arrays; the adapter
+  scatters them back to [N] (means2d and radii 0, and no gradient, for the others, which the
+  torch backend gives a screen position but no pixel).
 """
 from __future__ import annotations
 
@@ -55,8 +59,10 @@ def rasterize_gsplat(
     sh_degree: int,
     background: Tensor | None,  # [3]
     near: float,
+    packed: bool = False,
 ) -> RenderOutput:
-    """gsplat twin of :func:`memgs_ros.core.raster.rasterize`; same arguments and result."""
+    """gsplat twin of :func:`memgs_ros.core.raster.rasterize`; same arguments and result
+    (``packed``: gsplat's packed mode, see the module docstring)."""
     means, quats_wxyz, log_scales, opacity_logits, sh_dc, sh_rest = gaussians
     from gsplat import rasterization
 
@@ -76,23 +82,33 @@ def rasterize_gsplat(
         height=camera.height,
         near_plane=near,
         sh_degree=sh_degree,
-        packed=False,
+        packed=packed,
         backgrounds=None if background is None else background[None],
         render_mode="RGB+D",
     )
-    # gsplat's means2d is [1, N, 2]; hand out an [N, 2] leaf whose .grad a hook fills, so that
-    # callers read out.means2d.grad exactly as with the torch backend.
+    # gsplat's means2d is [1, N, 2] ([nnz, 2] packed); hand out an [N, 2] leaf whose .grad a hook
+    # fills, so that callers read out.means2d.grad exactly as with the torch backend.
+    n = means.shape[0]
     full = meta["means2d"]
-    means2d = full[0].detach() - GSPLAT_PIXEL_CENTRE  # a shift: the gradient is the same
+    radii = meta["radii"] if packed else meta["radii"][0]
+    if radii.dim() == 2:  # gsplat >= 1.5 returns per-axis radii [N, 2]
+        radii = radii.max(dim=-1).values
+    if packed:
+        ids = meta["gaussian_ids"].long()  # [nnz]
+        means2d = torch.zeros(n, 2, dtype=dtype, device=device)
+        means2d[ids] = full.detach() - GSPLAT_PIXEL_CENTRE
+        radii = torch.zeros(n, dtype=radii.dtype, device=device).index_copy_(0, ids, radii)
+    else:
+        ids = None
+        means2d = full[0].detach() - GSPLAT_PIXEL_CENTRE  # a shift: the gradient is the same
     if full.requires_grad:
 
         def _store(grad: Tensor) -> None:
-            means2d.grad = grad[0] if means2d.grad is None else means2d.grad + grad[0]
+            g = grad[0] if ids is None else torch.zeros(n, 2, dtype=grad.dtype, device=grad.device).index_add_(
+                0, ids, grad)
+            means2d.grad = g if means2d.grad is None else means2d.grad + g
 
         full.register_hook(_store)
-    radii = meta["radii"][0]
-    if radii.dim() == 2:  # gsplat >= 1.5 returns per-axis radii [N, 2]
-        radii = radii.max(dim=-1).values
     radii = radii.to(torch.int32)
     return RenderOutput(
         color=renders[0, ..., :3].permute(2, 0, 1),
