@@ -34,6 +34,9 @@ def _fake_rasterization(
     assert viewmats.shape == (1, 4, 4) and Ks.shape == (1, 3, 3)
     assert render_mode == "RGB+D" and sh_degree is not None
     assert opacities.dim() == 1 and scales.shape == means.shape  # activated, not logits
+    # gsplat 1.5.3's packed rasterize_to_pixels checks backgrounds against [channels], so the
+    # [1, channels] that rasterization() hands it fails there (seen on an H200).
+    assert not (packed and backgrounds is not None), "gsplat 1.5.3 packed mode fails on backgrounds"
     K = Ks[0]
     cam = PinholeCamera(width, height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     op = opacities.clamp(1e-7, 1 - 1e-7)

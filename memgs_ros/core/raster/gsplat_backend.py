@@ -83,7 +83,9 @@ def rasterize_gsplat(
         near_plane=near,
         sh_degree=sh_degree,
         packed=packed,
-        backgrounds=None if background is None else background[None],
+        # gsplat 1.5.3's packed mode checks backgrounds against [channels], not [1, channels],
+        # and refuses a camera batch's; the background is composited below instead, as gsplat does.
+        backgrounds=None if background is None or packed else background[None],
         render_mode="RGB+D",
     )
     # gsplat's means2d is [1, N, 2] ([nnz, 2] packed); hand out an [N, 2] leaf whose .grad a hook
@@ -110,8 +112,11 @@ def rasterize_gsplat(
 
         full.register_hook(_store)
     radii = radii.to(torch.int32)
+    color = renders[0, ..., :3].permute(2, 0, 1)  # [3, H, W]
+    if packed and background is not None:
+        color = color + (1.0 - alphas[0, ..., 0])[None] * background[:, None, None]
     return RenderOutput(
-        color=renders[0, ..., :3].permute(2, 0, 1),
+        color=color,
         depth=renders[0, ..., 3],
         alpha=alphas[0, ..., 0],
         means2d=means2d,
