@@ -33,6 +33,7 @@ Stages (each can be skipped; each writes its part of one JSON, default results/b
     python benchmarks/gpu_carry.py gpu_carry   # on a machine with the index: wheels + a TUM subset
     TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 python benchmarks/bench_gpu.py --tum DIR [--wheels gpu_carry/wheels]
     python benchmarks/bench_gpu.py --table results/bench_gpu.json   # the GPU table of docs/results.md (On a GPU)
+    python benchmarks/bench_gpu.py --merge A.json B.json --out results/bench_gpu.json   # stages run in several calls
 
 The issue-36 targets are printed beside each figure (a run saved under issue 25 keeps its own).
 Run nothing else on the machine meanwhile.
@@ -423,7 +424,26 @@ def table(res: dict[str, Any]) -> str:
     tests = res.get("tests", {})
     if tests:
         lines.append(f"\nCUDA tests: {tests.get('summary', '?')}")
+    joined: dict[str, list[str]] = {}
+    for stage, name in res.get("merged_from", {}).items():
+        joined.setdefault(Path(name).name, []).append(stage)
+    if joined:
+        lines.append("\nStages by call: " + "; ".join(f"{name}: {', '.join(st)}" for name, st in joined.items()))
     return "\n".join(lines) + "\n"
+
+
+def merge_runs(runs: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
+    """One result from several saved runs of this script: each stage from the last run that has it
+    without an error (the setup from the last run), ``merged_from`` naming each stage's run."""
+    res: dict[str, Any] = {"script": "benchmarks/bench_gpu.py", "targets": runs[-1].get("targets", "issue25"),
+                           "date": runs[-1].get("date"), "merged_from": {}}
+    for run, name in zip(runs, names):
+        for stage in STAGES:
+            if stage in run and (stage == "setup" or "error" not in run[stage]):
+                res[stage] = run[stage]
+                res["merged_from"][stage] = name
+    res["headline"] = headline(res)
+    return res
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -443,9 +463,17 @@ def main(argv: list[str] | None = None) -> int:
                     help="cpu: a dry run of the script's wiring on a machine without a GPU (figures mean nothing)")
     ap.add_argument("--out", type=Path, default=ROOT / "results/bench_gpu.json")
     ap.add_argument("--table", type=Path, default=None, metavar="JSON", help="print the table of a saved run and exit")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="join saved runs' stages (a later file's stage replaces an earlier one's) into --out, "
+                         "print the table and exit: a lease's device time comes in calls, each run a few stages")
     args = ap.parse_args(argv)
     if args.table is not None:
         print(table(json.loads(args.table.read_text())), end="")
+        return 0
+    if args.merge is not None:
+        res = merge_runs([json.loads(p.read_text()) for p in args.merge], [str(p) for p in args.merge])
+        args.out.write_text(json.dumps(res, indent=2))
+        print(table(res), end="")
         return 0
     args.out_dir = args.out.parent / "bench_gpu_runs"
     args.out_dir.mkdir(parents=True, exist_ok=True)

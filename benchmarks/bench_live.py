@@ -244,7 +244,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reuse-lockstep", type=Path, default=None, metavar="JSON",
                     help="take the lockstep row from this saved run")
     ap.add_argument("--reuse-live", type=Path, default=None, metavar="JSON",
-                    help="also take the live rows from this saved run (then only the node cost runs)")
+                    help="also take the live rows from this saved run (then only the rates it lacks and the node "
+                         "cost run)")
     args = ap.parse_args(argv)
     if args.table is not None:
         print(table(json.loads(args.table.read_text())), end="")
@@ -261,7 +262,8 @@ def main(argv: list[str] | None = None) -> int:
         res["runs"].append({**reused, "reused_from": str(args.reuse_lockstep)})
     if args.reuse_live is not None:
         res["runs"] += [r for r in json.loads(args.reuse_live.read_text())["runs"] if r["run"] != "lockstep"]
-    for rate in ([] if reused else [None]) + ([] if args.reuse_live else list(args.rates)):
+    have = {r["run"] for r in res["runs"]}
+    for rate in ([] if reused else [None]) + [r for r in args.rates if f"live {r:g}x" not in have]:
         name = "lockstep" if rate is None else f"live_{rate:g}x"
         tries = []
         for k in range(1 if rate is None else args.repeats):

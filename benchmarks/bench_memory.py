@@ -1,6 +1,7 @@
 """Benchmark: where the mapper's memory goes, part by part, on the map a run ended with.
 
     python benchmarks/bench_memory.py RUN_DIR [--device cuda] [--json results/bench_memory.json]
+    python benchmarks/bench_memory.py --table JSON   # a saved breakdown (bench_gpu.py's too)
 
 RUN_DIR is a finished ``memgs run`` / ``memgs eval`` output folder: its ``mapper_checkpoint.npz``
 (the final map and training keyframes) and ``params.yaml`` (the mapper's config) are loaded into a
@@ -144,17 +145,26 @@ def table(res: dict[str, Any]) -> str:
         peak = "" if r["peak_above_mb"] is None else f"{r['peak_above_mb']:g}"
         lines.append(f"| {r['part']} | {r['held_mb']:g} | {peak} | {r['note']} |")
     if "cuda_max_allocated_mb" in res:
-        lines.append(f"\nCUDA: max allocated {res['cuda_max_allocated_mb']:g} MiB, "
+        lines.append(f"\nCUDA at the end: allocated {res['cuda_allocated_mb']:g} MiB, "
                      f"reserved {res['cuda_reserved_mb']:g} MiB")
     return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("run_dir", type=Path, help="a finished memgs run/eval output folder")
+    ap.add_argument("run_dir", type=Path, nargs="?", help="a finished memgs run/eval output folder")
     ap.add_argument("--device", default=None, help="torch device (default: the run's mapper device)")
     ap.add_argument("--json", type=Path, default=ROOT / "results/bench_memory.json")
+    ap.add_argument("--table", type=Path, default=None, metavar="JSON",
+                    help="print the table of a saved breakdown (this script's JSON, or bench_gpu.py's, whose "
+                         "memory stage it is) and exit")
     args = ap.parse_args(argv)
+    if args.table is not None:
+        saved = json.loads(args.table.read_text())
+        print(table(saved.get("memory", saved)), end="")
+        return 0
+    if args.run_dir is None:
+        ap.error("give RUN_DIR (or --table JSON)")
     from memgs_ros.core.runtime.cpu import configure_cpu_runtime
 
     configure_cpu_runtime()
