@@ -66,7 +66,8 @@ def markdown_table(results: Sequence[EvalResult], labels: Sequence[str] | None =
                 f"rendered at the mapping resolution {r0.render_size[0]}x{r0.render_size[1]} "
                 f"(scale {r0.resolution_scale:g}); 'PSNR valid px': only pixels with image content after "
                 "undistortion (same as the whole image without distortion); 'PSNR kf' on keyframes only. ATE: "
-                f"{'Sim(3)' if r0.mode == 'mono' else 'SE(3)'} alignment. "
+                f"{'Sim(3)' if r0.mode == 'mono' else 'SE(3)'} alignment; rot deg: RMSE of the rotation angle "
+                "after the world rotation fitted to the orientations. "
                 + _memory_footnote(r0) + " model MB: map parameters + gradients + Adam state at peak. "
                 + TABLE_FOOTNOTE_SPEED)
     return TABLE_HEADER + "\n" + "\n".join(rows) + "\n" + foot + "\n"
