@@ -274,3 +274,29 @@ def test_no_loader_in_the_package_can_unpickle() -> None:
                 offences.append(f"{where}:{call.lineno} {name}")
     assert np_loads >= 2  # the scan sees the PLY sidecar and checkpoint loaders
     assert not offences, "\n".join(offences)
+
+
+def test_a_device_or_rasterizer_this_machine_lacks_is_one_line_before_start(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """What a Jetson user with the wrong torch wheel meets first: mapper.device=cuda without a CUDA
+    torch, or the gsplat rasterizer without gsplat (or off CUDA), is one line naming the fix."""
+    import torch
+
+    from memgs_ros.core.raster import backends
+
+    monkeypatch.setattr(torch.backends.cuda, "is_built", lambda: False)
+    monkeypatch.setattr(backends, "gsplat_available", lambda: False)
+    out = tmp_path / "out"
+    code = main(["run", "--bag", SPEC, "--set", "mapper.device=cuda", "--out", str(out)])
+    _one_line_error(capsys, code, "mapper.device=cuda", "built without CUDA", "install a CUDA build of torch")
+    code = main(["eval", SPEC, "--set", "mapper.device=cpu", "--set", "mapper.mapping.raster_backend=gsplat",
+                 "--out", str(out)])
+    _one_line_error(capsys, code, "raster_backend=gsplat on cpu", "gsplat package is not installed",
+                    "pip install '.[gsplat]'")
+    monkeypatch.setattr(backends, "gsplat_available", lambda: True)
+    code = main(["demo", "--spec", SPEC, "--set", "mapper.device=cpu", "--set",
+                 "mapper.mapping.raster_backend=gsplat_packed", "--out", str(out)])
+    _one_line_error(capsys, code, "gsplat renders on CUDA")
+    code = main(["run", "--bag", SPEC, "--set", "mapper.device=gpu0", "--out", str(out)])
+    _one_line_error(capsys, code, "'gpu0' is not a torch device")
+    assert not out.exists()

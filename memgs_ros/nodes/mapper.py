@@ -45,10 +45,10 @@ from memgs_ros.core.mapping.session import MappingSession
 from memgs_ros.core.maps.map_delta import message_dtype
 from memgs_ros.core.merge.config import MergeConfig
 from memgs_ros.core.raster import warm_up
-from memgs_ros.core.raster.backend_choice import choose_backend, device_label, resolve_device
+from memgs_ros.core.raster.backend_choice import choose_backend, device_label, device_problem, resolve_device
 from memgs_ros.core.runtime.cpu import configure_cpu_runtime
 from memgs_ros.core.runtime.worker import WorkerStopped
-from memgs_ros.errors import DataError, MessageError
+from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.nodes.params import NODE_CONFIGS, MapperParams
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
@@ -91,6 +91,9 @@ class MapperNode(Node):
         self._rate_mark = (time.monotonic(), -1)  # (time, iteration) at the last stats sync; -1: none yet
         self.cfg: MappingConfig = declare_config(self, MappingConfig, "mapping")
         merge_cfg: MergeConfig = declare_config(self, MergeConfig, "merge")
+        problem = device_problem(p.device, self.cfg.raster_backend)
+        if problem:
+            raise ConfigError(problem)
         device = resolve_device(p.device)
         raster = choose_backend(device, self.cfg.raster_backend)  # what warm_up and training will run
         if device == "cpu":

@@ -262,9 +262,27 @@ def check_parameters(params: Mapping[str, Mapping[str, Any]]) -> None:
         for prefix, config_cls in NODE_CONFIGS[node]:
             lines += check_values(config_cls, prefix, values, node=node)
     if not lines:
-        lines += _depth_scale_disagreements(params)
+        lines += _depth_scale_disagreements(params) + _mapper_device_problem(params)
     if lines:
         raise ConfigError("; ".join(lines))
+
+
+def _mapper_device_problem(params: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """The mapper's device and rasterizer against this machine's torch and packages (a CUDA
+    device without a CUDA torch, gsplat without gsplat): one line naming what to install."""
+    if "mapper" not in params:
+        return []
+    from memgs_ros.nodes.params import NODE_CONFIGS
+
+    own = dict(NODE_CONFIGS["mapper"])
+    device = str(params["mapper"].get("device", own[""].device))
+    backend = str(params["mapper"].get("mapping.raster_backend", own["mapping"].raster_backend))
+    if device in ("auto", "cpu") and backend in ("auto", "torch", "numba"):
+        return []  # runs anywhere the package installs: no torch import for the common case
+    from memgs_ros.core.raster.backend_choice import device_problem
+
+    problem = device_problem(device, backend)
+    return [problem] if problem else []
 
 
 def _depth_scale_disagreements(params: Mapping[str, Mapping[str, Any]]) -> list[str]:
