@@ -360,6 +360,18 @@ def test_free_running_mapper_drops_and_counts_keyframes_it_cannot_insert(context
         assert _spin_until(feeder.ex, lambda: c["keyframes_corrected"] == 1)
         moved = np.linalg.norm(node.session.call(means).result(30) - before, axis=1)
         assert c["gaussians_corrected"] > 0 and int((np.abs(moved - 0.1) < 1e-4).sum()) == c["gaussians_corrected"]
+        # A command nobody waits on that fails (here a correction the map refuses) reaches the stats.
+        from memgs_ros.errors import DataError
+
+        def refuse(m):  # noqa: ANN001, ANN202 - runs on the session's worker
+            def correct(_ids):  # noqa: ANN001, ANN202
+                raise DataError("keyframe 3: a correction that would move Gaussians off the map")
+            m.correct_keyframes = correct
+
+        node.session.call(refuse).result(30)
+        loop.publish(Path(poses=[matrix_to_pose_stamped(T, stamps[3], "map")]))
+        assert _spin_until(feeder.ex, lambda: c["problem.command_failed"] == 1)
+        assert c["keyframes_corrected"] == 1
     finally:
         gate.set()
         node.on_shutdown()

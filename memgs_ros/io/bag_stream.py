@@ -13,11 +13,17 @@ import queue
 import shutil
 import tempfile
 import threading
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from memgs_ros.errors import DataError
+
+# How long close() waits for the writer thread to write what is queued (at most ``max_queued``
+# messages), and abort() for it to drop the queue; past that the bag is reported, not waited for.
+CLOSE_TIMEOUT_S = 120.0
+ABORT_TIMEOUT_S = 10.0
 
 __all__ = ["BackgroundBagStream", "BagStream", "ros2_typestore"]
 
@@ -239,15 +245,27 @@ class BackgroundBagStream:
         """Queue one serialised message; False (dropped) once closing."""
         return self._put(("message", topic, int(stamp_ns), data))
 
-    def _stop(self) -> None:
+    def _stop(self, timeout_s: float) -> bool:
+        """Ask the thread to end after what is queued; False when it has not ended in ``timeout_s``
+        (a writer stuck in I/O)."""
+        end = time.monotonic() + timeout_s
         if not self._closing:
             self._closing = True
-            self._queue.put(None)
-        self._thread.join()
+            while self._thread.is_alive():
+                try:
+                    self._queue.put(None, timeout=0.1)
+                    break
+                except queue.Full:
+                    if time.monotonic() > end:
+                        break
+        self._thread.join(max(0.0, end - time.monotonic()))
+        return not self._thread.is_alive()
 
     def close(self) -> int:
-        """Write what is queued, finish the bag and move it into place; its size in bytes."""
-        self._stop()
+        """Write what is queued, finish the bag and move it into place; its size in bytes.
+        DataError when writing failed or did not finish within ``CLOSE_TIMEOUT_S``."""
+        if not self._stop(CLOSE_TIMEOUT_S):
+            self._error = self._error or TimeoutError(f"the writer did not finish within {CLOSE_TIMEOUT_S:.0f} s")
         if self._error is not None:
             self._bag.abort()
             self._raise_error()
@@ -256,5 +274,5 @@ class BackgroundBagStream:
     def abort(self) -> None:
         """Drop the queue and the partial bag; the path is left as it was."""
         self._error = self._error or DataError("aborted")  # the thread skips what is still queued
-        self._stop()
+        self._stop(ABORT_TIMEOUT_S)
         self._bag.abort()

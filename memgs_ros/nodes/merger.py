@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
+from rclpy.task import Future
 from sensor_msgs.msg import Image, PointCloud2
 from std_srvs.srv import Trigger
 
@@ -171,8 +172,7 @@ class MergerNode(Node):
             return
         self._last_request = now
         self._requests_unanswered += 1
-        self.snapshot_client.call_async(Trigger.Request())
-        self.stats.counters["snapshot_requests"] += 1
+        self._ask_snapshot()
 
     def _retry_resync(self) -> None:
         if self.resyncing:
@@ -183,8 +183,20 @@ class MergerNode(Node):
               and self.snapshot_client.service_is_ready()):
             self._asked_at_start = True
             self._last_request = time.monotonic()
-            self.snapshot_client.call_async(Trigger.Request())
-            self.stats.counters["snapshot_requests"] += 1
+            self._ask_snapshot()
+
+    def _ask_snapshot(self) -> None:
+        """Ask the mapper for a snapshot (it arrives on the snapshot topic); a refusal or a failed
+        call is counted and logged (``problem.snapshot_request``), not dropped with its future."""
+        def answered(future: Future) -> None:
+            err = None if future.cancelled() else future.exception()
+            res = None if err is not None or future.cancelled() else future.result()
+            if err is not None or (res is not None and not res.success):
+                why = f"{type(err).__name__}: {err}" if err is not None else res.message
+                self.stats.problem("snapshot_request", f"the mapper did not take a snapshot request: {why}")
+
+        self.snapshot_client.call_async(Trigger.Request()).add_done_callback(answered)
+        self.stats.counters["snapshot_requests"] += 1
 
     def _gauges(self) -> None:
         self.stats.gauges["seq"] = self.replica.seq

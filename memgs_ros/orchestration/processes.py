@@ -66,6 +66,7 @@ NODE_FACTORIES: Mapping[str, Callable[..., Any]] = _NodeFactories()
 # lengthens the run by as much. It still runs whenever a core idles (lockstep waits, I/O).
 # Below the mapper, which runs at its own niceness (10, the node's parameter) below the tracker.
 NICENESS = {VIEW_NODE: 15}
+KILL_WAIT_S = 10.0  # how long the runner waits for a SIGKILLed node to be reaped
 
 
 class NodeProcesses:
@@ -104,7 +105,7 @@ class NodeProcesses:
         """SIGKILL a node (no chance to save anything) and start it again."""
         p = self.procs[name]
         p.kill()
-        p.wait()
+        _reap(name, p)
         os.replace(self.log_dir / f"{name}.log", self.log_dir / f"{name}.killed-{int(time.time())}.log")
         self.start(name)
 
@@ -141,7 +142,7 @@ class NodeProcesses:
                 except subprocess.TimeoutExpired:
                     logger.warning("node %s did not stop on SIGINT; killing it", name)
                     p.kill()
-                    p.wait()
+                    _reap(name, p)
         except KeyboardInterrupt:
             logger.warning("interrupted again while the nodes stop: killing them")
             self.kill_all()
@@ -151,8 +152,17 @@ class NodeProcesses:
         for p in self.procs.values():
             if p.poll() is None:
                 p.kill()
-        for p in self.procs.values():
-            p.wait()
+        for name, p in self.procs.items():
+            _reap(name, p)
+
+
+def _reap(name: str, p: subprocess.Popen[Any]) -> None:
+    """Wait for a SIGKILLed node, boundedly: a process in uninterruptible I/O (a dead NFS mount)
+    does not die at once, and the runner must not hang on it."""
+    try:
+        p.wait(timeout=KILL_WAIT_S)
+    except subprocess.TimeoutExpired:
+        logger.error("node %s (pid %d) has not exited %.0f s after SIGKILL; leaving it", name, p.pid, KILL_WAIT_S)
 
 
 def open_context(domain_id: int | None, ros_args: list[str], probe_s: float = 1.0,
