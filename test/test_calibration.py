@@ -294,7 +294,7 @@ def test_tracker_hands_on_the_configured_camera(context, override: bool) -> None
         assert node.wait_until_warm(120)  # a live frame before it is "warming"
         f = frames[0]
         pi.publish(camera_to_camera_info(wrong, f.stamp_ns, "cam"))
-        assert _spin_until(ex, lambda: node.camera is not None or node.stats.counters["camera_info_differs"], 5.0)
+        assert _spin_until(ex, lambda: node.cams.camera is not None or node.stats.counters["camera_info_differs"], 5.0)
         pc.publish(numpy_to_image(f.rgb, "rgb8", f.stamp_ns, "cam"))
         pd.publish(depth_to_image(f.depth_m, "32FC1", f.stamp_ns, "cam"))
         assert _spin_until(ex, lambda: len(infos) >= 1), "no keyframe from the first frame"

@@ -22,7 +22,7 @@ from memgs_ros.core.geometry.frame import Frame  # noqa: E402
 from memgs_ros.core.mapping.gaussians import GaussianMap  # noqa: E402
 from memgs_ros.core.maps.map_delta import DeltaOutbox, message_dtype  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
-from memgs_ros.nodes.tracker import KEYPOINT_DTYPE  # noqa: E402
+from memgs_ros.ros.tracker_outputs import KEYPOINT_DTYPE  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
 from memgs_ros.ros.codecs import (  # noqa: E402
     camera_to_camera_info, depth_to_image, matrix_to_pose_stamped, numpy_to_image, structured_to_pointcloud2,
@@ -407,7 +407,7 @@ def test_tracker_stamp_rules(context) -> None:  # noqa: ANN001
                            and pi.get_subscription_count())
         assert node.wait_until_warm(120)  # a live frame before it is "warming"
         pi.publish(camera_to_camera_info(frames[0].camera, frames[0].stamp_ns, "cam"))
-        assert _spin_until(ex, lambda: node.camera is not None)
+        assert _spin_until(ex, lambda: node.cams.camera is not None)
 
         def send(f: Frame, stamp: int) -> None:
             n = len(processed)

@@ -64,7 +64,7 @@ def test_tracker_survives_bad_frames_and_tracks_good_ones(context) -> None:  # n
         # Before any valid camera_info the first frame waits; then it is tracked.
         pc.publish(numpy_to_image(f0.rgb, "rgb8", f0.stamp_ns, "cam"))
         pd.publish(depth_to_image(f0.depth_m, "32FC1", f0.stamp_ns, "cam"))
-        assert _spin_until(ex, lambda: node.waiting, 10.0) and not processed
+        assert _spin_until(ex, lambda: node.cams.waiting, 10.0) and not processed
         pi.publish(camera_to_camera_info(f0.camera, f0.stamp_ns, "cam"))
         assert _spin_until(ex, lambda: node.stats.counters["poses_out"] == 1 and len(processed) == 1)
         sent = 1
@@ -162,7 +162,7 @@ def test_live_frames_before_the_kernels_are_in_are_counted_as_warming(context, m
     handled: list[int] = []
     answered: list[int] = []
     node._handle = lambda color, depth: handled.append(color.header.stamp.sec)  # noqa: SLF001 - intake only
-    node._processed = lambda stamp, keyframe: answered.append(stamp)  # noqa: SLF001
+    node.out.processed = lambda stamp, keyframe=False: answered.append(stamp)
     node.rgbd = False
     try:
         for sec in (1, 2):

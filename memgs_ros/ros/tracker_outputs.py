@@ -1,0 +1,181 @@
+"""Everything the tracker node publishes, from its results: per frame the tracking state, pose and
+odometry and the ``processed`` answer a lockstep player waits on; the corrected trajectory
+(``memgs/path``); per keyframe its images as received, camera_info, pose and keypoints; the
+refined and loop-corrected poses of earlier keyframes."""
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry, Path
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import Header, String
+
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.tracking import TrackResult
+from memgs_ros.core.tracking.anchored_path import AnchoredPath
+from memgs_ros.ros import qos
+from memgs_ros.ros.codecs import (
+    append_to_path,
+    camera_to_camera_info,
+    make_header,
+    matrix_to_odometry,
+    matrix_to_pose_stamped,
+    stamp_to_ns,
+    structured_to_pointcloud2,
+)
+from memgs_ros.ros.diagnostics import NodeStats
+
+__all__ = ["KEYPOINT_DTYPE", "CorrectedPath", "KeyframeOutbox", "TrackerOutbox"]
+
+KEYPOINT_DTYPE = np.dtype([("u", np.float32), ("v", np.float32), ("depth", np.float32), ("active", np.uint8)])
+
+
+class CorrectedPath:
+    """``memgs/path``: every published pose, moved with the keyframe it was tracked against when a
+    loop closure corrects that keyframe (:class:`AnchoredPath`). The message and the anchored
+    poses hold the same frames, index for index; ``max_len`` 0 keeps all."""
+
+    def __init__(self, world_frame: str, max_len: int) -> None:
+        self.world_frame, self.max_len = world_frame, max_len
+        self.msg = Path()
+        self.msg.header.frame_id = world_frame
+        self.anchored = AnchoredPath(max_len)
+        self._stale: set[int] = set()  # keyframes moved since the last message
+        self._changed = False
+
+    def add(self, result: TrackResult, pose: PoseStamped | None, loops: list[Mapping[int, np.ndarray]]) -> None:
+        """A tracked frame (``pose``: its published pose, None when lost) after the loop
+        corrections committed while it was tracked."""
+        if pose is not None:
+            append_to_path(self.msg, pose, self.max_len)
+            self._changed = True
+        moved = self.anchored.update(result, loops)
+        if moved:
+            self._stale |= moved  # re-expressed when the message is next taken
+            self._changed = True
+
+    def take_message(self) -> Path | None:
+        """The path to publish, corrections applied, or None when nothing changed since."""
+        if not self._changed:
+            return None
+        self._changed = False
+        if self._stale:
+            idx, T_wc = self.anchored.poses_following(self._stale)
+            self._stale = set()
+            for i, T in zip(idx.tolist(), T_wc):
+                old = self.msg.poses[i]
+                self.msg.poses[i] = matrix_to_pose_stamped(T, stamp_to_ns(old.header.stamp), self.world_frame)
+        return self.msg
+
+
+class KeyframeOutbox:
+    """The keyframe topics of ``node`` (transient local: a restarted sampler or mapper gets them
+    again) and the keyframe-id -> stamp table that names refined and loop-corrected poses."""
+
+    def __init__(self, node: Node, world_frame: str) -> None:
+        kf = qos.keyframes()
+        self.world_frame = world_frame
+        self.color = node.create_publisher(Image, "memgs/keyframe/color", kf)
+        self.depth = node.create_publisher(Image, "memgs/keyframe/depth", kf)
+        self.info = node.create_publisher(CameraInfo, "memgs/keyframe/camera_info", kf)
+        self.pose = node.create_publisher(PoseStamped, "memgs/keyframe/pose", kf)
+        self.keypoints = node.create_publisher(PointCloud2, "memgs/keyframe/keypoints", kf)
+        self.refined = node.create_publisher(Path, "memgs/keyframe/refined_poses", qos.reliable(20))
+        self.loop = node.create_publisher(Path, "memgs/keyframe/loop_corrected_poses", qos.reliable(20))
+        self.stamps: dict[int, int] = {}
+        self._poses = Path()
+        self._poses.header.frame_id = world_frame
+
+    def publish(self, result: TrackResult, camera: PinholeCamera, camera_frame: str, color: Image,
+                depth: Image | None) -> None:
+        """The keyframe ``result`` made. Its image messages go out as they came in (each consumer
+        decodes and undistorts them once); a depth paired from another stamp takes the colour's,
+        which names the keyframe's bundle."""
+        kf = result.keyframe
+        assert kf is not None
+        stamp = result.stamp_ns
+        kps = np.zeros(len(kf.keypoints_uv), dtype=KEYPOINT_DTYPE)
+        kps["u"], kps["v"] = kf.keypoints_uv[:, 0], kf.keypoints_uv[:, 1]
+        kps["depth"], kps["active"] = kf.keypoint_depth, kf.keypoint_active
+        self.info.publish(camera_to_camera_info(camera, stamp, camera_frame))
+        self.color.publish(color)
+        if depth is not None:
+            depth.header.stamp = color.header.stamp
+            self.depth.publish(depth)
+        self.keypoints.publish(structured_to_pointcloud2(kps, stamp, camera_frame))
+        self.pose.publish(matrix_to_pose_stamped(kf.T_wc, stamp, self.world_frame))
+        self.stamps[kf.keyframe_id] = stamp
+
+    def publish_poses(self, poses: list[tuple[int, np.ndarray]], pub: Publisher) -> int:
+        """Keyframe poses [(keyframe id, T_wc)] as one Path on ``pub`` (``refined`` or ``loop``),
+        by the keyframes' stamps; returns how many (ids it never published are left out)."""
+        msgs = [matrix_to_pose_stamped(T, self.stamps[i], self.world_frame) for i, T in poses if i in self.stamps]
+        if msgs:
+            self._poses.poses = msgs
+            pub.publish(self._poses)
+        return len(msgs)
+
+    def forget(self, kept_ids: set[int] | frozenset[int], map_keyframes: int) -> None:
+        """Drop the stamps of keyframes the map no longer holds (bundle adjustment refines only
+        kept ones), once the table has grown well past the map."""
+        if len(self.stamps) > 2 * map_keyframes + 64:
+            self.stamps = {i: s for i, s in self.stamps.items() if i in kept_ids}
+
+
+class TrackerOutbox:
+    """The tracker node's publishers, fed one frame's result at a time; what it published is
+    counted in ``stats`` (``state.<STATE>``, ``poses_out``, ``keyframes``, the refined and
+    loop-corrected keyframe poses)."""
+
+    def __init__(self, node: Node, world_frame: str, camera_frame: str, path_max_len: int, path_rate_hz: float,
+                 stats: NodeStats) -> None:
+        self.world_frame, self.camera_frame, self.stats = world_frame, camera_frame, stats
+        rel = qos.reliable(10)
+        self.pose = node.create_publisher(PoseStamped, "memgs/pose", rel)
+        self.odom = node.create_publisher(Odometry, "memgs/odom", rel)
+        self.path_pub = node.create_publisher(Path, "memgs/path", rel)
+        self.state = node.create_publisher(String, "memgs/tracking_state", rel)
+        self.processed_pub = node.create_publisher(Header, "memgs/tracker/processed", qos.reliable(100))
+        self.keyframes = KeyframeOutbox(node, world_frame)
+        self.path = CorrectedPath(world_frame, path_max_len)
+        node.create_timer(1.0 / path_rate_hz, self.publish_path)
+
+    def processed(self, stamp_ns: int, keyframe: bool = False) -> None:
+        """The answer for every frame handled, tracked or refused (a lockstep player waits on it)."""
+        self.processed_pub.publish(make_header(stamp_ns, "keyframe" if keyframe else "frame"))
+
+    def frame(self, result: TrackResult, camera: PinholeCamera, color: Image, depth: Image | None,
+              refined: list[tuple[int, np.ndarray]], corrected: list[tuple[int, np.ndarray]],
+              loops: list[Mapping[int, np.ndarray]]) -> None:
+        """A tracked frame: its state, pose and odometry (when not lost), its keyframe messages,
+        the keyframe poses that moved meanwhile (``refined`` by local BA, ``corrected`` by a loop
+        closure; ``loops``: the closures' world-frame corrections), then its answer."""
+        stats, stamp = self.stats, result.stamp_ns
+        camera_frame = color.header.frame_id or self.camera_frame
+        self.state.publish(String(data=result.state.name))
+        stats.counters[f"state.{result.state.name}"] += 1
+        stats.gauges["segment"] = result.segment_id
+        pose = None
+        if result.T_wc is not None:
+            pose = matrix_to_pose_stamped(result.T_wc, stamp, self.world_frame)
+            self.pose.publish(pose)
+            self.odom.publish(matrix_to_odometry(result.T_wc, stamp, self.world_frame, camera_frame))
+            stats.counters["poses_out"] += 1
+            if result.keyframe is not None:
+                self.keyframes.publish(result, camera, camera_frame, color, depth)
+                stats.counters["keyframes"] += 1
+        for poses, pub, counter in ((refined, self.keyframes.refined, "refined_keyframe_poses"),
+                                    (corrected, self.keyframes.loop, "loop_corrected_keyframe_poses")):
+            if poses:
+                stats.counters[counter] += self.keyframes.publish_poses(poses, pub)
+        self.path.add(result, pose, list(loops))
+        self.processed(stamp, keyframe=result.keyframe is not None)
+
+    def publish_path(self) -> None:
+        msg = self.path.take_message()
+        if msg is not None:
+            self.path_pub.publish(msg)
