@@ -63,6 +63,8 @@ def device_problem(device: str, backend: str = "auto") -> str:
     if entry is None:
         return f"mapping.raster_backend={backend!r}: no such rasterizer ({', '.join(['auto', *REGISTRY])})"
     why = entry.why_not(dev)
+    if not why and backend.startswith("gsplat") and dev.type != "cuda":
+        why = "gsplat renders on CUDA"
     if not why:
         return ""
     fix = _INSTALL_GSPLAT if why == "the gsplat package is not installed" else "or set mapping.raster_backend=auto"

@@ -84,10 +84,8 @@ def _numba_why_not(device: torch.device) -> str:
     return "" if numba_available() else "numba is not importable (or MEMGS_DISABLE_NUMBA is set)"
 
 
-def _gsplat_why_not(device: torch.device) -> str:
-    if not gsplat_available():
-        return "the gsplat package is not installed"
-    return "" if device.type == "cuda" else f"gsplat renders on CUDA, the tensors are on {device}"
+def _gsplat_why_not(_device: torch.device) -> str:
+    return "" if gsplat_available() else "the gsplat package is not installed"
 
 
 # In order of preference for backend="auto".
