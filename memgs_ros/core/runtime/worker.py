@@ -137,7 +137,8 @@ class CommandWorker:
         return BACKGROUND_ERROR_PAUSE_S
 
     def _after_command(self, cmd: Command[Any]) -> None:
-        """Runs on the worker after each command (e.g. publish a new status value)."""
+        """Runs on the worker after each command, before its future resolves (e.g. publish a new
+        status value that includes it)."""
 
     def _take(self, cmd: Command[Any]) -> None:
         """A command leaves the queue to run (called under the worker's condition)."""
@@ -212,11 +213,18 @@ class CommandWorker:
                 continue
             if not cmd.future.set_running_or_notify_cancel():
                 continue
+            error: BaseException | None = None
             try:
-                cmd.future.set_result(cmd.run())
+                result = cmd.run()
             except BaseException as err:  # noqa: BLE001 - handed to the caller through its future
-                cmd.future.set_exception(err)
-            self._after_command(cmd)
+                error = err
+            try:  # the hook first: whoever waited on the future then reads a status that includes it
+                self._after_command(cmd)
+            finally:  # resolved even when the hook fails (which ends the worker)
+                if error is not None:
+                    cmd.future.set_exception(error)
+                else:
+                    cmd.future.set_result(result)
 
     @staticmethod
     def _fail(commands: list[Command[Any]], err: WorkerStopped) -> None:
