@@ -136,6 +136,7 @@ class NodeProcesses:
                 p.send_signal(signal.SIGINT)
         end = time.monotonic() + timeout_s
         try:
+            logger.info("stopping the nodes (each saves what it holds; Ctrl-C kills them)")
             for name, p in list(self.procs.items()):
                 try:
                     p.wait(timeout=max(0.1, end - time.monotonic()))
