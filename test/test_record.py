@@ -77,6 +77,7 @@ def test_bag_stream_replaces_only_when_complete_and_abort_keeps_the_old_file(tmp
 
 def test_background_stream_survives_ctrl_c_in_the_caller_and_reports_write_errors(tmp_path: Path) -> None:
     import _thread
+    import signal
     import threading
 
     out = tmp_path / "bg.mcap"
@@ -89,8 +90,11 @@ def test_background_stream_survives_ctrl_c_in_the_caller_and_reports_write_error
         while not interrupted.wait(0.2):  # (library code may swallow one that lands inside it)
             _thread.interrupt_main()
 
+    # Python's own SIGINT handler, whatever an earlier test in this process left installed (a
+    # handler that only sets a flag would swallow every simulated Ctrl-C).
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     threading.Thread(target=ctrl_c, daemon=True).start()
-    deadline = time.monotonic() + 30.0
+    deadline = time.monotonic() + 60.0
     try:
         with pytest.raises(KeyboardInterrupt):
             while time.monotonic() < deadline:  # bounded: a lost interrupt fails the test, never hangs it
@@ -98,6 +102,8 @@ def test_background_stream_survives_ctrl_c_in_the_caller_and_reports_write_error
                     sent += 1
     finally:
         interrupted.set()
+        if previous is not None:  # None: installed outside Python, left as it is
+            signal.signal(signal.SIGINT, previous)
     assert bag.close() > 0 and not bag.is_open and bag.write("/memgs/pose", 0, b"") is False
     _, msgs = _read(out)  # whole: every record the caller handed over, none cut in half
     # (the interrupt may land after the last one was queued but before `sent` counted it)
