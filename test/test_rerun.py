@@ -285,6 +285,17 @@ def test_view_streams_to_a_viewer_at_a_url(tmp_path: Path) -> None:
                 assert time.monotonic() < end and server.poll() is None, "the rerun server did not start"
                 time.sleep(0.2)
         assert main(["view", str(tmp_path), "--url", f"rerun+http://127.0.0.1:{port}/proxy"]) == 0
+
+        def saved_map() -> int:
+            try:
+                centers = _component(_rows(received)["/world/map"], CENTERS)
+            except Exception:  # noqa: BLE001 - not there yet, or a chunk still being written
+                return 0
+            return len(centers[0]) if len(centers) == 1 else 0
+
+        end = time.monotonic() + 120  # the server writes what it received as it comes
+        while saved_map() != len(records) and time.monotonic() < end:
+            time.sleep(0.2)
         os.killpg(server.pid, signal.SIGINT)  # the server writes the file's footer and exits
         end = time.monotonic() + 180
         while (server.poll() is None or group_alive()) and time.monotonic() < end:
