@@ -40,7 +40,8 @@ def node_pids(out: Path) -> dict[int, str]:
 
 
 def start_run(out: Path, domain: int) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", "synthetic:w=96,h=72,n=900,seed=3",
+    # 2 minutes of frames: still running when a test interrupts it, on a busy machine too
+    cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", "synthetic:w=96,h=72,n=3600,seed=3",
            "--config", "synthetic", "--out", str(out), "--domain-id", str(domain), "--realtime"]
     log = open(out.parent / f"{out.name}.log", "wb")  # noqa: SIM115 - the child's
     return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)

@@ -249,7 +249,7 @@ def test_view_takes_explicit_files_and_reports_bad_ones(tmp_path: Path, capsys: 
     assert "not supported" in capsys.readouterr().err
 
 
-@pytest.mark.filterwarnings("ignore:RRD file has no footer")  # the rerun CLI's --save writes none on Ctrl-C
+@pytest.mark.filterwarnings("ignore:RRD file has no footer")  # read while the server still writes it
 def test_view_streams_to_a_viewer_at_a_url(tmp_path: Path) -> None:
     """--url (as --rerun-url on a run) streams over gRPC: a `rerun` server that saves what it
     receives stands in for the viewer on another machine."""
@@ -293,20 +293,14 @@ def test_view_streams_to_a_viewer_at_a_url(tmp_path: Path) -> None:
                 return 0
             return len(centers[0]) if len(centers) == 1 else 0
 
-        end = time.monotonic() + 120  # the server writes what it received as it comes
-        while saved_map() != len(records) and time.monotonic() < end:
+        end = time.monotonic() + 180  # the server writes what it received as it comes
+        while (got := saved_map()) != len(records) and time.monotonic() < end:
             time.sleep(0.2)
-        os.killpg(server.pid, signal.SIGINT)  # the server writes the file's footer and exits
-        end = time.monotonic() + 180
-        while (server.poll() is None or group_alive()) and time.monotonic() < end:
-            time.sleep(0.2)
-        assert server.poll() is not None and not group_alive(), "the rerun server did not stop on SIGINT"
-    finally:
+    finally:  # not a graceful stop: beside a disk kept busy it took minutes (the file needs no footer)
         if group_alive():
             os.killpg(server.pid, signal.SIGKILL)
         server.wait(timeout=30)
-    centers = _component(_rows(received)["/world/map"], CENTERS)
-    assert len(centers) == 1 and len(centers[0]) == len(records)
+    assert got == len(records), f"the viewer's file holds {got} of the map's {len(records)} Gaussians"
 
 
 def test_without_rerun_sdk_every_rerun_option_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
