@@ -3,6 +3,14 @@ from __future__ import annotations
 
 import os
 import random
+import signal
+
+# A suite started in the background (`cmd &` in a script, nohup) inherits SIGINT ignored, and so
+# would every runner and node it starts: the tests of Ctrl-C would then test nothing and fail. A
+# handled SIGINT is reset to the default in each child it starts, where Python maps it to
+# KeyboardInterrupt as it does for a user's Ctrl-C.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # Before numpy/torch load their thread pools: two shared cores (see memgs_ros/orchestration/pipeline.py).
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
