@@ -189,11 +189,15 @@ class MergerNode(Node):
         """Ask the mapper for a snapshot (it arrives on the snapshot topic); a refusal or a failed
         call is counted and logged (``problem.snapshot_request``), not dropped with its future."""
         def answered(future: Future) -> None:
-            err = None if future.cancelled() else future.exception()
-            res = None if err is not None or future.cancelled() else future.result()
-            if err is not None or (res is not None and not res.success):
-                why = f"{type(err).__name__}: {err}" if err is not None else res.message
-                self.stats.problem("snapshot_request", f"the mapper did not take a snapshot request: {why}")
+            try:  # rclpy's result() never waits: it returns what was set (None when cancelled) or raises
+                res = future.result()
+            except Exception as err:  # noqa: BLE001 - counted and logged below
+                why = f"{type(err).__name__}: {err}"
+            else:
+                if res is None or res.success:
+                    return
+                why = res.message
+            self.stats.problem("snapshot_request", f"the mapper did not take a snapshot request: {why}")
 
         self.snapshot_client.call_async(Trigger.Request()).add_done_callback(answered)
         self.stats.counters["snapshot_requests"] += 1

@@ -198,12 +198,13 @@ class TrackerNode(Node):
             return
         self.stats.counters["frames_in"] += 1
         frame = self._frame(color, depth)
-        if frame is None or self.tracker is None or self.cams.camera is None:
+        if frame is None:
             self.out.processed(stamp_to_ns(color.header.stamp))
             return
-        t = self.tracker
+        t, cam = self.tracker, self.cams.camera
+        assert t is not None and cam is not None  # made together with the camera (_camera_set)
         result = self._track(t, frame)
-        self.out.frame(result, self.cams.camera, color, depth, t.poll_refined_keyframes(),
+        self.out.frame(result, cam, color, depth, t.poll_refined_keyframes(),
                        t.poll_loop_corrected_keyframes(), t.poll_loop_corrections())
         cost_ms = (time.thread_time() - cpu0) * 1e3
         self._frame_cpu_ms.add(cost_ms)

@@ -172,7 +172,7 @@ class TrackerOutbox:
                                     (corrected, self.keyframes.loop, "loop_corrected_keyframe_poses")):
             if poses:
                 stats.counters[counter] += self.keyframes.publish_poses(poses, pub)
-        self.path.add(result, pose, list(loops))
+        self.path.add(result, pose, loops)
         self.processed(stamp, keyframe=result.keyframe is not None)
 
     def publish_path(self) -> None:
