@@ -8,13 +8,26 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
 
+from collections.abc import Mapping  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+
+from memgs_ros.core.runtime.telemetry import NodeTelemetry, StatsError  # noqa: E402
 from memgs_ros.ros.diagnostics import NodeStats, stats_values  # noqa: E402
+
+
+@dataclass(frozen=True)
+class _TestTelemetry(NodeTelemetry):
+    posted: int = 0
+    g0: Mapping[str, int] = None  # type: ignore[assignment]  # families g0.* .. g3.*
+    g1: Mapping[str, int] = None  # type: ignore[assignment]
+    g2: Mapping[str, int] = None  # type: ignore[assignment]
+    g3: Mapping[str, int] = None  # type: ignore[assignment]
 
 
 def test_posts_from_many_threads_are_applied_whole(context) -> None:  # noqa: ANN001
     node = rclpy.create_node("stats_test", context=context)
     try:
-        stats = NodeStats(node, "stats_test", period_s=3600.0)
+        stats = NodeStats(node, "stats_test", period_s=3600.0, record=_TestTelemetry)
         n_threads, n_posts = 4, 2000
         stop = threading.Event()
         errors: list[BaseException] = []
@@ -46,5 +59,26 @@ def test_posts_from_many_threads_are_applied_whole(context) -> None:  # noqa: AN
         assert int(values["posted"]) == n_threads * n_posts
         assert all(int(values[f"problem.kind{k}"]) == 1 for k in range(n_threads))
         assert int(values["g0.49"]) == n_posts - 1  # the last value posted wins
+    finally:
+        node.destroy_node()
+
+
+def test_a_key_the_record_does_not_name_is_refused_where_it_is_written(context) -> None:  # noqa: ANN001
+    node = rclpy.create_node("stats_keys", context=context)
+    try:
+        stats = NodeStats(node, "tracker", period_s=3600.0)  # the tracker's record, by name
+        stats.counters["frames_in"] += 1
+        stats.counters["skipped.stale"] += 1  # a member of the skipped.* family
+        stats.gauges.update(frame_cpu_ms=1.5)
+        for write in (lambda: stats.counters.__setitem__("frames_received", 1),
+                      lambda: stats.gauges.update({"frame_cpu": 1.0}),
+                      lambda: stats.counters.update({"skipped": 1}),  # a family needs a member
+                      lambda: stats.post_count("poses"), lambda: stats.post_gauge("warmup_s", 1.0)):
+            with pytest.raises(StatsError, match="TrackerTelemetry has no stats key"):
+                write()
+        values = stats_values(stats.message())
+        assert values["frames_in"] == "1" and values["skipped.stale"] == "1"
+        with pytest.raises(StatsError, match="no telemetry record"):
+            NodeStats(node, "no_such_node")
     finally:
         node.destroy_node()

@@ -14,12 +14,12 @@ import torch
 
 pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install -e '.[ros]')")
 
-from memgs_ros.core.mapping.gaussians import GaussianMap  # noqa: E402
 from memgs_ros.core.geometry.poses import invert_pose  # noqa: E402
-from memgs_ros.core.metrics.image import psnr  # noqa: E402
+from memgs_ros.core.mapping.gaussians import GaussianMap  # noqa: E402
 from memgs_ros.core.maps.ply import load_ply  # noqa: E402
-from memgs_ros.core.raster import rasterize  # noqa: E402
+from memgs_ros.core.metrics.image import psnr  # noqa: E402
 from memgs_ros.core.metrics.trajectory import ate  # noqa: E402
+from memgs_ros.core.raster import rasterize  # noqa: E402
 from memgs_ros.io.bag_writer import write_bag  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.io.tum import read_trajectory  # noqa: E402
@@ -215,15 +215,15 @@ def test_a_kill_waits_until_the_node_has_state_to_lose() -> None:
     from memgs_ros.orchestration.pipeline import _has_state_to_lose, _Observer
 
     obs = _Observer.__new__(_Observer)  # the stats table alone, no rclpy node
-    obs.stats = {}
+    obs.stats, obs._parsed = {}, {}  # each message's values are replaced whole, as the callback does
     assert not _has_state_to_lose(obs, "mapper")  # no stats from it yet
     obs.stats["mapper"] = {"checkpoint_period_s": "1.0", "gaussians": "5000", "checkpoint_gaussians": "0"}
     assert not _has_state_to_lose(obs, "mapper")  # mapping, but its checkpoint is empty
-    obs.stats["mapper"]["checkpoint_gaussians"] = "4800"
+    obs.stats["mapper"] = {**obs.stats["mapper"], "checkpoint_gaussians": "4800"}
     assert _has_state_to_lose(obs, "mapper")
     obs.stats["mapper"] = {"checkpoint_period_s": "0.0", "gaussians": "0"}
     assert not _has_state_to_lose(obs, "mapper")
-    obs.stats["mapper"]["gaussians"] = "10"
+    obs.stats["mapper"] = {**obs.stats["mapper"], "gaussians": "10"}
     assert _has_state_to_lose(obs, "mapper")
     assert not _has_state_to_lose(obs, "merger")
     obs.stats["merger"] = {"seq": "3"}

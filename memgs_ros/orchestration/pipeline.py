@@ -34,6 +34,7 @@ from memgs_ros.core.geometry.poses import pose_to_tq
 from memgs_ros.core.maps.map_delta import decode
 from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.core.runtime.cpu import MALLOC_ARENAS
+from memgs_ros.core.runtime.telemetry import TELEMETRY, parse_stats
 from memgs_ros.errors import ConfigError, PipelineError
 from memgs_ros.orchestration.processes import (
     NODE_FACTORIES,
@@ -85,7 +86,8 @@ class _Observer:
         self.node = Node("memgs_run_observer", context=context)
         self.done = threading.Event()
         self.source_ok = True  # False when the player reported a source that failed part-way
-        self.stats: dict[str, dict[str, str]] = {}
+        self.stats: dict[str, dict[str, str]] = {}  # each node's latest stats, replaced whole
+        self._parsed: dict[str, tuple[dict[str, str], Any]] = {}  # node -> (values, their record)
         self.trajectory: list[tuple[int, np.ndarray]] = []
         self.corrected: dict[int, np.ndarray] = {}  # memgs/path: poses re-expressed after BA / loop closure
         self.keyframes: list[tuple[int, np.ndarray]] = []
@@ -154,11 +156,19 @@ class _Observer:
             raise PipelineError(f"service {client.srv_name} failed: {res.message}")
         return res.message
 
-    def stat(self, node: str, key: str, default: float = 0.0) -> float:
-        try:
-            return float(self.stats.get(node, {}).get(key, default))
-        except ValueError:
-            return default
+    def heard(self, node: str) -> bool:
+        """Whether ``node`` has published its stats at least once."""
+        return node in self.stats
+
+    def telemetry(self, node: str) -> Any:  # noqa: ANN401 - the node's record (core/runtime/telemetry.py)
+        """``node``'s latest stats as its typed record (its defaults before the first message); a
+        key the record does not name is a StatsError, not a figure silently read as 0."""
+        values = self.stats.get(node, {})
+        cached = self._parsed.get(node)
+        if cached is None or cached[0] is not values:
+            cached = (values, parse_stats(TELEMETRY[node], values))
+            self._parsed[node] = cached
+        return cached[1]
 
 
 def _parse_kv(message: str) -> dict[str, str]:
@@ -290,13 +300,14 @@ def _write_ended_summary(out: Path, options: RunOptions, obs: _Observer, err: Ba
     interrupted = isinstance(err, KeyboardInterrupt)  # StopRequested (SIGTERM, SIGHUP) is one
     line = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
     try:
+        tracker = obs.telemetry("tracker")
         ended = {
             "source": str(options.source), "outcome": "interrupted" if interrupted else "failed",
             "error": line if not interrupted else f"interrupted ({line})", "wall_s": round(wall_s, 1),
-            "frames_played": int(obs.stat("player", "frames_published")),
-            "frames": int(obs.stat("tracker", "frames_in")), "poses": len(obs.trajectory),
-            "lost_frames": int(obs.stat("tracker", "state.LOST")), "keyframes": int(obs.stat("tracker", "keyframes")),
-            "gaussians": int(obs.stat("mapper", "gaussians")), "merger_seq": int(obs.stat("merger", "seq")),
+            "frames_played": obs.telemetry("player").frames_published,
+            "frames": tracker.frames_in, "poses": len(obs.trajectory),
+            "lost_frames": tracker.state.get("LOST", 0), "keyframes": tracker.keyframes,
+            "gaussians": obs.telemetry("mapper").gaussians, "merger_seq": obs.telemetry("merger").seq,
             "source_complete": False, "map_path": str(out / MAP_FILE),  # the merger saves its map as it stops
         }
         _write_text(out / SUMMARY_FILE, json.dumps(ended, indent=2) + "\n")
@@ -369,7 +380,7 @@ def _wait_for_warm_graph(obs: _Observer, procs: NodeProcesses | None, nodes: Seq
     cores, which ``memgs doctor --warm`` does ahead). A frame played before that would be dropped
     by a live tracker (skipped.warming) or wait in lockstep, and cost the track the next dozen."""
     start, told = time.monotonic(), False
-    while missing := [n for n in nodes if obs.stat(n, "kernels_warm") < 1]:
+    while missing := [n for n in nodes if obs.telemetry(n).kernels_warm < 1]:
         if procs is not None:
             procs.check()
         now = time.monotonic()
@@ -388,13 +399,12 @@ def _has_state_to_lose(obs: _Observer, name: str) -> bool:
     (A kill counted in seconds alone once hit a mapper that had not started mapping on a loaded
     machine, and its second life resumed an empty checkpoint.)"""
     if name == "mapper":
-        period = obs.stat("mapper", "checkpoint_period_s", -1.0)
-        if period < 0:  # no stats from it yet
+        if not obs.heard("mapper"):
             return False
-        return (obs.stat("mapper", "checkpoint_gaussians") > 0 if period > 0
-                else obs.stat("mapper", "gaussians") > 0)
+        mapper = obs.telemetry("mapper")
+        return (mapper.checkpoint_gaussians > 0 if mapper.checkpoint_period_s > 0 else mapper.gaussians > 0)
     if name == "merger":
-        return obs.stat("merger", "seq") > 0
+        return obs.telemetry("merger").seq > 0
     return True
 
 
@@ -423,7 +433,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
             procs.start_due()
             procs.check()
             if _player_ended_unheard(procs):
-                total, played = obs.stat("player", "frames_total"), obs.stat("player", "frames_published")
+                player = obs.telemetry("player")
+                total, played = player.frames_total, player.frames_published
                 if total and played < total:  # stopped from outside (Ctrl-C exits 0 too), not done
                     logger.error("the bag player stopped after %d of %d frames: the map holds those", played, total)
                     obs.source_ok = False
@@ -450,8 +461,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
     final = _parse_kv(obs.call(obs.finish_client, max(60.0, end - time.monotonic())))
     final_seq, gaussians = int(final.get("seq", 0)), int(final.get("gaussians", 0))
     epoch = int(final.get("epoch", 0))
-    while (obs.stat("merger", "seq", -1) < final_seq or obs.stat("merger", "resyncing") > 0
-           or obs.stat("merger", "epoch", -1) != epoch):
+    while (not obs.heard("merger") or (merger := obs.telemetry("merger")).seq < final_seq
+           or merger.resyncing > 0 or merger.epoch != epoch):
         if procs is not None:
             procs.check()
         if time.monotonic() > end:
@@ -474,30 +485,24 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
     _write_text(out / KEYFRAMES_FILE, _tum_trajectory(kfs))  # poses at insertion
     with obs._lock:
         _write_text(out / STATS_TIMELINE_FILE, "".join(json.dumps(row) + "\n" for row in obs.timeline))
-    frames = int(obs.stat("tracker", "frames_in"))
-    track_s = obs.stat("tracker", "track_us_total") * 1e-6
-    delta_bytes = int(obs.stat("merger", "delta_bytes"))
+    tracker, mapper, merger = obs.telemetry("tracker"), obs.telemetry("mapper"), obs.telemetry("merger")
+    track_s = tracker.track_us_total * 1e-6
     summary = RunSummary(
-        source=str(options.source), frames=frames, poses=len(traj),
-        keyframes=int(obs.stat("tracker", "keyframes")), gaussians=gaussians,
-        tracking_fps=(frames / track_s) if track_s > 0 else 0.0, wall_s=wall, ply_path=ply,
-        trajectory_path=str(traj_path), delta_messages=int(obs.stat("merger", "deltas")),
-        delta_bytes=delta_bytes, delta_bytes_per_s=delta_bytes / wall if wall > 0 else 0.0,
-        lost_frames=int(obs.stat("tracker", "state.LOST")), merger_seq=int(obs.stat("merger", "seq")),
+        source=str(options.source), frames=tracker.frames_in, poses=len(traj),
+        keyframes=tracker.keyframes, gaussians=gaussians,
+        tracking_fps=(tracker.frames_in / track_s) if track_s > 0 else 0.0, wall_s=wall, ply_path=ply,
+        trajectory_path=str(traj_path), delta_messages=merger.deltas,
+        delta_bytes=merger.delta_bytes, delta_bytes_per_s=merger.delta_bytes / wall if wall > 0 else 0.0,
+        lost_frames=tracker.state.get("LOST", 0), merger_seq=merger.seq,
         namespace=options.namespace, domain_id=int(os.environ["ROS_DOMAIN_ID"]),
-        mapping_iterations=int(obs.stat("mapper", "iteration")),
-        model_bytes_peak=int(obs.stat("mapper", "model_bytes_peak")),
-        gaussians_peak=int(obs.stat("mapper", "gaussians_peak")),
-        peak_rss_mb={n: obs.stat(n, "peak_rss_mb") for n in GRAPH_NODES},
-        cpu_s=_cpu_times(obs, procs),
-        merger_resyncs=sum(int(v) for k, v in obs.stats.get("merger", {}).items() if k.startswith("resync.")),
-        restarts=restarts,
+        mapping_iterations=mapper.iteration, model_bytes_peak=mapper.model_bytes_peak,
+        gaussians_peak=mapper.gaussians_peak,
+        peak_rss_mb={n: obs.telemetry(n).peak_rss_mb for n in GRAPH_NODES},
+        cpu_s=_cpu_times(obs, procs), merger_resyncs=sum(merger.resync.values()), restarts=restarts,
         replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render),
-        source_complete=obs.source_ok, frames_played=int(obs.stat("player", "frames_published")),
-        tracker_skipped={k: int(obs.stat("tracker", f"skipped.{k}")) for k in ("warming", "stale", "busy")},
-        tracker_frame_cpu_ms=float(obs.stat("tracker", "frame_cpu_ms_median")),
-        skipped_frames={k.removeprefix("skipped."): int(float(v)) for k, v in obs.stats.get("player", {}).items()
-                        if k.startswith("skipped.")},
+        source_complete=obs.source_ok, frames_played=obs.telemetry("player").frames_published,
+        tracker_skipped={k: tracker.skipped.get(k, 0) for k in ("warming", "stale", "busy")},
+        tracker_frame_cpu_ms=tracker.frame_cpu_ms_median, skipped_frames=dict(obs.telemetry("player").skipped),
         **_mapper_figures(obs, options.composed))
     # The summary is a file of the run, so evaluation reads a finished run instead of watching it.
     _write_text(out / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2) + "\n")
@@ -506,26 +511,23 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
 
 def _mapper_figures(obs: _Observer, composed: bool) -> dict[str, Any]:
     """The mapper's keyframe and iteration figures and the graph's memory, for RunSummary."""
-    def pair(name: str) -> dict[str, float]:
-        return {q: obs.stat("mapper", f"keyframe_{name}_{q}") for q in ("median", "p95")
-                if f"keyframe_{name}_{q}" in obs.stats.get("mapper", {})}
+    mapper = obs.telemetry("mapper")
 
-    cuda = obs.stat("mapper", "cuda_max_allocated", -1.0)
-    cuda_mb = round(cuda / 2**20, 1) if cuda >= 0 else None
-    rss = [obs.stat(n, "peak_rss_mb") for n in GRAPH_NODES]
+    def pair(name: str) -> dict[str, float]:
+        quantiles = {q: getattr(mapper, f"keyframe_{name}_{q}") for q in ("median", "p95")}
+        return {q: v for q, v in quantiles.items() if v is not None}
+
+    cuda_mb = round(mapper.cuda_max_allocated / 2**20, 1) if mapper.cuda_max_allocated is not None else None
+    rss = [obs.telemetry(n).peak_rss_mb for n in GRAPH_NODES]
     host = max(rss, default=0.0) if composed else sum(rss)
-    commands = obs.stat("mapper", "train_commands")
-    lockstep = {} if commands <= 0 else {
-        "frame": obs.stat("player", "ack_wait_ms_median"), "tracker": obs.stat("tracker", "frame_ms_median"),
-        "mapper": obs.stat("mapper", "lockstep_ack_ms_median"),
-        "training": round(obs.stat("mapper", "train_ms_total") / commands, 2)}
-    return {"lockstep_ms": lockstep, "mapping_iterations_final": int(obs.stat("mapper", "iterations_final")),
-            "keyframes_mapped": int(obs.stat("mapper", "keyframes")),
-            "keyframes_trained": int(obs.stat("mapper", "keyframes_used")),
+    lockstep = {} if mapper.train_commands <= 0 else {
+        "frame": obs.telemetry("player").ack_wait_ms_median, "tracker": obs.telemetry("tracker").frame_ms_median,
+        "mapper": mapper.lockstep_ack_ms_median, "training": round(mapper.train_ms_total / mapper.train_commands, 2)}
+    return {"lockstep_ms": lockstep, "mapping_iterations_final": mapper.iterations_final,
+            "keyframes_mapped": mapper.keyframes, "keyframes_trained": mapper.keyframes_used,
             "keyframe_intake_ms": pair("intake_ms"), "keyframe_latency_ms": pair("latency_ms"),
             "cuda_peak_mb": cuda_mb, "graph_memory_mb": round(host + (cuda_mb or 0.0), 1),
-            "cuda_peak_by_work_mb": {k.removeprefix("cuda_peak_mb."): obs.stat("mapper", k)
-                                     for k in obs.stats.get("mapper", {}) if k.startswith("cuda_peak_mb.")}}
+            "cuda_peak_by_work_mb": dict(mapper.cuda_peak_mb)}
 
 
 def _cpu_times(obs: _Observer, procs: NodeProcesses | None) -> dict[str, float]:
@@ -533,8 +535,8 @@ def _cpu_times(obs: _Observer, procs: NodeProcesses | None) -> dict[str, float]:
     process (``--composed``) the process's total."""
     if procs is None:
         return {"all nodes": round(time.process_time(), 2)}
-    names = [n for n in _STATS_NODES if obs.stat(n, "cpu_s") > 0]
-    return {**{n: obs.stat(n, "cpu_s") for n in names}, "runner": round(time.process_time(), 2)}
+    cpu = {n: obs.telemetry(n).cpu_s for n in _STATS_NODES}
+    return {**{n: s for n, s in cpu.items() if s > 0}, "runner": round(time.process_time(), 2)}
 
 
 _DONE_GRACE_S = 3.0  # after the player's exit, how long its latched "done" may still be in flight
@@ -558,13 +560,12 @@ def _player_ended_unheard(procs: NodeProcesses) -> bool:
 
 def _show_progress(bar: tqdm, obs: _Observer) -> None:
     """Frames the player published out of its total, with keyframes and Gaussians beside them."""
-    total = int(obs.stat("player", "frames_total"))
-    if total and bar.total != total:
-        bar.total = total
-    done = int(obs.stat("player", "frames_published"))
-    if done > bar.n:
-        bar.update(done - bar.n)
-    bar.set_postfix(keyframes=int(obs.stat("tracker", "keyframes")), gaussians=int(obs.stat("mapper", "gaussians")),
+    player = obs.telemetry("player")
+    if player.frames_total and bar.total != player.frames_total:
+        bar.total = player.frames_total
+    if player.frames_published > bar.n:
+        bar.update(player.frames_published - bar.n)
+    bar.set_postfix(keyframes=obs.telemetry("tracker").keyframes, gaussians=obs.telemetry("mapper").gaussians,
                     refresh=False)
 
 
@@ -595,7 +596,7 @@ def _compare_maps(obs: _Observer, final_seq: int, epoch: int, end: float) -> tup
 def _wait_for_view(obs: _Observer, procs: NodeProcesses | None, final_seq: int, epoch: int, end: float) -> None:
     """Wait until the rerun_bridge has logged the final map (the one _compare_maps had the merger
     publish), so the recording ends with the saved map before the nodes are stopped."""
-    while obs.stat(VIEW_NODE, "map_seq", -1) < final_seq or obs.stat(VIEW_NODE, "map_epoch", -1) != epoch:
+    while (view := obs.telemetry(VIEW_NODE)).map_seq < final_seq or view.map_epoch != epoch:
         if procs is not None:
             procs.check()
         if time.monotonic() > end:

@@ -1,7 +1,9 @@
 """Node statistics as diagnostic_msgs/DiagnosticArray on ``memgs/<node>/stats``.
 
 Every node's stats carry ``peak_rss_mb``, ``rss_mb``, ``cpu_s`` (its process's CPU time so far) and
-``nice`` (its scheduling priority) beside the node's own counters and gauges."""
+``nice`` (its scheduling priority) beside the node's own counters and gauges; every key is a field
+of the node's telemetry record (``core/runtime/telemetry.py``), and a key the record does not name
+is refused where it is written."""
 from __future__ import annotations
 
 import os
@@ -9,13 +11,15 @@ import queue
 import resource
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from std_msgs.msg import Header
 
 from memgs_ros.core.runtime.cpu import release_free_memory
+from memgs_ros.core.runtime.telemetry import TELEMETRY, NodeTelemetry, StatsError, check_key
 from memgs_ros.ros import qos
 
 
@@ -38,6 +42,52 @@ class RollingMedian:
         return round(mid, 2)
 
 
+class _CheckedCounter(Counter[str]):
+    """A Counter that takes only the keys of one telemetry record."""
+
+    def __init__(self, record: type[NodeTelemetry]) -> None:
+        super().__init__()
+        self.record = record
+
+    def __setitem__(self, key: str, value: int) -> None:
+        check_key(self.record, key)
+        super().__setitem__(key, value)
+
+    def update(self, other: Any = None, /, **kwargs: int) -> None:  # noqa: ANN401 - Counter's signature
+        for key in _keys(other, kwargs):
+            check_key(self.record, key)
+        super().update(other, **kwargs)
+
+    def assign(self, values: Mapping[str, int]) -> None:
+        """Set each of ``values`` (totals kept elsewhere), where ``update`` would add them."""
+        for key, value in values.items():
+            self[key] = value
+
+
+class _CheckedDict(dict[str, Any]):
+    """A dict that takes only the keys of one telemetry record."""
+
+    def __init__(self, record: type[NodeTelemetry]) -> None:
+        super().__init__()
+        self.record = record
+
+    def __setitem__(self, key: str, value: Any) -> None:  # noqa: ANN401 - a gauge's value
+        check_key(self.record, key)
+        super().__setitem__(key, value)
+
+    def update(self, other: Any = None, /, **kwargs: Any) -> None:  # noqa: ANN401 - dict's signature
+        for key in _keys(other, kwargs):
+            check_key(self.record, key)
+        super().update(other or {}, **kwargs)
+
+
+def _keys(other: Any, kwargs: Mapping[str, Any]) -> Iterable[str]:  # noqa: ANN401
+    if other is None:
+        return kwargs.keys()
+    first = other.keys() if isinstance(other, Mapping) else [k for k, _ in other]
+    return [*first, *kwargs.keys()]
+
+
 class NodeStats:
     """Counters and gauges a node publishes once a second, plus warn-once logging per problem kind.
 
@@ -48,13 +98,17 @@ class NodeStats:
     them in order, so the dicts never have two writers.
     """
 
-    def __init__(self, node: Node, name: str, period_s: float = 1.0, trim_period_s: float = 30.0) -> None:
+    def __init__(self, node: Node, name: str, period_s: float = 1.0, trim_period_s: float = 30.0,
+                 record: type[NodeTelemetry] | None = None) -> None:
+        if record is None and name not in TELEMETRY:
+            raise StatsError(f"no telemetry record for node {name!r} (core/runtime/telemetry.py)")
+        self.record = record or TELEMETRY[name]
         self._node = node
         self._trim_period_s = trim_period_s  # release_free_memory this often (0 = never)
         self._last_trim = time.monotonic()
         self._name = name
-        self.counters: Counter[str] = Counter()
-        self.gauges: dict[str, float | int | str] = {}
+        self.counters = _CheckedCounter(self.record)
+        self.gauges = _CheckedDict(self.record)
         # Gauges computed when the message is built, for those too costly to update per frame.
         self.computed: dict[str, Callable[[], float | int | str]] = {}
         self._warned: set[str] = set()
@@ -71,14 +125,17 @@ class NodeStats:
 
     def post_count(self, name: str, n: int = 1) -> None:
         """From any thread: add ``n`` to counter ``name``."""
+        check_key(self.record, name)  # refused in the caller's thread, where the mistake is
         self._posted.put(("count", name, n))
 
     def post_counter(self, name: str, value: int) -> None:
         """From any thread: set counter ``name`` (a total kept elsewhere)."""
+        check_key(self.record, name)
         self._posted.put(("counter", name, value))
 
     def post_gauge(self, name: str, value: float | int | str) -> None:
         """From any thread: set gauge ``name``."""
+        check_key(self.record, name)
         self._posted.put(("gauge", name, value))
 
     def post_problem(self, kind: str, message: str) -> None:
