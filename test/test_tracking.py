@@ -232,12 +232,6 @@ def test_rgbd_keyframes_are_deferred_for_a_running_ba_a_bounded_number_of_frames
 
 
 def test_every_backend_is_a_tracker(frames: list[Frame]) -> None:
-    import inspect
-
-    from memgs_ros.core.tracking.orbslam3_backend import OrbSlam3Tracker
-
-    # explicit subclasses with every abstract method filled in (ORB-SLAM3 cannot be built here)
-    assert Tracker in OrbSlam3Tracker.__mro__ and not inspect.isabstract(OrbSlam3Tracker)
     mono = make_tracker(TrackerConfig(mode="mono", ba_enabled=False), frames[0].camera)
     rgbd = make_tracker(TrackerConfig(ba_threaded=False), frames[0].camera)
     try:
@@ -352,18 +346,6 @@ def test_close_stops_the_backend_thread(frames: list[Frame]) -> None:
     assert not backend.alive
     assert backend.close()  # idempotent: the thread has ended
     tracker.close()
-
-
-def test_orbslam3_backend_without_binding_is_a_clear_error(frames: list[Frame]) -> None:
-    try:
-        import pyorbslam3  # noqa: F401
-    except ImportError:
-        with pytest.raises(ConfigError, match="pyorbslam3"):
-            make_tracker(TrackerConfig(backend="orbslam3"), frames[0].camera)
-    else:
-        with pytest.raises(ConfigError, match="orbslam3_vocabulary"):
-            make_tracker(TrackerConfig(backend="orbslam3", orbslam3_vocabulary="/nonexistent"),
-                         frames[0].camera)
 
 
 def test_new_segment_after_lost_timeout(frames: list[Frame]) -> None:

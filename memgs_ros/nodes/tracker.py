@@ -227,7 +227,7 @@ class TrackerNode(Node):
         g["keyframes_deferred"] = int(getattr(tracker, "keyframes_deferred", 0))
         g["ba_waits"] = int(getattr(tracker, "ba_waits", 0))
         self.stats.counters["track_us_total"] += int(dt * 1e6)
-        smap = tracker.map_stats() if result.keyframe is not None else None  # None: ORB-SLAM3 has no map
+        smap = tracker.map_stats() if result.keyframe is not None else None
         if smap is not None:
             g["map_keyframes"], g["map_points"] = smap.keyframes, smap.points
             g["map_keyframes_removed"] = smap.keyframes_removed

@@ -44,11 +44,7 @@ def __getattr__(name: str) -> Any:
 
 
 def make_tracker(cfg: TrackerConfig, camera: PinholeCamera) -> Tracker:
-    """The tracker ``cfg`` asks for: RGB-D or monocular features, or ORB-SLAM3 when configured."""
-    if cfg.backend == "orbslam3":
-        from memgs_ros.core.tracking.orbslam3_backend import OrbSlam3Tracker
-
-        return OrbSlam3Tracker(cfg, camera)
+    """The tracker ``cfg`` asks for: RGB-D or monocular features."""
     if cfg.mode == "mono":
         from memgs_ros.core.tracking.monocular import MonocularTracker
 

@@ -10,7 +10,6 @@ import numpy as np
 from memgs_ros.errors import ConfigError
 
 MODES = ("rgbd", "mono")
-BACKENDS = ("feature", "orbslam3")
 
 
 class TrackingState(enum.Enum):
@@ -36,7 +35,6 @@ class TrackerConfig:
     """
 
     mode: str = "rgbd"
-    backend: str = "feature"
     # ORB extraction (ORB-SLAM defaults).
     n_features: int = 1000
     scale_factor: float = 1.2
@@ -119,10 +117,6 @@ class TrackerConfig:
     # A frame waits for the local BA in flight once it has run this long, in frames (0: never):
     # bounded staleness of the map the frame tracks on. At 30 Hz a 60 ms BA lands within 2 frames.
     mono_ba_max_frames_behind: int = 2
-    # Optional ORB-SLAM3 backend.
-    orbslam3_vocabulary: str = ""
-    orbslam3_settings: str = ""
-    seed: int = 0
 
     # Ranges a user can reason about, checked before a run starts and by the node at start.
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
@@ -146,15 +140,13 @@ class TrackerConfig:
         "loop_global_ba_budget_s": (0.0, 3600.0), "loop_global_ba_followup_keyframes": (0, 10**6),
         "mono_min_init_matches": (8, 100_000), "mono_min_parallax_deg": (0.0, 90.0),
         "mono_keyframe_tracked_ratio": (0.0, 1.0), "mono_min_triangulated": (3, 100_000),
-        "mono_homography_ratio": (0.0, 1.0), "mono_ba_max_frames_behind": (0, 1000), "seed": (0, 2**31 - 1),
+        "mono_homography_ratio": (0.0, 1.0), "mono_ba_max_frames_behind": (0, 1000),
     }
-    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": MODES, "backend": BACKENDS}
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": MODES}
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ConfigError(f"TrackerConfig.mode must be one of {MODES}, got {self.mode!r}")
-        if self.backend not in BACKENDS:
-            raise ConfigError(f"TrackerConfig.backend must be one of {BACKENDS}, got {self.backend!r}")
         positive = ("n_features", "scale_factor", "n_levels", "grid_cell_px", "search_radius_px",
                     "refine_radius_px", "max_reprojection_px", "min_inliers", "ransac_iterations",
                     "ransac_reprojection_px", "virtual_baseline_m", "keyframe_max_frames",

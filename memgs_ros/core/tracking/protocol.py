@@ -1,6 +1,6 @@
-"""What the tracker node needs from a tracking backend: one explicit interface.
+"""What the tracker node needs from a tracker: one explicit interface.
 
-Every backend (the RGB-D and monocular feature trackers, the ORB-SLAM3 adapter) subclasses
+Every tracker (the RGB-D and the monocular feature tracker) subclasses
 :class:`Tracker`, so a missing method is an error at construction (abstract) rather than an
 ``AttributeError`` in the middle of a run, and the node never probes with ``getattr``.
 """
