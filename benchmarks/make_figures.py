@@ -93,8 +93,8 @@ def readme_blocks(text: str) -> list[tuple[str, str, list[str]]]:
 def eval_figures(record: dict[str, Any], name: str, out_dir: Path) -> tuple[str, list[Path]]:
     """Table and figures of a bench_eval.py JSON: the ablation (or single) table, then the full
     variant's trajectory and PSNR-per-frame plots and, for an ablation, map size per variant."""
-    from memgs_ros.cli.eval_plots import save_ablation_plot, save_plots
-    from memgs_ros.cli.eval_tables import ablation_table, markdown_table
+    from memgs_ros.evaluation.figures import save_ablation_plot, save_plots
+    from memgs_ros.evaluation.tables import ablation_table, markdown_table
     from memgs_ros.evaluation import result_from_dict
 
     result = record["result"]

@@ -19,7 +19,7 @@ pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install
 
 from memgs_ros import evaluation  # noqa: E402
 from memgs_ros.cli import main  # noqa: E402
-from memgs_ros.cli.eval_tables import ablation_table  # noqa: E402
+from memgs_ros.evaluation.tables import ablation_table  # noqa: E402
 from memgs_ros.core.maps.ply import load_ply  # noqa: E402
 from memgs_ros.io.tum import read_trajectory  # noqa: E402
 

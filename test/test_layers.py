@@ -2,7 +2,8 @@
 each other in a circle (module-level imports, and imports inside functions too).
 
 Tiers, bottom up: errors; core (no rclpy); io (datasets, bags); viz (Rerun logging, no rclpy);
-ros (rclpy glue); nodes; orchestration (runs the graph); evaluation; cli. core/ must not import
+ros (rclpy glue); nodes; orchestration (runs the graph); evaluation (scores runs: tables,
+plots); cli. core/ must not import
 rclpy at all."""
 from __future__ import annotations
 
@@ -10,9 +11,9 @@ import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent.parent / "memgs_ros"
-TIERS = ("errors", "core", "io", "viz", "ros", "nodes", "orchestration", "evaluation", "plots", "cli")
+TIERS = ("errors", "core", "io", "viz", "ros", "nodes", "orchestration", "evaluation", "cli")
 # Tiers that may sit side by side (neither imports the other).
-SAME = {"plots": "evaluation"}
+SAME: dict[str, str] = {}
 
 
 def _tier(module: str) -> int | None:

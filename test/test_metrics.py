@@ -314,7 +314,7 @@ def test_psnr_map_size_and_frame_strip_plots() -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from memgs_ros.plots import frame_strip_image, plot_frame_strip, plot_map_size, plot_psnr_per_frame
+    from memgs_ros.evaluation.plots import frame_strip_image, plot_frame_strip, plot_map_size, plot_psnr_per_frame
 
     fig = Figure()
     FigureCanvasAgg(fig)

@@ -233,7 +233,7 @@ def test_trajectory_and_error_plots_draw_the_data() -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from memgs_ros.plots import plot_ate_errors, plot_trajectory_top
+    from memgs_ros.evaluation.plots import plot_ate_errors, plot_trajectory_top
 
     gt_p, est_p, _ = _hand_case()
     fig = Figure()

@@ -118,9 +118,9 @@ def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dic
     import torch
 
     from memgs_ros import evaluation
-    from memgs_ros.cli.eval_plots import save_ablation_plot, save_plots
-    from memgs_ros.cli.eval_tables import ablation_json, ablation_table, markdown_table
     from memgs_ros.core.runtime.cpu import configure_cpu_runtime
+    from memgs_ros.evaluation.figures import save_ablation_plot, save_plots
+    from memgs_ros.evaluation.tables import ablation_json, ablation_table, markdown_table
 
     if not torch.cuda.is_available():
         configure_cpu_runtime()  # this process renders every frame on CPU

@@ -1,7 +1,7 @@
 """What a run is given and what it leaves behind: options, the parameter file, the summary, and
 the names of the files in a run's output folder.
 
-Writers (:mod:`memgs_ros.orchestration.pipeline`) and readers (:mod:`memgs_ros.evaluation`)
+Writers (:mod:`memgs_ros.orchestration.pipeline`) and readers (:mod:`memgs_ros.evaluation.runs`)
 share these names. Importing this module loads no node, rclpy or torch, so the CLI can check
 its inputs quickly before anything starts.
 """

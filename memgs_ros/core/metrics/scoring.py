@@ -1,7 +1,7 @@
 """Scoring a map against images and a trajectory against ground truth (reference section 7).
 
 Pure functions on arrays and a ``GaussianMap``: no files, no ROS, no plotting. The run tier
-(:mod:`memgs_ros.evaluation`) reads a finished run's files and calls these.
+(:mod:`memgs_ros.evaluation.runs`) reads a finished run's files and calls these.
 
 - :func:`score_map`: render the map at every pose that matches a ground-truth image within
   ``FRAME_MATCH_MAX_DT_S`` and score it (PSNR, SSIM, LPIPS when given a function; PSNR also

@@ -1,5 +1,5 @@
-"""PNG plots of evaluation results for ``memgs eval`` (the CLI tier makes the figures; the
-drawing into an ``Axes`` is :mod:`memgs_ros.plots`). Loaded only when ``memgs eval`` runs.
+"""PNG plots of evaluation results, the figures ``memgs eval`` writes (the drawing into an
+``Axes`` is :mod:`memgs_ros.evaluation.plots`). Loaded only when ``memgs eval`` runs.
 """
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from memgs_ros import plots
-from memgs_ros.evaluation import EvalResult
+from memgs_ros.evaluation import plots
+from memgs_ros.evaluation.runs import EvalResult
 
 __all__ = ["save_ablation_plot", "save_plots"]
 

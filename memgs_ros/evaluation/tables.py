@@ -1,5 +1,5 @@
-"""Markdown tables of evaluation results for ``memgs eval`` (the CLI tier: the results
-themselves come from :mod:`memgs_ros.evaluation`, which knows nothing of their layout).
+"""Markdown tables of evaluation results for ``memgs eval`` (the results themselves come from
+:mod:`memgs_ros.evaluation.runs`, which knows nothing of their layout).
 
 Imports the results module (and so torch): ``memgs eval`` loads it only when it runs, never for
 ``memgs --help``.
@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from memgs_ros.evaluation import ABLATION_LABELS, FRAME_MATCH_MAX_DT_S, AblationResult, EvalResult
+from memgs_ros.evaluation.runs import ABLATION_LABELS, FRAME_MATCH_MAX_DT_S, AblationResult, EvalResult
 
 __all__ = ["TABLE_HEADER", "ablation_json", "ablation_table", "markdown_row", "markdown_table"]
 

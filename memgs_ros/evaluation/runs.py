@@ -1,7 +1,7 @@
 """Evaluation of a run (reference section 7): the paper's table for one sequence.
 
-The run tier between the pure scorers (:mod:`memgs_ros.core.metrics.scoring`) and the CLI
-(``memgs eval``, which makes the tables and plots):
+The tools tier between the pure scorers (:mod:`memgs_ros.core.metrics.scoring`) and the CLI
+(``memgs eval``; the tables and plots are this package's ``tables`` and ``figures``):
 
 - :func:`evaluate_run` reads a **finished** run's files (``summary.json``, ``params.yaml``,
   ``stats_timeline.jsonl``, ``map.ply``, ``trajectory.txt``, ``keyframes.txt``; see

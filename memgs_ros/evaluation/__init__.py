@@ -1,0 +1,41 @@
+"""Evaluation of runs, in evo's tiers: the pure scorers are core (:mod:`memgs_ros.core.metrics`:
+PSNR/SSIM/LPIPS, ATE and rotation error on arrays), this package is the tools tier, and
+``memgs eval`` (:mod:`memgs_ros.cli.evaluate`) is the CLI over it.
+
+- :mod:`.runs`: score a finished run from its files; run + score; the ablation;
+- :mod:`.tables`: Markdown tables of results;
+- :mod:`.plots`: trajectory, error, PSNR, map-size and frame-strip plots into an ``Axes``;
+- :mod:`.figures`: the PNG files ``memgs eval`` writes from those plots.
+
+The names below are :mod:`.runs`' public API (importing this package imports torch).
+"""
+from memgs_ros.evaluation.runs import (
+    ABLATION_LABELS,
+    ABLATION_VARIANTS,
+    ATE_MAX_DT_S,
+    FRAME_MATCH_MAX_DT_S,
+    AblationResult,
+    EvalResult,
+    MapSample,
+    MemoryResult,
+    QualityResult,
+    TrajectoryResult,
+    ablation,
+    evaluate,
+    evaluate_run,
+    map_samples,
+    mode_overrides,
+    node_peak_rss_mb,
+    result_from_dict,
+    score_map,
+    score_trajectory,
+    training_rate,
+    write_json,
+)
+
+__all__ = [
+    "ABLATION_LABELS", "ABLATION_VARIANTS", "ATE_MAX_DT_S", "FRAME_MATCH_MAX_DT_S", "AblationResult",
+    "EvalResult", "MapSample", "MemoryResult", "QualityResult", "TrajectoryResult", "ablation", "evaluate",
+    "evaluate_run", "map_samples", "mode_overrides", "node_peak_rss_mb", "result_from_dict", "score_map",
+    "score_trajectory", "training_rate", "write_json",
+]
