@@ -511,8 +511,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     run_overrides: dict[str, Any] = dict(mode_overrides(mode))
-    run_overrides.update({"mapper.mapping.seed": int(seed), "keyframe_sampler.patch_grid.seed": int(seed),
-                          "tracker.tracker.seed": int(seed)})
+    run_overrides.update({"mapper.mapping.seed": int(seed), "keyframe_sampler.patch_grid.seed": int(seed)})
     if resolution_scale is not None:
         if not (resolution_scale > 0):
             raise ConfigError(f"resolution_scale must be positive, got {resolution_scale}")
