@@ -6,7 +6,7 @@ ends by ``tc ... tbf rate R`` (a telemetry radio). The ground station is a node 
 that does what ``memgs run``'s observer does, from the ground: it watches every node's stats,
 views the mapper's live render (``memgs/render/color``), finishes the mapper at the end of the
 source, waits for the merger to hold the final map and compares the two maps
-(``pipeline._compare_maps``). DDS discovery is Fast DDS's own multicast, which crosses the veth.
+(``hooks.compare_maps``). DDS discovery is Fast DDS's own multicast, which crosses the veth.
 
 Measured: map-delta bytes (the merger's ``delta_bytes``) against the link rate, mean and peak
 (1 s); every byte on the wire from air to ground (the ground veth's counters); the time from the
@@ -58,7 +58,7 @@ from memgs_ros.core.runtime.cpu import MALLOC_ARENAS, PARENT_PID_ENV, die_with_p
 from memgs_ros.errors import MemgsError, PipelineError
 from memgs_ros.nodes.bag_player import LINGER_S
 from memgs_ros.nodes.registry import GRAPH, NODES
-from memgs_ros.orchestration.pipeline import _compare_maps, _parse_kv, _wait_for_graph
+from memgs_ros.orchestration.hooks import compare_maps, parse_trigger_message, wait_for_graph
 from memgs_ros.orchestration.processes import (
     NodeProcesses,
     open_context,
@@ -298,7 +298,7 @@ class GroundStation:
         self.poses = 0
         self.stats: dict[str, dict[str, str]] = {}
         self.merger_rows: list[tuple[float, dict[str, str]]] = []  # (arrival, values) of every merger stats
-        self.maps: dict[str, PointCloud2] = {}  # "mapper", "merger": the last whole map of each (_compare_maps)
+        self.maps: dict[str, PointCloud2] = {}  # "mapper", "merger": the last whole map of each (compare_maps)
         self.render_views = 0
         self.render_bytes = 0
         self._snapshots: Any = None
@@ -398,7 +398,7 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
         for name in GRAPH:  # sinks first, as the runner starts them
             procs.start(name)
         try:
-            _wait_for_graph(gs, procs, list(GRAPH), end)
+            wait_for_graph(gs, procs, GRAPH, end)
         except PipelineError as err:
             raise PipelineError(f"{err} (seen from the ground namespace: DDS discovery over the veth)") from err
         procs.start("bag_player")
@@ -421,7 +421,7 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
             procs.check()  # the player ended without its done message: only exit 0 is the source's end
         procs.player_reported = True
         t_finish = time.monotonic()
-        final = _parse_kv(gs.call(gs.finish_client, max(60.0, end - time.monotonic())))
+        final = parse_trigger_message(gs.call(gs.finish_client, max(60.0, end - time.monotonic())))
         t_finished = time.monotonic()
         final_seq, epoch = int(final.get("seq", 0)), int(final.get("epoch", 0))
         while (t_conv := gs.converged_at(final_seq, epoch)) is None:
@@ -433,7 +433,7 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
         # the player's exit, LINGER_S after it sent done, is seen here at once. The earlier of the two.
         t_last = min([t for t in (gs.done_at,) if t is not None] + [t - LINGER_S for t in exits[:1]])
         gs.watch_mapper_snapshots()
-        identical, max_diff = _compare_maps(gs, final_seq, epoch, end)
+        identical, max_diff = compare_maps(gs, final_seq, epoch, end)
         t_compared = time.monotonic()
         return {
             "t_first": gs.first_pose_at or t_play, "t_last": t_last, "t_finish": t_finish, "t_finished": t_finished,
