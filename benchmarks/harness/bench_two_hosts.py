@@ -16,8 +16,9 @@ whether the two maps are identical, and their largest difference.
 Needs root, iproute2 (``ip``, ``tc``) and a kernel with network namespaces, veth and tbf. The
 namespaces and every process in them are removed at the end, also on error or Ctrl-C.
 
-    python benchmarks/bench_two_hosts.py --rate 5 --frames 100
-    python benchmarks/bench_two_hosts.py --source synthetic:w=320,h=240,n=60,seed=0 --drop-every 5 --json two_hosts.json
+    python benchmarks/harness/bench_two_hosts.py --rate 5 --frames 100
+    python benchmarks/harness/bench_two_hosts.py --source synthetic:w=320,h=240,n=60,seed=0 --drop-every 5 \
+        --json two_hosts.json
 """
 from __future__ import annotations
 
@@ -70,8 +71,9 @@ from memgs_ros.orchestration.signals import exit_status, stop_on_signals
 from memgs_ros.ros import qos
 from memgs_ros.ros.diagnostics import stats_values
 
-ROOT = Path(__file__).resolve().parents[1]
-HEAD = ROOT.parent / "shared" / "data" / "tum" / "rgbd_dataset_freiburg1_rpy_head"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
+from _common import TUM_ENV, tum_path, write_results  # noqa: E402
+
 ONBOARD = ("bag_player", "tracker", "keyframe_sampler", "mapper")  # the drone; the merger is on the ground
 ADDRESSES = ("10.77.0.1", "10.77.0.2")  # air, ground: the namespaces are private, any subnet will do
 # tbf: 4 KB of burst (a few packets at once, as a radio modem sends) and at most 400 ms queued
@@ -461,9 +463,7 @@ def _ground_station_main(spec_path: Path) -> int:
             result: dict[str, Any] = ground_station(spec)
     except (PipelineError, KeyboardInterrupt) as err:
         result = {"error": f"{type(err).__name__}: {err}"}
-    tmp = result_path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(result))
-    os.replace(tmp, result_path)
+    write_results(result_path, result)
     return 0 if "error" not in result else 1
 
 
@@ -471,7 +471,7 @@ def _ground_station_main(spec_path: Path) -> int:
 
 @dataclass(frozen=True)
 class TwoHostsOptions:
-    source: str = str(HEAD)
+    source: str = field(default_factory=lambda: str(tum_path(check=False)))  # $MEMGS_TUM or the fr1/rpy head
     frames: int = 100  # the player's max_frames (0 = the whole source)
     rate_mbit: float = 5.0  # the link, each way
     config: str = ""  # "" = from the source's name, as memgs run guesses it
@@ -726,7 +726,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--rate", type=float, default=5.0, help="link rate each way, Mbit/s (default 5)")
     p.add_argument("--frames", type=int, default=100, help="frames to play (0 = all; default 100)")
-    p.add_argument("--source", default=str(HEAD), help="TUM folder, bag or synthetic spec (default: the fr1/rpy head)")
+    p.add_argument("--source", default=str(tum_path(check=False)),
+                   help=f"TUM folder, bag or synthetic spec (default: ${TUM_ENV}, else the shared fr1/rpy head)")
     p.add_argument("--config", default="", help="node config (default: from the source's name, as memgs run)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", help="override a parameter")
     p.add_argument("--drop-every", type=int, default=0, help="the merger ignores every n-th delta (0 = none)")
@@ -773,8 +774,7 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"output {r.out_dir}")
     print(table(r))
     if args.json is not None:
-        args.json.write_text(json.dumps({"options": {**asdict(opts), "out_dir": r.out_dir}, "result": r.as_dict()},
-                                        indent=2, default=str) + "\n")
+        write_results(args.json, {"options": {**asdict(opts), "out_dir": r.out_dir}, "result": r.as_dict()})
     return 0 if r.identical else 1
 
 
