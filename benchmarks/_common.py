@@ -14,6 +14,7 @@ harnesses in ``benchmarks/harness/`` put ``benchmarks/`` on ``sys.path`` first.
 """
 from __future__ import annotations
 
+import argparse
 import contextlib
 import json
 import os
@@ -40,20 +41,30 @@ TIMED_OUT = 124  # MemgsRun.returncode of a command killed at its timeout (as ti
 class TumNotFound(FileNotFoundError):
     """The TUM folder a benchmark needs is not there; the message says how to name one."""
 
-    def __init__(self, path: Path) -> None:
-        super().__init__(f"no TUM folder at {path} (no rgb.txt): pass --tum DIR or set {TUM_ENV}=DIR")
+    def __init__(self, path: Path, flag: str = "--tum DIR") -> None:
+        super().__init__(f"no TUM folder at {path} (no rgb.txt): pass {flag} or set {TUM_ENV}=DIR")
         self.path = path
 
 
-def tum_path(arg: str | os.PathLike[str] | None = None, *, check: bool = True) -> Path:
+def tum_path(arg: str | os.PathLike[str] | None = None, *, check: bool = True, flag: str = "--tum DIR") -> Path:
     """The TUM folder to use: ``arg`` (a ``--tum`` value) when given, else ``$MEMGS_TUM``, else the
-    shared fr1/rpy head beside the checkout. ``check``: raise :class:`TumNotFound` unless it holds
-    an ``rgb.txt``; without it, a caller that skips or falls back on a missing folder decides."""
+    shared fr1/rpy head beside the checkout. ``check``: raise :class:`TumNotFound` (naming ``flag``,
+    the script's way to pass one) unless it holds an ``rgb.txt``; without it, a caller that skips
+    or falls back on a missing folder decides."""
     env = os.environ.get(TUM_ENV, "")
     path = Path(arg) if arg else Path(env) if env else SHARED_TUM
     if check and not (path / "rgb.txt").is_file():
-        raise TumNotFound(path)
+        raise TumNotFound(path, flag)
     return path
+
+
+def tum_path_or_exit(parser: argparse.ArgumentParser, arg: str | os.PathLike[str] | None = None,
+                     flag: str = "--tum DIR") -> Path:
+    """:func:`tum_path`, or the parser's usage error naming both ways to set it (exit status 2)."""
+    try:
+        return tum_path(arg, flag=flag)
+    except TumNotFound as err:
+        parser.error(str(err))
 
 
 def uptime() -> str:

@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from _common import TUM_HELP, TumNotFound, run_memgs, tum_path, uptime
+from _common import TUM_HELP, run_memgs, tum_path_or_exit, uptime
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 
@@ -101,10 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-lpips", action="store_true")
     p.add_argument("--json", type=Path, default=None, help="summary JSON (default: OUT/bench_calibration.json)")
     args = p.parse_args(argv)
-    try:
-        args.source = tum_path(args.source)
-    except TumNotFound as err:
-        p.error(str(err))
+    args.source = tum_path_or_exit(p, args.source, flag="SOURCE")
     if args.max_frames < 0 or (args.scale is not None and not args.scale > 0):
         p.error("--max-frames must be >= 0 and --scale positive")
 

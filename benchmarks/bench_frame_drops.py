@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import ROOT, TUM_HELP, TumNotFound, tum_path, write_results
+from _common import ROOT, TUM_HELP, tum_path_or_exit, write_results
 
 
 def _recording(tracker: Any) -> dict[int, np.ndarray]:
@@ -103,10 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if not 0.0 <= args.drop < 1.0:
         ap.error("--drop must be in [0, 1)")
-    try:
-        args.tum = tum_path(args.tum)
-    except TumNotFound as err:
-        ap.error(str(err))
+    args.tum = tum_path_or_exit(ap, args.tum)
     rows = []
     for seed in args.seeds:
         row = run(args.tum, args.drop, seed, args.frames, args.config)

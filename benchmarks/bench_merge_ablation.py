@@ -28,7 +28,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from _common import TUM_ENV, TumNotFound, tum_path, uptime, write_results
+from _common import TUM_ENV, tum_path_or_exit, uptime, write_results
 
 
 def _no_merge(gmap, cfg, newest_keyframe_id: int, iteration: int):  # -> MergeResult
@@ -149,10 +149,7 @@ def main() -> int:
         write_results(args.child_out, res)
         return 0
 
-    try:
-        args.inputs = [str(tum_path()) if inp == "tum" else inp for inp in args.inputs]
-    except TumNotFound as err:
-        ap.error(str(err))
+    args.inputs = [str(tum_path_or_exit(ap, flag="a folder in --inputs")) if inp == "tum" else inp for inp in args.inputs]
     load = uptime()
     rows = []
     passthrough = []

@@ -35,7 +35,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from _common import ROOT, TUM_HELP, TumNotFound, tum_path, write_results
+from _common import ROOT, TUM_HELP, tum_path_or_exit, write_results
 
 ORB_FEATURES = 1000  # the ORB unit: OpenCV's ORB extraction of this many features
 
@@ -249,11 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.table is not None:
         print(table(json.loads(args.table.read_text())), end="")
         return 0
-    try:
-        args.tum = tum_path(args.tum)
-    except TumNotFound as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    args.tum = tum_path_or_exit(ap, args.tum)
     if args.frames < 10:
         print("error: --frames must be at least 10 (the first five build the map)", file=sys.stderr)
         return 2

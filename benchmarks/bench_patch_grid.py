@@ -18,7 +18,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from _common import TUM_HELP, TumNotFound, tum_path, write_results
+from _common import TUM_HELP, tum_path_or_exit, write_results
 
 from memgs_ros.core.geometry.camera import TUM_CAMERAS, TUM_DEPTH_FACTORS
 from memgs_ros.core.geometry.view import undistort_uv, undistorter_for, view_preparation
@@ -40,10 +40,7 @@ def main() -> int:
     p.add_argument("--features", type=int, default=1000)
     p.add_argument("--out", type=Path, default=Path("results/bench_patch_grid.json"))
     args = p.parse_args()
-    try:
-        args.tum = tum_path(args.tum)
-    except TumNotFound as err:
-        p.error(str(err))
+    args.tum = tum_path_or_exit(p, args.tum)
     cam, factor = TUM_CAMERAS[args.camera], TUM_DEPTH_FACTORS[args.camera]
     ts_rgb, f_rgb = _list(args.tum / "rgb.txt")
     ts_d, f_d = _list(args.tum / "depth.txt")

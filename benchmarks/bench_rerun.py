@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import TUM_ENV, TumNotFound, run_memgs, tum_path, uptime, write_results
+from _common import TUM_ENV, run_memgs, tum_path_or_exit, uptime, write_results
 
 from memgs_ros.core.maps.records import GaussianRecords
 
@@ -161,10 +161,7 @@ def main(argv: list[str] | None = None) -> int:
         q.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = p.parse_args(argv)
     if args.what == "run" and args.source is None:
-        try:
-            args.source = str(tum_path())
-        except TumNotFound as err:
-            p.error(str(err))
+        args.source = str(tum_path_or_exit(p, flag="SOURCE"))
     result = bench_map(args) if args.what == "map" else bench_run(args)
     if args.json is not None:
         write_results(args.json, result)

@@ -28,7 +28,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-from _common import TUM_HELP, TumNotFound, tum_path, write_results  # noqa: E402
+from _common import TUM_HELP, tum_path_or_exit, write_results  # noqa: E402
 
 from memgs_ros.core.metrics.trajectory import ate, path_length_m, rpe  # noqa: E402
 from memgs_ros.core.tracking import TrackerConfig, TrackingState, make_tracker  # noqa: E402
@@ -152,10 +152,7 @@ def main(argv: list[str] | None = None) -> int:
 
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     if any(c.startswith("tum") for c in cases):
-        try:
-            args.tum = str(tum_path(args.tum))
-        except TumNotFound as err:
-            ap.error(str(err))
+        args.tum = str(tum_path_or_exit(ap, args.tum))
     results = []
     cache: dict[str, tuple[list, object]] = {}
 

@@ -2,6 +2,7 @@
 results writer and the memgs command runner; and no benchmark names a machine's own path."""
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import re
@@ -45,6 +46,15 @@ def test_a_missing_tum_folder_says_both_ways_to_name_one(tmp_path: Path, monkeyp
     (tmp_path / "empty").mkdir()  # a folder without rgb.txt is not a TUM folder either
     with pytest.raises(_common.TumNotFound):
         _common.tum_path(tmp_path / "empty")
+
+
+def test_a_missing_tum_folder_is_a_usage_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    parser = argparse.ArgumentParser(prog="bench_x")
+    assert _common.tum_path_or_exit(parser, _tum_folder(tmp_path / "tum")) == tmp_path / "tum"
+    with pytest.raises(SystemExit) as exit_:
+        _common.tum_path_or_exit(parser, tmp_path / "gone")
+    assert exit_.value.code == 2
+    assert "bench_x: error: no TUM folder at" in capsys.readouterr().err
 
 
 def test_write_results_replaces_the_file_whole_and_keeps_non_finite_figures(tmp_path: Path) -> None:

@@ -20,9 +20,9 @@ CPU seconds of each node and the tracker's CPU per frame (median, message in to 
 Then the tracker node's cost per frame in this process (``bench_node_cost.node_cost``), on the
 same frames, next to OpenCV's ORB extraction of 1000 features on the same grey images (a ratio, so
 machines compare): with nothing else running (mapper idle), then while a mapper trains beside it
-(``bench_mapping.py`` at the mapper node's niceness, as ``memgs run`` starts it). The node is the real ``TrackerNode`` with the
-tracker parameters of a live run (local BA on the back-end's thread); frames go in as the player's
-messages, into its frame path.
+(``bench_mapping.py`` at the mapper node's niceness, as ``memgs run`` starts it). The node is the
+real ``TrackerNode`` with the tracker parameters of a live run (local BA on the back-end's thread);
+frames go in as the player's messages, into its frame path.
 
 Live players preload the folder (``--preload-mb``, the player's ``preload_mb``): a camera driver
 hands over decoded frames, while decoding a TUM folder's two PNGs costs ~20 ms of CPU a frame here,
@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
-from _common import ROOT, TUM_HELP, TumNotFound, run_memgs, tum_path, write_results  # noqa: E402
+from _common import ROOT, TUM_HELP, run_memgs, tum_path_or_exit, write_results  # noqa: E402
 from bench_node_cost import node_cost  # noqa: E402
 
 if str(ROOT) not in sys.path:
@@ -192,10 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.table is not None:
         print(table(json.loads(args.table.read_text())), end="")
         return 0
-    try:
-        args.tum = tum_path(args.tum)
-    except TumNotFound as err:
-        ap.error(str(err))
+    args.tum = tum_path_or_exit(ap, args.tum)
     import platform
 
     work = args.out.parent / "bench_live_runs"

@@ -37,7 +37,7 @@ from pathlib import Path
 from packaging.requirements import Requirement
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
-from _common import TUM_HELP, TumNotFound, tum_path  # noqa: E402
+from _common import TUM_HELP, tum_path_or_exit  # noqa: E402
 
 ROS_ROOTS = ("ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "ros-jazzy-rmw-fastrtps-cpp", "rosbags", "mcap")
 TEST_ROOTS = ("pytest",)
@@ -126,10 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-ros", action="store_true", help="leave the ROS wheels out (~57 MB)")
     ap.add_argument("--no-data", action="store_true")
     args = ap.parse_args(argv)
-    try:
-        tum = None if args.no_data else tum_path(args.tum)
-    except TumNotFound as err:
-        ap.error(str(err))
+    tum = None if args.no_data else tum_path_or_exit(ap, args.tum)
     wheels(args.dest / "wheels", ros=not args.no_ros)
     print(f"wheels: {_mb(args.dest / 'wheels'):.1f} MB")
     if not args.no_data:
