@@ -121,8 +121,11 @@ def run_memgs(args: Sequence[str | os.PathLike[str]], out: Path | None = None, *
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     with open(log, "w") if log is not None else contextlib.nullcontext() as sink:
-        where: dict[str, Any] = ({} if echo else {"stdout": sink, "stderr": subprocess.STDOUT} if sink is not None
-                                 else {"capture_output": True})
+        where: dict[str, Any] = {}  # echo: the terminal's
+        if sink is not None and not echo:
+            where = {"stdout": sink, "stderr": subprocess.STDOUT}
+        elif not echo:
+            where = {"capture_output": True}
         try:
             proc = subprocess.run(cmd, env=child_env, text=True, timeout=timeout_s, check=False, **where)
             code, output = proc.returncode, (proc.stdout or "") + (proc.stderr or "")
