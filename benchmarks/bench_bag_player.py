@@ -25,7 +25,6 @@ wall second over S seconds, no frame going out (median of ``--repeats``).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import random
 import statistics
@@ -36,6 +35,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import write_results
 
 FASTDDS_XML = """<?xml version="1.0" encoding="UTF-8" ?>
 <profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
@@ -219,9 +219,8 @@ def main() -> int:
     print(f"\n{'frames':34s} {'heartbeat':18s} {'median frames/s':>16s}")
     print(f"{label:34s} {hb:18s} {fps:16.1f}")
     print(f"load average before/after: {load_before:.1f} / {load_after:.1f} (2 shared cores)")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"frames": label, "heartbeat_ms": args.heartbeat_ms, "median_fps": fps,
-                                    "runs": runs, "load_before": load_before, "load_after": load_after}, indent=2))
+    write_results(args.out, {"frames": label, "heartbeat_ms": args.heartbeat_ms, "median_fps": fps,
+                             "runs": runs, "load_before": load_before, "load_after": load_after})
     print(f"wrote {args.out}")
     return 0
 

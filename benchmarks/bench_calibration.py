@@ -22,15 +22,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
+from _common import TUM_HELP, run_memgs, tum_path_or_exit, uptime
+
 from memgs_ros.core.geometry.camera import PinholeCamera
 
-DEFAULT_SOURCE = Path("/work/shared/data/tum/rgbd_dataset_freiburg1_rpy_head")
 # What TUM's ROS 1 bags publish on /camera/rgb/camera_info (reference section 6).
 ROS_DEFAULT = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
 PSNR_TARGET_DB = 0.3
@@ -38,10 +38,8 @@ ATE_TARGET_CM = 0.2
 
 
 def memgs(*args: str) -> None:
-    """Run a memgs command in a child process (same interpreter and PYTHONPATH); raise on failure."""
-    cmd = [sys.executable, "-m", "memgs_ros", *args]
-    print("$ memgs " + " ".join(args), flush=True)
-    code = subprocess.run(cmd).returncode
+    """Run a memgs command in a child process, its output on the terminal; raise on failure."""
+    code = run_memgs(args, echo=True).returncode
     if code != 0:
         raise SystemExit(f"memgs {args[0]} failed with exit code {code}")
 
@@ -90,7 +88,7 @@ def _fmt(v: float | None, digits: int = 2) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("source", nargs="?", type=Path, default=DEFAULT_SOURCE, help="TUM folder (default: %(default)s)")
+    p.add_argument("source", nargs="?", type=Path, default=None, help=TUM_HELP)
     p.add_argument("--config", default="tum_fr1", help="config with the calibration (default: %(default)s)")
     p.add_argument("--out", type=Path, default=Path("results/bench_calibration"), help="output folder")
     p.add_argument("--max-frames", type=int, default=0, help="use only the first N frames (0 = all)")
@@ -103,15 +101,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-lpips", action="store_true")
     p.add_argument("--json", type=Path, default=None, help="summary JSON (default: OUT/bench_calibration.json)")
     args = p.parse_args(argv)
-    if not (args.source / "rgb.txt").is_file():
-        p.error(f"{args.source}: not a TUM folder (no rgb.txt)")
+    args.source = tum_path_or_exit(p, args.source, flag="SOURCE")
     if args.max_frames < 0 or (args.scale is not None and not args.scale > 0):
         p.error("--max-frames must be >= 0 and --scale positive")
 
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    uptime = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-    print(f"machine: {os.cpu_count()} cores, {uptime}")
+    load = uptime()
+    print(f"machine: {os.cpu_count()} cores, {load}")
 
     converted, tum_like = out / "converted.bag", out / "tum_like.bag"
     for path in (converted, tum_like):
@@ -161,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     from memgs_ros.evaluation import write_json
 
     summary = out / "bench_calibration.json" if args.json is None else args.json
-    write_json(summary, {"uptime_before": uptime, "argv": sys.argv[1:], "source": str(args.source),
+    write_json(summary, {"uptime_before": load, "argv": sys.argv[1:], "source": str(args.source),
                          "config": args.config, "camera_info_rewritten": n, "results": results,
                          "bag_minus_folder": diffs, "targets_met": {"psnr": ok_psnr, "ate": ok_ate}})
     print(f"wrote {summary}")

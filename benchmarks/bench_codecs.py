@@ -11,7 +11,6 @@ Prints a table and writes JSON (default results/bench_codecs.json). The machine 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import time
@@ -19,6 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from _common import write_results
 
 
 def median_ms(fn: Callable[[], object], repeats: int) -> float:
@@ -80,11 +80,10 @@ def main() -> int:
     for what, step, ms in rows:
         print(f"{what:34s} {step:18s} {ms:10.3f}")
     print(f"load average before/after: {load_before:.1f} / {load_after:.1f} (2 shared cores)")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({
+    write_results(args.out, {
         "rows": [{"message": w, "step": s, "median_ms": m} for w, s, m in rows],
         "repeats": args.repeats, "load_before": load_before, "load_after": load_after,
-    }, indent=2))
+    })
     print(f"wrote {args.out}")
     return 0
 

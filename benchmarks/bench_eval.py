@@ -10,9 +10,10 @@ import argparse
 import json
 import logging
 import os
-import subprocess
 import sys
 from pathlib import Path
+
+from _common import uptime
 
 from memgs_ros.cli import evaluate as eval_cli
 
@@ -25,15 +26,15 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
                         datefmt="%H:%M:%S")  # the pipeline's progress lines, as `memgs eval` shows them
-    uptime = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-    print(f"machine: {os.cpu_count()} cores, {uptime}")
+    load = uptime()
+    print(f"machine: {os.cpu_count()} cores, {load}")
     code = eval_cli.run(args)
     if code == 0:
         from memgs_ros.evaluation import write_json
 
         name = "ablation.json" if args.ablation else "eval.json"
         record = json.loads((args.out / name).read_text())
-        write_json(args.json, {"uptime_before": uptime, "argv": sys.argv[1:], "result": record})
+        write_json(args.json, {"uptime_before": load, "argv": sys.argv[1:], "result": record})
         print(f"wrote {args.json}")
     return code
 

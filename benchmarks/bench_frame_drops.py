@@ -14,7 +14,6 @@ Run nothing else on the machine meanwhile: CPU time rises with contention.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -22,9 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_TUM = ROOT.parent / "shared/data/tum/rgbd_dataset_freiburg1_rpy_head"
+from _common import ROOT, TUM_HELP, tum_path_or_exit, write_results
 
 
 def _recording(tracker: Any) -> dict[int, np.ndarray]:
@@ -97,7 +94,7 @@ def run(tum: Path, drop: float, seed: int, frames: int, config: str) -> dict[str
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--tum", type=Path, default=DEFAULT_TUM)
+    ap.add_argument("--tum", type=Path, default=None, help=TUM_HELP)
     ap.add_argument("--config", default="tum_fr1")
     ap.add_argument("--drop", type=float, default=0.5, help="probability that a frame is left out")
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2])
@@ -106,6 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if not 0.0 <= args.drop < 1.0:
         ap.error("--drop must be in [0, 1)")
+    args.tum = tum_path_or_exit(ap, args.tum)
     rows = []
     for seed in args.seeds:
         row = run(args.tum, args.drop, seed, args.frames, args.config)
@@ -113,9 +111,7 @@ def main(argv: list[str] | None = None) -> int:
               f"p90 {row['cpu_ms_p90']} max {row['cpu_ms_max']}, states {row['states']}, ATE {row['ate_cm']} cm",
               flush=True)
         rows.append(row)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    res = {"date": time.strftime("%Y-%m-%d"), "source": args.tum.name, "rows": rows}
-    args.out.write_text(json.dumps(res, indent=2))
+    write_results(args.out, {"date": time.strftime("%Y-%m-%d"), "source": args.tum.name, "rows": rows})
     return 0
 
 

@@ -12,17 +12,14 @@ beside the float32 layout with a stored pyramid that the mapper used before. Als
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 
 import numpy as np
+from _common import TUM_HELP, TumNotFound, tum_path, write_results
 
 from memgs_ros.core.mapping.keyframes import TrainingKeyframe
 from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
 from memgs_ros.core.runtime.cpu import configure_cpu_runtime
-
-DEFAULT_TUM = "/work/shared/data/tum/rgbd_dataset_freiburg1_rpy_head"
 
 
 def float32_layout_bytes(kf: TrainingKeyframe) -> int:
@@ -37,18 +34,23 @@ def float32_layout_bytes(kf: TrainingKeyframe) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--source", default=DEFAULT_TUM, help="TUM folder (falls back to a synthetic frame)")
+    ap.add_argument("--source", default=None, help=TUM_HELP + "; without one, a synthetic frame")
     ap.add_argument("--scale", type=float, default=0.5, help="mapping.resolution_scale")
     ap.add_argument("--frames", type=int, default=5, help="keyframes to prepare")
     ap.add_argument("--runs", type=int, default=200, help="timed level() calls per level")
     ap.add_argument("--out", default="results/bench_keyframe_bytes.json")
     args = ap.parse_args(argv)
     configure_cpu_runtime()
-    if Path(args.source).is_dir():
+    try:
+        tum = tum_path(args.source)
+    except TumNotFound as err:
+        print(f"{err}: a synthetic frame instead")
+        tum = None
+    if tum is not None:
         from memgs_ros.io.tum import TumFolder
 
-        frames = list(TumFolder(args.source, max_frames=args.frames))
-        name = Path(args.source).name
+        frames = list(TumFolder(tum, max_frames=args.frames))
+        name = tum.name
     else:
         from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
@@ -75,11 +77,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  bytes per keyframe before (float32, stored 4-level pyramid):          {before} "
           f"({before / 2**20:.3f} MiB, {before / compact:.1f}x)")
     print("  level() per draw, median ms (coarse to fine): " + ", ".join(f"{t:.3f}" for t in times))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({"source": name, "scale": args.scale,
-                                          "size": [kf.camera.width, kf.camera.height],
-                                          "bytes_per_keyframe": compact, "bytes_per_keyframe_float32_pyramid": before,
-                                          "level_ms_median": times}, indent=2))
+    write_results(args.out, {"source": name, "scale": args.scale, "size": [kf.camera.width, kf.camera.height],
+                             "bytes_per_keyframe": compact, "bytes_per_keyframe_float32_pyramid": before,
+                             "level_ms_median": times})
     print(f"wrote {args.out}")
     return 0
 

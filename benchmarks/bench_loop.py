@@ -25,21 +25,22 @@ revisit keyframes sit where the drift put them, so the start region is mapped tw
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
+from _common import write_results
+
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np
 
+from memgs_ros.core.metrics.trajectory import ate, path_length_m
 from memgs_ros.core.tracking import TrackerConfig, make_tracker
 from memgs_ros.core.tracking.anchored_path import AnchoredPath
-from memgs_ros.core.metrics.trajectory import ate, path_length_m
 from memgs_ros.io.synthetic import generate_frames, loop_revisit_frames, parse_spec
 
 DEFAULT_SPEC = "synthetic:w=320,h=240,n=240,path=loop,noise=0.01,holes=0.05"
@@ -160,9 +161,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{w['revisit_drift_cm'] / wo['revisit_drift_cm']:.2f} (target <= 0.33)")
     load = os.getloadavg()
     print(f"load average {load[0]:.2f} on {os.cpu_count()} cores")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({"benchmark": "loop", "spec": args.spec, "n_features": args.n_features,
-                                          "rate": args.rate, "runs": rows, "medians": med, "loadavg": load}, indent=2))
+    write_results(args.out, {"benchmark": "loop", "spec": args.spec, "n_features": args.n_features,
+                             "rate": args.rate, "runs": rows, "medians": med, "loadavg": load})
     print(f"wrote {args.out}")
     return 0
 

@@ -36,25 +36,25 @@ load is recorded before and after.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import resource
 import sys
 import time
 from dataclasses import asdict
-from pathlib import Path
 
 # One BLAS thread (before numpy/torch load): the machine's cores are shared, see core/runtime/cpu.py.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+from _common import TUM_HELP, TumNotFound, tum_path, write_results  # noqa: E402
+
 MAPPING_DEPTH_WEIGHT = 0.1  # MappingConfig default
-DEFAULT_TUM = "/work/shared/data/tum/rgbd_dataset_freiburg1_rpy_head"
 DATASETS = {
-    # name: (source spec, resolution scale, keyframe stride, iterations, grid px, PSNR target)
+    # name: (source spec, resolution scale, keyframe stride, iterations, grid px, PSNR target);
+    # the TUM folder is --tum's (tum_path)
     "synthetic": ("synthetic:w=160,h=120,n=60,seed=0", 1.0, 6, 1500, 6, 30.0),
-    "tum": (DEFAULT_TUM, 0.5, 15, 1000, 4, 23.0),
+    "tum": ("", 0.5, 15, 1000, 4, 23.0),
 }
 # MappingConfig overrides per --preset. "paper": the reference values (MappingConfig defaults).
 # "cpu": a ~1k-iteration budget cannot wait for opacity to climb from 0.1 and colours to move
@@ -168,8 +168,8 @@ def run(name: str, args: argparse.Namespace) -> dict:
     from memgs_ros.io.sources import open_source
 
     spec, scale, stride, iters, grid, target = DATASETS[name]
-    if name == "tum" and args.tum:
-        spec = args.tum
+    if name == "tum":
+        spec = str(tum_path(args.tum, check=False))
     stride = args.kf_every or stride
     scale = args.scale or scale
     iters = args.iterations or iters
@@ -262,7 +262,7 @@ def run(name: str, args: argparse.Namespace) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--dataset", choices=["synthetic", "tum", "both"], default="both")
-    p.add_argument("--tum", default=None, help=f"TUM folder (default {DEFAULT_TUM})")
+    p.add_argument("--tum", default=None, help=TUM_HELP)
     p.add_argument("--iterations", type=int, default=0, help="training steps (default per dataset)")
     p.add_argument("--kf-every", type=int, default=0, help="keyframe stride in frames (default per dataset)")
     p.add_argument("--grid", type=int, default=0, help="seed grid step in training pixels")
@@ -297,9 +297,12 @@ def main(argv: list[str] | None = None) -> int:
     names = ["synthetic", "tum"] if args.dataset == "both" else [args.dataset]
     results = []
     for name in names:
-        if name == "tum" and not Path(args.tum or DEFAULT_TUM).is_dir():
-            print(f"[tum] skipped: {args.tum or DEFAULT_TUM} not found", file=sys.stderr)
-            continue
+        if name == "tum":
+            try:
+                tum_path(args.tum)
+            except TumNotFound as err:
+                print(f"[tum] skipped: {err}", file=sys.stderr)
+                continue
         results.append(run(name, args))
     hdr = (f"{'dataset':10s} {'res':>8s} {'KF':>3s} {'iters':>6s} {'wall s':>7s} {'s/it':>6s} {'cpu/it':>6s} {'N seed':>7s} "
            f"{'N end':>7s} {'MB':>7s} {'B/G':>5s} {'PSNR kf0':>8s} {'PSNR kf':>8s} {'PSNR all':>8s} {'kf valid':>8s} "
@@ -315,9 +318,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['psnr_keyframes_before']:8.2f} {r['psnr_keyframes']:8.2f} {all_} "
               f"{r['psnr_keyframes_valid_px']:8.2f} {allv} {r['psnr_keyframes_border_black']:8.2f} "
               f"{('met' if r['target_met'] else 'MISSED'):>7s}")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"runtime": asdict(rt), "results": results}, indent=2))
+    out = write_results(args.out, {"runtime": asdict(rt), "results": results})
     print(f"wrote {out}")
     return 0
 

@@ -30,7 +30,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parent.parent
+from _common import ROOT, write_results
+
 if str(ROOT) not in sys.path:  # run as a script from a checkout without an install (a lent GPU machine)
     sys.path.insert(0, str(ROOT))
 
@@ -172,8 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     res = breakdown(load_mapper(args.run_dir, args.device))
     res["seconds"] = round(time.perf_counter() - t0, 1)
     res["run_dir"] = str(args.run_dir)
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(res, indent=2))
+    write_results(args.json, res)
     print(table(res), end="")
     return 0
 

@@ -33,6 +33,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_mapping  # benchmarks/ is not a package: found through the path above
+from _common import TUM_HELP, TumNotFound, tum_path, write_results
 
 
 def mapping_args(args: argparse.Namespace, overrides: list[str]) -> argparse.Namespace:
@@ -79,7 +80,7 @@ def summary(r: dict) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--dataset", choices=["synthetic", "tum"], default="synthetic")
-    p.add_argument("--tum", default=None, help=f"TUM folder (default {bench_mapping.DEFAULT_TUM})")
+    p.add_argument("--tum", default=None, help=TUM_HELP)
     p.add_argument("--iterations", type=int, default=0, help="training steps (default per dataset)")
     p.add_argument("--kf-every", type=int, default=0)
     p.add_argument("--grid", type=int, default=0)
@@ -98,9 +99,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if not 0.0 < args.fraction <= 1.0:
         p.error("--fraction must be in (0, 1]")
-    if args.dataset == "tum" and not Path(args.tum or bench_mapping.DEFAULT_TUM).is_dir():
-        print(f"[tum] {args.tum or bench_mapping.DEFAULT_TUM} not found", file=sys.stderr)
-        return 1
+    if args.dataset == "tum":
+        try:
+            tum_path(args.tum)
+        except TumNotFound as err:
+            print(f"[tum] {err}", file=sys.stderr)
+            return 1
 
     from memgs_ros.core.runtime.cpu import configure_cpu_runtime
 
@@ -131,13 +135,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"PSNR cost: keyframes {cost_kf:+.2f} dB, all frames "
           + (f"{cost_all:+.2f} dB" if cost_all is not None else "-")
           + f"; load average {free['loadavg_before']:.2f} .. {capped['loadavg_after']:.2f}")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({
+    out = write_results(args.out, {
         "dataset": args.dataset, "budget": budget, "fraction": None if args.budget else args.fraction,
         "psnr_cost_keyframes_db": cost_kf, "psnr_cost_all_frames_db": cost_all,
         "summary": {"unbudgeted": a, "budgeted": b}, "runtime": asdict(rt),
-        "unbudgeted": free, "budgeted": capped}, indent=2))
+        "unbudgeted": free, "budgeted": capped})
     print(f"wrote {out}")
     return 0
 

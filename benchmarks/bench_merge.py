@@ -21,13 +21,13 @@ less sensitive than wall time to other processes holding the cores. Writes JSON 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
+
+from _common import uptime, write_results
 
 STAGES = ("masking", "hashing", "distances", "lbfgs", "surgery", "total")
 
@@ -141,7 +141,7 @@ def main() -> int:
     rt = configure_cpu_runtime(torch_threads=args.threads)
     cfg = MergeConfig(tau=args.tau, window_keyframes=args.window, voxel_size_m=args.voxel_size,
                       lbfgs_parametrization=args.parametrization, lbfgs_lr=args.lr)
-    uptime_before = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    uptime_before = uptime()
     runs, acc, last = [], {}, None
     for k in range(args.warmup + args.runs):
         gmap, newest = build_map(args)
@@ -158,7 +158,7 @@ def main() -> int:
             last = {"gaussians_before": n_before, "gaussians_after": len(gmap), "n_candidates": res.n_candidates,
                     "n_voxels": res.n_voxels, "n_pairs": res.n_pairs, "n_merged": res.n_merged,
                     "lbfgs_iters": res.lbfgs_iters}
-    uptime_after = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    uptime_after = uptime()
     med = {s: statistics.median(r[s] for r in runs) for s in STAGES + ("wall", "cpu")}
     print(f"merge pass, torch threads {rt.torch_threads}, heap kept {rt.heap_kept}, "
           f"parametrization {args.parametrization}, lr {args.lr}")
@@ -176,8 +176,7 @@ def main() -> int:
            "torch_threads": rt.torch_threads, "cpu_count": os.cpu_count(), "median_s": med, "runs": runs,
            "counts": last, "accuracy": acc, "uptime_before": uptime_before, "uptime_after": uptime_after,
            "target_total_s": 0.5}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=2))
+    write_results(args.out, out)
     print(f"wrote {args.out}")
     return 0
 

@@ -16,8 +16,7 @@ schedule is compressed for a CPU budget (``--merge-start``, ``--merge-interval``
 Each (input, merge on/off) runs in its own subprocess (fair memory, no shared allocator state).
 Prints a table, writes JSON (default results/bench_merge_ablation.json).
 
-    python benchmarks/bench_merge_ablation.py --inputs synthetic:w=160,h=120,n=60,seed=0 \\
-        /work/shared/data/tum/rgbd_dataset_freiburg1_rpy_head --iters 1500
+    python benchmarks/bench_merge_ablation.py --inputs synthetic:w=160,h=120,n=60,seed=0 tum --iters 1500
 """
 from __future__ import annotations
 
@@ -28,6 +27,8 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+
+from _common import TUM_ENV, tum_path_or_exit, uptime, write_results
 
 
 def _no_merge(gmap, cfg, newest_keyframe_id: int, iteration: int):  # -> MergeResult
@@ -116,7 +117,8 @@ def run_one(args: argparse.Namespace) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--inputs", nargs="+", default=["synthetic:w=160,h=120,n=60,seed=0"])
+    ap.add_argument("--inputs", nargs="+", default=["synthetic:w=160,h=120,n=60,seed=0"],
+                    help=f"synthetic specs or TUM folders; 'tum': ${TUM_ENV}, else the shared fr1/rpy head")
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--kf-every", type=int, default=5)
     ap.add_argument("--iters", type=int, default=1500)
@@ -144,17 +146,18 @@ def main() -> int:
 
     if args.input is not None:  # child process: one run
         res = run_one(args)
-        args.child_out.write_text(json.dumps(res))
+        write_results(args.child_out, res)
         return 0
 
-    uptime = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    args.inputs = [str(tum_path_or_exit(ap, flag="a folder in --inputs")) if inp == "tum" else inp for inp in args.inputs]
+    load = uptime()
     rows = []
     passthrough = []
     for k, v in vars(args).items():
         if k in ("inputs", "out", "input", "merge", "child_out") or v is None:
             continue
         passthrough += [f"--{k.replace('_', '-')}", str(v)]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)  # the children's files go beside it
     for inp in args.inputs:
         for merge in ("off", "on"):
             child = args.out.with_suffix(f".{len(rows)}.child.json")
@@ -179,9 +182,9 @@ def main() -> int:
         print(f"{a['input'][-48:]}: Gaussians -{100 * s['gaussians_reduction']:.1f} %, memory "
               f"-{100 * s['memory_reduction']:.1f} %, PSNR {s['psnr_delta_db']:+.2f} dB "
               f"(target: >= 15 % fewer, PSNR within 0.1 dB)")
-    print(f"uptime: {uptime}")
-    args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "runs": rows,
-                                    "summary": summary, "uptime": uptime}, indent=2))
+    print(f"uptime: {load}")
+    write_results(args.out, {"args": {k: str(v) for k, v in vars(args).items()}, "runs": rows,
+                             "summary": summary, "uptime": load})
     print(f"wrote {args.out}")
     return 0
 

@@ -3,7 +3,7 @@
     python benchmarks/bench_node_cost.py [--tum DIR] [--config tum_fr1] [--frames 150]
         [--out results/bench_node_cost.json]
 
-Runs ``bench_live.node_cost`` (the real ``TrackerNode`` frame path, message in to pose out, with
+Runs ``node_cost`` (the real ``TrackerNode`` frame path, message in to pose out, with
 the tracker parameters of a live run, interleaved frame by frame with OpenCV's ORB extraction of
 1000 features on the same grey image; mapper idle) with a thread-CPU timer around each stage of
 the frame path. A stage's time excludes the stages nested in it (projection matching inside
@@ -26,15 +26,18 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import statistics
 import sys
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import bench_live
-from bench_live import DEFAULT_TUM, ROOT
+from _common import ROOT, TUM_HELP, tum_path_or_exit, write_results
+
+ORB_FEATURES = 1000  # the ORB unit: OpenCV's ORB extraction of this many features
 
 # (label, module, attribute path): each one's thread CPU, less the stages called inside it. A
 # module-level name is patched where the frame path looks it up (the importing module).
@@ -87,6 +90,60 @@ class StageTimer:
             setattr(owner, name, self.wrap(label, getattr(owner, name)))
 
 
+def _thread_ms(fn: Any) -> float:
+    t0 = time.thread_time()
+    fn()
+    return (time.thread_time() - t0) * 1e3
+
+
+def node_cost(tum: Path, params: dict[str, Any], player: dict[str, Any], frames: int,
+              on_frame: Callable[[int, float, float], None] | None = None) -> dict[str, float]:
+    """Median thread-CPU ms per frame of the TrackerNode's frame path (message in, pose out) and
+    of cv2 ORB extraction (1000 features) on the same frames, interleaved frame by frame so that
+    both see the same conditions. ``on_frame(i, node_ms, orb_ms)`` after each frame (the stage
+    breakdown below reads its timers there). ``harness/bench_live.py`` runs it too, mapper idle
+    and training."""
+    import cv2
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from memgs_ros.io.tum import TumFolder
+    from memgs_ros.nodes.tracker import TrackerNode
+    from memgs_ros.ros import codecs
+
+    # All of OpenCV's work on the calling thread, for both: thread CPU time then counts all of it.
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    folder = TumFolder(tum, max_frames=frames)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "77")))
+    try:
+        overrides = [Parameter(k, value=v) for k, v in params.items() if not k.startswith("qos_overrides")]
+        node = TrackerNode(context=ctx, parameter_overrides=overrides)
+        orb = cv2.ORB_create(ORB_FEATURES)
+        enc, scale = player.get("depth_encoding", "32FC1"), float(player.get("depth_scale", 1000.0))
+        node_ms, orb_ms = [], []
+        for i, frame in enumerate(folder):
+            color = codecs.numpy_to_image(frame.rgb, "rgb8", frame.stamp_ns, "camera")
+            depth = codecs.depth_to_image(frame.depth_m, enc, frame.stamp_ns, "camera", scale)
+            ms = _thread_ms(lambda c=color, d=depth: node._handle(c, d))  # noqa: SLF001 - the frame path itself
+            grey = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
+            o = _thread_ms(lambda g=grey: orb.detectAndCompute(g, None))
+            if on_frame is not None:
+                on_frame(i, ms, o)
+            if i >= 5:  # the first frames build the map: not the steady cost
+                node_ms.append(ms)
+                orb_ms.append(o)
+        node.on_shutdown()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        cv2.setNumThreads(threads)
+    med_node, med_orb = statistics.median(node_ms), statistics.median(orb_ms)
+    return {"node_ms": round(med_node, 2), "orb_ms": round(med_orb, 2), "ratio": round(med_node / med_orb, 2),
+            "frames": len(node_ms)}
+
+
 def opencv_floor(tum: Path, tracker: dict[str, Any], frames: int) -> dict[str, float]:
     """Mean thread-CPU ms a frame of the pyramid, FAST on its levels and the descriptor smoothing of
     its levels (the tracker's extractor settings), and of the ORB unit, interleaved frame by frame."""
@@ -100,7 +157,7 @@ def opencv_floor(tum: Path, tracker: dict[str, Any], frames: int) -> dict[str, f
     cfg = TrackerConfig(**{k.split(".", 1)[1]: v for k, v in tracker.items() if k.startswith("tracker.")})
     extractor = OrbExtractor(cfg)
     fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)
-    orb = cv2.ORB_create(bench_live.ORB_FEATURES)
+    orb = cv2.ORB_create(ORB_FEATURES)
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     parts: dict[str, list[float]] = defaultdict(list)
@@ -144,7 +201,7 @@ def run(tum: Path, config: str, frames: int) -> dict[str, Any]:
         if i >= 5:
             per_frame.append({**row, "_node": node_ms, "_orb": orb_ms})
 
-    summary = bench_live.node_cost(tum, params.get("tracker", {}), params.get("bag_player", {}), frames, on_frame)
+    summary = node_cost(tum, params.get("tracker", {}), params.get("bag_player", {}), frames, on_frame)
     floor = opencv_floor(tum, params.get("tracker", {}), frames)
     orb = statistics.fmean(f["_orb"] for f in per_frame)
     labels = [label for label, _, _ in STAGES] + [REST]
@@ -183,7 +240,7 @@ def table(res: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--tum", type=Path, default=DEFAULT_TUM)
+    ap.add_argument("--tum", type=Path, default=None, help=TUM_HELP)
     ap.add_argument("--config", default="tum_fr1")
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--out", type=Path, default=ROOT / "results/bench_node_cost.json")
@@ -192,15 +249,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.table is not None:
         print(table(json.loads(args.table.read_text())), end="")
         return 0
-    if not args.tum.is_dir():
-        print(f"error: no TUM folder at {args.tum} (pass --tum)", file=sys.stderr)
-        return 2
+    args.tum = tum_path_or_exit(ap, args.tum)
     if args.frames < 10:
         print("error: --frames must be at least 10 (the first five build the map)", file=sys.stderr)
         return 2
     res = run(args.tum, args.config, args.frames)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(res, indent=1) + "\n")
+    write_results(args.out, res)
     print(table(res), end="")
     return 0
 

@@ -1,7 +1,7 @@
 """Patch-Grid sample and seed counts per keyframe on a real TUM sequence, with ORB keypoints.
 
-    python benchmarks/bench_patch_grid.py --tum ../shared/data/tum/rgbd_dataset_freiburg1_rpy_head \
-        [--camera fr1] [--stride 10] [--features 1000] [--out results/bench_patch_grid.json]
+    python benchmarks/bench_patch_grid.py [--tum DIR] [--camera fr1] [--stride 10] [--features 1000] \
+        [--out results/bench_patch_grid.json]
 
 Every ``stride``-th frame plays a keyframe: ORB keypoints (cv2.ORB_create(features)) detected
 on the raw image and undistorted; colour/depth undistorted; keypoint depth read from the
@@ -12,17 +12,17 @@ undistorted depth image. Prints mean [min, max] per frame of: keypoints, PG samp
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
+from _common import TUM_HELP, tum_path_or_exit, write_results
 
 from memgs_ros.core.geometry.camera import TUM_CAMERAS, TUM_DEPTH_FACTORS
-from memgs_ros.core.sampling import PatchGridConfig, patch_grid_uv, seeds_mono, seeds_rgbd
 from memgs_ros.core.geometry.view import undistort_uv, undistorter_for, view_preparation
+from memgs_ros.core.sampling import PatchGridConfig, patch_grid_uv, seeds_mono, seeds_rgbd
 
 RADII_PX = (1.0, 20.0, 30.0, 50.0, 80.0)
 
@@ -34,12 +34,13 @@ def _list(path: Path) -> tuple[np.ndarray, list[str]]:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--tum", type=Path, required=True)
+    p.add_argument("--tum", type=Path, default=None, help=TUM_HELP)
     p.add_argument("--camera", default="fr1", choices=sorted(TUM_CAMERAS))
     p.add_argument("--stride", type=int, default=10)
     p.add_argument("--features", type=int, default=1000)
     p.add_argument("--out", type=Path, default=Path("results/bench_patch_grid.json"))
     args = p.parse_args()
+    args.tum = tum_path_or_exit(p, args.tum)
     cam, factor = TUM_CAMERAS[args.camera], TUM_DEPTH_FACTORS[args.camera]
     ts_rgb, f_rgb = _list(args.tum / "rgb.txt")
     ts_d, f_d = _list(args.tum / "depth.txt")
@@ -79,8 +80,7 @@ def main() -> int:
         v = np.array([r[key] for r in rows])
         print(f"  {key:28s} {v.mean():7.1f} [{v.min()}, {v.max()}]")
     print(f"  seeds_rgbd time              {statistics.median(t_rgbd) * 1e3:7.2f} ms median")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"rows": rows, "seeds_rgbd_median_ms": statistics.median(t_rgbd) * 1e3}, indent=2))
+    write_results(args.out, {"rows": rows, "seeds_rgbd_median_ms": statistics.median(t_rgbd) * 1e3})
     return 0
 
 

@@ -30,6 +30,8 @@ import sys
 import time
 from pathlib import Path
 
+from _common import write_results
+
 SIGMA_PX = 1.8  # median tangent sigma in pixels (before the 0.3 px^2 dilation)
 
 
@@ -158,10 +160,10 @@ def run_one(
     import torch
 
     from memgs_ros.core.raster import Gaussians, rasterize
-    from memgs_ros.core.raster.values import Splats2D
-    from memgs_ros.core.raster.rules import MIN_ALPHA
     from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
+    from memgs_ros.core.raster.rules import MIN_ALPHA
     from memgs_ros.core.raster.tiles import build_tile_plan
+    from memgs_ros.core.raster.values import Splats2D
     from memgs_ros.core.runtime.cpu import configure_cpu_runtime
 
     composite_fn, tile_size = _compositor(backend, None)
@@ -251,11 +253,11 @@ def stage_breakdown(n: int, width: int, height: int, runs: int, backend: str) ->
     """CPU ms per stage (min over ``runs``), compositing on this thread only (one thread)."""
     import torch
 
-    from memgs_ros.core.raster.rules import MIN_ALPHA
     from memgs_ros.core.raster import Gaussians
-    from memgs_ros.core.raster.values import Splats2D
     from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
+    from memgs_ros.core.raster.rules import MIN_ALPHA
     from memgs_ros.core.raster.tiles import build_tile_plan
+    from memgs_ros.core.raster.values import Splats2D
     from memgs_ros.core.runtime.cpu import configure_cpu_runtime
 
     configure_cpu_runtime(torch_threads=1)
@@ -353,10 +355,8 @@ def main(argv: list[str] | None = None) -> int:
         "of the compositor alone (forward + backward) per such pair"
     )
     print(f"load average before {load_before[0]:.2f}, after {load_after[0]:.2f} (1 min), cpus {os.cpu_count()}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(
-        json.dumps({"rows": rows, "loadavg_before": load_before, "loadavg_after": load_after, "argv": sys.argv}, indent=2)
-    )
+    write_results(args.out, {"rows": rows, "loadavg_before": load_before, "loadavg_after": load_after,
+                             "argv": sys.argv})
     if args.stages:
         print(f"CPU ms per stage, one thread, min of {args.runs} (N = {args.counts[0]}):")
         stages = stage_breakdown(args.counts[0], args.width, args.height, args.runs, args.backend)

@@ -17,18 +17,16 @@ JSON to ``--json``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import re
-import resource
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
+
+from _common import run_memgs, uptime, write_results
 
 CPU_LINE = re.compile(r"cpu_s=([0-9.]+) startup_cpu_s=([0-9.]+)")
 
@@ -36,24 +34,18 @@ CPU_LINE = re.compile(r"cpu_s=([0-9.]+) startup_cpu_s=([0-9.]+)")
 def run_demo(out: Path, spec: str, record: bool, timeout_s: float, extra: list[str]) -> dict[str, Any]:
     """One ``memgs demo`` in ``out``; its timings and, when recording, the recorder's figures."""
     # demo's own --timeout: a run that hangs fails and stops its nodes (a killed demo would not)
-    cmd = [sys.executable, "-m", "memgs_ros", "demo", "--spec", spec, "--out", str(out),
-           "--timeout", str(timeout_s), *extra]
+    args = ["demo", "--spec", spec, "--timeout", str(timeout_s), *extra]
     rec = out / "record.mcap"
     if record:
-        cmd += ["--record", str(rec)]
+        args += ["--record", str(rec)]
     load = os.getloadavg()[0]
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)  # demo and every node it waited for
-    cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
-    if proc.returncode != 0:
-        raise SystemExit(f"memgs demo failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
-    summary = json.loads((out / "summary.json").read_text())
-    row: dict[str, Any] = {"record": record, "command_wall_s": round(wall, 2), "run_wall_s": round(summary["wall_s"], 2),
-                           "command_cpu_s": round(cpu, 2),
-                           "load_1min_before": load, "frames": summary["frames"], "gaussians": summary["gaussians"]}
+    run = run_memgs(args, out)  # its CPU: demo and every node it waited for
+    if run.summary is None:
+        raise SystemExit(f"memgs demo failed ({run.returncode}):\n{run.output[-3000:]}")
+    s = run.summary
+    row: dict[str, Any] = {"record": record, "command_wall_s": round(run.wall_s, 2), "run_wall_s": round(s.wall_s, 2),
+                           "command_cpu_s": round(run.cpu_s, 2),
+                           "load_1min_before": load, "frames": s.frames, "gaussians": s.gaussians}
     if record:
         m = CPU_LINE.search((out / "logs" / "recorder.log").read_text(errors="replace"))
         row.update(recorder_cpu_s=float(m.group(1)) if m else None,
@@ -72,8 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.pairs < 1:
         p.error("--pairs must be >= 1")
-    uptime = subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip()
-    print(f"machine: {os.cpu_count()} cores, {uptime}")
+    uptime_before = uptime()
+    print(f"machine: {os.cpu_count()} cores, {uptime_before}")
     root = Path(tempfile.mkdtemp(prefix="bench_record_"))
     rows: list[dict[str, Any]] = []
     try:
@@ -92,12 +84,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"run folders in {root}")
         else:
             shutil.rmtree(root, ignore_errors=True)
-    uptime_after = subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip()
+    uptime_after = uptime()
 
     def med(key: str, record: bool) -> float:
         return statistics.median(r[key] for r in rows if r["record"] is record)
 
-    result: dict[str, Any] = {"argv": sys.argv[1:], "spec": args.spec, "uptime_before": uptime,
+    result: dict[str, Any] = {"argv": sys.argv[1:], "spec": args.spec, "uptime_before": uptime_before,
                               "uptime_after": uptime_after, "runs": rows}
     for key in ("command_wall_s", "run_wall_s", "command_cpu_s"):
         plain, rec = med(key, False), med(key, True)
@@ -114,8 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"recorder CPU median {result['recorder_cpu_s_median']:.2f} s, "
           f"mcap median {result['mcap_bytes_median'] / 1e6:.1f} MB")
     print(f"load after: {uptime_after}")
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(result, indent=2) + "\n")
+    write_results(args.json, result)
     print(f"wrote {args.json}")
     return 0
 

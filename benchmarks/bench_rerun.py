@@ -12,16 +12,13 @@ children), and the bridge's CPU time, time in Rerun's log calls, peak RSS and fi
 times, not single walls.
 
     python benchmarks/bench_rerun.py map
-    python benchmarks/bench_rerun.py run /work/shared/data/tum/rgbd_dataset_freiburg1_rpy_head --config tum_fr1
+    python benchmarks/bench_rerun.py run --config tum_fr1   # the fr1/rpy head (or a SOURCE, $MEMGS_TUM)
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import resource
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -29,12 +26,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _common import TUM_ENV, run_memgs, tum_path_or_exit, uptime, write_results
 
 from memgs_ros.core.maps.records import GaussianRecords
-
-
-def _uptime() -> str:
-    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
 
 def _map(n: int, seed: int = 0) -> GaussianRecords:
@@ -51,8 +45,8 @@ def bench_map(args: argparse.Namespace) -> dict[str, Any]:
     from memgs_ros.viz.splats import splat_arrays
 
     records = _map(args.gaussians)
-    print(f"machine: {os.cpu_count()} cores, {_uptime()}")
-    out: dict[str, Any] = {"gaussians": args.gaussians, "repeats": args.repeats, "uptime": _uptime()}
+    print(f"machine: {os.cpu_count()} cores, {uptime()}")
+    out: dict[str, Any] = {"gaussians": args.gaussians, "repeats": args.repeats, "uptime": uptime()}
     convert = []
     for _ in range(args.repeats):
         t0 = time.perf_counter()
@@ -82,37 +76,32 @@ def bench_map(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
-def _last(timeline: Path, node: str) -> dict[str, Any]:
-    rows = [json.loads(line) for line in timeline.read_text().splitlines() if line.strip()]
-    rows = [r for r in rows if r["node"] == node]
+def _last(out: Path, node: str) -> dict[str, Any]:
+    from memgs_ros.orchestration.run_files import read_stats_timeline
+
+    rows = [r for r in read_stats_timeline(out) if r["node"] == node]
     return rows[-1] if rows else {}
 
 
 def _one_run(args: argparse.Namespace, work: Path, i: int, rerun: bool) -> dict[str, Any]:
     out = work / f"run{i}_{'rerun' if rerun else 'plain'}"
-    cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", args.source, "--out", str(out)]
+    cmd = ["run", "--bag", args.source]
     cmd += ["--config", args.config] if args.config else []
     cmd += ["--max-frames", str(args.max_frames)] if args.max_frames else []
     for item in args.set:
         cmd += ["--set", item]
     if rerun:
         cmd += ["--rerun-save", str(out / "run.rrd")]
-    load = _uptime()
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    command_s = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    if proc.returncode != 0:
-        raise SystemExit(f"run {i} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
-    summary = json.loads((out / "summary.json").read_text())
+    load = uptime()
+    run = run_memgs(cmd, out)
+    if run.summary is None:
+        raise SystemExit(f"run {i} failed ({run.returncode}):\n{run.output[-3000:]}")
+    s = run.summary
     r: dict[str, Any] = {
-        "rerun": rerun, "uptime_before": load, "wall_s": summary["wall_s"], "command_s": command_s,
-        "cpu_s_all_processes": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
-        "frames": summary["frames"], "gaussians": summary["gaussians"],
-        "cpu_s_by_process": summary.get("cpu_s", {})}
+        "rerun": rerun, "uptime_before": load, "wall_s": s.wall_s, "command_s": run.wall_s,
+        "cpu_s_all_processes": run.cpu_s, "frames": s.frames, "gaussians": s.gaussians, "cpu_s_by_process": s.cpu_s}
     if rerun:
-        b = _last(out / "stats_timeline.jsonl", "rerun_bridge")
+        b = _last(out, "rerun_bridge")
         r.update(bridge_cpu_s=float(b.get("cpu_s", "nan")), bridge_log_s=float(b.get("log_us_total", 0)) * 1e-6,
                  bridge_peak_rss_mb=float(b.get("peak_rss_mb", "nan")), maps_logged=int(b.get("logged.map", 0)),
                  rrd_mb=(out / "run.rrd").stat().st_size / 1e6)
@@ -162,7 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     m.add_argument("--gaussians", type=int, default=60_000)
     m.add_argument("--repeats", type=int, default=5)
     r = sub.add_parser("run", help="a run without and with --rerun-save, alternately")
-    r.add_argument("source")
+    r.add_argument("source", nargs="?", default=None,
+                   help=f"bag, TUM folder or synthetic spec (default: ${TUM_ENV}, else the shared fr1/rpy head)")
     r.add_argument("--config", default=None)
     r.add_argument("--max-frames", type=int, default=0)
     r.add_argument("--pairs", type=int, default=2)
@@ -170,10 +160,11 @@ def main(argv: list[str] | None = None) -> int:
     for q in (m, r):
         q.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = p.parse_args(argv)
+    if args.what == "run" and args.source is None:
+        args.source = str(tum_path_or_exit(p, flag="SOURCE"))
     result = bench_map(args) if args.what == "map" else bench_run(args)
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
+        write_results(args.json, result)
         print(f"wrote {args.json}")
     return 0
 

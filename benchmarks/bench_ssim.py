@@ -15,7 +15,6 @@ first; the target needs no gradient, as in the mapper.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import time
@@ -23,11 +22,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
+from _common import write_results
 
-from memgs_ros.core.metrics import ssim as ssim_module
 from memgs_ros.core.mapping.losses import photometric_loss
-from memgs_ros.core.runtime.cpu import numba_available
+from memgs_ros.core.metrics import ssim as ssim_module
 from memgs_ros.core.metrics.ssim import _ssim_map
+from memgs_ros.core.runtime.cpu import numba_available
 
 
 def _ssim_on(compiled: bool) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
@@ -108,9 +108,8 @@ def main() -> int:
     for r in rows:
         print(f"{r['size']:>8} {r['kind']:>9} {r['impl']:>9} {r['wall_median_ms']:12.1f} {r['wall_min_ms']:12.1f} "
               f"{r['cpu_median_ms']:11.2f} {r['cpu_ratio_vs_numba']:12.2f}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"threads": args.threads, "loadavg_before": load_before,
-                                    "loadavg_after": load_after, "rows": rows}, indent=2))
+    write_results(args.out, {"threads": args.threads, "loadavg_before": load_before,
+                             "loadavg_after": load_after, "rows": rows})
     return 0
 
 

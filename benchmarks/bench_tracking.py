@@ -17,7 +17,6 @@ Per-frame time: median and p95 of track(); with threaded BA that includes compet
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -29,11 +28,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+from _common import TUM_HELP, tum_path_or_exit, write_results  # noqa: E402
 
 from memgs_ros.core.metrics.trajectory import ate, path_length_m, rpe  # noqa: E402
 from memgs_ros.core.tracking import TrackerConfig, TrackingState, make_tracker  # noqa: E402
 
-DEFAULT_TUM = "/work/shared/data/tum/rgbd_dataset_freiburg1_rpy_head"
 # The Kinect v1 colour camera's rolling shutter, as config/tum_fr*.yaml sets it for the node.
 TUM_READOUT_S = 0.02
 
@@ -133,7 +132,7 @@ def pure_timing_case(r: dict) -> bool:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="results/bench_tracking.json")
-    ap.add_argument("--tum", default=DEFAULT_TUM)
+    ap.add_argument("--tum", default=None, help=TUM_HELP)
     ap.add_argument("--cases", default="synth,synth_noisy,tum,tum_nothread,mono")
     ap.add_argument("--n-frames", type=int, default=None, help="limit every sequence (default: all / 120 synthetic)")
     ap.add_argument("--pace", action="store_true",
@@ -152,6 +151,8 @@ def main(argv: list[str] | None = None) -> int:
         return TrackerConfig(**{**kw, **overrides})  # type: ignore[arg-type]
 
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
+    if any(c.startswith("tum") for c in cases):
+        args.tum = str(tum_path_or_exit(ap, args.tum))
     results = []
     cache: dict[str, tuple[list, object]] = {}
 
@@ -228,11 +229,11 @@ def main(argv: list[str] | None = None) -> int:
         fig.savefig(args.plot, dpi=100)
     for r in results:
         r.pop("_traj", None)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({
-        "benchmark": "tracking", "overrides": {k: str(v) for k, v in overrides.items()}, "results": results, "loadavg": load, "cpu_count": os.cpu_count(),
+    write_results(args.out, {
+        "benchmark": "tracking", "overrides": {k: str(v) for k, v in overrides.items()}, "results": results,
+        "loadavg": load, "cpu_count": os.cpu_count(),
         "python": platform.python_version(), "stamp_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    }, indent=2))
+    })
     print(f"wrote {args.out}")
     return 0
 

@@ -5,7 +5,7 @@
         --readme docs/results.md
 
 ``eval`` takes the JSON ``benchmarks/bench_eval.py`` writes (one evaluation or an ablation);
-``load`` the JSON of ``benchmarks/bench_load.py``. Each writes into ``benchmarks/figures/``:
+``load`` the JSON of ``benchmarks/harness/bench_load.py``. Each writes into ``benchmarks/figures/``:
 ``<name>.md`` (the table) and the PNGs, every PNG carrying the SHA-256 of that table in its
 metadata (``memgs-table-sha256``). With ``--readme FILE`` (``README.md`` or a page under
 ``docs/``) the block between ``<!-- figures:<name> -->`` and ``<!-- /figures:<name> -->`` in FILE
@@ -119,7 +119,7 @@ def load_figures(record: dict[str, Any], name: str, out_dir: Path) -> tuple[str,
     map-size figure of a bench_load.py JSON (which keeps its stats timeline for this)."""
     timeline = record.get("timeline")
     if not timeline:
-        raise SystemExit("this bench_load JSON has no 'timeline': re-run benchmarks/bench_load.py")
+        raise SystemExit("this bench_load JSON has no 'timeline': re-run benchmarks/harness/bench_load.py")
     lines = ["| node | start MB | first minute: median (peak) MB | last minute: median (peak) MB | "
              "30 s floors, first → last MB |", "| --- | --- | --- | --- | --- |"]
     for node, n in record["nodes"].items():
@@ -131,7 +131,7 @@ def load_figures(record: dict[str, Any], name: str, out_dir: Path) -> tuple[str,
                          f"| {t['floors_mb'][0]:.0f} → {t['floors_mb'][-1]:.0f} |")
     cap = record.get("mapper_max_mapper_mbytes") or 0.0
     acc = record.get("mapper_accounted_mb_max")
-    lines += ["", f"`{record.get('command', 'python benchmarks/bench_load.py')}`: {record['seconds']:.0f} s of "
+    lines += ["", f"`{record.get('command', 'python benchmarks/harness/bench_load.py')}`: {record['seconds']:.0f} s of "
               f"{record['spec']} at {record['fps']:.0f} Hz; {record['frames_tracked']} frames tracked, "
               f"{record['keyframes']} keyframes, {record['gaussians']} Gaussians at the end, "
               f"{record['mapping_iterations']} mapping iterations; mapper cap {cap:g} MiB"

@@ -97,7 +97,7 @@ def test_load_figures_from_a_bench_load_record(tmp_path: Path) -> None:
               "gaussians": 1000, "mapping_iterations": 5, "loadavg_before": 1.0, "loadavg_after": 2.0,
               "nodes": {"tracker": {"rss_mb_start": 100, "trend": trend},
                         "mapper": {"rss_mb_start": 200, "trend": trend}},
-              "timeline": timeline, "command": "python benchmarks/bench_load.py --seconds 300"}
+              "timeline": timeline, "command": "python benchmarks/harness/bench_load.py --seconds 300"}
     table, images = mf.load_figures(json.loads(json.dumps(record)), "load", tmp_path)
     assert "| mapper | 200 | 150 (160) | 170 (180) | 140 → 150 |" in table
     assert [p.name for p in images] == ["load.png"] and mf.png_table_sha(images[0]) == mf.table_sha(table)
@@ -119,7 +119,7 @@ def test_a_page_without_the_block_is_refused_before_anything_is_written(
 def test_the_gpu_table_in_the_docs_is_the_saved_runs() -> None:
     """docs/results.md's GPU table is what ``bench_gpu.py --table`` prints for the JSON beside it,
     so the numbers and the saved run change together."""
-    spec = importlib.util.spec_from_file_location("bench_gpu", ROOT / "benchmarks" / "bench_gpu.py")
+    spec = importlib.util.spec_from_file_location("bench_gpu", ROOT / "benchmarks" / "harness" / "bench_gpu.py")
     assert spec is not None and spec.loader is not None
     bench_gpu = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench_gpu)
@@ -134,7 +134,7 @@ def test_the_two_hosts_table_in_the_docs_is_the_saved_runs() -> None:
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_two_hosts.py"), "--table",
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "harness" / "bench_two_hosts.py"), "--table",
                           str(ROOT / "docs" / "data" / "two_hosts_5mbit.json")], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert out.strip() and out in (ROOT / "docs" / "results.md").read_text()
@@ -146,7 +146,7 @@ def test_the_fault_matrix_in_the_docs_is_the_saved_runs() -> None:
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_faults.py"), "--table",
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "harness" / "bench_faults.py"), "--table",
                           str(ROOT / "docs" / "data" / "faults_matrix.json")], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert out.strip() and out.rstrip("\n") in (ROOT / "docs" / "results.md").read_text()
@@ -157,7 +157,7 @@ def test_the_live_table_in_the_readme_is_the_saved_runs() -> None:
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_live.py"), "--table",
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "harness" / "bench_live.py"), "--table",
                           str(ROOT / "docs" / "data" / "bench_live.json")], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert out.strip() and out in (ROOT / "README.md").read_text()

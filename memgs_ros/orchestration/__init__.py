@@ -1,2 +1,3 @@
 """Running the node graph: the tier above the nodes (``run_files``: options, parameters and the
-files a run leaves; ``pipeline``: starts the nodes and drives a run to its end)."""
+files a run leaves; ``pipeline``: starts the nodes and drives a run to its end; ``hooks``: its steps for harnesses that
+start the nodes their own way)."""

@@ -1,7 +1,7 @@
 """Benchmark: the graph live, as a camera feeds it (nobody waits), against the same frames in lockstep.
 
-    python benchmarks/bench_live.py [--tum DIR] [--rates 1.0 0.5 2.0] [--config tum_fr1]
-    python benchmarks/bench_live.py --table results/bench_live.json   # the README's table
+    python benchmarks/harness/bench_live.py [--tum DIR] [--rates 1.0 0.5 2.0] [--config tum_fr1]
+    python benchmarks/harness/bench_live.py --table results/bench_live.json   # the README's table
 
 Runs, one at a time, each a real ``memgs run`` (node processes over DDS):
 
@@ -17,12 +17,12 @@ tracked, frames not tracked by reason (stale: dropped by the tracker to catch up
 but never delivered while it worked; lost: tracking failed), ATE, PSNR at the tracked frames, the
 CPU seconds of each node and the tracker's CPU per frame (median, message in to pose out).
 
-Then the tracker node's cost per frame in this process, on the same frames, next to OpenCV's ORB
-extraction of 1000 features on the same grey images (a ratio, so machines compare): with nothing
-else running (mapper idle), then while a mapper trains beside it (``bench_mapping.py`` at the
-mapper node's niceness, as ``memgs run`` starts it). The node is the real ``TrackerNode`` with the
-tracker parameters of a live run (local BA on the back-end's thread); frames go in as the player's
-messages, into its frame path.
+Then the tracker node's cost per frame in this process (``bench_node_cost.node_cost``), on the
+same frames, next to OpenCV's ORB extraction of 1000 features on the same grey images (a ratio, so
+machines compare): with nothing else running (mapper idle), then while a mapper trains beside it
+(``bench_mapping.py`` at the mapper node's niceness, as ``memgs run`` starts it). The node is the
+real ``TrackerNode`` with the tracker parameters of a live run (local BA on the back-end's thread);
+frames go in as the player's messages, into its frame path.
 
 Live players preload the folder (``--preload-mb``, the player's ``preload_mb``): a camera driver
 hands over decoded frames, while decoding a TUM folder's two PNGs costs ~20 ms of CPU a frame here,
@@ -35,19 +35,18 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
+from _common import ROOT, TUM_HELP, run_memgs, tum_path_or_exit, write_results  # noqa: E402
+from bench_node_cost import node_cost  # noqa: E402
+
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
-DEFAULT_TUM = ROOT.parent / "shared/data/tum/rgbd_dataset_freiburg1_rpy_head"
-ORB_FEATURES = 1000
 # Issue 28's bounds on the live run at 1.0x, against the lockstep run of the same frames.
 TARGETS = {"tracked_fraction": 0.90, "lost": 0, "ate_gap_cm": 0.3, "psnr_db": 20.0, "cost_ratio": 2.0}
 
@@ -61,23 +60,20 @@ def run_graph(tum: Path, config: str, out: Path, rate: float | None, timeout: fl
     """One ``memgs run`` (lockstep when ``rate`` is None), then its score; a row of the table.
     ``preload_mb`` > 0: a live player decodes the folder into memory first, so that it costs the
     CPU a camera driver does while the nodes run, not a PNG decoder's (~20 ms a frame here)."""
-    cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", str(tum), "--config", config, "--out", str(out),
-           "--json", str(out / "bench_summary.json")]
+    args = ["run", "--bag", str(tum), "--config", config]
     if rate is not None:
-        cmd += ["--realtime", "--rate", str(rate)]
+        args += ["--realtime", "--rate", str(rate)]
         if preload_mb > 0:
-            cmd += ["--set", f"bag_player.preload_mb={int(preload_mb)}"]
+            args += ["--set", f"bag_player.preload_mb={int(preload_mb)}"]
     out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    with open(out / "run.log", "w") as log:
-        rc = subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, timeout=timeout).returncode
-    row: dict[str, Any] = {"run": "lockstep" if rate is None else f"live {rate:g}x", "returncode": rc,
-                           "wall_s": round(time.perf_counter() - t0, 1)}
+    run = run_memgs(args, out, log=out / "run.log", timeout_s=timeout)
+    row: dict[str, Any] = {"run": "lockstep" if rate is None else f"live {rate:g}x", "returncode": run.returncode,
+                           "wall_s": round(run.wall_s, 1)}
     if rate is not None:
         row["preload_mb"] = int(preload_mb)
-    if rc != 0:
+    s = run.summary
+    if s is None:
         return row
-    s = json.loads((out / "bench_summary.json").read_text())
     from memgs_ros.evaluation import evaluate_run
 
     r = evaluate_run(out, str(tum), use_lpips=False, progress=False)
@@ -85,68 +81,14 @@ def run_graph(tum: Path, config: str, out: Path, rate: float | None, timeout: fl
     # summary's count comes from the player's 1 Hz stats and can lag its last frames.
     from memgs_ros.io.tum import TumFolder
 
-    played = max(int(s.get("frames_played") or 0), len(TumFolder(tum)) if s.get("source_complete", True) else 0)
-    row.update(played=played, received=s["frames"], tracked=s["poses"], lost=s["lost_frames"],
-               stale=s.get("tracker_skipped", {}).get("stale", 0), busy=s.get("tracker_skipped", {}).get("busy", 0),
-               tracked_fraction=round(s["poses"] / max(played, 1), 3),
+    played = max(s.frames_played, len(TumFolder(tum)) if s.source_complete else 0)
+    row.update(played=played, received=s.frames, tracked=s.poses, lost=s.lost_frames,
+               stale=s.tracker_skipped.get("stale", 0), busy=s.tracker_skipped.get("busy", 0),
+               tracked_fraction=round(s.poses / max(played, 1), 3),
                ate_cm=None if r.trajectory is None else round(r.trajectory.rmse_m * 100, 2),
-               psnr_db=round(r.frames_quality.psnr_db, 2), keyframes=s["keyframes"], gaussians=s["gaussians"],
-               mapping_iterations=s["mapping_iterations"], cpu_s=s.get("cpu_s", {}),
-               tracker_frame_cpu_ms=s.get("tracker_frame_cpu_ms"))
+               psnr_db=round(r.frames_quality.psnr_db, 2), keyframes=s.keyframes, gaussians=s.gaussians,
+               mapping_iterations=s.mapping_iterations, cpu_s=s.cpu_s, tracker_frame_cpu_ms=s.tracker_frame_cpu_ms)
     return row
-
-
-def _thread_ms(fn: Any) -> float:
-    t0 = time.thread_time()
-    fn()
-    return (time.thread_time() - t0) * 1e3
-
-
-def node_cost(tum: Path, params: dict[str, Any], player: dict[str, Any], frames: int,
-              on_frame: Callable[[int, float, float], None] | None = None) -> dict[str, float]:
-    """Median thread-CPU ms per frame of the TrackerNode's frame path (message in, pose out) and
-    of cv2 ORB extraction (1000 features) on the same frames, interleaved frame by frame so that
-    both see the same conditions. ``on_frame(i, node_ms, orb_ms)`` after each frame (the stage
-    breakdown of ``bench_node_cost.py`` reads its timers there)."""
-    import cv2
-    import rclpy
-    from rclpy.parameter import Parameter
-
-    from memgs_ros.io.tum import TumFolder
-    from memgs_ros.nodes.tracker import TrackerNode
-    from memgs_ros.ros import codecs
-
-    # All of OpenCV's work on the calling thread, for both: thread CPU time then counts all of it.
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    folder = TumFolder(tum, max_frames=frames)
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "77")))
-    try:
-        overrides = [Parameter(k, value=v) for k, v in params.items() if not k.startswith("qos_overrides")]
-        node = TrackerNode(context=ctx, parameter_overrides=overrides)
-        orb = cv2.ORB_create(ORB_FEATURES)
-        enc, scale = player.get("depth_encoding", "32FC1"), float(player.get("depth_scale", 1000.0))
-        node_ms, orb_ms = [], []
-        for i, frame in enumerate(folder):
-            color = codecs.numpy_to_image(frame.rgb, "rgb8", frame.stamp_ns, "camera")
-            depth = codecs.depth_to_image(frame.depth_m, enc, frame.stamp_ns, "camera", scale)
-            ms = _thread_ms(lambda c=color, d=depth: node._handle(c, d))  # noqa: SLF001 - the frame path itself
-            grey = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
-            o = _thread_ms(lambda g=grey: orb.detectAndCompute(g, None))
-            if on_frame is not None:
-                on_frame(i, ms, o)
-            if i >= 5:  # the first frames build the map: not the steady cost
-                node_ms.append(ms)
-                orb_ms.append(o)
-        node.on_shutdown()
-        node.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=ctx)
-        cv2.setNumThreads(threads)
-    med_node, med_orb = statistics.median(node_ms), statistics.median(orb_ms)
-    return {"node_ms": round(med_node, 2), "orb_ms": round(med_orb, 2), "ratio": round(med_node / med_orb, 2),
-            "frames": len(node_ms)}
 
 
 def cost_stage(tum: Path, config: str, work: Path, frames: int, niceness: int) -> dict[str, Any]:
@@ -193,7 +135,7 @@ def median_row(tries: list[dict[str, Any]]) -> dict[str, Any]:
 def table(res: dict[str, Any]) -> str:
     """Markdown: one row per run, then the cost ratios, with the issue's bounds."""
     lines = [f"{res.get('source', '?')}, config {res.get('config', '?')}, {res.get('machine', '?')}; "
-             "`python benchmarks/bench_live.py` "
+             "`python benchmarks/harness/bench_live.py` "
              f"({res.get('date', '?')}).", "",
              "| run | played | reached tracker | tracked | stale | busy | lost | ATE cm | PSNR dB "
              "| CPU s tracker / mapper / sampler / player | tracker ms/frame |",
@@ -228,7 +170,7 @@ def table(res: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--tum", type=Path, default=DEFAULT_TUM)
+    ap.add_argument("--tum", type=Path, default=None, help=TUM_HELP)
     ap.add_argument("--config", default="tum_fr1")
     ap.add_argument("--rates", type=float, nargs="*", default=[1.0, 0.5, 2.0])
     ap.add_argument("--cost-frames", type=int, default=120, help="frames for the node-cost measurement (0 = skip)")
@@ -250,12 +192,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.table is not None:
         print(table(json.loads(args.table.read_text())), end="")
         return 0
+    args.tum = tum_path_or_exit(ap, args.tum)
     import platform
 
     work = args.out.parent / "bench_live_runs"
     res: dict[str, Any] = {"date": time.strftime("%Y-%m-%d"), "source": args.tum.name, "config": args.config,
                            "machine": f"{os.cpu_count()} cores, {platform.machine()}", "runs": []}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     reused = None
     if args.reuse_lockstep is not None:
         reused = next(r for r in json.loads(args.reuse_lockstep.read_text())["runs"] if r["run"] == "lockstep")
@@ -273,10 +215,10 @@ def main(argv: list[str] | None = None) -> int:
             _log(f"{name}: {row}")
             tries.append(row)
         res["runs"].append(median_row(tries))
-        args.out.write_text(json.dumps(res, indent=2))
+        write_results(args.out, res)
     if args.cost_frames:
         res["cost"] = cost_stage(args.tum, args.config, work / "cost", args.cost_frames, args.mapper_niceness)
-    args.out.write_text(json.dumps(res, indent=2))
+    write_results(args.out, res)
     print(table(res), end="")
     return 0
 

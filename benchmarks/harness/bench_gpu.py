@@ -30,10 +30,10 @@ Stages (each can be skipped; each writes its part of one JSON, default results/b
            training step), PSNR at the tracked poses against the eval's.
   cold     the live run again with an empty numba cache (a fresh install's first run): frames tracked.
 
-    python benchmarks/gpu_carry.py gpu_carry   # on a machine with the index: wheels + a TUM subset
-    TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 python benchmarks/bench_gpu.py --tum DIR [--wheels gpu_carry/wheels]
-    python benchmarks/bench_gpu.py --table results/bench_gpu.json   # the GPU table of docs/results.md (On a GPU)
-    python benchmarks/bench_gpu.py --merge A.json B.json --out results/bench_gpu.json   # stages run in several calls
+    python benchmarks/harness/gpu_carry.py gpu_carry   # on a machine with the index: wheels + a TUM subset
+    TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 python benchmarks/harness/bench_gpu.py --tum DIR [--wheels gpu_carry/wheels]
+    python benchmarks/harness/bench_gpu.py --table results/bench_gpu.json   # docs/results.md's GPU table (On a GPU)
+    python benchmarks/harness/bench_gpu.py --merge A.json B.json --out results/bench_gpu.json   # stages in calls
 
 The issue-36 targets are printed beside each figure (a run saved under issue 25 keeps its own).
 Run nothing else on the machine meanwhile.
@@ -51,10 +51,12 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
+from _common import ROOT, TUM_HELP, TumNotFound, run_memgs, tum_path, write_results  # noqa: E402
+
 if str(ROOT) not in sys.path:  # run as a script from a checkout without an install (a lent GPU machine)
     sys.path.insert(0, str(ROOT))
-DEFAULT_TUM = ROOT.parent / "shared/data/tum/rgbd_dataset_freiburg1_rpy_head"
+SCRIPT = "benchmarks/harness/bench_gpu.py"
 STAGES = ("setup", "tests", "raster", "mapping", "eval", "memory", "composed", "live", "cold")
 RASTER_SIZES = (20_000, 100_000, 500_000)
 # Targets per issue: name -> (bound, "<=" or ">="). A saved run names its set ("targets").
@@ -181,8 +183,6 @@ def _time(fn: Callable[[], None], runs: int, device: str, warmup: int = 3) -> fl
 
 def stage_raster(args: argparse.Namespace) -> dict[str, Any]:
     import torch
-
-    sys.path.insert(0, str(ROOT / "benchmarks"))
     from bench_raster import build_scene
 
     from memgs_ros.core.raster import Gaussians, rasterize
@@ -252,14 +252,14 @@ def stage_mapping(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
-def _pinned(cmd: list[str], cores: int) -> list[str]:
-    """``cmd`` on the first ``cores`` cores (taskset; every node process inherits it), or as it is
-    when the machine has no more than that or no taskset."""
+def _pinned(cores: int) -> list[str]:
+    """The prefix that runs a command on the first ``cores`` cores (taskset; every node process
+    inherits it), or none when the machine has no more than that or no taskset."""
     import shutil
 
     if cores <= 0 or (os.cpu_count() or 0) <= cores or shutil.which("taskset") is None:
-        return cmd
-    return ["taskset", "-c", f"0-{cores - 1}", *cmd]
+        return []
+    return ["taskset", "-c", f"0-{cores - 1}"]
 
 
 def _summary_figures(s: dict[str, Any]) -> dict[str, Any]:
@@ -274,10 +274,10 @@ def _summary_figures(s: dict[str, Any]) -> dict[str, Any]:
 
 
 def _eval(args: argparse.Namespace, out_dir: Path, composed: bool) -> dict[str, Any]:
-    cmd = [sys.executable, "-m", "memgs_ros", "eval", str(args.tum), "--config", "tum_fr1", "--scale", "1.0",
-           "--out", str(out_dir), "--no-plots", "--no-lpips", "--max-frames", str(args.max_frames)]
-    rc, wall = _run(cmd + (["--composed"] if composed else []), 300, out_dir.with_suffix(".log"))
-    row: dict[str, Any] = {"returncode": rc, "command_wall_s": round(wall, 1)}
+    run = run_memgs(["eval", str(args.tum), "--config", "tum_fr1", "--scale", "1.0", "--no-plots", "--no-lpips",
+                     "--max-frames", str(args.max_frames), *(["--composed"] if composed else [])], out_dir,
+                    log=out_dir.with_suffix(".log"), timeout_s=300)
+    row: dict[str, Any] = {"returncode": run.returncode, "command_wall_s": round(run.wall_s, 1)}
     js = next(iter(sorted(out_dir.rglob("eval.json"))), None)
     if js is not None:
         r = json.loads(js.read_text())
@@ -290,9 +290,8 @@ def _eval(args: argparse.Namespace, out_dir: Path, composed: bool) -> dict[str, 
                    cuda_peak_mb=None if cuda is None else round(cuda / 2**20, 1), wall_s=round(r["wall_s"], 1),
                    mapper_device=mem.get("mapper_device"), mapping_iterations=r["mapping_iterations"],
                    run_dir=str(js.parent))
-    summary = next(iter(sorted(out_dir.rglob("summary.json"))), None)
-    if summary is not None:
-        row.update(_summary_figures(json.loads(summary.read_text())))
+    if run.summary is not None:
+        row.update(_summary_figures(run.summary.as_dict()))
     return row
 
 
@@ -325,32 +324,25 @@ def stage_memory(args: argparse.Namespace) -> dict[str, Any]:
 
 def _live(args: argparse.Namespace, name: str, env: dict[str, str] | None = None) -> dict[str, Any]:
     out_dir = args.out_dir / name
-    summary = args.out_dir / f"{name}_summary.json"
-    cmd = _pinned([sys.executable, "-m", "memgs_ros", "run", "--bag", str(args.tum), "--config", "tum_fr1",
-                   "--realtime", "--set", "mapper.mapping.resolution_scale=1.0", "--set",
-                   f"bag_player.preload_mb={args.preload_mb}", "--out", str(out_dir), "--json", str(summary),
-                   "--max-frames", str(args.max_frames)], args.cores)
-    t0 = time.perf_counter()
-    with open(args.out_dir / f"{name}.log", "w") as fh:
-        try:
-            rc = subprocess.run(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT, timeout=240,
-                                env={**os.environ, **(env or {})}).returncode
-        except subprocess.TimeoutExpired:
-            rc = 124
-    row: dict[str, Any] = {"returncode": rc, "wall_s": round(time.perf_counter() - t0, 1), "cores": args.cores,
-                           "pinned": cmd[0] == "taskset"}
-    if rc == 0 and summary.exists():
-        s = json.loads(summary.read_text())
+    prefix = _pinned(args.cores)
+    run = run_memgs(["run", "--bag", str(args.tum), "--config", "tum_fr1", "--realtime", "--set",
+                     "mapper.mapping.resolution_scale=1.0", "--set", f"bag_player.preload_mb={args.preload_mb}",
+                     "--max-frames", str(args.max_frames)], out_dir,
+                    log=args.out_dir / f"{name}.log", timeout_s=240, env=env, prefix=prefix)
+    row: dict[str, Any] = {"returncode": run.returncode, "wall_s": round(run.wall_s, 1), "cores": args.cores,
+                           "pinned": bool(prefix)}
+    s = run.summary
+    if s is not None:
         from memgs_ros.io.tum import TumFolder
 
         # Tracked of the frames the source holds (the player's count where the run has it): a frame
         # that never reached the tracker counts as not tracked.
-        played = s.get("frames_played") or len(TumFolder(args.tum))
+        played = s.frames_played or len(TumFolder(args.tum))
         if args.max_frames:
             played = min(played, args.max_frames)
-        row.update(played=played, frames=s["frames"], poses=s["poses"], lost=s["lost_frames"],
-                   tracked_fraction=round(s["poses"] / max(played, 1), 3),
-                   tracker_skipped=s.get("tracker_skipped"), **_summary_figures(s))
+        row.update(played=played, frames=s.frames, poses=s.poses, lost=s.lost_frames,
+                   tracked_fraction=round(s.poses / max(played, 1), 3),
+                   tracker_skipped=s.tracker_skipped, **_summary_figures(s.as_dict()))
         from memgs_ros.evaluation import evaluate_run
 
         r = evaluate_run(out_dir, str(args.tum), use_lpips=False, device=args.device, progress=False,
@@ -411,7 +403,7 @@ def table(res: dict[str, Any]) -> str:
     targets = _targets(res)
     lines = [f"Card: {s.get('card', '?')} ({s.get('memory_gib', '?')} GiB), torch {s.get('torch', '?')}, "
              f"CUDA {s.get('cuda', '?')}, gsplat {(s.get('gsplat') or {}).get('version', 'not installed')}; "
-             f"`python benchmarks/bench_gpu.py` ({res.get('date', '?')}).", "",
+             f"`python {SCRIPT}` ({res.get('date', '?')}).", "",
              "| figure | value | target |", "|---|---|---|"]
     for name, value in headline(res).items():
         bound, op = targets.get(name, (None, ""))
@@ -435,7 +427,7 @@ def table(res: dict[str, Any]) -> str:
 def merge_runs(runs: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
     """One result from several saved runs of this script: each stage from the last run that has it
     without an error (the setup from the last run), ``merged_from`` naming each stage's run."""
-    res: dict[str, Any] = {"script": "benchmarks/bench_gpu.py", "targets": runs[-1].get("targets", "issue25"),
+    res: dict[str, Any] = {"script": SCRIPT, "targets": runs[-1].get("targets", "issue25"),
                            "date": runs[-1].get("date"), "merged_from": {}}
     for run, name in zip(runs, names):
         for stage in STAGES:
@@ -448,7 +440,7 @@ def merge_runs(runs: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--tum", type=Path, default=DEFAULT_TUM, help="TUM folder (default the shared fr1/rpy head)")
+    ap.add_argument("--tum", type=Path, default=None, help=TUM_HELP)
     ap.add_argument("--wheels", type=Path, default=None, help="folder of wheels for what the machine lacks")
     ap.add_argument("--skip", nargs="*", choices=STAGES, default=[], help="stages to leave out")
     ap.add_argument("--runs", type=int, default=10, help="timed rasterize iterations per backend and size")
@@ -472,13 +464,16 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.merge is not None:
         res = merge_runs([json.loads(p.read_text()) for p in args.merge], [str(p) for p in args.merge])
-        args.out.write_text(json.dumps(res, indent=2))
+        write_results(args.out, res)
         print(table(res), end="")
         return 0
     args.out_dir = args.out.parent / "bench_gpu_runs"
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    res: dict[str, Any] = {"date": time.strftime("%Y-%m-%d"), "script": "benchmarks/bench_gpu.py",
-                           "targets": "issue36"}
+    res: dict[str, Any] = {"date": time.strftime("%Y-%m-%d"), "script": SCRIPT, "targets": "issue36"}
+    try:
+        args.tum, missing = tum_path(args.tum), ""
+    except TumNotFound as err:  # the stages that need it say so; the others run
+        args.tum, missing = err.path, str(err)
     t0 = time.perf_counter()
     stages: dict[str, Callable[[argparse.Namespace], dict[str, Any]]] = {
         "setup": stage_setup, "tests": stage_tests, "raster": stage_raster, "mapping": stage_mapping,
@@ -487,8 +482,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in STAGES:
         if name in args.skip and name != "setup":
             continue
-        if name in ("mapping", "eval", "composed", "live", "cold") and not args.tum.is_dir():
-            res[name] = {"error": f"no TUM folder at {args.tum}"}
+        if name in ("mapping", "eval", "composed", "live", "cold") and missing:
+            res[name] = {"error": missing}
             continue
         _log(f"stage {name}")
         ts = time.perf_counter()
@@ -497,10 +492,10 @@ def main(argv: list[str] | None = None) -> int:
         except Exception as err:  # one failed stage must not lose the others' figures
             res[name] = {"error": f"{type(err).__name__}: {err}"[:500]}
         res[name]["stage_s"] = round(time.perf_counter() - ts, 1)
-        args.out.write_text(json.dumps(res, indent=2))  # after every stage: a timeout keeps what ran
+        write_results(args.out, res)  # after every stage: a timeout keeps what ran
     res["total_s"] = round(time.perf_counter() - t0, 1)
     res["headline"] = headline(res)
-    args.out.write_text(json.dumps(res, indent=2))
+    write_results(args.out, res)
     print(table(res), end="")
     _log(f"wrote {args.out} in {res['total_s']:.0f} s")
     return 0

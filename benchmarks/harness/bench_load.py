@@ -16,13 +16,12 @@ of each 30 s window and its slope say whether live memory grows.
 Prints a table, writes JSON (default results/bench_load.json) and a PNG of memory and map
 size over time next to it.
 
-    python benchmarks/bench_load.py                      # 300 s at 30 Hz, 640x480
-    python benchmarks/bench_load.py --seconds 60 --unique 60
+    python benchmarks/harness/bench_load.py                      # 300 s at 30 Hz, 640x480
+    python benchmarks/harness/bench_load.py --seconds 60 --unique 60
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -31,6 +30,8 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
+from _common import write_results  # noqa: E402
 
 NODES = ("tracker", "keyframe_sampler", "mapper", "merger")
 
@@ -130,6 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     from memgs_ros.io.bag_writer import write_bag
     from memgs_ros.io.synthetic import generate_frames, parse_spec
     from memgs_ros.orchestration.pipeline import RunOptions, run_pipeline
+    from memgs_ros.orchestration.run_files import read_stats_timeline
 
     tmp = tempfile.TemporaryDirectory(prefix="memgs_load_")
     work = args.keep or Path(tmp.name)
@@ -150,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
                                 max_frames=n_frames, overrides=overrides,
                                 timeout_s=args.seconds * 4 + 900), progress=True)
     wall = time.perf_counter() - t1
-    timeline = [json.loads(line) for line in (work / "run" / "stats_timeline.jsonl").read_text().splitlines()]
+    timeline = read_stats_timeline(work / "run")
     nodes = summarise(timeline, args.warmup_s)
     tr = nodes.get("tracker", {}).get("last", {})
     player = nodes.get("player", {}).get("last", {})
@@ -213,11 +215,11 @@ def main(argv: list[str] | None = None) -> int:
           f"slope {slope_txt} MB/min (<= 1); node processes left behind {len(orphans)} (0)")
     # The figure and its table are made together from this JSON (benchmarks/make_figures.py load):
     # keep the per-node RSS and the mapper's size over time, and the command.
-    result["command"] = " ".join(["python benchmarks/bench_load.py", *(argv if argv is not None else sys.argv[1:])])
+    argv_used = argv if argv is not None else sys.argv[1:]
+    result["command"] = " ".join(["python benchmarks/harness/bench_load.py", *argv_used])
     result["timeline"] = [{k: r[k] for k in ("t_s", "node", "rss_mb", "gaussians", "keyframes") if k in r}
                           for r in timeline]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
+    write_results(args.out, result)
     print(f"wrote {args.out}; figure and table: python benchmarks/make_figures.py load {args.out} "
           "--name load_30hz_640x480 --readme docs/results.md")
     return 0

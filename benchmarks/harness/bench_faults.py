@@ -39,8 +39,8 @@ Prints a progress line per case, the matrix and the totals; ``--json PATH`` writ
 status 1 when a process was left behind or a map was corrupt or lost. ``test/test_faults.py``
 runs five of the cases through this module.
 
-    python benchmarks/bench_faults.py                      # the whole matrix (~21 min on 2 cores)
-    python benchmarks/bench_faults.py --cases mapper,disk  # cases whose name holds a substring
+    python benchmarks/harness/bench_faults.py                      # the whole matrix (~21 min on 2 cores)
+    python benchmarks/harness/bench_faults.py --cases mapper,disk  # cases whose name holds a substring
 """
 from __future__ import annotations
 
@@ -62,7 +62,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
+from _common import ROOT, write_results  # noqa: E402
+
 SPEC = "synthetic:w=128,h=96,n=40,seed=3"
 # Short training, and saves and checkpoints every second, so a late fault finds both on disk.
 SETTINGS = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 30, "mapper.checkpoint_period_s": 1.0,
@@ -723,9 +725,8 @@ def main(argv: list[str] | None = None) -> int:
         if kept and args.work is None:
             print(f"(case folders are in a temporary folder, removed now: pass --work to keep {len(kept)})")
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"spec": SPEC, "settings": SETTINGS, "totals": asdict(t),
-                                         "cases": [asdict(r) for r in results]}, indent=2) + "\n")
+        write_results(args.json, {"spec": SPEC, "settings": SETTINGS, "totals": asdict(t),
+                                  "cases": [asdict(r) for r in results]})
     return 0 if t.left_behind == 0 and t.bad_maps == 0 else 1
 
 

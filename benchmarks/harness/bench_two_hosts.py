@@ -6,7 +6,7 @@ ends by ``tc ... tbf rate R`` (a telemetry radio). The ground station is a node 
 that does what ``memgs run``'s observer does, from the ground: it watches every node's stats,
 views the mapper's live render (``memgs/render/color``), finishes the mapper at the end of the
 source, waits for the merger to hold the final map and compares the two maps
-(``pipeline._compare_maps``). DDS discovery is Fast DDS's own multicast, which crosses the veth.
+(``hooks.compare_maps``). DDS discovery is Fast DDS's own multicast, which crosses the veth.
 
 Measured: map-delta bytes (the merger's ``delta_bytes``) against the link rate, mean and peak
 (1 s); every byte on the wire from air to ground (the ground veth's counters); the time from the
@@ -16,8 +16,9 @@ whether the two maps are identical, and their largest difference.
 Needs root, iproute2 (``ip``, ``tc``) and a kernel with network namespaces, veth and tbf. The
 namespaces and every process in them are removed at the end, also on error or Ctrl-C.
 
-    python benchmarks/bench_two_hosts.py --rate 5 --frames 100
-    python benchmarks/bench_two_hosts.py --source synthetic:w=320,h=240,n=60,seed=0 --drop-every 5 --json two_hosts.json
+    python benchmarks/harness/bench_two_hosts.py --rate 5 --frames 100
+    python benchmarks/harness/bench_two_hosts.py --source synthetic:w=320,h=240,n=60,seed=0 --drop-every 5 \
+        --json two_hosts.json
 """
 from __future__ import annotations
 
@@ -58,7 +59,7 @@ from memgs_ros.core.runtime.cpu import MALLOC_ARENAS, PARENT_PID_ENV, die_with_p
 from memgs_ros.errors import MemgsError, PipelineError
 from memgs_ros.nodes.bag_player import LINGER_S
 from memgs_ros.nodes.registry import GRAPH, NODES
-from memgs_ros.orchestration.pipeline import _compare_maps, _parse_kv, _wait_for_graph
+from memgs_ros.orchestration.hooks import compare_maps, parse_trigger_message, wait_for_graph
 from memgs_ros.orchestration.processes import (
     NodeProcesses,
     open_context,
@@ -70,8 +71,9 @@ from memgs_ros.orchestration.signals import exit_status, stop_on_signals
 from memgs_ros.ros import qos
 from memgs_ros.ros.diagnostics import stats_values
 
-ROOT = Path(__file__).resolve().parents[1]
-HEAD = ROOT.parent / "shared" / "data" / "tum" / "rgbd_dataset_freiburg1_rpy_head"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
+from _common import TUM_ENV, tum_path, write_results  # noqa: E402
+
 ONBOARD = ("bag_player", "tracker", "keyframe_sampler", "mapper")  # the drone; the merger is on the ground
 ADDRESSES = ("10.77.0.1", "10.77.0.2")  # air, ground: the namespaces are private, any subnet will do
 # tbf: 4 KB of burst (a few packets at once, as a radio modem sends) and at most 400 ms queued
@@ -298,7 +300,7 @@ class GroundStation:
         self.poses = 0
         self.stats: dict[str, dict[str, str]] = {}
         self.merger_rows: list[tuple[float, dict[str, str]]] = []  # (arrival, values) of every merger stats
-        self.maps: dict[str, PointCloud2] = {}  # "mapper", "merger": the last whole map of each (_compare_maps)
+        self.maps: dict[str, PointCloud2] = {}  # "mapper", "merger": the last whole map of each (compare_maps)
         self.render_views = 0
         self.render_bytes = 0
         self._snapshots: Any = None
@@ -398,7 +400,7 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
         for name in GRAPH:  # sinks first, as the runner starts them
             procs.start(name)
         try:
-            _wait_for_graph(gs, procs, list(GRAPH), end)
+            wait_for_graph(gs, procs, GRAPH, end)
         except PipelineError as err:
             raise PipelineError(f"{err} (seen from the ground namespace: DDS discovery over the veth)") from err
         procs.start("bag_player")
@@ -421,7 +423,7 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
             procs.check()  # the player ended without its done message: only exit 0 is the source's end
         procs.player_reported = True
         t_finish = time.monotonic()
-        final = _parse_kv(gs.call(gs.finish_client, max(60.0, end - time.monotonic())))
+        final = parse_trigger_message(gs.call(gs.finish_client, max(60.0, end - time.monotonic())))
         t_finished = time.monotonic()
         final_seq, epoch = int(final.get("seq", 0)), int(final.get("epoch", 0))
         while (t_conv := gs.converged_at(final_seq, epoch)) is None:
@@ -433,7 +435,7 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
         # the player's exit, LINGER_S after it sent done, is seen here at once. The earlier of the two.
         t_last = min([t for t in (gs.done_at,) if t is not None] + [t - LINGER_S for t in exits[:1]])
         gs.watch_mapper_snapshots()
-        identical, max_diff = _compare_maps(gs, final_seq, epoch, end)
+        identical, max_diff = compare_maps(gs, final_seq, epoch, end)
         t_compared = time.monotonic()
         return {
             "t_first": gs.first_pose_at or t_play, "t_last": t_last, "t_finish": t_finish, "t_finished": t_finished,
@@ -461,9 +463,7 @@ def _ground_station_main(spec_path: Path) -> int:
             result: dict[str, Any] = ground_station(spec)
     except (PipelineError, KeyboardInterrupt) as err:
         result = {"error": f"{type(err).__name__}: {err}"}
-    tmp = result_path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(result))
-    os.replace(tmp, result_path)
+    write_results(result_path, result)
     return 0 if "error" not in result else 1
 
 
@@ -471,7 +471,7 @@ def _ground_station_main(spec_path: Path) -> int:
 
 @dataclass(frozen=True)
 class TwoHostsOptions:
-    source: str = str(HEAD)
+    source: str = field(default_factory=lambda: str(tum_path(check=False)))  # $MEMGS_TUM or the fr1/rpy head
     frames: int = 100  # the player's max_frames (0 = the whole source)
     rate_mbit: float = 5.0  # the link, each way
     config: str = ""  # "" = from the source's name, as memgs run guesses it
@@ -726,7 +726,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--rate", type=float, default=5.0, help="link rate each way, Mbit/s (default 5)")
     p.add_argument("--frames", type=int, default=100, help="frames to play (0 = all; default 100)")
-    p.add_argument("--source", default=str(HEAD), help="TUM folder, bag or synthetic spec (default: the fr1/rpy head)")
+    p.add_argument("--source", default=str(tum_path(check=False)),
+                   help=f"TUM folder, bag or synthetic spec (default: ${TUM_ENV}, else the shared fr1/rpy head)")
     p.add_argument("--config", default="", help="node config (default: from the source's name, as memgs run)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", help="override a parameter")
     p.add_argument("--drop-every", type=int, default=0, help="the merger ignores every n-th delta (0 = none)")
@@ -773,8 +774,7 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"output {r.out_dir}")
     print(table(r))
     if args.json is not None:
-        args.json.write_text(json.dumps({"options": {**asdict(opts), "out_dir": r.out_dir}, "result": r.as_dict()},
-                                        indent=2, default=str) + "\n")
+        write_results(args.json, {"options": {**asdict(opts), "out_dir": r.out_dir}, "result": r.as_dict()})
     return 0 if r.identical else 1
 
 

@@ -1,4 +1,4 @@
-"""Prepare what a GPU machine without ROS needs for benchmarks/bench_gpu.py, in one folder.
+"""Prepare what a GPU machine without ROS needs for benchmarks/harness/bench_gpu.py, in one folder.
 
 The lent GPU machines run another Python (3.12) and have no ROS, rosbags or gsplat, and reach
 no package index. This writes, into a git-ignored folder that the run carries along:
@@ -10,18 +10,19 @@ no package index. This writes, into a git-ignored folder that the run carries al
   tum/      every ``--stride``-th of the first ``--frames`` frames of a TUM folder (rgb.txt,
             depth.txt, the images, the whole groundtruth.txt).
 
-    python benchmarks/gpu_carry.py gpu_carry --frames 120 --stride 2 [--no-ros]
+    python benchmarks/harness/gpu_carry.py gpu_carry --frames 120 --stride 2 [--no-ros]
 
 then, on the GPU machine (carry ``gpu_carry``):
 
-    python benchmarks/bench_gpu.py --tum gpu_carry/tum/<name> --wheels gpu_carry/wheels
+    python benchmarks/harness/bench_gpu.py --tum gpu_carry/tum/<name> --wheels gpu_carry/wheels
 
 The carried paths may total 64 MiB a call, and what a call installs or copies to /tmp stays
 while the machine is warm (30 s between calls). The 2026-11-26 H200 figures came from calls
 back to back: (1) the ROS wheels, installed; (2) gsplat's wheel and the head's first 95 frames
-with rgb.txt/depth.txt/groundtruth.txt, copied to /tmp/head and gsplat built; (3) the other 105
-frames into /tmp/head, then ``python3 benchmarks/bench_gpu.py --tum /tmp/head/<name>`` from the
-checkout's root (the script finds the package there without an install).
+with rgb.txt/depth.txt/groundtruth.txt, copied to a scratch folder HEAD outside the checkout and
+gsplat built; (3) the other 105 frames into HEAD, then ``python3 benchmarks/harness/bench_gpu.py
+--tum HEAD/<name>`` from the checkout's root (the script finds the package there without an
+install).
 """
 from __future__ import annotations
 
@@ -35,8 +36,9 @@ from pathlib import Path
 
 from packaging.requirements import Requirement
 
-ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_TUM = ROOT.parent / "shared/data/tum/rgbd_dataset_freiburg1_rpy_head"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
+from _common import TUM_HELP, tum_path_or_exit  # noqa: E402
+
 ROS_ROOTS = ("ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "ros-jazzy-rmw-fastrtps-cpp", "rosbags", "mcap")
 TEST_ROOTS = ("pytest",)
 # gsplat's PyPI wheel is pure Python (it compiles its CUDA code at first use) and needs these.
@@ -118,16 +120,17 @@ def _mb(path: Path) -> float:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("dest", type=Path, help="folder to write (keep it git-ignored)")
-    ap.add_argument("--tum", type=Path, default=DEFAULT_TUM)
+    ap.add_argument("--tum", type=Path, default=None, help=TUM_HELP)
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--stride", type=int, default=2)
     ap.add_argument("--no-ros", action="store_true", help="leave the ROS wheels out (~57 MB)")
     ap.add_argument("--no-data", action="store_true")
     args = ap.parse_args(argv)
+    tum = None if args.no_data else tum_path_or_exit(ap, args.tum)
     wheels(args.dest / "wheels", ros=not args.no_ros)
     print(f"wheels: {_mb(args.dest / 'wheels'):.1f} MB")
     if not args.no_data:
-        sub = tum_subset(args.tum, args.dest / "tum", args.frames, args.stride)
+        sub = tum_subset(tum, args.dest / "tum", args.frames, args.stride)
         print(f"{sub}: {_mb(sub):.1f} MB")
     print(f"total {_mb(args.dest):.1f} MB (a run may carry 64 MiB)")
     return 0
