@@ -38,8 +38,8 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.mapping import checkpoint, losses
+from memgs_ros.core.mapping.frame_acks import LockstepAcknowledger
 from memgs_ros.core.mapping.keyframe_input import check_seed_depths
-from memgs_ros.core.mapping.lockstep import LockstepAcks
 from memgs_ros.core.mapping.mapper import MappingConfig
 from memgs_ros.core.mapping.session import MappingSession
 from memgs_ros.core.maps.map_delta import message_dtype
@@ -127,11 +127,10 @@ class MapperNode(Node):
         self._finishing = False  # set once by the finish service, never cleared
         self._render_pending: Future | None = None
         self._live_view: tuple[int, ...] = ()  # the last live render's (pose stamp, map version)
-        self.awaiting_keyframes: set[int] = set()  # lockstep: announced, not yet complete
-        self._acks = LockstepAcks(p.lockstep_window)
-        self._announced_at: dict[int, float] = {}  # lockstep: when the tracker's word on a frame came
-        self._ack_ms = RollingMedian()  # ... to its acknowledgement: a lockstep frame's time here
-        self.stats.computed["lockstep_ack_ms_median"] = self._ack_ms
+        ack_ms = self.stats.computed["lockstep_ack_ms_median"] = RollingMedian()  # a lockstep frame's time here
+        self.lockstep = LockstepAcknowledger(
+            p.lockstep_window, self._train_frame, self._hand_over,
+            lambda stamp: self.pub_ack.publish(make_header(stamp, "mapper")), ack_ms.add)
         self._decided: dict[int, int] = {}  # keyframe stamp -> its pose's publication time (ns), until complete
         topics = {"color": Image, "camera_info": CameraInfo, "pose": PoseStamped, "seeds": PointCloud2,
                   **({"depth": Image} if p.mode == "rgbd" else {})}
@@ -260,9 +259,7 @@ class MapperNode(Node):
         else:
             inserted = self.session.insert_keyframe(kf, time.thread_time() - cpu0)
             inserted.add_done_callback(self._report_failure("insert_keyframe"))
-        if stamp in self.awaiting_keyframes:
-            self.awaiting_keyframes.discard(stamp)
-            self._lockstep_ack(stamp)
+        self.lockstep.bundle_complete(stamp)
         if len(self._decided) > 64:  # poses whose bundle never completed
             self._decided = dict(list(self._decided.items())[-32:])
 
@@ -306,32 +303,14 @@ class MapperNode(Node):
         if msg.frame_id == "keyframe":
             self.intake.announce(stamp, time.monotonic())
             self.stats.post_count("keyframes_announced")
-        if not self.params.lockstep:
-            return
-        self._announced_at[stamp] = time.perf_counter()
-        if msg.frame_id == "keyframe" and not self.intake.seen(stamp):
-            self.awaiting_keyframes.add(stamp)
-            return
-        self._lockstep_ack(stamp)
+        if self.params.lockstep:
+            self.lockstep.processed(stamp, msg.frame_id == "keyframe", self.intake.seen(stamp))
 
-    def _lockstep_ack(self, stamp_ns: int) -> None:
-        """Queue the frame's training (after its keyframe's insertion: one queue) and acknowledge
-        the frame once at most ``lockstep_window`` frames' training is unfinished (LockstepAcks)."""
+    def _train_frame(self) -> Future:
+        """A lockstep frame's training: queued on the session (after its keyframe's insertion)."""
         trained = self.session.train(self.params.lockstep_iterations)
         trained.add_done_callback(self._report_failure("train"))
-        trained.add_done_callback(lambda _f: self._hand_over(self._send_due_acks))
-        self._hand_over(functools.partial(self._send_due_acks, (stamp_ns, trained)))
-
-    def _send_due_acks(self, queued: tuple[int, Future] | None = None) -> None:
-        """Handed over (the executor's thread touches ``_acks``): take a newly queued frame's
-        training, then acknowledge what is due."""
-        if queued is not None:
-            self._acks.submitted(*queued)
-        for stamp in self._acks.due():
-            self.pub_ack.publish(make_header(stamp, "mapper"))
-            announced = self._announced_at.pop(stamp, None)
-            if announced is not None:
-                self._ack_ms.add((time.perf_counter() - announced) * 1e3)
+        return trained
 
     def _sync_stats(self) -> None:
         """Session problems and status, and lost keyframes, into the stats; also applies what the
