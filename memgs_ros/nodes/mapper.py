@@ -41,6 +41,7 @@ from memgs_ros.core.mapping import checkpoint, losses
 from memgs_ros.core.mapping.frame_acks import LockstepAcknowledger
 from memgs_ros.core.mapping.keyframe_input import check_seed_depths
 from memgs_ros.core.mapping.mapper import MappingConfig
+from memgs_ros.core.mapping.output_pacing import DeltaPacer, LiveView, delta_rows
 from memgs_ros.core.mapping.session import MappingSession
 from memgs_ros.core.maps.map_delta import message_dtype
 from memgs_ros.core.merge.config import MergeConfig
@@ -123,10 +124,13 @@ class MapperNode(Node):
             self.get_logger().info(f"resumed from {self.ckpt.path}: {len(resumed.gaussians)} Gaussians, "
                                    f"{len(resumed.keyframes)} keyframes, iteration {resumed.iteration}")
         self.latest_pose: PoseStamped | None = None
-        self._delta_pending: Future | None = None  # these four: the executor's thread only
-        self._finishing = False  # set once by the finish service, never cleared
-        self._render_pending: Future | None = None
-        self._live_view: tuple[int, ...] = ()  # the last live render's (pose stamp, map version)
+        # These two: the executor's thread only.
+        self.deltas = DeltaPacer(
+            delta_rows(p.delta_budget_kbytes_per_s, p.delta_rate_hz, message_dtype(self.cfg.max_sh_degree).itemsize),
+            lambda rows: self.session.delta(rows, False, self._publish_delta),
+            lambda: self.pub_delta.wait_for_all_acked(Duration(nanoseconds=0)),
+            lambda: self.stats.post_count("delta_waits"))
+        self.live_view = LiveView()
         ack_ms = self.stats.computed["lockstep_ack_ms_median"] = RollingMedian()  # a lockstep frame's time here
         self.lockstep = LockstepAcknowledger(
             p.lockstep_window, self._train_frame, self._hand_over,
@@ -334,29 +338,12 @@ class MapperNode(Node):
             self.stats.gauges["working_peak_mb"] = round(max(peak_rss_mb() - self._rss_baseline_mb, 0.0), 1)
 
     def send_delta(self, exact: bool = False) -> Future | None:
-        """Queue a delta (exact: all, tolerance 0), published by the session in seq order. A timer never
-        waits for the worker (it would starve the finish service): one periodic delta at a time, and
-        none while a receiver has not acknowledged the last (counted as ``delta_waits``)."""
-        p = self.params
+        """Queue a delta (exact: all, tolerance 0), published by the session in seq order; the
+        periodic ones as ``DeltaPacer`` allows (``delta_waits`` counts a receiver lagging)."""
+        return self.session.delta(None, True, self._publish_delta) if exact else self.deltas.tick()
 
-        def publish(rows: np.ndarray) -> None:  # on the session's outbox thread
-            self._hand_over(lambda: self.pub_delta.publish(self._cloud(rows)))
-
-        if exact:
-            return self.session.delta(None, True, publish)
-        if self._finishing:  # the final flush carries every change: a periodic delta now only delays it
-            return self._delta_pending
-        if not self.pub_delta.wait_for_all_acked(Duration(nanoseconds=0)):
-            # A receiver has not acknowledged the last one yet (a slow link): skip this tick, so that
-            # the next delta carries the map as it is then, rather than queue deltas that newer ones
-            # outdate and that the final flush would wait behind (5 deltas, 4.5 s at 5 Mbit/s).
-            self.stats.post_count("delta_waits")
-            return self._delta_pending
-        if self._delta_pending is None or self._delta_pending.done():
-            row_bytes = message_dtype(self.cfg.max_sh_degree).itemsize
-            rows = max(1, int(p.delta_budget_kbytes_per_s * 1000.0 / p.delta_rate_hz / row_bytes))
-            self._delta_pending = self.session.delta(rows, False, publish)
-        return self._delta_pending
+    def _publish_delta(self, rows: np.ndarray) -> None:  # on the session's outbox thread
+        self._hand_over(lambda: self.pub_delta.publish(self._cloud(rows)))
 
     def _hand_over(self, publish: Callable[[], None]) -> None:
         """From the session's threads: queue a publication (or any ROS call) for the executor's thread."""
@@ -410,7 +397,7 @@ class MapperNode(Node):
     async def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         """Insert what is queued, stop training, run the final iterations, flush every change."""
         p = self.params
-        self._finishing = True  # a latch, read by the periodic delta timer
+        self.deltas.finishing = True  # a latch, read by the periodic delta timer
         done = await self._done(self.session.finish(p.final_iterations, p.final_densify, p.final_budget_s,
                                                     p.final_total_iterations))
         self.get_logger().info(f"final {done.final_iterations} iterations in {done.seconds:.1f} s")
@@ -432,18 +419,13 @@ class MapperNode(Node):
         return res
 
     def _render(self, pose: PoseStamped | None, requested: bool = False) -> None:
-        """Queue a render at ``pose`` (the live view skips a tick while its last one waits)."""
-        if pose is None or (not requested and self._render_pending is not None and not self._render_pending.done()):
+        """Queue a render at ``pose`` (the live view as ``LiveView`` allows; a requested one always)."""
+        if pose is None:
             return
         stamp = stamp_to_ns(pose.header.stamp)
-        if not requested:
-            # The same view of the same map again is bytes for nothing: after the last frame it would
-            # share a slow link with the final flush (a 230 kB view a second: 37 % of 5 Mbit/s).
-            st = self.session.status
-            key = (stamp, st.iteration, st.gaussians, st.keyframes)
-            if key == self._live_view:
-                return
-            self._live_view = key
+        if not requested and not self.live_view.due(stamp, self.session.status):
+            return
+
         def send(view) -> None:  # noqa: ANN001 - RenderedView
             self.pub_color.publish(numpy_to_image(view.rgb, "rgb8", stamp, "render_camera"))
             self.pub_depth.publish(depth_to_image(view.depth, "32FC1", stamp, "render_camera"))
@@ -453,7 +435,8 @@ class MapperNode(Node):
             self._hand_over(lambda: send(view))
         future = self.session.render(pose_to_matrix(pose.pose), publish=publish)
         future.add_done_callback(self._report_failure("render"))
-        self._render_pending = self._render_pending if requested else future
+        if not requested:
+            self.live_view.started(future)
 
     def on_shutdown(self) -> None:
         try:  # bounded: the runner kills a node that takes longer than its stop deadline
