@@ -13,7 +13,6 @@ from it under a new delta epoch, publishing a snapshot so the merger replaces it
 """
 from __future__ import annotations
 
-import contextlib
 import functools
 import pathlib
 import queue
@@ -38,6 +37,7 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.mapping import checkpoint, losses
+from memgs_ros.core.mapping.finish import FinalPlan, FinishSteps, finish_map
 from memgs_ros.core.mapping.frame_acks import LockstepAcknowledger
 from memgs_ros.core.mapping.keyframe_input import check_seed_depths
 from memgs_ros.core.mapping.mapper import MappingConfig
@@ -70,9 +70,6 @@ from memgs_ros.ros.seed_cloud import decode_seeds
 from memgs_ros.ros.stamp_sync import KeyframeIntake
 
 CONFIGS = NODE_CONFIGS["mapper"]
-# How long the finish service waits for every receiver to acknowledge the final flush before the
-# closing snapshot goes anyway (a receiver that died stays matched until its lease runs out).
-FLUSH_ACK_TIMEOUT_S = 10.0
 SHUTDOWN_SAVE_TIMEOUT_S = 15.0  # within the runner's stop deadline (20 s)
 SESSION_CLOSE_TIMEOUT_S = 30.0  # the step or command in progress ends first (a cold warm-up: ~20 s)
 T = TypeVar("T")
@@ -128,7 +125,7 @@ class MapperNode(Node):
         self.deltas = DeltaPacer(
             delta_rows(p.delta_budget_kbytes_per_s, p.delta_rate_hz, message_dtype(self.cfg.max_sh_degree).itemsize),
             lambda rows: self.session.delta(rows, False, self._publish_delta),
-            lambda: self.pub_delta.wait_for_all_acked(Duration(nanoseconds=0)),
+            self._receivers_acked,
             lambda: self.stats.post_count("delta_waits"))
         self.live_view = LiveView()
         ack_ms = self.stats.computed["lockstep_ack_ms_median"] = RollingMedian()  # a lockstep frame's time here
@@ -342,6 +339,10 @@ class MapperNode(Node):
         periodic ones as ``DeltaPacer`` allows (``delta_waits`` counts a receiver lagging)."""
         return self.session.delta(None, True, self._publish_delta) if exact else self.deltas.tick()
 
+    def _receivers_acked(self) -> bool:
+        """Whether every delta receiver acknowledged every delta sent (never waits)."""
+        return self.pub_delta.wait_for_all_acked(Duration(nanoseconds=0))
+
     def _publish_delta(self, rows: np.ndarray) -> None:  # on the session's outbox thread
         self._hand_over(lambda: self.pub_delta.publish(self._cloud(rows)))
 
@@ -395,27 +396,16 @@ class MapperNode(Node):
         return res
 
     async def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        """Insert what is queued, stop training, run the final iterations, flush every change."""
+        """Insert what is queued, stop training, run the final iterations, flush every change
+        (core/mapping/finish.py)."""
         p = self.params
         self.deltas.finishing = True  # a latch, read by the periodic delta timer
-        done = await self._done(self.session.finish(p.final_iterations, p.final_densify, p.final_budget_s,
-                                                    p.final_total_iterations))
-        self.get_logger().info(f"final {done.final_iterations} iterations in {done.seconds:.1f} s")
-        flush = self.send_delta(exact=True)
-        assert flush is not None  # an exact flush never waits
-        await self._done(flush)  # handed over after the flush's messages: they are out
-        # A receiver cannot see that the last delta was lost (no later seq shows the gap): the
-        # latched snapshot after it lets every receiver end on the final map. It waits until the
-        # flush is acknowledged: sent at once, the two whole maps would share a slow link, and the
-        # flush, which every receiver in step needs, would arrive later.
-        end = time.monotonic() + FLUSH_ACK_TIMEOUT_S  # waited long enough: the snapshot goes anyway
-        while not self.pub_delta.wait_for_all_acked(Duration(nanoseconds=0)) and time.monotonic() < end:
-            await self._sleep(0.02)
-        _, _, seq = await self._done(self.publish_snapshot())
-        with contextlib.suppress(OSError, DataError, WorkerStopped):  # counted as checkpoint_failed
-            await self._done(self.save_checkpoint())
-        res.success = True
-        res.message = f"seq={seq} gaussians={self.session.status.gaussians} epoch={done.epoch}"
+        steps = FinishSteps(
+            flush=lambda: self.session.delta(None, True, self._publish_delta), snapshot=self.publish_snapshot,
+            save=self.save_checkpoint, receivers_acked=self._receivers_acked,
+            wait=self._done, sleep=self._sleep, log=self.get_logger().info)
+        plan = FinalPlan(p.final_iterations, p.final_densify, p.final_budget_s, p.final_total_iterations)
+        res.success, res.message = True, await finish_map(self.session, plan, steps)
         return res
 
     def _render(self, pose: PoseStamped | None, requested: bool = False) -> None:
