@@ -10,6 +10,11 @@ Out: ``memgs/map/delta`` (core/maps/map_delta.py), ``memgs/mapper/snapshot`` (la
 (answers ``seq=<n> gaussians=<n> epoch=<n>``). With ``checkpoint_path`` the session's state is
 written there atomically (periodically, at finish and shutdown) and a restarted mapper resumes
 from it under a new delta epoch, publishing a snapshot so the merger replaces its copy.
+
+The node translates messages and parameters; the rules are ROS-free services in core/mapping/:
+``mapper_start`` (device, resume), ``frame_acks`` (the lockstep acknowledgement), ``output_pacing``
+(periodic deltas, live view), ``finish`` and ``checkpoint_saver``. Messages are read in
+ros/mapper_inputs.py and sent from ros/mapper_outputs.py; the stats are ros/mapper_stats.py's.
 """
 from __future__ import annotations
 
@@ -56,8 +61,9 @@ class MapperNode(Node):
         self.params = p = declare_config(self, MapperParams, "")
         self.niceness = p.niceness  # applied by run_node to this node's process
         self.cfg: MappingConfig = declare_config(self, MappingConfig, "mapping")
-        start = start_mapper(self.cfg, declare_config(self, MergeConfig, "merge"), p.device, SessionOptions(
-            p.lockstep, p.insert_queue, p.delta_tolerance, p.niceness, p.checkpoint_path, p.resume))
+        opts = SessionOptions(lockstep=p.lockstep, insert_queue=p.insert_queue, delta_tolerance=p.delta_tolerance,
+                              niceness=p.niceness, checkpoint_path=p.checkpoint_path, resume=p.resume)
+        start = start_mapper(self.cfg, declare_config(self, MergeConfig, "merge"), p.device, opts)
         self.session = start.session
         self.stats = MapperStats(self, start.raster.backend, p.checkpoint_period_s if p.checkpoint_path else 0.0)
         self.checkpoints = CheckpointSaver(self.session, start.checkpoint, self.stats)
