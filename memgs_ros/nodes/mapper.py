@@ -71,7 +71,8 @@ class MapperNode(Node):
         # These three: the executor's thread only.
         self.deltas = DeltaPacer(
             delta_rows(p.delta_budget_kbytes_per_s, p.delta_rate_hz, message_dtype(self.cfg.max_sh_degree).itemsize),
-            lambda rows: self.session.delta(rows, False, self.out.delta_rows), self.out.receivers_acked,
+            lambda rows: self.stats.watch(self.session.delta(rows, False, self.out.delta_rows), "delta"),
+            self.out.receivers_acked,
             lambda: self.stats.post_count("delta_waits"))
         self.live_view = LiveView()
         self.lockstep = LockstepAcknowledger(
@@ -84,7 +85,7 @@ class MapperNode(Node):
         self._subscribe(topics)
         self._serve(checkpoints=start.checkpoint is not None)
         if start.resumed is not None:
-            self.publish_snapshot()  # latched: the merger takes the resumed map and its epoch
+            self._periodic_snapshot()  # latched: the merger takes the resumed map and its epoch
         # The rasterizer's and SSIM's compiled kernels load (on a fresh install: compile) as the
         # session's first command, on its worker, while the node already spins (a stop is answered
         # meanwhile) and keyframes queue behind it; kernels_warm says when they are in.
@@ -119,7 +120,7 @@ class MapperNode(Node):
         self.create_service(Trigger, "memgs/mapper/finish", self.on_finish, callback_group=ReentrantCallbackGroup())
         self.create_timer(1.0 / p.delta_rate_hz, self.deltas.tick)
         if p.snapshot_period_s > 0:
-            self.create_timer(p.snapshot_period_s, self.publish_snapshot)
+            self.create_timer(p.snapshot_period_s, self._periodic_snapshot)
         if checkpoints and p.checkpoint_period_s > 0:
             self.create_timer(p.checkpoint_period_s, self.save_checkpoint)
         if p.render_rate_hz > 0:
@@ -193,6 +194,10 @@ class MapperNode(Node):
     def publish_snapshot(self) -> Future:
         """Queue the whole map as a (latched) snapshot at the next seq: (rows, size, seq)."""
         return self.session.snapshot_message(self.out.snapshot_rows)
+
+    def _periodic_snapshot(self) -> None:
+        """A snapshot nobody waits for (timer, resume): its error is counted."""
+        self.stats.watch(self.publish_snapshot(), "snapshot")
 
     async def on_snapshot_request(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         _, n, seq = await self.out.hand_over.result(self.publish_snapshot())
