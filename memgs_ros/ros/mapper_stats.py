@@ -73,7 +73,7 @@ class MapperStats(NodeStats):
         for ev in session.poll_events():
             self.problem(ev.kind, ev.message)
         st = session.status
-        dict.update(self.counters, st.counters)  # assigned, not added (Counter.update): totals
+        self.counters.assign(st.counters)  # assigned, not added (Counter.update): totals
         self.gauges.update(st.gauges())
         rate = self._rate.update(time.monotonic(), st.iteration)  # over the last sync period
         if rate is not None:
