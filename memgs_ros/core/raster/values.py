@@ -63,6 +63,10 @@ class Splats2D(NamedTuple):
     colors: Tensor
     depths: Tensor
 
+    def contiguous(self) -> Splats2D:
+        """The same splats with every tensor contiguous (what the compositors' kernels read)."""
+        return Splats2D(*(t.contiguous() for t in self))
+
 
 @dataclass(frozen=True)
 class RenderOutput:
