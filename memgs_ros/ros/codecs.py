@@ -30,7 +30,7 @@ from std_msgs.msg import Header
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import pose_from_tq, pose_to_tq
 from memgs_ros.errors import MessageError
-from memgs_ros.io.image_decoding import IMAGE_ENCODINGS
+from memgs_ros.io.image_decoding import IMAGE_ENCODINGS, metres_to_depth_units
 
 # Decoding lives in the one decoder; ros/pipeline.py still imports image_to_numpy from here.
 from memgs_ros.io.image_decoding import image_to_numpy as image_to_numpy
@@ -146,9 +146,7 @@ def depth_to_image(
     if encoding == "16UC1":
         if not (np.isfinite(depth_scale) and depth_scale > 0):
             raise MessageError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
-        units = np.where(valid, np.rint(d.astype(np.float64) * depth_scale), 0.0)
-        units[units > 65535] = 0
-        return numpy_to_image(units.astype(np.uint16), encoding, stamp_ns, frame_id)
+        return numpy_to_image(metres_to_depth_units(d, depth_scale), encoding, stamp_ns, frame_id)
     raise MessageError(f"depth encoding must be 32FC1 or 16UC1, got '{encoding}'")
 
 
