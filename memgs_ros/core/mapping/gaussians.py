@@ -35,11 +35,10 @@ import numpy as np
 import torch
 
 from memgs_ros.core.mapping.config import GaussianLearningRates
-from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords  # noqa: F401 - re-exported
+from memgs_ros.core.maps.records import PLY_F_REST, SH_C0, GaussianRecords  # noqa: F401 - re-exported
 from memgs_ros.core.raster.values import Gaussians
 from memgs_ros.errors import ConfigError, DataError
 
-SH_C0 = 0.28209479177387814  # zeroth real spherical harmonic, Y_0^0
 PARAM_NAMES = ("means", "log_scales", "quats_wxyz", "opacity_logits", "sh_dc", "sh_rest")
 SIDE_NAMES = (
     "ids", "keyframe_ids", "created_iter", "densify_grad_sum", "densify_count",

@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import numpy as np
+import torch
 from torch import Tensor
 
 
@@ -85,3 +87,8 @@ class RenderOutput:
     means2d: Tensor
     radii: Tensor
     visible: Tensor
+
+
+def render_rgb8(color: Tensor) -> np.ndarray:  # [3, H, W] -> [H, W, 3]
+    """A rendered colour image as 8-bit RGB on the host: round(255 clamp(color, 0, 1)), [H, W, 3] uint8."""
+    return (color.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
