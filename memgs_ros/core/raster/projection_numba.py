@@ -39,9 +39,9 @@ MIN_ROWS_PER_THREAD = 4096
 def _kernels() -> Any:
     if not numba_available():
         raise ConfigError("project_gaussians_numba: numba is not importable (or MEMGS_DISABLE_NUMBA is set)")
-    from memgs_ros.core.raster import _numba_projection
+    from memgs_ros.core.raster import _projection_kernels
 
-    return _numba_projection
+    return _projection_kernels
 
 
 KERNEL_DTYPES = (torch.float32, torch.float64)

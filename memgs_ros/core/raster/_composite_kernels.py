@@ -1,4 +1,4 @@
-"""Compiled per-pixel compositing kernels (numba); imported only by :mod:`.numba_backend`.
+"""Compiled per-pixel compositing kernels (numba); imported only by :mod:`.composite_numba`.
 
 Same rules as :mod:`.composite` (1/255 skip, 0.99 clamp, power clamped at 0, early
 termination once T (1 - alpha) < 1e-4), evaluated per pixel over its tile's front-to-back

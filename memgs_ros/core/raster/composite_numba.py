@@ -68,9 +68,9 @@ def _plan_args(table: Tensor, plan: TilePlan) -> tuple[Any, ...]:
 def _kernels() -> Any:
     if not numba_available():
         raise ConfigError("rasterize: backend 'numba' was asked for but numba is not installed")
-    from memgs_ros.core.raster import _numba_kernels
+    from memgs_ros.core.raster import _composite_kernels
 
-    return _numba_kernels
+    return _composite_kernels
 
 
 def _gaussian_table(
