@@ -22,7 +22,7 @@ a, b, c, opacity, r, g, b, z, ln(1/255 / opacity), half box x, half box y, exp(-
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -133,21 +133,17 @@ def _blend(s: _Splat, j: int, py0: int, py1: int, nx: int, trans: np.ndarray, ac
 
 
 @njit(nogil=True, cache=True, fastmath=False)
-def composite_forward(
-    tiles: np.ndarray,  # [T] int64 tile ids to composite
-    g: np.ndarray,  # [N, G_COLS] float64
-    pair_gid: np.ndarray,  # [M] int64, grouped by tile, front to back
-    tile_start: np.ndarray,  # [n_tiles] int64
-    tile_count: np.ndarray,  # [n_tiles] int64
-    tiles_x: int,
-    tile_size: int,
-    width: int,
-    height: int,
-    out: np.ndarray,  # [5, H, W] float64: r, g, b, depth, sum of weights (written)
-    t_end: np.ndarray,  # [H, W] float64: transmittance after the last Gaussian (written)
-    n_used: np.ndarray,  # [H, W] int32: list position + 1 of the last contributing Gaussian (written)
-) -> None:
-    """Front-to-back compositing of ``tiles`` (background not added)."""
+def composite_forward(tiles: np.ndarray, plan: tuple[Any, ...], out: np.ndarray, t_end: np.ndarray,
+                      n_used: np.ndarray) -> None:
+    """Front-to-back compositing of ``tiles`` ([T] int64 tile ids; background not added).
+
+    plan: (g [N, G_COLS] float64, pair_gid [M] int64 grouped by tile and front to back within one,
+    tile_start [n_tiles] int64, tile_count [n_tiles] int64, tiles_x, tile_size, width, height).
+    Written: out [5, H, W] float64 (r, g, b, depth, sum of weights), t_end [H, W] float64
+    (transmittance after the last Gaussian), n_used [H, W] int32 (list position + 1 of the last
+    contributing Gaussian).
+    """
+    g, pair_gid, tile_start, tile_count, tiles_x, tile_size, width, height = plan
     for i in range(tiles.shape[0]):
         t = tiles[i]
         x0, y0, nx, ny = _tile_box(t, tiles_x, tile_size, width, height)
@@ -235,24 +231,16 @@ def _unblend_vjp(s: _Splat, j: int, py0: int, py1: int, nx: int, trans: np.ndarr
 
 
 @njit(nogil=True, cache=True, fastmath=False)
-def composite_backward(
-    tiles: np.ndarray,  # [T] int64 tile ids to composite
-    g: np.ndarray,  # [N, G_COLS] float64
-    pair_gid: np.ndarray,  # [M] int64
-    tile_start: np.ndarray,  # [n_tiles] int64
-    tile_count: np.ndarray,  # [n_tiles] int64
-    tiles_x: int,
-    tile_size: int,
-    width: int,
-    height: int,
-    t_end: np.ndarray,  # [H, W] float64 from the forward pass
-    n_used: np.ndarray,  # [H, W] int32 from the forward pass
-    grads: np.ndarray,  # [5, H, W] float64: dL/d (r, g, b, depth, alpha) images
-    behind: np.ndarray,  # [H, W] float64: dL/dT_end = bg . dL/dC - dL/dA
-    v_pair: np.ndarray,  # [M, V_COLS] float64 (written)
-) -> None:
+def composite_backward(tiles: np.ndarray, plan: tuple[Any, ...], t_end: np.ndarray, n_used: np.ndarray,
+                       grads: np.ndarray, behind: np.ndarray, v_pair: np.ndarray) -> None:
     """Back-to-front walk of each pixel's list (3DGS): T is divided back out Gaussian by
-    Gaussian from T_end, the colour behind is accumulated. Writes dL/d(pair inputs) per pair."""
+    Gaussian from T_end, the colour behind is accumulated. Writes dL/d(pair inputs) per pair.
+
+    tiles, plan: as composite_forward's; t_end [H, W] float64 and n_used [H, W] int32 from the
+    forward pass; grads [5, H, W] float64: dL/d (r, g, b, depth, alpha) images; behind [H, W]
+    float64: dL/dT_end = bg . dL/dC - dL/dA; v_pair [M, V_COLS] float64 (written).
+    """
+    g, pair_gid, tile_start, tile_count, tiles_x, tile_size, width, height = plan
     for i in range(tiles.shape[0]):
         t = tiles[i]
         x0, y0, nx, ny = _tile_box(t, tiles_x, tile_size, width, height)

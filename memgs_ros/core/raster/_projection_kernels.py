@@ -20,7 +20,7 @@ y/z upper limit, near). Pose array ``pose``: (R row-major, t) of T_cw, [12].
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -228,26 +228,15 @@ def _sigmoid(logit: float) -> float:
 
 
 @njit(nogil=True, cache=True, fastmath=False)
-def project_forward(
-    lo: int,
-    hi: int,
-    means: np.ndarray,  # [N, 3]
-    quats: np.ndarray,  # [N, 4] wxyz, unnormalised
-    log_scales: np.ndarray,  # [N, 3]
-    logits: np.ndarray,  # [N]
-    dc: np.ndarray,  # [N, 3]
-    rest: np.ndarray,  # [N, K, 3]
-    pose: np.ndarray,  # [12]
-    cam: np.ndarray,  # [9]
-    degree: int,
-    means2d: np.ndarray,  # [N, 2] out
-    cov2d: np.ndarray,  # [N, 3] out
-    conics: np.ndarray,  # [N, 3] out
-    depths: np.ndarray,  # [N] out
-    opac: np.ndarray,  # [N] out
-    colors: np.ndarray,  # [N, 3] out
-    in_front: np.ndarray,  # [N] bool out
-) -> None:
+def project_forward(lo: int, hi: int, args: tuple[Any, ...], outs: tuple[np.ndarray, ...]) -> None:
+    """Projects rows [lo, hi).
+
+    args: (means [N, 3], quats [N, 4] wxyz unnormalised, log_scales [N, 3], logits [N], dc [N, 3],
+    rest [N, K, 3], pose [12], cam [9], degree); outs (written): (means2d [N, 2], cov2d [N, 3],
+    conics [N, 3], depths [N], opac [N], colors [N, 3], in_front [N] bool).
+    """
+    means, quats, log_scales, logits, dc, rest, pose, cam, degree = args
+    means2d, cov2d, conics, depths, opac, colors, in_front = outs
     R, t, cc = _pose(pose)
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     n_basis = (degree + 1) * (degree + 1)
@@ -445,33 +434,18 @@ def _dir_vjp(d: tuple[float, float, float], dnorm: float, dn: float, u: tuple[fl
 
 
 @njit(nogil=True, cache=True, fastmath=False)
-def project_backward(
-    lo: int,
-    hi: int,
-    means: np.ndarray,  # [N, 3]
-    quats: np.ndarray,  # [N, 4]
-    log_scales: np.ndarray,  # [N, 3]
-    logits: np.ndarray,  # [N]
-    dc: np.ndarray,  # [N, 3]
-    rest: np.ndarray,  # [N, K, 3]
-    pose: np.ndarray,  # [12]
-    cam: np.ndarray,  # [9]
-    degree: int,
-    v_means2d: np.ndarray,  # [N, 2]
-    v_cov2d: np.ndarray,  # [N, 3]
-    v_conics: np.ndarray,  # [N, 3]
-    v_depths: np.ndarray,  # [N]
-    v_opac: np.ndarray,  # [N]
-    v_colors: np.ndarray,  # [N, 3]
-    v_means: np.ndarray,  # [N, 3] out
-    v_quats: np.ndarray,  # [N, 4] out
-    v_log_scales: np.ndarray,  # [N, 3] out
-    v_logits: np.ndarray,  # [N] out
-    v_dc: np.ndarray,  # [N, 3] out
-    v_rest: np.ndarray,  # [N, K, 3] out (bands above the active degree get 0; untouched at degree 0)
-    acc: np.ndarray,  # [ACC_COLS] out: this range's pose gradient
-) -> None:
-    """Recomputes each row's forward intermediates, then applies the stages' vjps in reverse."""
+def project_backward(lo: int, hi: int, args: tuple[Any, ...], cots: tuple[np.ndarray, ...],
+                     grads: tuple[np.ndarray, ...], acc: np.ndarray) -> None:
+    """Recomputes rows [lo, hi)'s forward intermediates, then applies the stages' vjps in reverse.
+
+    args: as project_forward's; cots: (v_means2d [N, 2], v_cov2d [N, 3], v_conics [N, 3], v_depths [N],
+    v_opac [N], v_colors [N, 3]); grads (written): (v_means [N, 3], v_quats [N, 4], v_log_scales [N, 3],
+    v_logits [N], v_dc [N, 3], v_rest [N, K, 3]: bands above the active degree get 0, untouched at
+    degree 0); acc [ACC_COLS] (written): this range's pose gradient.
+    """
+    means, quats, log_scales, logits, dc, rest, pose, cam, degree = args
+    v_means2d, v_cov2d, v_conics, v_depths, v_opac, v_colors = cots
+    v_means, v_quats, v_log_scales, v_logits, v_dc, v_rest = grads
     R, t, cc = _pose(pose)
     n_basis = (degree + 1) * (degree + 1)
     b = np.empty(16)

@@ -60,7 +60,7 @@ def _run_tiles(kernel: Any, jobs: list[np.ndarray], threads: int, *args: Any) ->
 
 
 def _plan_args(table: Tensor, plan: TilePlan) -> tuple[Any, ...]:
-    """The arguments both compositing kernels take after the tile set: the Gaussian table and the plan."""
+    """The kernels' ``plan`` argument: the Gaussian table and the tile plan's arrays and sizes."""
     return (table.numpy(), plan.pair_gid.numpy(), plan.tile_start.numpy(), plan.tile_count.numpy(), plan.tiles_x,
             plan.tile_size, plan.width, plan.height)
 
@@ -128,7 +128,7 @@ class _CompositeNumbaFn(torch.autograd.Function):
         t_end = torch.ones(h, w, dtype=torch.float64)
         n_used = torch.zeros(h, w, dtype=torch.int32)
         jobs = _tile_jobs(plan, threads)
-        _run_tiles(k.composite_forward, jobs, threads, *_plan_args(table, plan), out.numpy(), t_end.numpy(),
+        _run_tiles(k.composite_forward, jobs, threads, _plan_args(table, plan), out.numpy(), t_end.numpy(),
                    n_used.numpy())
         bg = background.detach().to(torch.float64)
         color = out[:3] + t_end.unsqueeze(0) * bg.view(3, 1, 1)
@@ -163,7 +163,7 @@ class _CompositeNumbaFn(torch.autograd.Function):
         # d/dT_end of (T_end bg . v_C - T_end v_A): what lies behind the last Gaussian.
         behind = (grads[:3] * bg.view(3, 1, 1)).sum(0) - grads[4]  # [H, W]
         v_pair = torch.empty(plan.num_pairs, k.V_COLS, dtype=f64)  # [M, 10]
-        _run_tiles(k.composite_backward, ctx.jobs, ctx.threads, *_plan_args(ctx.table, plan), t_end.numpy(),
+        _run_tiles(k.composite_backward, ctx.jobs, ctx.threads, _plan_args(ctx.table, plan), t_end.numpy(),
                    ctx.n_used.numpy(), grads.numpy(), behind.numpy(), v_pair.numpy())
         v_gauss = torch.from_numpy(k.reduce_pairs(plan.pair_gid.numpy(), v_pair.numpy(), ctx.n))  # [N, 10]
         v_gauss = v_gauss.to(ctx.dtype)
