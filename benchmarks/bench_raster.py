@@ -145,7 +145,7 @@ def _compositor(backend: str, threads: int | None):  # -> (composite function, t
     """The composite function and tile size rasterize() uses for ``backend`` on the CPU, pinned to
     ``threads`` threads (None: its default)."""
     from memgs_ros.core.raster.composite import composite
-    from memgs_ros.core.raster.numba_backend import NUMBA_TILE_SIZE, composite_numba
+    from memgs_ros.core.raster.composite_numba import NUMBA_TILE_SIZE, composite_numba
     from memgs_ros.core.raster.tiles import TILE_SIZE
 
     if resolve_backend(backend) == "numba":

@@ -283,3 +283,13 @@ def test_camera_info_missing_fields_and_empty_distortion() -> None:
     for model in ("", "none", "plumb_bob", "rational_polynomial"):
         msg = CameraInfo(k=_K, width=64, height=48, distortion_model=model)
         assert decode_camera_info(msg) == PinholeCamera(64, 48, 50.0, 51.0, 31.5, 23.5)
+
+
+def test_metres_to_depth_units_rounds_to_nearest_and_marks_the_unrepresentable_invalid() -> None:
+    from memgs_ros.io.image_decoding import metres_to_depth_units
+
+    d = np.array([[0.0, -1.0, np.nan, np.inf, 0.2, 0.25, 0.75, 1.25, 617.0, 32767.5, 32767.75, 40000.0]], np.float32)
+    units = metres_to_depth_units(d, 2.0)
+    assert units.dtype == np.uint16 and units.shape == d.shape
+    # Invalid stays 0; ties round to even (0.5 -> 0, 1.5 -> 2); beyond 65535 units is invalid, not clamped.
+    assert units[0].tolist() == [0, 0, 0, 0, 0, 0, 2, 2, 1234, 65535, 0, 0]

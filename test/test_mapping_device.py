@@ -43,7 +43,7 @@ def no_host_round_trip() -> Iterator[list[str]]:
     """Fail on any tensor -> numpy or numpy -> tensor conversion, and on the compiled (numba)
     kernels of the rasterizer and SSIM, inside the block."""
     from memgs_ros.core.metrics import _ssim_numba
-    from memgs_ros.core.raster import _numba_kernels
+    from memgs_ros.core.raster import _composite_kernels
 
     calls: list[str] = []
 
@@ -57,7 +57,7 @@ def no_host_round_trip() -> Iterator[list[str]]:
         mp.setattr(torch.Tensor, "numpy", refuse("Tensor.numpy"))
         mp.setattr(torch, "from_numpy", refuse("torch.from_numpy"))
         mp.setattr(torch.Tensor, "__array__", refuse("Tensor.__array__"))
-        for mod in (_ssim_numba, _numba_kernels):
+        for mod in (_ssim_numba, _composite_kernels):
             for name in dir(mod):
                 if callable(getattr(mod, name)) and not name.startswith("_") and hasattr(getattr(mod, name), "py_func"):
                     mp.setattr(mod, name, refuse(f"{mod.__name__}.{name}"))

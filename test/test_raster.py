@@ -450,7 +450,7 @@ def test_numba_offscreen_large_and_odd_sizes() -> None:
 def test_numba_compositor_matches_torch_compositor(scene: str, tile: int) -> None:
     """Same plan, both compositors: every output and the gradient of every input, background included."""
     _numba()
-    from memgs_ros.core.raster.numba_backend import composite_numba
+    from memgs_ros.core.raster.composite_numba import composite_numba
 
     params, T = _scene(150, 301) if scene == "random" else _opaque_stack()
     cam = CAM_64 if scene == "random" else CAM_32
@@ -478,7 +478,7 @@ def test_numba_threads_and_binning_are_deterministic(monkeypatch: pytest.MonkeyP
     """Binning gives the torch expansion's plan exactly; results do not depend on the thread count."""
     _numba()
     import memgs_ros.core.raster.tiles as tiles_mod
-    from memgs_ros.core.raster.numba_backend import composite_numba
+    from memgs_ros.core.raster.composite_numba import composite_numba
 
     params, T = _scene(300, 311, spread=2.0)
     proj = project_gaussians(Gaussians(*params), T, CAM_64, 1, 0.01)

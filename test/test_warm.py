@@ -43,13 +43,13 @@ import numpy as np, torch
 from memgs_ros.core.mapping import losses
 from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
 from memgs_ros.core.metrics import _ssim_numba
-from memgs_ros.core.raster import _numba_kernels, _numba_projection, warm_up
+from memgs_ros.core.raster import _composite_kernels, _projection_kernels, warm_up
 from memgs_ros.io.synthetic import generate_frames, parse_spec
 from frame_seeds import grid_seeds
 
 warm_up("cpu", "numba")
 losses.warm_up("cpu")
-before = signatures(_numba_kernels, _numba_projection, _ssim_numba)
+before = signatures(_composite_kernels, _projection_kernels, _ssim_numba)
 assert before and all(v == 1 for v in before.values()), before
 frames = list(generate_frames(parse_spec("synthetic:w=160,h=120,n=4,seed=4")))
 m = GaussianMapper(MappingConfig(min_keyframes=1, raster_backend="numba"))
@@ -60,7 +60,7 @@ for _ in range(12):
 with torch.no_grad():
     m.render(frames[0].T_wc_gt, m.keyframes.all()[0].camera)
 assert np.isfinite(m.gmap.means.detach().numpy()).all()
-after = signatures(_numba_kernels, _numba_projection, _ssim_numba)
+after = signatures(_composite_kernels, _projection_kernels, _ssim_numba)
 assert after == before, (before, after)
 print("OK", sorted(before))
 """

@@ -114,6 +114,20 @@ class _Edge:
         return self.static or bool(np.allclose(P, P[:1], atol=1e-9))
 
 
+class _Scan:
+    """What pass 1 collects (filled by BagSource._note, read once by BagSource._scan)."""
+
+    def __init__(self) -> None:
+        self.rgb_stamps: list[tuple[int, int]] = []  # (index on topic, stamp)
+        self.depth_stamps: list[tuple[int, int]] = []
+        self.info: PinholeCamera | None = None
+        self.rgb_frame_id: str | None = None
+        self.rgb_size: tuple[int, int] | None = None
+        self.edges: dict[tuple[str, str], _Edge] = {}
+        self.pose_st: list[int] = []
+        self.pose_T: list[np.ndarray] = []
+
+
 class BagSource:
     """A bag as a frame source: ``.camera``, ``.name``, ``len()``, iteration, ``ground_truth()``.
 
@@ -157,35 +171,25 @@ class BagSource:
 
     def _scan(self, camera: PinholeCamera | None, max_dt_s: float, gt_max_gap_s: float,
               max_frames: int | None) -> None:
-        t = self.topics
-        wanted_types = {t.rgb: (IMAGE_TYPE,), t.depth: (IMAGE_TYPE,), t.rgb_info: (INFO_TYPE,),
-                        t.tf: TF_TYPES, t.tf_static: TF_TYPES, t.pose: (POSE_TYPE,)}
-        if not self.with_depth:
-            del wanted_types[t.depth]
-        rgb_stamps: list[tuple[int, int]] = []  # (index on topic, stamp)
-        depth_stamps: list[tuple[int, int]] = []
-        info: PinholeCamera | None = None
-        rgb_frame_id: str | None = None
-        rgb_size: tuple[int, int] | None = None
-        edges: dict[tuple[str, str], _Edge] = {}
-        pose_st: list[int] = []
-        pose_T: list[np.ndarray] = []
+        scan = self._read_headers(want_camera=camera is None)
+        self.camera = self._checked_camera(camera if camera is not None else scan.info, scan.rgb_size)
+        self._plan = self._pair_frames(scan, max_dt_s, max_frames)
+        if scan.pose_st and self.topics.camera_frame is None:
+            self._gt_stamps, self._gt_poses = _sorted_unique(np.array(scan.pose_st, np.int64), np.array(scan.pose_T))
+            self.gt_source = self.topics.pose
+        else:
+            self._gt_stamps, self._gt_poses, self.gt_source = self._gt_from_tf(scan.edges, scan.rgb_frame_id)
+        q = np.array([p[2] for p in self._plan], dtype=np.int64)
+        self._frame_gt, self._frame_gt_valid = interpolate_poses(
+            self._gt_stamps, self._gt_poses, q, round(gt_max_gap_s * 1e9))
+
+    def _read_headers(self, want_camera: bool) -> _Scan:
+        """Pass 1 over the wanted connections; a message that does not decode or fit is skipped."""
+        scan = _Scan()
         try:
             with self._open() as reader:
-                conns = []
-                for c in reader.connections:
-                    if c.topic == t.depth_info:
-                        continue  # depth is registered to colour: its camera_info adds nothing
-                    if c.topic not in wanted_types:
-                        # unused topics are normal (TUM: /imu, /cortex_marker_array): counted, not read
-                        self._skip(f"topic {c.topic}", f"not used ({c.msgtype})", int(c.msgcount), logging.INFO)
-                    elif c.msgtype not in wanted_types[c.topic]:
-                        self._skip(f"type {c.msgtype} on {c.topic}", f"expected {wanted_types[c.topic][0]}",
-                                   int(c.msgcount))
-                    else:
-                        conns.append(c)
                 counters: dict[str, int] = defaultdict(int)
-                for c, bag_ns, raw in reader.messages(connections=conns):
+                for c, bag_ns, raw in reader.messages(connections=self._wanted_connections(reader)):
                     topic = c.topic
                     index = counters[topic]
                     counters[topic] += 1
@@ -195,49 +199,78 @@ class BagSource:
                         self._skip(f"malformed message on {topic}", f"{type(err).__name__}: {err}")
                         continue
                     try:
-                        if topic == t.rgb or topic == t.depth:
-                            is_rgb = topic == t.rgb
-                            check_image(msg, COLOR_ENCODINGS if is_rgb else DEPTH_ENCODINGS)
-                            stamp = _stamp_ns(msg.header) or int(bag_ns)
-                            if is_rgb:
-                                rgb_stamps.append((index, stamp))
-                                if rgb_frame_id is None:
-                                    rgb_frame_id = _frame_name(str(msg.header.frame_id))
-                                    rgb_size = (int(msg.width), int(msg.height))
-                            else:
-                                depth_stamps.append((index, stamp))
-                        elif topic == t.rgb_info:
-                            if info is None and camera is None:
-                                info = decode_camera_info(msg)
-                        elif topic == t.pose:
-                            pose_st.append(_stamp_ns(msg.header) or int(bag_ns))
-                            p, q = msg.pose.position, msg.pose.orientation
-                            pose_T.append(pose_from_tq(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w])))
-                        else:
-                            for ts in msg.transforms:
-                                key = (_frame_name(str(ts.header.frame_id)), _frame_name(str(ts.child_frame_id)))
-                                e = edges.setdefault(key, _Edge())
-                                e.static |= topic == t.tf_static
-                                e.stamps.append(_stamp_ns(ts.header) or int(bag_ns))
-                                e.poses.append(_transform_to_T(ts.transform))
+                        self._note(scan, topic, msg, index, int(bag_ns), want_camera)
                     except (MessageError, AttributeError, ValueError, DataError) as err:
                         self._skip(f"bad message on {topic}", str(err))
         except MemgsError:
             raise
         except Exception as err:  # noqa: BLE001 - rosbags/mcap/sqlite raise many kinds; the bag is unusable
             raise self._fail(err) from err
+        return scan
 
+    def _wanted_connections(self, reader: Any) -> list[Any]:
+        """The connections pass 1 reads; the others are counted as skipped, by topic or by type."""
+        t = self.topics
+        wanted_types = {t.rgb: (IMAGE_TYPE,), t.depth: (IMAGE_TYPE,), t.rgb_info: (INFO_TYPE,),
+                        t.tf: TF_TYPES, t.tf_static: TF_TYPES, t.pose: (POSE_TYPE,)}
+        if not self.with_depth:
+            del wanted_types[t.depth]
+        conns = []
+        for c in reader.connections:
+            if c.topic == t.depth_info:
+                continue  # depth is registered to colour: its camera_info adds nothing
+            if c.topic not in wanted_types:
+                # unused topics are normal (TUM: /imu, /cortex_marker_array): counted, not read
+                self._skip(f"topic {c.topic}", f"not used ({c.msgtype})", int(c.msgcount), logging.INFO)
+            elif c.msgtype not in wanted_types[c.topic]:
+                self._skip(f"type {c.msgtype} on {c.topic}", f"expected {wanted_types[c.topic][0]}",
+                           int(c.msgcount))
+            else:
+                conns.append(c)
+        return conns
+
+    def _note(self, scan: _Scan, topic: str, msg: Any, index: int, bag_ns: int, want_camera: bool) -> None:
+        """Records what pass 1 needs of one message (raises on a message that does not fit)."""
+        t = self.topics
+        if topic == t.rgb or topic == t.depth:
+            is_rgb = topic == t.rgb
+            check_image(msg, COLOR_ENCODINGS if is_rgb else DEPTH_ENCODINGS)
+            stamp = _stamp_ns(msg.header) or bag_ns
+            if is_rgb:
+                scan.rgb_stamps.append((index, stamp))
+                if scan.rgb_frame_id is None:
+                    scan.rgb_frame_id = _frame_name(str(msg.header.frame_id))
+                    scan.rgb_size = (int(msg.width), int(msg.height))
+            else:
+                scan.depth_stamps.append((index, stamp))
+        elif topic == t.rgb_info:
+            if scan.info is None and want_camera:
+                scan.info = decode_camera_info(msg)
+        elif topic == t.pose:
+            scan.pose_st.append(_stamp_ns(msg.header) or bag_ns)
+            p, q = msg.pose.position, msg.pose.orientation
+            scan.pose_T.append(pose_from_tq(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w])))
+        else:
+            for ts in msg.transforms:
+                key = (_frame_name(str(ts.header.frame_id)), _frame_name(str(ts.child_frame_id)))
+                e = scan.edges.setdefault(key, _Edge())
+                e.static |= topic == t.tf_static
+                e.stamps.append(_stamp_ns(ts.header) or bag_ns)
+                e.poses.append(_transform_to_T(ts.transform))
+
+    def _checked_camera(self, camera: PinholeCamera | None, rgb_size: tuple[int, int] | None) -> PinholeCamera:
         if camera is None:
-            camera = info
-        if camera is None:
-            raise DataError(f"{self.path}: no CameraInfo on {t.rgb_info}; pass a camera explicitly")
+            raise DataError(f"{self.path}: no CameraInfo on {self.topics.rgb_info}; pass a camera explicitly")
         if rgb_size is not None and rgb_size != (camera.width, camera.height):
             raise DataError(f"{self.path}: colour images are {rgb_size[0]}x{rgb_size[1]} but the camera is "
                             f"{camera.width}x{camera.height}")
-        self.camera = camera
+        return camera
 
+    def _pair_frames(self, scan: _Scan, max_dt_s: float, max_frames: int | None) -> list[tuple[int, int | None, int]]:
+        """(rgb index, depth index, stamp) per frame in stamp order: colour paired with the nearest depth."""
+        rgb_stamps, depth_stamps = scan.rgb_stamps, scan.depth_stamps
         rs = np.array([s for _, s in rgb_stamps], dtype=np.int64)
-        plan: list[tuple[int, int | None, int]] = []  # (rgb index, depth index, stamp)
+        plan: list[tuple[int, int | None, int]] = []
         if self.with_depth:
             ds = np.array([s for _, s in depth_stamps], dtype=np.int64)
             for i, j in associate(rs, ds, round(max_dt_s * 1e9)):
@@ -248,18 +281,10 @@ class BagSource:
         if max_frames is not None:
             plan = plan[:max_frames]
         if not plan:
+            t = self.topics
             raise DataError(f"{self.path}: no frames (colour on {t.rgb}"
                             f"{f' paired with depth on {t.depth}' if self.with_depth else ''})")
-        self._plan = plan
-
-        if pose_st and t.camera_frame is None:
-            self._gt_stamps, self._gt_poses = _sorted_unique(np.array(pose_st, np.int64), np.array(pose_T))
-            self.gt_source = t.pose
-        else:
-            self._gt_stamps, self._gt_poses, self.gt_source = self._gt_from_tf(edges, rgb_frame_id)
-        q = np.array([p[2] for p in plan], dtype=np.int64)
-        self._frame_gt, self._frame_gt_valid = interpolate_poses(
-            self._gt_stamps, self._gt_poses, q, round(gt_max_gap_s * 1e9))
+        return plan
 
     def _gt_from_tf(self, edges: dict[tuple[str, str], _Edge], rgb_frame_id: str | None
                     ) -> tuple[np.ndarray, np.ndarray, str]:

@@ -47,10 +47,10 @@ import numpy as np
 
 from memgs_ros.core.geometry.camera import TUM_FR3, PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.core.geometry.poses import pose_to_tq
 from memgs_ros.errors import ConfigError, DataError
+from memgs_ros.io.image_decoding import metres_to_depth_units
 from memgs_ros.io.synthetic_scene import TEXEL_M, SyntheticScene, build_scene
-from memgs_ros.io.tum import CAMERA_JSON, format_stamp, write_camera_json
+from memgs_ros.io.tum import CAMERA_JSON, format_pose_line, format_stamp, write_camera_json
 
 # Synthetic stamps start here (a plausible wall-clock epoch, like TUM's), in ns.
 SYNTH_START_NS = 1_700_000_000 * 1_000_000_000
@@ -413,14 +413,12 @@ def write_tum_folder(frames: Iterable[Frame], path: str | os.PathLike[str], dept
                 raise DataError(f"{tmp / 'rgb' / ts}.png: could not write image")
             rgb_lines.append(f"{ts} rgb/{ts}.png")
             if f.depth_m is not None:
-                d = np.nan_to_num(f.depth_m.astype(np.float64), nan=0.0) * depth_factor
-                d = np.where((d > 0) & (d < 65535.5), np.round(d), 0).astype(np.uint16)
+                d = metres_to_depth_units(f.depth_m, depth_factor)
                 if not cv2.imwrite(str(tmp / "depth" / f"{ts}.png"), d):
                     raise DataError(f"{tmp / 'depth' / ts}.png: could not write depth image")
                 depth_lines.append(f"{ts} depth/{ts}.png")
             if f.T_wc_gt is not None:
-                t, q = pose_to_tq(f.T_wc_gt)
-                gt_lines.append(f"{ts} " + " ".join(f"{x:.9f}" for x in (*t, *q)))
+                gt_lines.append(format_pose_line(ts, f.T_wc_gt))
             n += 1
         for name, lines in (("rgb.txt", rgb_lines), ("depth.txt", depth_lines), ("groundtruth.txt", gt_lines)):
             (tmp / name).write_text("\n".join(lines) + "\n")

@@ -25,7 +25,7 @@ import numpy as np
 
 from memgs_ros.core.geometry.camera import TUM_CAMERAS, TUM_DEPTH_FACTORS, PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.core.geometry.poses import interpolate_poses, quat_xyzw_to_rotmat
+from memgs_ros.core.geometry.poses import interpolate_poses, pose_to_tq, quat_xyzw_to_rotmat
 from memgs_ros.core.metrics.trajectory import associate as associate_stamps
 from memgs_ros.errors import DataError
 from memgs_ros.io.skips import SkipLog
@@ -52,6 +52,13 @@ def format_stamp(stamp_ns: int) -> str:
     """Integer ns -> TUM's 'seconds.microseconds' text."""
     sec, nsec = divmod(int(stamp_ns), _NS)
     return f"{sec}.{nsec // 1000:06d}"
+
+
+def format_pose_line(stamp: str, T_wc: np.ndarray) -> str:
+    """One trajectory line 'stamp tx ty tz qx qy qz qw' (camera-to-world, 9 decimals): the one
+    TUM pose format (groundtruth.txt, estimated trajectories); ``stamp`` as the caller writes it."""
+    t, q = pose_to_tq(T_wc)
+    return f"{stamp} " + " ".join(f"{x:.9f}" for x in (*t, *q))
 
 
 def _data_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
@@ -293,6 +300,7 @@ __all__ = [
     "TumFolder",
     "associate",
     "camera_from_name",
+    "format_pose_line",
     "format_stamp",
     "load_depth",
     "load_rgb",

@@ -30,7 +30,7 @@ from std_msgs.msg import Header
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import pose_from_tq, pose_to_tq
 from memgs_ros.errors import MessageError
-from memgs_ros.io.image_decoding import IMAGE_ENCODINGS
+from memgs_ros.io.image_decoding import IMAGE_ENCODINGS, metres_to_depth_units
 
 # Decoding lives in the one decoder; ros/pipeline.py still imports image_to_numpy from here.
 from memgs_ros.io.image_decoding import image_to_numpy as image_to_numpy
@@ -146,9 +146,7 @@ def depth_to_image(
     if encoding == "16UC1":
         if not (np.isfinite(depth_scale) and depth_scale > 0):
             raise MessageError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
-        units = np.where(valid, np.rint(d.astype(np.float64) * depth_scale), 0.0)
-        units[units > 65535] = 0
-        return numpy_to_image(units.astype(np.uint16), encoding, stamp_ns, frame_id)
+        return numpy_to_image(metres_to_depth_units(d, depth_scale), encoding, stamp_ns, frame_id)
     raise MessageError(f"depth encoding must be 32FC1 or 16UC1, got '{encoding}'")
 
 
@@ -307,6 +305,22 @@ def pointcloud2_to_structured(msg: PointCloud2, required: Sequence[str] = ()) ->
     big = bool(msg.is_bigendian)
     h, w = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
+    by_name = _fields_by_name(msg, required)
+    buf = _checked_buffer(msg, big)
+    wire = _wire_dtype(msg.fields, _joined_64bit(by_name, big), big, point_step)
+    if h * w == 0:
+        return np.zeros(0, dtype=wire.newbyteorder("="))
+    if row_step == w * point_step:
+        out = np.frombuffer(buf, dtype=wire, count=h * w)
+    else:
+        out = np.ndarray(shape=(h, w), dtype=wire, buffer=buf, strides=(row_step, point_step)).reshape(-1)
+    if (big and sys.byteorder == "little") or (not big and sys.byteorder == "big"):
+        out = out.astype(wire.newbyteorder("="))
+    return out
+
+
+def _fields_by_name(msg: PointCloud2, required: Sequence[str]) -> dict[str, PointField]:
+    """The cloud's fields by name; MessageError for a repeated, missing required or absent field."""
     by_name: dict[str, PointField] = {}
     for f in msg.fields:
         if f.name in by_name:
@@ -317,7 +331,13 @@ def pointcloud2_to_structured(msg: PointCloud2, required: Sequence[str] = ()) ->
         raise MessageError(f"PointCloud2 lacks required field(s) {missing}; it has {list(by_name)}")
     if not by_name:
         raise MessageError("PointCloud2 has no fields")
-    n_points = h * w
+    return by_name
+
+
+def _checked_buffer(msg: PointCloud2, big: bool) -> np.ndarray:
+    """The data buffer, after checking that every field fits point_step and the data the rows."""
+    h, w = int(msg.height), int(msg.width)
+    point_step, row_step = int(msg.point_step), int(msg.row_step)
     for f in msg.fields:
         dt = _field_dtype(f, big)
         count = int(f.count)
@@ -328,18 +348,21 @@ def pointcloud2_to_structured(msg: PointCloud2, required: Sequence[str] = ()) ->
                 f"PointCloud2 field '{f.name}' (offset {f.offset}, {dt.itemsize * count} bytes) "
                 f"does not fit point_step {point_step}"
             )
-    if n_points and row_step < w * point_step:
+    if h * w and row_step < w * point_step:
         raise MessageError(f"PointCloud2 row_step {row_step} is less than width*point_step = {w * point_step}")
     buf = _buffer(msg.data)
     if buf.size != row_step * h:
         raise MessageError(
             f"PointCloud2 data has {buf.size} bytes, expected row_step*height = {row_step}*{h} = {row_step * h}"
         )
+    return buf
 
-    # Join 64-bit pairs: the 8 bytes are contiguous, low word first on little-endian wires
-    # and high word first on big-endian ones, so one 8-byte field covers both.
+
+def _joined_64bit(by_name: dict[str, PointField], big: bool) -> dict[str, tuple[np.dtype, int]]:
+    """stem -> (64-bit dtype, offset) for each ``stem_lo`` / ``stem_hi`` pair that is one split
+    64-bit field: the 8 bytes are contiguous, low word first on little-endian wires and high
+    word first on big-endian ones, so one 8-byte field covers both."""
     joined: dict[str, tuple[np.dtype, int]] = {}
-    consumed: set[str] = set()
     for name, lo in by_name.items():
         if not name.endswith("_lo"):
             continue
@@ -355,10 +378,16 @@ def pointcloud2_to_structured(msg: PointCloud2, required: Sequence[str] = ()) ->
             continue
         base = np.dtype(np.int64 if hi.datatype == PointField.INT32 else np.uint64)
         joined[stem] = (base.newbyteorder(">" if big else "<"), start)
-        consumed.update((name, f"{stem}_hi"))
+    return joined
 
+
+def _wire_dtype(fields: Sequence[PointField], joined: dict[str, tuple[np.dtype, int]], big: bool,
+                point_step: int) -> np.dtype:
+    """The structured dtype of one point on the wire: plain fields, joined 64-bit ones instead of
+    their halves, in offset order."""
+    consumed = {f"{stem}{half}" for stem in joined for half in ("_lo", "_hi")}
     names, formats, offsets = [], [], []
-    for f in msg.fields:
+    for f in fields:
         if f.name in consumed:
             continue
         dt = _field_dtype(f, big)
@@ -370,18 +399,9 @@ def pointcloud2_to_structured(msg: PointCloud2, required: Sequence[str] = ()) ->
         formats.append(dt)
         offsets.append(start)
     order = np.argsort(offsets, kind="stable")
-    wire = np.dtype({
+    return np.dtype({
         "names": [names[i] for i in order],
         "formats": [formats[i] for i in order],
         "offsets": [offsets[i] for i in order],
         "itemsize": point_step,
     })
-    if n_points == 0:
-        return np.zeros(0, dtype=wire.newbyteorder("="))
-    if row_step == w * point_step:
-        out = np.frombuffer(buf, dtype=wire, count=n_points)
-    else:
-        out = np.ndarray(shape=(h, w), dtype=wire, buffer=buf, strides=(row_step, point_step)).reshape(-1)
-    if (big and sys.byteorder == "little") or (not big and sys.byteorder == "big"):
-        out = out.astype(wire.newbyteorder("="))
-    return out

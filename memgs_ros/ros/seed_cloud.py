@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from memgs_ros.core.maps.map_delta import pack_rgb8, unpack_rgb
 from memgs_ros.errors import MessageError
 
 SEED_DTYPE = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32), ("rgb", np.float32),
@@ -13,14 +14,7 @@ SEED_FIELDS = ("x", "y", "z", "rgb")
 
 def pack_rgb(colors: np.ndarray) -> np.ndarray:
     """Colours [S, 3] in [0, 1] -> [S] float32 whose bits are 0x00RRGGBB."""
-    c = np.clip(np.rint(np.asarray(colors, dtype=np.float64) * 255.0), 0, 255).astype(np.uint32)
-    return ((c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]).view(np.float32)
-
-
-def unpack_rgb(packed: np.ndarray) -> np.ndarray:
-    """[S] float32-packed 0x00RRGGBB -> colours [S, 3] float32 in [0, 1]."""
-    u = np.ascontiguousarray(packed, dtype=np.float32).view(np.uint32)
-    return np.stack([(u >> 16) & 255, (u >> 8) & 255, u & 255], axis=1).astype(np.float32) / 255.0
+    return pack_rgb8(np.clip(np.rint(np.asarray(colors, dtype=np.float64) * 255.0), 0, 255).astype(np.uint8))
 
 
 def encode_seeds(points_w: np.ndarray, colors: np.ndarray, source: np.ndarray) -> np.ndarray:
@@ -40,4 +34,4 @@ def decode_seeds(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise MessageError(f"seed cloud lacks fields {missing}")
     pts = np.stack([rows["x"], rows["y"], rows["z"]], axis=1).astype(np.float32)
     keep = np.all(np.isfinite(pts), axis=1)
-    return pts[keep], unpack_rgb(rows["rgb"][keep])
+    return pts[keep], unpack_rgb(rows["rgb"][keep]).astype(np.float32) / 255.0

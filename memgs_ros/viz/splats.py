@@ -11,11 +11,10 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import expit
 
-from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords
+from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords, base_rgb8
 
-__all__ = ["SH_C0", "SplatArrays", "psnr_db", "sh_rest_rgb", "splat_arrays"]
+__all__ = ["SplatArrays", "psnr_db", "sh_rest_rgb", "splat_arrays"]
 
-SH_C0 = 0.28209479177387814  # the degree-0 real spherical harmonic, 1 / (2 sqrt(pi))
 _SH_REST = PLY_F_REST // 3  # 15 coefficients a channel for degrees 1..3
 
 
@@ -43,9 +42,8 @@ def splat_arrays(records: GaussianRecords, sh: bool = True) -> SplatArrays:
     norm = np.linalg.norm(q, axis=1, keepdims=True)  # [N, 1]
     # A zero quaternion (never trained, or a hand-made file) is the identity, not NaN.
     q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([0, 0, 0, 1], np.float32))
-    rgb = np.clip(0.5 + SH_C0 * records.f_dc, 0.0, 1.0)  # [N, 3]
     alpha = expit(records.opacity)[:, None]  # [N, 1]; expit: no overflow warning for big logits
-    colors = np.rint(np.concatenate([rgb, alpha], axis=1) * 255.0).astype(np.uint8)  # [N, 4]
+    colors = np.concatenate([base_rgb8(records.f_dc), np.rint(alpha * 255.0).astype(np.uint8)], axis=1)  # [N, 4]
     rest = sh_rest_rgb(records.f_rest) if sh and np.any(records.f_rest) else None
     return SplatArrays(np.ascontiguousarray(records.xyz, np.float32), np.exp(records.scale).astype(np.float32),
                        q.astype(np.float32), colors, rest)

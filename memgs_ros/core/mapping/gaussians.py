@@ -28,6 +28,7 @@ Side arrays (all ``[N]`` tensors on the map's device, stable names for other mod
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -35,11 +36,10 @@ import numpy as np
 import torch
 
 from memgs_ros.core.mapping.config import GaussianLearningRates
-from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords  # noqa: F401 - re-exported
+from memgs_ros.core.maps.records import PLY_F_REST, SH_C0, GaussianRecords  # noqa: F401 - re-exported
 from memgs_ros.core.raster.values import Gaussians
 from memgs_ros.errors import ConfigError, DataError
 
-SH_C0 = 0.28209479177387814  # zeroth real spherical harmonic, Y_0^0
 PARAM_NAMES = ("means", "log_scales", "quats_wxyz", "opacity_logits", "sh_dc", "sh_rest")
 SIDE_NAMES = (
     "ids", "keyframe_ids", "created_iter", "densify_grad_sum", "densify_count",
@@ -99,6 +99,58 @@ def _expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> flo
     """3DGS exponential decay: log-linear interpolation from lr_init to lr_final, then held."""
     t = min(max(step / max(max_steps, 1), 0.0), 1.0)
     return math.exp(math.log(lr_init) * (1 - t) + math.log(lr_final) * t)
+
+
+def _keep_then_append(old: torch.Tensor, new: torch.Tensor | None, idx: torch.Tensor | None) -> torch.Tensor:
+    """Rows ``idx`` of ``old`` ([K] int64, None = all) followed by ``new``, in one new tensor (``old``
+    itself when nothing changes). Row indices + index_select into one preallocated tensor: bool-mask
+    indexing and a second copy for the append cost ~3x more on CPU (a merge pass at 150k rows: 54 ms)."""
+    n_keep = old.shape[0] if idx is None else int(idx.shape[0])
+    if idx is None and new is None:
+        return old.contiguous()
+    out = old.new_empty((n_keep + (0 if new is None else new.shape[0]),) + tuple(old.shape[1:]))
+    if idx is None:
+        out[:n_keep] = old
+    else:
+        torch.index_select(old, 0, idx, out=out[:n_keep])
+    if new is not None:
+        out[n_keep:] = new
+    return out
+
+
+def _seed_rows(points_w: np.ndarray | torch.Tensor, colors: np.ndarray | torch.Tensor, existing: np.ndarray,
+               opacity: float) -> tuple[np.ndarray, ...] | None:
+    """3DGS initial parameters of seed points (see ``GaussianMap.add_from_points``): (points [M, 3],
+    log scales [M, 3], quaternions [M, 4], opacity logits [M, 1], SH DC [M, 3]) of the finite
+    points, None when there are none. existing: [N, 3] float64 means of the map."""
+    from scipy.spatial import cKDTree  # scipy only needed here
+
+    pts = np.asarray(points_w.detach().cpu() if isinstance(points_w, torch.Tensor) else points_w,
+                     dtype=np.float64)
+    cols = np.asarray(colors.detach().cpu() if isinstance(colors, torch.Tensor) else colors,
+                      dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or cols.shape != pts.shape:
+        raise DataError(f"points_w and colors must both be [M, 3], got {pts.shape} and {cols.shape}")
+    finite = np.isfinite(pts).all(1) & np.isfinite(cols).all(1)
+    pts, cols = pts[finite], cols[finite]
+    m = pts.shape[0]
+    if m == 0:
+        return None
+    cloud = np.concatenate([existing, pts], 0)
+    k = min(4, cloud.shape[0])  # the point itself plus up to 3 neighbours
+    if k > 1:
+        d, _ = cKDTree(cloud).query(pts, k=k)
+        mean_sq = np.mean(np.asarray(d)[:, 1:] ** 2, axis=1)
+    else:
+        mean_sq = np.full(m, 1e-2)  # a lone point: no neighbour to size it by, 10 cm
+    mean_sq = np.maximum(mean_sq, 1e-7)
+    log_s = np.log(np.sqrt(mean_sq))[:, None].repeat(3, 1)
+    quats = np.zeros((m, 4))
+    quats[:, 0] = 1.0
+    if not 0.0 < opacity < 1.0:
+        raise DataError(f"seed opacity must be in (0, 1), got {opacity}")
+    opac = np.full((m, 1), math.log(opacity / (1.0 - opacity)))
+    return pts, log_s, quats, opac, rgb_to_sh_dc(np.clip(cols, 0.0, 1.0))
 
 
 class GaussianMap:
@@ -231,23 +283,8 @@ class GaussianMap:
         n_new = 0 if new_params is None else int(new_params["means"].shape[0])
         params_in = new_params if new_params is not None else {}
         side_in = new_side if new_side is not None else {}
-        # Row indices + index_select into one preallocated tensor: bool-mask indexing and a
-        # second copy for the append cost ~3x more on CPU (a merge pass at 150k rows: 54 ms).
         idx = None if keep is None else torch.nonzero(keep).squeeze(1)
-
-        def rebuild(old: torch.Tensor, new: torch.Tensor | None) -> torch.Tensor:
-            n_keep = old.shape[0] if idx is None else int(idx.shape[0])
-            if idx is None and new is None:
-                return old.contiguous()
-            out = old.new_empty((n_keep + (0 if new is None else new.shape[0]),) + tuple(old.shape[1:]))
-            if idx is None:
-                out[:n_keep] = old
-            else:
-                torch.index_select(old, 0, idx, out=out[:n_keep])
-            if new is not None:
-                out[n_keep:] = new
-            return out
-
+        rebuild = functools.partial(_keep_then_append, idx=idx)
         for name in PARAM_NAMES:
             p: torch.nn.Parameter = getattr(self, name)
             new = None
@@ -326,37 +363,12 @@ class GaussianMap:
         squared distance clamped at 1e-7. Identity rotation, opacity ``opacity`` (3DGS: 0.1), SH
         DC from the colour, higher bands zero. Returns the new ids [M].
         """
-        from scipy.spatial import cKDTree  # scipy only needed here
-
-        pts = np.asarray(points_w.detach().cpu() if isinstance(points_w, torch.Tensor) else points_w,
-                         dtype=np.float64)
-        cols = np.asarray(colors.detach().cpu() if isinstance(colors, torch.Tensor) else colors,
-                          dtype=np.float64)
-        if pts.ndim != 2 or pts.shape[1] != 3 or cols.shape != pts.shape:
-            raise DataError(f"points_w and colors must both be [M, 3], got {pts.shape} and {cols.shape}")
-        finite = np.isfinite(pts).all(1) & np.isfinite(cols).all(1)
-        pts, cols = pts[finite], cols[finite]
-        m = pts.shape[0]
-        if m == 0:
+        seeds = _seed_rows(points_w, colors, self.means.detach().cpu().numpy().astype(np.float64), opacity)
+        if seeds is None:
             return torch.zeros(0, dtype=torch.int64, device=self.device)
-        existing = self.means.detach().cpu().numpy().astype(np.float64)
-        cloud = np.concatenate([existing, pts], 0)
-        k = min(4, cloud.shape[0])  # the point itself plus up to 3 neighbours
-        if k > 1:
-            d, _ = cKDTree(cloud).query(pts, k=k)
-            mean_sq = np.mean(np.asarray(d)[:, 1:] ** 2, axis=1)
-        else:
-            mean_sq = np.full(m, 1e-2)  # a lone point: no neighbour to size it by, 10 cm
-        mean_sq = np.maximum(mean_sq, 1e-7)
-        log_s = np.log(np.sqrt(mean_sq))[:, None].repeat(3, 1)
-        quats = np.zeros((m, 4))
-        quats[:, 0] = 1.0
-        if not 0.0 < opacity < 1.0:
-            raise DataError(f"seed opacity must be in (0, 1), got {opacity}")
-        opac = np.full((m, 1), math.log(opacity / (1.0 - opacity)))
-        dc = rgb_to_sh_dc(np.clip(cols, 0.0, 1.0))
+        pts, log_s, quats, opac, dc = seeds
         t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=self.device)  # noqa: E731
-        return self.add(t(pts), t(log_s), t(quats), t(opac), t(dc).reshape(m, 1, 3), None,
+        return self.add(t(pts), t(log_s), t(quats), t(opac), t(dc).reshape(-1, 1, 3), None,
                         keyframe_id, iteration)
 
     # ---------------------------------------------------------------- shrink

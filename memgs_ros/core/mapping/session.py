@@ -49,6 +49,7 @@ from memgs_ros.core.mapping.keyframe_timing import KeyframeTimings, KeyframeTimi
 from memgs_ros.core.mapping.keyframes import KeyframeInput, TrainingKeyframe
 from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig, StepStats, prepare_keyframe
 from memgs_ros.core.maps.map_delta import DeltaOutbox
+from memgs_ros.core.raster.values import render_rgb8
 from memgs_ros.core.runtime.worker import BACKGROUND_ERROR_PAUSE_S, Command, CommandWorker, WorkerStopped
 from memgs_ros.errors import DataError
 
@@ -543,7 +544,7 @@ class MappingSession(CommandWorker):
         if cam is None or len(self._mapper.gmap) == 0:
             return None
         out = self._mapper.render(T_wc, cam)
-        rgb = (out.color.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+        rgb = render_rgb8(out.color)
         view = RenderedView(np.ascontiguousarray(rgb), out.depth.cpu().numpy().astype(np.float32), cam)
         if publish is not None:
             publish(view)

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords
+from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords, base_rgb8
 from memgs_ros.errors import MessageError
 
 OP_UPSERT = 0
@@ -46,8 +46,6 @@ OP_META_DELTA = 2
 OP_META_SNAPSHOT = 3
 _F_REST_PER_CHANNEL = PLY_F_REST // 3
 _U32 = (1 << 32) - 1
-# Zeroth real spherical harmonic (= core.gaussians.SH_C0; that module loads torch, this one must not).
-_SH_C0 = 0.28209479177387814
 
 
 def f_rest_columns(sh_degree: int) -> list[int]:
@@ -98,7 +96,12 @@ def packed_rgb(f_dc: np.ndarray) -> np.ndarray:  # [N, 3] -> [N]
     f_dc = np.asarray(f_dc, dtype=np.float32)
     if f_dc.ndim != 2 or f_dc.shape[1] != 3:
         raise ValueError(f"f_dc must be [N, 3], got shape {f_dc.shape}")
-    c = np.rint(np.clip(0.5 + _SH_C0 * f_dc, 0.0, 1.0) * 255.0).astype(np.uint32)  # [N, 3]
+    return pack_rgb8(base_rgb8(f_dc))
+
+
+def pack_rgb8(c: np.ndarray) -> np.ndarray:  # [N, 3] -> [N]
+    """[N, 3] uint8 r, g, b -> [N] float32 whose bits are ``0x00RRGGBB`` (the PCL/RViz ``rgb`` field)."""
+    c = np.asarray(c, dtype=np.uint8).astype(np.uint32)
     return ((c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]).view(np.float32)
 
 

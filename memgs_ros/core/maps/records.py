@@ -11,9 +11,20 @@ import numpy as np
 
 from memgs_ros.errors import DataError
 
-__all__ = ["PLY_F_REST", "GaussianRecords"]
+__all__ = ["PLY_F_REST", "SH_C0", "GaussianRecords", "base_rgb8"]
 
 PLY_F_REST = 45  # 15 higher-order coefficients x 3 channels (SH degree 3), always written
+# The zeroth real spherical harmonic Y_0^0 = 1 / (2 sqrt(pi)): a Gaussian's view-independent colour is
+# 0.5 + SH_C0 f_dc (3DGS). Defined here, in a module without torch, for every user.
+SH_C0 = 0.28209479177387814
+
+
+def base_rgb8(f_dc: np.ndarray) -> np.ndarray:  # [N, 3] -> [N, 3]
+    """The view-independent colour of N Gaussians as 8-bit RGB: round(255 clip(0.5 + SH_C0 f_dc, 0, 1)).
+
+    f_dc: [N, 3] SH DC coefficients (read as float32). Returns [N, 3] uint8."""
+    f = np.asarray(f_dc, dtype=np.float32)
+    return np.rint(np.clip(0.5 + SH_C0 * f, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
 @dataclass(frozen=True, eq=False)

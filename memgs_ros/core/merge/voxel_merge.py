@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal, NamedTuple
 
@@ -336,45 +337,9 @@ def merge_covariance(q_i: torch.Tensor,  # [P, 4]
     out_dtype = s_i.dtype
     if P == 0:
         return q_i.new_zeros((0, 4)), s_i.new_zeros((0, 3)), 0
-    f64 = torch.float64
-    qi = q_i.detach().to(f64)
-    qj = q_j.detach().to(f64)
-    si = s_i.detach().to(f64)
-    sj = s_j.detach().to(f64)
-    qi = qi / qi.norm(dim=-1, keepdim=True)
-    qj = qj / qj.norm(dim=-1, keepdim=True)
-    c = (0.5 * (si.log().mean(-1) + sj.log().mean(-1))).exp()[:, None]  # [P, 1]
-    si_n, sj_n = si / c, sj / c
-    offset = torch.tensor(init_scale_offset_m, dtype=f64, device=si.device)
-    s0 = (0.5 * (si + sj) + offset) / c  # [P, 3]
-    q0 = slerp_wxyz(qi, qj, slerp_t)  # [P, 4]
-
-    if parametrization == "sqrt_cov":
-        def target(q: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            R = quat_wxyz_to_rotmat_torch(q)
-            S = _sym_from_dense((R * (s * s)[:, None, :]) @ R.transpose(-1, -2))
-            return S, torch.stack(_sym_adj_soa(S.unbind(0))), s.prod(-1)  # type: ignore[arg-type]  # [6, ...]
-
-        ti, tj = target(qi, si_n), target(qj, sj_n)
-        S_t, adj_t, r_t = (torch.cat([a, b], -1) for a, b in zip(ti, tj))  # 2P columns: i terms, j terms
-        R0 = quat_wxyz_to_rotmat_torch(q0)
-        x = _sym_from_dense((R0 * s0[:, None, :]) @ R0.transpose(-1, -2)).requires_grad_(True)  # [6, P]
-
-        def loss_fn() -> torch.Tensor:
-            return _w2_terms_sqrtcov_soa(torch.cat([x, x], -1), S_t, adj_t, r_t).sum()
-    else:
-        def target_q(q: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            v = s * s
-            p = s.prod(-1)
-            return q.T.contiguous(), v.T.contiguous(), ((p * p)[:, None] / v).T.contiguous(), p
-
-        ti, tj = target_q(qi, si_n), target_q(qj, sj_n)
-        q_t, v_t, adjv_t, r_t = (torch.cat([a, b], -1) for a, b in zip(ti, tj))
-        x = torch.cat([q0.T, s0.T], 0).contiguous().requires_grad_(True)  # [7, P]
-
-        def loss_fn() -> torch.Tensor:
-            return _w2_terms_soa(torch.cat([x, x], -1), q_t, v_t, adjv_t, r_t).sum()
-
+    pairs = _normalised_pairs(q_i, s_i, q_j, s_j, init_scale_offset_m, slerp_t)
+    problem = _sqrt_cov_problem if parametrization == "sqrt_cov" else _quat_scale_problem
+    x, loss_fn = problem(pairs)
     opt = torch.optim.LBFGS([x], lr=lr, max_iter=max_iter, history_size=history_size,
                             tolerance_change=tolerance_change, tolerance_grad=tolerance_grad,
                             line_search_fn="strong_wolfe")
@@ -389,20 +354,86 @@ def merge_covariance(q_i: torch.Tensor,  # [P, 4]
         opt.step(closure)
     n_iter = int(opt.state[x].get("n_iter", 0))
     with torch.no_grad():
-        if parametrization == "sqrt_cov":
-            evals, evecs = torch.linalg.eigh(_dense_from_sym(x.detach()))  # X = V diag(e) V^T
-            s = evals.abs() * c  # X^2 = V diag(e^2) V^T: the scale is |e|
-            # a proper rotation: flip one eigenvector when det = -1 (X is unchanged by the sign)
-            flip = torch.linalg.det(evecs) < 0
-            evecs = torch.where(flip[:, None, None], evecs * evecs.new_tensor([1.0, 1.0, -1.0]), evecs)
-            q = rotmat_to_quat_wxyz_torch(evecs)
-        else:
-            q = x[0:4].T
-            q = q / q.norm(dim=-1, keepdim=True)
-            s = x[4:7].T.abs() * c
+        solution = _sqrt_cov_solution if parametrization == "sqrt_cov" else _quat_scale_solution
+        q, s = solution(x.detach(), pairs.c)
         q = torch.where(q[:, :1] < 0, -q, q)
         s = s.clamp_min(torch.finfo(out_dtype).tiny)
     return q.to(out_dtype).contiguous(), s.to(out_dtype).contiguous(), n_iter
+
+
+class _Pairs(NamedTuple):
+    """merge_covariance's pairs in float64, each in its own units: qi, qj [P, 4] unit; si_n, sj_n
+    [P, 3] scales / c; c [P, 1] the geometric mean of the pair's six scales; q0 [P, 4], s0 [P, 3]
+    (/ c) the paper's initial guess."""
+
+    qi: torch.Tensor
+    qj: torch.Tensor
+    si_n: torch.Tensor
+    sj_n: torch.Tensor
+    c: torch.Tensor
+    q0: torch.Tensor
+    s0: torch.Tensor
+
+
+def _normalised_pairs(q_i: torch.Tensor, s_i: torch.Tensor, q_j: torch.Tensor, s_j: torch.Tensor,
+                      init_scale_offset_m: tuple[float, float, float], slerp_t: float) -> _Pairs:
+    f64 = torch.float64
+    qi = q_i.detach().to(f64)
+    qj = q_j.detach().to(f64)
+    si = s_i.detach().to(f64)
+    sj = s_j.detach().to(f64)
+    qi = qi / qi.norm(dim=-1, keepdim=True)
+    qj = qj / qj.norm(dim=-1, keepdim=True)
+    c = (0.5 * (si.log().mean(-1) + sj.log().mean(-1))).exp()[:, None]  # [P, 1]
+    offset = torch.tensor(init_scale_offset_m, dtype=f64, device=si.device)
+    s0 = (0.5 * (si + sj) + offset) / c  # [P, 3]
+    return _Pairs(qi, qj, si / c, sj / c, c, slerp_wxyz(qi, qj, slerp_t), s0)
+
+
+LossFn = Callable[[], torch.Tensor]
+
+
+def _sqrt_cov_problem(pairs: _Pairs) -> tuple[torch.Tensor, LossFn]:
+    """The variable X [6, P] (symmetric square root of Sk, from (q0, s0)) and the summed W2 loss."""
+    def target(q: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        R = quat_wxyz_to_rotmat_torch(q)
+        S = _sym_from_dense((R * (s * s)[:, None, :]) @ R.transpose(-1, -2))
+        return S, torch.stack(_sym_adj_soa(S.unbind(0))), s.prod(-1)  # type: ignore[arg-type]  # [6, ...]
+
+    ti, tj = target(pairs.qi, pairs.si_n), target(pairs.qj, pairs.sj_n)
+    S_t, adj_t, r_t = (torch.cat([a, b], -1) for a, b in zip(ti, tj))  # 2P columns: i terms, j terms
+    R0 = quat_wxyz_to_rotmat_torch(pairs.q0)
+    x = _sym_from_dense((R0 * pairs.s0[:, None, :]) @ R0.transpose(-1, -2)).requires_grad_(True)  # [6, P]
+    return x, lambda: _w2_terms_sqrtcov_soa(torch.cat([x, x], -1), S_t, adj_t, r_t).sum()
+
+
+def _quat_scale_problem(pairs: _Pairs) -> tuple[torch.Tensor, LossFn]:
+    """The variable [7, P] (unnormalised quaternion, scales; from (q0, s0)) and the summed W2 loss."""
+    def target(q: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        v = s * s
+        p = s.prod(-1)
+        return q.T.contiguous(), v.T.contiguous(), ((p * p)[:, None] / v).T.contiguous(), p
+
+    ti, tj = target(pairs.qi, pairs.si_n), target(pairs.qj, pairs.sj_n)
+    q_t, v_t, adjv_t, r_t = (torch.cat([a, b], -1) for a, b in zip(ti, tj))
+    x = torch.cat([pairs.q0.T, pairs.s0.T], 0).contiguous().requires_grad_(True)  # [7, P]
+    return x, lambda: _w2_terms_soa(torch.cat([x, x], -1), q_t, v_t, adjv_t, r_t).sum()
+
+
+def _sqrt_cov_solution(x: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """X [6, P] -> (q [P, 4], s [P, 3] in metres) by one float64 eigh."""
+    evals, evecs = torch.linalg.eigh(_dense_from_sym(x))  # X = V diag(e) V^T
+    s = evals.abs() * c  # X^2 = V diag(e^2) V^T: the scale is |e|
+    # a proper rotation: flip one eigenvector when det = -1 (X is unchanged by the sign)
+    flip = torch.linalg.det(evecs) < 0
+    evecs = torch.where(flip[:, None, None], evecs * evecs.new_tensor([1.0, 1.0, -1.0]), evecs)
+    return rotmat_to_quat_wxyz_torch(evecs), s
+
+
+def _quat_scale_solution(x: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """[7, P] -> (unit q [P, 4], s [P, 3] in metres)."""
+    q = x[0:4].T
+    return q / q.norm(dim=-1, keepdim=True), x[4:7].T.abs() * c
 
 
 # ----------------------------------------------------------------------------- surgery
@@ -426,87 +457,125 @@ def merge_pass(gmap: GaussianMap, cfg: MergeConfig, newest_keyframe_id: int, ite
     zero Adam moments and accumulators. All other rows are untouched. Returns ``MergeResult``.
     """
     dev = gmap.device
-    t0 = time.perf_counter()
-    timings: dict[str, float] = {}
+    clock = _StageClock(dev)
     empty = torch.zeros(0, dtype=torch.int64, device=dev)
-
-    def lap(name: str, since: float) -> float:
-        _sync(dev)
-        now = time.perf_counter()
-        timings[name] = now - since
-        return now
-
     if not cfg.enabled or len(gmap) == 0:
-        return MergeResult(empty, empty, 0, 0, 0, 0, 0, {"total": time.perf_counter() - t0})
-
+        return MergeResult(empty, empty, 0, 0, 0, 0, 0, {"total": clock.total()})
     with torch.no_grad():
-        k_max = int(newest_keyframe_id)
-        # keyframe id -1 marks Gaussians of unknown origin (a loaded map): never in the window
-        k_min = max(k_max - cfg.window_keyframes + 1, 0)
-        mask = candidate_mask(gmap.merge_grad_mean(), gmap.keyframe_ids, cfg.tau, k_min, k_max)
-        cand = torch.nonzero(mask).reshape(-1)  # [M] rows
-        t = lap("masking", t0)
+        cand, pairs = _candidate_pairs(gmap, cfg, newest_keyframe_id, clock)
+        chosen = _chosen_pairs(gmap, cfg, cand, pairs)
+        clock.lap("distances")
+    q_k, s_k, n_iter = _pair_covariances(chosen, cfg, dev)
+    clock.lap("lbfgs")
+    counts = (int(cand.shape[0]), pairs.n_voxels, int(chosen.d2.shape[0]))
+    if chosen.n_merged == 0:
+        clock.timings["surgery"] = 0.0
+        return MergeResult(empty, empty, *counts, 0, n_iter, {**clock.timings, "total": clock.total()})
+    with torch.no_grad():
+        pair_ids, added = _replace_pairs(gmap, cfg, chosen, q_k, s_k, iteration)
+        clock.lap("surgery")
+    return MergeResult(pair_ids, added, *counts, chosen.n_merged, n_iter, {**clock.timings, "total": clock.total()})
 
-        means_c = gmap.means.detach()[cand]
-        keys = voxel_keys(means_c, cfg.voxel_size_m)
-        pairs = voxel_pairs(keys, gmap.ids[cand], cfg.max_per_voxel)
-        t = lap("hashing", t)
 
-        ri, rj = cand[pairs.i], cand[pairs.j]  # [P] map rows, ri older
-        f64 = torch.float64
-        mu_i = gmap.means.detach()[ri].to(f64)
-        mu_j = gmap.means.detach()[rj].to(f64)
-        s_i = gmap.log_scales.detach()[ri].to(f64).exp()
-        q_i = gmap.quats_wxyz.detach()[ri].to(f64)
-        prec_i = precision_from_scale_quat(s_i, q_i)
-        d2 = mahalanobis_sq(mu_i, prec_i, mu_j)
-        best = select_min_pair_per_voxel(d2, pairs.voxel, pairs.n_voxels)
-        best = best[d2[best] < cfg.chi2_gate]
-        mi, mj = ri[best], rj[best]  # [P'] rows of the merged pairs
-        n_merged = int(best.shape[0])
-        s_j = gmap.log_scales.detach()[mj].to(f64).exp()
-        q_j = gmap.quats_wxyz.detach()[mj].to(f64)
-        prec_j = precision_from_scale_quat(s_j, q_j)
-        mu_k = merged_mean(mu_i[best], prec_i[best], mu_j[best], prec_j)
-        t = lap("distances", t)
+class _StageClock:
+    """Seconds per stage of one merge pass, waiting for queued GPU work at each lap."""
 
+    def __init__(self, device: torch.device) -> None:
+        self.device = device
+        self.t0 = self.last = time.perf_counter()
+        self.timings: dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        _sync(self.device)
+        now = time.perf_counter()
+        self.timings[name] = now - self.last
+        self.last = now
+
+    def total(self) -> float:
+        return time.perf_counter() - self.t0
+
+
+class _Chosen(NamedTuple):
+    """The pairs a pass merges. d2: [P] of every candidate pair; mi, mj: [P'] map rows (mi older);
+    mu_k: [P', 3] merged means; q_i, s_i, q_j, s_j: [P', 4] / [P', 3] float64 of the two rows."""
+
+    d2: torch.Tensor
+    mi: torch.Tensor
+    mj: torch.Tensor
+    mu_k: torch.Tensor
+    q_i: torch.Tensor
+    s_i: torch.Tensor
+    q_j: torch.Tensor
+    s_j: torch.Tensor
+
+    @property
+    def n_merged(self) -> int:
+        return int(self.mi.shape[0])
+
+
+def _candidate_pairs(gmap: GaussianMap, cfg: MergeConfig, newest_keyframe_id: int, clock: _StageClock
+                     ) -> tuple[torch.Tensor, VoxelPairs]:
+    """The candidate rows [M] and their pairs inside voxels (laps "masking" and "hashing")."""
+    k_max = int(newest_keyframe_id)
+    # keyframe id -1 marks Gaussians of unknown origin (a loaded map): never in the window
+    k_min = max(k_max - cfg.window_keyframes + 1, 0)
+    mask = candidate_mask(gmap.merge_grad_mean(), gmap.keyframe_ids, cfg.tau, k_min, k_max)
+    cand = torch.nonzero(mask).reshape(-1)  # [M] rows
+    clock.lap("masking")
+    keys = voxel_keys(gmap.means.detach()[cand], cfg.voxel_size_m)
+    pairs = voxel_pairs(keys, gmap.ids[cand], cfg.max_per_voxel)
+    clock.lap("hashing")
+    return cand, pairs
+
+
+def _chosen_pairs(gmap: GaussianMap, cfg: MergeConfig, cand: torch.Tensor, pairs: VoxelPairs) -> _Chosen:
+    """Each voxel's closest pair if its d2 passes the gate, with the merged mean."""
+    ri, rj = cand[pairs.i], cand[pairs.j]  # [P] map rows, ri older
+    f64 = torch.float64
+    mu_i = gmap.means.detach()[ri].to(f64)
+    mu_j = gmap.means.detach()[rj].to(f64)
+    s_i = gmap.log_scales.detach()[ri].to(f64).exp()
+    q_i = gmap.quats_wxyz.detach()[ri].to(f64)
+    prec_i = precision_from_scale_quat(s_i, q_i)
+    d2 = mahalanobis_sq(mu_i, prec_i, mu_j)
+    best = select_min_pair_per_voxel(d2, pairs.voxel, pairs.n_voxels)
+    best = best[d2[best] < cfg.chi2_gate]
+    mi, mj = ri[best], rj[best]  # [P'] rows of the merged pairs
+    s_j = gmap.log_scales.detach()[mj].to(f64).exp()
+    q_j = gmap.quats_wxyz.detach()[mj].to(f64)
+    prec_j = precision_from_scale_quat(s_j, q_j)
+    mu_k = merged_mean(mu_i[best], prec_i[best], mu_j[best], prec_j)
+    return _Chosen(d2, mi, mj, mu_k, q_i[best], s_i[best], q_j, s_j)
+
+
+def _pair_covariances(chosen: _Chosen, cfg: MergeConfig, dev: torch.device
+                      ) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """merge_covariance of the chosen pairs with cfg's L-BFGS settings, solved on the host."""
     # The covariance solve runs on the host whatever the map's device: a few thousand 3x3
     # problems take ~50 ms on one core, while on a GPU the strong-Wolfe line search waits for the
     # device at every evaluation and cuSOLVER's batched eigh takes ~0.5 MB of workspace per 3x3
     # matrix (1.38 GB for 2663 pairs on an H200: the mapper's whole CUDA peak).
     host = torch.device("cpu")
     q_k, s_k, n_iter = merge_covariance(
-        q_i[best].to(host), s_i[best].to(host), q_j.to(host), s_j.to(host), lr=cfg.lbfgs_lr,
+        chosen.q_i.to(host), chosen.s_i.to(host), chosen.q_j.to(host), chosen.s_j.to(host), lr=cfg.lbfgs_lr,
         max_iter=cfg.lbfgs_max_iter, history_size=cfg.lbfgs_history, tolerance_change=cfg.lbfgs_tolerance_change,
         tolerance_grad=cfg.lbfgs_tolerance_grad, init_scale_offset_m=cfg.init_scale_offset_m,
         slerp_t=cfg.slerp_t, parametrization=cfg.lbfgs_parametrization)
-    q_k, s_k = q_k.to(dev), s_k.to(dev)
-    t = lap("lbfgs", t)
+    return q_k.to(dev), s_k.to(dev), n_iter
 
-    with torch.no_grad():
-        if n_merged == 0:
-            timings["surgery"] = 0.0
-            timings["total"] = time.perf_counter() - t0
-            return MergeResult(empty, empty, int(cand.shape[0]), pairs.n_voxels, int(d2.shape[0]), 0,
-                               n_iter, timings)
-        src = mi if cfg.colour_from == "older" else mj
-        new_rows = {
-            "means": mu_k.to(gmap.means.dtype),
-            "log_scales": s_k.log().to(gmap.log_scales.dtype),
-            "quats_wxyz": q_k.to(gmap.quats_wxyz.dtype),
-            "opacity_logits": gmap.opacity_logits.detach()[src].clone(),
-            "sh_dc": gmap.sh_dc.detach()[src].clone(),
-            "sh_rest": gmap.sh_rest.detach()[src].clone(),
-        }
-        kf = gmap.keyframe_ids[mi].clone()
-        remove = torch.zeros(len(gmap), dtype=torch.bool, device=dev)
-        remove[mi] = True
-        remove[mj] = True
-        pair_ids = torch.stack([gmap.ids[mi], gmap.ids[mj]], 1).reshape(-1)  # [2P'] older, newer
-        added = gmap.add(new_rows["means"], new_rows["log_scales"], new_rows["quats_wxyz"],
-                         new_rows["opacity_logits"], new_rows["sh_dc"], new_rows["sh_rest"], kf, iteration,
-                         remove=remove)
-        lap("surgery", t)
-    timings["total"] = time.perf_counter() - t0
-    return MergeResult(pair_ids, added, int(cand.shape[0]), pairs.n_voxels, int(d2.shape[0]), n_merged,
-                       n_iter, timings)
+
+def _replace_pairs(gmap: GaussianMap, cfg: MergeConfig, chosen: _Chosen, q_k: torch.Tensor, s_k: torch.Tensor,
+                   iteration: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Removes both rows of each chosen pair and appends the merged Gaussian in one resize.
+    Returns (removed ids [2P'] older then newer, pair by pair; added ids [P'])."""
+    mi, mj = chosen.mi, chosen.mj
+    src = mi if cfg.colour_from == "older" else mj
+    remove = torch.zeros(len(gmap), dtype=torch.bool, device=gmap.device)
+    remove[mi] = True
+    remove[mj] = True
+    pair_ids = torch.stack([gmap.ids[mi], gmap.ids[mj]], 1).reshape(-1)  # [2P'] older, newer
+    added = gmap.add(chosen.mu_k.to(gmap.means.dtype), s_k.log().to(gmap.log_scales.dtype),
+                     q_k.to(gmap.quats_wxyz.dtype), gmap.opacity_logits.detach()[src].clone(),
+                     gmap.sh_dc.detach()[src].clone(), gmap.sh_rest.detach()[src].clone(),
+                     gmap.keyframe_ids[mi].clone(), iteration, remove=remove)
+    return pair_ids, added

@@ -20,7 +20,7 @@ as close as the torch path. One division per pixel. The window must be symmetric
 pass adds mirrored taps before multiplying); :func:`memgs_ros.core.metrics.ssim.gaussian_window_1d` is, exactly.
 
 Kernels release the GIL and run on the calling thread (no numba threading layer, see
-:mod:`memgs_ros.core.raster.numba_backend` for why).
+:mod:`memgs_ros.core.raster.composite_numba` for why).
 """
 from __future__ import annotations
 

@@ -24,6 +24,7 @@ from memgs_ros.core.mapping.gaussians import GaussianMap
 from memgs_ros.core.metrics.image import FrameScore, LpipsFn, match_frames, score_frame, summarize_scores
 from memgs_ros.core.metrics.trajectory import ate
 from memgs_ros.core.raster import rasterize
+from memgs_ros.core.raster.values import render_rgb8
 
 __all__ = [
     "ATE_MAX_DT_S", "FRAME_MATCH_MAX_DT_S", "QualityResult", "StripFrame", "TrajectoryResult",
@@ -157,7 +158,7 @@ def score_map(gmap: GaussianMap,
             scored[key] = score_frame(stamp, color, gt, lpips_fn)
             scored_valid[key] = masked_psnr(color, gt, mask_t)
             if name == strip_from:
-                renders[key] = (color * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+                renders[key] = render_rgb8(color)
             if progress is not None:
                 progress(len(scored), total)
         results[name] = _quality([s for s, _, _ in js], [scored[(s, gi)] for s, _, gi in js],

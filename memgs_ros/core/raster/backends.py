@@ -17,8 +17,8 @@ from torch import Tensor
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster.composite import composite
+from memgs_ros.core.raster.composite_numba import NUMBA_TILE_SIZE, composite_numba
 from memgs_ros.core.raster.gsplat_backend import gsplat_available, rasterize_gsplat
-from memgs_ros.core.raster.numba_backend import NUMBA_TILE_SIZE, composite_numba
 from memgs_ros.core.raster.projection import Projected, alpha_cutoff_sq, project_gaussians, screen_radii
 from memgs_ros.core.raster.projection_numba import project_gaussians_numba
 from memgs_ros.core.raster.rules import MIN_ALPHA

@@ -26,8 +26,7 @@ How it stays fast and small on a CPU:
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from typing import Any, TypeVar
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -43,20 +42,11 @@ MIN_POWER = -30.0
 # Above this, alpha and T are recomputed in the backward pass instead of kept (see _saves_pairs).
 SAVED_PAIRS_BUDGET_BYTES = 512 * 1024 * 1024
 
-_In = TypeVar("_In")
-_Out = TypeVar("_Out")
-
-
 def default_workers(device: torch.device) -> int:
     """Python threads for the chunk loop: >1 only on CPU when torch runs single-threaded ops."""
     if device.type != "cpu" or torch.get_num_threads() != 1:
         return 1
     return cpu_threads()
-
-
-def _map(fn: Callable[[_In], _Out], jobs: Sequence[_In], workers: int) -> list[_Out]:
-    """[fn(j) for j in jobs], on up to ``workers`` threads of the process's kernel pool."""
-    return parallel_map(fn, jobs, workers)
 
 
 def _pixel_features(tile_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
@@ -192,7 +182,7 @@ class _CompositeFn(torch.autograd.Function):
             out, alpha, t_excl = _forward_chunk(plan, chunk, table, feat, alpha_floor, t_floor)
             return (out, alpha, t_excl) if keep else (out, None, None)
 
-        results = _map(run, plan.chunks, workers)
+        results = parallel_map(run, plan.chunks, workers)
         n_tiles = plan.tiles_x * plan.tiles_y
         p = plan.tile_size * plan.tile_size
         buf = torch.zeros(n_tiles, 5, p, dtype=dtype, device=device)  # r, g, b, depth, sum w
@@ -267,7 +257,7 @@ class _CompositeFn(torch.autograd.Function):
             vx[_CB] = -g1 + g3 * mv + g4 * mu - g5 * mu * mv
             vx[_CC] = -0.5 * g2 + g4 * mv - 0.5 * g5 * mv * mv
 
-        _map(run, list(zip(plan.chunks, ctx.saved_pairs)), ctx.workers)
+        parallel_map(run, list(zip(plan.chunks, ctx.saved_pairs)), ctx.workers)
         n = means2d.shape[0]
         v_gauss = torch.zeros(10, n + 1, dtype=dtype, device=device)
         v_gauss.index_add_(1, plan.slot_gid, v_table)
@@ -301,21 +291,10 @@ def composite(
     Memory: 8 B per pixel-Gaussian pair (up to SAVED_PAIRS_BUDGET_BYTES, then recomputed) plus one
     chunk per worker.
     """
-    means2d, conics, opacities, colors, depths = splats
     if workers is None:
-        workers = default_workers(means2d.device)
-    inputs = (means2d, conics, opacities, colors, depths, background)
+        workers = default_workers(splats.means2d.device)
+    inputs = (*splats, background)
     # Nothing to keep for a render without gradients (e.g. the published views); inside
     # forward() grad mode is always off, so this is decided here.
     differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
-    return _CompositeFn.apply(
-        means2d.contiguous(),
-        conics.contiguous(),
-        opacities.contiguous(),
-        colors.contiguous(),
-        depths.contiguous(),
-        background,
-        plan,
-        workers,
-        differentiable,
-    )
+    return _CompositeFn.apply(*splats.contiguous(), background, plan, workers, differentiable)

@@ -39,9 +39,9 @@ MIN_ROWS_PER_THREAD = 4096
 def _kernels() -> Any:
     if not numba_available():
         raise ConfigError("project_gaussians_numba: numba is not importable (or MEMGS_DISABLE_NUMBA is set)")
-    from memgs_ros.core.raster import _numba_projection
+    from memgs_ros.core.raster import _projection_kernels
 
-    return _numba_projection
+    return _projection_kernels
 
 
 KERNEL_DTYPES = (torch.float32, torch.float64)
@@ -122,7 +122,7 @@ class _ProjectNumbaFn(torch.autograd.Function):
         outs = (means2d.numpy(), cov2d.numpy(), conics.numpy(), depths.numpy(), opac.numpy(), colors.numpy(),
                 in_front.numpy())
         jobs = _ranges(n, threads)
-        parallel_map(lambda j: k.project_forward(j[1], j[2], *args, *outs), jobs, threads)
+        parallel_map(lambda j: k.project_forward(j[1], j[2], args, outs), jobs, threads)
         ctx.args = args
         ctx.jobs = jobs
         ctx.threads = threads
@@ -151,10 +151,10 @@ class _ProjectNumbaFn(torch.autograd.Function):
         sh_degree = ctx.args[-1]
         shapes = ((n, 2), (n, 3), (n, 3), (n,), (n,), (n, 3))
         dtype = ctx.dtype
-        cot = [
+        cot = tuple(
             np.zeros(s, dtype=means_np.dtype) if v is None else _arr(v, dtype).reshape(s)
             for v, s in zip(v_out[:6], shapes)
-        ]
+        )
         f64 = torch.float64
         v_means = torch.empty(n, 3, dtype=dtype)
         v_quats = torch.empty(n, 4, dtype=dtype)
@@ -172,7 +172,7 @@ class _ProjectNumbaFn(torch.autograd.Function):
             v_dc.numpy().reshape(n, 3),
             v_rest.numpy(),
         )
-        parallel_map(lambda j: k.project_backward(j[1], j[2], *ctx.args, *cot, *grads, acc[j[0]]),
+        parallel_map(lambda j: k.project_backward(j[1], j[2], ctx.args, cot, grads, acc[j[0]]),
                      ctx.jobs, ctx.threads)
         v_T = None
         if ctx.needs_input_grad[6]:

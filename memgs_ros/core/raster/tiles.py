@@ -15,7 +15,7 @@ is a handful of dense tensor ops per chunk (built on first use: the numba compos
 per-tile lists directly).
 
 The per-row expansion into (tile, Gaussian) pairs and the sort by tile run in a compiled
-kernel where numba imports (:func:`memgs_ros.core.raster._numba_kernels.bin_pairs`: the same
+kernel where numba imports (:func:`memgs_ros.core.raster._composite_kernels.bin_pairs`: the same
 float64 formulas, a counting sort instead of a comparison sort), else in torch
 (:func:`_bin_pairs_torch`); both give identical plans.
 """
@@ -197,7 +197,7 @@ def build_tile_plan(
         idx = torch.nonzero(ok).squeeze(1)
         idx = idx.index_select(0, torch.argsort(depths.detach().index_select(0, idx), stable=True))
         if _numba_binning(device):
-            from memgs_ros.core.raster._numba_kernels import bin_pairs
+            from memgs_ros.core.raster._composite_kernels import bin_pairs
 
             # One row per Gaussian, gathered in compositing order: the kernel reads it sequentially.
             gauss = torch.stack([mx, my, sxx, sxy, syy, r, r2, row_lo, row_hi], dim=1).index_select(0, idx)  # [G, 9]

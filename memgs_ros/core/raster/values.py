@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import numpy as np
+import torch
 from torch import Tensor
 
 
@@ -63,6 +65,10 @@ class Splats2D(NamedTuple):
     colors: Tensor
     depths: Tensor
 
+    def contiguous(self) -> Splats2D:
+        """The same splats with every tensor contiguous (what the compositors' kernels read)."""
+        return Splats2D(*(t.contiguous() for t in self))
+
 
 @dataclass(frozen=True)
 class RenderOutput:
@@ -81,3 +87,8 @@ class RenderOutput:
     means2d: Tensor
     radii: Tensor
     visible: Tensor
+
+
+def render_rgb8(color: Tensor) -> np.ndarray:  # [3, H, W] -> [H, W, 3]
+    """A rendered colour image as 8-bit RGB on the host: round(255 clamp(color, 0, 1)), [H, W, 3] uint8."""
+    return (color.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()

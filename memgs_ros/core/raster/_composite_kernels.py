@@ -1,4 +1,4 @@
-"""Compiled per-pixel compositing kernels (numba); imported only by :mod:`.numba_backend`.
+"""Compiled per-pixel compositing kernels (numba); imported only by :mod:`.composite_numba`.
 
 Same rules as :mod:`.composite` (1/255 skip, 0.99 clamp, power clamped at 0, early
 termination once T (1 - alpha) < 1e-4), evaluated per pixel over its tile's front-to-back
@@ -22,6 +22,7 @@ a, b, c, opacity, r, g, b, z, ln(1/255 / opacity), half box x, half box y, exp(-
 from __future__ import annotations
 
 import math
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -67,29 +68,85 @@ def _run(
     return px0, px1, math.exp(power), math.exp(step)
 
 
+class _Splat(NamedTuple):
+    """One Gaussian's row of the table, its mean relative to the tile's origin."""
+
+    mx: float
+    my: float
+    ca: float  # conic a, b, c
+    cb: float
+    cc: float
+    op: float  # opacity
+    lncut: float  # ln(1/255 / opacity)
+    expa: float  # exp(-a)
+    cr: float  # colour r, g, b
+    cg: float
+    cbl: float
+    z: float  # depth
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _splat(g: np.ndarray, gid: int, x0: int, y0: int) -> _Splat:
+    return _Splat(g[gid, G_MX] - x0, g[gid, G_MY] - y0, g[gid, G_A], g[gid, G_B], g[gid, G_C], g[gid, G_OP],
+                  g[gid, G_LNCUT], g[gid, G_EXPA], g[gid, G_R], g[gid, G_G], g[gid, G_BL], g[gid, G_Z])
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _tile_box(t: int, tiles_x: int, tile_size: int, width: int, height: int) -> tuple[int, int, int, int]:
+    """(x0, y0, nx, ny): tile t's pixel origin and size (edge tiles are cut at the image border)."""
+    x0 = (t % tiles_x) * tile_size
+    y0 = (t // tiles_x) * tile_size
+    return x0, y0, min(tile_size, width - x0), min(tile_size, height - y0)
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _blend(s: _Splat, j: int, py0: int, py1: int, nx: int, trans: np.ndarray, acc: np.ndarray, used: np.ndarray,
+           done: np.ndarray) -> int:
+    """Composites list entry j (Gaussian ``s``) over the tile's pixels; returns how many pixels it terminated."""
+    n_done = 0
+    for py in range(py0, py1):
+        px0, px1, e_next, r = _run(s.ca, s.cb, s.cc, s.lncut, s.mx, py - s.my, nx)
+        for px in range(px0, px1):
+            e = e_next
+            e_next = e * r
+            r *= s.expa
+            p = py * nx + px
+            if done[p]:
+                continue
+            alpha = min(MAX_ALPHA, s.op * e)
+            if alpha < MIN_ALPHA:
+                continue
+            t_next = trans[p] * (1.0 - alpha)
+            if t_next < MIN_TRANSMITTANCE:
+                done[p] = True
+                n_done += 1
+                continue
+            w = alpha * trans[p]
+            acc[0, p] += w * s.cr
+            acc[1, p] += w * s.cg
+            acc[2, p] += w * s.cbl
+            acc[3, p] += w * s.z
+            acc[4, p] += w
+            trans[p] = t_next
+            used[p] = j + 1
+    return n_done
+
+
 @njit(nogil=True, cache=True, fastmath=False)
-def composite_forward(
-    tiles: np.ndarray,  # [T] int64 tile ids to composite
-    g: np.ndarray,  # [N, G_COLS] float64
-    pair_gid: np.ndarray,  # [M] int64, grouped by tile, front to back
-    tile_start: np.ndarray,  # [n_tiles] int64
-    tile_count: np.ndarray,  # [n_tiles] int64
-    tiles_x: int,
-    tile_size: int,
-    width: int,
-    height: int,
-    out: np.ndarray,  # [5, H, W] float64: r, g, b, depth, sum of weights (written)
-    t_end: np.ndarray,  # [H, W] float64: transmittance after the last Gaussian (written)
-    n_used: np.ndarray,  # [H, W] int32: list position + 1 of the last contributing Gaussian (written)
-) -> None:
-    """Front-to-back compositing of ``tiles`` (background not added)."""
-    ts = tile_size
+def composite_forward(tiles: np.ndarray, plan: tuple[Any, ...], out: np.ndarray, t_end: np.ndarray,
+                      n_used: np.ndarray) -> None:
+    """Front-to-back compositing of ``tiles`` ([T] int64 tile ids; background not added).
+
+    plan: (g [N, G_COLS] float64, pair_gid [M] int64 grouped by tile and front to back within one,
+    tile_start [n_tiles] int64, tile_count [n_tiles] int64, tiles_x, tile_size, width, height).
+    Written: out [5, H, W] float64 (r, g, b, depth, sum of weights), t_end [H, W] float64
+    (transmittance after the last Gaussian), n_used [H, W] int32 (list position + 1 of the last
+    contributing Gaussian).
+    """
+    g, pair_gid, tile_start, tile_count, tiles_x, tile_size, width, height = plan
     for i in range(tiles.shape[0]):
         t = tiles[i]
-        x0 = (t % tiles_x) * ts
-        y0 = (t // tiles_x) * ts
-        nx = min(ts, width - x0)
-        ny = min(ts, height - y0)
+        x0, y0, nx, ny = _tile_box(t, tiles_x, tile_size, width, height)
         npx = nx * ny
         trans = np.ones(npx)
         acc = np.zeros((5, npx))
@@ -100,43 +157,7 @@ def composite_forward(
         for j in range(tile_count[t]):
             gid = pair_gid[start + j]
             py0, py1 = _rows(g, gid, y0, ny)
-            mx = g[gid, G_MX] - x0
-            my = g[gid, G_MY] - y0
-            ca = g[gid, G_A]
-            cb = g[gid, G_B]
-            cc = g[gid, G_C]
-            op = g[gid, G_OP]
-            lncut = g[gid, G_LNCUT]
-            expa = g[gid, G_EXPA]
-            cr = g[gid, G_R]
-            cg = g[gid, G_G]
-            cbl = g[gid, G_BL]
-            z = g[gid, G_Z]
-            for py in range(py0, py1):
-                px0, px1, e_next, r = _run(ca, cb, cc, lncut, mx, py - my, nx)
-                for px in range(px0, px1):
-                    e = e_next
-                    e_next = e * r
-                    r *= expa
-                    p = py * nx + px
-                    if done[p]:
-                        continue
-                    alpha = min(MAX_ALPHA, op * e)
-                    if alpha < MIN_ALPHA:
-                        continue
-                    t_next = trans[p] * (1.0 - alpha)
-                    if t_next < MIN_TRANSMITTANCE:
-                        done[p] = True
-                        n_done += 1
-                        continue
-                    w = alpha * trans[p]
-                    acc[0, p] += w * cr
-                    acc[1, p] += w * cg
-                    acc[2, p] += w * cbl
-                    acc[3, p] += w * z
-                    acc[4, p] += w
-                    trans[p] = t_next
-                    used[p] = j + 1
+            n_done += _blend(_splat(g, gid, x0, y0), j, py0, py1, nx, trans, acc, used, done)
             if n_done == npx:
                 break
         for py in range(ny):
@@ -148,35 +169,83 @@ def composite_forward(
                 n_used[y0 + py, x0 + px] = used[p]
 
 
+@njit(cache=True, fastmath=False, inline="always")
+def _unblend_vjp(s: _Splat, j: int, py0: int, py1: int, nx: int, trans: np.ndarray, acc: np.ndarray,
+                 used: np.ndarray, gc: np.ndarray, v_pair: np.ndarray, q: int) -> None:
+    """List entry j (Gaussian ``s``) taken back out of the tile's pixels that used it: T is divided
+    back, the colour behind accumulated; writes dL/d(pair inputs) into v_pair[q] [V_COLS]."""
+    v_mx = 0.0
+    v_my = 0.0
+    v_a = 0.0
+    v_b = 0.0
+    v_c = 0.0
+    v_op = 0.0
+    v_r = 0.0
+    v_g = 0.0
+    v_bl = 0.0
+    v_z = 0.0
+    for py in range(py0, py1):
+        dy = py - s.my
+        px0, px1, e_next, r = _run(s.ca, s.cb, s.cc, s.lncut, s.mx, dy, nx)
+        for px in range(px0, px1):
+            gauss = e_next
+            e_next = gauss * r
+            r *= s.expa
+            p = py * nx + px
+            if j >= used[p]:
+                continue
+            dx = px - s.mx
+            raw = s.op * gauss
+            alpha = min(MAX_ALPHA, raw)
+            if alpha < MIN_ALPHA:
+                continue
+            one_minus = 1.0 - alpha
+            t_i = trans[p] / one_minus
+            w = alpha * t_i
+            v = s.cr * gc[0, p] + s.cg * gc[1, p] + s.cbl * gc[2, p] + s.z * gc[3, p]
+            v_r += w * gc[0, p]
+            v_g += w * gc[1, p]
+            v_bl += w * gc[2, p]
+            v_z += w * gc[3, p]
+            v_alpha = t_i * v - acc[p] / one_minus
+            acc[p] += w * v
+            trans[p] = t_i
+            if raw <= MAX_ALPHA:
+                v_op += v_alpha * gauss
+                v_power = v_alpha * alpha
+                v_mx += v_power * (s.ca * dx + s.cb * dy)
+                v_my += v_power * (s.cb * dx + s.cc * dy)
+                v_a -= 0.5 * v_power * dx * dx
+                v_b -= v_power * dx * dy
+                v_c -= 0.5 * v_power * dy * dy
+    v_pair[q, 0] = v_mx
+    v_pair[q, 1] = v_my
+    v_pair[q, 2] = v_a
+    v_pair[q, 3] = v_b
+    v_pair[q, 4] = v_c
+    v_pair[q, 5] = v_op
+    v_pair[q, 6] = v_r
+    v_pair[q, 7] = v_g
+    v_pair[q, 8] = v_bl
+    v_pair[q, 9] = v_z
+
+
 @njit(nogil=True, cache=True, fastmath=False)
-def composite_backward(
-    tiles: np.ndarray,  # [T] int64 tile ids to composite
-    g: np.ndarray,  # [N, G_COLS] float64
-    pair_gid: np.ndarray,  # [M] int64
-    tile_start: np.ndarray,  # [n_tiles] int64
-    tile_count: np.ndarray,  # [n_tiles] int64
-    tiles_x: int,
-    tile_size: int,
-    width: int,
-    height: int,
-    t_end: np.ndarray,  # [H, W] float64 from the forward pass
-    n_used: np.ndarray,  # [H, W] int32 from the forward pass
-    grads: np.ndarray,  # [5, H, W] float64: dL/d (r, g, b, depth, alpha) images
-    behind: np.ndarray,  # [H, W] float64: dL/dT_end = bg . dL/dC - dL/dA
-    v_pair: np.ndarray,  # [M, V_COLS] float64 (written)
-) -> None:
+def composite_backward(tiles: np.ndarray, plan: tuple[Any, ...], t_end: np.ndarray, n_used: np.ndarray,
+                       grads: np.ndarray, behind: np.ndarray, v_pair: np.ndarray) -> None:
     """Back-to-front walk of each pixel's list (3DGS): T is divided back out Gaussian by
-    Gaussian from T_end, the colour behind is accumulated. Writes dL/d(pair inputs) per pair."""
-    ts = tile_size
+    Gaussian from T_end, the colour behind is accumulated. Writes dL/d(pair inputs) per pair.
+
+    tiles, plan: as composite_forward's; t_end [H, W] float64 and n_used [H, W] int32 from the
+    forward pass; grads [5, H, W] float64: dL/d (r, g, b, depth, alpha) images; behind [H, W]
+    float64: dL/dT_end = bg . dL/dC - dL/dA; v_pair [M, V_COLS] float64 (written).
+    """
+    g, pair_gid, tile_start, tile_count, tiles_x, tile_size, width, height = plan
     for i in range(tiles.shape[0]):
         t = tiles[i]
-        x0 = (t % tiles_x) * ts
-        y0 = (t // tiles_x) * ts
-        nx = min(ts, width - x0)
-        ny = min(ts, height - y0)
+        x0, y0, nx, ny = _tile_box(t, tiles_x, tile_size, width, height)
         npx = nx * ny
         start = tile_start[t]
-        count = tile_count[t]
         trans = np.empty(npx)
         acc = np.empty(npx)  # sum over Gaussians behind of w v, plus T_end behind
         used = np.empty(npx, dtype=np.int32)
@@ -191,79 +260,13 @@ def composite_backward(
                 last = max(last, used[p])
                 for k in range(4):
                     gc[k, p] = grads[k, y0 + py, x0 + px]
-        for j in range(count):
+        for j in range(tile_count[t]):
             for k in range(V_COLS):
                 v_pair[start + j, k] = 0.0
         for j in range(last - 1, -1, -1):
             gid = pair_gid[start + j]
             py0, py1 = _rows(g, gid, y0, ny)
-            mx = g[gid, G_MX] - x0
-            my = g[gid, G_MY] - y0
-            ca = g[gid, G_A]
-            cb = g[gid, G_B]
-            cc = g[gid, G_C]
-            op = g[gid, G_OP]
-            lncut = g[gid, G_LNCUT]
-            expa = g[gid, G_EXPA]
-            cr = g[gid, G_R]
-            cg = g[gid, G_G]
-            cbl = g[gid, G_BL]
-            z = g[gid, G_Z]
-            v_mx = 0.0
-            v_my = 0.0
-            v_a = 0.0
-            v_b = 0.0
-            v_c = 0.0
-            v_op = 0.0
-            v_r = 0.0
-            v_g = 0.0
-            v_bl = 0.0
-            v_z = 0.0
-            for py in range(py0, py1):
-                dy = py - my
-                px0, px1, e_next, r = _run(ca, cb, cc, lncut, mx, dy, nx)
-                for px in range(px0, px1):
-                    gauss = e_next
-                    e_next = gauss * r
-                    r *= expa
-                    p = py * nx + px
-                    if j >= used[p]:
-                        continue
-                    dx = px - mx
-                    raw = op * gauss
-                    alpha = min(MAX_ALPHA, raw)
-                    if alpha < MIN_ALPHA:
-                        continue
-                    one_minus = 1.0 - alpha
-                    t_i = trans[p] / one_minus
-                    w = alpha * t_i
-                    v = cr * gc[0, p] + cg * gc[1, p] + cbl * gc[2, p] + z * gc[3, p]
-                    v_r += w * gc[0, p]
-                    v_g += w * gc[1, p]
-                    v_bl += w * gc[2, p]
-                    v_z += w * gc[3, p]
-                    v_alpha = t_i * v - acc[p] / one_minus
-                    acc[p] += w * v
-                    trans[p] = t_i
-                    if raw <= MAX_ALPHA:
-                        v_op += v_alpha * gauss
-                        v_power = v_alpha * alpha
-                        v_mx += v_power * (ca * dx + cb * dy)
-                        v_my += v_power * (cb * dx + cc * dy)
-                        v_a -= 0.5 * v_power * dx * dx
-                        v_b -= v_power * dx * dy
-                        v_c -= 0.5 * v_power * dy * dy
-            q = start + j
-            v_pair[q, 0] = v_mx
-            v_pair[q, 1] = v_my
-            v_pair[q, 2] = v_a
-            v_pair[q, 3] = v_b
-            v_pair[q, 4] = v_c
-            v_pair[q, 5] = v_op
-            v_pair[q, 6] = v_r
-            v_pair[q, 7] = v_g
-            v_pair[q, 8] = v_bl
-            v_pair[q, 9] = v_z
+            _unblend_vjp(_splat(g, gid, x0, y0), j, py0, py1, nx, trans, acc, used, gc, v_pair, start + j)
 
 
 @njit(cache=True, fastmath=False)

@@ -27,15 +27,14 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from memgs_ros.core.raster.composite import _map
 from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.tiles import BIN_MARGIN, TilePlan
 from memgs_ros.core.raster.values import Splats2D
 from memgs_ros.core.runtime.cpu import numba_available
-from memgs_ros.core.runtime.pool import cpu_threads
+from memgs_ros.core.runtime.pool import cpu_threads, parallel_map
 from memgs_ros.errors import ConfigError
 
-__all__ = ["NUMBA_TILE_SIZE", "composite_numba", "cpu_threads"]
+__all__ = ["NUMBA_TILE_SIZE", "composite_numba"]
 
 # px. Per-pixel early termination and per-Gaussian pixel boxes make list padding irrelevant;
 # larger tiles mean fewer (tile, Gaussian) pairs to bin and reduce and longer runs per pixel
@@ -45,8 +44,6 @@ NUMBA_TILE_SIZE = 16
 # Tile jobs per thread: interleaved tile sets of similar cost, several per thread so that a
 # thread slowed by another process hands its share to the others.
 JOBS_PER_THREAD = 4
-
-
 
 
 def _tile_jobs(plan: TilePlan, threads: int) -> list[np.ndarray]:
@@ -59,15 +56,21 @@ def _tile_jobs(plan: TilePlan, threads: int) -> list[np.ndarray]:
 
 def _run_tiles(kernel: Any, jobs: list[np.ndarray], threads: int, *args: Any) -> None:
     """kernel(tiles, *args) for every tile set in ``jobs``, on up to ``threads`` Python threads."""
-    _map(lambda tiles: kernel(tiles, *args), jobs, threads)
+    parallel_map(lambda tiles: kernel(tiles, *args), jobs, threads)
+
+
+def _plan_args(table: Tensor, plan: TilePlan) -> tuple[Any, ...]:
+    """The kernels' ``plan`` argument: the Gaussian table and the tile plan's arrays and sizes."""
+    return (table.numpy(), plan.pair_gid.numpy(), plan.tile_start.numpy(), plan.tile_count.numpy(), plan.tiles_x,
+            plan.tile_size, plan.width, plan.height)
 
 
 def _kernels() -> Any:
     if not numba_available():
         raise ConfigError("rasterize: backend 'numba' was asked for but numba is not installed")
-    from memgs_ros.core.raster import _numba_kernels
+    from memgs_ros.core.raster import _composite_kernels
 
-    return _numba_kernels
+    return _composite_kernels
 
 
 def _gaussian_table(
@@ -125,22 +128,8 @@ class _CompositeNumbaFn(torch.autograd.Function):
         t_end = torch.ones(h, w, dtype=torch.float64)
         n_used = torch.zeros(h, w, dtype=torch.int32)
         jobs = _tile_jobs(plan, threads)
-        _run_tiles(
-            k.composite_forward,
-            jobs,
-            threads,
-            table.numpy(),
-            plan.pair_gid.numpy(),
-            plan.tile_start.numpy(),
-            plan.tile_count.numpy(),
-            plan.tiles_x,
-            plan.tile_size,
-            w,
-            h,
-            out.numpy(),
-            t_end.numpy(),
-            n_used.numpy(),
-        )
+        _run_tiles(k.composite_forward, jobs, threads, _plan_args(table, plan), out.numpy(), t_end.numpy(),
+                   n_used.numpy())
         bg = background.detach().to(torch.float64)
         color = out[:3] + t_end.unsqueeze(0) * bg.view(3, 1, 1)
         ctx.plan = plan
@@ -174,24 +163,8 @@ class _CompositeNumbaFn(torch.autograd.Function):
         # d/dT_end of (T_end bg . v_C - T_end v_A): what lies behind the last Gaussian.
         behind = (grads[:3] * bg.view(3, 1, 1)).sum(0) - grads[4]  # [H, W]
         v_pair = torch.empty(plan.num_pairs, k.V_COLS, dtype=f64)  # [M, 10]
-        _run_tiles(
-            k.composite_backward,
-            ctx.jobs,
-            ctx.threads,
-            ctx.table.numpy(),
-            plan.pair_gid.numpy(),
-            plan.tile_start.numpy(),
-            plan.tile_count.numpy(),
-            plan.tiles_x,
-            plan.tile_size,
-            w,
-            h,
-            t_end.numpy(),
-            ctx.n_used.numpy(),
-            grads.numpy(),
-            behind.numpy(),
-            v_pair.numpy(),
-        )
+        _run_tiles(k.composite_backward, ctx.jobs, ctx.threads, _plan_args(ctx.table, plan), t_end.numpy(),
+                   ctx.n_used.numpy(), grads.numpy(), behind.numpy(), v_pair.numpy())
         v_gauss = torch.from_numpy(k.reduce_pairs(plan.pair_gid.numpy(), v_pair.numpy(), ctx.n))  # [N, 10]
         v_gauss = v_gauss.to(ctx.dtype)
         v_bg = None
@@ -222,17 +195,8 @@ def composite_numba(
     :func:`cpu_threads`). Memory: 12 B per pixel plus
     80 B per (tile, Gaussian) pair in the backward pass.
     """
-    means2d, conics, opacities, colors, depths = splats
-    for name, t in (("means2d", means2d), ("background", background)):
+    for name, t in (("means2d", splats.means2d), ("background", background)):
         if t.device.type != "cpu":
             raise ValueError(f"composite_numba: {name} must be a CPU tensor, got {t.device}")
-    return _CompositeNumbaFn.apply(
-        means2d.contiguous(),
-        conics.contiguous(),
-        opacities.contiguous(),
-        colors.contiguous(),
-        depths.contiguous(),
-        background,
-        plan,
-        cpu_threads() if threads is None else threads,
-    )
+    return _CompositeNumbaFn.apply(*splats.contiguous(), background, plan,
+                                   cpu_threads() if threads is None else threads)
