@@ -115,7 +115,7 @@ def test_viz_imports_no_rclpy() -> None:
     """The view's library half runs where ROS does not (memgs view on a laptop)."""
     import subprocess
 
-    code = ("import sys, memgs_ros.viz.rerun_log, memgs_ros.orchestration.saved_run, memgs_ros.viz.map_follow, "
+    code = ("import sys, memgs_ros.viz.rerun_log, memgs_ros.orchestration.saved_run, memgs_ros.core.maps.follower, "
             "memgs_ros.cli.view; assert 'rclpy' not in sys.modules, 'rclpy imported'")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
@@ -163,7 +163,7 @@ def test_map_follower_follows_deltas_and_repairs_gaps_from_full_maps() -> None:
     """The bridge's copy of the map: in step from deltas; a lost delta or a late start is repaired
     by a full map, and the deltas that arrived meanwhile are replayed on top of it."""
     from memgs_ros.core.maps.map_delta import DeltaOutbox, decode
-    from memgs_ros.viz.map_follow import MapFollower
+    from memgs_ros.core.maps.follower import MapFollower
 
     out = DeltaOutbox(sh_degree=3, tolerance=0.0, epoch=5)
     maps = [_records(50 + 10 * i, seed=0) for i in range(8)]  # grows by 10 Gaussians a step, same ids kept

@@ -47,7 +47,7 @@ from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats, stats_values
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.viz import RerunTarget
-from memgs_ros.viz.map_follow import MapFollower
+from memgs_ros.core.maps.follower import MapFollower
 
 # The stats plotted by default: map size and training progress, tracking speed, memory.
 STATS_NODES = GRAPH
