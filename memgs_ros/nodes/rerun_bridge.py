@@ -32,22 +32,24 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from rclpy.node import Node
+from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.maps.map_delta import MapMessage, decode
+from memgs_ros.core.maps.follower import MapFollower, RequestPacer
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, decode_rgb
 from memgs_ros.nodes.params import NODE_CONFIGS, RerunBridgeParams
 from memgs_ros.nodes.registry import GRAPH
 from memgs_ros.ros import qos
-from memgs_ros.ros.codecs import pointcloud2_to_structured, pose_to_matrix, stamp_to_ns
+from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats, stats_values
+from memgs_ros.ros.map_messages import decode_map_message
 from memgs_ros.ros.node_main import run_node
+from memgs_ros.ros.service_calls import call_trigger
 from memgs_ros.viz import RerunTarget
-from memgs_ros.core.maps.follower import MapFollower
 
 # The stats plotted by default: map size and training progress, tracking speed, memory.
 STATS_NODES = GRAPH
@@ -90,8 +92,8 @@ class RerunBridgeNode(Node):
         self.keyframe_poses: dict[int, np.ndarray] = {}  # keyframe index -> T_wc [4, 4] as last logged
         self.map = MapFollower()
         self.logged_version: tuple[int, int, int] | None = None  # MapFollower.version of the last map logged
-        self._map_request: Any = None
-        self._map_requested_at = -1e9
+        self.pacer = RequestPacer(_RESYNC_INTERVAL_S)  # full-map requests while out of step
+        self._map_request: Future | None = None
         self._closing = False
 
         self.create_subscription(PoseStamped, "memgs/pose", self.on_pose, qos.reliable(100))
@@ -207,21 +209,18 @@ class RerunBridgeNode(Node):
         if value is not None:
             self.stats.gauges["psnr_db"] = round(value, 2)
 
-    def _decode_map(self, msg: PointCloud2) -> MapMessage | None:
-        try:
-            return decode(pointcloud2_to_structured(msg))
-        except MessageError as err:
-            self.stats.problem("bad_map_message", f"map message ignored: {err}")
-            return None
-
     def on_delta(self, msg: PointCloud2) -> None:
-        m = self._decode_map(msg)
-        if m is not None and self.map.on_delta(m):
+        m = decode_map_message(msg, self.stats)
+        if m is None:
+            return
+        self.map.on_delta(m)
+        if self.map.resyncing:
             self.request_full_map()
 
     def on_full_map(self, msg: PointCloud2) -> None:
-        m = self._decode_map(msg)
-        if m is not None and self.map.on_full_map(m):
+        m = decode_map_message(msg, self.stats)
+        if m is not None and self.map.on_full_map(m) is not None:
+            self.pacer.answered()
             self.log_map()  # rare (on request, the merger's period, the end of a run): show it now
         if self.map.resyncing:
             self.request_full_map()
@@ -240,12 +239,11 @@ class RerunBridgeNode(Node):
     def request_full_map(self) -> None:
         """Ask the merger for its full map, at most every few seconds and one request at a time."""
         pending = self._map_request is not None and not self._map_request.done()
-        now = time.monotonic()
-        if (pending or now - self._map_requested_at < _RESYNC_INTERVAL_S
-                or not self.publish_map_client.service_is_ready()):
+        if (pending or not self.publish_map_client.service_is_ready()
+                or not self.pacer.ask(time.monotonic(), out_of_step=True)):
             return
-        self._map_requested_at = now
-        self._map_request = self.publish_map_client.call_async(Trigger.Request())
+        self._map_request = call_trigger(self.publish_map_client, self.stats, "map_request",
+                                         "the merger did not take a full-map request")
         self.stats.counters["map_requests"] += 1
 
     def on_stats(self, node: str, msg: DiagnosticArray) -> None:
