@@ -46,7 +46,7 @@ from memgs_ros.ros.map_messages import decode_map_message, full_map_message
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.service_calls import call_trigger
 from memgs_ros.ros.view_outputs import ViewOutbox
-from memgs_ros.testing.faults import EveryNth
+from memgs_ros.testing.faults import EveryNth, fault
 
 CONFIGS = NODE_CONFIGS["merger"]
 START_ASK_AFTER_S = 2.0  # a merger that heard no delta this long after its start asks for the map
@@ -61,7 +61,9 @@ class MergerNode(Node):
         self.map = MapFollower(v.max_buffered_deltas)
         self.pacer = RequestPacer(v.resync_interval_s, max_backoff=8, start_after_s=START_ASK_AFTER_S,
                                   started_s=time.monotonic())
-        self.drop_delta = EveryNth(v.fault_drop_every_nth_delta)
+        self.drop_delta = EveryNth(fault("merger.drop_every_nth_delta"))  # tests only: memgs_ros.testing.faults
+        if self.drop_delta.n:
+            self.get_logger().warning(f"test fault: every {self.drop_delta.n}th delta is dropped on arrival")
         self.renderer = ViewRenderer(PinholeCamera(v.render_width, v.render_height, v.render_fx, v.render_fy,
                                                    v.render_cx, v.render_cy), sh_degree=3)
         self.stats = NodeStats(self, "merger")
