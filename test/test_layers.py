@@ -10,7 +10,7 @@ import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent.parent / "memgs_ros"
-TIERS = ("errors", "core", "io", "viz", "ros", "nodes", "orchestration", "evaluation", "plots", "cli")
+TIERS = ("errors", "testing", "core", "io", "viz", "ros", "nodes", "orchestration", "evaluation", "plots", "cli")
 # Tiers that may sit side by side (neither imports the other).
 SAME = {"plots": "evaluation"}
 
