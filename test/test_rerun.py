@@ -116,6 +116,7 @@ def test_viz_imports_no_rclpy() -> None:
     import subprocess
 
     code = ("import sys, memgs_ros.viz.rerun_log, memgs_ros.orchestration.saved_run, memgs_ros.core.maps.follower, "
+            "memgs_ros.viz.live_view, "
             "memgs_ros.cli.view; assert 'rclpy' not in sys.modules, 'rclpy imported'")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
@@ -451,3 +452,49 @@ def test_request_pacer_backs_off_while_unanswered_and_asks_once_at_a_quiet_start
     assert not quiet.ask(10.0, out_of_step=False)
     plain = RequestPacer(2.0)  # no backoff, no start-up request
     assert plain.ask(0.0, True) and not plain.ask(1.9, True) and plain.ask(2.0, True) and plain.ask(4.0, True)
+
+
+def test_live_view_times_its_log_calls_on_the_pose_timeline() -> None:
+    """The bridge's view without ROS or Rerun: data of a pose's stamp is logged at that frame,
+    frusta wait for a camera, keyframes move only past 1 mm, and nothing is logged once closed."""
+    from collections import Counter
+    from types import SimpleNamespace
+
+    from memgs_ros.core.geometry.camera import PinholeCamera
+    from memgs_ros.viz.live_view import LiveView
+
+    calls: list[tuple] = []
+
+    def fake(name: str):  # noqa: ANN202
+        return lambda rec, *args: calls.append((name, *args))
+
+    log = SimpleNamespace(LogTime=lambda frame, stamp=0: (frame, stamp), finish=lambda rec: calls.append(("finish",)),
+                          **{n: fake(n) for n in ("log_camera", "log_trajectory", "log_keyframe", "log_map",
+                                                  "log_scalars")},
+                          log_views=lambda rec, render, frame, t, q: 30.0)
+    counters: Counter[str] = Counter()
+    view = LiveView(log, "rec", counters, frustum_m=0.1, jpeg_quality=80, log_sh=False, stamps_kept=2)
+    T = np.eye(4)
+    view.keyframe(500, T)  # before any camera: logged without a frustum
+    assert calls[-1] == ("log_keyframe", 0, T, (0, 0), None, 0.1)
+    view.keyframe(500, T)  # a repeated copy: nothing
+    cam = PinholeCamera(8, 6, 10.0, 10.0, 3.5, 2.5)
+    view.set_camera(cam)  # the frustum of the keyframe that waited for it
+    assert calls[-1] == ("log_keyframe", 0, T, (0, 0), cam, 0.1)
+    for stamp in (1000, 2000, 3000):
+        view.pose(stamp, T)
+    assert [c[-1] for c in calls if c[0] == "log_camera"] == [cam, None, None]  # the frustum once per camera
+    assert view.views(2000, np.zeros((2, 2, 3)), None) == 30.0
+    assert view.views(1000, np.zeros((2, 2, 3)), None) == 30.0  # forgotten (2 kept): the latest frame's time
+    moved = T.copy()
+    moved[0, 3] = 5e-4
+    view.keyframes_moved([(500, moved), (999, moved)])  # under 1 mm, and an unknown stamp: nothing
+    moved[0, 3] = 2e-3
+    view.keyframes_moved([(500, moved)])
+    assert calls[-1][0] == "log_keyframe" and calls[-1][3] == (2, 3000)
+    assert counters["logged.keyframe"] == 2 and counters["logged.keyframe_moved"] == 1
+    assert counters["logged.views"] == 2 and counters["log_us_total"] >= 0
+    view.close()
+    n = len(calls)
+    view.pose(4000, T)
+    assert calls[-1] == ("finish",) and len(calls) == n

@@ -44,7 +44,7 @@ from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.map_messages import decode_map_message, full_map_message
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.service_calls import call_trigger
+from memgs_ros.ros.service_calls import PacedRequests
 from memgs_ros.ros.view_outputs import ViewOutbox
 from memgs_ros.testing.faults import EveryNth, fault
 
@@ -59,8 +59,6 @@ class MergerNode(Node):
         self.niceness = v.niceness  # applied by run_node to this node's process
         self.map_path, self.world_frame = Path(v.map_path), v.world_frame
         self.map = MapFollower(v.max_buffered_deltas)
-        self.pacer = RequestPacer(v.resync_interval_s, max_backoff=8, start_after_s=START_ASK_AFTER_S,
-                                  started_s=time.monotonic())
         self.drop_delta = EveryNth(fault("merger.drop_every_nth_delta"))  # tests only: memgs_ros.testing.faults
         if self.drop_delta.n:
             self.get_logger().warning(f"test fault: every {self.drop_delta.n}th delta is dropped on arrival")
@@ -77,14 +75,17 @@ class MergerNode(Node):
         self.create_subscription(PointCloud2, "memgs/map/delta", self.on_delta, qos.reliable(50))
         self.create_subscription(PointCloud2, "memgs/mapper/snapshot", self.on_snapshot, qos.latched())
         self.create_subscription(PoseStamped, "memgs/merger/view_pose", self.on_view_request, qos.reliable(5))
-        self.snapshot_client = self.create_client(Trigger, "memgs/mapper/publish_snapshot")
+        pacer = RequestPacer(v.resync_interval_s, max_backoff=8, start_after_s=START_ASK_AFTER_S,
+                             started_s=time.monotonic())
+        self.snapshots = PacedRequests(self, "memgs/mapper/publish_snapshot", self.stats, pacer, "snapshot_requests",
+                                       "snapshot_request", "the mapper did not take a snapshot request")
         self.create_service(Trigger, "memgs/save_map", self.on_save)
         self.create_service(Trigger, "memgs/merger/publish_map", self.on_publish_map)
         if v.save_period_s > 0:
             self.create_timer(v.save_period_s, self._save_periodic)
         if v.publish_period_s > 0:
             self.create_timer(v.publish_period_s, lambda: self.publish_map(force=False))
-        self.create_timer(0.5, self._ask_snapshot)
+        self.create_timer(0.5, self._ask_snapshot)  # while out of step, or once at a start that heard no delta
 
     # ------------------------------------------------------------------ sync
     def on_delta(self, msg: PointCloud2) -> None:
@@ -93,7 +94,7 @@ class MergerNode(Node):
             return
         self.stats.counters["deltas"] += 1
         self.stats.counters["delta_bytes"] += len(msg.data)
-        self.pacer.heard()
+        self.snapshots.pacer.heard()
         if self.drop_delta():
             self.stats.counters["fault_dropped_deltas"] += 1
             return
@@ -106,7 +107,7 @@ class MergerNode(Node):
         self.stats.counters["snapshots"] += 1
         replayed = self.map.on_full_map(m)
         if replayed is not None:
-            self.pacer.answered()
+            self.snapshots.pacer.answered()
             for outcome in replayed:
                 self._report(outcome)
         self._gauges()
@@ -127,12 +128,7 @@ class MergerNode(Node):
             self._ask_snapshot()
 
     def _ask_snapshot(self) -> None:
-        """Ask the mapper for a snapshot (it arrives on the snapshot topic) when the pacer says so:
-        while out of step, or once at a start that heard no delta."""
-        if self.snapshot_client.service_is_ready() and self.pacer.ask(time.monotonic(), self.map.resyncing):
-            call_trigger(self.snapshot_client, self.stats, "snapshot_request",
-                         "the mapper did not take a snapshot request")
-            self.stats.counters["snapshot_requests"] += 1
+        self.snapshots.ask(self.map.resyncing)  # the snapshot arrives on its topic
 
     def _gauges(self) -> None:
         replica = self.map.replica
