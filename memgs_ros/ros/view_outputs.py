@@ -41,6 +41,6 @@ class ViewOutbox:
         except Exception as err:  # noqa: BLE001 - counted and logged; the next request may succeed
             self._stats.post_problem("render_failed", f"view not rendered: {type(err).__name__}: {err}")
             return
+        self._stats.post_count("renders")  # before the images: whoever receives them sees the count
         self._color.publish(numpy_to_image(view.rgb, "rgb8", view.stamp_ns, RENDER_FRAME))
         self._depth.publish(depth_to_image(view.depth_m, "32FC1", view.stamp_ns, RENDER_FRAME))
-        self._stats.post_count("renders")
