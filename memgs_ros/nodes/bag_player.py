@@ -94,7 +94,7 @@ class BagPlayer(Node):
         self._last_progress = 0.0
         self._finish_at: float | None = None
         self._timer = self.create_timer(MAX_TICK_S, self._tick)
-        count = f"{len(frames)} frames, " if hasattr(frames, "__len__") else ""
+        count = f"{len(frames)} frames, " if hasattr(frames, "__len__") else ""  # type: ignore[arg-type]
         self.get_logger().info(f"replaying '{cfg.source or type(frames).__name__}' ({count}"
                                f"{'lockstep' if cfg.lockstep else f'real time x{cfg.rate:g}'}"
                                f"{', looping' if cfg.loop else ''})")

@@ -61,7 +61,7 @@ class MergerNode(Node):
         self.map = MapFollower(v.max_buffered_deltas)
         self.drop_delta = EveryNth(fault("merger.drop_every_nth_delta"))  # tests only: memgs_ros.testing.faults
         if self.drop_delta.n:
-            self.get_logger().warning(f"test fault: every {self.drop_delta.n}th delta is dropped on arrival")
+            self.get_logger().warning(f"test fault: one delta in every {self.drop_delta.n} is dropped on arrival")
         self.renderer = ViewRenderer(PinholeCamera(v.render_width, v.render_height, v.render_fx, v.render_fy,
                                                    v.render_cx, v.render_cy), sh_degree=3)
         self.stats = NodeStats(self, "merger")
