@@ -58,7 +58,7 @@ class ViewRenderer(CommandWorker):
                stamp_ns: int) -> Future[RenderedView]:
         """Render ``records`` (never modified afterwards: the inputs share their memory) seen from
         camera-to-world ``T_wc``; ``version`` names the map so its inputs are built once."""
-        stale = self._drop_queued(lambda _cmd: True)  # only renders are ever queued
+        stale = self._drop_queued(lambda cmd: cmd.name == "render")
         if stale is not None:
             stale.future.cancel()
         return self.submit("render", lambda: self._render(records, version, T_wc, stamp_ns))
