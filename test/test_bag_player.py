@@ -172,7 +172,7 @@ def test_lockstep_without_acks_times_out_and_goes_on(ros_domain_id: int) -> None
     frames = make_frames(3)
     player, rx = play_in_process(frames, ros_domain_id, ack=False, lockstep=True, ack_timeout_s=0.2)
     assert [s for s, _ in rx.color] == [f.stamp_ns for f in frames]
-    assert player.ack_timeouts == 3 and player.frames_published == 3 and rx.done == [True]
+    assert player.acks.timeouts == 3 and player.stats.counters["frames_published"] == 3 and rx.done == [True]
 
 
 class Bystander(Node):
@@ -227,7 +227,7 @@ def test_first_frame_waits_for_the_named_reader_not_any_reader(ros_domain_id: in
                                                      wait_for_readers="receiver", start_delay_s=20.0)
     stamps = [f.stamp_ns for f in frames]
     assert rx is not None and [s for s, _ in rx.color] == stamps
-    assert rx.acked == stamps and player.ack_timeouts == 0
+    assert rx.acked == stamps and player.acks.timeouts == 0
     assert bystander.color == stamps
 
 
@@ -237,7 +237,7 @@ def test_a_named_reader_that_never_comes_delays_the_start_by_start_delay_s_only(
     player, bystander, _ = _play_with_late_receiver(frames, ros_domain_id, None, lockstep=True, ack_timeout_s=0.2,
                                                     wait_for_readers="tracker", start_delay_s=1.5)
     assert time.monotonic() - t0 >= 1.5
-    assert bystander.color == [f.stamp_ns for f in frames] and player.ack_timeouts == 2
+    assert bystander.color == [f.stamp_ns for f in frames] and player.acks.timeouts == 2
 
 
 def test_depth_as_16uc1_millimetres(ros_domain_id: int) -> None:
@@ -307,7 +307,7 @@ def test_preloaded_replay_publishes_the_same_frames_from_memory(ros_domain_id: i
 
 
 def test_preload_refuses_a_source_over_its_budget_and_keeps_a_read_error_in_place() -> None:
-    from memgs_ros.nodes.bag_player import Preloaded
+    from memgs_ros.io.replay import Preloaded
 
     frames = make_frames(4)  # 32x24: 2304 + 3072 bytes a frame, 186 in 1 MB
     with pytest.raises(ConfigError, match=r"preload_mb=1 MB \(186 frames did\)"):

@@ -340,7 +340,7 @@ def test_player_gives_an_unnamed_folder_the_configured_camera(context, tmp_path:
                for k, v in dataclasses.asdict(CameraCalibration.from_camera(TUM_FR3)).items()]
     player = BagPlayer(context=context, parameter_overrides=params)
     try:
-        assert player._source.camera == TUM_FR3.fitted(64, 48)  # type: ignore[attr-defined]
+        assert player.feed.source.camera == TUM_FR3.fitted(64, 48)  # type: ignore[attr-defined]
     finally:
         player.destroy_node()
 

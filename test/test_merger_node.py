@@ -76,23 +76,25 @@ def test_merger_applies_deltas_resyncs_renders_and_saves(tmp_path: Path, ros_dom
     try:
         assert spin_until(lambda: pub_delta.get_subscription_count() > 0 and save.service_is_ready())
         pub_delta.publish(structured_to_pointcloud2(outbox.next_delta(g.to_records()), 0, "map"))
-        assert spin_until(lambda: len(merger.replica) == 300)
+        assert spin_until(lambda: len(merger.map.replica) == 300)
         # Remove 50, then lose that delta: the next one is a gap and forces a resync.
         g.remove(np.arange(len(g)) < 50)
         outbox.next_delta(g.to_records())  # "lost" on the link
         g.add_from_points(np.array([[0.0, 0.0, 1.5]]), np.array([[1.0, 0.0, 0.0]]), keyframe_id=1, iteration=1)
         pub_delta.publish(structured_to_pointcloud2(outbox.next_delta(g.to_records()), 0, "map"))
         # The snapshot is the map delta 3 made: it keeps seq 3 (DeltaOutbox.snapshot).
-        assert spin_until(lambda: requests and merger.replica.seq >= 3 and not merger.resyncing)
-        assert np.array_equal(merger.replica.records.ids, np.sort(g.to_records().ids))
+        assert spin_until(lambda: requests and merger.map.replica.seq >= 3 and not merger.map.resyncing)
+        assert np.array_equal(merger.map.replica.records.ids, np.sort(g.to_records().ids))
         pub_view.publish(matrix_to_pose_stamped(np.eye(4), 123, "map"))
-        assert spin_until(lambda: renders)
+        assert spin_until(lambda: renders)  # rendered on the merger's render thread
         img = image_to_numpy(renders[0])
         assert img.shape == (48, 64, 3) and img.std() > 5.0
+        merger.stats.apply_posted()
+        assert merger.stats.counters["renders"] == 1
         # Its stats say what it holds: the replica's rows and the render inputs, no training state.
         merger._gauges()
         gauges = merger.stats.gauges
-        assert gauges["map_bytes"] == merger.replica.records.nbytes > 0
+        assert gauges["map_bytes"] == merger.map.replica.records.nbytes > 0
         assert 0 < gauges["render_cache_bytes"] <= 2 * gauges["map_bytes"] and gauges["buffered_deltas"] == 0
         future = save.call_async(Trigger.Request())
         assert spin_until(future.done)
@@ -101,6 +103,7 @@ def test_merger_applies_deltas_resyncs_renders_and_saves(tmp_path: Path, ros_dom
         assert not list(tmp_path.glob("*.tmp*"))
     finally:
         ex.shutdown()
+        merger.renderer.close()
         merger.destroy_node()
         peer.destroy_node()
         rclpy.try_shutdown(context=ctx)

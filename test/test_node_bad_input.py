@@ -464,8 +464,9 @@ def test_merger_refuses_malformed_deltas_and_counts_unknown_removals(context, tm
 
     try:
         assert _spin_until(ex, lambda: pub.get_subscription_count() > 0)
-        send(structured_to_pointcloud2(outbox.next_delta(g.to_records()), 0, "map"), lambda: len(merger.replica) == 20)
-        ids = merger.replica.records.ids.copy()
+        send(structured_to_pointcloud2(outbox.next_delta(g.to_records()), 0, "map"),
+             lambda: len(merger.map.replica) == 20)
+        ids = merger.map.replica.records.ids.copy()
         g.remove(np.arange(len(g)) < 5)
         rows = outbox.next_delta(g.to_records())  # seq 2: 5 removals
         good = structured_to_pointcloud2(rows, 0, "map")
@@ -479,17 +480,17 @@ def test_merger_refuses_malformed_deltas_and_counts_unknown_removals(context, tm
         wide = structured_to_pointcloud2(rows, 0, "map")
         wide.point_step -= 4  # a field no longer fits its row
         send(wide, lambda: c["problem.bad_map_message"] == 3)
-        assert np.array_equal(merger.replica.records.ids, ids) and merger.replica.seq == 1
+        assert np.array_equal(merger.map.replica.records.ids, ids) and merger.map.replica.seq == 1
 
-        send(good, lambda: merger.replica.seq == 2)
-        assert len(merger.replica) == 15 and not merger.resyncing
+        send(good, lambda: merger.map.replica.seq == 2)
+        assert len(merger.map.replica) == 15 and not merger.map.resyncing
         # seq 3 removes ids the replica never had (and that the sender's count agrees with).
         ghost = np.zeros(3, message_dtype(0))
         ghost["op"][0], ghost["op"][1:] = 2, 1
         ghost["id"][0] = (3 << 32) | 15
         ghost["id"][1:] = [10**6, 10**6 + 1]
-        send(structured_to_pointcloud2(ghost, 0, "map"), lambda: merger.replica.seq == 3)
-        assert c["problem.unknown_removal"] == 1 and len(merger.replica) == 15 and not merger.resyncing
+        send(structured_to_pointcloud2(ghost, 0, "map"), lambda: merger.map.replica.seq == 3)
+        assert c["problem.unknown_removal"] == 1 and len(merger.map.replica) == 15 and not merger.map.resyncing
         assert merger.stats.gauges["unknown_removals"] == 2
     finally:
         ex.shutdown()

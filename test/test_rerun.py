@@ -115,7 +115,8 @@ def test_viz_imports_no_rclpy() -> None:
     """The view's library half runs where ROS does not (memgs view on a laptop)."""
     import subprocess
 
-    code = ("import sys, memgs_ros.viz.rerun_log, memgs_ros.orchestration.saved_run, memgs_ros.viz.map_follow, "
+    code = ("import sys, memgs_ros.viz.rerun_log, memgs_ros.orchestration.saved_run, memgs_ros.core.maps.follower, "
+            "memgs_ros.viz.live_view, "
             "memgs_ros.cli.view; assert 'rclpy' not in sys.modules, 'rclpy imported'")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
@@ -160,36 +161,71 @@ def test_log_views_pairs_frame_and_render(tmp_path: Path) -> None:
 
 
 def test_map_follower_follows_deltas_and_repairs_gaps_from_full_maps() -> None:
-    """The bridge's copy of the map: in step from deltas; a lost delta or a late start is repaired
-    by a full map, and the deltas that arrived meanwhile are replayed on top of it."""
-    from memgs_ros.core.maps.map_delta import DeltaOutbox, decode
-    from memgs_ros.viz.map_follow import MapFollower
+    """The bridge's and the merger's copy of the map: in step from deltas; a lost delta or a late
+    start is repaired by a full map, and the deltas that arrived meanwhile are replayed on top of it."""
+    from memgs_ros.core.maps.follower import MapFollower
+    from memgs_ros.core.maps.map_delta import ApplyStatus, DeltaOutbox, decode
 
     out = DeltaOutbox(sh_degree=3, tolerance=0.0, epoch=5)
     maps = [_records(50 + 10 * i, seed=0) for i in range(8)]  # grows by 10 Gaussians a step, same ids kept
     deltas = [decode(out.next_delta(m)) for m in maps[:4]]
     f = MapFollower()
     for d in deltas:
-        assert not f.on_delta(d)
+        outcome = f.on_delta(d)
+        assert outcome.status is ApplyStatus.APPLIED and not outcome.lost_step
     assert f.in_step and f.version == (5, 4, 80)
     np.testing.assert_array_equal(f.replica.records.xyz, maps[3].xyz)
 
     lost = decode(out.next_delta(maps[4]))  # seq 5 never arrives
     assert lost.seq == 5
-    assert f.on_delta(decode(out.next_delta(maps[5])))  # seq 6: a gap, asks for a full map
-    assert not f.in_step
+    gap = f.on_delta(decode(out.next_delta(maps[5])))  # seq 6: a gap, asks for a full map
+    assert gap.lost_step and gap.status is ApplyStatus.GAP and f.resyncing and not f.in_step
     full = decode(out.snapshot(maps[5]))  # the merger's map, unchanged since seq 6 so it keeps seq 6,
     assert full.seq == 6                   # published late:
-    assert f.on_delta(decode(out.next_delta(maps[6])))  # seq 7 arrives first and waits
-    assert f.on_full_map(full)
-    assert f.in_step and f.version == (5, 7, 110)
+    held = f.on_delta(decode(out.next_delta(maps[6])))  # seq 7 arrives first and waits
+    assert held.status is None and not held.lost_step and f.buffered == 2
+    replayed = f.on_full_map(full)
+    assert replayed is not None and [(o.seq, o.status) for o in replayed] == [(7, ApplyStatus.APPLIED)]
+    assert f.in_step and f.version == (5, 7, 110) and f.buffered == 0
     np.testing.assert_array_equal(f.replica.records.xyz, maps[6].xyz)
 
     late = MapFollower()  # started mid-run: nothing until a full map
-    assert late.on_delta(decode(out.next_delta(maps[7]))) and not late.in_step
-    assert not late.on_full_map(deltas[0])  # a delta is not a full map
-    assert late.on_full_map(decode(out.snapshot(maps[7])))  # seq 8 again: the map has not changed
+    assert late.on_delta(decode(out.next_delta(maps[7]))).status is ApplyStatus.NEEDS_SNAPSHOT
+    assert not late.in_step
+    assert late.on_full_map(deltas[0]) is None  # a delta is not a full map
+    assert late.on_full_map(decode(out.snapshot(maps[7]))) == ()  # seq 8 again: the map has not changed
     assert late.in_step and late.version == (5, 8, 120)
+
+
+def test_map_follower_replays_past_a_second_gap_and_reports_unknown_removals() -> None:
+    """A gap among the replayed deltas holds the rest back again (none is lost), and a delta
+    removing ids the replica never held says how many."""
+    from memgs_ros.core.maps.follower import MapFollower
+    from memgs_ros.core.maps.map_delta import ApplyStatus, DeltaOutbox, decode, message_dtype
+
+    out = DeltaOutbox(sh_degree=3, tolerance=0.0, epoch=1)
+    maps = [_records(20 + 5 * i, seed=1) for i in range(7)]
+    msgs = [decode(out.next_delta(m)) for m in maps]  # seq 1..7
+    f = MapFollower()
+    f.on_delta(msgs[0])
+    assert f.on_delta(msgs[2]).lost_step  # seq 3: seq 2 lost
+    for m in (msgs[3], msgs[5], msgs[6]):  # seq 4, 6, 7 wait (seq 5 lost too)
+        f.on_delta(m)
+    snapshot = decode(out.snapshot(maps[6]))  # seq 7 (unchanged since): for the second repair
+    older = DeltaOutbox(sh_degree=3, tolerance=0.0, epoch=1)
+    for m in maps[:3]:
+        older.next_delta(m)
+    replayed = f.on_full_map(decode(older.snapshot(maps[2])))  # seq 3
+    assert replayed is not None and [(o.seq, o.status) for o in replayed] == [
+        (4, ApplyStatus.APPLIED), (6, ApplyStatus.GAP), (7, None)]
+    assert f.resyncing and f.buffered == 2 and f.replica.seq == 4
+    assert f.on_full_map(snapshot) == () and f.in_step and f.version == (1, 7, 50)
+
+    ghost = np.zeros(3, message_dtype(0))  # seq 8 removes two ids nobody ever had; 50 remain
+    ghost["op"][0], ghost["op"][1:] = 2, 1
+    ghost["id"][0], ghost["id"][1:], ghost["x"][0] = (8 << 32) | 50, [10**6, 10**6 + 1], 1.0  # epoch 1
+    outcome = f.on_delta(decode(ghost))
+    assert outcome.status is ApplyStatus.APPLIED and outcome.unknown_removals == 2 and f.in_step
 
 
 # --------------------------------------------------------------------------- memgs view
@@ -398,3 +434,67 @@ def test_run_rerun_save_end_to_end(tmp_path: Path, ros_domain_id: int) -> None:
     gaussians = [v[0] for v in _component(rows["/stats/gaussians/mapper"], "Scalars:scalars")]
     assert gaussians and max(gaussians) > 1000
     assert _component(rows["/stats/poses_out/tracker"], "Scalars:scalars")
+
+
+def test_request_pacer_backs_off_while_unanswered_and_asks_once_at_a_quiet_start() -> None:
+    from memgs_ros.core.maps.follower import RequestPacer
+
+    p = RequestPacer(1.0, max_backoff=8, start_after_s=2.0, started_s=100.0)
+    assert not p.ask(101.0, out_of_step=False) and not p.ask(102.0, out_of_step=False)
+    assert p.ask(102.1, out_of_step=False)  # nothing heard 2 s after the start: ask once
+    assert not p.ask(200.0, out_of_step=False)  # only once
+    asked = [t for t in np.arange(300.0, 340.0, 0.5) if p.ask(float(t), out_of_step=True)]
+    assert np.diff(asked).tolist() == [2.0, 4.0, 8.0, 8.0, 8.0, 8.0]  # the first at once, then doubling up to 8x
+    p.answered()
+    assert p.ask(asked[-1] + 8.0, True) and not p.ask(asked[-1] + 9.0, True) and p.ask(asked[-1] + 10.0, True)
+    quiet = RequestPacer(1.0, start_after_s=2.0, started_s=0.0)
+    quiet.heard()  # a delta came: no start-up request
+    assert not quiet.ask(10.0, out_of_step=False)
+    plain = RequestPacer(2.0)  # no backoff, no start-up request
+    assert plain.ask(0.0, True) and not plain.ask(1.9, True) and plain.ask(2.0, True) and plain.ask(4.0, True)
+
+
+def test_live_view_times_its_log_calls_on_the_pose_timeline() -> None:
+    """The bridge's view without ROS or Rerun: data of a pose's stamp is logged at that frame,
+    frusta wait for a camera, keyframes move only past 1 mm, and nothing is logged once closed."""
+    from collections import Counter
+    from types import SimpleNamespace
+
+    from memgs_ros.core.geometry.camera import PinholeCamera
+    from memgs_ros.viz.live_view import LiveView
+
+    calls: list[tuple] = []
+
+    def fake(name: str):  # noqa: ANN202
+        return lambda rec, *args: calls.append((name, *args))
+
+    log = SimpleNamespace(LogTime=lambda frame, stamp=0: (frame, stamp), finish=lambda rec: calls.append(("finish",)),
+                          **{n: fake(n) for n in ("log_camera", "log_trajectory", "log_keyframe", "log_map",
+                                                  "log_scalars")},
+                          log_views=lambda rec, render, frame, t, q: 30.0)
+    counters: Counter[str] = Counter()
+    view = LiveView(log, "rec", counters, frustum_m=0.1, jpeg_quality=80, log_sh=False, stamps_kept=2)
+    T = np.eye(4)
+    view.keyframe(500, T)  # before any camera: logged without a frustum
+    assert calls[-1] == ("log_keyframe", 0, T, (0, 0), None, 0.1)
+    view.keyframe(500, T)  # a repeated copy: nothing
+    cam = PinholeCamera(8, 6, 10.0, 10.0, 3.5, 2.5)
+    view.set_camera(cam)  # the frustum of the keyframe that waited for it
+    assert calls[-1] == ("log_keyframe", 0, T, (0, 0), cam, 0.1)
+    for stamp in (1000, 2000, 3000):
+        view.pose(stamp, T)
+    assert [c[-1] for c in calls if c[0] == "log_camera"] == [cam, None, None]  # the frustum once per camera
+    assert view.views(2000, np.zeros((2, 2, 3)), None) == 30.0
+    assert view.views(1000, np.zeros((2, 2, 3)), None) == 30.0  # forgotten (2 kept): the latest frame's time
+    moved = T.copy()
+    moved[0, 3] = 5e-4
+    view.keyframes_moved([(500, moved), (999, moved)])  # under 1 mm, and an unknown stamp: nothing
+    moved[0, 3] = 2e-3
+    view.keyframes_moved([(500, moved)])
+    assert calls[-1][0] == "log_keyframe" and calls[-1][3] == (2, 3000)
+    assert counters["logged.keyframe"] == 2 and counters["logged.keyframe_moved"] == 1
+    assert counters["logged.views"] == 2 and counters["log_us_total"] >= 0
+    view.close()
+    n = len(calls)
+    view.pose(4000, T)
+    assert calls[-1] == ("finish",) and len(calls) == n

@@ -70,6 +70,7 @@ from memgs_ros.orchestration.run_files import LOGS_DIR, MAP_FILE, PARAMS_FILE, R
 from memgs_ros.orchestration.signals import exit_status, stop_on_signals
 from memgs_ros.ros import qos
 from memgs_ros.ros.diagnostics import stats_values
+from memgs_ros.testing.faults import faults_env
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
 from _common import TUM_ENV, tum_path, write_results  # noqa: E402
@@ -562,8 +563,7 @@ def run_two_hosts(opts: TwoHostsOptions) -> TwoHostsResult:
     (out / LOGS_DIR).mkdir(parents=True, exist_ok=True)
     config = opts.config or guess_config(opts.source)
     overrides = dict(opts.overrides)
-    if opts.drop_every:
-        overrides["merger.fault_drop_every_nth_delta"] = opts.drop_every
+    fault_env = faults_env({"merger.drop_every_nth_delta": opts.drop_every}) if opts.drop_every else {}
     # As memgs run does before any node starts: a misspelt --set or a source that does not open
     # is one line here, not a node failing across the link.
     for warning in check_inputs(opts.source, config, opts.frames, overrides):
@@ -592,7 +592,7 @@ def run_two_hosts(opts: TwoHostsOptions) -> TwoHostsResult:
                 driver = subprocess.Popen(
                     ["ip", "netns", "exec", link.ground, sys.executable, str(Path(__file__).resolve()),
                      "--ground-station", str(spec_path)],
-                    stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+                    stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1", **fault_env),
                     start_new_session=True)
             meter = WireMeter(driver.pid, link.dev[link.ground]).start()
             driver.wait(timeout=opts.timeout_s + 120.0)

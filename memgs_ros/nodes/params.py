@@ -183,7 +183,6 @@ class MergerParams:
     resync_interval_s: float = 1.0  # least time between snapshot requests (doubles, up to 8x, while unanswered)
     max_buffered_deltas: int = 200  # deltas kept while resynchronising
     world_frame: str = "map"  # frame id of the published map
-    fault_drop_every_nth_delta: int = 0  # fault injection for tests: ignore every n-th delta on arrival (0 = off)
     render_width: int = 320  # render width (px) for view requests
     render_height: int = 240  # render height (px) for view requests
     render_fx: float = 258.65  # render focal length x (px)
@@ -195,7 +194,7 @@ class MergerParams:
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "niceness": (0, 19), "save_period_s": (0.0, 1e6), "publish_period_s": (0.0, 1e6),
         "resync_interval_s": (0.0, 3600.0),
-        "max_buffered_deltas": (1, 100000), "fault_drop_every_nth_delta": (0, 10**6),
+        "max_buffered_deltas": (1, 100000),
         "render_width": (1, 8192), "render_height": (1, 8192), "render_fx": (1e-3, 1e6), "render_fy": (1e-3, 1e6),
         "render_cx": (-1e6, 1e6), "render_cy": (-1e6, 1e6),
     }

@@ -3,18 +3,22 @@ shutdown on Ctrl-C or SIGTERM.
 
 A node may define ``on_shutdown()`` (save the map, stop threads); it runs before
 ``destroy_node()`` whether the node ends normally, by signal, or by error. A
-``MemgsError`` at start (a refused parameter, say) is one fatal log line and exit 2.
+``MemgsError`` at start (a refused parameter, say) is one fatal log line and exit 2. A node whose
+work ends (the bag player) hands ``until`` its completion future: the spin ends with it, and its
+result gives the exit status (true: 0, false: 1).
 """
 from __future__ import annotations
 
 import os
 import signal
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from rclpy.task import Future
 
 from memgs_ros.core.runtime.cpu import PARENT_PID_ENV, die_with_parent, lower_priority
 from memgs_ros.errors import MemgsError
@@ -29,19 +33,25 @@ def started_by_runner() -> bool:
     return not parent.isdigit() or die_with_parent(int(parent), signal.SIGTERM)
 
 
-def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None = None) -> int:
-    """Create the node with ``factory`` after rclpy.init and spin it until shutdown. A background
-    node (mapper, sampler, merger) alone in its process yields the cores to the tracker: every
-    thread it has, and every one started later, runs at its ``niceness``."""
-    return run_nodes([factory], name, args, lower_process=True)
+Until = Callable[[Sequence[Any]], Future]  # the nodes -> the future whose completion ends the spin
+
+
+def run_node(factory: Callable[[], Node], name: str, args: Sequence[str] | None = None,
+             until: Until | None = None) -> int:
+    """Create the node with ``factory`` after rclpy.init and spin it until shutdown (or ``until``:
+    module docstring). A background node (mapper, sampler, merger) alone in its process yields the
+    cores to the tracker: every thread it has, and every one started later, runs at its ``niceness``."""
+    return run_nodes([factory], name, args, lower_process=True, until=until)
 
 
 def run_nodes(factories: Sequence[Callable[[], Node]], name: str, args: Sequence[str] | None = None,
-              lower_process: bool = False) -> int:
+              lower_process: bool = False, until: Until | None = None) -> int:
     """Create the nodes (in order) after rclpy.init and spin them on one single-threaded executor
-    until shutdown; each node's ``on_shutdown()`` runs before ``destroy_node()``, in reverse order.
-    ``lower_process``: apply the (one) node's ``niceness`` to the whole process. Nodes sharing a
-    process (composed) lower their own background threads instead."""
+    until shutdown, or until the future ``until(nodes)`` completes (its result: exit 0 when true, 1
+    when false; a stop by signal before it completes is exit 0); each node's ``on_shutdown()`` runs
+    before ``destroy_node()``, in reverse order. ``lower_process``: apply the (one) node's
+    ``niceness`` to the whole process. Nodes sharing a process (composed) lower their own
+    background threads instead."""
     if not started_by_runner():
         return 0
     # rclpy's own handlers (SignalHandlerOptions.ALL) turn SIGINT and SIGTERM into a context
@@ -69,7 +79,7 @@ def run_nodes(factories: Sequence[Callable[[], Node]], name: str, args: Sequence
         for node in nodes:
             executor.add_node(node)
         try:
-            executor.spin()
+            code = _spin(executor, None if until is None else until(nodes))
         except Exception:
             if rclpy.ok():
                 raise
@@ -94,3 +104,12 @@ def run_nodes(factories: Sequence[Callable[[], Node]], name: str, args: Sequence
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def _spin(executor: SingleThreadedExecutor, done: Future | None) -> int:
+    """Spin until shutdown (exit 0) or until ``done`` completes (0 when its result is true, else 1)."""
+    if done is None:
+        executor.spin()
+        return 0
+    executor.spin_until_future_complete(done)
+    return 0 if not done.done() or done.result() else 1

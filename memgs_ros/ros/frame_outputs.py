@@ -1,0 +1,53 @@
+"""The camera topics a replay publishes, one shared header stamp per frame: ``color/image_raw``
+(rgb8), ``depth/image_raw`` (32FC1 metres or 16UC1 scaled units), ``color/camera_info`` and, when
+the source has ground truth, ``groundtruth/pose`` (PoseStamped, camera in world)."""
+from __future__ import annotations
+
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.ros import codecs, qos
+
+__all__ = ["FrameOutbox"]
+
+
+class FrameOutbox:
+    """Publishes frames as camera topics (relative names: they follow the node's namespace)."""
+
+    def __init__(self, node: Node, frame_id: str, world_frame_id: str, depth_encoding: str,
+                 depth_scale: float) -> None:
+        self._node = node
+        self._frame_id, self._world_frame_id = frame_id, world_frame_id
+        self._depth_encoding, self._depth_scale = depth_encoding, depth_scale
+        self.color = node.create_publisher(Image, "color/image_raw", qos.reliable(5))
+        self.depth = node.create_publisher(Image, "depth/image_raw", qos.reliable(5))
+        self.info = node.create_publisher(CameraInfo, "color/camera_info", qos.reliable(5))
+        self.gt = node.create_publisher(PoseStamped, "groundtruth/pose", qos.reliable(10))
+
+    def publish(self, frame: Frame, stamp_ns: int) -> None:
+        fid = self._frame_id
+        self.color.publish(codecs.numpy_to_image(frame.rgb, "rgb8", stamp_ns, fid))
+        if frame.depth_m is not None:
+            self.depth.publish(codecs.depth_to_image(frame.depth_m, self._depth_encoding, stamp_ns, fid,
+                                                     self._depth_scale))
+        self.info.publish(codecs.camera_to_camera_info(frame.camera, stamp_ns, fid))
+        if frame.T_wc_gt is not None:
+            self.gt.publish(codecs.matrix_to_pose_stamped(frame.T_wc_gt, stamp_ns, self._world_frame_id))
+
+    def match_counts(self) -> tuple[int, ...]:
+        """Matched subscriptions of color, depth, camera_info and ground truth, in that order."""
+        return tuple(p.get_subscription_count() for p in (self.color, self.depth, self.info, self.gt))
+
+    def unmatched_readers(self, nodes: tuple[str, ...]) -> list[str]:
+        """What still keeps the first frame from ``nodes``: a node whose color or camera_info reader
+        the graph does not show yet, or a reader the graph shows that is not matched yet."""
+        missing = []
+        for pub in (self.color, self.info) if nodes else ():
+            readers = self._node.get_subscriptions_info_by_topic(pub.topic_name)
+            names = {r.node_name for r in readers}
+            missing += [f"{n}'s reader on '{pub.topic_name}'" for n in nodes if n not in names]
+            if pub.get_subscription_count() < len(readers):
+                missing.append(f"a match for all {len(readers)} readers on '{pub.topic_name}'")
+        return missing
