@@ -51,8 +51,8 @@ STAGES: list[tuple[str, str, str]] = [
     ("keyframe decision", "memgs_ros.core.tracking.frontend", "FeatureTracker._need_keyframe"),
     ("keyframe insertion", "memgs_ros.core.tracking.frontend", "FeatureTracker._insert_keyframe"),
     ("back-end results (poll, follow)", "memgs_ros.core.tracking.frontend", "FeatureTracker._follow"),
-    ("publishing (pose, odometry, state, keyframe)", "memgs_ros.nodes.tracker", "TrackerNode._publish"),
-    ("publishing refined / loop-corrected poses", "memgs_ros.nodes.tracker", "TrackerNode._publish_refined"),
+    ("publishing (pose, odometry, state, keyframe, path)", "memgs_ros.ros.tracker_outputs", "TrackerOutbox.frame"),
+    ("publishing refined / loop-corrected poses", "memgs_ros.ros.tracker_outputs", "KeyframeOutbox.publish_poses"),
 ]
 FLOOR_PARTS = ["image pyramid", "FAST on every level", "descriptor smoothing of every level"]
 REST = "the rest (grey conversion, tracker bookkeeping, stamps, statistics)"
