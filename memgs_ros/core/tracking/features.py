@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.tracking import orb
-from memgs_ros.core.tracking._compiled import match_by_projection_kernel, numba_available
+from memgs_ros.core.tracking._compiled import match_by_projection_kernel, numba_available, unroll_kernel
 from memgs_ros.core.tracking.config import TrackerConfig
 
 DESCRIPTOR_BYTES = 32
@@ -240,6 +240,18 @@ def undistort_points(uv_raw: np.ndarray, camera: PinholeCamera) -> np.ndarray:
 
 def unroll_rolling_shutter(feats: FrameFeatures, K: np.ndarray, omega_c: np.ndarray, readout_s: float,
                            height: int) -> FrameFeatures:
+    """Keypoints moved to where a global shutter at the centre row's time would have seen them
+    (see ``_unroll_rolling_shutter``, the reference): by ``_compiled.unroll_kernel`` when numba is
+    available (one pass over the keypoints instead of some twenty numpy temporaries)."""
+    if len(feats) == 0 or readout_s == 0.0 or not np.any(omega_c):
+        return feats
+    if not numba_available():
+        return _unroll_rolling_shutter(feats, K, omega_c, readout_s, height)
+    return replace(feats, uv=unroll_kernel(feats.uv_raw, feats.uv, K, omega_c, readout_s, height))
+
+
+def _unroll_rolling_shutter(feats: FrameFeatures, K: np.ndarray, omega_c: np.ndarray, readout_s: float,
+                            height: int) -> FrameFeatures:
     """Keypoints moved to where a global shutter at the centre row's time would have seen them.
 
     A rolling shutter exposes row v at ``(v - (height - 1) / 2) / height * readout_s`` after the
