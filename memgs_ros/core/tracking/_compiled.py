@@ -253,48 +253,83 @@ def _residual(x, y, z, obs, has_depth, i, fx, fy, cx, cy, bf):
     return u - obs[i, 0], v - obs[i, 1], r2
 
 
-def _u_row(J, k, a00, a0z, x, y, z):
-    """Row k of [-Jp [p_c]_x, Jp] for a residual whose derivative by p_c is (a00, 0, a0z): u, or
-    the virtual right image's u - bf/z."""
-    J[k, 0] = a0z * y
-    J[k, 1] = a00 * z - a0z * x
-    J[k, 2] = -a00 * y
-    J[k, 3] = a00
-    J[k, 4] = 0.0
-    J[k, 5] = a0z
+def _add_u_row(H, g, wt, rk, j0, j1, j2, j3, j5):
+    """One u-like row (its entry 4 is 0) of the normal equations, weighted ``wt``, residual ``rk``:
+    the generic loop's products without its zero terms, so H and g are bit for bit the same."""
+    w0 = wt * j0
+    w1 = wt * j1
+    w2 = wt * j2
+    w3 = wt * j3
+    w5 = wt * j5
+    g[0] += w0 * rk
+    g[1] += w1 * rk
+    g[2] += w2 * rk
+    g[3] += w3 * rk
+    g[5] += w5 * rk
+    H[0, 0] += w0 * j0
+    H[0, 1] += w0 * j1
+    H[0, 2] += w0 * j2
+    H[0, 3] += w0 * j3
+    H[0, 5] += w0 * j5
+    H[1, 1] += w1 * j1
+    H[1, 2] += w1 * j2
+    H[1, 3] += w1 * j3
+    H[1, 5] += w1 * j5
+    H[2, 2] += w2 * j2
+    H[2, 3] += w2 * j3
+    H[2, 5] += w2 * j5
+    H[3, 3] += w3 * j3
+    H[3, 5] += w3 * j5
+    H[5, 5] += w5 * j5
 
 
-def _accumulate(H, g, J, x, y, z, r0, r1, r2, depth, wt, fx, fy, bf):
+def _add_v_row(H, g, wt, rk, j0, j1, j2, j4, j5):
+    """The v row (its entry 3 is 0), as ``_add_u_row``."""
+    w0 = wt * j0
+    w1 = wt * j1
+    w2 = wt * j2
+    w4 = wt * j4
+    w5 = wt * j5
+    g[0] += w0 * rk
+    g[1] += w1 * rk
+    g[2] += w2 * rk
+    g[4] += w4 * rk
+    g[5] += w5 * rk
+    H[0, 0] += w0 * j0
+    H[0, 1] += w0 * j1
+    H[0, 2] += w0 * j2
+    H[0, 4] += w0 * j4
+    H[0, 5] += w0 * j5
+    H[1, 1] += w1 * j1
+    H[1, 2] += w1 * j2
+    H[1, 4] += w1 * j4
+    H[1, 5] += w1 * j5
+    H[2, 2] += w2 * j2
+    H[2, 4] += w2 * j4
+    H[2, 5] += w2 * j5
+    H[4, 4] += w4 * j4
+    H[4, 5] += w4 * j5
+    H[5, 5] += w5 * j5
+
+
+def _accumulate(H, g, x, y, z, r0, r1, r2, depth, wt, fx, fy, bf):
     """Add one observation's weighted rows of [-Jp [p_c]_x, Jp] (u, v and, with ``depth``,
     u - bf/z) to the upper triangle of H [6, 6] and to g [6]."""
     iz = 1.0 / z
-    # Nonzero entries of Jp = d(u, v, u - bf/z) / d p_c.
+    # Nonzero entries of Jp = d(u, v, u - bf/z) / d p_c; a u-like row is (a02 y, a00 z - a02 x,
+    # -a00 y, a00, 0, a02) with a02 its own (u's, or the virtual right image's a22).
     a00 = fx * iz
     a02 = -fx * x * iz * iz
     a11 = fy * iz
     a12 = -fy * y * iz * iz
-    a22 = a02 + bf * iz * iz
-    _u_row(J, 0, a00, a02, x, y, z)
-    J[1, 0] = -a11 * z + a12 * y
-    J[1, 1] = -a12 * x
-    J[1, 2] = a11 * x
-    J[1, 3] = 0.0
-    J[1, 4] = a11
-    J[1, 5] = a12
-    rows = 2
+    _add_u_row(H, g, wt, r0, a02 * y, a00 * z - a02 * x, -a00 * y, a00, a02)
+    _add_v_row(H, g, wt, r1, -a11 * z + a12 * y, -a12 * x, a11 * x, a11, a12)
     if depth:
-        _u_row(J, 2, a00, a22, x, y, z)
-        rows = 3
-    for k in range(rows):
-        rk = r0 if k == 0 else (r1 if k == 1 else r2)
-        for a in range(6):
-            ja = wt * J[k, a]
-            g[a] += ja * rk
-            for b in range(a, 6):
-                H[a, b] += ja * J[k, b]
+        a22 = a02 + bf * iz * iz
+        _add_u_row(H, g, wt, r2, a22 * y, a00 * z - a22 * x, -a00 * y, a00, a22)
 
 
-def _normal_equations(T, p_w, obs, has_depth, w2, use, robust, fx, fy, cx, cy, bf, d_mono, d_stereo, J):
+def _normal_equations(T, p_w, obs, has_depth, w2, use, robust, fx, fy, cx, cy, bf, d_mono, d_stereo):
     """Gauss-Newton's H [6, 6] (symmetric, 1e-9 on the diagonal) and g [6] at T over the used
     observations, Huber-weighted when ``robust``."""
     H = np.zeros((6, 6))
@@ -312,7 +347,7 @@ def _normal_equations(T, p_w, obs, has_depth, w2, use, robust, fx, fy, cx, cy, b
             e = np.sqrt(chi2)
             if e > delta:
                 wt *= delta / max(e, 1e-12)
-        _accumulate(H, g, J, x, y, z, r0, r1, r2, has_depth[i], wt, fx, fy, bf)
+        _accumulate(H, g, x, y, z, r0, r1, r2, has_depth[i], wt, fx, fy, bf)
     for a in range(6):
         H[a, a] += 1e-9
         for b in range(a):
@@ -344,7 +379,6 @@ def _optimize(T0, p_w, obs, has_depth, w2, fx, fy, cx, cy, bf, th_mono, th_stere
     inlier = np.ones(N, np.bool_)
     d_mono = np.sqrt(th_mono)
     d_stereo = np.sqrt(th_stereo)
-    J = np.zeros((3, 6))
     for rnd in range(rounds):
         use = inlier.copy()
         n_use = 0
@@ -355,7 +389,7 @@ def _optimize(T0, p_w, obs, has_depth, w2, fx, fy, cx, cy, bf, th_mono, th_stere
         robust = rounds == 1 or rnd < rounds - 1
         for _ in range(iterations):
             H, g = _normal_equations(T, p_w, obs, has_depth, w2, use, robust, fx, fy, cx, cy, bf, d_mono,
-                                     d_stereo, J)
+                                     d_stereo)
             dx = -np.linalg.solve(H, g)
             if not np.all(np.isfinite(dx)):
                 break
@@ -490,7 +524,8 @@ if numba_available():
     _left_update = _jit(_left_update)
     _camera_point = _inl(_camera_point)
     _residual = _inl(_residual)
-    _u_row = _inl(_u_row)
+    _add_u_row = _inl(_add_u_row)
+    _add_v_row = _inl(_add_v_row)
     _accumulate = _inl(_accumulate)
     _normal_equations = _jit(_normal_equations)
     _classify = _jit(_classify)
