@@ -6,8 +6,8 @@
 Runs ``bench_live.node_cost`` (the real ``TrackerNode`` frame path, message in to pose out, with
 the tracker parameters of a live run, interleaved frame by frame with OpenCV's ORB extraction of
 1000 features on the same grey image; mapper idle) with a thread-CPU timer around each stage of
-the frame path. A stage's time excludes the stages nested in it (projection matching inside
-local-map tracking counts once, as matching), so the rows add up to the frame path; "the rest" is
+the frame path. A stage's time excludes the stages nested in it (the compiled projection passes
+inside local-map tracking count once, as passes), so the rows add up to the frame path; "the rest" is
 what no stage covers (the grey conversion, the tracker's bookkeeping, stamps, statistics). Means over the frames
 after the first five (the first frames build the map); the ORB unit is the mean ORB time of the
 same frames, and the issue's bound is 2 such units for the whole frame path (median).

@@ -2,8 +2,11 @@
 
 ``LocalMapMatcher``: project the local map's points with a predicted pose, match in a radius,
 robust motion-only optimisation, then again in a tight radius around the optimised pose (with
-PnP RANSAC and a keyframe's matches as fallbacks). It reads the map it is given and keeps only a
-per-frame k-d tree cache. ``MotionModel``: the per-frame motion T_cw(k) T_cw(k-1)^-1 and the
+PnP RANSAC and a keyframe's matches as fallbacks). Where numba is, each pass is one compiled call
+(``_compiled.track_pass_kernel``) on the map's store, read in place, and the visible / found
+statistics another; the numpy path (``_match_and_optimise_reference``) is the reference they are
+tested against (same matches, same pose). It reads the map it is given and keeps only per-frame
+caches of the keypoints' arrays. ``MotionModel``: the per-frame motion T_cw(k) T_cw(k-1)^-1 and the
 angular velocity the rolling-shutter correction needs.
 """
 from __future__ import annotations
