@@ -253,60 +253,39 @@ def _residual(x, y, z, obs, has_depth, i, fx, fy, cx, cy, bf):
     return u - obs[i, 0], v - obs[i, 1], r2
 
 
-def _add_u_row(H, g, wt, rk, j0, j1, j2, j3, j5):
-    """One u-like row (its entry 4 is 0) of the normal equations, weighted ``wt``, residual ``rk``:
-    the generic loop's products without its zero terms, so H and g are bit for bit the same."""
+def _add_row(H, g, wt, rk, j0, j1, j2, j3, j4, j5):
+    """One weighted row (j0..j5, residual ``rk``) of the normal equations into the upper triangle of
+    H [6, 6] and into g [6], unrolled: the generic loop's products in its order, bit for bit."""
     w0 = wt * j0
     w1 = wt * j1
     w2 = wt * j2
     w3 = wt * j3
-    w5 = wt * j5
-    g[0] += w0 * rk
-    g[1] += w1 * rk
-    g[2] += w2 * rk
-    g[3] += w3 * rk
-    g[5] += w5 * rk
-    H[0, 0] += w0 * j0
-    H[0, 1] += w0 * j1
-    H[0, 2] += w0 * j2
-    H[0, 3] += w0 * j3
-    H[0, 5] += w0 * j5
-    H[1, 1] += w1 * j1
-    H[1, 2] += w1 * j2
-    H[1, 3] += w1 * j3
-    H[1, 5] += w1 * j5
-    H[2, 2] += w2 * j2
-    H[2, 3] += w2 * j3
-    H[2, 5] += w2 * j5
-    H[3, 3] += w3 * j3
-    H[3, 5] += w3 * j5
-    H[5, 5] += w5 * j5
-
-
-def _add_v_row(H, g, wt, rk, j0, j1, j2, j4, j5):
-    """The v row (its entry 3 is 0), as ``_add_u_row``."""
-    w0 = wt * j0
-    w1 = wt * j1
-    w2 = wt * j2
     w4 = wt * j4
     w5 = wt * j5
     g[0] += w0 * rk
     g[1] += w1 * rk
     g[2] += w2 * rk
+    g[3] += w3 * rk
     g[4] += w4 * rk
     g[5] += w5 * rk
     H[0, 0] += w0 * j0
     H[0, 1] += w0 * j1
     H[0, 2] += w0 * j2
+    H[0, 3] += w0 * j3
     H[0, 4] += w0 * j4
     H[0, 5] += w0 * j5
     H[1, 1] += w1 * j1
     H[1, 2] += w1 * j2
+    H[1, 3] += w1 * j3
     H[1, 4] += w1 * j4
     H[1, 5] += w1 * j5
     H[2, 2] += w2 * j2
+    H[2, 3] += w2 * j3
     H[2, 4] += w2 * j4
     H[2, 5] += w2 * j5
+    H[3, 3] += w3 * j3
+    H[3, 4] += w3 * j4
+    H[3, 5] += w3 * j5
     H[4, 4] += w4 * j4
     H[4, 5] += w4 * j5
     H[5, 5] += w5 * j5
@@ -322,11 +301,11 @@ def _accumulate(H, g, x, y, z, r0, r1, r2, depth, wt, fx, fy, bf):
     a02 = -fx * x * iz * iz
     a11 = fy * iz
     a12 = -fy * y * iz * iz
-    _add_u_row(H, g, wt, r0, a02 * y, a00 * z - a02 * x, -a00 * y, a00, a02)
-    _add_v_row(H, g, wt, r1, -a11 * z + a12 * y, -a12 * x, a11 * x, a11, a12)
+    _add_row(H, g, wt, r0, a02 * y, a00 * z - a02 * x, -a00 * y, a00, 0.0, a02)
+    _add_row(H, g, wt, r1, -a11 * z + a12 * y, -a12 * x, a11 * x, 0.0, a11, a12)
     if depth:
         a22 = a02 + bf * iz * iz
-        _add_u_row(H, g, wt, r2, a22 * y, a00 * z - a22 * x, -a00 * y, a00, a22)
+        _add_row(H, g, wt, r2, a22 * y, a00 * z - a22 * x, -a00 * y, a00, 0.0, a22)
 
 
 def _normal_equations(T, p_w, obs, has_depth, w2, use, robust, fx, fy, cx, cy, bf, d_mono, d_stereo):
@@ -524,8 +503,7 @@ if numba_available():
     _left_update = _jit(_left_update)
     _camera_point = _inl(_camera_point)
     _residual = _inl(_residual)
-    _add_u_row = _inl(_add_u_row)
-    _add_v_row = _inl(_add_v_row)
+    _add_row = _inl(_add_row)
     _accumulate = _inl(_accumulate)
     _normal_equations = _jit(_normal_equations)
     _classify = _jit(_classify)
