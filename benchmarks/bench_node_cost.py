@@ -6,8 +6,8 @@
 Runs ``node_cost`` (the real ``TrackerNode`` frame path, message in to pose out, with
 the tracker parameters of a live run, interleaved frame by frame with OpenCV's ORB extraction of
 1000 features on the same grey image; mapper idle) with a thread-CPU timer around each stage of
-the frame path. A stage's time excludes the stages nested in it (projection matching inside
-local-map tracking counts once, as matching), so the rows add up to the frame path; "the rest" is
+the frame path. A stage's time excludes the stages nested in it (the compiled projection passes
+inside local-map tracking count once, as passes), so the rows add up to the frame path; "the rest" is
 what no stage covers (the grey conversion, the tracker's bookkeeping, stamps, statistics). Means over the frames
 after the first five (the first frames build the map); the ORB unit is the mean ORB time of the
 same frames, and the issue's bound is 2 such units for the whole frame path (median).
@@ -45,17 +45,21 @@ STAGES: list[tuple[str, str, str]] = [
     ("decode (messages to a Frame)", "memgs_ros.nodes.tracker", "TrackerNode._frame"),
     ("feature extraction (grid ORB)", "memgs_ros.core.tracking.features", "OrbExtractor.extract"),
     ("rolling-shutter correction", "memgs_ros.core.tracking.frontend", "unroll_rolling_shutter"),
-    ("projection matching", "memgs_ros.core.tracking.pose_tracking", "match_by_projection"),
-    ("pose optimisation", "memgs_ros.core.tracking.pose_tracking", "LocalMapMatcher.optimise"),
-    ("local-map tracking, the rest (projection, point arrays)", "memgs_ros.core.tracking.pose_tracking",
+    ("projection passes (compiled: project, match, pose)", "memgs_ros.core.tracking.pose_tracking",
+     "LocalMapMatcher._match_and_optimise"),
+    ("projection matching (reference path)", "memgs_ros.core.tracking.pose_tracking", "match_by_projection"),
+    ("pose optimisation (rolling-shutter re-optimisation)", "memgs_ros.core.tracking.pose_tracking",
+     "LocalMapMatcher.optimise"),
+    ("local-map tracking, the rest (local points, fallbacks)", "memgs_ros.core.tracking.pose_tracking",
      "LocalMapMatcher.track"),
     ("visible / found counts", "memgs_ros.core.tracking.pose_tracking", "LocalMapMatcher.count"),
     ("local keyframes update", "memgs_ros.core.tracking.frontend", "FeatureTracker._update_local_keyframes"),
     ("keyframe decision", "memgs_ros.core.tracking.frontend", "FeatureTracker._need_keyframe"),
     ("keyframe insertion", "memgs_ros.core.tracking.frontend", "FeatureTracker._insert_keyframe"),
     ("back-end results (poll, follow)", "memgs_ros.core.tracking.frontend", "FeatureTracker._follow"),
-    ("publishing (pose, odometry, state, keyframe)", "memgs_ros.nodes.tracker", "TrackerNode._publish"),
-    ("publishing refined / loop-corrected poses", "memgs_ros.nodes.tracker", "TrackerNode._publish_refined"),
+    ("back-end results (poll, follow)", "memgs_ros.core.tracking.corrections", "BackendLink.poll"),
+    ("publishing (pose, odometry, state, keyframe, path)", "memgs_ros.ros.tracker_outputs", "TrackerOutbox.frame"),
+    ("publishing refined / loop-corrected poses", "memgs_ros.ros.tracker_outputs", "KeyframeOutbox.publish_poses"),
 ]
 FLOOR_PARTS = ["image pyramid", "FAST on every level", "descriptor smoothing of every level"]
 REST = "the rest (grey conversion, tracker bookkeeping, stamps, statistics)"

@@ -157,13 +157,8 @@ def optimize_pose(T_cw: np.ndarray, p_w: np.ndarray, uv: np.ndarray, depth_m: np
 def _optimize_pose(T_cw: np.ndarray, p_w: np.ndarray, uv: np.ndarray, depth_m: np.ndarray,
                    inv_sigma: np.ndarray, K: np.ndarray, bf: float, chi2_scale: float = 1.0,
                    rounds: int = 4, iterations: int = 6) -> tuple[np.ndarray, np.ndarray]:
-    """Plain twin of ``optimize_pose`` (numpy): motion-only robust pose refinement.
-
-    T_cw: [4, 4] initial pose; p_w: [N, 3] map points; uv: [N, 2] undistorted observations;
-    depth_m: [N] (NaN where none); inv_sigma: [N] 1 / scale^octave.
-    ``chi2_scale`` multiplies the chi-square inlier bounds (1.0 = 95 %).
-    Returns (T_cw [4, 4], inlier [N] bool).
-    """
+    """Plain twin of ``optimize_pose`` (numpy), with the same arguments and result; the reference
+    the kernel is checked against."""
     n = len(p_w)
     inlier = np.ones(n, dtype=bool)
     if n < 4:
@@ -255,7 +250,7 @@ def _local_bundle_adjustment_scipy(prob: BAProblem, K: np.ndarray, bf: float, hu
     Slow (LSMR on the full system: seconds for ~10k observations), kept to check the fast
     Schur-complement solver against. Huber is applied per residual component here.
     """
-    C, P, n_obs = len(prob.T_cw), len(prob.points_w), len(prob.obs_cam)
+    C, P = len(prob.T_cw), len(prob.points_w)
     free = np.flatnonzero(~prob.fixed)
     pose_col = np.full(C, -1, dtype=np.int64)
     pose_col[free] = np.arange(len(free)) * 6
@@ -286,32 +281,13 @@ def _local_bundle_adjustment_scipy(prob: BAProblem, K: np.ndarray, bf: float, hu
         p_c, _ = camera_points(x)
         return (_residuals(p_c, obs, has_depth, K, bf) * s[:, None]).ravel()
 
-    # Sparsity pattern: each observation's 3 rows touch its camera's 6 and its point's 3 columns.
-    rows_base = (np.arange(n_obs) * 3)[:, None] + np.arange(3)[None, :]  # [O, 3]
-    cam_free = pose_col[cam] >= 0
-
     def jac(x: np.ndarray) -> sp.csr_matrix:
         p_c, R = camera_points(x)
         Jp = _projection_jacobian(p_c, fx, fy, bf)
         Jp[~has_depth, 2, :] = 0.0
         Jp *= s[:, None, None]
         J_pose = np.concatenate([-Jp @ _skew(p_c), Jp], axis=2)  # [O, 3, 6]
-        J_pt = Jp @ R[cam]  # [O, 3, 3]
-        r_pt = np.repeat(rows_base[:, :, None], 3, axis=2)
-        c_pt = n_pose + (pt * 3)[:, None, None] + np.arange(3)[None, None, :]
-        c_pt = np.broadcast_to(c_pt, (n_obs, 3, 3))
-        rows = [r_pt.ravel()]
-        cols = [c_pt.ravel()]
-        vals = [J_pt.ravel()]
-        if cam_free.any():
-            r_po = np.repeat(rows_base[cam_free][:, :, None], 6, axis=2)
-            c_po = pose_col[cam[cam_free]][:, None, None] + np.arange(6)[None, None, :]
-            c_po = np.broadcast_to(c_po, r_po.shape)
-            rows.append(r_po.ravel())
-            cols.append(c_po.ravel())
-            vals.append(J_pose[cam_free].ravel())
-        return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                             shape=(3 * n_obs, n_pose + 3 * P))
+        return _sparse_jacobian(J_pose, Jp @ R[cam], cam, pt, pose_col, n_pose, P)
 
     x0 = np.concatenate([np.zeros(n_pose), prob.points_w.ravel()])
     res = least_squares(fun, x0, jac=jac, method="trf", loss="huber", f_scale=huber_px,
@@ -329,6 +305,26 @@ def _local_bundle_adjustment_scipy(prob: BAProblem, K: np.ndarray, bf: float, hu
     inl = front & (chi2 < np.where(has_depth, CHI2_STEREO, CHI2_MONO))
     cost0 = float(_huber_cost(fun(x0), huber_px))
     return BAResult(T, pts, inl, cost0, float(_huber_cost(res.fun, huber_px)), int(res.nfev))
+
+
+def _sparse_jacobian(J_pose: np.ndarray, J_pt: np.ndarray, cam: np.ndarray, pt: np.ndarray, pose_col: np.ndarray,
+                     n_pose: int, n_points: int) -> sp.csr_matrix:
+    """The BA Jacobian [3 O, n_pose + 3 P] from each observation's pose block J_pose [O, 3, 6] (its
+    camera's 6 columns from ``pose_col``, -1: fixed) and point block J_pt [O, 3, 3]."""
+    n_obs = len(cam)
+    rows_base = (np.arange(n_obs) * 3)[:, None] + np.arange(3)[None, :]  # [O, 3]
+    cam_free = pose_col[cam] >= 0
+    r_pt = np.repeat(rows_base[:, :, None], 3, axis=2)
+    c_pt = np.broadcast_to(n_pose + (pt * 3)[:, None, None] + np.arange(3)[None, None, :], (n_obs, 3, 3))
+    rows, cols, vals = [r_pt.ravel()], [c_pt.ravel()], [J_pt.ravel()]
+    if cam_free.any():
+        r_po = np.repeat(rows_base[cam_free][:, :, None], 6, axis=2)
+        c_po = np.broadcast_to(pose_col[cam[cam_free]][:, None, None] + np.arange(6)[None, None, :], r_po.shape)
+        rows.append(r_po.ravel())
+        cols.append(c_po.ravel())
+        vals.append(J_pose[cam_free].ravel())
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(3 * n_obs, n_pose + 3 * n_points))
 
 
 def _huber_cost(r: np.ndarray, delta: float) -> float:

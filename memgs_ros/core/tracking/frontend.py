@@ -42,7 +42,7 @@ from memgs_ros.core.tracking.place_recognition import LoopStats
 from memgs_ros.core.tracking.pose_tracking import LocalMapMatcher, MotionModel, TrackOutcome, rotation_angle_deg
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
 from memgs_ros.core.tracking.relocalisation import relocalise
-from memgs_ros.core.tracking.vocabulary import Vocabulary, default_vocabulary
+from memgs_ros.core.tracking.vocabulary import KeyframeDatabase, Vocabulary, default_vocabulary
 from memgs_ros.errors import DataError
 
 logger = logging.getLogger(__name__)
@@ -50,6 +50,39 @@ logger.addHandler(logging.NullHandler())
 
 _WAIT_KINDS_BA = frozenset({"local_ba"})
 _WAIT_KINDS_ALL = frozenset({"local_ba", "place", "global_ba"})
+
+
+def pose_is_plausible(T_cw: np.ndarray, T_pred: np.ndarray, cfg: TrackerConfig, scale_unit: float) -> bool:
+    """Whether the change from the constant-velocity prediction T_pred [4, 4] is within the
+    configured jumps (``scale_unit``: metres per map unit): a wild pose is never emitted."""
+    d = T_cw @ invert_pose(T_pred)
+    c_new = -T_cw[:3, :3].T @ T_cw[:3, 3]
+    c_pred = -T_pred[:3, :3].T @ T_pred[:3, 3]
+    return bool(np.linalg.norm(c_new - c_pred) <= cfg.max_translation_jump_m * scale_unit
+                and rotation_angle_deg(d[:3, :3]) <= cfg.max_rotation_jump_deg)
+
+
+def relocalisation_candidates(vocabulary: Vocabulary | None, db: KeyframeDatabase, smap: SparseMap,
+                              feats: FrameFeatures, max_keyframes: int) -> list[int] | None:
+    """Keyframes to try, best BoW score first, plus the newest ones not indexed yet; None
+    without a vocabulary (relocalise then spreads its candidates over the map)."""
+    if vocabulary is None or len(feats) == 0:
+        return None
+    bow = vocabulary.transform(feats.desc)
+    hits = [k for k, _ in db.query(bow) if k in smap.keyframes]
+    unindexed = [k for k in sorted(smap.keyframes, reverse=True) if k not in db][:5]
+    return list(dict.fromkeys(unindexed + hits[:max_keyframes]))
+
+
+def keyframe_info(smap: SparseMap, kf: SparseKeyframe) -> KeyframeInfo:
+    """What the mapper gets of a keyframe: its pose, keypoints and the depth of their map points."""
+    active = kf.point_ids >= 0
+    depth = np.full(len(kf.point_ids), np.nan, dtype=np.float32)
+    if active.any():
+        p_w, _, _ = smap.point_arrays(kf.point_ids[active])
+        depth[active] = (p_w @ kf.T_cw[2, :3] + kf.T_cw[2, 3]).astype(np.float32)
+    return KeyframeInfo(kf.keyframe_id, kf.stamp_ns, invert_pose(kf.T_cw),
+                        kf.feats.uv.astype(np.float32), depth, active)
 
 
 class FeatureTracker(Tracker):
@@ -272,84 +305,22 @@ class FeatureTracker(Tracker):
             self.matcher.count(self.map, self._local_kfs, outcome)
         return outcome
 
-    def _pose_is_plausible(self, T_cw: np.ndarray, T_pred: np.ndarray) -> bool:
-        """Gate the change against the constant-velocity prediction (never emit a wild pose)."""
-        d = T_cw @ invert_pose(T_pred)
-        c_new = -T_cw[:3, :3].T @ T_cw[:3, 3]
-        c_pred = -T_pred[:3, :3].T @ T_pred[:3, 3]
-        return bool(np.linalg.norm(c_new - c_pred) <= self.cfg.max_translation_jump_m * self._scale_unit()
-                    and rotation_angle_deg(d[:3, :3]) <= self.cfg.max_rotation_jump_deg)
-
     def _track_frame(self, frame: Frame, feats: FrameFeatures
                      ) -> tuple[np.ndarray | None, KeyframeInfo | None, int, int]:
         cfg, motion = self.cfg, self.motion
         assert self._T_cw_last is not None
         dt_s = motion.frame_dt_s(frame.stamp_ns)
         T_pred = orthonormalized(motion.motion_over(dt_s) @ self._T_cw_last)
-        rolling = cfg.rolling_shutter_readout_s > 0.0
         raw = feats
-        if rolling:  # first guess: the angular velocity of the previous frame
+        if cfg.rolling_shutter_readout_s > 0.0:  # first guess: the angular velocity of the previous frame
             feats = self._unrolled(raw, motion.angular_velocity(motion.velocity, motion.dt_s))
-        outcome = None
-        predicting = self.state == TrackingState.OK or (
-            self.state == TrackingState.RECENTLY_LOST and self._lost_frames <= cfg.max_recently_lost_frames)
-        if predicting and (motion.known or not self.uses_depth):
-            outcome = self._track_local_map(feats, T_pred, allow_fallback=True)
-        elif predicting:
-            # No motion model yet (the frame after a map start or relocalisation): the
-            # zero-motion guess can sit a few degrees off in a fast turn, where rotation and
-            # sideways translation explain the same matches. Also track from the pose the
-            # keyframe's matches give, and keep the one with more inliers. RGB-D only: right
-            # after a two-view start the monocular map is too thin to arbitrate (measured:
-            # Sim(3) ATE 1.4 -> 17 cm on the synthetic mono case).
-            outcome = self._track_local_map(feats, T_pred, allow_fallback=True, count=False)
-            T_kf = self.matcher.pose_from_keyframe(self.map, feats, self._last_kf_id)
-            if T_kf is not None and self._pose_is_plausible(T_kf, T_pred):
-                alt = self._track_local_map(feats, T_kf, allow_fallback=False, count=False)
-                if alt is not None and (outcome is None or len(alt.point_ids) > len(outcome.point_ids)):
-                    outcome = alt
-            if outcome is not None:
-                self.matcher.count(self.map, self._local_kfs, outcome)
-        if predicting and outcome is not None and not self._pose_is_plausible(outcome.T_cw, T_pred):
-            logger.debug("frame %d: pose jump rejected", frame.stamp_ns)
-            outcome = None
+        outcome = self._track_predicted(feats, T_pred, frame.stamp_ns)
         relocalised = False
         if outcome is None and self.state != TrackingState.OK:
             outcome = self._relocalise(feats)
             relocalised = outcome is not None
         if outcome is not None:
-            keep_velocity = self.state == TrackingState.OK or not relocalised
-            if rolling and keep_velocity:
-                feats, outcome = self._refine_rolling_shutter(raw, outcome, dt_s)
-            T = outcome.T_cw
-            if keep_velocity:
-                motion.update(T, self._T_cw_last, dt_s)
-            else:
-                motion.reset()
-            self.state = TrackingState.OK
-            self._T_cw_last = T
-            self._last_good_T_cw = T
-            self._lost_frames = 0
-            self._frames_since_kf += 1
-            T = self._commit_backend(wait=False)  # what arrived while this frame was tracked
-            self._update_local_keyframes(outcome.point_ids)
-            kf = None
-            if self._need_keyframe(T, feats, outcome):
-                busy = not self.keyframe_waits_for_ba and self._link.in_flight(_WAIT_KINDS_BA)
-                if busy and self._keyframe_deferrals < cfg.keyframe_max_deferred_frames:
-                    # Live: the frame does not wait for the local BA in flight; the keyframe is
-                    # due again at the next frame, by when the BA has usually landed.
-                    self.keyframes_deferred += 1
-                    self._keyframe_deferrals += 1
-                else:
-                    # Past keyframe_max_deferred_frames it goes in without that BA's result
-                    # (unbounded, back to back, keyframes went in 6-20 frames late and the loop
-                    # benchmark's ATE ratio with / without loop closure was 0.48-0.68, not ~0.33).
-                    T = self._commit_backend(wait=not busy)
-                    kf = self._insert_keyframe(frame, feats, T, outcome)
-            else:
-                self._keyframe_deferrals = 0  # no longer due: a later keyframe gets its own deferrals
-            return T, kf, outcome.n_matches, len(outcome.point_ids)
+            return self._tracked(frame, raw, feats, outcome, dt_s, relocalised)
         # Failure: coast on the velocity model for a few frames, then report no pose.
         self._lost_frames += 1
         if self._lost_frames <= cfg.max_recently_lost_frames and self.state != TrackingState.LOST:
@@ -363,20 +334,79 @@ class FeatureTracker(Tracker):
                 return T_new, self._last_kf_info, 0, 0
         return None, None, 0, 0
 
-    def _relocalisation_candidates(self, feats: FrameFeatures) -> list[int] | None:
-        """Keyframes to try, best BoW score first, plus the newest ones not indexed yet; None
-        without a vocabulary (relocalise then spreads its candidates over the map)."""
-        if self.vocabulary is None or len(feats) == 0:
+    def _track_predicted(self, feats: FrameFeatures, T_pred: np.ndarray, stamp_ns: int) -> TrackOutcome | None:
+        """The local map tracked from the prediction while tracking (or recently lost), None when
+        that fails or its pose jumps too far from the prediction."""
+        cfg = self.cfg
+        predicting = self.state == TrackingState.OK or (
+            self.state == TrackingState.RECENTLY_LOST and self._lost_frames <= cfg.max_recently_lost_frames)
+        if not predicting:
             return None
-        bow = self.vocabulary.transform(feats.desc)
-        db = self._link.keyframe_db
-        hits = [k for k, _ in db.query(bow) if k in self.map.keyframes]
-        unindexed = [k for k in sorted(self.map.keyframes, reverse=True) if k not in db][:5]
-        return list(dict.fromkeys(unindexed + hits[: self.cfg.reloc_max_keyframes]))
+        if self.motion.known or not self.uses_depth:
+            outcome = self._track_local_map(feats, T_pred, allow_fallback=True)
+        else:
+            # No motion model yet (the frame after a map start or relocalisation): the
+            # zero-motion guess can sit a few degrees off in a fast turn, where rotation and
+            # sideways translation explain the same matches. Also track from the pose the
+            # keyframe's matches give, and keep the one with more inliers. RGB-D only: right
+            # after a two-view start the monocular map is too thin to arbitrate (measured:
+            # Sim(3) ATE 1.4 -> 17 cm on the synthetic mono case).
+            outcome = self._track_local_map(feats, T_pred, allow_fallback=True, count=False)
+            T_kf = self.matcher.pose_from_keyframe(self.map, feats, self._last_kf_id)
+            if T_kf is not None and pose_is_plausible(T_kf, T_pred, cfg, self._scale_unit()):
+                alt = self._track_local_map(feats, T_kf, allow_fallback=False, count=False)
+                if alt is not None and (outcome is None or len(alt.point_ids) > len(outcome.point_ids)):
+                    outcome = alt
+            if outcome is not None:
+                self.matcher.count(self.map, self._local_kfs, outcome)
+        if outcome is not None and not pose_is_plausible(outcome.T_cw, T_pred, cfg, self._scale_unit()):
+            logger.debug("frame %d: pose jump rejected", stamp_ns)
+            return None
+        return outcome
+
+    def _tracked(self, frame: Frame, raw: FrameFeatures, feats: FrameFeatures, outcome: TrackOutcome,
+                 dt_s: float, relocalised: bool) -> tuple[np.ndarray | None, KeyframeInfo | None, int, int]:
+        """A tracked frame: motion model and state, then the keyframe decision (``raw``: the
+        features before any rolling-shutter correction)."""
+        cfg, motion = self.cfg, self.motion
+        assert self._T_cw_last is not None
+        keep_velocity = self.state == TrackingState.OK or not relocalised
+        if cfg.rolling_shutter_readout_s > 0.0 and keep_velocity:
+            feats, outcome = self._refine_rolling_shutter(raw, outcome, dt_s)
+        T = outcome.T_cw
+        if keep_velocity:
+            motion.update(T, self._T_cw_last, dt_s)
+        else:
+            motion.reset()
+        self.state = TrackingState.OK
+        self._T_cw_last = T
+        self._last_good_T_cw = T
+        self._lost_frames = 0
+        self._frames_since_kf += 1
+        T = self._commit_backend(wait=False)  # what arrived while this frame was tracked
+        self._update_local_keyframes(outcome.point_ids)
+        kf = None
+        if self._need_keyframe(T, feats, outcome):
+            busy = not self.keyframe_waits_for_ba and self._link.in_flight(_WAIT_KINDS_BA)
+            if busy and self._keyframe_deferrals < cfg.keyframe_max_deferred_frames:
+                # Live: the frame does not wait for the local BA in flight; the keyframe is
+                # due again at the next frame, by when the BA has usually landed.
+                self.keyframes_deferred += 1
+                self._keyframe_deferrals += 1
+            else:
+                # Past keyframe_max_deferred_frames it goes in without that BA's result
+                # (unbounded, back to back, keyframes went in 6-20 frames late and the loop
+                # benchmark's ATE ratio with / without loop closure was 0.48-0.68, not ~0.33).
+                T = self._commit_backend(wait=not busy)
+                kf = self._insert_keyframe(frame, feats, T, outcome)
+        else:
+            self._keyframe_deferrals = 0  # no longer due: a later keyframe gets its own deferrals
+        return T, kf, outcome.n_matches, len(outcome.point_ids)
 
     def _relocalise(self, feats: FrameFeatures) -> TrackOutcome | None:
-        found = relocalise(self.map, feats, self.K, self.bf, self.cfg, self.inv_sigma_levels,
-                           candidates=self._relocalisation_candidates(feats))
+        candidates = relocalisation_candidates(self.vocabulary, self._link.keyframe_db, self.map, feats,
+                                               self.cfg.reloc_max_keyframes)
+        found = relocalise(self.map, feats, self.K, self.bf, self.cfg, self.inv_sigma_levels, candidates=candidates)
         if found is None:
             return None
         T, _ = found
@@ -449,18 +479,10 @@ class FeatureTracker(Tracker):
         if kf.keyframe_id not in self._local_kfs:
             self._local_kfs.append(kf.keyframe_id)
         self._follow(self._link.keyframe_added(self.map, kf, self.segment_id))
-        info = self._keyframe_info(kf)  # inline (lockstep) back-end: the refined pose already
+        info = keyframe_info(self.map, kf)  # inline (lockstep) back-end: the refined pose already
         self._last_kf_info = info
         return info
 
-    def _keyframe_info(self, kf: SparseKeyframe) -> KeyframeInfo:
-        active = kf.point_ids >= 0
-        depth = np.full(len(kf.point_ids), np.nan, dtype=np.float32)
-        if active.any():
-            p_w, _, _ = self.map.point_arrays(kf.point_ids[active])
-            depth[active] = (p_w @ kf.T_cw[2, :3] + kf.T_cw[2, 3]).astype(np.float32)
-        return KeyframeInfo(kf.keyframe_id, kf.stamp_ns, invert_pose(kf.T_cw),
-                            kf.feats.uv.astype(np.float32), depth, active)
 
-
-__all__ = ["FeatureTracker", "LoopStats", "rotation_angle_deg"]
+__all__ = ["FeatureTracker", "LoopStats", "keyframe_info", "pose_is_plausible", "relocalisation_candidates",
+           "rotation_angle_deg"]

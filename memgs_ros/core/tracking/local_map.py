@@ -19,6 +19,7 @@ from itertools import chain
 import numpy as np
 
 from memgs_ros.core.geometry.poses import invert_pose, nearest_pose_distance
+from memgs_ros.core.tracking._compiled import View, count_seen_kernel
 from memgs_ros.core.tracking.features import FrameFeatures
 from memgs_ros.core.tracking.map_snapshot import MapSnapshot
 
@@ -149,6 +150,18 @@ class SparseMap:
         """(pos [K, 3], desc [K, 32], octave [K]) copies for point ids [K]."""
         p = self._pts
         return p.pos[ids].copy(), p.desc[ids].copy(), p.octave[ids].copy()
+
+    def store(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The point store's (pos [N, 3], desc [N, 32], octave [N]) themselves, not copies, for the
+        front-end's kernels to read in place (index = point id; rows past ``n_points`` unused).
+        Valid until the next change to the map."""
+        p = self._pts
+        return p.pos, p.desc, p.octave
+
+    def count_seen(self, ids: np.ndarray, T_cw: np.ndarray, view: View, found: np.ndarray) -> None:
+        """Compiled ``count_visible`` of the points ``ids`` in ``view`` at T_cw, and ``count_found``
+        of ``found``, in one call."""
+        count_seen_kernel(self._pts.pos, ids, T_cw, view, found, self._pts.n_visible, self._pts.n_found)
 
     def n_observations(self, ids: np.ndarray) -> np.ndarray:
         """[K] number of keyframes observing each point id (0 for bad points)."""

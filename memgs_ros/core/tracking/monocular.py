@@ -13,7 +13,7 @@ from memgs_ros.core.tracking.ba_problem import build_problem
 from memgs_ros.core.tracking.bundle_adjustment import CHI2_MONO, local_bundle_adjustment
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackingState
 from memgs_ros.core.tracking.features import FrameFeatures, match_by_projection, match_descriptors
-from memgs_ros.core.tracking.frontend import FeatureTracker
+from memgs_ros.core.tracking.frontend import FeatureTracker, keyframe_info
 from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
 
 _MAX_INIT_AGE_FRAMES = 30  # restart from a new reference frame when initialisation takes longer
@@ -166,7 +166,7 @@ class MonocularTracker(FeatureTracker):
         self._init_ref = None
         self._last_kf_id = kf1.keyframe_id
         self._frames_since_kf = 0
-        info = self._keyframe_info(kf1)
+        info = keyframe_info(self.map, kf1)
         self._last_kf_info = info
         return info
 

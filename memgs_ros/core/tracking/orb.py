@@ -126,13 +126,25 @@ def smooth(level: np.ndarray) -> np.ndarray:
     return cv2.sepFilter2D(level, -1, _SMOOTH_KERNEL, _SMOOTH_KERNEL, borderType=cv2.BORDER_REFLECT_101)
 
 
+_REACH: dict[int, tuple[np.ndarray, int]] = {}
+
+
+def _reach(tests: np.ndarray) -> int:
+    """The farthest test pixel from the keypoint, any rotation, px (per pattern array, computed once:
+    the extractor describes eight levels a frame with the same one)."""
+    hit = _REACH.get(id(tests))
+    if hit is None or hit[0] is not tests:
+        hit = _REACH[id(tests)] = (tests, int(np.ceil(np.hypot(tests[0::2], tests[1::2]).max())))
+    return hit[1]
+
+
 def describe(smoothed: np.ndarray, pix: np.ndarray, angle_deg: np.ndarray, tests: np.ndarray) -> np.ndarray:
     """ORB descriptors [K, 32] uint8 of keypoints at pixels ``pix`` [K, 2] int64 (x, y), oriented
     ``angle_deg`` [K] (OpenCV's keypoint angles), on the level ``smooth`` made [H, W] uint8.
     ValueError when a keypoint is too near the border for its rotated tests (ORB keeps its
     keypoints 19 px inside, beyond the farthest test's 18.4 px)."""
     h, w = smoothed.shape
-    reach = int(np.ceil(np.hypot(tests[0::2], tests[1::2]).max()))  # the farthest test pixel, any rotation
+    reach = _reach(tests)
     if len(pix) and (pix.min() < reach or pix[:, 0].max() >= w - reach or pix[:, 1].max() >= h - reach):
         raise ValueError(f"ORB keypoints must lie {reach} px inside the {w}x{h} level for their tests")
     rad = np.asarray(angle_deg, np.float32) * _DEG_TO_RAD  # float32, as ORB converts it

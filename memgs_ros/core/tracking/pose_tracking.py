@@ -2,8 +2,11 @@
 
 ``LocalMapMatcher``: project the local map's points with a predicted pose, match in a radius,
 robust motion-only optimisation, then again in a tight radius around the optimised pose (with
-PnP RANSAC and a keyframe's matches as fallbacks). It reads the map it is given and keeps only a
-per-frame k-d tree cache. ``MotionModel``: the per-frame motion T_cw(k) T_cw(k-1)^-1 and the
+PnP RANSAC and a keyframe's matches as fallbacks). Where numba is, each pass is one compiled call
+(``_compiled.track_pass_kernel``) on the map's store, read in place, and the visible / found
+statistics another; the numpy path (``_match_and_optimise_reference``) is the reference they are
+tested against (same matches, same pose). It reads the map it is given and keeps only per-frame
+caches of the keypoints' arrays. ``MotionModel``: the per-frame motion T_cw(k) T_cw(k-1)^-1 and the
 angular velocity the rolling-shutter correction needs.
 """
 from __future__ import annotations
@@ -16,10 +19,17 @@ from scipy.spatial import cKDTree
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose, rotmat_to_rotvec
-from memgs_ros.core.tracking._compiled import numba_available
-from memgs_ros.core.tracking.bundle_adjustment import optimize_pose, orthonormalized, so3_exp
+from memgs_ros.core.tracking._compiled import View, numba_available, track_pass_kernel
+from memgs_ros.core.tracking.bundle_adjustment import (
+    CHI2_MONO,
+    CHI2_STEREO,
+    observed_uvr,
+    optimize_pose,
+    orthonormalized,
+    so3_exp,
+)
 from memgs_ros.core.tracking.config import TrackerConfig
-from memgs_ros.core.tracking.features import FrameFeatures, match_by_projection, match_descriptors
+from memgs_ros.core.tracking.features import MATCH_CELL_PX, FrameFeatures, match_by_projection, match_descriptors
 from memgs_ros.core.tracking.local_map import SparseMap
 
 _MIN_PROJECTION_MATCHES = 30  # below this the first pass is retried with a wider radius
@@ -27,6 +37,18 @@ _WIDE_RADIUS_FACTOR = 3.0
 _NOMINAL_FRAME_DT_S = 1.0 / 30.0  # frame interval assumed until two stamps are known
 _MAX_FRAME_DT_S = 0.5  # longer gaps: the velocity says nothing about the motion inside a frame
 _GAP_RATIO = 1.5  # an interval this many times the velocity's spans a skipped frame: scale the motion
+_POSE_ITERATIONS = 6  # Gauss-Newton steps per outlier round (optimize_pose's default)
+
+
+@dataclass(frozen=True, eq=False)
+class _Observations:
+    """A frame's keypoints as the compiled pass reads them: obs [M, 3] (u, v, u - bf/z), has_depth
+    [M], w2 [M] squared 1/sigma (``optimize_pose``'s inputs, for every keypoint at once)."""
+
+    feats: FrameFeatures
+    obs: np.ndarray
+    has_depth: np.ndarray
+    w2: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,14 +147,21 @@ class MotionModel:
 class LocalMapMatcher:
     """Pose of a frame against a sparse map (see the module docstring)."""
 
-    def __init__(self, cfg: TrackerConfig, camera: PinholeCamera, inv_sigma_levels: np.ndarray) -> None:
+    def __init__(self, cfg: TrackerConfig, camera: PinholeCamera, inv_sigma_levels: np.ndarray,
+                 compiled: bool | None = None) -> None:
         self.cfg, self.camera, self.K = cfg, camera, camera.K
         self.bf = camera.fx * cfg.virtual_baseline_m
         self.inv_sigma_levels = inv_sigma_levels
+        # One compiled call per projection pass and one for the statistics, on the map's own
+        # arrays (default: where numba is); else the reference path (numpy around the kernels).
+        self.compiled = numba_available() if compiled is None else compiled
+        self._view: View = (float(self.K[0, 0]), float(self.K[1, 1]), float(self.K[0, 2]), float(self.K[1, 2]),
+                            float(camera.width), float(camera.height), cfg.min_depth_m * 0.5)
         self._kp_tree: tuple[FrameFeatures, cKDTree] | None = None
-        # The last ``track`` call's local map (map, keyframes, point ids, positions): ``count``
+        self._kp_obs: _Observations | None = None  # the compiled pass's keypoint arrays, per frame
+        # The last ``track`` call's local map (map, keyframes, point ids, positions or None): ``count``
         # follows it within the same frame, on an unchanged map, and takes it once.
-        self._local: tuple[SparseMap, tuple[int, ...], np.ndarray, np.ndarray] | None = None
+        self._local: tuple[SparseMap, tuple[int, ...], np.ndarray, np.ndarray | None] | None = None
 
     def inv_sigma(self, octave: np.ndarray) -> np.ndarray:
         return self.inv_sigma_levels[np.clip(octave, 0, len(self.inv_sigma_levels) - 1)]
@@ -156,10 +185,36 @@ class LocalMapMatcher:
         return optimize_pose(T_cw, p_w, feats.uv[kp_idx], depth, self.inv_sigma(feats.octave[kp_idx]),
                              self.K, self.bf, rounds=rounds)
 
-    def _match_and_optimise(self, feats: FrameFeatures, p_w: np.ndarray, desc: np.ndarray, octave: np.ndarray,
-                            T_init: np.ndarray, radius_px: float, rounds: int = 1, max_candidates: int = 12
+    def _observations(self, feats: FrameFeatures) -> _Observations:
+        """The keypoint arrays of ``feats`` for the compiled pass (made once per features object)."""
+        if self._kp_obs is None or self._kp_obs.feats is not feats:
+            depth = feats.depth_m if self.cfg.track_with_depth else np.full(len(feats), np.nan)
+            obs, has_depth = observed_uvr(feats.uv, depth, self.bf)
+            self._kp_obs = _Observations(feats, obs, has_depth, self.inv_sigma(feats.octave) ** 2)
+        return self._kp_obs
+
+    def _match_and_optimise(self, feats: FrameFeatures, smap: SparseMap, pids: np.ndarray,
+                            local: tuple[np.ndarray, np.ndarray, np.ndarray] | None, T_init: np.ndarray,
+                            radius_px: float, rounds: int = 1, max_candidates: int = 12
                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """One projection pass; returns (T_cw, point index, kp index, inlier mask)."""
+        """One projection pass over the local map's points ``pids``; returns (T_cw, index into pids,
+        kp index, inlier mask). Compiled: one ``track_pass_kernel`` call on the map's store; else
+        the reference on ``local`` (the points' pos, desc, octave)."""
+        if local is not None:
+            return self._match_and_optimise_reference(feats, *local, T_init, radius_px, rounds, max_candidates)
+        kp = self._observations(feats)
+        pos, desc, octave = smap.store()
+        T, pi, ki, inl = track_pass_kernel(
+            pos, desc, octave, pids, T_init, self._view, radius_px, self.inv_sigma_levels, feats.uv, feats.desc,
+            kp.obs, kp.has_depth, kp.w2, self.cfg.max_descriptor_distance, self.cfg.match_ratio, max_candidates,
+            MATCH_CELL_PX, self.bf, CHI2_MONO, CHI2_STEREO, rounds, _POSE_ITERATIONS)
+        return (T_init if len(pi) < 4 else orthonormalized(T)), pi, ki, inl
+
+    def _match_and_optimise_reference(self, feats: FrameFeatures, p_w: np.ndarray, desc: np.ndarray,
+                                      octave: np.ndarray, T_init: np.ndarray, radius_px: float, rounds: int = 1,
+                                      max_candidates: int = 12
+                                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Reference twin of the compiled pass: project, ``match_by_projection``, ``optimize_pose``."""
         uv, vis = self.project(p_w, T_init)
         idx = np.flatnonzero(vis)
         radius = radius_px / self.inv_sigma(octave[idx])
@@ -199,24 +254,28 @@ class LocalMapMatcher:
         pids = smap.points_of(local_kfs)
         if len(pids) < cfg.min_inliers:
             return None
-        p_w, desc, octave = smap.point_arrays(pids)
-        self._local = (smap, tuple(local_kfs), pids, p_w)
-        T, pi, ki, inl = self._match_and_optimise(feats, p_w, desc, octave, T_pred, cfg.search_radius_px)
+        local = None if self.compiled else smap.point_arrays(pids)
+        self._local = (smap, tuple(local_kfs), pids, None if local is None else local[0])
+
+        def run(T_init: np.ndarray, radius_px: float, rounds: int = 1
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+            return self._match_and_optimise(feats, smap, pids, local, T_init, radius_px, rounds)
+
+        T, pi, ki, inl = run(T_pred, cfg.search_radius_px)
         if inl.sum() < _MIN_PROJECTION_MATCHES:
-            T, pi, ki, inl = self._match_and_optimise(feats, p_w, desc, octave, T_pred,
-                                                      cfg.search_radius_px * _WIDE_RADIUS_FACTOR)
+            T, pi, ki, inl = run(T_pred, cfg.search_radius_px * _WIDE_RADIUS_FACTOR)
         if inl.sum() < cfg.min_inliers and len(pi) >= 6:
-            T_r = self.ransac_pose(p_w[pi], feats.uv[ki])
+            T_r = self.ransac_pose(smap.point_arrays(pids[pi])[0], feats.uv[ki])
             if T_r is not None:
-                T, pi, ki, inl = self._match_and_optimise(feats, p_w, desc, octave, T_r, cfg.search_radius_px)
+                T, pi, ki, inl = run(T_r, cfg.search_radius_px)
         if inl.sum() < cfg.min_inliers and fallback_kf is not None:
             T_f = self.pose_from_keyframe(smap, feats, fallback_kf)
             if T_f is not None:
-                T, pi, ki, inl = self._match_and_optimise(feats, p_w, desc, octave, T_f, cfg.search_radius_px)
+                T, pi, ki, inl = run(T_f, cfg.search_radius_px)
         if inl.sum() < cfg.min_inliers:
             return None
         # Second pass: everything in view, tight radius around the optimised pose.
-        T2, pi2, ki2, inl2 = self._match_and_optimise(feats, p_w, desc, octave, T, cfg.refine_radius_px, rounds=3)
+        T2, pi2, ki2, inl2 = run(T, cfg.refine_radius_px, rounds=3)
         if inl2.sum() >= inl.sum():
             T, pi, ki, inl = T2, pi2, ki2, inl2
         return TrackOutcome(T, pids[pi[inl]], ki[inl], len(pi))
@@ -228,8 +287,12 @@ class LocalMapMatcher:
         if local is not None and local[0] is smap and local[1] == tuple(local_kfs):
             pids, p_w = local[2], local[3]
         else:
-            pids = smap.points_of(local_kfs)
-            p_w, _, _ = smap.point_arrays(pids)
+            pids, p_w = smap.points_of(local_kfs), None
+        if self.compiled:
+            smap.count_seen(pids, outcome.T_cw, self._view, outcome.point_ids)
+            return
+        if p_w is None:
+            p_w = smap.point_arrays(pids)[0]
         _, vis = self.project(p_w, outcome.T_cw)
         smap.count_visible(pids[vis])
         smap.count_found(outcome.point_ids)
