@@ -150,7 +150,7 @@ def _seed_rows(points_w: np.ndarray | torch.Tensor, colors: np.ndarray | torch.T
     if not 0.0 < opacity < 1.0:
         raise DataError(f"seed opacity must be in (0, 1), got {opacity}")
     opac = np.full((m, 1), math.log(opacity / (1.0 - opacity)))
-    return pts, log_s, quats, opac, rgb_to_sh_dc(np.clip(cols, 0.0, 1.0))
+    return pts, log_s, quats, opac, np.asarray(rgb_to_sh_dc(np.clip(cols, 0.0, 1.0)))
 
 
 class GaussianMap:
