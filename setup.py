@@ -20,7 +20,7 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
-    # The ORB vocabulary of loop closure and relocalisation (memgs_ros/core/tracking/vocabulary.py).
+    # The ORB vocabulary of loop closure and relocalisation (memgs_ros/core/tracking/features/vocabulary.py).
     package_data={"memgs_ros.data": ["*.npz"]},
     include_package_data=True,
     data_files=[

@@ -43,21 +43,21 @@ ORB_FEATURES = 1000  # the ORB unit: OpenCV's ORB extraction of this many featur
 # module-level name is patched where the frame path looks it up (the importing module).
 STAGES: list[tuple[str, str, str]] = [
     ("decode (messages to a Frame)", "memgs_ros.nodes.tracker", "TrackerNode._frame"),
-    ("feature extraction (grid ORB)", "memgs_ros.core.tracking.features", "OrbExtractor.extract"),
-    ("rolling-shutter correction", "memgs_ros.core.tracking.frontend", "unroll_rolling_shutter"),
-    ("projection passes (compiled: project, match, pose)", "memgs_ros.core.tracking.pose_tracking",
+    ("feature extraction (grid ORB)", "memgs_ros.core.tracking.features.features", "OrbExtractor.extract"),
+    ("rolling-shutter correction", "memgs_ros.core.tracking.frontend.feature_tracker", "unroll_rolling_shutter"),
+    ("projection passes (compiled: project, match, pose)", "memgs_ros.core.tracking.frontend.pose_tracking",
      "LocalMapMatcher._match_and_optimise"),
-    ("projection matching (reference path)", "memgs_ros.core.tracking.pose_tracking", "match_by_projection"),
-    ("pose optimisation (rolling-shutter re-optimisation)", "memgs_ros.core.tracking.pose_tracking",
+    ("projection matching (reference path)", "memgs_ros.core.tracking.frontend.pose_tracking", "match_by_projection"),
+    ("pose optimisation (rolling-shutter re-optimisation)", "memgs_ros.core.tracking.frontend.pose_tracking",
      "LocalMapMatcher.optimise"),
-    ("local-map tracking, the rest (local points, fallbacks)", "memgs_ros.core.tracking.pose_tracking",
+    ("local-map tracking, the rest (local points, fallbacks)", "memgs_ros.core.tracking.frontend.pose_tracking",
      "LocalMapMatcher.track"),
-    ("visible / found counts", "memgs_ros.core.tracking.pose_tracking", "LocalMapMatcher.count"),
-    ("local keyframes update", "memgs_ros.core.tracking.frontend", "FeatureTracker._update_local_keyframes"),
-    ("keyframe decision", "memgs_ros.core.tracking.frontend", "FeatureTracker._need_keyframe"),
-    ("keyframe insertion", "memgs_ros.core.tracking.frontend", "FeatureTracker._insert_keyframe"),
-    ("back-end results (poll, follow)", "memgs_ros.core.tracking.frontend", "FeatureTracker._follow"),
-    ("back-end results (poll, follow)", "memgs_ros.core.tracking.corrections", "BackendLink.poll"),
+    ("visible / found counts", "memgs_ros.core.tracking.frontend.pose_tracking", "LocalMapMatcher.count"),
+    ("local keyframes update", "memgs_ros.core.tracking.frontend.feature_tracker", "FeatureTracker._update_local_keyframes"),
+    ("keyframe decision", "memgs_ros.core.tracking.frontend.feature_tracker", "FeatureTracker._need_keyframe"),
+    ("keyframe insertion", "memgs_ros.core.tracking.frontend.feature_tracker", "FeatureTracker._insert_keyframe"),
+    ("back-end results (poll, follow)", "memgs_ros.core.tracking.frontend.feature_tracker", "FeatureTracker._follow"),
+    ("back-end results (poll, follow)", "memgs_ros.core.tracking.frontend.corrections", "BackendLink.poll"),
     ("publishing (pose, odometry, state, keyframe, path)", "memgs_ros.ros.tracker_outputs", "TrackerOutbox.frame"),
     ("publishing refined / loop-corrected poses", "memgs_ros.ros.tracker_outputs", "KeyframeOutbox.publish_poses"),
 ]
@@ -153,9 +153,9 @@ def opencv_floor(tum: Path, tracker: dict[str, Any], frames: int) -> dict[str, f
     its levels (the tracker's extractor settings), and of the ORB unit, interleaved frame by frame."""
     import cv2
 
-    from memgs_ros.core.tracking import orb as orb_kernels
     from memgs_ros.core.tracking.config import TrackerConfig
-    from memgs_ros.core.tracking.features import OrbExtractor
+    from memgs_ros.core.tracking.features import orb as orb_kernels
+    from memgs_ros.core.tracking.features.features import OrbExtractor
     from memgs_ros.io.tum import TumFolder
 
     cfg = TrackerConfig(**{k.split(".", 1)[1]: v for k, v in tracker.items() if k.startswith("tracker.")})

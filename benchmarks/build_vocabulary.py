@@ -1,6 +1,6 @@
 """Build the ORB vocabulary the package ships (memgs_ros/data/orb_vocabulary.npz) from synthetic
 room renders: the tracker's ORB descriptors of both camera paths at two sizes, clustered into a
-vocabulary tree (memgs_ros.core.tracking.vocabulary.build_vocabulary).
+vocabulary tree (memgs_ros.core.tracking.features.vocabulary.build_vocabulary).
 
     python benchmarks/build_vocabulary.py --out memgs_ros/data/orb_vocabulary.npz
 """
@@ -12,14 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
-from memgs_ros.core.tracking.vocabulary import VOCABULARY_RESOURCE, build_vocabulary
+from memgs_ros.core.tracking.features.vocabulary import VOCABULARY_RESOURCE, build_vocabulary
+
 
 def _training_descriptors(seeds: Sequence[int], views_per_seed: int) -> list[np.ndarray]:
     """ORB descriptors (tracker defaults) of synthetic room renders, both camera paths, two sizes."""
     import cv2
 
     from memgs_ros.core.tracking.config import TrackerConfig
-    from memgs_ros.core.tracking.features import OrbExtractor
+    from memgs_ros.core.tracking.features.features import OrbExtractor
     from memgs_ros.io.synthetic import SyntheticSpec, build_scene, render, trajectory
 
     out = []

@@ -7,12 +7,12 @@ from collections.abc import Callable
 import numpy as np
 
 from memgs_ros.core.geometry.poses import invert_pose
-from memgs_ros.core.tracking.bundle_adjustment import (
+from memgs_ros.core.tracking.backend.bundle_adjustment import (
     BAProblem,
     apply_left_update,
     local_bundle_adjustment,
 )
-from memgs_ros.core.tracking.global_ba import global_bundle_adjustment
+from memgs_ros.core.tracking.backend.global_ba import global_bundle_adjustment
 
 K = np.array([[200.0, 0, 160], [0, 200.0, 120], [0, 0, 1]])
 BF = 200.0 * 0.08
@@ -92,7 +92,7 @@ def test_global_ba_time_budget_returns_the_best_so_far() -> None:
 def test_global_ba_observations_per_point_are_bounded() -> None:
     # A place seen again and again gives points with a hundred observations: the global BA keeps
     # few enough per point that its observation pairs stay bounded; ordinary maps keep them all.
-    from memgs_ros.core.tracking.ba_problem import _GLOBAL_BA_MAX_PAIRS, _max_observations_per_point
+    from memgs_ros.core.tracking.backend.ba_problem import _GLOBAL_BA_MAX_PAIRS, _max_observations_per_point
 
     assert _max_observations_per_point([2, 3, 5]) == 5
     m = _max_observations_per_point([100] * 23000)
@@ -100,7 +100,7 @@ def test_global_ba_observations_per_point_are_bounded() -> None:
 
 
 def test_one_lm_loop_stops_on_convergence_or_budget() -> None:
-    from memgs_ros.core.tracking.lm import LMSettings, lm_iterations, solve
+    from memgs_ros.core.tracking.backend.lm import LMSettings, lm_iterations, solve
 
     # Fit a, b of y = a * exp(b t): Gauss-Newton with the shared damping loop.
     t = np.linspace(0.0, 1.0, 20)

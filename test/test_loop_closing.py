@@ -8,15 +8,15 @@ import pytest
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking import TrackerConfig, make_tracker
 from memgs_ros.core.tracking.anchored_path import AnchoredPath
-from memgs_ros.core.tracking.bundle_adjustment import apply_left_update
-from memgs_ros.core.tracking.features import OrbExtractor
-from memgs_ros.core.tracking.loop_closing import LoopDetector, optimise_pose_graph
-from memgs_ros.core.tracking.vocabulary import (
+from memgs_ros.core.tracking.backend.bundle_adjustment import apply_left_update
+from memgs_ros.core.tracking.features.features import OrbExtractor
+from memgs_ros.core.tracking.features.vocabulary import (
     KeyframeDatabase,
     bow_score,
     build_vocabulary,
     default_vocabulary,
 )
+from memgs_ros.core.tracking.loop_closing.loops import LoopDetector, optimise_pose_graph
 from memgs_ros.io.synthetic import (
     generate_frames,
     loop_revisit_frames,

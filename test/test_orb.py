@@ -1,4 +1,4 @@
-"""ORB descriptors and the grid selection by numba kernels (``memgs_ros.core.tracking.orb``) against
+"""ORB descriptors and the grid selection by numba kernels (``memgs_ros.core.tracking.features.features.orb``) against
 OpenCV's ORB and the extractor's numpy selection, their references."""
 from __future__ import annotations
 
@@ -6,8 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from memgs_ros.core.tracking import TrackerConfig, orb
-from memgs_ros.core.tracking.features import EDGE_PX, OrbExtractor
+from memgs_ros.core.tracking import TrackerConfig
+from memgs_ros.core.tracking.features import orb
+from memgs_ros.core.tracking.features.features import EDGE_PX, OrbExtractor
 from memgs_ros.io.synthetic import generate_frames, parse_spec
 
 pytestmark = pytest.mark.skipif(not orb.compiled_orb_available(),

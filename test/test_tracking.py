@@ -8,13 +8,17 @@ import pytest
 
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.poses import invert_pose
-from memgs_ros.core.tracking import SparseMapStats, Tracker, TrackerConfig, TrackingState, make_tracker
-from memgs_ros.core.tracking.bundle_adjustment import (BAProblem, _local_bundle_adjustment_scipy,
-                                                       apply_left_update, local_bundle_adjustment,
-                                                       optimize_pose)
-from memgs_ros.core.tracking.features import FrameFeatures, _hamming_pairs_table, hamming_pairs
-from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
 from memgs_ros.core.metrics.trajectory import ate, path_length_m
+from memgs_ros.core.tracking import SparseMapStats, Tracker, TrackerConfig, TrackingState, make_tracker
+from memgs_ros.core.tracking.backend.bundle_adjustment import (
+    BAProblem,
+    _local_bundle_adjustment_scipy,
+    apply_left_update,
+    local_bundle_adjustment,
+    optimize_pose,
+)
+from memgs_ros.core.tracking.features.features import FrameFeatures, _hamming_pairs_table, hamming_pairs
+from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
@@ -136,7 +140,7 @@ def test_monocular_fusion_adds_observations_that_reproject(frames: list[Frame],
                                                            monkeypatch: pytest.MonkeyPatch) -> None:
     """A new keyframe's points are matched into its covisible keyframes: points get more
     observations than the two triangulation gives them, and each lies where its keypoint is."""
-    from memgs_ros.core.tracking.monocular import MonocularTracker
+    from memgs_ros.core.tracking.frontend.monocular import MonocularTracker
 
     mono = [Frame(f.stamp_ns, f.rgb, None, f.camera, f.T_wc_gt) for f in frames]
 
@@ -174,7 +178,7 @@ def test_monocular_frames_wait_for_a_local_ba_running_too_long(frames: list[Fram
     keyframe waits for that keyframe's local BA (0: frames never wait)."""
     import time
 
-    from memgs_ros.core.tracking.backend import TrackingBackend
+    from memgs_ros.core.tracking.backend.actor import TrackingBackend
 
     slow = TrackingBackend._local_ba
 
@@ -204,7 +208,7 @@ def test_rgbd_keyframes_are_deferred_for_a_running_ba_a_bounded_number_of_frames
     BA either way, and the keyframes keep their pace (unbounded, they fell far behind)."""
     import time
 
-    from memgs_ros.core.tracking.backend import TrackingBackend
+    from memgs_ros.core.tracking.backend.actor import TrackingBackend
 
     slow = TrackingBackend._local_ba
 

@@ -9,15 +9,16 @@ import numpy as np
 import pytest
 
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.core.tracking import TrackerConfig, TrackingState, ba_problem, make_tracker
-from memgs_ros.core.tracking import backend as backend_module
-from memgs_ros.core.tracking.ba_problem import global_problem, local_problem
-from memgs_ros.core.tracking.backend import GlobalBAOutcome, LocalBAOutcome, TrackingBackend
-from memgs_ros.core.tracking.bundle_adjustment import apply_left_update
-from memgs_ros.core.tracking.corrections import BackendLink
-from memgs_ros.core.tracking.features import FrameFeatures
-from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
 from memgs_ros.core.runtime.worker import WorkerStopped
+from memgs_ros.core.tracking import TrackerConfig, TrackingState, make_tracker
+from memgs_ros.core.tracking.backend import actor as backend_module
+from memgs_ros.core.tracking.backend import ba_problem
+from memgs_ros.core.tracking.backend.actor import GlobalBAOutcome, LocalBAOutcome, TrackingBackend
+from memgs_ros.core.tracking.backend.ba_problem import global_problem, local_problem
+from memgs_ros.core.tracking.backend.bundle_adjustment import apply_left_update
+from memgs_ros.core.tracking.features.features import FrameFeatures
+from memgs_ros.core.tracking.frontend.corrections import BackendLink
+from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
 K = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
@@ -209,7 +210,7 @@ def test_a_failing_local_ba_does_not_stop_tracking(monkeypatch: pytest.MonkeyPat
     frames: list[Frame] = list(generate_frames(spec))
     tracker = make_tracker(TrackerConfig(), frames[0].camera)
     try:
-        with caplog.at_level(logging.WARNING, logger="memgs_ros.core.tracking.corrections"):
+        with caplog.at_level(logging.WARNING, logger="memgs_ros.core.tracking.frontend.corrections"):
             results = [tracker.track(f) for f in frames]
             tracker.wait_for_ba()
             tracker.wait_for_loop_closing()

@@ -10,14 +10,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from memgs_ros.core.tracking import TrackerConfig
-from memgs_ros.core.tracking.bundle_adjustment import (
+from memgs_ros.core.tracking.backend.bundle_adjustment import (
     _optimize_pose,
     _orthonormalized_svd,
     apply_left_update,
     optimize_pose,
     orthonormalized,
 )
-from memgs_ros.core.tracking.features import (
+from memgs_ros.core.tracking.features.features import (
     FrameFeatures,
     _match_by_projection,
     match_by_projection,
@@ -138,8 +138,10 @@ def test_disabled_numba_falls_back_to_the_plain_path() -> None:
     """MEMGS_DISABLE_NUMBA=1: no kernel is compiled or called; pose optimisation runs its plain twin
     and OpenCV's ORB describes the extractor's keypoints."""
     code = ("import cv2, numpy as np\n"
-            "from memgs_ros.core.tracking import TrackerConfig, _compiled, orb, bundle_adjustment as ba\n"
-            "from memgs_ros.core.tracking.features import OrbExtractor\n"
+            "from memgs_ros.core.tracking import TrackerConfig, _compiled\n"
+            "from memgs_ros.core.tracking.backend import bundle_adjustment as ba\n"
+            "from memgs_ros.core.tracking.features import orb\n"
+            "from memgs_ros.core.tracking.features.features import OrbExtractor\n"
             "from memgs_ros.io.synthetic import generate_frames, parse_spec\n"
             "assert not _compiled.numba_available() and not orb.compiled_orb_available()\n"
             "ex = OrbExtractor(TrackerConfig(n_features=300))\n"
@@ -170,7 +172,7 @@ def test_extract_matches_the_multi_level_orb_reference(spec: str, cfg: TrackerCo
     undistortion and depth lookups on top."""
     import cv2
 
-    from memgs_ros.core.tracking.features import OrbExtractor
+    from memgs_ros.core.tracking.features.features import OrbExtractor
     from memgs_ros.io.synthetic import generate_frames, parse_spec
 
     ex = OrbExtractor(cfg)
@@ -248,7 +250,7 @@ def test_rolling_shutter_readout_is_validated() -> None:
 def test_the_motion_prediction_spans_a_gap_of_skipped_frames() -> None:
     """Constant velocity over the elapsed time: a live tracker that dropped frames predicts the
     whole gap, and frames at the velocity's own interval (lockstep replays) keep it as it is."""
-    from memgs_ros.core.tracking.pose_tracking import MotionModel
+    from memgs_ros.core.tracking.frontend.pose_tracking import MotionModel
 
     step = np.eye(4)
     step[:3, :3] = Rotation.from_rotvec([0.0, 0.04, 0.01]).as_matrix()  # ~2.4 degrees a frame
@@ -269,7 +271,7 @@ def test_the_motion_prediction_spans_a_gap_of_skipped_frames() -> None:
 
 def test_the_compiled_rolling_shutter_correction_equals_the_reference() -> None:
     _needs_numba()
-    from memgs_ros.core.tracking.features import _unroll_rolling_shutter
+    from memgs_ros.core.tracking.features.features import _unroll_rolling_shutter
 
     rng = np.random.default_rng(8)
     feats = _features(rng, 700)
@@ -285,7 +287,7 @@ def _tracked_passes(mode: str, n_frames: int) -> list[tuple]:
     every frame's local-map tracking by the compiled matcher and by the reference matcher (built
     with compiled=False), on the same map, local keyframes, features and prediction."""
     from memgs_ros.core.tracking import make_tracker
-    from memgs_ros.core.tracking.pose_tracking import LocalMapMatcher
+    from memgs_ros.core.tracking.frontend.pose_tracking import LocalMapMatcher
     from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
     frames = list(generate_frames(SyntheticSpec(width=320, height=240, n_frames=n_frames, seed=2, supersample=1)))
@@ -330,8 +332,8 @@ def test_the_compiled_statistics_equal_the_reference() -> None:
     """``SparseMap.count_seen`` adds what ``project`` + ``count_visible`` + ``count_found`` add."""
     _needs_numba()
     from memgs_ros.core.geometry.camera import PinholeCamera
-    from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
-    from memgs_ros.core.tracking.pose_tracking import LocalMapMatcher
+    from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
+    from memgs_ros.core.tracking.frontend.pose_tracking import LocalMapMatcher
 
     rng = np.random.default_rng(3)
     camera = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)

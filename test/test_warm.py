@@ -22,7 +22,8 @@ def signatures(*modules):
 """
 
 TRACKING = SIGNATURES + """
-from memgs_ros.core.tracking import TrackerConfig, _compiled, make_tracker, orb, warm_up
+from memgs_ros.core.tracking import TrackerConfig, _compiled, make_tracker, warm_up
+from memgs_ros.core.tracking.features import orb
 from memgs_ros.io.synthetic import generate_frames, parse_spec
 
 warm_up()

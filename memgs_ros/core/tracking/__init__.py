@@ -14,7 +14,7 @@ from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
 
 if TYPE_CHECKING:
     from memgs_ros.core.tracking._compiled import warm_up
-    from memgs_ros.core.tracking.frontend import FeatureTracker
+    from memgs_ros.core.tracking.frontend.feature_tracker import FeatureTracker
 
 __all__ = [
     "FeatureTracker",
@@ -37,7 +37,7 @@ def __getattr__(name: str) -> Any:
 
         return warm_up
     if name == "FeatureTracker":
-        from memgs_ros.core.tracking.frontend import FeatureTracker
+        from memgs_ros.core.tracking.frontend.feature_tracker import FeatureTracker
 
         return FeatureTracker
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
@@ -46,9 +46,9 @@ def __getattr__(name: str) -> Any:
 def make_tracker(cfg: TrackerConfig, camera: PinholeCamera) -> Tracker:
     """The tracker ``cfg`` asks for: RGB-D or monocular features."""
     if cfg.mode == "mono":
-        from memgs_ros.core.tracking.monocular import MonocularTracker
+        from memgs_ros.core.tracking.frontend.monocular import MonocularTracker
 
         return MonocularTracker(cfg, camera)
-    from memgs_ros.core.tracking.rgbd import RGBDTracker
+    from memgs_ros.core.tracking.frontend.rgbd import RGBDTracker
 
     return RGBDTracker(cfg, camera)

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from memgs_ros.core.runtime.cpu import numba_available  # noqa: F401 - re-exported
-from memgs_ros.core.tracking import orb
+from memgs_ros.core.tracking.features import orb
 
 __all__ = ["View", "count_seen_kernel", "match_by_projection_kernel", "numba_available", "optimize_pose_kernel",
            "track_pass_kernel", "unroll_kernel", "warm_up"]

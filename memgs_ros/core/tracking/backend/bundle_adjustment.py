@@ -20,7 +20,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from memgs_ros.core.tracking._compiled import numba_available, optimize_pose_kernel
-from memgs_ros.core.tracking.lm import LMProgress, lm_iterations, solve
+from memgs_ros.core.tracking.backend.lm import LMProgress, lm_iterations, solve
 
 CHI2_MONO = 5.991  # chi-square 95 %, 2 dof
 CHI2_STEREO = 7.815  # chi-square 95 %, 3 dof

@@ -30,15 +30,15 @@ import numpy as np
 
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.runtime.worker import CommandWorker, WorkerStopped
-from memgs_ros.core.tracking.ba_problem import SnapshotProblem, global_problem, local_problem
-from memgs_ros.core.tracking.bundle_adjustment import BAAux, BAGeometry, BAState, local_bundle_adjustment
+from memgs_ros.core.tracking.backend.ba_problem import SnapshotProblem, global_problem, local_problem
+from memgs_ros.core.tracking.backend.bundle_adjustment import BAAux, BAGeometry, BAState, local_bundle_adjustment
+from memgs_ros.core.tracking.backend.global_ba import global_ba_iterations
+from memgs_ros.core.tracking.backend.lm import LMProgress
 from memgs_ros.core.tracking.config import TrackerConfig
-from memgs_ros.core.tracking.global_ba import global_ba_iterations
-from memgs_ros.core.tracking.lm import LMProgress
-from memgs_ros.core.tracking.loop_closing import LoopCorrection
-from memgs_ros.core.tracking.map_snapshot import MapSnapshot
-from memgs_ros.core.tracking.place_recognition import LoopStats, PlaceOutcome, PlaceRecognition
-from memgs_ros.core.tracking.vocabulary import Vocabulary
+from memgs_ros.core.tracking.features.vocabulary import Vocabulary
+from memgs_ros.core.tracking.frontend.map_snapshot import MapSnapshot
+from memgs_ros.core.tracking.loop_closing.loops import LoopCorrection
+from memgs_ros.core.tracking.loop_closing.place_recognition import LoopStats, PlaceOutcome, PlaceRecognition
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())

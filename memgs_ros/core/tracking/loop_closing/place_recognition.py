@@ -16,12 +16,12 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from memgs_ros.core.geometry.poses import invert_pose
-from memgs_ros.core.tracking.bundle_adjustment import _obs_pairs
+from memgs_ros.core.tracking.backend.bundle_adjustment import _obs_pairs
 from memgs_ros.core.tracking.config import TrackerConfig
-from memgs_ros.core.tracking.features import FrameFeatures, match_by_projection
-from memgs_ros.core.tracking.loop_closing import LoopCorrection, LoopDetector, optimise_pose_graph, verify_loop
-from memgs_ros.core.tracking.map_snapshot import MapSnapshot
-from memgs_ros.core.tracking.vocabulary import BowVector, KeyframeDatabase, Vocabulary, bow_score
+from memgs_ros.core.tracking.features.features import FrameFeatures, match_by_projection
+from memgs_ros.core.tracking.features.vocabulary import BowVector, KeyframeDatabase, Vocabulary, bow_score
+from memgs_ros.core.tracking.frontend.map_snapshot import MapSnapshot
+from memgs_ros.core.tracking.loop_closing.loops import LoopCorrection, LoopDetector, optimise_pose_graph, verify_loop
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())

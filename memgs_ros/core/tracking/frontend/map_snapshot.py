@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from memgs_ros.core.tracking.features import FrameFeatures
+from memgs_ros.core.tracking.features.features import FrameFeatures
 
 
 @dataclass(frozen=True, eq=False)

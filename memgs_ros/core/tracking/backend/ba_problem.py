@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from memgs_ros.core.tracking.bundle_adjustment import BAProblem
-from memgs_ros.core.tracking.map_snapshot import MapSnapshot
+from memgs_ros.core.tracking.backend.bundle_adjustment import BAProblem
+from memgs_ros.core.tracking.frontend.map_snapshot import MapSnapshot
 
 _MIN_OBSERVATIONS = 20  # fewer: nothing worth adjusting
 _OUTSIDE_FIXED = 3  # keyframes outside the local window held fixed (they see its points)

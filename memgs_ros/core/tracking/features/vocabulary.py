@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from memgs_ros.core.tracking.features import DESCRIPTOR_BYTES
+from memgs_ros.core.tracking.features.features import DESCRIPTOR_BYTES
 from memgs_ros.errors import DataError
 
 VOCABULARY_RESOURCE = "orb_vocabulary.npz"  # in the memgs_ros.data package

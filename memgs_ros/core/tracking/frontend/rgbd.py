@@ -6,9 +6,9 @@ import numpy as np
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackingState
-from memgs_ros.core.tracking.features import FrameFeatures
-from memgs_ros.core.tracking.frontend import FeatureTracker
-from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
+from memgs_ros.core.tracking.features.features import FrameFeatures
+from memgs_ros.core.tracking.frontend.feature_tracker import FeatureTracker
+from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
 
 _MIN_INIT_POINTS = 100  # keypoints with depth needed to start a map
 _CLOSE_TRACKED = 100  # ORB-SLAM: insert a keyframe when few close points are tracked ...

@@ -9,12 +9,12 @@ import cv2
 import numpy as np
 
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.core.tracking.ba_problem import build_problem
-from memgs_ros.core.tracking.bundle_adjustment import CHI2_MONO, local_bundle_adjustment
+from memgs_ros.core.tracking.backend.ba_problem import build_problem
+from memgs_ros.core.tracking.backend.bundle_adjustment import CHI2_MONO, local_bundle_adjustment
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackingState
-from memgs_ros.core.tracking.features import FrameFeatures, match_by_projection, match_descriptors
-from memgs_ros.core.tracking.frontend import FeatureTracker, keyframe_info
-from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
+from memgs_ros.core.tracking.features.features import FrameFeatures, match_by_projection, match_descriptors
+from memgs_ros.core.tracking.frontend.feature_tracker import FeatureTracker, keyframe_info
+from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
 
 _MAX_INIT_AGE_FRAMES = 30  # restart from a new reference frame when initialisation takes longer
 _MIN_COS_PARALLAX = 0.9998  # rays closer than ~1.1 deg give depth too uncertain to keep

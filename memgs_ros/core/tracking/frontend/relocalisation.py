@@ -8,10 +8,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from memgs_ros.core.tracking.bundle_adjustment import optimize_pose
+from memgs_ros.core.tracking.backend.bundle_adjustment import optimize_pose
 from memgs_ros.core.tracking.config import TrackerConfig
-from memgs_ros.core.tracking.features import FrameFeatures, match_descriptors
-from memgs_ros.core.tracking.local_map import SparseMap
+from memgs_ros.core.tracking.features.features import FrameFeatures, match_descriptors
+from memgs_ros.core.tracking.frontend.local_map import SparseMap
 
 _MIN_CANDIDATE_MATCHES = 15
 _MAX_PNP_CANDIDATES = 5

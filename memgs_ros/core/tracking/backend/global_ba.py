@@ -16,8 +16,15 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from memgs_ros.core.tracking.bundle_adjustment import BAAux, BAGeometry, BAProblem, BAResult, BAState, _obs_pairs
-from memgs_ros.core.tracking.lm import LMProgress, lm_iterations, solve
+from memgs_ros.core.tracking.backend.bundle_adjustment import (
+    BAAux,
+    BAGeometry,
+    BAProblem,
+    BAResult,
+    BAState,
+    _obs_pairs,
+)
+from memgs_ros.core.tracking.backend.lm import LMProgress, lm_iterations, solve
 
 
 def global_ba_iterations(prob: BAProblem, K: np.ndarray, bf: float, huber_px: float, max_iterations: int

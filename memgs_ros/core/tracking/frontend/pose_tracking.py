@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose, rotmat_to_rotvec
 from memgs_ros.core.tracking._compiled import View, numba_available, track_pass_kernel
-from memgs_ros.core.tracking.bundle_adjustment import (
+from memgs_ros.core.tracking.backend.bundle_adjustment import (
     CHI2_MONO,
     CHI2_STEREO,
     observed_uvr,
@@ -29,8 +29,13 @@ from memgs_ros.core.tracking.bundle_adjustment import (
     so3_exp,
 )
 from memgs_ros.core.tracking.config import TrackerConfig
-from memgs_ros.core.tracking.features import MATCH_CELL_PX, FrameFeatures, match_by_projection, match_descriptors
-from memgs_ros.core.tracking.local_map import SparseMap
+from memgs_ros.core.tracking.features.features import (
+    MATCH_CELL_PX,
+    FrameFeatures,
+    match_by_projection,
+    match_descriptors,
+)
+from memgs_ros.core.tracking.frontend.local_map import SparseMap
 
 _MIN_PROJECTION_MATCHES = 30  # below this the first pass is retried with a wider radius
 _WIDE_RADIUS_FACTOR = 3.0

@@ -15,9 +15,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.tracking import orb
 from memgs_ros.core.tracking._compiled import match_by_projection_kernel, numba_available, unroll_kernel
 from memgs_ros.core.tracking.config import TrackerConfig
+from memgs_ros.core.tracking.features import orb
 
 DESCRIPTOR_BYTES = 32
 EDGE_PX = 19  # keypoints keep this far from a level's border (ORB's edgeThreshold)

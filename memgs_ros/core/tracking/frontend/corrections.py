@@ -23,12 +23,12 @@ from typing import Any
 import numpy as np
 
 from memgs_ros.core.geometry.poses import invert_pose
-from memgs_ros.core.tracking.backend import GlobalBAOutcome, LocalBAOutcome, TrackingBackend
+from memgs_ros.core.tracking.backend.actor import GlobalBAOutcome, LocalBAOutcome, TrackingBackend
 from memgs_ros.core.tracking.config import TrackerConfig
-from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
-from memgs_ros.core.tracking.loop_closing import LoopCorrection
-from memgs_ros.core.tracking.place_recognition import LoopStats, PlaceOutcome
-from memgs_ros.core.tracking.vocabulary import KeyframeDatabase
+from memgs_ros.core.tracking.features.vocabulary import KeyframeDatabase
+from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
+from memgs_ros.core.tracking.loop_closing.loops import LoopCorrection
+from memgs_ros.core.tracking.loop_closing.place_recognition import LoopStats, PlaceOutcome
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())

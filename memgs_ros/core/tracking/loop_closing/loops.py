@@ -28,17 +28,17 @@ import scipy.sparse.linalg as spla
 from scipy.spatial.transform import Rotation
 
 from memgs_ros.core.geometry.poses import invert_pose
-from memgs_ros.core.tracking.bundle_adjustment import (
+from memgs_ros.core.tracking.backend.bundle_adjustment import (
     apply_left_update,
     optimize_pose,
     orthonormalized,
 )
-from memgs_ros.core.tracking.features import (
+from memgs_ros.core.tracking.backend.lm import LMSettings, lm_iterations, solve
+from memgs_ros.core.tracking.features.features import (
     FrameFeatures,
     match_by_projection,
     match_descriptors,
 )
-from memgs_ros.core.tracking.lm import LMSettings, lm_iterations, solve
 
 # ------------------------------------------------------------------------------ detection
 

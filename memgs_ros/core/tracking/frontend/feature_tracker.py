@@ -32,17 +32,22 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking._compiled import warm_up
-from memgs_ros.core.tracking.backend import TrackingBackend
-from memgs_ros.core.tracking.bundle_adjustment import orthonormalized
+from memgs_ros.core.tracking.backend.actor import TrackingBackend
+from memgs_ros.core.tracking.backend.bundle_adjustment import orthonormalized
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
-from memgs_ros.core.tracking.corrections import BackendLink, KeyframesMoved
-from memgs_ros.core.tracking.features import FrameFeatures, OrbExtractor, unroll_rolling_shutter
-from memgs_ros.core.tracking.local_map import SparseKeyframe, SparseMap
-from memgs_ros.core.tracking.place_recognition import LoopStats
-from memgs_ros.core.tracking.pose_tracking import LocalMapMatcher, MotionModel, TrackOutcome, rotation_angle_deg
+from memgs_ros.core.tracking.features.features import FrameFeatures, OrbExtractor, unroll_rolling_shutter
+from memgs_ros.core.tracking.features.vocabulary import KeyframeDatabase, Vocabulary, default_vocabulary
+from memgs_ros.core.tracking.frontend.corrections import BackendLink, KeyframesMoved
+from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
+from memgs_ros.core.tracking.frontend.pose_tracking import (
+    LocalMapMatcher,
+    MotionModel,
+    TrackOutcome,
+    rotation_angle_deg,
+)
+from memgs_ros.core.tracking.frontend.relocalisation import relocalise
+from memgs_ros.core.tracking.loop_closing.place_recognition import LoopStats
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
-from memgs_ros.core.tracking.relocalisation import relocalise
-from memgs_ros.core.tracking.vocabulary import KeyframeDatabase, Vocabulary, default_vocabulary
 from memgs_ros.errors import DataError
 
 logger = logging.getLogger(__name__)
