@@ -425,12 +425,7 @@ def evaluate_run(out_dir: str | os.PathLike[str], source: str | None = None, mod
         summary.ply_path, {"frames": (traj_stamps, traj_poses), "keyframes": (kf_stamps, kf_poses)},
         gt_stamps, gt_images, camera, background=background, device=device, use_lpips=use_lpips,
         progress=progress, strip_from="frames", valid_mask=valid_mask)
-    strip_path = ""
-    if strip:
-        strip_path = str(out / "strip.npz")
-        np.savez_compressed(strip_path, stamps_ns=np.array([s[0] for s in strip], dtype=np.int64),
-                            renders=np.stack([s[1] for s in strip]), reals=np.stack([s[2] for s in strip]),
-                            psnr_db=np.array([s[3] for s in strip]))
+    strip_path = _save_strip(out, strip)
     trajectory: TrajectoryResult | None = None
     gt_s, gt_T = src.ground_truth()
     if len(gt_s):
@@ -443,26 +438,7 @@ def evaluate_run(out_dir: str | os.PathLike[str], source: str | None = None, mod
         notes.append("no ATE: the source has no ground-truth trajectory")
     n_ply = len(load_ply(summary.ply_path).ids)
     samples = map_samples(timeline)
-    cuda_peak = next((m.cuda_max_allocated for m in reversed(samples) if m.cuda_max_allocated is not None), None)
-    working = _mapper_gauge_max(timeline, "working_peak_mb")
-    baseline = _mapper_gauge_max(timeline, "rss_baseline_mb")
-    accounted = _mapper_gauge_max(timeline, "accounted_bytes_peak")
-    if cuda_peak is None:
-        notes.append("memory: the mapper ran on CPU, where torch has no allocator peak; the table's "
-                     + ("memory is the mapper's peak RSS above its start-up baseline" if working is not None
-                        else "memory is the map's peak parameters + gradients + Adam bytes (model_bytes_peak)"))
-    node_stats_rss = {k: float(v) for k, v in summary.peak_rss_mb.items()}
-    rss = node_peak_rss_mb(timeline)
-    rss_source = PEAK_RSS_SOURCE
-    if not rss:
-        rss, rss_source = node_stats_rss, "VmHWM of each node process: its last stats message (run summary)"
-    memory = MemoryResult(mapper_device="cpu" if cuda_peak is None else "cuda", cuda_max_allocated_bytes=cuda_peak,
-                          model_bytes_peak=int(summary.model_bytes_peak), peak_rss_mb=rss,
-                          peak_rss_source=rss_source, peak_rss_mb_node_stats=node_stats_rss,
-                          mapper_working_peak_bytes=None if working is None else int(working * 2**20),
-                          mapper_rss_baseline_mb=baseline,
-                          accounted_bytes_peak=None if accounted is None else int(accounted),
-                          graph_mb=summary.graph_memory_mb or None)
+    memory = _memory_result(summary, timeline, samples, notes)
     if not samples:
         notes.append("no mapper stats were recorded during the run (map size over time unavailable)")
     result = EvalResult(
@@ -481,6 +457,43 @@ def evaluate_run(out_dir: str | os.PathLike[str], source: str | None = None, mod
         notes=tuple(notes))
     write_json(out / "eval.json", result.as_dict())
     return result
+
+
+def _save_strip(out: Path, strip: Sequence[tuple[int, np.ndarray, np.ndarray, float]]) -> str:
+    """strip.npz: the frame strip's stamps, renders, real images and PSNR ("" when empty)."""
+    if not strip:
+        return ""
+    path = str(out / "strip.npz")
+    np.savez_compressed(path, stamps_ns=np.array([s[0] for s in strip], dtype=np.int64),
+                        renders=np.stack([s[1] for s in strip]), reals=np.stack([s[2] for s in strip]),
+                        psnr_db=np.array([s[3] for s in strip]))
+    return path
+
+
+def _memory_result(summary: RunSummary, timeline: Sequence[Mapping[str, Any]], samples: Sequence[MapSample],
+                   notes: list[str]) -> MemoryResult:
+    """The memory figures of a run: the CUDA peak or, on CPU, the mapper's working peak; every node's
+    peak RSS from the timeline (the summary's last stats where the timeline has none)."""
+    cuda_peak = next((m.cuda_max_allocated for m in reversed(samples) if m.cuda_max_allocated is not None), None)
+    working = _mapper_gauge_max(timeline, "working_peak_mb")
+    baseline = _mapper_gauge_max(timeline, "rss_baseline_mb")
+    accounted = _mapper_gauge_max(timeline, "accounted_bytes_peak")
+    if cuda_peak is None:
+        notes.append("memory: the mapper ran on CPU, where torch has no allocator peak; the table's "
+                     + ("memory is the mapper's peak RSS above its start-up baseline" if working is not None
+                        else "memory is the map's peak parameters + gradients + Adam bytes (model_bytes_peak)"))
+    node_stats_rss = {k: float(v) for k, v in summary.peak_rss_mb.items()}
+    rss = node_peak_rss_mb(timeline)
+    rss_source = PEAK_RSS_SOURCE
+    if not rss:
+        rss, rss_source = node_stats_rss, "VmHWM of each node process: its last stats message (run summary)"
+    return MemoryResult(mapper_device="cpu" if cuda_peak is None else "cuda", cuda_max_allocated_bytes=cuda_peak,
+                        model_bytes_peak=int(summary.model_bytes_peak), peak_rss_mb=rss,
+                        peak_rss_source=rss_source, peak_rss_mb_node_stats=node_stats_rss,
+                        mapper_working_peak_bytes=None if working is None else int(working * 2**20),
+                        mapper_rss_baseline_mb=baseline,
+                        accounted_bytes_peak=None if accounted is None else int(accounted),
+                        graph_mb=summary.graph_memory_mb or None)
 
 
 # ----------------------------------------------------------------------------- run, then score

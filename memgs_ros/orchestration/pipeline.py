@@ -189,14 +189,9 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
 
     if options.rerun is not None:
         options.rerun.check()  # rerun-sdk missing or no display: one line, before any node starts
-    out = Path(options.out_dir).resolve()
-    (out / LOGS_DIR).mkdir(parents=True, exist_ok=True)
-    map_path = out / MAP_FILE
-    params_file = out / PARAMS_FILE
-    params = build_params(options, map_path)
-    _write_text(params_file, yaml.safe_dump(params, sort_keys=False))
-    if "mapper.checkpoint_path" not in options.overrides:
-        _set_aside_previous_checkpoint(out / CHECKPOINT_FILE)
+    if options.composed and options.kill_after_s:
+        raise ConfigError("fault injection (kill_after_s) needs separate processes")
+    out, params, params_file = _write_run_files(options)
     earlier_record = _file_identity(options.record)  # an earlier run's file is replaced, never taken for this one's
 
     # A 50 ms heartbeat repairs lost fragments of big messages fast (see config/fastdds.xml);
@@ -218,66 +213,108 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
     try:
         observer = _Observer(context)
         executor.add_node(observer.node)
-        recording = ("recorder",) if options.record is not None else ()
-        graph = (*GRAPH_NODES, VIEW_NODE) if options.rerun is not None else GRAPH_NODES
-        if options.composed and options.kill_after_s:
-            raise ConfigError("fault injection (kill_after_s) needs separate processes")
         if options.composed:
-            for name in (*graph, *recording):  # the recorder sees the graph's publishers
-                in_process.append(NODE_FACTORIES[name](context=context))
-                executor.add_node(in_process[-1])
-        spin = spin_in_background(executor)
-        if options.composed:
-            _wait_for_warm_graph(observer, None, GRAPH_NODES, t0 + options.timeout_s)
-            in_process.append(NODE_FACTORIES["bag_player"](context=context))
-            executor.add_node(in_process[-1])
+            spin = _start_composed(options, observer, executor, context, in_process, t0)
         else:
-            env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1")
-            # Threaded BLAS/OpenMP pools fight over a few shared cores (a 1 ms product took
-            # 460 ms under load): one thread per node unless the user asked otherwise.
-            for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-                env.setdefault(var, "1")
-            # Two malloc arenas per node process: with one per thread (DDS, executor, session,
-            # compositor threads) freed blocks sit in arenas that other threads never reuse, and the
-            # mapper's peak RSS on the fr1/rpy head was 26 MB higher (723 instead of 697 MB).
-            env.setdefault("MALLOC_ARENA_MAX", str(MALLOC_ARENAS))
-            procs = NodeProcesses(params_file, ns, env, out / LOGS_DIR)
-            delayed = {n: float(d) for n, d in options.start_delays_s.items() if float(d) > 0}
-            for name in graph:
-                if name not in delayed:
-                    procs.start(name)
-            for name in recording:  # beside the graph; it subscribes as it discovers their publishers
-                procs.start(name)
-            _wait_for_graph(observer, procs, [n for n in graph if n not in delayed], t0 + options.timeout_s)
-            if recording:
-                topics = node_params(params).get("recorder", {}).get("topics", NODE_MODULES["recorder"].DEFAULT_TOPICS)
-                _wait_for_recorder(observer, procs, topics, t0 + options.timeout_s)
-            _wait_for_warm_graph(observer, procs, [n for n in GRAPH_NODES if n not in delayed], t0 + options.timeout_s)
-            procs.start("bag_player")
-            # Counted from the start of the replay, as kills are; started by _drive's loop.
-            procs.due = {name: time.monotonic() + delay for name, delay in delayed.items()}
+            spin = spin_in_background(executor)
+            procs = _start_processes(options, observer, params, params_file, domain, out, t0)
         try:
             summary = _drive(observer, options, procs, out, t0, progress)
         except BaseException as err:
             _write_ended_summary(out, options, observer, err, time.monotonic() - t0)
             raise
     finally:
-        if procs is not None:
-            procs.stop()
-        for node in in_process:
-            hook = getattr(node, "on_shutdown", None)
-            if hook is not None:
-                hook()
-        stop_spinning(executor, spin)  # before the context ends, or rclpy may abort at exit
-        for node in in_process:
-            node.destroy_node()
-        if observer is not None:
-            observer.node.destroy_node()
-        rclpy.try_shutdown(context=context)
+        _stop_graph(procs, in_process, executor, spin, observer, context)
     # The recorder stopped with the graph (its shutdown closes the file): in parallel, not after it.
     if options.record is not None and _file_identity(options.record) in (None, earlier_record):
         raise PipelineError(f"the recorder did not write {options.record} (see {out / LOGS_DIR / 'recorder.log'})")
     return summary
+
+
+def _write_run_files(options: RunOptions) -> tuple[Path, dict[str, Any], Path]:
+    """The output folder with its logs/ and params.yaml (an earlier run's checkpoint set aside)."""
+    out = Path(options.out_dir).resolve()
+    (out / LOGS_DIR).mkdir(parents=True, exist_ok=True)
+    params_file = out / PARAMS_FILE
+    params = build_params(options, out / MAP_FILE)
+    _write_text(params_file, yaml.safe_dump(params, sort_keys=False))
+    if "mapper.checkpoint_path" not in options.overrides:
+        _set_aside_previous_checkpoint(out / CHECKPOINT_FILE)
+    return out, params, params_file
+
+
+def _graph_names(options: RunOptions) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The graph's nodes (with the Rerun view when asked for) and the recorder when recording."""
+    graph = (*GRAPH_NODES, VIEW_NODE) if options.rerun is not None else GRAPH_NODES
+    return graph, (("recorder",) if options.record is not None else ())
+
+
+def _start_composed(options: RunOptions, observer: _Observer, executor: Executor, context: Any,
+                    in_process: list[Any], t0: float) -> threading.Thread:
+    """The nodes as components on this process's executor; the player once the graph is warm."""
+    graph, recording = _graph_names(options)
+    for name in (*graph, *recording):  # the recorder sees the graph's publishers
+        in_process.append(NODE_FACTORIES[name](context=context))
+        executor.add_node(in_process[-1])
+    spin = spin_in_background(executor)
+    _wait_for_warm_graph(observer, None, GRAPH_NODES, t0 + options.timeout_s)
+    in_process.append(NODE_FACTORIES["bag_player"](context=context))
+    executor.add_node(in_process[-1])
+    return spin
+
+
+def _node_env(domain: int) -> dict[str, str]:
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1")
+    # Threaded BLAS/OpenMP pools fight over a few shared cores (a 1 ms product took
+    # 460 ms under load): one thread per node unless the user asked otherwise.
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        env.setdefault(var, "1")
+    # Two malloc arenas per node process: with one per thread (DDS, executor, session,
+    # compositor threads) freed blocks sit in arenas that other threads never reuse, and the
+    # mapper's peak RSS on the fr1/rpy head was 26 MB higher (723 instead of 697 MB).
+    env.setdefault("MALLOC_ARENA_MAX", str(MALLOC_ARENAS))
+    return env
+
+
+def _start_processes(options: RunOptions, observer: _Observer, params: dict[str, Any], params_file: Path,
+                     domain: int, out: Path, t0: float) -> NodeProcesses:
+    """One process per node; the player once every node listens and has its kernels in. Nodes
+    with a start delay are started by _drive's loop, counted from the start of the replay."""
+    graph, recording = _graph_names(options)
+    deadline = t0 + options.timeout_s
+    procs = NodeProcesses(params_file, options.namespace, _node_env(domain), out / LOGS_DIR)
+    delayed = {n: float(d) for n, d in options.start_delays_s.items() if float(d) > 0}
+    for name in graph:
+        if name not in delayed:
+            procs.start(name)
+    for name in recording:  # beside the graph; it subscribes as it discovers their publishers
+        procs.start(name)
+    _wait_for_graph(observer, procs, [n for n in graph if n not in delayed], deadline)
+    if recording:
+        topics = node_params(params).get("recorder", {}).get("topics", NODE_MODULES["recorder"].DEFAULT_TOPICS)
+        _wait_for_recorder(observer, procs, topics, deadline)
+    _wait_for_warm_graph(observer, procs, [n for n in GRAPH_NODES if n not in delayed], deadline)
+    procs.start("bag_player")
+    procs.due = {name: time.monotonic() + delay for name, delay in delayed.items()}
+    return procs
+
+
+def _stop_graph(procs: NodeProcesses | None, in_process: Sequence[Any], executor: Executor,
+                spin: threading.Thread | None, observer: _Observer | None, context: Any) -> None:
+    """Stop the node processes (each saves what it holds) or the composed nodes, then the
+    runner's own executor and context."""
+    if procs is not None:
+        procs.stop()
+    for node in in_process:
+        hook = getattr(node, "on_shutdown", None)
+        if hook is not None:
+            hook()
+    stop_spinning(executor, spin)  # before the context ends, or rclpy may abort at exit
+    for node in in_process:
+        node.destroy_node()
+    if observer is not None:
+        observer.node.destroy_node()
+    rclpy.try_shutdown(context=context)
 
 
 def _wait_for_fresh_stats(obs: _Observer, names: Sequence[str], timeout_s: float = _STATS_ROUND_S) -> None:
@@ -412,6 +449,55 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
            progress: bool) -> RunSummary:
     """Wait for the end of the source, finish the mapper, sync the merger, save, summarise."""
     end = t0 + options.timeout_s
+    restarts = _replay(obs, options, procs, end, progress)
+    if not obs.source_ok:
+        # What was played is still mapped and saved; the caller reports the failure.
+        logger.error("the source failed part-way (see the bag_player log): finishing and saving the map "
+                     "of the frames played")
+    if not options.lockstep:
+        time.sleep(2.0)  # let the last frames drain through the graph
+    logger.info("source finished after %.1f s; finishing the mapper", time.monotonic() - t0)
+    final = _parse_kv(obs.call(obs.finish_client, max(60.0, end - time.monotonic())))
+    final_seq, gaussians = int(final.get("seq", 0)), int(final.get("gaussians", 0))
+    epoch = int(final.get("epoch", 0))
+    _wait_for_merger(obs, procs, final_seq, epoch, end)
+    identical, max_diff = _compare_maps(obs, final_seq, epoch, end)
+    if options.rerun is not None:
+        _wait_for_view(obs, procs, final_seq, epoch, end)
+    extra = (("recorder",) if options.record is not None else ()) + ((VIEW_NODE,) if options.rerun is not None else ())
+    _wait_for_fresh_stats(obs, (*GRAPH_NODES, *extra))  # so the summary sees the final counts
+    saved = obs.call(obs.save_client, 120.0) if gaussians or final_seq else ""
+    wall = time.monotonic() - t0
+    poses = _write_trajectories(obs, out)
+    tracker, mapper, merger = obs.telemetry("tracker"), obs.telemetry("mapper"), obs.telemetry("merger")
+    track_s = tracker.track_us_total * 1e-6
+    summary = RunSummary(
+        source=str(options.source), frames=tracker.frames_in, poses=poses,
+        keyframes=tracker.keyframes, gaussians=gaussians,
+        tracking_fps=(tracker.frames_in / track_s) if track_s > 0 else 0.0, wall_s=wall,
+        ply_path=saved.split()[0] if saved else "", trajectory_path=str(out / TRAJECTORY_FILE),
+        delta_messages=merger.deltas,
+        delta_bytes=merger.delta_bytes, delta_bytes_per_s=merger.delta_bytes / wall if wall > 0 else 0.0,
+        lost_frames=tracker.state.get("LOST", 0), merger_seq=merger.seq,
+        namespace=options.namespace, domain_id=int(os.environ["ROS_DOMAIN_ID"]),
+        mapping_iterations=mapper.iteration, model_bytes_peak=mapper.model_bytes_peak,
+        gaussians_peak=mapper.gaussians_peak,
+        peak_rss_mb={n: obs.telemetry(n).peak_rss_mb for n in GRAPH_NODES},
+        cpu_s=_cpu_times(obs, procs), merger_resyncs=sum(merger.resync.values()), restarts=restarts,
+        replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render),
+        source_complete=obs.source_ok, frames_played=obs.telemetry("player").frames_published,
+        tracker_skipped={k: tracker.skipped.get(k, 0) for k in ("warming", "stale", "busy")},
+        tracker_frame_cpu_ms=tracker.frame_cpu_ms_median, skipped_frames=dict(obs.telemetry("player").skipped),
+        **_mapper_figures(obs, options.composed))
+    # The summary is a file of the run, so evaluation reads a finished run instead of watching it.
+    _write_text(out / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2) + "\n")
+    return summary
+
+
+def _replay(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, end: float,
+            progress: bool) -> dict[str, int]:
+    """Until the player is done: the fault injection's kills and delayed starts, the nodes'
+    health, the progress bar. Returns the restarts per node."""
     # frames / total, frames/s and ETA on a terminal; nothing when stderr is a file or pipe
     # (stats_timeline.jsonl keeps the same figures).
     bar = tqdm(desc="replay", unit="frame", disable=None, dynamic_ncols=True) if progress else None
@@ -433,11 +519,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
             procs.start_due()
             procs.check()
             if _player_ended_unheard(procs):
-                player = obs.telemetry("player")
-                total, played = player.frames_total, player.frames_published
-                if total and played < total:  # stopped from outside (Ctrl-C exits 0 too), not done
-                    logger.error("the bag player stopped after %d of %d frames: the map holds those", played, total)
-                    obs.source_ok = False
+                _note_unfinished_source(obs)
                 break
         if time.monotonic() > end:
             raise PipelineError(f"the source did not finish within {options.timeout_s:.0f} s")
@@ -451,16 +533,20 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
         logger.warning("fault injection: %s was not killed: the source ended before it had state to lose", name)
     if procs is not None:
         procs.player_reported = True
-    if not obs.source_ok:
-        # What was played is still mapped and saved; the caller reports the failure.
-        logger.error("the source failed part-way (see the bag_player log): finishing and saving the map "
-                     "of the frames played")
-    if not options.lockstep:
-        time.sleep(2.0)  # let the last frames drain through the graph
-    logger.info("source finished after %.1f s; finishing the mapper", time.monotonic() - t0)
-    final = _parse_kv(obs.call(obs.finish_client, max(60.0, end - time.monotonic())))
-    final_seq, gaussians = int(final.get("seq", 0)), int(final.get("gaussians", 0))
-    epoch = int(final.get("epoch", 0))
+    return restarts
+
+
+def _note_unfinished_source(obs: _Observer) -> None:
+    """The player exited 0 unheard: a source it stopped part-way (Ctrl-C exits 0 too) is not done."""
+    player = obs.telemetry("player")
+    total, played = player.frames_total, player.frames_published
+    if total and played < total:
+        logger.error("the bag player stopped after %d of %d frames: the map holds those", played, total)
+        obs.source_ok = False
+
+
+def _wait_for_merger(obs: _Observer, procs: NodeProcesses | None, final_seq: int, epoch: int, end: float) -> None:
+    """Until the merger holds the mapper's final delta of ``epoch``, resynchronised."""
     while (not obs.heard("merger") or (merger := obs.telemetry("merger")).seq < final_seq
            or merger.resyncing > 0 or merger.epoch != epoch):
         if procs is not None:
@@ -468,45 +554,19 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
         if time.monotonic() > end:
             raise PipelineError(f"the merger did not reach delta {final_seq} in time")
         time.sleep(0.1)
-    identical, max_diff = _compare_maps(obs, final_seq, epoch, end)
-    if options.rerun is not None:
-        _wait_for_view(obs, procs, final_seq, epoch, end)
-    extra = (("recorder",) if options.record is not None else ()) + ((VIEW_NODE,) if options.rerun is not None else ())
-    _wait_for_fresh_stats(obs, (*GRAPH_NODES, *extra))  # so the summary sees the final counts
-    saved = obs.call(obs.save_client, 120.0) if gaussians or final_seq else ""
-    ply = saved.split()[0] if saved else ""
-    wall = time.monotonic() - t0
+
+
+def _write_trajectories(obs: _Observer, out: Path) -> int:
+    """trajectory.txt, keyframes.txt and stats_timeline.jsonl; the number of poses."""
     with obs._lock:
         # Corrected poses (memgs/path) where the path has them, the per-frame odometry elsewhere.
         traj = sorted(((s, obs.corrected.get(s, T)) for s, T in obs.trajectory), key=lambda p: p[0])
         kfs = sorted(obs.keyframes, key=lambda p: p[0])
-    traj_path = out / TRAJECTORY_FILE
-    _write_text(traj_path, _tum_trajectory(traj))
+        timeline = "".join(json.dumps(row) + "\n" for row in obs.timeline)
+    _write_text(out / TRAJECTORY_FILE, _tum_trajectory(traj))
     _write_text(out / KEYFRAMES_FILE, _tum_trajectory(kfs))  # poses at insertion
-    with obs._lock:
-        _write_text(out / STATS_TIMELINE_FILE, "".join(json.dumps(row) + "\n" for row in obs.timeline))
-    tracker, mapper, merger = obs.telemetry("tracker"), obs.telemetry("mapper"), obs.telemetry("merger")
-    track_s = tracker.track_us_total * 1e-6
-    summary = RunSummary(
-        source=str(options.source), frames=tracker.frames_in, poses=len(traj),
-        keyframes=tracker.keyframes, gaussians=gaussians,
-        tracking_fps=(tracker.frames_in / track_s) if track_s > 0 else 0.0, wall_s=wall, ply_path=ply,
-        trajectory_path=str(traj_path), delta_messages=merger.deltas,
-        delta_bytes=merger.delta_bytes, delta_bytes_per_s=merger.delta_bytes / wall if wall > 0 else 0.0,
-        lost_frames=tracker.state.get("LOST", 0), merger_seq=merger.seq,
-        namespace=options.namespace, domain_id=int(os.environ["ROS_DOMAIN_ID"]),
-        mapping_iterations=mapper.iteration, model_bytes_peak=mapper.model_bytes_peak,
-        gaussians_peak=mapper.gaussians_peak,
-        peak_rss_mb={n: obs.telemetry(n).peak_rss_mb for n in GRAPH_NODES},
-        cpu_s=_cpu_times(obs, procs), merger_resyncs=sum(merger.resync.values()), restarts=restarts,
-        replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render),
-        source_complete=obs.source_ok, frames_played=obs.telemetry("player").frames_published,
-        tracker_skipped={k: tracker.skipped.get(k, 0) for k in ("warming", "stale", "busy")},
-        tracker_frame_cpu_ms=tracker.frame_cpu_ms_median, skipped_frames=dict(obs.telemetry("player").skipped),
-        **_mapper_figures(obs, options.composed))
-    # The summary is a file of the run, so evaluation reads a finished run instead of watching it.
-    _write_text(out / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2) + "\n")
-    return summary
+    _write_text(out / STATS_TIMELINE_FILE, timeline)
+    return len(traj)
 
 
 def _mapper_figures(obs: _Observer, composed: bool) -> dict[str, Any]:
