@@ -77,15 +77,15 @@ class RunOptions:
 
 @dataclass(frozen=True)
 class RunSummary:
-    source: str
-    frames: int
-    poses: int
-    keyframes: int
-    gaussians: int
-    tracking_fps: float
-    wall_s: float
-    ply_path: str
-    trajectory_path: str
+    source: str  # what was played
+    frames: int  # taken by the tracker
+    poses: int  # in trajectory.txt
+    keyframes: int  # the tracker's
+    gaussians: int  # in the saved map
+    tracking_fps: float  # frames over the time in track()
+    wall_s: float  # start of the nodes to the saved map
+    ply_path: str  # the merger's map
+    trajectory_path: str  # trajectory.txt
     delta_messages: int
     delta_bytes: int
     delta_bytes_per_s: float

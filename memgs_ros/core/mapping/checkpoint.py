@@ -69,13 +69,13 @@ class MapperCheckpoint:
     gaussians: GaussianRecords
     keyframe_ids: np.ndarray
     created_iter: np.ndarray
-    keyframes: tuple[KeyframeState, ...]
-    iteration: int
-    next_id: int
-    active_sh_degree: int
-    scene_extent: float
-    saved_at_s: float = 0.0
-    extra: dict[str, Any] = field(default_factory=dict)
+    keyframes: tuple[KeyframeState, ...]  # the training store
+    iteration: int  # training steps so far
+    next_id: int  # the next Gaussian id (ids are never reused)
+    active_sh_degree: int  # the SH degree training had reached
+    scene_extent: float  # m, the densification scale
+    saved_at_s: float = 0.0  # wall clock
+    extra: dict[str, Any] = field(default_factory=dict)  # free-form, for diagnosis
 
 
 # ------------------------------------------------------------------------------ files

@@ -159,11 +159,11 @@ class SessionStatus:
 class _Sent:
     """What the outbox thread has sent (replaced whole, so readers see one consistent value)."""
 
-    seq: int = 0
-    pending_rows: int = 0
-    messages: int = 0
-    bytes: int = 0
-    snapshots: int = 0
+    seq: int = 0  # the last delta's sequence number
+    pending_rows: int = 0  # changed rows not yet in a delta
+    messages: int = 0  # deltas sent
+    bytes: int = 0  # their size
+    snapshots: int = 0  # full maps sent
 
 
 @dataclass(frozen=True, eq=False)

@@ -29,106 +29,105 @@ def _family() -> Any:  # noqa: ANN401 - a dataclass field default
 class NodeTelemetry:
     """What every node reports (``ros/diagnostics.NodeStats`` fills these in)."""
 
-    peak_rss_mb: float = 0.0
-    rss_mb: float = 0.0
+    peak_rss_mb: float = 0.0  # the process's peak resident memory (VmHWM), MB
+    rss_mb: float = 0.0  # its resident memory now
     cpu_s: float = 0.0  # the process's CPU time so far (composed: of every node in it)
-    nice: int = 0
+    nice: int = 0  # scheduling priority
     kernels_warm: int = 0  # 1 once the node's compiled kernels are loaded (``memgs run`` waits for it)
     problem: Mapping[str, int] = _family()  # problem.<kind>: counted, logged once per kind
 
 
 @dataclass(frozen=True)
 class TrackerTelemetry(NodeTelemetry):
-    frames_in: int = 0
-    poses_out: int = 0
-    keyframes: int = 0
-    track_us_total: int = 0
-    ba_us_total: int = 0
-    frame_cpu_us_total: int = 0
-    frame_cpu_ms: float = 0.0
-    frame_cpu_ms_median: float = 0.0  # message in to pose out, CPU
+    frames_in: int = 0  # colour frames taken
+    poses_out: int = 0  # poses published (memgs/pose, memgs/odom)
+    keyframes: int = 0  # keyframes sent to the sampler and mapper
+    track_us_total: int = 0  # time in track(), microseconds
+    ba_us_total: int = 0  # inline local BA time (threaded BA: 0)
+    frame_cpu_us_total: int = 0  # CPU from message in to pose out, over all frames
+    frame_cpu_ms: float = 0.0  # the last frame's
+    frame_cpu_ms_median: float = 0.0  # its rolling median
     frame_ms_median: float = 0.0  # wall: a lockstep frame's share
-    camera_info_differs: int = 0
+    camera_info_differs: int = 0  # camera_info messages unlike the first (kept)
     refined_keyframe_poses: int = 0  # keyframe poses re-published after local BA
     loop_corrected_keyframe_poses: int = 0  # ... after a loop closure
-    segment: int = 0
+    segment: int = 0  # the map segment tracked on (a new one after a long loss)
     track_ms: float = 0.0  # the last frame's track() time
     ba_waits: int = 0  # frames that waited for the back-end's BA
-    keyframes_deferred: int = 0
-    map_points: int = 0  # the local map's size
-    map_keyframes: int = 0
-    map_keyframes_removed: int = 0
-    warm_up_s: float = 0.0
+    keyframes_deferred: int = 0  # due keyframes put off while a BA ran
+    map_points: int = 0  # the sparse map's size
+    map_keyframes: int = 0  # keyframes it holds
+    map_keyframes_removed: int = 0  # culled as redundant (tracker.max_keyframes)
     skipped: Mapping[str, int] = _family()  # skipped.<warming|stale|busy|...>
     state: Mapping[str, int] = _family()  # state.<OK|LOST|...>: frames per tracking state
 
 
 @dataclass(frozen=True)
 class SamplerTelemetry(NodeTelemetry):
-    keyframes: int = 0
-    seeds_keypoint: int = 0
-    seeds_patch_grid: int = 0
-    dropped_bundles: int = 0
-    pending_bundles: int = 0
+    keyframes: int = 0  # keyframes sampled
+    seeds_keypoint: int = 0  # seeds at the tracker's keypoints
+    seeds_patch_grid: int = 0  # seeds the Patch-Grid added in sparse cells
+    dropped_bundles: int = 0  # incomplete keyframe bundles given up
+    pending_bundles: int = 0  # bundles waiting for a part
 
 
 @dataclass(frozen=True)
 class MapperTelemetry(NodeTelemetry):
     # the node's own
-    raster_backend: str = ""
-    checkpoint_period_s: float = 0.0
-    checkpoints: int = 0
-    checkpoint_gaussians: int = 0
-    checkpoint_ms: float = 0.0
-    resumed: int = 0
-    rss_baseline_mb: float = 0.0
-    warm_up_s: float = 0.0
-    working_peak_mb: float = 0.0
-    iterations_per_s: float = 0.0
-    lockstep_ack_ms_median: float = 0.0
-    keyframes_announced: int = 0
-    keyframes_missed: int = 0
-    duplicate_keyframe_parts: int = 0
-    dropped_keyframe_bundles: int = 0
-    delta_waits: int = 0
-    delta_messages: int = 0
-    delta_bytes: int = 0
-    snapshots: int = 0
+    raster_backend: str = ""  # the rasterizer in use
+    checkpoint_period_s: float = 0.0  # 0: this mapper never checkpoints
+    checkpoints: int = 0  # written
+    checkpoint_gaussians: int = 0  # in the last one
+    checkpoint_ms: float = 0.0  # its write time
+    resumed: int = 0  # 1 when it started from a checkpoint
+    rss_baseline_mb: float = 0.0  # after imports, session and kernels
+    warm_up_s: float = 0.0  # the kernels' load (or compile) time
+    working_peak_mb: float = 0.0  # peak RSS above the baseline
+    iterations_per_s: float = 0.0  # over the last stats period
+    lockstep_ack_ms_median: float = 0.0  # tracker's word to the acknowledgement
+    keyframes_announced: int = 0  # decisions heard from the tracker
+    keyframes_missed: int = 0  # announced but never received whole
+    duplicate_keyframe_parts: int = 0  # a part that came twice
+    dropped_keyframe_bundles: int = 0  # incomplete bundles given up
+    delta_waits: int = 0  # periodic deltas skipped while a receiver lagged
+    delta_messages: int = 0  # map deltas sent
+    delta_bytes: int = 0  # their size
+    snapshots: int = 0  # full maps sent
     # the mapping session's counters
-    keyframes: int = 0
-    duplicate_keyframes: int = 0
-    seeded_gaussians: int = 0
-    insert_ms_total: int = 0
-    keyframe_pose_updates: int = 0
-    refined_poses_of_dropped_keyframes: int = 0
-    keyframes_corrected: int = 0
-    gaussians_corrected: int = 0
-    renders: int = 0
-    train_commands: int = 0
-    train_ms_total: int = 0
-    merged_removed: int = 0
-    merged_added: int = 0
-    budget_merged: int = 0
-    budget_pruned: int = 0
+    keyframes: int = 0  # inserted
+    duplicate_keyframes: int = 0  # inserted twice (the second ignored)
+    seeded_gaussians: int = 0  # added from the sampler's seeds
+    insert_ms_total: int = 0  # time inserting keyframes
+    keyframe_pose_updates: int = 0  # poses refined by the tracker's BA
+    refined_poses_of_dropped_keyframes: int = 0  # refinements of keyframes no longer stored
+    keyframes_corrected: int = 0  # moved by loop closures
+    gaussians_corrected: int = 0  # Gaussians moved with them
+    renders: int = 0  # views rendered on request
+    train_commands: int = 0  # lockstep train commands run
+    train_ms_total: int = 0  # their time
+    merged_removed: int = 0  # Gaussians the voxel merge removed
+    merged_added: int = 0  # ... and added in their place
+    budget_merged: int = 0  # merged to keep within a memory budget
+    budget_pruned: int = 0  # pruned for the same reason
     # the mapping session's gauges (SessionStatus.gauges)
-    insert_queue: int = 0
-    seq: int = 0
-    delta_pending_rows: int = 0
-    alive: int = 0
-    iteration: int = 0
-    iterations_final: int = 0
-    gaussians: int = 0
-    gaussians_peak: int = 0
-    model_bytes: int = 0
-    model_bytes_peak: int = 0
-    keyframes_trained: int = 0
-    keyframes_dropped: int = 0
-    keyframes_used: int = 0
-    keyframes_waiting: int = 0
-    budget_gaussians: int = 0
-    keyframe_bytes: int = 0
-    accounted_bytes: int = 0
-    accounted_bytes_peak: int = 0
+    insert_queue: int = 0  # keyframes waiting for insertion
+    seq: int = 0  # the last delta's sequence number
+    delta_pending_rows: int = 0  # changed rows not yet sent
+    alive: int = 0  # 1 while the session's worker and outbox run
+    iteration: int = 0  # training steps so far
+    iterations_final: int = 0  # those run by the finish
+    gaussians: int = 0  # in the map now
+    gaussians_peak: int = 0  # the most at any time
+    model_bytes: int = 0  # parameters, gradients and Adam moments
+    model_bytes_peak: int = 0  # their peak
+    keyframes_trained: int = 0  # stored for training
+    keyframes_dropped: int = 0  # left the store (mapping.max_keyframes)
+    keyframes_used: int = 0  # trained at least once
+    keyframes_waiting: int = 0  # stored, not yet trained
+    budget_gaussians: int = 0  # the budget's bound (0: none)
+    keyframe_bytes: int = 0  # stored keyframes' tensors
+    accounted_bytes: int = 0  # model, keyframes and step buffers
+    accounted_bytes_peak: int = 0  # their peak
     loss: float | None = None  # None: no training step yet
     cuda_max_allocated: int | None = None  # None: not on CUDA
     # None until a keyframe has been trained (intake: decoded and prepared; latency: from the
@@ -142,51 +141,51 @@ class MapperTelemetry(NodeTelemetry):
 
 @dataclass(frozen=True)
 class MergerTelemetry(NodeTelemetry):
-    deltas: int = 0
-    delta_bytes: int = 0
-    renders: int = 0
-    saves: int = 0
-    snapshot_requests: int = 0
-    snapshots: int = 0
-    buffered_deltas: int = 0
-    epoch: int = 0
-    gaussians: int = 0
-    map_bytes: int = 0
-    render_cache_bytes: int = 0
-    resyncing: int = 0
-    seq: int = 0
-    unknown_removals: int = 0
-    fault_dropped_deltas: int = 0
-    resync: Mapping[str, int] = _family()  # resync.<status>
+    deltas: int = 0  # map deltas received
+    delta_bytes: int = 0  # their size
+    renders: int = 0  # views rendered on request
+    saves: int = 0  # PLY files written
+    snapshot_requests: int = 0  # full maps asked of the mapper
+    snapshots: int = 0  # full maps applied
+    buffered_deltas: int = 0  # held while resynchronising
+    epoch: int = 0  # the mapper's epoch followed
+    gaussians: int = 0  # in the replica
+    map_bytes: int = 0  # the replica's size
+    render_cache_bytes: int = 0  # the renderer's tensors
+    resyncing: int = 0  # 1 while waiting for a full map
+    seq: int = 0  # the last delta applied
+    unknown_removals: int = 0  # removals of ids the replica never held
+    fault_dropped_deltas: int = 0  # test-only fault injection (MEMGS_TEST_FAULTS)
+    resync: Mapping[str, int] = _family()  # resync.<status>: why the replica resynchronised
 
 
 @dataclass(frozen=True)
 class PlayerTelemetry(NodeTelemetry):
-    frames_published: int = 0
-    frames_total: int = 0
-    ack_timeouts: int = 0
-    ack_wait_ms_median: float = 0.0
-    late_ms: float = 0.0
+    frames_published: int = 0  # frames sent
+    frames_total: int = 0  # in the source (0: looping)
+    ack_timeouts: int = 0  # lockstep frames whose acknowledgement never came
+    ack_wait_ms_median: float = 0.0  # a lockstep frame's round trip
+    late_ms: float = 0.0  # behind the real-time schedule
     skipped: Mapping[str, int] = _family()  # skipped.<kind>: frames the source could not give
 
 
 @dataclass(frozen=True)
 class RecorderTelemetry(NodeTelemetry):
-    messages: int = 0
-    bytes: int = 0
-    topics: int = 0
+    messages: int = 0  # written to the .mcap
+    bytes: int = 0  # their payload
+    topics: int = 0  # being recorded
 
 
 @dataclass(frozen=True)
 class ViewTelemetry(NodeTelemetry):
     map_seq: int = -1  # the last map logged (-1: none yet)
-    map_epoch: int = -1
-    map_gaussians: int = 0
-    map_requests: int = 0
-    log_us_total: int = 0
-    psnr_db: float = 0.0
-    logged: Mapping[str, int] = _family()  # logged.<what>
-    log_us: Mapping[str, int] = _family()  # log_us.<what>
+    map_epoch: int = -1  # its epoch
+    map_gaussians: int = 0  # its size
+    map_requests: int = 0  # full maps asked of the merger
+    log_us_total: int = 0  # time in Rerun's log calls
+    psnr_db: float = 0.0  # the last render against its frame
+    logged: Mapping[str, int] = _family()  # logged.<what>: entities logged
+    log_us: Mapping[str, int] = _family()  # log_us.<what>: their time
 
 
 T = TypeVar("T", bound=NodeTelemetry)
