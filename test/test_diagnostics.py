@@ -82,3 +82,19 @@ def test_a_key_the_record_does_not_name_is_refused_where_it_is_written(context) 
             NodeStats(node, "no_such_node")
     finally:
         node.destroy_node()
+
+
+def test_outside_the_tests_an_unnamed_key_is_counted_and_dropped(context, monkeypatch) -> None:  # noqa: ANN001
+    """On a robot a misspelt key must not stop the node: the value is dropped, the problem counted."""
+    monkeypatch.delenv("MEMGS_STRICT_STATS")
+    node = rclpy.create_node("stats_lenient", context=context)
+    try:
+        stats = NodeStats(node, "tracker", period_s=3600.0)
+        stats.counters["frames_received"] += 1
+        stats.post_gauge("warmup_s", 1.0)
+        stats.gauges.update(frame_cpu_ms=1.5, frame_cpu=2.0)
+        values = stats_values(stats.message())
+        assert "frames_received" not in values and "warmup_s" not in values and "frame_cpu" not in values
+        assert values["frame_cpu_ms"] == "1.5" and values["problem.stats_key"] == "3"
+    finally:
+        node.destroy_node()

@@ -196,6 +196,26 @@ def test_bad_keyframe_is_an_event_and_finish_refuses_later_ones(frames: list[Fra
         s.train(1)
 
 
+def test_an_interrupted_finish_stops_after_its_step_and_the_state_is_saved_next(frames: list[Frame]) -> None:
+    """A node shutting down mid-finish (its runner died) must save within its stop deadline: the
+    interrupt ends the final iterations after the step in progress, and the save queued behind
+    them runs at once."""
+    s = MappingSession(_cfg(), free_running=False)
+    for i, f in enumerate(frames[:2]):
+        s.insert_keyframe(_kf(f, 20 + i))
+    finishing = s.finish(1_000_000)  # far more than the test could wait for
+    deadline = time.monotonic() + 60
+    while s.status.iterations_final < 3:  # the finish is under way
+        assert time.monotonic() < deadline, "the finish did not start"
+        time.sleep(0.01)
+    saved = s.state_dict()
+    s.interrupt()
+    done = finishing.result(60)
+    assert 3 <= done.final_iterations < 1_000_000
+    assert saved.result(60).iteration == s.status.iteration == done.final_iterations
+    s.close()
+
+
 def test_state_round_trip_through_a_new_session(frames: list[Frame]) -> None:
     s = MappingSession(_cfg(), free_running=False)
     for i, f in enumerate(frames[:3]):

@@ -3,6 +3,8 @@ types, and the run summary's figures come from fields (a renamed counter fails h
 from __future__ import annotations
 
 import dataclasses
+import re
+from pathlib import Path
 
 import pytest
 
@@ -80,3 +82,34 @@ def _names(record: type, key: str) -> bool:
     except StatsError:
         return False
     return True
+
+
+# Which record each file's stats writes go to (the node whose NodeStats it is handed).
+_WRITERS = {
+    "nodes/tracker.py": "tracker", "ros/tracker_outputs.py": "tracker",
+    "nodes/keyframe_sampler.py": "keyframe_sampler",
+    "nodes/mapper.py": "mapper", "ros/mapper_stats.py": "mapper", "core/mapping/checkpoint_saver.py": "mapper",
+    "nodes/merger.py": "merger", "ros/view_outputs.py": "merger",
+    "nodes/bag_player.py": "player", "nodes/recorder.py": "recorder",
+    "nodes/rerun_bridge.py": "rerun_bridge", "viz/live_view.py": "rerun_bridge",
+}
+_WRITE = re.compile(r"""(?:counters|gauges|computed|\b(?<!\.)g)\["([\w.]+)"\]|post_(?:count|counter|gauge)\("([\w.]+)"|"""
+                    r"""gauges\.update\(((?:\w+=[^,)]+,?\s*)+)\)""")
+
+
+def test_every_stats_key_a_node_writes_is_a_field_of_its_record() -> None:
+    """Read from the source: a key written by a path no test runs (a warm-up's gauge, a rare
+    counter) is checked here too, and a file that writes stats must be listed above."""
+    root = Path(__file__).resolve().parent.parent / "memgs_ros"
+    writers = {str(p.relative_to(root)) for p in root.rglob("*.py") if _WRITE.search(p.read_text())}
+    # the stats class; the session's own Counter; a tensor ``g["..."]`` of gradients
+    writers -= {"ros/diagnostics.py", "core/mapping/session.py", "core/mapping/gaussians.py"}
+    assert writers <= set(_WRITERS), f"stats writers not mapped to a node: {sorted(writers - set(_WRITERS))}"
+    missing = []
+    for rel, node in _WRITERS.items():
+        for m in _WRITE.finditer((root / rel).read_text()):
+            keys = [m.group(1) or m.group(2)] if not m.group(3) else re.findall(r"(\w+)=", m.group(3))
+            for key in keys:
+                if not _names(TELEMETRY[node], key):
+                    missing.append(f"{rel}: {key!r} is not a field of {TELEMETRY[node].__name__}")
+    assert missing == []

@@ -230,6 +230,7 @@ class MapperNode(Node):
             self.live_view.started(rendered)
 
     def on_shutdown(self) -> None:
+        self.session.interrupt()  # a finish in progress ends after its step: the save comes next
         try:  # bounded: the runner kills a node that takes longer than its stop deadline
             saved = self.checkpoints.save_within(SHUTDOWN_SAVE_TIMEOUT_S)
         except TimeoutError:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Mapping
@@ -248,6 +249,7 @@ class MappingSession(CommandWorker):
         self._stamps: dict[int, int] = {}  # keyframe stamp -> keyframe id (ids 0, 1, ... by arrival)
         self._render_camera: PinholeCamera | None = None
         self._finished = False
+        self._interrupted = threading.Event()  # set from any thread: a finish in progress stops early
         self._training = free_running
         self._counters: Counter[str] = Counter()
         self._peaks = [0, 0, 0]  # model bytes, Gaussians, accounted bytes
@@ -384,6 +386,12 @@ class MappingSession(CommandWorker):
         ``extra["keyframe_stamps"]``), or None when ``only_if_changed`` and nothing changed since
         the last capture."""
         return self.submit("state_dict", lambda: self._state_dict(only_if_changed))
+
+    def interrupt(self) -> None:
+        """From any thread: a finish in progress (or to come) stops after the step it is in, so a
+        node that is shutting down saves the map as trained so far within its stop deadline
+        instead of waiting out the final iterations (minutes on a busy CPU)."""
+        self._interrupted.set()
 
     def finish(self, final_iterations: int = 0, densify: bool = True,
                budget_s: float = 0.0, total_iterations: int = 0) -> Future[FinishResult]:
@@ -580,6 +588,8 @@ class MappingSession(CommandWorker):
             self._finished = True
             final_iterations = max(final_iterations, total_iterations - self._mapper.iteration)
             for _ in range(final_iterations):  # on whatever keyframes there are, even fewer than min_keyframes
+                if self._interrupted.is_set():
+                    break
                 st = self._mapper.step(densify=densify, final=True)
                 if st is None:
                     break

@@ -58,6 +58,7 @@ class TrackerTelemetry(NodeTelemetry):
     map_points: int = 0  # the sparse map's size
     map_keyframes: int = 0  # keyframes it holds
     map_keyframes_removed: int = 0  # culled as redundant (tracker.max_keyframes)
+    warm_up_s: float = 0.0  # the kernels' load (or compile) time
     skipped: Mapping[str, int] = _family()  # skipped.<warming|stale|busy|...>
     state: Mapping[str, int] = _family()  # state.<OK|LOST|...>: frames per tracking state
 
