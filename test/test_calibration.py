@@ -227,7 +227,7 @@ def test_unknown_folder_camera_fails_before_any_node(tmp_path: Path, capsys: pyt
 
 
 def test_evaluation_scores_with_the_camera_the_run_used(tmp_path: Path) -> None:
-    from memgs_ros.evaluation import _ground_truth_images
+    from memgs_ros.evaluation.runs import _ground_truth_images
 
     bag, true = _wrong_info_bag(tmp_path, SMALL, ros1=False)
     wrong = ROS_DEFAULT.fitted(true.width, true.height)

@@ -35,7 +35,7 @@ class ViewOutbox:
         if future.cancelled():
             return  # a newer request replaced it before it ran
         try:
-            view = future.result()
+            view = future.result(0)  # done: never waits
         except WorkerStopped:
             return  # the node is shutting down
         except Exception as err:  # noqa: BLE001 - counted and logged; the next request may succeed

@@ -220,7 +220,7 @@ def _forward(src: Future[Any], dst: Future[Any], errors_only: bool = False) -> N
         if err is not None:
             dst.set_exception(err)
         elif not errors_only:
-            dst.set_result(f.result())
+            dst.set_result(f.result(0))  # done: never waits
     src.add_done_callback(done)
 
 
