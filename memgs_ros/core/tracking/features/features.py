@@ -54,14 +54,18 @@ class OrbExtractor:
     share and the remaining budget goes to the strongest leftovers. Cells that found nothing
     are retried at ``fast_min_threshold`` only when the image is short of keypoints.
 
-    ``extract`` builds the image pyramid once and runs OpenCV's single-level ORB on each level to
-    detect; the grid's keypoints are then described on the same level images, by ``orb.describe``
-    (a numba kernel on the level smoothed once, as exact as OpenCV's ``compute``, which copies and
-    smooths each level again; where numba is missing, by ``compute``). OpenCV's multi-level ORB
+    ``extract`` builds the image pyramid once and runs OpenCV's FAST on each level; what OpenCV's
+    single-level ORB then does (keep the best FAST scores, score them by Harris, keep the best,
+    orient them) ``orb.detect_level`` does on arrays, without ORB's copy of the level, its Python
+    keypoint objects and their conversions. The grid's keypoints are then described on the same
+    level images, by ``orb.describe`` (a numba kernel on the level smoothed once, as exact as
+    OpenCV's ``compute``, which copies and smooths each level again). Where numba is missing,
+    ``_extract_opencv`` runs the single-level ORBs and ``compute`` instead. OpenCV's multi-level ORB
     builds its pyramid a second time to describe (on fr1/rpy the extraction took 1.67 times
     OpenCV's own of 1000 features that way, 1.35-1.38 with one pyramid and ``compute``, 1.23-1.27
-    with the kernel). ``_extract_reference`` is that multi-level path; all give the same keypoints
-    (positions within 1e-3 px), octaves and descriptors, the per-level paths in the same order.
+    with the descriptor kernel, 1.30 against 1.34 before it, measured alike, with ``detect_level``).
+    ``_extract_reference`` is that multi-level path; all give the same keypoints (positions within
+    1e-3 px), octaves and descriptors, the per-level paths in the same order.
     """
 
     def __init__(self, cfg: TrackerConfig) -> None:
@@ -71,8 +75,12 @@ class OrbExtractor:
         counts = level_shares(2 * cfg.n_features, cfg.scale_factor, cfg.n_levels)
         # Level k's scale, as OpenCV's ORB computes it (a float32 power).
         self._scales = [float(np.float32(cfg.scale_factor ** k)) for k in range(cfg.n_levels)]
-        self._level_orb = [self._make_orb(max(c, 1), 1, cfg.fast_threshold) for c in counts]
-        self._level_orb_low = [self._make_orb(max(c, 1), 1, cfg.fast_min_threshold) for c in counts]
+        self._level_counts = [max(c, 1) for c in counts]
+        self._level_orb = [self._make_orb(c, 1, cfg.fast_threshold) for c in self._level_counts]
+        self._level_orb_low = [self._make_orb(c, 1, cfg.fast_min_threshold) for c in self._level_counts]
+        # OpenCV's FAST as ORB runs it (9 of 16, non-maximum suppression), for ``orb.detect_level``.
+        self._fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)
+        self._fast_low = cv2.FastFeatureDetector_create(cfg.fast_min_threshold, True)
         # ORB's intensity tests for ``orb.describe``, where numba and the tests are at hand (else
         # OpenCV's ``compute`` describes).
         self._tests = orb.intensity_tests() if orb.compiled_orb_available() else None
@@ -134,6 +142,45 @@ class OrbExtractor:
         ``mask`` [H, W] uint8 (non-zero: where keypoints may lie) takes the reference path."""
         if mask is not None:
             return self._extract_reference(gray, camera, depth_m, mask)
+        if self._tests is None:
+            return self._extract_opencv(gray, camera, depth_m)
+        pyr = self._pyramid(gray)
+        found = [self._detect_level(img, k, self._fast) for k, img in enumerate(pyr)]
+        if sum(len(xy) for xy, _, _ in found) < self.cfg.n_features:
+            found = [self._detect_level(img, k, self._fast_low) for k, img in enumerate(pyr)]
+        sizes = [len(xy) for xy, _, _ in found]
+        if sum(sizes) == 0:
+            return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
+        pts = np.concatenate([xy * np.float32(sc) for (xy, _, _), sc in zip(found, self._scales)])
+        resp = np.concatenate([r for _, r, _ in found])
+        chosen = orb.select_grid(pts, resp, self.cfg.n_features, self.cfg.grid_cell_px, gray.shape[1], gray.shape[0])
+        # ``chosen`` ascends: each level's keypoints are one slice of it.
+        first = np.cumsum([0, *sizes])
+        bounds = np.searchsorted(chosen, first)
+        uv, octave, desc = [], [], []
+        for k, (xy_level, _, angle) in enumerate(found):
+            idx = chosen[bounds[k]:bounds[k + 1]] - first[k]
+            if len(idx) == 0:
+                continue
+            xy = xy_level[idx]
+            desc.append(orb.describe(orb.smooth(pyr[k]), np.rint(xy).astype(np.int64), angle[idx], self._tests))
+            uv.append(xy * np.float32(self._scales[k]))
+            octave.append(np.full(len(xy), k, np.int64))
+        return self._finish(gray, camera, depth_m, np.concatenate(uv), np.concatenate(octave), np.concatenate(desc))
+
+    def _detect_level(self, level: np.ndarray, k: int, fast: cv2.FastFeatureDetector
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Level k's keypoints as its single-level ORB detects them: (positions [K, 2] float32,
+        Harris responses [K], angles [K]), by OpenCV's FAST and ``orb.detect_level``."""
+        kps = fast.detect(level)
+        score = np.fromiter(map(_RESPONSE, kps), np.float32, len(kps))
+        xy = _positions(kps)
+        idx, response, angle = orb.detect_level(level, xy, score, self._level_counts[k], EDGE_PX)
+        return xy[idx], response, angle
+
+    def _extract_opencv(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None) -> FrameFeatures:
+        """``extract`` where numba or the read-off tests are missing: the single-level ORBs detect
+        on the one pyramid and describe by OpenCV's ``compute``, the numpy grid selects."""
         pyr = self._pyramid(gray)
         found = [det.detect(img, None) for det, img in zip(self._level_orb, pyr)]
         if sum(len(k) for k in found) < self.cfg.n_features:
@@ -141,33 +188,21 @@ class OrbExtractor:
         sizes = [len(k) for k in found]
         if sum(sizes) == 0:
             return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
-        xy_levels = [_positions(k) for k in found]
-        pts = np.concatenate([xy * np.float32(sc) for xy, sc in zip(xy_levels, self._scales)])
+        pts = np.concatenate([_positions(k) * np.float32(sc) for k, sc in zip(found, self._scales)])
         # Attributes read by C-level iteration (map and attrgetter): twice as fast as a generator.
         resp = np.fromiter(chain.from_iterable(map(_RESPONSE, level) for level in found), np.float32, len(pts))
-        if self._tests is not None:
-            chosen = orb.select_grid(pts, resp, self.cfg.n_features, self.cfg.grid_cell_px, gray.shape[1],
-                                     gray.shape[0])
-        else:
-            chosen = self._select_indices(pts, resp, gray.shape[1], gray.shape[0])
-        # ``chosen`` ascends: each level's keypoints are one slice of it.
+        chosen = self._select_indices(pts, resp, gray.shape[1], gray.shape[0])
         first = np.cumsum([0, *sizes])
         bounds = np.searchsorted(chosen, first)
         uv, octave, desc = [], [], []
         for k, det in enumerate(self._level_orb):
-            idx = chosen[bounds[k]:bounds[k + 1]] - first[k]
-            if len(idx) == 0:
+            kps = [found[k][i] for i in (chosen[bounds[k]:bounds[k + 1]] - first[k]).tolist()]
+            if not kps:
                 continue
-            kps = [found[k][i] for i in idx.tolist()]
-            if self._tests is not None:
-                xy = xy_levels[k][idx]
-                angle = np.fromiter(map(_ANGLE, kps), np.float32, len(kps))
-                d = orb.describe(orb.smooth(pyr[k]), np.rint(xy).astype(np.int64), angle, self._tests)
-            else:
-                kept, d = det.compute(pyr[k], kps)
-                if not kept or d is None:
-                    continue
-                xy = _positions(kept)
+            kept, d = det.compute(pyr[k], kps)
+            if not kept or d is None:
+                continue
+            xy = _positions(kept)
             uv.append(xy * np.float32(self._scales[k]))
             octave.append(np.full(len(xy), k, np.int64))
             desc.append(d)

@@ -14,7 +14,10 @@ comparisons agree with that bit in every image) and checks them against OpenCV's
 random orientations before they are used. Where numba is missing or the check fails,
 :func:`compiled_orb_available` is False and the extractor keeps OpenCV's ``compute``.
 
-``select_grid`` is the compiled twin of the extractor's grid selection.
+``select_grid`` is the compiled twin of the extractor's grid selection. ``detect_level`` is what
+OpenCV's single-level ORB does after its FAST (the best FAST scores, their Harris scores, the best
+of those, their orientations), on arrays instead of Python keypoint objects, with the same results
+in the same order; its twin is ``ORB.detect`` itself (``OrbExtractor._extract_opencv`` calls it).
 """
 from __future__ import annotations
 
@@ -103,12 +106,280 @@ def _describe(smoothed, xs, ys, cos_a, sin_a, tests):
     return out
 
 
+# ORB's detection after FAST (OpenCV's single-level ``ORB.detect``), for ``detect_level``: keep the
+# best FAST scores, score those by Harris, keep the best Harris scores, orient by the intensity
+# centroid. Its order is the order ORB's ``KeyPointsFilter.retainBest`` leaves (libstdc++'s
+# ``nth_element`` and ``partition``, ported step by step below), so that everything downstream
+# sees the same keypoints in the same order.
+_HARRIS_K = np.float32(0.04)
+_HARRIS_SCALE = np.float32(1.0) / np.float32(4 * 7 * 255.0)  # 1 / ((1 << 2) * blockSize * 255), blockSize 7
+_HARRIS_SCALE4 = _HARRIS_SCALE * _HARRIS_SCALE * _HARRIS_SCALE * _HARRIS_SCALE
+_EPS32 = np.float32(2.220446049250313e-16)  # (float)DBL_EPSILON in OpenCV's fastAtan2
+_DEG = np.float32(180.0 / np.pi)
+_ATAN_P1 = np.float32(0.9997878412794807) * _DEG
+_ATAN_P3 = np.float32(-0.3258083974640975) * _DEG
+_ATAN_P5 = np.float32(0.1555786518463281) * _DEG
+_ATAN_P7 = np.float32(-0.04432655554792128) * _DEG
+_F90, _F180, _F360 = np.float32(90.0), np.float32(180.0), np.float32(360.0)
+
+
+def _umax(half: int) -> np.ndarray:
+    """Half-width of ORB's circular orientation patch per row (OpenCV's ``umax``, made symmetric)."""
+    umax = np.zeros(half + 2, np.int64)
+    root2 = np.float32(np.sqrt(np.float32(2.0)))
+    vmax = int(np.floor(np.float32(half) * root2 / np.float32(2) + np.float32(1)))
+    vmin = int(np.ceil(np.float32(half) * root2 / np.float32(2)))
+    for v in range(vmax + 1):
+        umax[v] = int(np.rint(np.sqrt(float(half * half - v * v))))
+    v0 = 0
+    for v in range(half, vmin - 1, -1):
+        while umax[v0] == umax[v0 + 1]:
+            v0 += 1
+        umax[v] = v0
+        v0 += 1
+    return umax
+
+
+_UMAX = _umax(PATCH_RADIUS)
+
+
+def _adjust_heap(a, key, first, hole, length, value):
+    """libstdc++'s ``__adjust_heap`` then ``__push_heap`` on a[first:first + length], ordered by key descending."""
+    top = hole
+    child = hole
+    while child < (length - 1) // 2:
+        child = 2 * (child + 1)
+        if key[a[first + child]] > key[a[first + child - 1]]:
+            child -= 1
+        a[first + hole] = a[first + child]
+        hole = child
+    if (length & 1) == 0 and child == (length - 2) // 2:
+        child = 2 * (child + 1)
+        a[first + hole] = a[first + child - 1]
+        hole = child - 1
+    parent = (hole - 1) // 2
+    while hole > top and key[a[first + parent]] > key[value]:
+        a[first + hole] = a[first + parent]
+        hole = parent
+        parent = (hole - 1) // 2
+    a[first + hole] = value
+
+
+def _nth_element(a, key, first, nth, last):
+    """libstdc++'s ``std::nth_element(a + first, a + nth, a + last)`` with ``key[i] > key[j]`` as the
+    order (OpenCV's ``KeypointResponseGreater``): the same permutation of a, step by step."""
+    if first == last or nth == last:
+        return
+    n = last - first
+    depth = 0
+    while n > 1:
+        n >>= 1
+        depth += 1
+    depth *= 2
+    while last - first > 3:
+        if depth == 0:  # heap select, then the nth in place
+            middle = nth + 1
+            length = middle - first
+            if length >= 2:
+                parent = (length - 2) // 2
+                while True:
+                    _adjust_heap(a, key, first, parent, length, a[first + parent])
+                    if parent == 0:
+                        break
+                    parent -= 1
+            for i in range(middle, last):
+                if key[a[i]] > key[a[first]]:
+                    value = a[i]
+                    a[i] = a[first]
+                    _adjust_heap(a, key, first, 0, length, value)
+            a[first], a[nth] = a[nth], a[first]
+            return
+        depth -= 1
+        # median of (first + 1, mid, last - 1) moved to first, then the unguarded partition
+        mid = first + (last - first) // 2
+        x, y, z = first + 1, mid, last - 1
+        if key[a[x]] > key[a[y]]:
+            if key[a[y]] > key[a[z]]:
+                m = y
+            elif key[a[x]] > key[a[z]]:
+                m = z
+            else:
+                m = x
+        elif key[a[x]] > key[a[z]]:
+            m = x
+        elif key[a[y]] > key[a[z]]:
+            m = z
+        else:
+            m = y
+        a[first], a[m] = a[m], a[first]
+        lo, hi = first + 1, last
+        pivot = key[a[first]]
+        while True:
+            while key[a[lo]] > pivot:
+                lo += 1
+            hi -= 1
+            while pivot > key[a[hi]]:
+                hi -= 1
+            if not lo < hi:
+                break
+            a[lo], a[hi] = a[hi], a[lo]
+            lo += 1
+        if lo <= nth:
+            first = lo
+        else:
+            last = lo
+    # insertion sort of what is left
+    for i in range(first + 1, last):
+        value = a[i]
+        if key[value] > key[a[first]]:
+            for j in range(i, first, -1):
+                a[j] = a[j - 1]
+            a[first] = value
+        else:
+            j = i
+            while key[value] > key[a[j - 1]]:
+                a[j] = a[j - 1]
+                j -= 1
+            a[j] = value
+
+
+def _retain_best(a, count, key, n):
+    """OpenCV's ``KeyPointsFilter::retainBest`` on a[:count]: the n best by key, and every one tied
+    with the nth, in the order ``nth_element`` and ``std::partition`` leave; the new count."""
+    if count <= n:
+        return count
+    if n == 0:
+        return 0
+    _nth_element(a, key, 0, n - 1, count)
+    threshold = key[a[n - 1]]
+    lo, hi = n, count  # libstdc++'s bidirectional ``partition``: keep key >= threshold in front
+    while True:
+        while lo != hi and key[a[lo]] >= threshold:
+            lo += 1
+        if lo == hi:
+            return lo
+        hi -= 1
+        while lo != hi and not key[a[hi]] >= threshold:
+            hi -= 1
+        if lo == hi:
+            return lo
+        a[lo], a[hi] = a[hi], a[lo]
+        lo += 1
+
+
+def _harris(flat, centre, step, pix):
+    """ORB's Harris score (7x7 block, k 0.04) at ``centre`` of the level flat [H * W] uint8 (row
+    ``step``); float32 as OpenCV's. Its derivatives are OpenCV's 3x3 Sobel, taken as a difference
+    then a [1, 2, 1] sum on the 9x9 pixels read once into ``pix`` [9, 9] int32; the integer sums
+    are exact in any order."""
+    for r in range(9):
+        row = np.uint64(centre + (r - 4) * step - 4)
+        for q in range(9):
+            pix[r, q] = flat[row + np.uint64(q)]
+    a = 0
+    b = 0
+    c = 0
+    for r in range(1, 8):
+        for q in range(1, 8):
+            ix = ((pix[r - 1, q + 1] - pix[r - 1, q - 1]) + 2 * (pix[r, q + 1] - pix[r, q - 1])
+                  + (pix[r + 1, q + 1] - pix[r + 1, q - 1]))
+            iy = ((pix[r + 1, q - 1] - pix[r - 1, q - 1]) + 2 * (pix[r + 1, q] - pix[r - 1, q])
+                  + (pix[r + 1, q + 1] - pix[r - 1, q + 1]))
+            a += ix * ix
+            b += iy * iy
+            c += ix * iy
+    fa, fb, fc = np.float32(a), np.float32(b), np.float32(c)
+    s = fa + fb
+    return (fa * fb - fc * fc - _HARRIS_K * s * s) * _HARRIS_SCALE4
+
+
+def _fast_atan2(y, x):
+    """OpenCV's ``fastAtan2`` (degrees, float32 polynomial)."""
+    ax, ay = abs(x), abs(y)
+    if ax >= ay:
+        c = ay / (ax + _EPS32)
+        c2 = c * c
+        r = (((_ATAN_P7 * c2 + _ATAN_P5) * c2 + _ATAN_P3) * c2 + _ATAN_P1) * c
+    else:
+        c = ax / (ay + _EPS32)
+        c2 = c * c
+        r = _F90 - (((_ATAN_P7 * c2 + _ATAN_P5) * c2 + _ATAN_P3) * c2 + _ATAN_P1) * c
+    if x < 0:
+        r = _F180 - r
+    if y < 0:
+        r = _F360 - r
+    return r
+
+
+def _orientation(flat, centre, step, umax):
+    """ORB's intensity-centroid angle (degrees) of the circular patch (half-widths ``umax`` per row)
+    around ``centre`` of the level flat [H * W] uint8 (row ``step``); the integer moments summed row
+    by row (exact in any order)."""
+    half = umax.shape[0] - 2
+    m01 = 0
+    m10 = 0
+    for v in range(-half, half + 1):
+        d = half if v == 0 else umax[abs(v)]
+        row = np.uint64(centre + v * step)
+        total = 0
+        moment = 0
+        for u in range(1, d + 1):
+            right = np.int64(flat[row + np.uint64(u)])
+            left = np.int64(flat[row - np.uint64(u)])
+            total += right + left
+            moment += u * (right - left)
+        total += np.int64(flat[row])
+        m01 += v * total
+        m10 += moment
+    return _fast_atan2(np.float32(m01), np.float32(m10))
+
+
+def _detect_level(img, xy, score, n, edge, umax):
+    """OpenCV's single-level ORB detection after its FAST (positions xy [N, 2] float32, scores [N]
+    float32 in FAST's order) on the level img [H, W] uint8, keeping n: indices [K] into xy in ORB's
+    order, Harris responses [K] and angles [K] (float32)."""
+    h, w = img.shape
+    step = w
+    flat = img.ravel()
+    m = xy.shape[0]
+    a = np.empty(m, np.int64)
+    count = 0
+    if 2 * edge < w and 2 * edge < h:
+        for i in range(m):  # KeyPointsFilter::runByImageBorder, order kept
+            if edge <= xy[i, 0] < w - edge and edge <= xy[i, 1] < h - edge:
+                a[count] = i
+                count += 1
+    count = _retain_best(a, count, score, 2 * n)
+    harris = np.zeros(m, np.float32)
+    pix = np.empty((9, 9), np.int32)
+    for k in range(count):
+        i = a[k]
+        harris[i] = _harris(flat, np.int64(np.rint(xy[i, 1])) * step + np.int64(np.rint(xy[i, 0])), step, pix)
+    count = _retain_best(a, count, harris, n)
+    idx = a[:count].copy()
+    response = np.empty(count, np.float32)
+    angle = np.empty(count, np.float32)
+    for k in range(count):
+        i = idx[k]
+        response[k] = harris[i]
+        centre = np.int64(np.rint(xy[i, 1])) * step + np.int64(np.rint(xy[i, 0]))
+        angle[k] = _orientation(flat, centre, step, umax)
+    return idx, response, angle
+
+
 if numba_available():
     import numba
 
     _jit = numba.njit(cache=True, nogil=True)
     _select_grid = _jit(_select_grid)
     _describe = _jit(_describe)
+    _adjust_heap = _jit(_adjust_heap)
+    _nth_element = _jit(_nth_element)
+    _retain_best = _jit(_retain_best)
+    _harris = _jit(_harris)
+    _fast_atan2 = _jit(_fast_atan2)
+    _orientation = _jit(_orientation)
+    _detect_level = _jit(_detect_level)
 
 
 def select_grid(pts: np.ndarray, resp: np.ndarray, n: int, cell: float, width: int, height: int) -> np.ndarray:
@@ -119,6 +390,17 @@ def select_grid(pts: np.ndarray, resp: np.ndarray, n: int, cell: float, width: i
     gx, gy = max(1, int(np.ceil(width / cell))), max(1, int(np.ceil(height / cell)))
     return _select_grid(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(resp, np.float32), int(n),
                         np.float32(cell), gx, gy)
+
+
+def detect_level(level: np.ndarray, xy: np.ndarray, score: np.ndarray, n: int, edge: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What OpenCV's single-level ORB (``nfeatures`` n, ``edgeThreshold`` edge, patch 31, Harris
+    score) keeps of the FAST corners (level positions xy [N, 2], scores [N], in the order FAST
+    found them) on ``level`` [H, W] uint8: (indices [K] into xy, Harris responses [K], angles [K]
+    in degrees), in ORB's order; the same keypoints ``ORB.detect`` returns without its Python
+    keypoint objects, its image copy with a border and its second FAST."""
+    return _detect_level(level, np.ascontiguousarray(xy, np.float32), np.ascontiguousarray(score, np.float32),
+                         int(n), int(edge), _UMAX)
 
 
 def smooth(level: np.ndarray) -> np.ndarray:
@@ -245,15 +527,17 @@ def intensity_tests() -> np.ndarray | None:
 
 def warm_up() -> None:
     """Read off the tests (which compiles, or loads from the disk cache, the descriptor kernel) and
-    compile the grid selection, so that the first tracked frame pays for neither."""
+    compile the grid selection and the detection after FAST, so that the first tracked frame pays
+    for none of them."""
     if compiled_orb_available():
         select_grid(np.zeros((3, 2), np.float32), np.ones(3, np.float32), 1, 16.0, 96, 96)
+        detect_level(np.zeros((64, 64), np.uint8), np.full((1, 2), 32.0, np.float32), np.ones(1, np.float32), 1, 19)
 
 
 def compiled_orb_available() -> bool:
-    """Whether :func:`describe` and :func:`select_grid` can stand in for OpenCV's ``compute`` and the
-    extractor's numpy selection here."""
+    """Whether :func:`describe`, :func:`select_grid` and :func:`detect_level` can stand in for
+    OpenCV's ``compute``, the extractor's numpy selection and OpenCV's ``detect`` here."""
     return numba_available() and intensity_tests() is not None
 
 
-__all__ = ["compiled_orb_available", "describe", "intensity_tests", "select_grid", "smooth", "warm_up"]
+__all__ = ["compiled_orb_available", "describe", "detect_level", "intensity_tests", "select_grid", "smooth", "warm_up"]
