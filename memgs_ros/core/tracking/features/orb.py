@@ -98,10 +98,9 @@ def _describe(smoothed, xs, ys, cos_a, sin_a, tests):
         centre = ys[i] * step + xs[i]
         for byte in range(32):
             value = 0
-            for t in range(8):
+            for t in range(8):  # branch-free: the comparisons' outcomes are coin flips
                 j = byte * 8 + t
-                if flat[centre + o1[j]] < flat[centre + o2[j]]:
-                    value |= 1 << t
+                value |= np.int64(flat[np.uint64(centre + o1[j])] < flat[np.uint64(centre + o2[j])]) << t
             out[i, byte] = value
     return out
 
