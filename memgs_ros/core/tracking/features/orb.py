@@ -73,29 +73,29 @@ def _select_grid(pts, resp, n, cell, gx, gy):
     return np.flatnonzero(chosen)
 
 
-def _describe(smoothed, xs, ys, cos_a, sin_a, tests):
-    """Descriptors [N, 32] uint8: bit j of keypoint i is 1 where the smoothed image [H, W] is darker
-    at the first pixel of test j than at the second, the pair tests [4, 256] float32 (x1, y1, x2,
-    y2) rotated by the keypoint's angle (cos_a, sin_a [N] float32) and rounded to pixels."""
-    n = xs.shape[0]
+def _describe(flat, centres, steps, cos_a, sin_a, tests):
+    """Descriptors [N, 32] uint8: bit j of keypoint i is 1 where the smoothed levels (flat [sum
+    H * W] uint8; keypoint i at flat[centres[i]] of a level with rows of steps[i]) are darker at the
+    first pixel of test j than at the second, the pair tests [4, 256] float32 (x1, y1, x2, y2)
+    rotated by the keypoint's angle (cos_a, sin_a [N] float32) and rounded to pixels."""
+    n = centres.shape[0]
     out = np.empty((n, 32), np.uint8)
-    step = smoothed.shape[1]
-    flat = smoothed.ravel()
     x1, y1, x2, y2 = tests[0], tests[1], tests[2], tests[3]
-    o1 = np.empty(256, np.int32)
-    o2 = np.empty(256, np.int32)
+    o1 = np.empty(256, np.int64)
+    o2 = np.empty(256, np.int64)
     magic = _ROUND_MAGIC
     for i in range(n):
         a = cos_a[i]
         b = sin_a[i]
+        step = steps[i]
         for j in range(256):  # rotated offsets first: this loop vectorises
             r1 = (x1[j] * b + y1[j] * a + magic) - magic
             c1 = (x1[j] * a - y1[j] * b + magic) - magic
             r2 = (x2[j] * b + y2[j] * a + magic) - magic
             c2 = (x2[j] * a - y2[j] * b + magic) - magic
-            o1[j] = np.int32(r1) * step + np.int32(c1)
-            o2[j] = np.int32(r2) * step + np.int32(c2)
-        centre = ys[i] * step + xs[i]
+            o1[j] = np.int64(np.int32(r1)) * step + np.int64(np.int32(c1))
+            o2[j] = np.int64(np.int32(r2)) * step + np.int64(np.int32(c2))
+        centre = centres[i]
         for byte in range(32):
             value = 0
             for t in range(8):  # branch-free: the comparisons' outcomes are coin flips
@@ -333,37 +333,72 @@ def _orientation(flat, centre, step, umax):
     return _fast_atan2(np.float32(m01), np.float32(m10))
 
 
-def _detect_level(img, xy, score, n, edge, umax):
-    """OpenCV's single-level ORB detection after its FAST (positions xy [N, 2] float32, scores [N]
-    float32 in FAST's order) on the level img [H, W] uint8, keeping n: indices [K] into xy in ORB's
-    order, Harris responses [K] and angles [K] (float32)."""
-    h, w = img.shape
-    step = w
-    flat = img.ravel()
-    m = xy.shape[0]
-    a = np.empty(m, np.int64)
+def _detect_level(flat, offset, w, h, xy, score, first, last, n, edge, umax, idx, response, angle):
+    """OpenCV's single-level ORB detection after its FAST (positions xy[first:last] [., 2] float32,
+    scores [.] float32, in FAST's order) on the level at flat[offset:] [h, w] uint8, keeping n:
+    writes the indices into xy in ORB's order, their Harris responses and angles (float32) to
+    idx, response and angle from ``first`` on; returns how many."""
+    a = idx[first:last]
     count = 0
     if 2 * edge < w and 2 * edge < h:
-        for i in range(m):  # KeyPointsFilter::runByImageBorder, order kept
+        for i in range(first, last):  # KeyPointsFilter::runByImageBorder, order kept
             if edge <= xy[i, 0] < w - edge and edge <= xy[i, 1] < h - edge:
                 a[count] = i
                 count += 1
     count = _retain_best(a, count, score, 2 * n)
-    harris = np.zeros(m, np.float32)
     pix = np.empty((9, 9), np.int32)
     for k in range(count):
         i = a[k]
-        harris[i] = _harris(flat, np.int64(np.rint(xy[i, 1])) * step + np.int64(np.rint(xy[i, 0])), step, pix)
-    count = _retain_best(a, count, harris, n)
-    idx = a[:count].copy()
-    response = np.empty(count, np.float32)
-    angle = np.empty(count, np.float32)
+        response[i] = _harris(flat, offset + np.int64(np.rint(xy[i, 1])) * w + np.int64(np.rint(xy[i, 0])), w, pix)
+    count = _retain_best(a, count, response, n)
     for k in range(count):
-        i = idx[k]
-        response[k] = harris[i]
-        centre = np.int64(np.rint(xy[i, 1])) * step + np.int64(np.rint(xy[i, 0]))
-        angle[k] = _orientation(flat, centre, step, umax)
-    return idx, response, angle
+        i = a[k]
+        centre = offset + np.int64(np.rint(xy[i, 1])) * w + np.int64(np.rint(xy[i, 0]))
+        angle[i] = _orientation(flat, centre, w, umax)
+    return count
+
+
+def _detect_select(flat, offsets, widths, heights, xy, score, starts, counts, edge, umax, scales, n, cell, gx, gy):
+    """ORB's detection after FAST on every level (``_detect_level``; FAST's corners of level k are
+    xy[starts[k]:starts[k + 1]], level positions) and the grid's selection of at most n
+    (``_select_grid``) in one call. Returns the kept keypoints in level order, each level in ORB's
+    order, as (level-0 positions [K, 2] float32 (level positions times scales[level], as OpenCV
+    scales them), level positions [K, 2], levels [K], angles [K] degrees) and how many ORB kept."""
+    N = xy.shape[0]
+    idx = np.empty(N, np.int64)
+    response = np.zeros(N, np.float32)
+    angle = np.zeros(N, np.float32)
+    kept = np.empty(N, np.int64)
+    level = np.empty(N, np.int64)
+    m = 0
+    for k in range(offsets.shape[0]):
+        first = starts[k]
+        c = _detect_level(flat, offsets[k], widths[k], heights[k], xy, score, first, starts[k + 1], counts[k],
+                          edge, umax, idx, response, angle)
+        for q in range(c):
+            kept[m] = idx[first + q]
+            level[m] = k
+            m += 1
+    pts = np.empty((m, 2), np.float32)
+    resp = np.empty(m, np.float32)
+    for q in range(m):
+        sc = scales[level[q]]
+        pts[q, 0] = xy[kept[q], 0] * sc
+        pts[q, 1] = xy[kept[q], 1] * sc
+        resp[q] = response[kept[q]]
+    chosen = _select_grid(pts, resp, n, cell, gx, gy) if m > n else np.arange(m)
+    K = chosen.shape[0]
+    out_pts = np.empty((K, 2), np.float32)
+    out_xy = np.empty((K, 2), np.float32)
+    out_level = np.empty(K, np.int64)
+    out_angle = np.empty(K, np.float32)
+    for q in range(K):
+        c = chosen[q]
+        out_pts[q] = pts[c]
+        out_xy[q] = xy[kept[c]]
+        out_level[q] = level[c]
+        out_angle[q] = angle[kept[c]]
+    return out_pts, out_xy, out_level, out_angle, m
 
 
 if numba_available():
@@ -379,6 +414,7 @@ if numba_available():
     _fast_atan2 = _jit(_fast_atan2)
     _orientation = _jit(_orientation)
     _detect_level = _jit(_detect_level)
+    _detect_select = _jit(_detect_select)
 
 
 def select_grid(pts: np.ndarray, resp: np.ndarray, n: int, cell: float, width: int, height: int) -> np.ndarray:
@@ -398,13 +434,41 @@ def detect_level(level: np.ndarray, xy: np.ndarray, score: np.ndarray, n: int, e
     found them) on ``level`` [H, W] uint8: (indices [K] into xy, Harris responses [K], angles [K]
     in degrees), in ORB's order; the same keypoints ``ORB.detect`` returns without its Python
     keypoint objects, its image copy with a border and its second FAST."""
-    return _detect_level(level, np.ascontiguousarray(xy, np.float32), np.ascontiguousarray(score, np.float32),
-                         int(n), int(edge), _UMAX)
+    h, w = level.shape
+    xy = np.ascontiguousarray(xy, np.float32).reshape(-1, 2)
+    N = len(xy)
+    idx = np.empty(N, np.int64)
+    response = np.zeros(N, np.float32)
+    angle = np.zeros(N, np.float32)
+    count = _detect_level(np.ascontiguousarray(level).ravel(), 0, w, h, xy, np.ascontiguousarray(score, np.float32),
+                          0, N, int(n), int(edge), _UMAX, idx, response, angle)
+    kept = idx[:count].copy()
+    return kept, response[kept], angle[kept]
 
 
-def smooth(level: np.ndarray) -> np.ndarray:
-    """The level [H, W] uint8 smoothed as ORB smooths it before its intensity tests."""
-    return cv2.sepFilter2D(level, -1, _SMOOTH_KERNEL, _SMOOTH_KERNEL, borderType=cv2.BORDER_REFLECT_101)
+def detect_and_select(flat: np.ndarray, shapes: np.ndarray, xy: np.ndarray, score: np.ndarray, starts: np.ndarray,
+                      counts: np.ndarray, edge: int, scales: np.ndarray, n: int, cell: float, width: int, height: int
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """``detect_level`` on every level of a pyramid and the grid's selection (``select_grid``) in
+    one call. flat: the levels one after another (``OrbExtractor._flat_pyramid``), shapes [L, 3] (offset, height,
+    width); xy [N, 2] float32 FAST's corners of all levels, level k's at xy[starts[k]:starts[k + 1]]
+    (starts [L + 1]), scores [N]; counts [L]: ORB's n of each level; scales [L] float32. Returns
+    (level-0 positions [K, 2], level positions [K, 2], levels [K], angles [K]) of the kept keypoints
+    in level order (each level in ORB's order) and how many ORB kept before the grid."""
+    gx, gy = max(1, int(np.ceil(width / cell))), max(1, int(np.ceil(height / cell)))
+    # Contiguous columns: one layout for any number of levels (a column of one row is contiguous,
+    # of several strided, and numba would compile each).
+    level_offset, level_h, level_w = (np.ascontiguousarray(c, np.int64) for c in np.asarray(shapes).T)
+    return _detect_select(flat, level_offset, level_w, level_h, np.ascontiguousarray(xy, np.float32),
+                          np.ascontiguousarray(score, np.float32), np.ascontiguousarray(starts, np.int64),
+                          np.ascontiguousarray(counts, np.int64), int(edge), _UMAX,
+                          np.ascontiguousarray(scales, np.float32), int(n), np.float32(cell), gx, gy)
+
+
+def smooth(level: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """The level [H, W] uint8 smoothed as ORB smooths it before its intensity tests (into ``out``
+    [H, W] uint8 when given)."""
+    return cv2.sepFilter2D(level, -1, _SMOOTH_KERNEL, _SMOOTH_KERNEL, dst=out, borderType=cv2.BORDER_REFLECT_101)
 
 
 _REACH: dict[int, tuple[np.ndarray, int]] = {}
@@ -428,11 +492,21 @@ def describe(smoothed: np.ndarray, pix: np.ndarray, angle_deg: np.ndarray, tests
     reach = _reach(tests)
     if len(pix) and (pix.min() < reach or pix[:, 0].max() >= w - reach or pix[:, 1].max() >= h - reach):
         raise ValueError(f"ORB keypoints must lie {reach} px inside the {w}x{h} level for their tests")
+    centres = np.ascontiguousarray(pix[:, 1], np.int64) * w + pix[:, 0]
+    return describe_at(np.ascontiguousarray(smoothed).ravel(), centres, np.full(len(pix), w, np.int64), angle_deg,
+                       tests)
+
+
+def describe_at(flat: np.ndarray, centres: np.ndarray, steps: np.ndarray, angle_deg: np.ndarray, tests: np.ndarray
+                ) -> np.ndarray:
+    """``describe`` on smoothed levels laid one after another in flat [sum H * W] uint8: keypoint i
+    at flat[centres[i]] [K] of a level with rows of steps[i] [K] pixels, at least 19 px inside
+    its level (unchecked: ``describe`` checks)."""
     rad = np.asarray(angle_deg, np.float32) * _DEG_TO_RAD  # float32, as ORB converts it
     # cos and sin rounded once to float32, as ORB's are: numpy's float32 cos can be an ulp off,
     # which moves a rotated test pixel that sits on a half.
     rad64 = rad.astype(np.float64)
-    return _describe(smoothed, np.ascontiguousarray(pix[:, 0], np.int64), np.ascontiguousarray(pix[:, 1], np.int64),
+    return _describe(flat, np.ascontiguousarray(centres, np.int64), np.ascontiguousarray(steps, np.int64),
                      np.cos(rad64).astype(np.float32), np.sin(rad64).astype(np.float32), tests)
 
 
@@ -531,6 +605,9 @@ def warm_up() -> None:
     if compiled_orb_available():
         select_grid(np.zeros((3, 2), np.float32), np.ones(3, np.float32), 1, 16.0, 96, 96)
         detect_level(np.zeros((64, 64), np.uint8), np.full((1, 2), 32.0, np.float32), np.ones(1, np.float32), 1, 19)
+        detect_and_select(np.zeros(64 * 64, np.uint8), np.array([[0, 64, 64]]), np.full((1, 2), 32.0, np.float32),
+                          np.ones(1, np.float32), np.array([0, 1]), np.ones(1, np.int64), 19,
+                          np.ones(1, np.float32), 1, 16.0, 64, 64)
 
 
 def compiled_orb_available() -> bool:
@@ -539,4 +616,5 @@ def compiled_orb_available() -> bool:
     return numba_available() and intensity_tests() is not None
 
 
-__all__ = ["compiled_orb_available", "describe", "detect_level", "intensity_tests", "select_grid", "smooth", "warm_up"]
+__all__ = ["compiled_orb_available", "describe", "describe_at", "detect_and_select", "detect_level", "intensity_tests",
+           "select_grid", "smooth", "warm_up"]
