@@ -183,8 +183,7 @@ class TrackerNode(Node):
             return None
         try:
             depth_m = decode_depth(depth, self.params.depth_scale) if depth is not None else None
-            # The colour as a read-only view on the message (the tracker only reads its grey).
-            frame = Frame(stamp, rgb_view(color), depth_m, self.cams.camera)
+            frame = Frame(stamp, rgb_view(color), depth_m, self.cams.camera)  # a view: only its grey is read
         except (MessageError, DataError) as err:
             self.stats.problem("bad_image", f"frame {stamp} refused: {err}")
             return None

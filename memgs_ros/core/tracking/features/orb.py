@@ -197,19 +197,11 @@ def _nth_element(a, key, first, nth, last):
         # median of (first + 1, mid, last - 1) moved to first, then the unguarded partition
         mid = first + (last - first) // 2
         x, y, z = first + 1, mid, last - 1
-        if key[a[x]] > key[a[y]]:
-            if key[a[y]] > key[a[z]]:
-                m = y
-            elif key[a[x]] > key[a[z]]:
-                m = z
-            else:
-                m = x
-        elif key[a[x]] > key[a[z]]:
-            m = x
-        elif key[a[y]] > key[a[z]]:
-            m = z
+        xy, yz, xz = key[a[x]] > key[a[y]], key[a[y]] > key[a[z]], key[a[x]] > key[a[z]]
+        if xy:
+            m = y if yz else (z if xz else x)
         else:
-            m = y
+            m = x if xz else (z if yz else y)
         a[first], a[m] = a[m], a[first]
         lo, hi = first + 1, last
         pivot = key[a[first]]
