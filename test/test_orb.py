@@ -65,7 +65,7 @@ def test_an_orientation_on_a_half_pixel_rounds_as_opencvs() -> None:
     img = cv2.GaussianBlur(rng.integers(0, 256, (200, 200), dtype=np.uint8), (3, 3), 0)
     angle = np.float32(221.4096221923828)
     ref_orb = cv2.ORB_create(nfeatures=1, nlevels=1, edgeThreshold=31, patchSize=31)
-    kept, ref = ref_orb.compute(img, [cv2.KeyPoint(100.0, 100.0, 31.0, float(angle))])
+    _kept, ref = ref_orb.compute(img, [cv2.KeyPoint(100.0, 100.0, 31.0, float(angle))])
     got = orb.describe(orb.smooth(img), np.array([[100, 100]]), np.array([angle]), tests)
     np.testing.assert_array_equal(got, ref)
 
@@ -113,3 +113,42 @@ def test_describe_refuses_keypoints_too_near_the_border() -> None:
             orb.describe(smoothed, np.array([[x, y]]), np.zeros(1, np.float32), tests)
     assert orb.describe(smoothed, np.array([[19, 19], [100, 80]]), np.zeros(2, np.float32), tests).shape == (2, 32)
     assert orb.describe(smoothed, np.zeros((0, 2), np.int64), np.zeros(0, np.float32), tests).shape == (0, 32)
+
+
+@pytest.mark.parametrize("threshold", [20, 7])
+def test_detect_level_is_opencvs_single_level_orb(levels: list[np.ndarray], threshold: int) -> None:
+    """After OpenCV's FAST, ``detect_level`` keeps what OpenCV's single-level ORB keeps, in its
+    order, with its Harris responses and angles to the bit (its order is libstdc++'s
+    ``nth_element`` and ``partition``, which the kernel replays)."""
+    fast = cv2.FastFeatureDetector_create(threshold, True)
+    total = 0
+    for n in (1, 60, 400, 5000):
+        ref_orb = cv2.ORB_create(nfeatures=n, nlevels=1, edgeThreshold=EDGE_PX, patchSize=31, fastThreshold=threshold)
+        for level in levels:
+            corners = fast.detect(level)
+            xy = np.array([k.pt for k in corners], np.float32).reshape(-1, 2)
+            score = np.array([k.response for k in corners], np.float32)
+            idx, response, angle = orb.detect_level(level, xy, score, n, EDGE_PX)
+            ref = ref_orb.detect(level, None)
+            np.testing.assert_array_equal(xy[idx], np.array([k.pt for k in ref], np.float32).reshape(-1, 2))
+            np.testing.assert_array_equal(response, np.array([k.response for k in ref], np.float32))
+            np.testing.assert_array_equal(angle, np.array([k.angle for k in ref], np.float32))
+            total += len(ref)
+    assert total > 5000
+
+
+@pytest.mark.parametrize("keys", ["random", "ties", "ascending", "descending", "equal"])
+def test_retain_best_keeps_the_n_best_and_their_ties(keys: str) -> None:
+    """OpenCV's ``retainBest``: the n largest keys and every key equal to the nth, nothing else
+    (the orders the kernel leaves are checked against OpenCV's ORB above)."""
+    rng = np.random.default_rng(0)
+    m = 3000
+    key = {"random": rng.normal(size=m), "ties": rng.integers(0, 9, m), "ascending": np.arange(m),
+           "descending": -np.arange(m), "equal": np.zeros(m)}[keys].astype(np.float32)
+    for n in (1, 2, 5, 700, 2999, 3000, 4000):
+        a = np.arange(m)
+        count = orb._retain_best(a, m, key, n)  # noqa: SLF001
+        kept = np.sort(a[:count])
+        nth = np.sort(key)[::-1][min(n, m) - 1]
+        np.testing.assert_array_equal(kept, np.flatnonzero(key >= nth))
+        np.testing.assert_array_equal(np.sort(a), np.arange(m))  # a permutation

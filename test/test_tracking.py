@@ -477,3 +477,21 @@ def test_keyframe_cap_bounds_the_map_on_a_long_run(frames: list[Frame]) -> None:
     assert err.max() < 0.05, err.max()
     # Store size after the first pass is what the capped map needs; later passes do not add to it.
     assert max(store[len(frames):]) <= 2 * max(store[: len(frames)]) + 1024, (max(store[:len(frames)]), max(store))
+
+
+def test_has_valid_depth_agrees_with_the_valid_depth_mask() -> None:
+    """The sparse-grid shortcut of the node's empty-depth check answers as the full mask does,
+    a valid pixel off the grid and values just outside the range included."""
+    cam = next(iter(generate_frames(SyntheticSpec(width=64, height=48, n_frames=1)))).camera
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    cases: list[np.ndarray | None] = [None]
+    for fill in (np.nan, np.inf, -1.0, 0.0, 1e-7, 40.0, 2.0):
+        cases.append(np.full((48, 64), fill, np.float32))
+    lone = np.full((48, 64), np.nan, np.float32)
+    lone[17, 33] = 1.5  # not on the 16-px grid
+    cases.append(lone)
+    for depth in cases:
+        frame = Frame(0, rgb, depth, cam)
+        assert frame.has_valid_depth() == bool(frame.valid_depth_mask().any())
+    assert Frame(0, rgb, lone, cam).has_valid_depth()
+    assert not Frame(0, rgb, lone, cam).has_valid_depth(min_m=2.0)

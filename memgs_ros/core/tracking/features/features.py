@@ -54,14 +54,19 @@ class OrbExtractor:
     share and the remaining budget goes to the strongest leftovers. Cells that found nothing
     are retried at ``fast_min_threshold`` only when the image is short of keypoints.
 
-    ``extract`` builds the image pyramid once and runs OpenCV's single-level ORB on each level to
-    detect; the grid's keypoints are then described on the same level images, by ``orb.describe``
-    (a numba kernel on the level smoothed once, as exact as OpenCV's ``compute``, which copies and
-    smooths each level again; where numba is missing, by ``compute``). OpenCV's multi-level ORB
-    builds its pyramid a second time to describe (on fr1/rpy the extraction took 1.67 times
-    OpenCV's own of 1000 features that way, 1.35-1.38 with one pyramid and ``compute``, 1.23-1.27
-    with the kernel). ``_extract_reference`` is that multi-level path; all give the same keypoints
-    (positions within 1e-3 px), octaves and descriptors, the per-level paths in the same order.
+    ``extract`` builds the image pyramid once, in one buffer, and runs OpenCV's FAST on each level;
+    what OpenCV's single-level ORB then does (keep the best FAST scores, score them by Harris, keep
+    the best, orient them) and the grid's selection run in one numba call
+    (``orb.detect_and_select``), without ORB's copy of each level, its Python keypoint objects and
+    their conversions. The chosen keypoints are described in one more call (``orb.describe_at``) on
+    the levels smoothed once into a second buffer, as exact as OpenCV's ``compute``, which copies
+    and smooths each level again. Where numba is missing, ``_extract_opencv`` runs the single-level
+    ORBs and ``compute`` instead. OpenCV's multi-level ORB builds its pyramid a second time to
+    describe (on fr1/rpy the extraction took 1.67 times OpenCV's own of 1000 features that way,
+    1.35-1.38 with one pyramid and ``compute``, 1.23-1.27 with the descriptor kernel; measured
+    alike in one session, 1.33 before the detection on arrays and 1.21-1.25 after).
+    ``_extract_reference`` is that multi-level path; all give the same keypoints (positions within
+    1e-3 px), octaves and descriptors, the per-level paths in the same order.
     """
 
     def __init__(self, cfg: TrackerConfig) -> None:
@@ -71,8 +76,14 @@ class OrbExtractor:
         counts = level_shares(2 * cfg.n_features, cfg.scale_factor, cfg.n_levels)
         # Level k's scale, as OpenCV's ORB computes it (a float32 power).
         self._scales = [float(np.float32(cfg.scale_factor ** k)) for k in range(cfg.n_levels)]
-        self._level_orb = [self._make_orb(max(c, 1), 1, cfg.fast_threshold) for c in counts]
-        self._level_orb_low = [self._make_orb(max(c, 1), 1, cfg.fast_min_threshold) for c in counts]
+        self._level_counts = [max(c, 1) for c in counts]
+        self._level_counts_arr = np.array(self._level_counts, np.int64)
+        self._scales_arr = np.array(self._scales, np.float32)
+        self._level_orb = [self._make_orb(c, 1, cfg.fast_threshold) for c in self._level_counts]
+        self._level_orb_low = [self._make_orb(c, 1, cfg.fast_min_threshold) for c in self._level_counts]
+        # OpenCV's FAST as ORB runs it (9 of 16, non-maximum suppression), for ``orb.detect_level``.
+        self._fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
+        self._fast_low = cv2.FastFeatureDetector_create(cfg.fast_min_threshold, True)  # type: ignore[attr-defined]
         # ORB's intensity tests for ``orb.describe``, where numba and the tests are at hand (else
         # OpenCV's ``compute`` describes).
         self._tests = orb.intensity_tests() if orb.compiled_orb_available() else None
@@ -121,12 +132,24 @@ class OrbExtractor:
 
     def _pyramid(self, gray: np.ndarray) -> list[np.ndarray]:
         """The level images, each resized from the one before, at OpenCV ORB's sizes and interpolation."""
-        levels = [gray]
+        return self._flat_pyramid(gray)[2]
+
+    def _flat_pyramid(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+        """The pyramid laid out level after level in one buffer: (buffer [sum H * W] uint8, (offset,
+        height, width) [L, 3] of each level, the levels [H, W] as views on it), for the kernels."""
+        sizes = [(gray.shape[1], gray.shape[0])]
         for scale in self._scales[1:]:  # sizes rounded from float32 quotients, as OpenCV's
-            size = (round(float(np.float32(gray.shape[1]) / np.float32(scale))),
-                    round(float(np.float32(gray.shape[0]) / np.float32(scale))))
-            levels.append(cv2.resize(levels[-1], size, interpolation=cv2.INTER_LINEAR_EXACT))
-        return levels
+            sizes.append((round(float(np.float32(gray.shape[1]) / np.float32(scale))),
+                          round(float(np.float32(gray.shape[0]) / np.float32(scale)))))
+        shapes = np.zeros((len(sizes), 3), np.int64)
+        shapes[:, 1], shapes[:, 2] = [h for _, h in sizes], [w for w, _ in sizes]
+        shapes[1:, 0] = np.cumsum(shapes[:-1, 1] * shapes[:-1, 2])
+        flat = np.empty(int(shapes[-1, 0] + shapes[-1, 1] * shapes[-1, 2]), np.uint8)
+        levels = [flat[o:o + h * w].reshape(h, w) for o, h, w in shapes.tolist()]
+        levels[0][...] = gray
+        for k in range(1, len(levels)):
+            cv2.resize(levels[k - 1], sizes[k], dst=levels[k], interpolation=cv2.INTER_LINEAR_EXACT)
+        return flat, shapes, levels
 
     def extract(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None,
                 mask: np.ndarray | None = None) -> FrameFeatures:
@@ -134,6 +157,38 @@ class OrbExtractor:
         ``mask`` [H, W] uint8 (non-zero: where keypoints may lie) takes the reference path."""
         if mask is not None:
             return self._extract_reference(gray, camera, depth_m, mask)
+        if self._tests is None:
+            return self._extract_opencv(gray, camera, depth_m)
+        flat, shapes, pyr = self._flat_pyramid(gray)
+        found = self._detect(flat, shapes, pyr, self._fast, gray.shape)
+        if found[4] < self.cfg.n_features:
+            found = self._detect(flat, shapes, pyr, self._fast_low, gray.shape)
+        pts, xy, octave, angle, _ = found
+        if len(pts) == 0:
+            return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
+        smoothed = np.empty_like(flat)  # the levels smoothed, laid out as the pyramid
+        for (o, h, w), level in zip(shapes.tolist(), pyr):
+            orb.smooth(level, smoothed[o:o + h * w].reshape(h, w))
+        pix = np.rint(xy).astype(np.int64)
+        centres = shapes[octave, 0] + pix[:, 1] * shapes[octave, 2] + pix[:, 0]
+        desc = orb.describe_at(smoothed, centres, shapes[octave, 2], angle, self._tests)
+        return self._finish(gray, camera, depth_m, pts, octave, desc)
+
+    def _detect(self, flat: np.ndarray, shapes: np.ndarray, pyr: list[np.ndarray], fast: cv2.FastFeatureDetector,
+                size: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+        """OpenCV's FAST on each level, then what each level's single-level ORB keeps of it and the
+        grid's choice among those (``orb.detect_and_select``): (level-0 positions [K, 2] float32,
+        level positions [K, 2], octaves [K], angles [K], how many ORB kept before the grid)."""
+        corners = [fast.detect(level) for level in pyr]
+        starts = np.cumsum([0, *map(len, corners)])
+        xy = np.concatenate([_positions(c) for c in corners])
+        score = np.fromiter(chain.from_iterable(map(_RESPONSE, c) for c in corners), np.float32, int(starts[-1]))
+        return orb.detect_and_select(flat, shapes, xy, score, starts, self._level_counts_arr, EDGE_PX, self._scales_arr,
+                                     self.cfg.n_features, self.cfg.grid_cell_px, size[1], size[0])
+
+    def _extract_opencv(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None) -> FrameFeatures:
+        """``extract`` where numba or the read-off tests are missing: the single-level ORBs detect
+        on the one pyramid and describe by OpenCV's ``compute``, the numpy grid selects."""
         pyr = self._pyramid(gray)
         found = [det.detect(img, None) for det, img in zip(self._level_orb, pyr)]
         if sum(len(k) for k in found) < self.cfg.n_features:
@@ -141,33 +196,21 @@ class OrbExtractor:
         sizes = [len(k) for k in found]
         if sum(sizes) == 0:
             return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
-        xy_levels = [_positions(k) for k in found]
-        pts = np.concatenate([xy * np.float32(sc) for xy, sc in zip(xy_levels, self._scales)])
+        pts = np.concatenate([_positions(k) * np.float32(sc) for k, sc in zip(found, self._scales)])
         # Attributes read by C-level iteration (map and attrgetter): twice as fast as a generator.
         resp = np.fromiter(chain.from_iterable(map(_RESPONSE, level) for level in found), np.float32, len(pts))
-        if self._tests is not None:
-            chosen = orb.select_grid(pts, resp, self.cfg.n_features, self.cfg.grid_cell_px, gray.shape[1],
-                                     gray.shape[0])
-        else:
-            chosen = self._select_indices(pts, resp, gray.shape[1], gray.shape[0])
-        # ``chosen`` ascends: each level's keypoints are one slice of it.
+        chosen = self._select_indices(pts, resp, gray.shape[1], gray.shape[0])
         first = np.cumsum([0, *sizes])
         bounds = np.searchsorted(chosen, first)
         uv, octave, desc = [], [], []
         for k, det in enumerate(self._level_orb):
-            idx = chosen[bounds[k]:bounds[k + 1]] - first[k]
-            if len(idx) == 0:
+            kps = [found[k][i] for i in (chosen[bounds[k]:bounds[k + 1]] - first[k]).tolist()]
+            if not kps:
                 continue
-            kps = [found[k][i] for i in idx.tolist()]
-            if self._tests is not None:
-                xy = xy_levels[k][idx]
-                angle = np.fromiter(map(_ANGLE, kps), np.float32, len(kps))
-                d = orb.describe(orb.smooth(pyr[k]), np.rint(xy).astype(np.int64), angle, self._tests)
-            else:
-                kept, d = det.compute(pyr[k], kps)
-                if not kept or d is None:
-                    continue
-                xy = _positions(kept)
+            kept, d = det.compute(pyr[k], kps)
+            if not kept or d is None:
+                continue
+            xy = _positions(kept)
             uv.append(xy * np.float32(self._scales[k]))
             octave.append(np.full(len(xy), k, np.int64))
             desc.append(d)

@@ -14,7 +14,10 @@ comparisons agree with that bit in every image) and checks them against OpenCV's
 random orientations before they are used. Where numba is missing or the check fails,
 :func:`compiled_orb_available` is False and the extractor keeps OpenCV's ``compute``.
 
-``select_grid`` is the compiled twin of the extractor's grid selection.
+``select_grid`` is the compiled twin of the extractor's grid selection. ``detect_level`` is what
+OpenCV's single-level ORB does after its FAST (the best FAST scores, their Harris scores, the best
+of those, their orientations), on arrays instead of Python keypoint objects, with the same results
+in the same order; its twin is ``ORB.detect`` itself (``OrbExtractor._extract_opencv`` calls it).
 """
 from __future__ import annotations
 
@@ -70,37 +73,324 @@ def _select_grid(pts, resp, n, cell, gx, gy):
     return np.flatnonzero(chosen)
 
 
-def _describe(smoothed, xs, ys, cos_a, sin_a, tests):
-    """Descriptors [N, 32] uint8: bit j of keypoint i is 1 where the smoothed image [H, W] is darker
-    at the first pixel of test j than at the second, the pair tests [4, 256] float32 (x1, y1, x2,
-    y2) rotated by the keypoint's angle (cos_a, sin_a [N] float32) and rounded to pixels."""
-    n = xs.shape[0]
+def _describe(flat, centres, steps, cos_a, sin_a, tests):
+    """Descriptors [N, 32] uint8: bit j of keypoint i is 1 where the smoothed levels (flat [sum
+    H * W] uint8; keypoint i at flat[centres[i]] of a level with rows of steps[i]) are darker at the
+    first pixel of test j than at the second, the pair tests [4, 256] float32 (x1, y1, x2, y2)
+    rotated by the keypoint's angle (cos_a, sin_a [N] float32) and rounded to pixels."""
+    n = centres.shape[0]
     out = np.empty((n, 32), np.uint8)
-    step = smoothed.shape[1]
-    flat = smoothed.ravel()
     x1, y1, x2, y2 = tests[0], tests[1], tests[2], tests[3]
-    o1 = np.empty(256, np.int32)
-    o2 = np.empty(256, np.int32)
+    o1 = np.empty(256, np.int64)
+    o2 = np.empty(256, np.int64)
     magic = _ROUND_MAGIC
     for i in range(n):
         a = cos_a[i]
         b = sin_a[i]
+        step = steps[i]
         for j in range(256):  # rotated offsets first: this loop vectorises
             r1 = (x1[j] * b + y1[j] * a + magic) - magic
             c1 = (x1[j] * a - y1[j] * b + magic) - magic
             r2 = (x2[j] * b + y2[j] * a + magic) - magic
             c2 = (x2[j] * a - y2[j] * b + magic) - magic
-            o1[j] = np.int32(r1) * step + np.int32(c1)
-            o2[j] = np.int32(r2) * step + np.int32(c2)
-        centre = ys[i] * step + xs[i]
+            o1[j] = np.int64(np.int32(r1)) * step + np.int64(np.int32(c1))
+            o2[j] = np.int64(np.int32(r2)) * step + np.int64(np.int32(c2))
+        centre = centres[i]
         for byte in range(32):
             value = 0
-            for t in range(8):
+            for t in range(8):  # branch-free: the comparisons' outcomes are coin flips
                 j = byte * 8 + t
-                if flat[centre + o1[j]] < flat[centre + o2[j]]:
-                    value |= 1 << t
+                value |= np.int64(flat[np.uint64(centre + o1[j])] < flat[np.uint64(centre + o2[j])]) << t
             out[i, byte] = value
     return out
+
+
+# ORB's detection after FAST (OpenCV's single-level ``ORB.detect``), for ``detect_level``: keep the
+# best FAST scores, score those by Harris, keep the best Harris scores, orient by the intensity
+# centroid. Its order is the order ORB's ``KeyPointsFilter.retainBest`` leaves (libstdc++'s
+# ``nth_element`` and ``partition``, ported step by step below), so that everything downstream
+# sees the same keypoints in the same order.
+_HARRIS_K = np.float32(0.04)
+_HARRIS_SCALE = np.float32(1.0) / np.float32(4 * 7 * 255.0)  # 1 / ((1 << 2) * blockSize * 255), blockSize 7
+_HARRIS_SCALE4 = _HARRIS_SCALE * _HARRIS_SCALE * _HARRIS_SCALE * _HARRIS_SCALE
+_EPS32 = np.float32(2.220446049250313e-16)  # (float)DBL_EPSILON in OpenCV's fastAtan2
+_DEG = np.float32(180.0 / np.pi)
+_ATAN_P1 = np.float32(0.9997878412794807) * _DEG
+_ATAN_P3 = np.float32(-0.3258083974640975) * _DEG
+_ATAN_P5 = np.float32(0.1555786518463281) * _DEG
+_ATAN_P7 = np.float32(-0.04432655554792128) * _DEG
+_F90, _F180, _F360 = np.float32(90.0), np.float32(180.0), np.float32(360.0)
+
+
+def _umax(half: int) -> np.ndarray:
+    """Half-width of ORB's circular orientation patch per row (OpenCV's ``umax``, made symmetric)."""
+    umax = np.zeros(half + 2, np.int64)
+    root2 = np.float32(np.sqrt(np.float32(2.0)))
+    vmax = int(np.floor(np.float32(half) * root2 / np.float32(2) + np.float32(1)))
+    vmin = int(np.ceil(np.float32(half) * root2 / np.float32(2)))
+    for v in range(vmax + 1):
+        umax[v] = int(np.rint(np.sqrt(float(half * half - v * v))))
+    v0 = 0
+    for v in range(half, vmin - 1, -1):
+        while umax[v0] == umax[v0 + 1]:
+            v0 += 1
+        umax[v] = v0
+        v0 += 1
+    return umax
+
+
+_UMAX = _umax(PATCH_RADIUS)
+
+
+def _adjust_heap(a, key, first, hole, length, value):
+    """libstdc++'s ``__adjust_heap`` then ``__push_heap`` on a[first:first + length], ordered by key descending."""
+    top = hole
+    child = hole
+    while child < (length - 1) // 2:
+        child = 2 * (child + 1)
+        if key[a[first + child]] > key[a[first + child - 1]]:
+            child -= 1
+        a[first + hole] = a[first + child]
+        hole = child
+    if (length & 1) == 0 and child == (length - 2) // 2:
+        child = 2 * (child + 1)
+        a[first + hole] = a[first + child - 1]
+        hole = child - 1
+    parent = (hole - 1) // 2
+    while hole > top and key[a[first + parent]] > key[value]:
+        a[first + hole] = a[first + parent]
+        hole = parent
+        parent = (hole - 1) // 2
+    a[first + hole] = value
+
+
+def _nth_element(a, key, first, nth, last):
+    """libstdc++'s ``std::nth_element(a + first, a + nth, a + last)`` with ``key[i] > key[j]`` as the
+    order (OpenCV's ``KeypointResponseGreater``): the same permutation of a, step by step."""
+    if first == last or nth == last:
+        return
+    n = last - first
+    depth = 0
+    while n > 1:
+        n >>= 1
+        depth += 1
+    depth *= 2
+    while last - first > 3:
+        if depth == 0:  # heap select, then the nth in place
+            middle = nth + 1
+            length = middle - first
+            if length >= 2:
+                parent = (length - 2) // 2
+                while True:
+                    _adjust_heap(a, key, first, parent, length, a[first + parent])
+                    if parent == 0:
+                        break
+                    parent -= 1
+            for i in range(middle, last):
+                if key[a[i]] > key[a[first]]:
+                    value = a[i]
+                    a[i] = a[first]
+                    _adjust_heap(a, key, first, 0, length, value)
+            a[first], a[nth] = a[nth], a[first]
+            return
+        depth -= 1
+        # median of (first + 1, mid, last - 1) moved to first, then the unguarded partition
+        mid = first + (last - first) // 2
+        x, y, z = first + 1, mid, last - 1
+        xy, yz, xz = key[a[x]] > key[a[y]], key[a[y]] > key[a[z]], key[a[x]] > key[a[z]]
+        if xy:
+            m = y if yz else (z if xz else x)
+        else:
+            m = x if xz else (z if yz else y)
+        a[first], a[m] = a[m], a[first]
+        lo, hi = first + 1, last
+        pivot = key[a[first]]
+        while True:
+            while key[a[lo]] > pivot:
+                lo += 1
+            hi -= 1
+            while pivot > key[a[hi]]:
+                hi -= 1
+            if not lo < hi:
+                break
+            a[lo], a[hi] = a[hi], a[lo]
+            lo += 1
+        if lo <= nth:
+            first = lo
+        else:
+            last = lo
+    # insertion sort of what is left
+    for i in range(first + 1, last):
+        value = a[i]
+        if key[value] > key[a[first]]:
+            for j in range(i, first, -1):
+                a[j] = a[j - 1]
+            a[first] = value
+        else:
+            j = i
+            while key[value] > key[a[j - 1]]:
+                a[j] = a[j - 1]
+                j -= 1
+            a[j] = value
+
+
+def _retain_best(a, count, key, n):
+    """OpenCV's ``KeyPointsFilter::retainBest`` on a[:count]: the n best by key, and every one tied
+    with the nth, in the order ``nth_element`` and ``std::partition`` leave; the new count."""
+    if count <= n:
+        return count
+    if n == 0:
+        return 0
+    _nth_element(a, key, 0, n - 1, count)
+    threshold = key[a[n - 1]]
+    lo, hi = n, count  # libstdc++'s bidirectional ``partition``: keep key >= threshold in front
+    while True:
+        while lo != hi and key[a[lo]] >= threshold:
+            lo += 1
+        if lo == hi:
+            return lo
+        hi -= 1
+        while lo != hi and not key[a[hi]] >= threshold:
+            hi -= 1
+        if lo == hi:
+            return lo
+        a[lo], a[hi] = a[hi], a[lo]
+        lo += 1
+
+
+def _harris(flat, centre, step, pix):
+    """ORB's Harris score (7x7 block, k 0.04) at ``centre`` of the level flat [H * W] uint8 (row
+    ``step``); float32 as OpenCV's. Its derivatives are OpenCV's 3x3 Sobel, taken as a difference
+    then a [1, 2, 1] sum on the 9x9 pixels read once into ``pix`` [9, 9] int32; the integer sums
+    are exact in any order."""
+    for r in range(9):
+        row = np.uint64(centre + (r - 4) * step - 4)
+        for q in range(9):
+            pix[r, q] = flat[row + np.uint64(q)]
+    a = 0
+    b = 0
+    c = 0
+    for r in range(1, 8):
+        for q in range(1, 8):
+            ix = ((pix[r - 1, q + 1] - pix[r - 1, q - 1]) + 2 * (pix[r, q + 1] - pix[r, q - 1])
+                  + (pix[r + 1, q + 1] - pix[r + 1, q - 1]))
+            iy = ((pix[r + 1, q - 1] - pix[r - 1, q - 1]) + 2 * (pix[r + 1, q] - pix[r - 1, q])
+                  + (pix[r + 1, q + 1] - pix[r - 1, q + 1]))
+            a += ix * ix
+            b += iy * iy
+            c += ix * iy
+    fa, fb, fc = np.float32(a), np.float32(b), np.float32(c)
+    s = fa + fb
+    return (fa * fb - fc * fc - _HARRIS_K * s * s) * _HARRIS_SCALE4
+
+
+def _fast_atan2(y, x):
+    """OpenCV's ``fastAtan2`` (degrees, float32 polynomial)."""
+    ax, ay = abs(x), abs(y)
+    if ax >= ay:
+        c = ay / (ax + _EPS32)
+        c2 = c * c
+        r = (((_ATAN_P7 * c2 + _ATAN_P5) * c2 + _ATAN_P3) * c2 + _ATAN_P1) * c
+    else:
+        c = ax / (ay + _EPS32)
+        c2 = c * c
+        r = _F90 - (((_ATAN_P7 * c2 + _ATAN_P5) * c2 + _ATAN_P3) * c2 + _ATAN_P1) * c
+    if x < 0:
+        r = _F180 - r
+    if y < 0:
+        r = _F360 - r
+    return r
+
+
+def _orientation(flat, centre, step, umax):
+    """ORB's intensity-centroid angle (degrees) of the circular patch (half-widths ``umax`` per row)
+    around ``centre`` of the level flat [H * W] uint8 (row ``step``); the integer moments summed row
+    by row (exact in any order)."""
+    half = umax.shape[0] - 2
+    m01 = 0
+    m10 = 0
+    for v in range(-half, half + 1):
+        d = half if v == 0 else umax[abs(v)]
+        row = np.uint64(centre + v * step)
+        total = 0
+        moment = 0
+        for u in range(1, d + 1):
+            right = np.int64(flat[row + np.uint64(u)])
+            left = np.int64(flat[row - np.uint64(u)])
+            total += right + left
+            moment += u * (right - left)
+        total += np.int64(flat[row])
+        m01 += v * total
+        m10 += moment
+    return _fast_atan2(np.float32(m01), np.float32(m10))
+
+
+def _detect_level(flat, offset, w, h, xy, score, first, last, n, edge, umax, idx, response, angle):
+    """OpenCV's single-level ORB detection after its FAST (positions xy[first:last] [., 2] float32,
+    scores [.] float32, in FAST's order) on the level at flat[offset:] [h, w] uint8, keeping n:
+    writes the indices into xy in ORB's order, their Harris responses and angles (float32) to
+    idx, response and angle from ``first`` on; returns how many."""
+    a = idx[first:last]
+    count = 0
+    if 2 * edge < w and 2 * edge < h:
+        for i in range(first, last):  # KeyPointsFilter::runByImageBorder, order kept
+            if edge <= xy[i, 0] < w - edge and edge <= xy[i, 1] < h - edge:
+                a[count] = i
+                count += 1
+    count = _retain_best(a, count, score, 2 * n)
+    pix = np.empty((9, 9), np.int32)
+    for k in range(count):
+        i = a[k]
+        response[i] = _harris(flat, offset + np.int64(np.rint(xy[i, 1])) * w + np.int64(np.rint(xy[i, 0])), w, pix)
+    count = _retain_best(a, count, response, n)
+    for k in range(count):
+        i = a[k]
+        centre = offset + np.int64(np.rint(xy[i, 1])) * w + np.int64(np.rint(xy[i, 0]))
+        angle[i] = _orientation(flat, centre, w, umax)
+    return count
+
+
+def _detect_select(flat, offsets, widths, heights, xy, score, starts, counts, edge, umax, scales, n, cell, gx, gy):
+    """ORB's detection after FAST on every level (``_detect_level``; FAST's corners of level k are
+    xy[starts[k]:starts[k + 1]], level positions) and the grid's selection of at most n
+    (``_select_grid``) in one call. Returns the kept keypoints in level order, each level in ORB's
+    order, as (level-0 positions [K, 2] float32 (level positions times scales[level], as OpenCV
+    scales them), level positions [K, 2], levels [K], angles [K] degrees) and how many ORB kept."""
+    N = xy.shape[0]
+    idx = np.empty(N, np.int64)
+    response = np.zeros(N, np.float32)
+    angle = np.zeros(N, np.float32)
+    kept = np.empty(N, np.int64)
+    level = np.empty(N, np.int64)
+    m = 0
+    for k in range(offsets.shape[0]):
+        first = starts[k]
+        c = _detect_level(flat, offsets[k], widths[k], heights[k], xy, score, first, starts[k + 1], counts[k],
+                          edge, umax, idx, response, angle)
+        for q in range(c):
+            kept[m] = idx[first + q]
+            level[m] = k
+            m += 1
+    pts = np.empty((m, 2), np.float32)
+    resp = np.empty(m, np.float32)
+    for q in range(m):
+        sc = scales[level[q]]
+        pts[q, 0] = xy[kept[q], 0] * sc
+        pts[q, 1] = xy[kept[q], 1] * sc
+        resp[q] = response[kept[q]]
+    chosen = _select_grid(pts, resp, n, cell, gx, gy) if m > n else np.arange(m)
+    K = chosen.shape[0]
+    out_pts = np.empty((K, 2), np.float32)
+    out_xy = np.empty((K, 2), np.float32)
+    out_level = np.empty(K, np.int64)
+    out_angle = np.empty(K, np.float32)
+    for q in range(K):
+        c = chosen[q]
+        out_pts[q] = pts[c]
+        out_xy[q] = xy[kept[c]]
+        out_level[q] = level[c]
+        out_angle[q] = angle[kept[c]]
+    return out_pts, out_xy, out_level, out_angle, m
 
 
 if numba_available():
@@ -109,6 +399,14 @@ if numba_available():
     _jit = numba.njit(cache=True, nogil=True)
     _select_grid = _jit(_select_grid)
     _describe = _jit(_describe)
+    _adjust_heap = _jit(_adjust_heap)
+    _nth_element = _jit(_nth_element)
+    _retain_best = _jit(_retain_best)
+    _harris = _jit(_harris)
+    _fast_atan2 = _jit(_fast_atan2)
+    _orientation = _jit(_orientation)
+    _detect_level = _jit(_detect_level)
+    _detect_select = _jit(_detect_select)
 
 
 def select_grid(pts: np.ndarray, resp: np.ndarray, n: int, cell: float, width: int, height: int) -> np.ndarray:
@@ -121,9 +419,48 @@ def select_grid(pts: np.ndarray, resp: np.ndarray, n: int, cell: float, width: i
                         np.float32(cell), gx, gy)
 
 
-def smooth(level: np.ndarray) -> np.ndarray:
-    """The level [H, W] uint8 smoothed as ORB smooths it before its intensity tests."""
-    return cv2.sepFilter2D(level, -1, _SMOOTH_KERNEL, _SMOOTH_KERNEL, borderType=cv2.BORDER_REFLECT_101)
+def detect_level(level: np.ndarray, xy: np.ndarray, score: np.ndarray, n: int, edge: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What OpenCV's single-level ORB (``nfeatures`` n, ``edgeThreshold`` edge, patch 31, Harris
+    score) keeps of the FAST corners (level positions xy [N, 2], scores [N], in the order FAST
+    found them) on ``level`` [H, W] uint8: (indices [K] into xy, Harris responses [K], angles [K]
+    in degrees), in ORB's order; the same keypoints ``ORB.detect`` returns without its Python
+    keypoint objects, its image copy with a border and its second FAST."""
+    h, w = level.shape
+    xy = np.ascontiguousarray(xy, np.float32).reshape(-1, 2)
+    N = len(xy)
+    idx = np.empty(N, np.int64)
+    response = np.zeros(N, np.float32)
+    angle = np.zeros(N, np.float32)
+    count = _detect_level(np.ascontiguousarray(level).ravel(), 0, w, h, xy, np.ascontiguousarray(score, np.float32),
+                          0, N, int(n), int(edge), _UMAX, idx, response, angle)
+    kept = idx[:count].copy()
+    return kept, response[kept], angle[kept]
+
+
+def detect_and_select(flat: np.ndarray, shapes: np.ndarray, xy: np.ndarray, score: np.ndarray, starts: np.ndarray,
+                      counts: np.ndarray, edge: int, scales: np.ndarray, n: int, cell: float, width: int, height: int
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """``detect_level`` on every level of a pyramid and the grid's selection (``select_grid``) in
+    one call. flat: the levels one after another (``OrbExtractor._flat_pyramid``), shapes [L, 3] (offset, height,
+    width); xy [N, 2] float32 FAST's corners of all levels, level k's at xy[starts[k]:starts[k + 1]]
+    (starts [L + 1]), scores [N]; counts [L]: ORB's n of each level; scales [L] float32. Returns
+    (level-0 positions [K, 2], level positions [K, 2], levels [K], angles [K]) of the kept keypoints
+    in level order (each level in ORB's order) and how many ORB kept before the grid."""
+    gx, gy = max(1, int(np.ceil(width / cell))), max(1, int(np.ceil(height / cell)))
+    # Contiguous columns: one layout for any number of levels (a column of one row is contiguous,
+    # of several strided, and numba would compile each).
+    level_offset, level_h, level_w = (np.ascontiguousarray(c, np.int64) for c in np.asarray(shapes).T)
+    return _detect_select(flat, level_offset, level_w, level_h, np.ascontiguousarray(xy, np.float32),
+                          np.ascontiguousarray(score, np.float32), np.ascontiguousarray(starts, np.int64),
+                          np.ascontiguousarray(counts, np.int64), int(edge), _UMAX,
+                          np.ascontiguousarray(scales, np.float32), int(n), np.float32(cell), gx, gy)
+
+
+def smooth(level: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """The level [H, W] uint8 smoothed as ORB smooths it before its intensity tests (into ``out``
+    [H, W] uint8 when given)."""
+    return cv2.sepFilter2D(level, -1, _SMOOTH_KERNEL, _SMOOTH_KERNEL, dst=out, borderType=cv2.BORDER_REFLECT_101)
 
 
 _REACH: dict[int, tuple[np.ndarray, int]] = {}
@@ -147,11 +484,21 @@ def describe(smoothed: np.ndarray, pix: np.ndarray, angle_deg: np.ndarray, tests
     reach = _reach(tests)
     if len(pix) and (pix.min() < reach or pix[:, 0].max() >= w - reach or pix[:, 1].max() >= h - reach):
         raise ValueError(f"ORB keypoints must lie {reach} px inside the {w}x{h} level for their tests")
+    centres = np.ascontiguousarray(pix[:, 1], np.int64) * w + pix[:, 0]
+    return describe_at(np.ascontiguousarray(smoothed).ravel(), centres, np.full(len(pix), w, np.int64), angle_deg,
+                       tests)
+
+
+def describe_at(flat: np.ndarray, centres: np.ndarray, steps: np.ndarray, angle_deg: np.ndarray, tests: np.ndarray
+                ) -> np.ndarray:
+    """``describe`` on smoothed levels laid one after another in flat [sum H * W] uint8: keypoint i
+    at flat[centres[i]] [K] of a level with rows of steps[i] [K] pixels, at least 19 px inside
+    its level (unchecked: ``describe`` checks)."""
     rad = np.asarray(angle_deg, np.float32) * _DEG_TO_RAD  # float32, as ORB converts it
     # cos and sin rounded once to float32, as ORB's are: numpy's float32 cos can be an ulp off,
     # which moves a rotated test pixel that sits on a half.
     rad64 = rad.astype(np.float64)
-    return _describe(smoothed, np.ascontiguousarray(pix[:, 0], np.int64), np.ascontiguousarray(pix[:, 1], np.int64),
+    return _describe(flat, np.ascontiguousarray(centres, np.int64), np.ascontiguousarray(steps, np.int64),
                      np.cos(rad64).astype(np.float32), np.sin(rad64).astype(np.float32), tests)
 
 
@@ -245,15 +592,21 @@ def intensity_tests() -> np.ndarray | None:
 
 def warm_up() -> None:
     """Read off the tests (which compiles, or loads from the disk cache, the descriptor kernel) and
-    compile the grid selection, so that the first tracked frame pays for neither."""
+    compile the grid selection and the detection after FAST, so that the first tracked frame pays
+    for none of them."""
     if compiled_orb_available():
         select_grid(np.zeros((3, 2), np.float32), np.ones(3, np.float32), 1, 16.0, 96, 96)
+        detect_level(np.zeros((64, 64), np.uint8), np.full((1, 2), 32.0, np.float32), np.ones(1, np.float32), 1, 19)
+        detect_and_select(np.zeros(64 * 64, np.uint8), np.array([[0, 64, 64]]), np.full((1, 2), 32.0, np.float32),
+                          np.ones(1, np.float32), np.array([0, 1]), np.ones(1, np.int64), 19,
+                          np.ones(1, np.float32), 1, 16.0, 64, 64)
 
 
 def compiled_orb_available() -> bool:
-    """Whether :func:`describe` and :func:`select_grid` can stand in for OpenCV's ``compute`` and the
-    extractor's numpy selection here."""
+    """Whether :func:`describe`, :func:`select_grid` and :func:`detect_level` can stand in for
+    OpenCV's ``compute``, the extractor's numpy selection and OpenCV's ``detect`` here."""
     return numba_available() and intensity_tests() is not None
 
 
-__all__ = ["compiled_orb_available", "describe", "intensity_tests", "select_grid", "smooth", "warm_up"]
+__all__ = ["compiled_orb_available", "describe", "describe_at", "detect_and_select", "detect_level", "intensity_tests",
+           "select_grid", "smooth", "warm_up"]
