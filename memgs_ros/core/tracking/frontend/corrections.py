@@ -127,7 +127,7 @@ class BackendLink:
             for r in ready:
                 self._requests.remove(r)
                 try:
-                    result = r.future.result()
+                    result = r.future.result(0)  # ready: never waits
                 except Exception as err:  # noqa: BLE001 - a failed refinement must not kill tracking
                     logger.warning("tracking back-end %s failed: %s: %s", r.kind, type(err).__name__, err)
                     continue
