@@ -108,18 +108,18 @@ class MappingConfig:
     # Live (free-running) training starts with this many: the map is for use in flight, and a mapper
     # that waited for min_keyframes trained nothing while the camera moved
     live_min_keyframes: int = 1
-    new_keyframe_budget: int = 2
-    pyramid_uses_per_level: int = 8
-    resolution_scale: float = 1.0
+    new_keyframe_budget: int = 2  # view selection: draws a new keyframe gets (TUM 2, Replica 8)
+    pyramid_uses_per_level: int = 8  # a keyframe's first draws per pyramid level, 1/8 up to full size
+    resolution_scale: float = 1.0  # mapping resolution, a fraction of the camera's (0.5: 640x480 -> 320x240)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    raster_backend: str = "auto"
-    near_m: float = 0.01
+    raster_backend: str = "auto"  # auto: gsplat on CUDA when importable, numba on the CPU, else torch
+    near_m: float = 0.01  # near plane of the renders, m
     # Merge schedule (the merge itself: memgs_ros.core.merge.voxel_merge.merge_pass)
-    merge_enabled: bool = True
-    merge_start_iter: int = 1000
-    merge_interval: int = 1000
-    merge_stop_iter: int = 15_000
-    seed: int = 0
+    merge_enabled: bool = True  # merge similar Gaussians while training
+    merge_start_iter: int = 1000  # first merge pass at this iteration
+    merge_interval: int = 1000  # then every this many iterations
+    merge_stop_iter: int = 15_000  # and none after this one
+    seed: int = 0  # view selection and densification draws
     # Memory budget (0 = none): when the map exceeds it, relaxed merge passes then pruning of
     # the least contributing Gaussians bring it to budget_target_fraction of it; densification
     # never grows it past the budget
