@@ -112,4 +112,6 @@ def _spin(executor: SingleThreadedExecutor, done: Future | None) -> int:
         executor.spin()
         return 0
     executor.spin_until_future_complete(done)
+    # rclpy's result() never waits (it takes no timeout): read only once the future is done;
+    # not done means a signal ended the spin, a clean stop.
     return 0 if not done.done() or done.result() else 1
