@@ -325,11 +325,11 @@ def _orientation(flat, centre, step, umax):
     return _fast_atan2(np.float32(m01), np.float32(m10))
 
 
-def _detect_level(flat, offset, w, h, xy, score, first, last, n, edge, umax, idx, response, angle):
+def _detect_level(flat, offset, w, h, xy, score, first, last, n, edge, umax, idx, response, angle, orient):
     """OpenCV's single-level ORB detection after its FAST (positions xy[first:last] [., 2] float32,
     scores [.] float32, in FAST's order) on the level at flat[offset:] [h, w] uint8, keeping n:
     writes the indices into xy in ORB's order, their Harris responses and angles (float32) to
-    idx, response and angle from ``first`` on; returns how many."""
+    idx, response and angle from ``first`` on (angles only where ``orient``); returns how many."""
     a = idx[first:last]
     count = 0
     if 2 * edge < w and 2 * edge < h:
@@ -343,7 +343,7 @@ def _detect_level(flat, offset, w, h, xy, score, first, last, n, edge, umax, idx
         i = a[k]
         response[i] = _harris(flat, offset + np.int64(np.rint(xy[i, 1])) * w + np.int64(np.rint(xy[i, 0])), w, pix)
     count = _retain_best(a, count, response, n)
-    for k in range(count):
+    for k in range(count if orient else 0):
         i = a[k]
         centre = offset + np.int64(np.rint(xy[i, 1])) * w + np.int64(np.rint(xy[i, 0]))
         angle[i] = _orientation(flat, centre, w, umax)
@@ -359,14 +359,14 @@ def _detect_select(flat, offsets, widths, heights, xy, score, starts, counts, ed
     N = xy.shape[0]
     idx = np.empty(N, np.int64)
     response = np.zeros(N, np.float32)
-    angle = np.zeros(N, np.float32)
+    angle = np.empty(0, np.float32)  # unused: the chosen ones are oriented below
     kept = np.empty(N, np.int64)
     level = np.empty(N, np.int64)
     m = 0
     for k in range(offsets.shape[0]):
         first = starts[k]
         c = _detect_level(flat, offsets[k], widths[k], heights[k], xy, score, first, starts[k + 1], counts[k],
-                          edge, umax, idx, response, angle)
+                          edge, umax, idx, response, angle, False)
         for q in range(c):
             kept[m] = idx[first + q]
             level[m] = k
@@ -384,12 +384,16 @@ def _detect_select(flat, offsets, widths, heights, xy, score, starts, counts, ed
     out_xy = np.empty((K, 2), np.float32)
     out_level = np.empty(K, np.int64)
     out_angle = np.empty(K, np.float32)
-    for q in range(K):
+    for q in range(K):  # oriented once chosen: half of ORB's keypoints go to the grid's leftovers
         c = chosen[q]
+        i = kept[c]
+        k = level[c]
         out_pts[q] = pts[c]
-        out_xy[q] = xy[kept[c]]
-        out_level[q] = level[c]
-        out_angle[q] = angle[kept[c]]
+        out_xy[q] = xy[i]
+        out_level[q] = k
+        w = widths[k]
+        out_angle[q] = _orientation(flat, offsets[k] + np.int64(np.rint(xy[i, 1])) * w + np.int64(np.rint(xy[i, 0])),
+                                    w, umax)
     return out_pts, out_xy, out_level, out_angle, m
 
 
@@ -433,7 +437,7 @@ def detect_level(level: np.ndarray, xy: np.ndarray, score: np.ndarray, n: int, e
     response = np.zeros(N, np.float32)
     angle = np.zeros(N, np.float32)
     count = _detect_level(np.ascontiguousarray(level).ravel(), 0, w, h, xy, np.ascontiguousarray(score, np.float32),
-                          0, N, int(n), int(edge), _UMAX, idx, response, angle)
+                          0, N, int(n), int(edge), _UMAX, idx, response, angle, True)
     kept = idx[:count].copy()
     return kept, response[kept], angle[kept]
 
