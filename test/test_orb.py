@@ -137,6 +137,28 @@ def test_detect_level_is_opencvs_single_level_orb(levels: list[np.ndarray], thre
     assert total > 5000
 
 
+@pytest.mark.parametrize("threshold", [20, 7, 1])
+def test_fast_scores_are_opencvs_responses(levels: list[np.ndarray], threshold: int) -> None:
+    """The scores recomputed from FAST's corner positions equal the responses OpenCV's FAST gives
+    them, on every level at once, and the extractor uses them only once that is checked here."""
+    fast = cv2.FastFeatureDetector_create(threshold, True)
+    shapes, flat_parts, offset = [], [], 0
+    corners = []
+    for level in levels:
+        shapes.append((offset, *level.shape))
+        flat_parts.append(level.ravel())
+        offset += level.size
+        corners.append(fast.detect(level))
+    starts = np.cumsum([0, *map(len, corners)])
+    xy = np.array([k.pt for c in corners for k in c], np.float32)
+    ref = np.array([k.response for c in corners for k in c], np.float32)
+    got = orb.fast_scores(np.concatenate(flat_parts), np.array(shapes), xy, starts, threshold)
+    assert len(ref) > 2000
+    np.testing.assert_array_equal(got, ref)
+    assert orb.fast_scores_agree()
+    assert OrbExtractor(TrackerConfig())._fast_scores  # noqa: SLF001
+
+
 @pytest.mark.parametrize("keys", ["random", "ties", "ascending", "descending", "equal"])
 def test_retain_best_keeps_the_n_best_and_their_ties(keys: str) -> None:
     """OpenCV's ``retainBest``: the n largest keys and every key equal to the nth, nothing else

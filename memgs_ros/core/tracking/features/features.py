@@ -87,6 +87,7 @@ class OrbExtractor:
         # ORB's intensity tests for ``orb.describe``, where numba and the tests are at hand (else
         # OpenCV's ``compute`` describes).
         self._tests = orb.intensity_tests() if orb.compiled_orb_available() else None
+        self._fast_scores = self._tests is not None and orb.fast_scores_agree()
 
     def _make_orb(self, n: int, levels: int, fast_threshold: int) -> cv2.ORB:
         return cv2.ORB_create(nfeatures=n, scaleFactor=self.cfg.scale_factor, nlevels=levels,  # type: ignore[attr-defined]  # missing from OpenCV's stubs
@@ -160,9 +161,9 @@ class OrbExtractor:
         if self._tests is None:
             return self._extract_opencv(gray, camera, depth_m)
         flat, shapes, pyr = self._flat_pyramid(gray)
-        found = self._detect(flat, shapes, pyr, self._fast, gray.shape)
+        found = self._detect(flat, shapes, pyr, self._fast, self.cfg.fast_threshold, gray.shape)
         if found[4] < self.cfg.n_features:
-            found = self._detect(flat, shapes, pyr, self._fast_low, gray.shape)
+            found = self._detect(flat, shapes, pyr, self._fast_low, self.cfg.fast_min_threshold, gray.shape)
         pts, xy, octave, angle, _ = found
         if len(pts) == 0:
             return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
@@ -175,14 +176,18 @@ class OrbExtractor:
         return self._finish(gray, camera, depth_m, pts, octave, desc)
 
     def _detect(self, flat: np.ndarray, shapes: np.ndarray, pyr: list[np.ndarray], fast: cv2.FastFeatureDetector,
-                size: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-        """OpenCV's FAST on each level, then what each level's single-level ORB keeps of it and the
-        grid's choice among those (``orb.detect_and_select``): (level-0 positions [K, 2] float32,
-        level positions [K, 2], octaves [K], angles [K], how many ORB kept before the grid)."""
+                threshold: int, size: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+        """OpenCV's FAST (at ``threshold``) on each level, then what each level's single-level ORB
+        keeps of it and the grid's choice among those (``orb.detect_and_select``): (level-0
+        positions [K, 2] float32, level positions [K, 2], octaves [K], angles [K], how many ORB kept
+        before the grid)."""
         corners = [fast.detect(level) for level in pyr]
         starts = np.cumsum([0, *map(len, corners)])
         xy = np.concatenate([_positions(c) for c in corners])
-        score = np.fromiter(chain.from_iterable(map(_RESPONSE, c) for c in corners), np.float32, int(starts[-1]))
+        if self._fast_scores:  # FAST's scores recomputed in one call: cheaper than reading ~3000 objects
+            score = orb.fast_scores(flat, shapes, xy, starts, threshold)
+        else:
+            score = np.fromiter(chain.from_iterable(map(_RESPONSE, c) for c in corners), np.float32, int(starts[-1]))
         return orb.detect_and_select(flat, shapes, xy, score, starts, self._level_counts_arr, EDGE_PX, self._scales_arr,
                                      self.cfg.n_features, self.cfg.grid_cell_px, size[1], size[0])
 

@@ -325,6 +325,51 @@ def _orientation(flat, centre, step, umax):
     return _fast_atan2(np.float32(m01), np.float32(m10))
 
 
+# FAST's circle of 16 pixels (x, y) in OpenCV's order (``makeOffsets``), then its first 9 again
+# so that every arc of 9 is a run of the array.
+_FAST_CIRCLE = np.array([(0, 3), (1, 3), (2, 2), (3, 1), (3, 0), (3, -1), (2, -2), (1, -3), (0, -3), (-1, -3),
+                         (-2, -2), (-3, -1), (-3, 0), (-3, 1), (-2, 2), (-1, 3)], np.int64)
+_FAST_RING = np.concatenate([_FAST_CIRCLE, _FAST_CIRCLE[:9]])
+
+
+def _fast_score(flat, centre, step, threshold, ring, d):
+    """OpenCV's FAST score (``cornerScore<16>``) of the corner at ``centre`` of a level flat [H * W]
+    uint8 (row ``step``), found at ``threshold``: the largest difference by which an arc of 9 of
+    the circle ``ring`` [25, 2] is all brighter or all darker than the centre, less one; d [25]
+    int64 is scratch."""
+    v = np.int64(flat[centre])
+    for k in range(25):
+        d[k] = v - np.int64(flat[centre + ring[k, 1] * step + ring[k, 0]])
+    a0 = np.int64(threshold)
+    for k in range(0, 16, 2):
+        a = min(d[k + 1], d[k + 2], d[k + 3])
+        if a <= a0:
+            continue
+        a = min(a, d[k + 4], d[k + 5], d[k + 6], d[k + 7], d[k + 8])
+        a0 = max(a0, min(a, d[k]), min(a, d[k + 9]))
+    b0 = -a0
+    for k in range(0, 16, 2):
+        b = max(d[k + 1], d[k + 2], d[k + 3], d[k + 4], d[k + 5])
+        if b >= b0:
+            continue
+        b = max(b, d[k + 6], d[k + 7], d[k + 8])
+        b0 = min(b0, max(b, d[k]), max(b, d[k + 9]))
+    return -b0 - 1
+
+
+def _fast_scores(flat, offsets, widths, xy, starts, threshold, ring):
+    """FAST scores [N] float32 of the corners xy [N, 2] (level positions; level k's at
+    xy[starts[k]:starts[k + 1]]) on the levels at flat[offsets[k]:] of rows widths[k]."""
+    out = np.empty(xy.shape[0], np.float32)
+    d = np.empty(25, np.int64)
+    for k in range(offsets.shape[0]):
+        w = widths[k]
+        for i in range(starts[k], starts[k + 1]):
+            centre = offsets[k] + np.int64(xy[i, 1]) * w + np.int64(xy[i, 0])
+            out[i] = np.float32(_fast_score(flat, centre, w, threshold, ring, d))
+    return out
+
+
 def _detect_level(flat, offset, w, h, xy, score, first, last, n, edge, umax, idx, response, angle, orient):
     """OpenCV's single-level ORB detection after its FAST (positions xy[first:last] [., 2] float32,
     scores [.] float32, in FAST's order) on the level at flat[offset:] [h, w] uint8, keeping n:
@@ -411,6 +456,8 @@ if numba_available():
     _orientation = _jit(_orientation)
     _detect_level = _jit(_detect_level)
     _detect_select = _jit(_detect_select)
+    _fast_score = _jit(_fast_score)
+    _fast_scores = _jit(_fast_scores)
 
 
 def select_grid(pts: np.ndarray, resp: np.ndarray, n: int, cell: float, width: int, height: int) -> np.ndarray:
@@ -459,6 +506,39 @@ def detect_and_select(flat: np.ndarray, shapes: np.ndarray, xy: np.ndarray, scor
                           np.ascontiguousarray(score, np.float32), np.ascontiguousarray(starts, np.int64),
                           np.ascontiguousarray(counts, np.int64), int(edge), _UMAX,
                           np.ascontiguousarray(scales, np.float32), int(n), np.float32(cell), gx, gy)
+
+
+def fast_scores(flat: np.ndarray, shapes: np.ndarray, xy: np.ndarray, starts: np.ndarray, threshold: int
+                ) -> np.ndarray:
+    """The scores [N] float32 OpenCV's FAST gives its corners (``KeyPoint.response``), from the
+    corners' positions: xy [N, 2] float32 (level k's at xy[starts[k]:starts[k + 1]]) on the pyramid
+    ``flat`` with ``shapes`` [L, 3] (offset, height, width), found at ``threshold``. Reading them
+    off OpenCV's keypoint objects costs more than computing them; :func:`fast_scores_agree` says
+    whether they equal OpenCV's here."""
+    level_offset, _, level_w = (np.ascontiguousarray(c, np.int64) for c in np.asarray(shapes).T)
+    return _fast_scores(flat, level_offset, level_w, np.ascontiguousarray(xy, np.float32),
+                        np.ascontiguousarray(starts, np.int64), int(threshold), _FAST_RING)
+
+
+@lru_cache(maxsize=1)
+def fast_scores_agree() -> bool:
+    """Whether :func:`fast_scores` gives OpenCV's FAST responses, checked once per process on random
+    images at two thresholds (a few milliseconds); where not, the extractor reads OpenCV's."""
+    if not numba_available():
+        return False
+    rng = np.random.default_rng(3)
+    for threshold in (7, 20):
+        img = cv2.GaussianBlur(rng.integers(0, 256, (240, 320), dtype=np.uint8), (3, 3), 0)
+        kps = cv2.FastFeatureDetector_create(threshold, True).detect(img)  # type: ignore[attr-defined]
+        if len(kps) == 0:
+            return False
+        xy = np.asarray(cv2.KeyPoint_convert(kps), np.float32).reshape(-1, 2)  # type: ignore[attr-defined]
+        ref = np.array([k.response for k in kps], np.float32)
+        ours = fast_scores(img.ravel(), np.array([[0, 240, 320]]), xy, np.array([0, len(xy)]), threshold)
+        if not np.array_equal(ours, ref):
+            _log.info("FAST scores stay OpenCV's: %d of %d differ", int((ours != ref).sum()), len(ref))
+            return False
+    return True
 
 
 def smooth(level: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -599,6 +679,7 @@ def warm_up() -> None:
     compile the grid selection and the detection after FAST, so that the first tracked frame pays
     for none of them."""
     if compiled_orb_available():
+        fast_scores_agree()
         select_grid(np.zeros((3, 2), np.float32), np.ones(3, np.float32), 1, 16.0, 96, 96)
         detect_level(np.zeros((64, 64), np.uint8), np.full((1, 2), 32.0, np.float32), np.ones(1, np.float32), 1, 19)
         detect_and_select(np.zeros(64 * 64, np.uint8), np.array([[0, 64, 64]]), np.full((1, 2), 32.0, np.float32),
@@ -612,5 +693,5 @@ def compiled_orb_available() -> bool:
     return numba_available() and intensity_tests() is not None
 
 
-__all__ = ["compiled_orb_available", "describe", "describe_at", "detect_and_select", "detect_level", "intensity_tests",
-           "select_grid", "smooth", "warm_up"]
+__all__ = ["compiled_orb_available", "describe", "describe_at", "detect_and_select", "detect_level", "fast_scores",
+           "fast_scores_agree", "intensity_tests", "select_grid", "smooth", "warm_up"]
