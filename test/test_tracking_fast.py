@@ -297,11 +297,13 @@ def _tracked_passes(mode: str, n_frames: int) -> list[tuple]:
     reference = LocalMapMatcher(cfg, frames[0].camera, compiled.inv_sigma_levels, compiled=False)
     assert compiled.compiled and not reference.compiled
     pairs: list[tuple] = []
+    firsts: list[bool] = []  # whether the first pass searched the last frame's points
     track = compiled.track
 
-    def both(smap, local_kfs, feats, T_pred, fallback_kf):  # noqa: ANN001, ANN202 - the matcher's own signature
-        pairs.append((reference.track(smap, local_kfs, feats, T_pred, fallback_kf),
-                      track(smap, local_kfs, feats, T_pred, fallback_kf)))
+    def both(smap, local_kfs, feats, T_pred, fallback_kf, last_tracked):  # noqa: ANN001, ANN202 - the matcher's own signature
+        firsts.append(last_tracked is not None)
+        pairs.append((reference.track(smap, local_kfs, feats, T_pred, fallback_kf, last_tracked),
+                      track(smap, local_kfs, feats, T_pred, fallback_kf, last_tracked)))
         return pairs[-1][1]
 
     compiled.track = both
@@ -310,6 +312,8 @@ def _tracked_passes(mode: str, n_frames: int) -> list[tuple]:
             tracker.track(f)
     finally:
         tracker.close()
+    # RGB-D frames after the first tracked one search the last frame's points first; mono never.
+    assert (sum(firsts) >= n_frames // 2) if mode == "rgbd" else not any(firsts)
     return pairs
 
 

@@ -127,6 +127,9 @@ class FeatureTracker(Tracker):
         self._frames_since_kf = 0
         self._keyframe_deferrals = 0  # frames the due keyframe has been deferred (RGB-D)
         self._local_kfs: list[int] = []
+        # ((map layout, segment), point ids) the last tracked frame found: the next frame's first
+        # projection pass searches them (point ids hold until a compaction renumbers them).
+        self._last_tracked: tuple[tuple[int, int], np.ndarray] | None = None
         self._last_kf_info: KeyframeInfo | None = None
         self.vocabulary: Vocabulary | None = None
         try:
@@ -301,11 +304,17 @@ class FeatureTracker(Tracker):
         return feats, TrackOutcome(T, outcome.point_ids[inl], outcome.kp_idx[inl], outcome.n_matches)
 
     def _track_local_map(self, feats: FrameFeatures, T_pred: np.ndarray, allow_fallback: bool,
-                         count: bool = True) -> TrackOutcome | None:
+                         count: bool = True, from_last: bool = False) -> TrackOutcome | None:
         """Track against the local map; ``count``: add this frame to the points' visible / found
-        counts (False when the caller compares several outcomes and counts the chosen one)."""
+        counts (False when the caller compares several outcomes and counts the chosen one);
+        ``from_last``: search the points the previous frame tracked first (RGB-D, while tracking)."""
+        last = self._last_tracked
+        first = None
+        if from_last and self.uses_depth and last is not None \
+                and last[0] == (self.map.layout_version, self.segment_id):
+            first = last[1]
         outcome = self.matcher.track(self.map, self._local_kfs, feats, T_pred,
-                                     self._last_kf_id if allow_fallback else None)
+                                     self._last_kf_id if allow_fallback else None, first)
         if count and outcome is not None:
             self.matcher.count(self.map, self._local_kfs, outcome)
         return outcome
@@ -348,7 +357,7 @@ class FeatureTracker(Tracker):
         if not predicting:
             return None
         if self.motion.known or not self.uses_depth:
-            outcome = self._track_local_map(feats, T_pred, allow_fallback=True)
+            outcome = self._track_local_map(feats, T_pred, allow_fallback=True, from_last=True)
         else:
             # No motion model yet (the frame after a map start or relocalisation): the
             # zero-motion guess can sit a few degrees off in a fast turn, where rotation and
@@ -390,6 +399,7 @@ class FeatureTracker(Tracker):
         self._frames_since_kf += 1
         T = self._commit_backend(wait=False)  # what arrived while this frame was tracked
         self._update_local_keyframes(outcome.point_ids)
+        self._last_tracked = ((self.map.layout_version, self.segment_id), outcome.point_ids)
         kf = None
         if self._need_keyframe(T, feats, outcome):
             busy = not self.keyframe_waits_for_ba and self._link.in_flight(_WAIT_KINDS_BA)
