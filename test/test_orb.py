@@ -157,6 +157,16 @@ def test_fast_scores_are_opencvs_responses(levels: list[np.ndarray], threshold: 
     np.testing.assert_array_equal(got, ref)
     assert orb.fast_scores_agree()
     assert OrbExtractor(TrackerConfig())._fast_scores  # noqa: SLF001
+    # Scored inside the detection, only on the levels where ORB ranks by them: the same keypoints.
+    flat = np.concatenate(flat_parts)
+    counts = np.full(len(levels), 40, np.int64)  # few enough that most levels need the scores
+    args = (starts, counts, EDGE_PX, np.ones(len(levels), np.float32), 200, 16.0, 640, 480)
+    given = orb.detect_and_select(flat, np.array(shapes), xy, ref, *args)
+    lazy = orb.detect_and_select(flat, np.array(shapes), xy, None, *args, threshold=threshold)
+    for a, b in zip(given, lazy):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="threshold"):
+        orb.detect_and_select(flat, np.array(shapes), xy, None, *args)
 
 
 @pytest.mark.parametrize("keys", ["random", "ties", "ascending", "descending", "equal"])

@@ -184,12 +184,11 @@ class OrbExtractor:
         corners = [fast.detect(level) for level in pyr]
         starts = np.cumsum([0, *map(len, corners)])
         xy = np.concatenate([_positions(c) for c in corners])
-        if self._fast_scores:  # FAST's scores recomputed in one call: cheaper than reading ~3000 objects
-            score = orb.fast_scores(flat, shapes, xy, starts, threshold)
-        else:
+        score = None  # computed in the kernel, for the levels where ORB ranks by it
+        if not self._fast_scores:  # read off OpenCV's keypoint objects instead (~3000 of them)
             score = np.fromiter(chain.from_iterable(map(_RESPONSE, c) for c in corners), np.float32, int(starts[-1]))
         return orb.detect_and_select(flat, shapes, xy, score, starts, self._level_counts_arr, EDGE_PX, self._scales_arr,
-                                     self.cfg.n_features, self.cfg.grid_cell_px, size[1], size[0])
+                                     self.cfg.n_features, self.cfg.grid_cell_px, size[1], size[0], threshold)
 
     def _extract_opencv(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None) -> FrameFeatures:
         """``extract`` where numba or the read-off tests are missing: the single-level ORBs detect

@@ -370,11 +370,15 @@ def _fast_scores(flat, offsets, widths, xy, starts, threshold, ring):
     return out
 
 
-def _detect_level(flat, offset, w, h, xy, score, first, last, n, edge, umax, idx, response, angle, orient):
+def _detect_level(flat, offset, w, h, xy, score, first, last, n, edge, umax, idx, response, angle, orient,
+                  threshold, ring):
     """OpenCV's single-level ORB detection after its FAST (positions xy[first:last] [., 2] float32,
     scores [.] float32, in FAST's order) on the level at flat[offset:] [h, w] uint8, keeping n:
     writes the indices into xy in ORB's order, their Harris responses and angles (float32) to
-    idx, response and angle from ``first`` on (angles only where ``orient``); returns how many."""
+    idx, response and angle from ``first`` on (angles only where ``orient``); returns how many.
+    ``threshold`` >= 0: the scores are not given but computed (``_fast_score`` at that threshold,
+    with FAST's ``ring``), and only where ORB ranks by them: when the level has more corners than
+    it keeps, which on fr1/rpy is a level or two of eight."""
     a = idx[first:last]
     count = 0
     if 2 * edge < w and 2 * edge < h:
@@ -382,6 +386,12 @@ def _detect_level(flat, offset, w, h, xy, score, first, last, n, edge, umax, idx
             if edge <= xy[i, 0] < w - edge and edge <= xy[i, 1] < h - edge:
                 a[count] = i
                 count += 1
+    if threshold >= 0 and count > 2 * n:
+        d = np.empty(25, np.int64)
+        for q in range(count):
+            i = a[q]
+            score[i] = np.float32(_fast_score(flat, offset + np.int64(xy[i, 1]) * w + np.int64(xy[i, 0]), w,
+                                              threshold, ring, d))
     count = _retain_best(a, count, score, 2 * n)
     pix = np.empty((9, 9), np.int32)
     for k in range(count):
@@ -395,7 +405,8 @@ def _detect_level(flat, offset, w, h, xy, score, first, last, n, edge, umax, idx
     return count
 
 
-def _detect_select(flat, offsets, widths, heights, xy, score, starts, counts, edge, umax, scales, n, cell, gx, gy):
+def _detect_select(flat, offsets, widths, heights, xy, score, starts, counts, edge, umax, scales, n, cell, gx, gy,
+                   threshold, ring):
     """ORB's detection after FAST on every level (``_detect_level``; FAST's corners of level k are
     xy[starts[k]:starts[k + 1]], level positions) and the grid's selection of at most n
     (``_select_grid``) in one call. Returns the kept keypoints in level order, each level in ORB's
@@ -411,7 +422,7 @@ def _detect_select(flat, offsets, widths, heights, xy, score, starts, counts, ed
     for k in range(offsets.shape[0]):
         first = starts[k]
         c = _detect_level(flat, offsets[k], widths[k], heights[k], xy, score, first, starts[k + 1], counts[k],
-                          edge, umax, idx, response, angle, False)
+                          edge, umax, idx, response, angle, False, threshold, ring)
         for q in range(c):
             kept[m] = idx[first + q]
             level[m] = k
@@ -484,28 +495,37 @@ def detect_level(level: np.ndarray, xy: np.ndarray, score: np.ndarray, n: int, e
     response = np.zeros(N, np.float32)
     angle = np.zeros(N, np.float32)
     count = _detect_level(np.ascontiguousarray(level).ravel(), 0, w, h, xy, np.ascontiguousarray(score, np.float32),
-                          0, N, int(n), int(edge), _UMAX, idx, response, angle, True)
+                          0, N, int(n), int(edge), _UMAX, idx, response, angle, True, -1, _FAST_RING)
     kept = idx[:count].copy()
     return kept, response[kept], angle[kept]
 
 
-def detect_and_select(flat: np.ndarray, shapes: np.ndarray, xy: np.ndarray, score: np.ndarray, starts: np.ndarray,
-                      counts: np.ndarray, edge: int, scales: np.ndarray, n: int, cell: float, width: int, height: int
+def detect_and_select(flat: np.ndarray, shapes: np.ndarray, xy: np.ndarray, score: np.ndarray | None,
+                      starts: np.ndarray, counts: np.ndarray, edge: int, scales: np.ndarray, n: int, cell: float,
+                      width: int, height: int, threshold: int = -1
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """``detect_level`` on every level of a pyramid and the grid's selection (``select_grid``) in
     one call. flat: the levels one after another (``OrbExtractor._flat_pyramid``), shapes [L, 3] (offset, height,
     width); xy [N, 2] float32 FAST's corners of all levels, level k's at xy[starts[k]:starts[k + 1]]
-    (starts [L + 1]), scores [N]; counts [L]: ORB's n of each level; scales [L] float32. Returns
+    (starts [L + 1]), scores [N] (or None: computed where needed, as :func:`fast_scores` does, for
+    corners FAST found at ``threshold``); counts [L]: ORB's n of each level; scales [L] float32. Returns
     (level-0 positions [K, 2], level positions [K, 2], levels [K], angles [K]) of the kept keypoints
     in level order (each level in ORB's order) and how many ORB kept before the grid."""
     gx, gy = max(1, int(np.ceil(width / cell))), max(1, int(np.ceil(height / cell)))
     # Contiguous columns: one layout for any number of levels (a column of one row is contiguous,
     # of several strided, and numba would compile each).
     level_offset, level_h, level_w = (np.ascontiguousarray(c, np.int64) for c in np.asarray(shapes).T)
+    if score is None:
+        if threshold < 0:
+            raise ValueError("detect_and_select needs the corners' scores or FAST's threshold")
+        score = np.empty(len(xy), np.float32)
+    else:
+        threshold = -1
     return _detect_select(flat, level_offset, level_w, level_h, np.ascontiguousarray(xy, np.float32),
                           np.ascontiguousarray(score, np.float32), np.ascontiguousarray(starts, np.int64),
                           np.ascontiguousarray(counts, np.int64), int(edge), _UMAX,
-                          np.ascontiguousarray(scales, np.float32), int(n), np.float32(cell), gx, gy)
+                          np.ascontiguousarray(scales, np.float32), int(n), np.float32(cell), gx, gy,
+                          int(threshold), _FAST_RING)
 
 
 def fast_scores(flat: np.ndarray, shapes: np.ndarray, xy: np.ndarray, starts: np.ndarray, threshold: int
