@@ -79,6 +79,7 @@ class OrbExtractor:
         self._level_counts = [max(c, 1) for c in counts]
         self._level_counts_arr = np.array(self._level_counts, np.int64)
         self._scales_arr = np.array(self._scales, np.float32)
+        self._centre_shift = 0.5 * (cfg.scale_factor ** np.arange(cfg.n_levels) - 1.0)  # per octave, see _finish
         self._level_orb = [self._make_orb(c, 1, cfg.fast_threshold) for c in self._level_counts]
         self._level_orb_low = [self._make_orb(c, 1, cfg.fast_min_threshold) for c in self._level_counts]
         # OpenCV's FAST as ORB runs it (9 of 16, non-maximum suppression), for ``orb.detect_level``.
@@ -250,7 +251,7 @@ class OrbExtractor:
         # OpenCV scales level coordinates by s = scale^octave without the pixel-centre shift;
         # the centre of level pixel x is at (x + 0.5) s - 0.5 in level 0, a bias of 0.5 (s - 1)
         # (1.3 px at level 7) that differs between octaves of the same point.
-        shift = 0.5 * (self.cfg.scale_factor ** octave - 1.0)
+        shift = self._centre_shift[octave]
         uv_raw = (pts.astype(np.float64) + shift[:, None]).astype(np.float32)
         uv = undistort_points(uv_raw, camera)
         depth = np.full(len(pts), np.nan)

@@ -288,6 +288,14 @@ class SparseMap:
             counts.pop(exclude, None)
         return [kf for kf, _ in sorted(counts.items(), key=lambda kv: -kv[1])[:k]]
 
+    def mask_of(self, ids: np.ndarray) -> np.ndarray:
+        """[n_points] bool, True at the point ids ``ids`` (ids past the store are ignored): a
+        membership test in O(points) without np.isin's sort."""
+        mask = np.zeros(self._pts.size, dtype=bool)
+        ids = np.asarray(ids, np.int64)
+        mask[ids[(ids >= 0) & (ids < self._pts.size)]] = True
+        return mask
+
     def points_of(self, kf_ids: list[int]) -> np.ndarray:
         """Unique good point ids observed by the keyframes ``kf_ids``."""
         arrs = [self.keyframes[i].point_ids for i in kf_ids if i in self.keyframes]

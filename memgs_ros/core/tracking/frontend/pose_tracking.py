@@ -272,7 +272,7 @@ class LocalMapMatcher:
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
             return self._match_and_optimise(feats, smap, pids, local, T_init, radius_px, rounds)
 
-        sub = None if last_tracked is None else np.flatnonzero(np.isin(pids, last_tracked))
+        sub = None if last_tracked is None else np.flatnonzero(smap.mask_of(last_tracked)[pids])
         if sub is not None and len(sub) >= _MIN_PROJECTION_MATCHES:
             T, pi, ki, inl = self._match_and_optimise(
                 feats, smap, pids[sub], None if local is None else (local[0][sub], local[1][sub], local[2][sub]),
