@@ -276,6 +276,9 @@ def test_pose_round_trips() -> None:
     odom = codecs.matrix_to_odometry(T, 3, "odom", "camera")
     assert odom.child_frame_id == "camera" and odom.header.frame_id == "odom"
     np.testing.assert_allclose(codecs.pose_to_matrix(odom.pose.pose), T, atol=1e-12)
+    shared = codecs.pose_to_odometry(ps, "camera")  # the node's way: one conversion for both
+    assert shared.header == ps.header and shared.pose.pose == ps.pose and shared.child_frame_id == "camera"
+    assert list(shared.pose.covariance) == [0.0] * 36 and shared.twist.twist.linear.x == 0.0
 
 
 def test_pose_to_matrix_normalises_and_refuses_zero_quaternion() -> None:

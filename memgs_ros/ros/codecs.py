@@ -48,6 +48,7 @@ __all__ = [
     "numpy_to_image",
     "pointcloud2_to_structured",
     "pose_to_matrix",
+    "pose_to_odometry",
     "stamp_to_ns",
     "structured_to_pointcloud2",
 ]
@@ -199,8 +200,14 @@ def matrix_to_pose_stamped(T_wc: np.ndarray, stamp_ns: int, frame_id: str) -> Po
 
 def matrix_to_odometry(T_wc: np.ndarray, stamp_ns: int, frame_id: str, child_frame_id: str) -> Odometry:
     """Camera-in-world [4, 4] -> Odometry (pose only; twist left zero with zero covariance)."""
-    msg = Odometry(header=make_header(stamp_ns, frame_id), child_frame_id=child_frame_id)
-    msg.pose.pose = matrix_to_pose(T_wc)
+    return pose_to_odometry(matrix_to_pose_stamped(T_wc, stamp_ns, frame_id), child_frame_id)
+
+
+def pose_to_odometry(pose: PoseStamped, child_frame_id: str) -> Odometry:
+    """The Odometry of a PoseStamped (its header and pose, which it shares; twist left zero with
+    zero covariance): a node publishing both converts the matrix once."""
+    msg = Odometry(header=pose.header, child_frame_id=child_frame_id)
+    msg.pose.pose = pose.pose
     return msg
 
 

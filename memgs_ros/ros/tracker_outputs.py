@@ -22,8 +22,8 @@ from memgs_ros.ros.codecs import (
     append_to_path,
     camera_to_camera_info,
     make_header,
-    matrix_to_odometry,
     matrix_to_pose_stamped,
+    pose_to_odometry,
     stamp_to_ns,
     structured_to_pointcloud2,
 )
@@ -163,7 +163,7 @@ class TrackerOutbox:
         if result.T_wc is not None:
             pose = matrix_to_pose_stamped(result.T_wc, stamp, self.world_frame)
             self.pose.publish(pose)
-            self.odom.publish(matrix_to_odometry(result.T_wc, stamp, self.world_frame, camera_frame))
+            self.odom.publish(pose_to_odometry(pose, camera_frame))
             stats.counters["poses_out"] += 1
             if result.keyframe is not None:
                 self.keyframes.publish(result, camera, camera_frame, color, depth)
