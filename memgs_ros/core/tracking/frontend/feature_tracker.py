@@ -127,9 +127,8 @@ class FeatureTracker(Tracker):
         self._frames_since_kf = 0
         self._keyframe_deferrals = 0  # frames the due keyframe has been deferred (RGB-D)
         self._local_kfs: list[int] = []
-        # ((map layout, segment), point ids) the last tracked frame found: the next frame's first
-        # projection pass searches them (point ids hold until a compaction renumbers them).
-        self._last_tracked: tuple[tuple[int, int], np.ndarray] | None = None
+        # ((map layout, segment), point ids) the last tracked frame found (ids hold until a compaction)
+        self._last_tracked: tuple[tuple[int, int], np.ndarray | None] = ((-1, -1), None)
         self._last_kf_info: KeyframeInfo | None = None
         self.vocabulary: Vocabulary | None = None
         try:
@@ -266,9 +265,9 @@ class FeatureTracker(Tracker):
         """Move the last pose with its keyframe when the back-end's results moved that keyframe
         (a loop moves the last good pose too); the velocity stays."""
         for m in moves:
-            if self._last_kf_id not in m.moved:
+            if (old_new := m.moved.get(self._last_kf_id)) is None:
                 continue
-            old, new = m.moved[self._last_kf_id]
+            old, new = old_new
             if self._T_cw_last is not None:
                 self._T_cw_last = orthonormalized(self._T_cw_last @ invert_pose(old) @ new)
             if m.loop and self._last_good_T_cw is not None:
@@ -278,10 +277,9 @@ class FeatureTracker(Tracker):
         """Commit the back-end's results that have arrived since the frame started, and return
         the frame's pose moved with them (a BA lands sooner than at the next frame).
 
-        ``wait``: a keyframe is due, so first wait for the local BA in flight: a keyframe
-        triangulated against an unrefined window that the late result then moves under it made
-        the monocular scale drift. Seldom a wait: keyframes are several frames apart.
-        """
+        ``wait``: a keyframe is due, so first wait for the local BA in flight: a keyframe triangulated
+        against an unrefined window that the late result then moved made the monocular scale drift.
+        Seldom a wait: keyframes are several frames apart."""
         if wait:
             self._follow(self._link.wait(self.map, self.segment_id, _WAIT_KINDS_BA, self._SETTLE_TIMEOUT_S))
         else:
@@ -292,9 +290,8 @@ class FeatureTracker(Tracker):
 
     def _refine_rolling_shutter(self, raw: FrameFeatures, outcome: TrackOutcome, dt_s: float
                                 ) -> tuple[FrameFeatures, TrackOutcome]:
-        """Re-correct the keypoints with this frame's own angular velocity and re-optimise the pose
-        on the same matches (the first correction used the previous frame's; on fr1/rpy the
-        rotation speed changes by up to 50 % from one frame to the next)."""
+        """Re-correct the keypoints with this frame's own angular velocity (the first correction used
+        the previous frame's; on fr1/rpy it changes by up to 50 % a frame), re-optimise on the same matches."""
         assert self._T_cw_last is not None
         feats = self._unrolled(raw, self.motion.frame_angular_velocity(outcome.T_cw, self._T_cw_last, dt_s))
         p_w, _, _ = self.map.point_arrays(outcome.point_ids)
@@ -305,14 +302,11 @@ class FeatureTracker(Tracker):
 
     def _track_local_map(self, feats: FrameFeatures, T_pred: np.ndarray, allow_fallback: bool,
                          count: bool = True, from_last: bool = False) -> TrackOutcome | None:
-        """Track against the local map; ``count``: add this frame to the points' visible / found
-        counts (False when the caller compares several outcomes and counts the chosen one);
-        ``from_last``: search the points the previous frame tracked first (RGB-D, while tracking)."""
-        last = self._last_tracked
-        first = None
-        if from_last and self.uses_depth and last is not None \
-                and last[0] == (self.map.layout_version, self.segment_id):
-            first = last[1]
+        """Track against the local map; ``count``: add this frame to the points' visible / found counts
+        (False when the caller compares outcomes and counts the chosen one); ``from_last``: search
+        the points the last tracked frame found first (RGB-D)."""
+        key, ids = self._last_tracked
+        first = ids if from_last and self.uses_depth and key == (self.map.layout_version, self.segment_id) else None
         outcome = self.matcher.track(self.map, self._local_kfs, feats, T_pred,
                                      self._last_kf_id if allow_fallback else None, first)
         if count and outcome is not None:
@@ -461,9 +455,8 @@ class FeatureTracker(Tracker):
 
     def _reference_tracked(self, ref: SparseKeyframe) -> int:
         """Points of the reference keyframe seen by enough keyframes (ORB-SLAM's nMinObs)."""
-        min_obs = 3 if len(self.map.keyframes) > 2 else 2
         ids = ref.point_ids[ref.point_ids >= 0]
-        return int((self.map.n_observations(ids) >= min_obs).sum())
+        return int((self.map.n_observations(ids) >= (3 if len(self.map.keyframes) > 2 else 2)).sum())
 
     def _make_keyframe(self, frame: Frame, feats: FrameFeatures, T_cw: np.ndarray) -> SparseKeyframe:
         kf = SparseKeyframe(self.map.new_keyframe_id(), frame.stamp_ns, T_cw.copy(), feats,
