@@ -495,3 +495,41 @@ def test_has_valid_depth_agrees_with_the_valid_depth_mask() -> None:
         assert frame.has_valid_depth() == bool(frame.valid_depth_mask().any())
     assert Frame(0, rgb, lone, cam).has_valid_depth()
     assert not Frame(0, rgb, lone, cam).has_valid_depth(min_m=2.0)
+
+
+def test_the_first_pass_searches_the_points_the_last_frame_tracked(frames: list[Frame]) -> None:
+    """RGB-D: a frame's first projection pass searches only the points the last tracked frame found
+    (and they are in the local map); the second searches the whole local map. With too few of them
+    the first pass searches the whole local map too."""
+    import cv2
+
+    tracker = make_tracker(TrackerConfig(ba_threaded=False), frames[0].camera)
+    try:
+        for f in frames[:12]:
+            tracker.track(f)
+        _, last = tracker._last_tracked  # noqa: SLF001
+        assert last is not None and len(last) >= 30
+        matcher, smap = tracker.matcher, tracker.map
+        local_kfs = tracker._local_kfs  # noqa: SLF001
+        all_pids = smap.points_of(local_kfs)
+        f = frames[12]
+        feats = tracker.extractor.extract(cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY), f.camera, f.depth_m)
+        T_pred = tracker.motion.motion_over(tracker.motion.frame_dt_s(f.stamp_ns)) @ tracker._T_cw_last  # noqa: SLF001
+        searched: list[np.ndarray] = []
+        inner = matcher._match_and_optimise  # noqa: SLF001
+
+        def spy(feats_, smap_, pids, *args, **kwargs):  # noqa: ANN001, ANN202 - the matcher's own signature
+            searched.append(pids.copy())
+            return inner(feats_, smap_, pids, *args, **kwargs)
+
+        matcher._match_and_optimise = spy  # noqa: SLF001
+        outcome = matcher.track(smap, local_kfs, feats, T_pred, None, last)
+        assert outcome is not None and len(outcome.point_ids) >= 30
+        assert len(searched) == 2  # the last frame's points, then the whole local map
+        assert set(searched[0].tolist()) == set(last.tolist()) & set(all_pids.tolist())
+        assert len(searched[0]) < len(all_pids) and np.array_equal(searched[1], all_pids)
+        searched.clear()
+        assert matcher.track(smap, local_kfs, feats, T_pred, None, last[:5]) is not None
+        assert all(np.array_equal(s, all_pids) for s in searched)  # too few: the whole local map first
+    finally:
+        tracker.close()
