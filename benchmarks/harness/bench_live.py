@@ -55,6 +55,11 @@ def _log(msg: str) -> None:
     print(f"[bench_live {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
 
 
+def _pct(fraction: float) -> str:
+    """A fraction as a percentage to 0.1, without a trailing .0 (199 of 200 is 99.5, not 100)."""
+    return f"{100 * fraction:.1f}".removesuffix(".0")
+
+
 def run_graph(tum: Path, config: str, out: Path, rate: float | None, timeout: float,
               preload_mb: int = 0) -> dict[str, Any]:
     """One ``memgs run`` (lockstep when ``rate`` is None), then its score; a row of the table.
@@ -146,10 +151,10 @@ def table(res: dict[str, Any]) -> str:
             continue
         c = r["cpu_s"]
         cpu = " / ".join(f"{c.get(n, float('nan')):.1f}" for n in ("tracker", "mapper", "keyframe_sampler", "player"))
-        tracked = f"{r['tracked']} ({100 * r['tracked_fraction']:.0f} %)"
+        tracked = f"{r['tracked']} ({_pct(r['tracked_fraction'])} %)"
         if r.get("tracked_fractions"):  # the median of several runs: their spread beside it
-            fr = [100 * f for f in r["tracked_fractions"] if f is not None]
-            tracked += f", median of {len(r['tracked_fractions'])}: {min(fr):.0f}-{max(fr):.0f} %"
+            fr = [f for f in r["tracked_fractions"] if f is not None]
+            tracked += f", median of {len(r['tracked_fractions'])}: {_pct(min(fr))}-{_pct(max(fr))} %"
         lines.append(f"| {r['run']} | {r['played']} | {r['received']} | {tracked} "
                      f"| {r['stale']} | {r['busy']} | {r['lost']} | {r['ate_cm']} | {r['psnr_db']} | {cpu} "
                      f"| {r['tracker_frame_cpu_ms']} |")
