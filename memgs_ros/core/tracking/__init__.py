@@ -13,7 +13,6 @@ from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, Tracking
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
 
 if TYPE_CHECKING:
-    from memgs_ros.core.tracking._compiled import warm_up
     from memgs_ros.core.tracking.frontend.feature_tracker import FeatureTracker
 
 __all__ = [
@@ -32,15 +31,20 @@ __all__ = [
 def __getattr__(name: str) -> Any:
     """The compiled kernels (numba, scipy) load when first asked for: nodes that only read the
     tracker's parameters (every node's parameter table names it) do not pay ~100 MB for them."""
-    if name == "warm_up":
-        from memgs_ros.core.tracking._compiled import warm_up
-
-        return warm_up
     if name == "FeatureTracker":
         from memgs_ros.core.tracking.frontend.feature_tracker import FeatureTracker
 
         return FeatureTracker
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def warm_up() -> None:
+    """Import the trackers' modules (scipy's optimisers among them: 0.2-0.3 s that the first frame of
+    a live camera paid while its next frames queued) and load, or compile, their kernels."""
+    from memgs_ros.core.tracking._compiled import warm_up as load_kernels
+    from memgs_ros.core.tracking.frontend import monocular, rgbd  # noqa: F401 - imported now, not at the first frame
+
+    load_kernels()
 
 
 def make_tracker(cfg: TrackerConfig, camera: PinholeCamera) -> Tracker:

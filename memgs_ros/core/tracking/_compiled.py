@@ -598,11 +598,7 @@ def unroll_kernel(uv_raw: np.ndarray, uv: np.ndarray, K: np.ndarray, omega_c: np
 def warm_up() -> None:
     """Compile (or load from the disk cache) the tracking kernels, and ORB's (``orb.warm_up``), on
     tiny inputs, so that the first tracked frame does not pay for it (~20 s of compilation on first
-    use, ~0.3 s from the cache). First it imports the trackers' modules (scipy's optimisers among
-    them): 0.2-0.3 s that the first frame of a live camera paid while its next frames queued."""
-    import memgs_ros.core.tracking.frontend.monocular  # noqa: F401
-    import memgs_ros.core.tracking.frontend.rgbd  # noqa: F401
-
+    use, ~0.3 s from the cache)."""
     if not numba_available():
         return
     orb.warm_up()
