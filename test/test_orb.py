@@ -156,7 +156,7 @@ def test_fast_scores_are_opencvs_responses(levels: list[np.ndarray], threshold: 
     assert len(ref) > 2000
     np.testing.assert_array_equal(got, ref)
     assert orb.fast_scores_agree()
-    assert OrbExtractor(TrackerConfig())._fast_scores  # noqa: SLF001
+    assert OrbExtractor(TrackerConfig())._scores_in_kernel  # noqa: SLF001
     # Scored inside the detection, only on the levels where ORB ranks by them: the same keypoints.
     flat = np.concatenate(flat_parts)
     counts = np.full(len(levels), 40, np.int64)  # few enough that most levels need the scores

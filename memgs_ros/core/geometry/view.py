@@ -49,12 +49,13 @@ def depth_to_metres(depth: np.ndarray,  # [H, W] uint16 units or float metres
     uint16 (16UC1, mono16): ``depth_scale`` units per metre, 0 = no measurement. Float: metres
     (``depth_scale`` 1.0); zero, negative and non-finite values become NaN.
 
-    Compiled where numba is (one pass instead of numpy's six; 0.25 -> 0.05 ms a 640x480 frame on
-    the tracker's path), equal to ``_depth_to_metres_reference`` value for value.
+    Compiled where numba is (one pass instead of numpy's several; a 640x480 frame 0.23 -> 0.07 ms
+    as float, 0.18 -> 0.04 ms as 16-bit units), equal to ``_depth_to_metres_reference`` value for value.
     """
     if _depth_kernels is not None and depth.ndim == 2 and depth.dtype in (np.uint16, np.float32):
+        units_kernel, float_kernel = _depth_kernels
         out = np.empty(depth.shape, np.float32)
-        _depth_kernels[depth.dtype == np.float32](depth, np.float32(depth_scale), out)
+        (units_kernel if depth.dtype == np.uint16 else float_kernel)(depth, np.float32(depth_scale), out)
         return out
     return _depth_to_metres_reference(depth, depth_scale)
 

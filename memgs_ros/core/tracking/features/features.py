@@ -88,7 +88,7 @@ class OrbExtractor:
         # ORB's intensity tests for ``orb.describe``, where numba and the tests are at hand (else
         # OpenCV's ``compute`` describes).
         self._tests = orb.intensity_tests() if orb.compiled_orb_available() else None
-        self._fast_scores = self._tests is not None and orb.fast_scores_agree()
+        self._scores_in_kernel = self._tests is not None and orb.fast_scores_agree()
 
     def _make_orb(self, n: int, levels: int, fast_threshold: int) -> cv2.ORB:
         return cv2.ORB_create(nfeatures=n, scaleFactor=self.cfg.scale_factor, nlevels=levels,  # type: ignore[attr-defined]  # missing from OpenCV's stubs
@@ -186,7 +186,7 @@ class OrbExtractor:
         starts = np.cumsum([0, *map(len, corners)])
         xy = np.concatenate([_positions(c) for c in corners])
         score = None  # computed in the kernel, for the levels where ORB ranks by it
-        if not self._fast_scores:  # read off OpenCV's keypoint objects instead (~3000 of them)
+        if not self._scores_in_kernel:  # read off OpenCV's keypoint objects instead (~3000 of them)
             score = np.fromiter(chain.from_iterable(map(_RESPONSE, c) for c in corners), np.float32, int(starts[-1]))
         return orb.detect_and_select(flat, shapes, xy, score, starts, self._level_counts_arr, EDGE_PX, self._scales_arr,
                                      self.cfg.n_features, self.cfg.grid_cell_px, size[1], size[0], threshold)

@@ -532,9 +532,10 @@ def fast_scores(flat: np.ndarray, shapes: np.ndarray, xy: np.ndarray, starts: np
                 ) -> np.ndarray:
     """The scores [N] float32 OpenCV's FAST gives its corners (``KeyPoint.response``), from the
     corners' positions: xy [N, 2] float32 (level k's at xy[starts[k]:starts[k + 1]]) on the pyramid
-    ``flat`` with ``shapes`` [L, 3] (offset, height, width), found at ``threshold``. Reading them
-    off OpenCV's keypoint objects costs more than computing them; :func:`fast_scores_agree` says
-    whether they equal OpenCV's here."""
+    ``flat`` with ``shapes`` [L, 3] (offset, height, width), found at ``threshold``: the check
+    (:func:`fast_scores_agree`) that the scores :func:`detect_and_select` computes, on the levels
+    where it needs them, are OpenCV's. (Scoring every corner in a pass of its own cost more than
+    reading OpenCV's keypoint objects: the levels had left the cache.)"""
     level_offset, _, level_w = (np.ascontiguousarray(c, np.int64) for c in np.asarray(shapes).T)
     return _fast_scores(flat, level_offset, level_w, np.ascontiguousarray(xy, np.float32),
                         np.ascontiguousarray(starts, np.int64), int(threshold), _FAST_RING)
