@@ -20,6 +20,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from memgs_ros.core.tracking._compiled import numba_available, optimize_pose_kernel
+from memgs_ros.core.tracking.backend import ba_kernels
 from memgs_ros.core.tracking.backend.lm import LMProgress, lm_iterations, solve
 
 CHI2_MONO = 5.991  # chi-square 95 %, 2 dof
@@ -401,37 +402,97 @@ BAAux = tuple[np.ndarray, np.ndarray]  # (p_c [O, 3], whitened residuals r [O, 3
 class BAGeometry:
     """What stays fixed while one BA problem is solved: observations, free cameras, groupings.
 
-    Shared by the local (dense reduced system) and global (sparse pairs) solvers; both run the one
-    Levenberg-Marquardt loop of ``lm``. ``free``: [nf] free camera indices; ``of``: [F] observations
-    by free cameras, with their slot ``of_slot`` [F] and point ``of_pt`` [F]; ``per_point``,
-    ``per_cam`` and ``per_free_point`` sum per-observation values over those groupings.
+    Shared by the local and global solvers; both run the one Levenberg-Marquardt loop of ``lm``
+    and eliminate the points the same way (``reduce``, ``back_substitute``), each damping the
+    reduced camera system its own way. ``free``: [nf] free camera indices; ``of``: [F]
+    observations by free cameras, with their slot ``of_slot`` [F] and point ``of_pt`` [F];
+    ``per_point``, ``per_cam`` and ``per_free_point`` sum per-observation values over those
+    groupings. ``compiled`` (default: where numba is at hand) runs ``ba_kernels``; the numpy
+    methods named ``_reference`` are their twins.
     """
 
-    def __init__(self, prob: BAProblem, K: np.ndarray, bf: float, huber_px: float) -> None:
+    def __init__(self, prob: BAProblem, K: np.ndarray, bf: float, huber_px: float,
+                 compiled: bool | None = None) -> None:
         self.prob, self.K, self.bf, self.huber_px = prob, K, bf, huber_px
+        self.compiled = numba_available() if compiled is None else compiled
         self.n_points = len(prob.points_w)
         self.free = np.flatnonzero(~prob.fixed)
         self.nf = len(self.free)
-        slot = np.full(len(prob.T_cw), -1, dtype=np.int64)
-        slot[self.free] = np.arange(self.nf)
+        self.cam_slot = np.full(len(prob.T_cw), -1, dtype=np.int64)
+        self.cam_slot[self.free] = np.arange(self.nf)
         self.obs, self.has_depth = observed_uvr(prob.obs_uv, prob.obs_depth, bf)
-        self.cam, self.pt, self.s = prob.obs_cam, prob.obs_point, prob.obs_inv_sigma
-        o_slot = slot[self.cam]
+        self.cam, self.pt = np.asarray(prob.obs_cam, np.int64), np.asarray(prob.obs_point, np.int64)
+        self.s = np.asarray(prob.obs_inv_sigma, np.float64)
+        o_slot = self.cam_slot[self.cam]
         self.of = np.flatnonzero(o_slot >= 0)
         self.of_slot, self.of_pt = o_slot[self.of], self.pt[self.of]
+        self.f_of_o = np.full(len(self.cam), -1, np.int64)
+        self.f_of_o[self.of] = np.arange(len(self.of))
         self.per_point = _Segments(self.pt, self.n_points)
         self.per_cam = _Segments(self.of_slot, self.nf)
         self.per_free_point = _Segments(self.of_pt, self.n_points)
+        # Each point's observations by free cameras, as indices into ``of``: fp_obs[fp_start[p]:fp_start[p + 1]].
+        self.fp_obs = self.per_free_point.order
+        self.fp_start = np.r_[0, np.cumsum(np.bincount(self.of_pt, minlength=self.n_points))].astype(np.int64)
+        self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def initial(self) -> BAState:
         return self.prob.T_cw.copy(), self.prob.points_w.copy()
 
     def evaluate(self, x: BAState) -> tuple[BAAux, float]:
-        p_c, r, cost = _huber_residuals(x[0], x[1], self.cam, self.pt, self.obs, self.has_depth, self.s,
-                                        self.K, self.bf, self.huber_px)
+        if self.compiled:
+            p_c, r, cost = ba_kernels.evaluate(x[0], x[1], self.cam, self.pt, self.obs, self.has_depth, self.s,
+                                               self.K, self.bf, self.huber_px)
+        else:
+            p_c, r, cost = _huber_residuals(x[0], x[1], self.cam, self.pt, self.obs, self.has_depth, self.s,
+                                            self.K, self.bf, self.huber_px)
         return (p_c, r), cost
 
     def blocks(self, x: BAState, aux: BAAux) -> BABlocks:
+        if not self.compiled:
+            return self._blocks_reference(x, aux)
+        return BABlocks(*ba_kernels.blocks(x[0], aux[0], aux[1], self.cam, self.pt, self.has_depth, self.s, self.K,
+                                           self.bf, self.huber_px, self.cam_slot, self.f_of_o, self.n_points,
+                                           self.nf, len(self.of)))
+
+    def reduce(self, b: BABlocks, lam: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The points eliminated (Schur complement), undamped on the cameras: (Hpp_inv [P, 3, 3] of
+        the point blocks with ``lam`` times their diagonal added, S [6 nf, 6 nf] = blockdiag(Hcc) -
+        Hcp Hpp_inv Hcp^T, rhs [6 nf] = gc - Hcp Hpp_inv gp)."""
+        if self.compiled:
+            return ba_kernels.reduce_cameras(b.Hpp, b.gp, b.Hcp, b.Hcc, b.gc, self.fp_start, self.fp_obs,
+                                             self.of_slot, lam)
+        return self._reduce_reference(b, lam)
+
+    def back_substitute(self, b: BABlocks, Hpp_inv: np.ndarray, dc: np.ndarray) -> np.ndarray:
+        """The points' steps dX [P, 3] = Hpp_inv (-gp - Hpc dc) for the cameras' steps dc [nf, 6]."""
+        if self.compiled:
+            return ba_kernels.back_substitute(Hpp_inv, b.gp, b.Hcp, self.fp_start, self.fp_obs, self.of_slot, dc)
+        corr = self.per_free_point.sum(np.einsum("fij,fi->fj", b.Hcp, dc[self.of_slot]))
+        return -np.einsum("pij,pj->pi", Hpp_inv, b.gp + corr)
+
+    def _reduce_reference(self, b: BABlocks, lam: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Twin of ``ba_kernels.reduce_cameras``: the camera-camera blocks accumulated over the
+        pairs of observations of each point (each point is seen by a handful of keyframes)."""
+        nf = self.nf
+        if self._pairs is None:
+            q1, q2 = _obs_pairs(self.of_pt, self.n_points)
+            idx = ((self.of_slot[q1] * 6)[:, None, None] + np.arange(6)[None, :, None]) * (6 * nf) \
+                + (self.of_slot[q2] * 6)[:, None, None] + np.arange(6)[None, None, :]  # [Q, 6, 6] into S.ravel()
+            self._pairs = q1, q2, idx
+        q1, q2, pair_idx = self._pairs
+        Hpp_inv = np.linalg.inv(b.Hpp + lam * b.Hpp * np.eye(3) + 1e-9 * np.eye(3))  # [P, 3, 3]
+        W = np.matmul(b.Hcp, Hpp_inv[self.of_pt])  # [F, 6, 3]
+        S = np.zeros((6 * nf, 6 * nf))
+        for i in range(nf):
+            S[6 * i:6 * i + 6, 6 * i:6 * i + 6] = b.Hcc[i]
+        blocks = np.matmul(W[q1], b.Hcp[q2].transpose(0, 2, 1))  # [Q, 6, 6]
+        S -= np.bincount(pair_idx.ravel(), blocks.ravel(), minlength=S.size).reshape(S.shape)
+        rhs = b.gc - self.per_cam.sum(np.einsum("fij,fj->fi", W, b.gp[self.of_pt]))
+        return Hpp_inv, S, rhs.ravel()
+
+    def _blocks_reference(self, x: BAState, aux: BAAux) -> BABlocks:
+        """Twin of ``ba_kernels.blocks``."""
         T, (p_c, r), of = x[0], aux, self.of
         e = np.sqrt(np.einsum("ij,ij->i", r, r))
         w = np.where(e <= self.huber_px, 1.0, self.huber_px / np.maximum(e, 1e-12))  # IRLS Huber weight [O]
@@ -465,44 +526,31 @@ class BAGeometry:
 
 
 def local_bundle_adjustment(prob: BAProblem, K: np.ndarray, bf: float, huber_px: float,
-                            max_iterations: int) -> BAResult:
+                            max_iterations: int, compiled: bool | None = None) -> BAResult:
     """Jointly refine free keyframe poses and all points: Levenberg-Marquardt with the Schur complement.
 
     Residuals per observation are (u, v[, u_right]) scaled by ``obs_inv_sigma``; Huber on the
     observation's whitened error norm with threshold ``huber_px`` (iteratively reweighted).
-    Points are eliminated per point (3x3 blocks), so each step solves one dense [6C, 6C] system
-    (the camera-point blocks stacked densely per point: fine for a window of ~10 keyframes;
-    ``global_ba`` accumulates them over observation pairs instead).
+    Points are eliminated per point (3x3 blocks, ``BAGeometry.reduce``), so each step solves one
+    dense [6C, 6C] system. ``compiled``: see ``BAGeometry`` (False: the numpy twins).
     Twin: ``_local_bundle_adjustment_scipy`` (same residuals, scipy TRF).
     """
-    g = BAGeometry(prob, K, bf, huber_px)
-    nf, P = g.nf, g.n_points
+    g = BAGeometry(prob, K, bf, huber_px, compiled)
+    nf = g.nf
 
     def linearise(x: BAState, aux: BAAux) -> Callable[[float], BAState | None]:
         b = g.blocks(x, aux)
-        if nf:  # Y[p] = [3, 6 nf]: the point-camera blocks stacked per point (one observation per pair)
-            Y_blocks = np.zeros((P, 3, nf, 6))
-            Y_blocks[g.of_pt, :, g.of_slot, :] = b.Hcp.transpose(0, 2, 1)
-            Y = Y_blocks.reshape(P, 3, 6 * nf)
 
         def propose(lam: float) -> BAState | None:
-            Hpp_inv = np.linalg.inv(b.Hpp + lam * b.Hpp * np.eye(3) + 1e-9 * np.eye(3))  # [P, 3, 3]
-            if not nf:
-                return g.stepped(x, np.zeros((0, 6)), -np.einsum("pij,pj->pi", Hpp_inv, b.gp))
-            Z = np.matmul(Hpp_inv, Y)  # [P, 3, 6nf]
-            S = np.zeros((6 * nf, 6 * nf))
-            for i in range(nf):
-                S[6 * i:6 * i + 6, 6 * i:6 * i + 6] = b.Hcc[i]
-            # einsum, not BLAS: a threaded GEMM stalls badly when the cores are shared.
-            S -= np.einsum("pi,pj->ij", Y.reshape(-1, 6 * nf), Z.reshape(-1, 6 * nf))
-            rhs = b.gc.ravel() - np.einsum("pki,pk->i", Z, b.gp)
-            S += lam * np.diag(np.diag(S)) + 1e-9 * np.eye(6 * nf)
-            try:
-                dc = -np.linalg.solve(S, rhs).reshape(nf, 6)
-            except np.linalg.LinAlgError:
-                return None
-            corr = np.einsum("pki,i->pk", Y, dc.ravel())  # dp = Hpp^-1 (-gp - Hpc dc)
-            return g.stepped(x, dc, -np.einsum("pij,pj->pi", Hpp_inv, b.gp + corr))
+            Hpp_inv, S, rhs = g.reduce(b, lam)
+            dc = np.zeros((0, 6))
+            if nf:  # damped on the reduced system's diagonal (the global BA damps the camera blocks)
+                S += lam * np.diag(np.diag(S)) + 1e-9 * np.eye(6 * nf)
+                try:
+                    dc = -np.linalg.solve(S, rhs).reshape(nf, 6)
+                except np.linalg.LinAlgError:
+                    return None
+            return g.stepped(x, dc, g.back_substitute(b, Hpp_inv, dc))
 
         return propose
 
