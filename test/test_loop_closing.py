@@ -65,6 +65,30 @@ def test_vocabulary_scores_identical_images_highest(loop_frames: list) -> None:
     assert 0 not in db and all(k != 0 for k, _ in db.query(bows[0]))
 
 
+def test_compiled_words_equal_the_numpy_descent(loop_frames: list) -> None:
+    """The kernel (popcounts) and the reference (+-1 dot products) give every descriptor the same
+    word: real ones, random ones and the centres themselves (ties go to the first child in both)."""
+    from memgs_ros.core.tracking._compiled import numba_available
+
+    if not numba_available():
+        pytest.skip("numba is disabled here (MEMGS_DISABLE_NUMBA)")
+    vocab = default_vocabulary()
+    ex = OrbExtractor(TrackerConfig(n_features=300))
+    real = np.concatenate([ex.extract(cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY), f.camera, None).desc
+                           for f in loop_frames[::40]])
+    rng = np.random.default_rng(1)
+    centres = np.concatenate(vocab.levels)
+    for desc in (real, rng.integers(0, 256, (500, 32), dtype=np.uint8), centres, centres ^ np.uint8(1),
+                 np.zeros((0, 32), np.uint8)):
+        got, ref = vocab.words(desc), vocab._words_reference(desc)  # noqa: SLF001 - the twin
+        assert got.dtype == np.int64 and np.array_equal(got, ref)
+    assert len(np.unique(vocab.words(real))) > 50
+    small = build_vocabulary([rng.integers(0, 256, (60, 32), dtype=np.uint8) for _ in range(4)], branching=3,
+                             depth=2, iterations=3)
+    desc = rng.integers(0, 256, (80, 32), dtype=np.uint8)
+    assert np.array_equal(small.words(desc), small._words_reference(desc))  # noqa: SLF001
+
+
 def test_vocabulary_builder_makes_a_usable_tree() -> None:
     rng = np.random.default_rng(0)
     images = [rng.integers(0, 256, (50, 32), dtype=np.uint8) for _ in range(6)]

@@ -21,6 +21,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
 from memgs_ros.core.runtime.cpu import PARENT_PID_ENV, die_with_parent, lower_priority
+from memgs_ros.core.runtime.warm import settle_heap
 from memgs_ros.errors import MemgsError
 from memgs_ros.ros.config_params import check_declared
 
@@ -78,6 +79,7 @@ def run_nodes(factories: Sequence[Callable[[], Node]], name: str, args: Sequence
             lower_priority(int(getattr(nodes[0], "niceness", 0)))
         for node in nodes:
             executor.add_node(node)
+        settle_heap()  # started: no full garbage-collector pass over the imports mid-run
         try:
             code = _spin(executor, None if until is None else until(nodes))
         except Exception:

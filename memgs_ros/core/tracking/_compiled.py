@@ -32,7 +32,7 @@ from memgs_ros.core.runtime.cpu import numba_available  # noqa: F401 - re-export
 from memgs_ros.core.tracking.features import orb
 
 __all__ = ["View", "count_seen_kernel", "match_by_projection_kernel", "numba_available", "optimize_pose_kernel",
-           "track_pass_kernel", "unroll_kernel", "warm_up"]
+           "track_pass_kernel", "unroll_kernel", "warm_up", "words_kernel"]
 
 
 def _popcount64(x):
@@ -487,6 +487,35 @@ def _unroll(uv_raw, uv, K, omega, readout_s, height):
     return out
 
 
+def _words(desc, centres, branching, depth):
+    """Vocabulary words [M] of packed descriptors desc [M, 4] uint64: descend the tree of centres
+    [sum of branching ** (l + 1) over levels, 4] uint64 (level after level; node i's children are
+    nodes i * branching + j of the next level), at each level to the child at the least Hamming
+    distance, the first of equals (as argmax of the +-1 dot products picks)."""
+    m = desc.shape[0]
+    out = np.empty(m, np.int64)
+    for i in range(m):
+        node = 0
+        offset = 0
+        width = branching  # nodes of the level
+        for lvl in range(depth):
+            first = node * branching if lvl else 0
+            best = 257
+            pick = first
+            for j in range(first, first + branching):
+                c = offset + j
+                d = (_popcount64(desc[i, 0] ^ centres[c, 0]) + _popcount64(desc[i, 1] ^ centres[c, 1])
+                     + _popcount64(desc[i, 2] ^ centres[c, 2]) + _popcount64(desc[i, 3] ^ centres[c, 3]))
+                if d < best:
+                    best = d
+                    pick = j
+            node = pick
+            offset += width
+            width *= branching
+        out[i] = node
+    return out
+
+
 if numba_available():
     import numba
 
@@ -514,6 +543,7 @@ if numba_available():
     _track_pass = _jit(_track_pass)
     _count_seen = _jit(_count_seen)
     _unroll = _jit(_unroll)
+    _words = _jit(_words)
 
 
 def _arg(a: np.ndarray, dtype: type) -> np.ndarray:
@@ -595,6 +625,13 @@ def unroll_kernel(uv_raw: np.ndarray, uv: np.ndarray, K: np.ndarray, omega_c: np
                    float(readout_s), int(height))
 
 
+def words_kernel(desc: np.ndarray, centres: np.ndarray, branching: int, depth: int) -> np.ndarray:
+    """Compiled ``Vocabulary._words_reference``: word ids [M] of descriptors [M, 32] uint8 in the
+    tree of ``centres`` [N, 32] uint8 (its levels one after another)."""
+    return _words(_arg(desc, np.uint8).view(np.uint64), _arg(centres, np.uint8).view(np.uint64), int(branching),
+                  int(depth))
+
+
 def warm_up() -> None:
     """Compile (or load from the disk cache) the tracking kernels, and ORB's (``orb.warm_up``), on
     tiny inputs, so that the first tracked frame does not pay for it (~20 s of compilation on first
@@ -618,3 +655,4 @@ def warm_up() -> None:
     unroll_kernel(obs[:, :2].astype(np.float32), obs[:, :2], K, np.ones(3), 0.02, 640)
     depth_to_metres(np.ones((2, 2), np.uint16), 1000.0)  # the frame's depth, both encodings
     depth_to_metres(np.ones((2, 2), np.float32))
+    words_kernel(desc, np.zeros((6, 32), np.uint8), 2, 2)  # place recognition, on the back-end
