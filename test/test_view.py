@@ -213,3 +213,21 @@ def test_depth_to_metres_compiled_equals_the_numpy_reference(scale: float) -> No
         assert got.dtype == np.float32 and got.shape == raw.shape
         np.testing.assert_array_equal(got, ref)
         assert not np.shares_memory(got, raw)
+
+
+@pytest.mark.parametrize("scale", [1000.0, 5000.0, 0.37])
+def test_metres_to_units_compiled_equals_the_numpy_reference(scale: float) -> None:
+    """The 16-bit encoder (replays publish every depth frame through it) value for value: halves
+    rounded to even, zeros, negative, NaN, infinite and out-of-range depths as 0, strided input."""
+    from memgs_ros.core.geometry import view as view_module
+
+    rng = np.random.default_rng(6)
+    f = rng.uniform(0.0, 70000.0 / scale, (48, 64)).astype(np.float32)
+    f[0, :5] = np.nan, np.inf, -np.inf, -1.0, 0.0
+    f[1, :4] = np.float32(0.5 / scale), np.float32(1.5 / scale), np.float32(65535 / scale), np.float32(65536 / scale)
+    for raw in (f, f[:, ::2], f[::3], f.astype(np.float64)):
+        got = view_module.metres_to_units(raw, scale)
+        ref = view_module._metres_to_units_reference(raw, scale)  # noqa: SLF001
+        assert got.dtype == np.uint16 and got.shape == raw.shape
+        np.testing.assert_array_equal(got, ref)
+    assert (ref[0, :5] == 0).all() and (ref > 0).mean() > 0.8

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.geometry.view import depth_to_metres
+from memgs_ros.core.geometry.view import depth_to_metres, metres_to_units
 from memgs_ros.errors import DataError, MessageError
 
 __all__ = [
@@ -210,16 +210,11 @@ def decode_depth(msg: Any, depth_scale: float = DEFAULT_DEPTH_SCALE) -> np.ndarr
 def metres_to_depth_units(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
     """[H, W] metres -> [H, W] uint16 units (``depth_scale`` per metre), rounded to nearest (ties to even).
 
-    The one encoder of 16-bit depth (16UC1 messages, TUM PNGs). Non-finite, non-positive depths and
-    depths beyond 65535 units become 0 (invalid) rather than clamped, so no wrong depth reaches
-    the tracker. Metres are read as float32 (a Frame's depth dtype).
+    The one encoder of 16-bit depth (16UC1 messages, TUM PNGs): ``view.metres_to_units``. Non-finite,
+    non-positive depths and depths beyond 65535 units become 0 (invalid) rather than clamped, so no
+    wrong depth reaches the tracker. Metres are read as float32 (a Frame's depth dtype).
     """
-    d = np.asarray(depth_m, dtype=np.float32)
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(d) & (d > 0)
-    units = np.where(valid, np.rint(d.astype(np.float64) * depth_scale), 0.0)
-    units[units > 65535] = 0
-    return units.astype(np.uint16)
+    return metres_to_units(depth_m, depth_scale)
 
 
 def has_valid_depth(depth: np.ndarray) -> bool:

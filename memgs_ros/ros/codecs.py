@@ -140,9 +140,9 @@ def depth_to_image(
     d = np.asarray(depth_m, dtype=np.float32)
     if d.ndim != 2:
         raise MessageError(f"depth must be [H, W], got shape {d.shape}")
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(d) & (d > 0)
     if encoding == "32FC1":
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(d) & (d > 0)
         return numpy_to_image(np.where(valid, d, np.float32(np.nan)).astype(np.float32), encoding, stamp_ns, frame_id)
     if encoding == "16UC1":
         if not (np.isfinite(depth_scale) and depth_scale > 0):

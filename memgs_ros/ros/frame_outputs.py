@@ -3,11 +3,13 @@
 the source has ground truth, ``groundtruth/pose`` (PoseStamped, camera in world)."""
 from __future__ import annotations
 
+import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
 from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.view import metres_to_units
 from memgs_ros.ros import codecs, qos
 
 __all__ = ["FrameOutbox"]
@@ -25,6 +27,8 @@ class FrameOutbox:
         self.depth = node.create_publisher(Image, "depth/image_raw", qos.reliable(5))
         self.info = node.create_publisher(CameraInfo, "color/camera_info", qos.reliable(5))
         self.gt = node.create_publisher(PoseStamped, "groundtruth/pose", qos.reliable(10))
+        if depth_encoding == "16UC1":  # its compiled encoder loaded now, not on the first frame
+            metres_to_units(np.ones((1, 1), np.float32), depth_scale)
 
     def publish(self, frame: Frame, stamp_ns: int) -> None:
         fid = self._frame_id

