@@ -43,6 +43,12 @@ def _popcount64(x):
     return np.int64((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
 
 
+def _hamming256(a, i, b, j):
+    """Hamming distance of packed 256-bit descriptors a[i] and b[j] ([., 4] uint64 each)."""
+    return (_popcount64(a[i, 0] ^ b[j, 0]) + _popcount64(a[i, 1] ^ b[j, 1])
+            + _popcount64(a[i, 2] ^ b[j, 2]) + _popcount64(a[i, 3] ^ b[j, 3]))
+
+
 def _bucket(kp_uv, cell_px, gx, gy):
     """Keypoints [M, 2] bucketed by grid cell (counting sort): (start [gx * gy + 1] of each cell's
     run, order [M] keypoint of each bucket slot, su / sv [M] their positions in bucket order, which
@@ -146,8 +152,7 @@ def _best_two(pd, i, kd, order, cand_s, n, available):
         j = order[cand_s[q]]
         if not available[j]:
             continue
-        h = (_popcount64(pd[i, 0] ^ kd[j, 0]) + _popcount64(pd[i, 1] ^ kd[j, 1])
-             + _popcount64(pd[i, 2] ^ kd[j, 2]) + _popcount64(pd[i, 3] ^ kd[j, 3]))
+        h = _hamming256(pd, i, kd, j)
         if h < b1:
             b2 = b1
             b1 = h
@@ -503,9 +508,7 @@ def _words(desc, centres, branching, depth):
             best = 257
             pick = first
             for j in range(first, first + branching):
-                c = offset + j
-                d = (_popcount64(desc[i, 0] ^ centres[c, 0]) + _popcount64(desc[i, 1] ^ centres[c, 1])
-                     + _popcount64(desc[i, 2] ^ centres[c, 2]) + _popcount64(desc[i, 3] ^ centres[c, 3]))
+                d = _hamming256(desc, i, centres, offset + j)
                 if d < best:
                     best = d
                     pick = j
@@ -525,6 +528,7 @@ if numba_available():
     # observation, an out-of-line call made the matcher 2.5 times slower.
     _inl = numba.njit(cache=True, nogil=True, inline="always")
     _popcount64 = _inl(_popcount64)
+    _hamming256 = _inl(_hamming256)
     _bucket = _jit(_bucket)
     _nearest = _jit(_nearest)
     _best_two = _jit(_best_two)
