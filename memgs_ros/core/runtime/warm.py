@@ -13,7 +13,7 @@ __all__ = ["WarmUpThread", "settle_heap"]
 def settle_heap() -> None:
     """Collect what starting left behind, then exempt every object alive now from the cyclic
     garbage collector's full passes (``gc.freeze``). A node's imports (numba, scipy, rclpy, torch)
-    leave ~150k tracked objects, and each full pass walked them all: 70-90 ms with the GIL held, a
+    leave ~150k tracked objects, and each full pass walked them all: 70-86 ms with the GIL held, a
     pass every few hundred frames, 4-5 frames of a 60 Hz camera that the tracker's queue then
     dropped. Reference counting still frees the frozen objects; only cycles among them stay."""
     gc.collect()
