@@ -182,9 +182,9 @@ class OrbExtractor:
         keeps of it and the grid's choice among those (``orb.detect_and_select``): (level-0
         positions [K, 2] float32, level positions [K, 2], octaves [K], angles [K], how many ORB kept
         before the grid)."""
-        corners = [fast.detect(level) for level in pyr]
+        corners = [_fast_in_band(fast, level) for level in pyr]
         starts = np.cumsum([0, *map(len, corners)])
-        xy = np.concatenate([_positions(c) for c in corners])
+        xy = np.concatenate([_positions(c) + np.float32(_BAND_MARGIN) for c in corners])
         score = None  # computed in the kernel, for the levels where ORB ranks by it
         if not self._scores_in_kernel:  # read off OpenCV's keypoint objects instead (~3000 of them)
             score = np.fromiter(chain.from_iterable(map(_RESPONSE, c) for c in corners), np.float32, int(starts[-1]))
@@ -262,6 +262,24 @@ class OrbExtractor:
             ok = np.isfinite(d) & (d >= self.cfg.min_depth_m) & (d <= self.cfg.max_depth_m)
             depth[ok] = d[ok]
         return FrameFeatures(uv_raw, uv, octave, np.ascontiguousarray(desc), depth)
+
+
+# FAST runs on a level's band less this margin: the corners ORB keeps lie EDGE_PX or more inside
+# the border, and FAST's non-maximum suppression of a corner reads its neighbours' scores, each
+# from the pixels up to 3 px around it; 4 px outside the kept band give them all, so the band's
+# corners and scores are those of the whole level, at a fifth fewer Python keypoint objects.
+_BAND_MARGIN = EDGE_PX - 4
+
+
+def _fast_in_band(fast: cv2.FastFeatureDetector, level: np.ndarray) -> Sequence[cv2.KeyPoint]:
+    """FAST's corners of ``level`` [H, W] that may lie in ORB's band (positions less
+    ``_BAND_MARGIN``; the ring outside the band is filtered with the rest later); none where the
+    level has no band."""
+    h, w = level.shape
+    if 2 * EDGE_PX >= w or 2 * EDGE_PX >= h:
+        return ()
+    m = _BAND_MARGIN
+    return fast.detect(level[m:h - m, m:w - m])
 
 
 def _positions(kps: Sequence[cv2.KeyPoint]) -> np.ndarray:
