@@ -15,7 +15,7 @@ from nav_msgs.msg import Path  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField  # noqa: E402
 
 from memgs_ros.core.geometry.camera import TUM_FR1, TUM_FR3, PinholeCamera  # noqa: E402
-from memgs_ros.core.geometry.poses import pose_from_tq  # noqa: E402
+from memgs_ros.core.geometry.poses import pose_from_tq, rotmat_to_quat_xyzw  # noqa: E402
 from memgs_ros.errors import MessageError  # noqa: E402
 from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb, image_to_numpy  # noqa: E402
 from memgs_ros.ros import codecs  # noqa: E402
@@ -279,6 +279,28 @@ def test_pose_round_trips() -> None:
     shared = codecs.pose_to_odometry(ps, "camera")  # the node's way: one conversion for both
     assert shared.header == ps.header and shared.pose.pose == ps.pose and shared.child_frame_id == "camera"
     assert list(shared.pose.covariance) == [0.0] * 36 and shared.twist.twist.linear.x == 0.0
+    # A publisher's Odometry filled again for the next pose (the tracker's per-frame messages).
+    ps2 = codecs.matrix_to_pose_stamped(_random_pose(8), 6, "world")
+    again = codecs.pose_to_odometry(ps2, "camera2", out=shared)
+    assert again is shared and again.header == ps2.header and again.pose.pose == ps2.pose
+    assert again.child_frame_id == "camera2" and codecs.stamp_to_ns(ps.header.stamp) == 5_000_000_001
+
+
+def test_pose_messages_are_built_as_the_quaternion_reference_gives_them() -> None:
+    """The encoder writes the entries it checked; the quaternion is ``rotmat_to_quat_xyzw``'s,
+    bit for bit, whichever of Shepperd's four cases a rotation takes."""
+    for seed in range(40):
+        T = _random_pose(seed)
+        pose = codecs.matrix_to_pose(T)
+        want = rotmat_to_quat_xyzw(T[:3, :3])
+        got = [pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w]
+        assert got == want.tolist() and [pose.position.x, pose.position.y, pose.position.z] == T[:3, 3].tolist()
+    bad = np.eye(4)
+    bad[2, 3] = np.nan
+    with pytest.raises(MessageError, match="finite 4x4"):
+        codecs.matrix_to_pose_stamped(bad, 1, "world")
+    with pytest.raises(MessageError, match="does not fit"):
+        codecs.matrix_to_pose_stamped(np.eye(4), -1, "world")
 
 
 def test_pose_to_matrix_normalises_and_refuses_zero_quaternion() -> None:

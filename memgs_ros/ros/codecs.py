@@ -17,8 +17,10 @@ reader still sees two plain integer fields.
 from __future__ import annotations
 
 import array
+import math
 import sys
 from collections.abc import Sequence
+from itertools import chain
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -28,7 +30,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.geometry.poses import pose_from_tq, pose_to_tq
+from memgs_ros.core.geometry.poses import pose_from_tq, quat_xyzw_of
 from memgs_ros.errors import MessageError
 from memgs_ros.io.image_decoding import IMAGE_ENCODINGS, metres_to_depth_units
 
@@ -83,17 +85,36 @@ def stamp_to_ns(stamp: Time) -> int:
     return int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
 
 
-def ns_to_stamp(stamp_ns: int) -> Time:
-    """Integer nanoseconds (>= 0, fits the int32 seconds of Time) to builtin_interfaces/Time."""
+# Message fields are set in place on the sub-messages a new message makes anyway: a generated
+# message's constructor builds every default sub-message even when one is passed in, so passing
+# them built (a Header with its Time, a Pose with its Point and Quaternion) built each twice.
+
+
+def set_stamp(stamp: Time, stamp_ns: int) -> None:
+    """Write integer nanoseconds (>= 0, fits the int32 seconds of Time) into ``stamp`` in place."""
     ns = int(stamp_ns)
     sec, nanosec = divmod(ns, _NS_PER_S)
     if ns < 0 or sec > _INT32_MAX:
         raise MessageError(f"stamp {ns} ns does not fit builtin_interfaces/Time (0 <= sec <= {_INT32_MAX})")
-    return Time(sec=sec, nanosec=nanosec)
+    stamp.sec, stamp.nanosec = sec, nanosec
+
+
+def ns_to_stamp(stamp_ns: int) -> Time:
+    """Integer nanoseconds (>= 0, fits the int32 seconds of Time) to builtin_interfaces/Time."""
+    out = Time()
+    set_stamp(out, stamp_ns)
+    return out
+
+
+def set_header(header: Header, stamp_ns: int, frame_id: str) -> Header:
+    """``header`` stamped ``stamp_ns`` in ``frame_id``, in place (a publisher's reused message)."""
+    set_stamp(header.stamp, stamp_ns)
+    header.frame_id = frame_id
+    return header
 
 
 def make_header(stamp_ns: int, frame_id: str) -> Header:
-    return Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id)
+    return set_header(Header(), stamp_ns, frame_id)
 
 
 # --------------------------------------------------------------------------- images
@@ -181,21 +202,30 @@ def pose_to_matrix(pose: Pose) -> np.ndarray:
     return pose_from_tq(t, q_xyzw / n)
 
 
+def set_pose(pose: Pose, T: np.ndarray) -> Pose:
+    """Write the [4, 4] rigid transform T into ``pose`` in place (checked first: finite, 4x4)."""
+    T = np.asarray(T, dtype=np.float64)
+    rows = T.tolist()
+    if T.shape != (4, 4) or not all(map(math.isfinite, chain.from_iterable(rows))):
+        raise MessageError(f"pose must be a finite 4x4 matrix, got shape {T.shape}")
+    (m00, m01, m02, tx), (m10, m11, m12, ty), (m20, m21, m22, tz), _ = rows
+    p, o = pose.position, pose.orientation
+    p.x, p.y, p.z = tx, ty, tz
+    o.x, o.y, o.z, o.w = quat_xyzw_of(m00, m01, m02, m10, m11, m12, m20, m21, m22)
+    return pose
+
+
 def matrix_to_pose(T: np.ndarray) -> Pose:
     """[4, 4] rigid transform -> geometry_msgs/Pose."""
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise MessageError(f"pose must be a finite 4x4 matrix, got shape {T.shape}")
-    t, q = pose_to_tq(T)
-    pose = Pose()
-    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in t)
-    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
-    return pose
+    return set_pose(Pose(), T)
 
 
 def matrix_to_pose_stamped(T_wc: np.ndarray, stamp_ns: int, frame_id: str) -> PoseStamped:
     """Camera-in-world [4, 4] -> PoseStamped in ``frame_id`` (the world frame)."""
-    return PoseStamped(header=make_header(stamp_ns, frame_id), pose=matrix_to_pose(T_wc))
+    msg = PoseStamped()
+    set_pose(msg.pose, T_wc)
+    set_header(msg.header, stamp_ns, frame_id)
+    return msg
 
 
 def matrix_to_odometry(T_wc: np.ndarray, stamp_ns: int, frame_id: str, child_frame_id: str) -> Odometry:
@@ -203,10 +233,13 @@ def matrix_to_odometry(T_wc: np.ndarray, stamp_ns: int, frame_id: str, child_fra
     return pose_to_odometry(matrix_to_pose_stamped(T_wc, stamp_ns, frame_id), child_frame_id)
 
 
-def pose_to_odometry(pose: PoseStamped, child_frame_id: str) -> Odometry:
+def pose_to_odometry(pose: PoseStamped, child_frame_id: str, out: Odometry | None = None) -> Odometry:
     """The Odometry of a PoseStamped (its header and pose, which it shares; twist left zero with
-    zero covariance): a node publishing both converts the matrix once."""
-    msg = Odometry(header=pose.header, child_frame_id=child_frame_id)
+    zero covariance): a node publishing both converts the matrix once. ``out``: a publisher's
+    Odometry to fill instead of a new one (its twist and covariances are left as they are)."""
+    msg = Odometry() if out is None else out
+    msg.header = pose.header
+    msg.child_frame_id = child_frame_id
     msg.pose.pose = pose.pose
     return msg
 

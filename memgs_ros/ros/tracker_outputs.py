@@ -21,9 +21,9 @@ from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
     append_to_path,
     camera_to_camera_info,
-    make_header,
     matrix_to_pose_stamped,
     pose_to_odometry,
+    set_header,
     stamp_to_ns,
     structured_to_pointcloud2,
 )
@@ -143,10 +143,13 @@ class TrackerOutbox:
         self.keyframes = KeyframeOutbox(node, world_frame)
         self.path = CorrectedPath(world_frame, path_max_len)
         node.create_timer(1.0 / path_rate_hz, self.publish_path)
+        # Filled in place and published at once (publish serializes before it returns): the
+        # per-frame messages nothing keeps. The poses are new each frame: the path keeps them.
+        self._state, self._odom, self._processed = String(), Odometry(), Header()
 
     def processed(self, stamp_ns: int, keyframe: bool = False) -> None:
         """The answer for every frame handled, tracked or refused (a lockstep player waits on it)."""
-        self.processed_pub.publish(make_header(stamp_ns, "keyframe" if keyframe else "frame"))
+        self.processed_pub.publish(set_header(self._processed, stamp_ns, "keyframe" if keyframe else "frame"))
 
     def frame(self, result: TrackResult, camera: PinholeCamera, color: Image, depth: Image | None,
               refined: list[tuple[int, np.ndarray]], corrected: list[tuple[int, np.ndarray]],
@@ -156,14 +159,15 @@ class TrackerOutbox:
         closure; ``loops``: the closures' world-frame corrections), then its answer."""
         stats, stamp = self.stats, result.stamp_ns
         camera_frame = color.header.frame_id or self.camera_frame
-        self.state.publish(String(data=result.state.name))
-        stats.counters[f"state.{result.state.name}"] += 1
+        self._state.data = name = result.state.name
+        self.state.publish(self._state)
+        stats.counters[f"state.{name}"] += 1
         stats.gauges["segment"] = result.segment_id
         pose = None
         if result.T_wc is not None:
             pose = matrix_to_pose_stamped(result.T_wc, stamp, self.world_frame)
             self.pose.publish(pose)
-            self.odom.publish(pose_to_odometry(pose, camera_frame))
+            self.odom.publish(pose_to_odometry(pose, camera_frame, self._odom))
             stats.counters["poses_out"] += 1
             if result.keyframe is not None:
                 self.keyframes.publish(result, camera, camera_frame, color, depth)

@@ -32,7 +32,7 @@ def rotmat_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
     """
     R = np.asarray(R, dtype=np.float64)
     if R.shape == (3, 3):  # one matrix: numpy's per-call overhead would dominate
-        return np.array(_quat_xyzw_one(*R.ravel().tolist()))
+        return np.array(quat_xyzw_of(*R.ravel().tolist()))
     m = R.reshape(-1, 9)
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = m.T
     # The largest of four candidate denominators keeps the division well conditioned.
@@ -51,9 +51,10 @@ def rotmat_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
     return q.reshape(R.shape[:-2] + (4,))
 
 
-def _quat_xyzw_one(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float,
+def quat_xyzw_of(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float,
                    m20: float, m21: float, m22: float) -> tuple[float, float, float, float]:
-    """``rotmat_to_quat_xyzw`` of one matrix, in Python floats (the same cases)."""
+    """``rotmat_to_quat_xyzw`` of one matrix given by its entries, in Python floats (the same cases):
+    for callers that hold the entries already (message encoders, ~2 us against ~7 via an array)."""
     cand = (1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22)
     k = max(range(4), key=cand.__getitem__)
     s = 2.0 * math.sqrt(max(cand[k], 1e-300))
@@ -73,7 +74,7 @@ def rotmat_to_rotvec(R: np.ndarray) -> np.ndarray:
     """Rotation matrices [..., 3, 3] to rotation vectors [..., 3] (axis times angle in [0, pi])."""
     R = np.asarray(R, dtype=np.float64)
     if R.shape == (3, 3):
-        x, y, z, w1 = _quat_xyzw_one(*R.ravel().tolist())
+        x, y, z, w1 = quat_xyzw_of(*R.ravel().tolist())
         n1 = math.sqrt(x * x + y * y + z * z)
         f1 = 2.0 / max(w1, 1e-300) if n1 < 1e-12 else 2.0 * math.atan2(n1, w1) / n1
         return np.array((x * f1, y * f1, z * f1))
