@@ -91,6 +91,26 @@ def test_match_by_projection_breaks_ties_as_the_reference() -> None:
             assert np.array_equal(a, b)
 
 
+@pytest.mark.parametrize("k", [12, 3])
+def test_match_by_projection_in_crowded_tight_windows(k: int) -> None:
+    """Tight radii among crowded keypoints (a textured patch: more within reach than ``k``): the
+    windows read whole, cut to the k nearest, give the reference's matches. (Distances that tie
+    at the cut are left to the test above: the reference's k-d tree cuts those its own way.)"""
+    _needs_numba()
+    rng = np.random.default_rng(11 + k)
+    for _ in range(30):
+        uv = rng.uniform(200.0, 260.0, (600, 2))
+        feats = FrameFeatures(uv.astype(np.float32), uv, rng.integers(0, 8, 600),
+                              rng.integers(0, 256, (600, 32), dtype=np.uint8), np.full(600, np.nan))
+        proj, desc = _map_points(rng, feats, 400)
+        radius = rng.uniform(1.5, 6.0, 400)
+        fast = match_by_projection(proj, desc, feats, radius, 80, 0.9, max_candidates=k)
+        ref = _match_by_projection(proj, desc, feats, radius, 80, 0.9, max_candidates=k)
+        for a, b in zip(fast, ref, strict=True):
+            assert np.array_equal(a, b)
+        assert len(fast[0]) > 50  # real matches
+
+
 def _pose_problem(rng: np.random.Generator, n: int) -> tuple:
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, 0.1, 3)).as_matrix()
