@@ -154,7 +154,7 @@ def _nearest(u, v, r, start, su, sv, cell_px, gx, gy, K, cand_d2, cand_s):
 def _gather(u, v, r2, start, su, sv, x0, x1, y0, y1, gx, K, cand_d2, cand_s):
     """``_nearest`` over the window of cells x0..x1, y0..y1 read whole: every keypoint within
     sqrt(r2) into cand_d2 / cand_s (written for each keypoint read, kept by the count: no branch
-    to mispredict), then, only when more than ``K``, ordered by (distance, slot) and cut to K."""
+    to mispredict), then, only when more than ``K``, the K nearest by (distance, slot), in order."""
     n = 0
     for cy in range(y0, y1 + 1):  # a window row's cells are one run of bucket slots
         for s in range(start[cy * gx + x0], start[cy * gx + x1 + 1]):
@@ -164,19 +164,23 @@ def _gather(u, v, r2, start, su, sv, x0, x1, y0, y1, gx, K, cand_d2, cand_s):
             cand_d2[n] = d2
             cand_s[n] = s
             n += d2 <= r2
-    if n > K:  # slots came ascending: a stable insertion sort by distance orders by (distance, slot)
-        for a in range(1, n):
-            d2 = cand_d2[a]
-            s = cand_s[a]
-            q = a
-            while q > 0 and cand_d2[q - 1] > d2:
-                cand_d2[q] = cand_d2[q - 1]
-                cand_s[q] = cand_s[q - 1]
-                q -= 1
-            cand_d2[q] = d2
-            cand_s[q] = s
-        n = K
-    return n
+    if n <= K:
+        return n
+    # The first K sorted, then each later one inserted when nearer than the K-th: the slots came
+    # ascending, so stable insertions by distance order by (distance, slot).
+    for a in range(1, n):
+        d2 = cand_d2[a]
+        if a >= K and not d2 < cand_d2[K - 1]:
+            continue
+        s = cand_s[a]
+        q = min(a, K - 1)
+        while q > 0 and cand_d2[q - 1] > d2:
+            cand_d2[q] = cand_d2[q - 1]
+            cand_s[q] = cand_s[q - 1]
+            q -= 1
+        cand_d2[q] = d2
+        cand_s[q] = s
+    return K
 
 
 def _best_two(pd, i, kd, order, cand_d2, cand_s, n, available):
