@@ -109,6 +109,7 @@ class NodeStats:
         # Gauges computed when the message is built, for those too costly to update per frame.
         self.computed: dict[str, Callable[[], float | int | str]] = {}
         self._warned: set[str] = set()
+        self._accepted: set[str] = set()  # keys checked once: a frame path sets a dozen a frame
         self._posted: queue.SimpleQueue[tuple[str, str, object]] = queue.SimpleQueue()
         self._pub = node.create_publisher(DiagnosticArray, f"memgs/{name}/stats", qos.reliable(5))
         self._timer = node.create_timer(period_s, self.publish)
@@ -117,6 +118,8 @@ class NodeStats:
         """Whether ``key`` is a field of the node's record. A key it does not name is a bug in the
         node: the test suite (``MEMGS_STRICT_STATS=1``) fails on it; a robot's node drops the value
         and counts ``problem.stats_key`` rather than stop."""
+        if key in self._accepted:
+            return True
         try:
             check_key(self.record, key)
         except StatsError as err:
@@ -124,6 +127,7 @@ class NodeStats:
                 raise
             self.post_problem("stats_key", str(err))
             return False
+        self._accepted.add(key)
         return True
 
     def problem(self, kind: str, message: str) -> None:

@@ -276,7 +276,7 @@ def _fast_in_band(fast: cv2.FastFeatureDetector, level: np.ndarray) -> Sequence[
     ``_BAND_MARGIN``; the ring outside the band is filtered with the rest later); none where the
     level has no band."""
     h, w = level.shape
-    if 2 * EDGE_PX >= w or 2 * EDGE_PX >= h:
+    if min(w, h) <= 2 * EDGE_PX:
         return ()
     m = _BAND_MARGIN
     return fast.detect(level[m:h - m, m:w - m])
