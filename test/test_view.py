@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 
 from memgs_ros.core.geometry.camera import TUM_FR1, PinholeCamera
+from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.view import (
     Undistorter,
     check_depth_scale,
     depth_scale_ratio,
     depth_to_metres,
+    depth_to_metres_checked,
     valid_pixel_mask,
     view_preparation,
 )
@@ -213,6 +215,34 @@ def test_depth_to_metres_compiled_equals_the_numpy_reference(scale: float) -> No
         assert got.dtype == np.float32 and got.shape == raw.shape
         np.testing.assert_array_equal(got, ref)
         assert not np.shares_memory(got, raw)
+
+
+@pytest.mark.parametrize("scale", [1.0, 5000.0])
+def test_the_checked_conversion_finds_valid_depth_as_the_frame_does(scale: float) -> None:
+    """``depth_to_metres_checked`` says in its one pass what ``Frame.has_valid_depth`` says of the
+    converted image: none valid when all are holes, out of range or a single in-range pixel is
+    the only one (found wherever it lies, strided input too)."""
+    rng = np.random.default_rng(9)
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    for case in range(6):
+        m = np.zeros((48, 64), np.float32)
+        if case == 1:
+            m[:] = 41.0  # beyond the range: no valid depth
+        elif case == 2:
+            m[rng.integers(0, 48), rng.integers(0, 64)] = 2.5  # one, off the sparse grid as likely as not
+        elif case == 3:
+            m[:] = np.nan
+            m[47, 63] = 0.5
+        elif case >= 4:
+            m = rng.uniform(0.0, 50.0, (48, 64)).astype(np.float32)
+        raw = np.rint(m * scale).astype(np.uint16) if scale != 1.0 else m
+        for r in (raw, raw[:, ::2]) if case == 5 else (raw,):
+            got, valid = depth_to_metres_checked(r, scale)
+            np.testing.assert_array_equal(got, depth_to_metres(r, scale))
+            if r.shape == (48, 64):
+                assert valid == Frame(0, rgb, got, cam).has_valid_depth()
+            assert valid == bool(np.any((got > np.float32(1e-6)) & (got < np.float32(40.0))))
 
 
 @pytest.mark.parametrize("scale", [1000.0, 5000.0, 0.37])

@@ -43,7 +43,7 @@ from memgs_ros.core.runtime.warm import WarmUpThread
 from memgs_ros.core.tracking import Tracker, TrackerConfig, TrackResult, make_tracker, warm_up
 from memgs_ros.core.tracking.frame_gate import CameraSource, LiveGate, StampRules
 from memgs_ros.errors import ConfigError, DataError, MessageError
-from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, rgb_view
+from memgs_ros.io.image_decoding import decode_camera_info, decode_depth_checked, rgb_view
 from memgs_ros.nodes.params import NODE_CONFIGS, TrackerParams
 from memgs_ros.ros import qos
 from memgs_ros.ros.camera_params import declare_calibration
@@ -182,12 +182,12 @@ class TrackerNode(Node):
         if not verdict.take:
             return None
         try:
-            depth_m = decode_depth(depth, self.params.depth_scale) if depth is not None else None
+            depth_m, has_depth = (None, True) if depth is None else decode_depth_checked(depth, self.params.depth_scale)
             frame = Frame(stamp, rgb_view(color), depth_m, self.cams.camera)  # a view: only its grey is read
         except (MessageError, DataError) as err:
             self.stats.problem("bad_image", f"frame {stamp} refused: {err}")
             return None
-        if depth is not None and not frame.has_valid_depth():
+        if not has_depth:
             self.stats.problem("empty_depth", f"frame {stamp} has no valid depth")
         self.stamps.took(stamp)
         return frame

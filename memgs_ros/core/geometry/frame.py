@@ -8,6 +8,9 @@ import numpy as np
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.errors import DataError
 
+# Depths (metres, open interval) that count as a measurement for ``Frame.has_valid_depth``.
+VALID_DEPTH_M = (1e-6, 40.0)
+
 
 @dataclass(frozen=True, eq=False)
 class Frame:
@@ -45,14 +48,14 @@ class Frame:
     def stamp_s(self) -> float:
         return self.stamp_ns * 1e-9
 
-    def valid_depth_mask(self, min_m: float = 1e-6, max_m: float = 40.0) -> np.ndarray:
+    def valid_depth_mask(self, min_m: float = VALID_DEPTH_M[0], max_m: float = VALID_DEPTH_M[1]) -> np.ndarray:
         """[H, W] bool: finite depth inside (min_m, max_m). All False when there is no depth."""
         if self.depth_m is None:
             return np.zeros((self.camera.height, self.camera.width), dtype=bool)
         d = self.depth_m
         return np.isfinite(d) & (d > min_m) & (d < max_m)
 
-    def has_valid_depth(self, min_m: float = 1e-6, max_m: float = 40.0) -> bool:
+    def has_valid_depth(self, min_m: float = VALID_DEPTH_M[0], max_m: float = VALID_DEPTH_M[1]) -> bool:
         """Whether ``valid_depth_mask(min_m, max_m)`` holds one True: a sparse grid of pixels first,
         which settles it for any frame with depth at a twentieth of the cost of the full mask."""
         if self.depth_m is None:
