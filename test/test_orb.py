@@ -184,3 +184,47 @@ def test_retain_best_keeps_the_n_best_and_their_ties(keys: str) -> None:
         nth = np.sort(key)[::-1][min(n, m) - 1]
         np.testing.assert_array_equal(kept, np.flatnonzero(key >= nth))
         np.testing.assert_array_equal(np.sort(a), np.arange(m))  # a permutation
+
+
+def test_level_centres_and_keypoint_depths_equal_their_numpy_twins() -> None:
+    """The compiled bookkeeping after detection, value for value: where each keypoint lies in the
+    pyramid's buffer, and its shifted pixel and depth (NaN for holes, non-finite and out-of-range
+    depths, pixels rounded half to even and clipped at the image's edges)."""
+    rng = np.random.default_rng(21)
+    ex = OrbExtractor(TrackerConfig())
+    layout = ex._flat_pyramid(gray=rng.integers(0, 256, (480, 640), dtype=np.uint8))  # noqa: SLF001
+    octave = rng.integers(0, len(layout.levels), 3000)
+    xy = np.column_stack([rng.uniform(19, layout.widths[octave] - 20), rng.uniform(19, layout.shapes[octave, 1] - 20)])
+    xy[:40] = np.floor(xy[:40]) + 0.5  # halves: rounded to even, as numpy's rint
+    xy = xy.astype(np.float32)
+    np.testing.assert_array_equal(orb.level_centres(xy, octave, layout.offsets, layout.widths),
+                                  orb._level_centres_reference(xy, octave, layout.offsets, layout.widths))  # noqa: SLF001
+    pts = np.column_stack([rng.uniform(-3.0, 643.0, 3000), rng.uniform(-3.0, 483.0, 3000)]).astype(np.float32)
+    pts[:40] = np.floor(pts[:40]) + 0.5
+    depth = rng.uniform(0.0, 8.0, (480, 640)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.1] = np.nan
+    depth[0, :3] = (np.inf, -1.0, 6.0)
+    shift = ex._centre_shift  # noqa: SLF001
+    for d in (depth, None):
+        got = orb.keypoint_depths(pts, octave, shift, d, (480, 640), (0.1, 6.0))
+        want = orb._keypoint_depths_reference(pts, octave, shift, d, (480, 640), (0.1, 6.0))  # noqa: SLF001
+        for a, b in zip(got, want, strict=True):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="does not match"):
+        orb.keypoint_depths(pts, octave, shift, depth[:, :600], (480, 640), (0.1, 6.0))
+
+
+def test_extracting_from_colour_equals_extracting_from_its_grey() -> None:
+    """The tracker's way (the grey written straight into the pyramid's reused buffer) gives the
+    features of the grey image, frame after frame: nothing of a frame's features lives in the
+    buffer the next frame overwrites."""
+    cfg = TrackerConfig()
+    ex, ref = OrbExtractor(cfg), OrbExtractor(cfg)
+    frames = list(generate_frames(parse_spec("synthetic:w=640,h=480,n=3,noise=0.02,holes=0.05")))
+    got = [ex.extract_rgb(f.rgb, f.camera, f.depth_m) for f in frames]
+    for f, a in zip(frames, got, strict=True):
+        b = ref.extract(cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY), f.camera, f.depth_m)
+        assert len(a) == cfg.n_features
+        for field in ("uv_raw", "uv", "octave", "desc", "depth_m"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))

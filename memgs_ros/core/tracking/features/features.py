@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from itertools import chain
+from itertools import accumulate, chain
 from operator import attrgetter
 
 import cv2
@@ -89,6 +89,7 @@ class OrbExtractor:
         # OpenCV's ``compute`` describes).
         self._tests = orb.intensity_tests() if orb.compiled_orb_available() else None
         self._scores_in_kernel = self._tests is not None and orb.fast_scores_agree()
+        self._layout: _PyramidLayout | None = None  # the pyramid's buffers, reused frame to frame
 
     def _make_orb(self, n: int, levels: int, fast_threshold: int) -> cv2.ORB:
         return cv2.ORB_create(nfeatures=n, scaleFactor=self.cfg.scale_factor, nlevels=levels,  # type: ignore[attr-defined]  # missing from OpenCV's stubs
@@ -133,25 +134,29 @@ class OrbExtractor:
         return [kps[i] for i in self._select_indices(pts, resp, width, height).tolist()]
 
     def _pyramid(self, gray: np.ndarray) -> list[np.ndarray]:
-        """The level images, each resized from the one before, at OpenCV ORB's sizes and interpolation."""
-        return self._flat_pyramid(gray)[2]
+        """The level images, each resized from the one before, at OpenCV ORB's sizes and interpolation
+        (arrays of their own: the caller may keep them)."""
+        layout = _PyramidLayout(gray.shape, self._scales)
+        layout.levels[0][...] = gray
+        layout.resize()
+        return layout.levels
 
-    def _flat_pyramid(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
-        """The pyramid laid out level after level in one buffer: (buffer [sum H * W] uint8, (offset,
-        height, width) [L, 3] of each level, the levels [H, W] as views on it), for the kernels."""
-        sizes = [(gray.shape[1], gray.shape[0])]
-        for scale in self._scales[1:]:  # sizes rounded from float32 quotients, as OpenCV's
-            sizes.append((round(float(np.float32(gray.shape[1]) / np.float32(scale))),
-                          round(float(np.float32(gray.shape[0]) / np.float32(scale)))))
-        shapes = np.zeros((len(sizes), 3), np.int64)
-        shapes[:, 1], shapes[:, 2] = [h for _, h in sizes], [w for w, _ in sizes]
-        shapes[1:, 0] = np.cumsum(shapes[:-1, 1] * shapes[:-1, 2])
-        flat = np.empty(int(shapes[-1, 0] + shapes[-1, 1] * shapes[-1, 2]), np.uint8)
-        levels = [flat[o:o + h * w].reshape(h, w) for o, h, w in shapes.tolist()]
-        levels[0][...] = gray
-        for k in range(1, len(levels)):
-            cv2.resize(levels[k - 1], sizes[k], dst=levels[k], interpolation=cv2.INTER_LINEAR_EXACT)
-        return flat, shapes, levels
+    def _flat_pyramid(self, gray: np.ndarray | None = None, rgb: np.ndarray | None = None) -> _PyramidLayout:
+        """The extractor's pyramid of ``gray`` [H, W], or of ``rgb`` [H, W, 3] turned grey straight
+        into its first level: the levels laid out one after another in one buffer, reused from frame
+        to frame (valid until the next call), for the kernels."""
+        image = gray if gray is not None else rgb
+        if image is None:
+            raise ValueError("_flat_pyramid needs gray or rgb")
+        if self._layout is None or self._layout.image_shape != image.shape[:2]:
+            self._layout = _PyramidLayout(image.shape, self._scales)
+        layout = self._layout
+        if gray is not None:
+            layout.levels[0][...] = gray
+        else:
+            cv2.cvtColor(image, cv2.COLOR_RGB2GRAY, dst=layout.levels[0])
+        layout.resize()
+        return layout
 
     def extract(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None,
                 mask: np.ndarray | None = None) -> FrameFeatures:
@@ -161,35 +166,49 @@ class OrbExtractor:
             return self._extract_reference(gray, camera, depth_m, mask)
         if self._tests is None:
             return self._extract_opencv(gray, camera, depth_m)
-        flat, shapes, pyr = self._flat_pyramid(gray)
-        found = self._detect(flat, shapes, pyr, self._fast, self.cfg.fast_threshold, gray.shape)
-        if found[4] < self.cfg.n_features:
-            found = self._detect(flat, shapes, pyr, self._fast_low, self.cfg.fast_min_threshold, gray.shape)
-        pts, xy, octave, angle, _ = found
-        if len(pts) == 0:
-            return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
-        smoothed = np.empty_like(flat)  # the levels smoothed, laid out as the pyramid
-        for (o, h, w), level in zip(shapes.tolist(), pyr):
-            orb.smooth(level, smoothed[o:o + h * w].reshape(h, w))
-        pix = np.rint(xy).astype(np.int64)
-        centres = shapes[octave, 0] + pix[:, 1] * shapes[octave, 2] + pix[:, 0]
-        desc = orb.describe_at(smoothed, centres, shapes[octave, 2], angle, self._tests)
-        return self._finish(gray, camera, depth_m, pts, octave, desc)
+        return self._extract_levels(self._flat_pyramid(gray=gray), camera, depth_m)
 
-    def _detect(self, flat: np.ndarray, shapes: np.ndarray, pyr: list[np.ndarray], fast: cv2.FastFeatureDetector,
-                threshold: int, size: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    def extract_rgb(self, rgb: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None) -> FrameFeatures:
+        """``extract`` of the grey of ``rgb`` [H, W, 3] uint8 (RGB order), written straight into the
+        pyramid's first level: the tracker's way, one grey image less to write and read a frame."""
+        if self._tests is None:
+            return self._extract_opencv(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), camera, depth_m)
+        return self._extract_levels(self._flat_pyramid(rgb=rgb), camera, depth_m)
+
+    def _extract_levels(self, pyr: _PyramidLayout, camera: PinholeCamera, depth_m: np.ndarray | None
+                        ) -> FrameFeatures:
+        """The compiled extraction on a built pyramid: detection (retried at ``fast_min_threshold``
+        when short of keypoints), smoothing, descriptors."""
+        found = self._detect(pyr, self._fast, self.cfg.fast_threshold)
+        if found[4] < self.cfg.n_features:
+            found = self._detect(pyr, self._fast_low, self.cfg.fast_min_threshold)
+        pts, xy, octave, angle, _ = found
+        shape = pyr.image_shape
+        if len(pts) == 0:
+            return self._finish(shape, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
+        for level, out in zip(pyr.levels, pyr.smoothed_levels):
+            orb.smooth(level, out)
+        centres = orb.level_centres(xy, octave, pyr.offsets, pyr.widths)
+        assert self._tests is not None  # checked by the callers
+        desc = orb.describe_at(pyr.smoothed, centres, pyr.widths[octave], angle, self._tests)
+        return self._finish(shape, camera, depth_m, pts, octave, desc)
+
+    def _detect(self, pyr: _PyramidLayout, fast: cv2.FastFeatureDetector, threshold: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
         """OpenCV's FAST (at ``threshold``) on each level, then what each level's single-level ORB
         keeps of it and the grid's choice among those (``orb.detect_and_select``): (level-0
         positions [K, 2] float32, level positions [K, 2], octaves [K], angles [K], how many ORB kept
         before the grid)."""
-        corners = [_fast_in_band(fast, level) for level in pyr]
-        starts = np.cumsum([0, *map(len, corners)])
-        xy = np.concatenate([_positions(c) + np.float32(_BAND_MARGIN) for c in corners])
+        corners = [_fast_in_band(fast, level) for level in pyr.levels]
+        starts = np.fromiter(accumulate(map(len, corners), initial=0), np.int64, len(corners) + 1)
+        xy = np.concatenate([_positions(c) for c in corners])
+        xy += np.float32(_BAND_MARGIN)
         score = None  # computed in the kernel, for the levels where ORB ranks by it
         if not self._scores_in_kernel:  # read off OpenCV's keypoint objects instead (~3000 of them)
             score = np.fromiter(chain.from_iterable(map(_RESPONSE, c) for c in corners), np.float32, int(starts[-1]))
-        return orb.detect_and_select(flat, shapes, xy, score, starts, self._level_counts_arr, EDGE_PX, self._scales_arr,
-                                     self.cfg.n_features, self.cfg.grid_cell_px, size[1], size[0], threshold)
+        h, w = pyr.image_shape
+        return orb.detect_and_select(pyr.flat, pyr.shapes, xy, score, starts, self._level_counts_arr, EDGE_PX,
+                                     self._scales_arr, self.cfg.n_features, self.cfg.grid_cell_px, w, h, threshold)
 
     def _extract_opencv(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None) -> FrameFeatures:
         """``extract`` where numba or the read-off tests are missing: the single-level ORBs detect
@@ -200,7 +219,7 @@ class OrbExtractor:
             found = [det.detect(img, None) for det, img in zip(self._level_orb_low, pyr)]
         sizes = [len(k) for k in found]
         if sum(sizes) == 0:
-            return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
+            return self._finish(gray.shape, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
         pts = np.concatenate([_positions(k) * np.float32(sc) for k, sc in zip(found, self._scales)])
         # Attributes read by C-level iteration (map and attrgetter): twice as fast as a generator.
         resp = np.fromiter(chain.from_iterable(map(_RESPONSE, level) for level in found), np.float32, len(pts))
@@ -220,8 +239,10 @@ class OrbExtractor:
             octave.append(np.full(len(xy), k, np.int64))
             desc.append(d)
         if not uv:
-            return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
-        return self._finish(gray, camera, depth_m, np.concatenate(uv), np.concatenate(octave), np.concatenate(desc))
+            return self._finish(gray.shape, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64),
+                                None)
+        return self._finish(gray.shape, camera, depth_m, np.concatenate(uv), np.concatenate(octave),
+                            np.concatenate(desc))
 
     def _extract_reference(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None,
                            mask: np.ndarray | None = None) -> FrameFeatures:
@@ -236,14 +257,14 @@ class OrbExtractor:
         if kps:
             described, desc = self._orb.compute(gray, kps)
         if not described or desc is None:
-            return self._finish(gray, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
+            return self._finish(gray.shape, camera, depth_m, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), None)
         octave = np.array([k.octave for k in described], dtype=np.int64)
-        return self._finish(gray, camera, depth_m, cv2.KeyPoint_convert(described), octave, desc)  # type: ignore[attr-defined]
+        return self._finish(gray.shape, camera, depth_m, cv2.KeyPoint_convert(described), octave, desc)  # type: ignore[attr-defined]
 
-    def _finish(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None, pts: np.ndarray,
+    def _finish(self, shape: tuple[int, ...], camera: PinholeCamera, depth_m: np.ndarray | None, pts: np.ndarray,
                 octave: np.ndarray, desc: np.ndarray | None) -> FrameFeatures:
         """FrameFeatures from level-0 keypoint positions pts [M, 2] (as OpenCV scales them), octaves
-        [M] and descriptors [M, 32] (None when M = 0)."""
+        [M] and descriptors [M, 32] (None when M = 0) of an image of ``shape`` (H, W, ...)."""
         if desc is None or len(pts) == 0:
             empty2 = np.zeros((0, 2))
             return FrameFeatures(empty2.astype(np.float32), empty2, np.zeros(0, np.int64),
@@ -251,17 +272,36 @@ class OrbExtractor:
         # OpenCV scales level coordinates by s = scale^octave without the pixel-centre shift;
         # the centre of level pixel x is at (x + 0.5) s - 0.5 in level 0, a bias of 0.5 (s - 1)
         # (1.3 px at level 7) that differs between octaves of the same point.
-        shift = self._centre_shift[octave]
-        uv_raw = (pts.astype(np.float64) + shift[:, None]).astype(np.float32)
-        uv = undistort_points(uv_raw, camera)
-        depth = np.full(len(pts), np.nan)
-        if depth_m is not None:
-            ui = np.clip(np.round(uv_raw[:, 0]).astype(np.int64), 0, gray.shape[1] - 1)
-            vi = np.clip(np.round(uv_raw[:, 1]).astype(np.int64), 0, gray.shape[0] - 1)
-            d = depth_m[vi, ui].astype(np.float64)
-            ok = np.isfinite(d) & (d >= self.cfg.min_depth_m) & (d <= self.cfg.max_depth_m)
-            depth[ok] = d[ok]
-        return FrameFeatures(uv_raw, uv, octave, np.ascontiguousarray(desc), depth)
+        uv_raw, depth = orb.keypoint_depths(pts, octave, self._centre_shift, depth_m, shape[:2],
+                                            (self.cfg.min_depth_m, self.cfg.max_depth_m))
+        return FrameFeatures(uv_raw, undistort_points(uv_raw, camera), octave, np.ascontiguousarray(desc), depth)
+
+
+class _PyramidLayout:
+    """An image pyramid at OpenCV ORB's level sizes, laid out level after level in one buffer
+    (``flat`` [sum H * W] uint8, ``levels`` [H, W] views on it), with a second buffer of the same
+    layout for the smoothed levels; ``shapes`` [L, 3] (offset, height, width), and its offset and
+    width columns contiguous, for the kernels."""
+
+    def __init__(self, image_shape: tuple[int, ...], scales: list[float]) -> None:
+        h, w = self.image_shape = (int(image_shape[0]), int(image_shape[1]))
+        # sizes rounded from float32 quotients, as OpenCV's
+        f32 = np.float32
+        self.sizes = [(w, h)] + [(round(float(f32(w) / f32(s))), round(float(f32(h) / f32(s)))) for s in scales[1:]]
+        shapes = np.zeros((len(self.sizes), 3), np.int64)
+        shapes[:, 1], shapes[:, 2] = [sh for _, sh in self.sizes], [sw for sw, _ in self.sizes]
+        shapes[1:, 0] = np.cumsum(shapes[:-1, 1] * shapes[:-1, 2])
+        self.shapes = shapes
+        self.offsets, self.widths = np.ascontiguousarray(shapes[:, 0]), np.ascontiguousarray(shapes[:, 2])
+        size = int(shapes[-1, 0] + shapes[-1, 1] * shapes[-1, 2])
+        self.flat, self.smoothed = np.empty(size, np.uint8), np.empty(size, np.uint8)
+        self.levels = [self.flat[o:o + lh * lw].reshape(lh, lw) for o, lh, lw in shapes.tolist()]
+        self.smoothed_levels = [self.smoothed[o:o + lh * lw].reshape(lh, lw) for o, lh, lw in shapes.tolist()]
+
+    def resize(self) -> None:
+        """Each level from the one before (the first one written), as OpenCV's ORB resizes."""
+        for k in range(1, len(self.levels)):
+            cv2.resize(self.levels[k - 1], self.sizes[k], dst=self.levels[k], interpolation=cv2.INTER_LINEAR_EXACT)
 
 
 # FAST runs on a level's band less this margin: the corners ORB keeps lie EDGE_PX or more inside

@@ -453,6 +453,34 @@ def _detect_select(flat, offsets, widths, heights, xy, score, starts, counts, ed
     return out_pts, out_xy, out_level, out_angle, m
 
 
+def _centres(xy, octave, offsets, widths):
+    """Body of :func:`level_centres`."""
+    out = np.empty(xy.shape[0], np.int64)
+    for i in range(xy.shape[0]):
+        k = octave[i]
+        out[i] = offsets[k] + np.int64(np.rint(xy[i, 1])) * widths[k] + np.int64(np.rint(xy[i, 0]))
+    return out
+
+
+def _depths(pts, octave, shift, depth_m, lo, hi, uv_raw, depth):
+    """Body of :func:`keypoint_depths` (``depth_m`` [H, W] float32, or [0, 0] for none)."""
+    h, w = depth_m.shape
+    for i in range(pts.shape[0]):
+        s = shift[octave[i]]
+        u = np.float32(np.float64(pts[i, 0]) + s)
+        v = np.float32(np.float64(pts[i, 1]) + s)
+        uv_raw[i, 0] = u
+        uv_raw[i, 1] = v
+        d = np.nan
+        if h > 0:
+            ui = min(max(np.int64(np.rint(u)), 0), w - 1)
+            vi = min(max(np.int64(np.rint(v)), 0), h - 1)
+            m = np.float64(depth_m[vi, ui])
+            if np.isfinite(m) and m >= lo and m <= hi:
+                d = m
+        depth[i] = d
+
+
 if numba_available():
     import numba
 
@@ -469,6 +497,8 @@ if numba_available():
     _detect_select = _jit(_detect_select)
     _fast_score = _jit(_fast_score)
     _fast_scores = _jit(_fast_scores)
+    _centres = _jit(_centres)
+    _depths = _jit(_depths)
 
 
 def select_grid(pts: np.ndarray, resp: np.ndarray, n: int, cell: float, width: int, height: int) -> np.ndarray:
@@ -526,6 +556,63 @@ def detect_and_select(flat: np.ndarray, shapes: np.ndarray, xy: np.ndarray, scor
                           np.ascontiguousarray(counts, np.int64), int(edge), _UMAX,
                           np.ascontiguousarray(scales, np.float32), int(n), np.float32(cell), gx, gy,
                           int(threshold), _FAST_RING)
+
+
+def level_centres(xy: np.ndarray, octave: np.ndarray, offsets: np.ndarray, widths: np.ndarray) -> np.ndarray:
+    """Where each keypoint lies in a pyramid laid out level after level (``OrbExtractor``'s
+    layout): offsets[octave] + rint(y) * widths[octave] + rint(x), [K] int64, for level positions
+    xy [K, 2] float32 and octaves [K]; offsets, widths [L] int64 per level. One compiled pass where
+    numba is, else ``_level_centres_reference``."""
+    if not numba_available():
+        return _level_centres_reference(xy, octave, offsets, widths)
+    return _centres(np.ascontiguousarray(xy, np.float32), np.ascontiguousarray(octave, np.int64),
+                    np.ascontiguousarray(offsets, np.int64), np.ascontiguousarray(widths, np.int64))
+
+
+def _level_centres_reference(xy: np.ndarray, octave: np.ndarray, offsets: np.ndarray, widths: np.ndarray
+                             ) -> np.ndarray:
+    """numpy twin of :func:`level_centres`."""
+    pix = np.rint(np.asarray(xy, np.float32)).astype(np.int64)
+    return offsets[octave] + pix[:, 1] * widths[octave] + pix[:, 0]
+
+
+def keypoint_depths(pts: np.ndarray, octave: np.ndarray, centre_shift: np.ndarray, depth_m: np.ndarray | None,
+                    shape: tuple[int, ...], depth_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Keypoints' detected pixels and depths: (uv_raw [K, 2] float32: level-0 positions pts [K, 2]
+    float32 plus centre_shift[octave] [L] float64, summed in float64; depth [K] float64: depth_m
+    [H, W] float32 metres at the nearest pixel (rounded half to even, clipped into ``shape`` (H, W)),
+    NaN where not finite, outside ``depth_range`` (metres, inclusive) or without depth). One
+    compiled pass where numba is, else ``_keypoint_depths_reference``."""
+    if not numba_available():
+        return _keypoint_depths_reference(pts, octave, centre_shift, depth_m, shape, depth_range)
+    n = len(pts)
+    uv_raw, depth = np.empty((n, 2), np.float32), np.empty(n, np.float64)
+    d = _NO_DEPTH if depth_m is None else np.ascontiguousarray(depth_m, np.float32)
+    if depth_m is not None and d.shape != tuple(shape[:2]):
+        raise ValueError(f"depth {d.shape} does not match the image {tuple(shape[:2])}")
+    _depths(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(octave, np.int64),
+            np.ascontiguousarray(centre_shift, np.float64), d, float(depth_range[0]), float(depth_range[1]),
+            uv_raw, depth)
+    return uv_raw, depth
+
+
+_NO_DEPTH = np.zeros((0, 0), np.float32)
+
+
+def _keypoint_depths_reference(pts: np.ndarray, octave: np.ndarray, centre_shift: np.ndarray,
+                               depth_m: np.ndarray | None, shape: tuple[int, ...], depth_range: tuple[float, float]
+                               ) -> tuple[np.ndarray, np.ndarray]:
+    """numpy twin of :func:`keypoint_depths`."""
+    shift = centre_shift[octave]
+    uv_raw = (pts.astype(np.float64) + shift[:, None]).astype(np.float32)
+    depth = np.full(len(pts), np.nan)
+    if depth_m is not None:
+        ui = np.clip(np.round(uv_raw[:, 0]).astype(np.int64), 0, shape[1] - 1)
+        vi = np.clip(np.round(uv_raw[:, 1]).astype(np.int64), 0, shape[0] - 1)
+        d = depth_m[vi, ui].astype(np.float64)
+        ok = np.isfinite(d) & (d >= depth_range[0]) & (d <= depth_range[1])
+        depth[ok] = d[ok]
+    return uv_raw, depth
 
 
 def fast_scores(flat: np.ndarray, shapes: np.ndarray, xy: np.ndarray, starts: np.ndarray, threshold: int
@@ -706,6 +793,11 @@ def warm_up() -> None:
         detect_and_select(np.zeros(64 * 64, np.uint8), np.array([[0, 64, 64]]), np.full((1, 2), 32.0, np.float32),
                           np.ones(1, np.float32), np.array([0, 1]), np.ones(1, np.int64), 19,
                           np.ones(1, np.float32), 1, 16.0, 64, 64)
+    if numba_available():
+        one = np.zeros((1, 2), np.float32)
+        level_centres(one, np.zeros(1, np.int64), np.zeros(1, np.int64), np.ones(1, np.int64))
+        for depth in (None, np.ones((2, 2), np.float32)):
+            keypoint_depths(one, np.zeros(1, np.int64), np.zeros(1), depth, (2, 2), (0.1, 6.0))
 
 
 def compiled_orb_available() -> bool:

@@ -25,7 +25,6 @@ from __future__ import annotations
 import logging
 import time
 
-import cv2
 import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
@@ -172,8 +171,7 @@ class FeatureTracker(Tracker):
             self._follow(self._link.wait(self.map, self.segment_id, _WAIT_KINDS_BA, self._SETTLE_TIMEOUT_S))
         else:
             self._follow(self._link.poll(self.map, self.segment_id))
-        gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
-        feats = self.extractor.extract(gray, self.camera, frame.depth_m if self.uses_depth else None)
+        feats = self.extractor.extract_rgb(frame.rgb, self.camera, frame.depth_m if self.uses_depth else None)
         if self.state == TrackingState.NOT_INITIALIZED:
             T_cw, kf, n_m, n_i = self._initialise(frame, feats)
         else:
