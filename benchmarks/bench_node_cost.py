@@ -8,7 +8,7 @@ the tracker parameters of a live run, interleaved frame by frame with OpenCV's O
 1000 features on the same grey image; mapper idle) with a thread-CPU timer around each stage of
 the frame path. A stage's time excludes the stages nested in it (the compiled projection passes
 inside local-map tracking count once, as passes), so the rows add up to the frame path; "the rest" is
-what no stage covers (the grey conversion, the tracker's bookkeeping, stamps, statistics). Means over the frames
+what no stage covers (the tracker's bookkeeping, stamps, statistics). Means over the frames
 after the first five (the first frames build the map); the ORB unit is the mean ORB time of the
 same frames, and the issue's bound is 2 such units for the whole frame path (median).
 
@@ -43,7 +43,7 @@ ORB_FEATURES = 1000  # the ORB unit: OpenCV's ORB extraction of this many featur
 # module-level name is patched where the frame path looks it up (the importing module).
 STAGES: list[tuple[str, str, str]] = [
     ("decode (messages to a Frame)", "memgs_ros.nodes.tracker", "TrackerNode._frame"),
-    ("feature extraction (grid ORB)", "memgs_ros.core.tracking.features.features", "OrbExtractor.extract"),
+    ("feature extraction (grey, grid ORB)", "memgs_ros.core.tracking.features.features", "OrbExtractor.extract_rgb"),
     ("rolling-shutter correction", "memgs_ros.core.tracking.frontend.feature_tracker", "unroll_rolling_shutter"),
     ("projection passes (compiled: project, match, pose)", "memgs_ros.core.tracking.frontend.pose_tracking",
      "LocalMapMatcher._match_and_optimise"),
@@ -62,7 +62,7 @@ STAGES: list[tuple[str, str, str]] = [
     ("publishing refined / loop-corrected poses", "memgs_ros.ros.tracker_outputs", "KeyframeOutbox.publish_poses"),
 ]
 FLOOR_PARTS = ["image pyramid", "FAST on every level", "descriptor smoothing of every level"]
-REST = "the rest (grey conversion, tracker bookkeeping, stamps, statistics)"
+REST = "the rest (tracker bookkeeping, stamps, statistics)"
 
 
 class StageTimer:
