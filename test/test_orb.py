@@ -228,3 +228,22 @@ def test_extracting_from_colour_equals_extracting_from_its_grey() -> None:
         assert len(a) == cfg.n_features
         for field in ("uv_raw", "uv", "octave", "desc", "depth_m"):
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+
+
+def test_a_short_first_detection_goes_straight_to_the_retry(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where FAST finds fewer corners than ``n_features`` at ``fast_threshold``, ORB cannot keep
+    enough, so the retry at ``fast_min_threshold`` is certain: the first selection is skipped and
+    the features are those of OpenCV's path, which runs both."""
+    cfg = TrackerConfig()
+    ex, ref = OrbExtractor(cfg), OrbExtractor(cfg)
+    ref._tests = None  # noqa: SLF001 - OpenCV's compute: never skips
+    calls: list[int] = []
+    real = orb.detect_and_select
+    monkeypatch.setattr(orb, "detect_and_select", lambda *a, **k: calls.append(a[-1]) or real(*a, **k))
+    for f in generate_frames(parse_spec("synthetic:w=640,h=480,n=2,seed=3")):
+        grey = cv2.GaussianBlur(cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY), (9, 9), 3.0)  # little texture left
+        calls.clear()
+        a, b = ex.extract(grey, f.camera, f.depth_m), ref.extract(grey, f.camera, f.depth_m)
+        assert calls == [cfg.fast_min_threshold]  # the first selection skipped, the retry run
+        for field in ("uv_raw", "uv", "octave", "desc", "depth_m"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
