@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from memgs_ros.core.geometry.view import DepthUnits, depth_to_metres, metres_to_units
 from memgs_ros.core.tracking import TrackerConfig
 from memgs_ros.core.tracking.features import orb
 from memgs_ros.core.tracking.features.features import EDGE_PX, OrbExtractor
@@ -205,7 +206,8 @@ def test_level_centres_and_keypoint_depths_equal_their_numpy_twins() -> None:
     depth[rng.random(depth.shape) < 0.1] = np.nan
     depth[0, :3] = (np.inf, -1.0, 6.0)
     shift = ex._centre_shift  # noqa: SLF001
-    for d in (depth, None):
+    units = np.rint(np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0) * 5000.0).astype(np.uint16)
+    for d in (depth, None, DepthUnits(units, 5000.0), DepthUnits(depth, 1.0)):
         got = orb.keypoint_depths(pts, octave, shift, d, (480, 640), (0.1, 6.0))
         want = orb._keypoint_depths_reference(pts, octave, shift, d, (480, 640), (0.1, 6.0))  # noqa: SLF001
         for a, b in zip(got, want, strict=True):
@@ -213,6 +215,11 @@ def test_level_centres_and_keypoint_depths_equal_their_numpy_twins() -> None:
             np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="does not match"):
         orb.keypoint_depths(pts, octave, shift, depth[:, :600], (480, 640), (0.1, 6.0))
+    # the camera's units read at the keypoints give the depths of the image converted whole
+    np.testing.assert_array_equal(orb.keypoint_depths(pts, octave, shift, DepthUnits(units, 5000.0), (480, 640),
+                                                      (0.1, 6.0))[1],
+                                  orb.keypoint_depths(pts, octave, shift, depth_to_metres(units, 5000.0), (480, 640),
+                                                      (0.1, 6.0))[1])
 
 
 def test_extracting_from_colour_equals_extracting_from_its_grey() -> None:
@@ -222,9 +229,11 @@ def test_extracting_from_colour_equals_extracting_from_its_grey() -> None:
     cfg = TrackerConfig()
     ex, ref = OrbExtractor(cfg), OrbExtractor(cfg)
     frames = list(generate_frames(parse_spec("synthetic:w=640,h=480,n=3,noise=0.02,holes=0.05")))
-    got = [ex.extract_rgb(f.rgb, f.camera, f.depth_m) for f in frames]
-    for f, a in zip(frames, got, strict=True):
-        b = ref.extract(cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY), f.camera, f.depth_m)
+    # the tracker node's depth: the camera's 16-bit units, read at the keypoints
+    units = [DepthUnits(metres_to_units(f.depth_m, 5000.0), 5000.0) for f in frames]
+    got = [ex.extract_rgb(f.rgb, f.camera, d) for f, d in zip(frames, units, strict=True)]
+    for f, d, a in zip(frames, units, got, strict=True):
+        b = ref.extract(cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY), f.camera, d.metres())
         assert len(a) == cfg.n_features
         for field in ("uv_raw", "uv", "octave", "desc", "depth_m"):
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field))

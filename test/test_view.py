@@ -10,6 +10,7 @@ import pytest
 from memgs_ros.core.geometry.camera import TUM_FR1, PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.view import (
+    DepthUnits,
     Undistorter,
     check_depth_scale,
     depth_scale_ratio,
@@ -236,13 +237,48 @@ def test_the_checked_conversion_finds_valid_depth_as_the_frame_does(scale: float
             m[47, 63] = 0.5
         elif case >= 4:
             m = rng.uniform(0.0, 50.0, (48, 64)).astype(np.float32)
-        raw = np.rint(m * scale).astype(np.uint16) if scale != 1.0 else m
+        raw = np.rint(np.nan_to_num(m) * scale).astype(np.uint16) if scale != 1.0 else m
         for r in (raw, raw[:, ::2]) if case == 5 else (raw,):
             got, valid = depth_to_metres_checked(r, scale)
             np.testing.assert_array_equal(got, depth_to_metres(r, scale))
             if r.shape == (48, 64):
                 assert valid == Frame(0, rgb, got, cam).has_valid_depth()
+                # the camera's image read where needed says the same as its metres
+                assert Frame(0, rgb, DepthUnits(r, scale), cam).has_valid_depth() == valid
             assert valid == bool(np.any((got > np.float32(1e-6)) & (got < np.float32(40.0))))
+            assert DepthUnits(r, scale).has_valid() == valid
+
+
+def test_depth_units_read_where_needed_as_the_whole_image_converts() -> None:
+    """``DepthUnits``: its metres at pixels equal the converted image's there, for 16-bit units
+    and float depth, contiguous or strided (a message with padded rows); bad raw images and
+    scales are refused, as is a depth of another size than the frame's camera."""
+    rng = np.random.default_rng(12)
+    u = rng.integers(0, 40000, (48, 64)).astype(np.uint16)
+    u[rng.random(u.shape) < 0.2] = 0
+    f = rng.uniform(-1.0, 9.0, (48, 64)).astype(np.float32)
+    f[rng.random(f.shape) < 0.1] = np.nan
+    rows, cols = rng.integers(0, 48, 500), rng.integers(0, 32, 500)
+    for raw, scale in ((u, 5000.0), (f, 1.0), (f, 2.5), (u[:, ::2], 1000.0), (f[:, ::2], 1.0)):
+        d = DepthUnits(raw, scale)
+        full = depth_to_metres(raw, scale)
+        np.testing.assert_array_equal(d.metres(), full)
+        got = d.at(rows, cols)
+        assert got.dtype == np.float32
+        np.testing.assert_array_equal(got, full[rows, cols])
+    for bad in (np.zeros((4, 4), np.int32), np.zeros((4, 4, 1), np.uint16)):
+        with pytest.raises(DataError, match="raw depth"):
+            DepthUnits(bad, 1000.0)
+    for scale in (0.0, -1.0, float("nan")):
+        with pytest.raises(DataError, match="depth scale"):
+            DepthUnits(u, scale)
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    with pytest.raises(DataError, match="match the camera"):
+        Frame(0, np.zeros((48, 64, 3), np.uint8), DepthUnits(u[:40], 5000.0), cam)
+    frame = Frame(0, np.zeros((48, 64, 3), np.uint8), DepthUnits(u, 5000.0), cam)
+    np.testing.assert_array_equal(frame.depth_metres(), depth_to_metres(u, 5000.0))
+    converted = Frame(0, frame.rgb, frame.depth_metres(), cam)
+    np.testing.assert_array_equal(frame.valid_depth_mask(), converted.valid_depth_mask())
 
 
 @pytest.mark.parametrize("scale", [1000.0, 5000.0, 0.37])

@@ -187,11 +187,11 @@ def write_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str], storage
             put(RGB_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
                 mf.camera_info(mf.header(s, camera_frame_id), f.camera))
             put(RGB_TOPIC, "sensor_msgs/msg/Image", s, mf.image(mf.header(s, camera_frame_id), f.rgb, "rgb8"))
-            if f.depth_m is not None:
+            if (depth_m := f.depth_metres()) is not None:
                 put(DEPTH_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
                     mf.camera_info(mf.header(s, camera_frame_id), f.camera))
                 put(DEPTH_TOPIC, "sensor_msgs/msg/Image", s,
-                    mf.image(mf.header(s, camera_frame_id), depth_to_32fc1(f.depth_m), "32FC1"))
+                    mf.image(mf.header(s, camera_frame_id), depth_to_32fc1(depth_m), "32FC1"))
             if f.T_wc_gt is not None:
                 tf = mf.transform_stamped(mf.header(s, world_frame_id), camera_frame_id, f.T_wc_gt)
                 put(TF_TOPIC, "tf2_msgs/msg/TFMessage", s, mf.tf_message([tf]))
@@ -248,11 +248,11 @@ def write_ros1_tum_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str]
                 put(RGB_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
                     mf.camera_info(mf.header(s, ROS1_OPTICAL, seq), f.camera))
                 put(RGB_TOPIC, "sensor_msgs/msg/Image", s, mf.image(mf.header(s, ROS1_OPTICAL, seq), f.rgb, "rgb8"))
-                if f.depth_m is not None:
+                if (depth_m := f.depth_metres()) is not None:
                     put(DEPTH_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
                         mf.camera_info(mf.header(s, ROS1_DEPTH_OPTICAL, seq), f.camera))
                     put(DEPTH_TOPIC, "sensor_msgs/msg/Image", s,
-                        mf.image(mf.header(s, ROS1_DEPTH_OPTICAL, seq), depth_to_32fc1(f.depth_m), "32FC1"))
+                        mf.image(mf.header(s, ROS1_DEPTH_OPTICAL, seq), depth_to_32fc1(depth_m), "32FC1"))
                 n += 1
                 if on_frame is not None:
                     on_frame(f)

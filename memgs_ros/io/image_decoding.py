@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.geometry.view import depth_to_metres, depth_to_metres_checked, metres_to_units
+from memgs_ros.core.geometry.view import depth_to_metres, metres_to_units
 from memgs_ros.errors import DataError, MessageError
 
 __all__ = [
@@ -205,12 +205,6 @@ def decode_depth(msg: Any, depth_scale: float = DEFAULT_DEPTH_SCALE) -> np.ndarr
     0 = no measurement. 32FC1: metres. Zero, negative and non-finite values become NaN.
     """
     return depth_to_metres(*depth_view(msg, depth_scale))
-
-
-def decode_depth_checked(msg: Any, depth_scale: float = DEFAULT_DEPTH_SCALE) -> tuple[np.ndarray, bool]:
-    """:func:`decode_depth` and whether the image holds one valid depth (``Frame.has_valid_depth``),
-    found in the same pass over it."""
-    return depth_to_metres_checked(*depth_view(msg, depth_scale))
 
 
 def metres_to_depth_units(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:

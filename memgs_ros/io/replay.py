@@ -115,7 +115,8 @@ class Preloaded:
         self.error: MemgsError | None = None
         try:
             for frame in source:
-                self.nbytes += frame.rgb.nbytes + (0 if frame.depth_m is None else frame.depth_m.nbytes)
+                depth_m = frame.depth_metres()
+                self.nbytes += frame.rgb.nbytes + (0 if depth_m is None else depth_m.nbytes)
                 if self.nbytes > budget_mb * 1e6:
                     raise ConfigError(f"the source does not fit preload_mb={budget_mb} MB ({len(self.frames)} "
                                       "frames did): raise preload_mb, or set it to 0 to decode frames as they go out")

@@ -412,8 +412,8 @@ def write_tum_folder(frames: Iterable[Frame], path: str | os.PathLike[str], dept
             if not cv2.imwrite(str(tmp / "rgb" / f"{ts}.png"), cv2.cvtColor(f.rgb, cv2.COLOR_RGB2BGR)):
                 raise DataError(f"{tmp / 'rgb' / ts}.png: could not write image")
             rgb_lines.append(f"{ts} rgb/{ts}.png")
-            if f.depth_m is not None:
-                d = metres_to_depth_units(f.depth_m, depth_factor)
+            if (depth_m := f.depth_metres()) is not None:
+                d = metres_to_depth_units(depth_m, depth_factor)
                 if not cv2.imwrite(str(tmp / "depth" / f"{ts}.png"), d):
                     raise DataError(f"{tmp / 'depth' / ts}.png: could not write depth image")
                 depth_lines.append(f"{ts} depth/{ts}.png")

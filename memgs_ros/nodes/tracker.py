@@ -39,11 +39,12 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from memgs_ros.core.geometry.camera import describe_camera
 from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.view import DepthUnits
 from memgs_ros.core.runtime.warm import WarmUpThread
 from memgs_ros.core.tracking import Tracker, TrackerConfig, TrackResult, make_tracker, warm_up
 from memgs_ros.core.tracking.frame_gate import CameraSource, LiveGate, StampRules
 from memgs_ros.errors import ConfigError, DataError, MessageError
-from memgs_ros.io.image_decoding import decode_camera_info, decode_depth_checked, rgb_view
+from memgs_ros.io.image_decoding import decode_camera_info, depth_view, rgb_view
 from memgs_ros.nodes.params import NODE_CONFIGS, TrackerParams
 from memgs_ros.ros import qos
 from memgs_ros.ros.camera_params import declare_calibration
@@ -182,12 +183,13 @@ class TrackerNode(Node):
         if not verdict.take:
             return None
         try:
-            depth_m, has_depth = (None, True) if depth is None else decode_depth_checked(depth, self.params.depth_scale)
-            frame = Frame(stamp, rgb_view(color), depth_m, self.cams.camera)  # a view: only its grey is read
+            # Views on the messages: the tracker reads the grey of one and the depth at its keypoints.
+            units = None if depth is None else DepthUnits(*depth_view(depth, self.params.depth_scale))
+            frame = Frame(stamp, rgb_view(color), units, self.cams.camera)
         except (MessageError, DataError) as err:
             self.stats.problem("bad_image", f"frame {stamp} refused: {err}")
             return None
-        if not has_depth:
+        if units is not None and not units.has_valid():
             self.stats.problem("empty_depth", f"frame {stamp} has no valid depth")
         self.stamps.took(stamp)
         return frame

@@ -33,9 +33,9 @@ class FrameOutbox:
     def publish(self, frame: Frame, stamp_ns: int) -> None:
         fid = self._frame_id
         self.color.publish(codecs.numpy_to_image(frame.rgb, "rgb8", stamp_ns, fid))
-        if frame.depth_m is not None:
-            self.depth.publish(codecs.depth_to_image(frame.depth_m, self._depth_encoding, stamp_ns, fid,
-                                                     self._depth_scale))
+        depth_m = frame.depth_metres()
+        if depth_m is not None:
+            self.depth.publish(codecs.depth_to_image(depth_m, self._depth_encoding, stamp_ns, fid, self._depth_scale))
         self.info.publish(codecs.camera_to_camera_info(frame.camera, stamp_ns, fid))
         if frame.T_wc_gt is not None:
             self.gt.publish(codecs.matrix_to_pose_stamped(frame.T_wc_gt, stamp_ns, self._world_frame_id))

@@ -28,13 +28,12 @@ import cv2
 import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.geometry.frame import VALID_DEPTH_M
 from memgs_ros.core.runtime.cpu import numba_available
 from memgs_ros.errors import ConfigError, DataError
 
 __all__ = [
-    "Undistorter", "ViewPreparation", "check_depth_scale", "depth_scale_ratio", "depth_to_metres",
-    "depth_to_metres_checked", "undistort_uv",
+    "VALID_DEPTH_M", "DepthUnits", "Undistorter", "ViewPreparation", "check_depth_scale", "depth_scale_ratio",
+    "depth_to_metres", "depth_to_metres_checked", "undistort_uv",
     "undistorter_for", "valid_pixel_mask", "view_preparation",
 ]
 
@@ -42,6 +41,8 @@ __all__ = [
 # pixels it averages carry content: all of them (a partly black pixel is no clean observation).
 DEFAULT_MIN_VALID_FRACTION = 0.999
 _CACHE_SIZE = 16  # (camera, scale) pairs: a few cameras x a few scales in one process
+# Depths (metres, open interval) that count as a measurement (``Frame.has_valid_depth``).
+VALID_DEPTH_M = (1e-6, 40.0)
 
 
 def depth_to_metres(depth: np.ndarray,  # [H, W] uint16 units or float metres
@@ -61,8 +62,7 @@ def depth_to_metres_checked(depth: np.ndarray,  # [H, W] uint16 units or float m
                             depth_scale: float = 1.0, valid_m: tuple[float, float] = VALID_DEPTH_M
                             ) -> tuple[np.ndarray, bool]:
     """:func:`depth_to_metres` and whether one depth lies inside ``valid_m`` (open interval,
-    metres: ``Frame.has_valid_depth``'s test), found in the same pass: a node that reports frames
-    without depth then reads the converted image no second time."""
+    metres: ``Frame.has_valid_depth``'s test), found in the same pass."""
     lo, hi = (np.float32(v) for v in valid_m)
     if _depth_kernels is not None and depth.ndim == 2 and depth.dtype in (np.uint16, np.float32):
         units_kernel, float_kernel = _depth_kernels
@@ -72,6 +72,42 @@ def depth_to_metres_checked(depth: np.ndarray,  # [H, W] uint16 units or float m
     out = _depth_to_metres_reference(depth, depth_scale)
     with np.errstate(invalid="ignore"):
         return out, bool(np.any((out > lo) & (out < hi)))
+
+
+@dataclass(frozen=True, eq=False)
+class DepthUnits:
+    """A depth image as the camera gave it, turned into metres only where read: raw [H, W] uint16
+    units (``scale`` per metre, 0 = no measurement) or float32 (metres times ``scale``), as
+    :func:`depth_to_metres` reads them. A tracker reads depth at its keypoints alone, so the node
+    hands it this (a read-only view on the message) rather than a converted float image: 1.2 MB
+    less written and read again a 640x480 frame."""
+
+    raw: np.ndarray
+    scale: float
+
+    def __post_init__(self) -> None:
+        if self.raw.ndim != 2 or self.raw.dtype not in (np.uint16, np.float32):
+            raise DataError(f"raw depth must be uint16 or float32 [H, W], got {self.raw.dtype} {self.raw.shape}")
+        if not (math.isfinite(self.scale) and self.scale > 0):
+            raise DataError(f"depth scale must be a positive number of units per metre, got {self.scale}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.raw.shape[0], self.raw.shape[1]
+
+    def metres(self) -> np.ndarray:
+        """The whole image in metres: ``depth_to_metres(raw, scale)``."""
+        return depth_to_metres(self.raw, self.scale)
+
+    def at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """[K] float32 metres at the pixels (rows [K], cols [K]), as ``metres()[rows, cols]``."""
+        return depth_to_metres(np.ascontiguousarray(self.raw[rows, cols]).reshape(1, -1), self.scale)[0]
+
+    def has_valid(self, valid_m: tuple[float, float] = VALID_DEPTH_M) -> bool:
+        """Whether one depth lies inside ``valid_m`` (``Frame.has_valid_depth``): a sparse grid of
+        pixels first, which settles it for any frame with depth, then the whole image."""
+        return (depth_to_metres_checked(np.ascontiguousarray(self.raw[::16, ::16]), self.scale, valid_m)[1]
+                or depth_to_metres_checked(self.raw, self.scale, valid_m)[1])
 
 
 def _depth_to_metres_reference(depth: np.ndarray, depth_scale: float = 1.0) -> np.ndarray:

@@ -15,6 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.view import DepthUnits
 from memgs_ros.core.tracking._compiled import match_by_projection_kernel, numba_available, unroll_kernel
 from memgs_ros.core.tracking.config import TrackerConfig
 from memgs_ros.core.tracking.features import orb
@@ -168,14 +169,16 @@ class OrbExtractor:
             return self._extract_opencv(gray, camera, depth_m)
         return self._extract_levels(self._flat_pyramid(gray=gray), camera, depth_m)
 
-    def extract_rgb(self, rgb: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None) -> FrameFeatures:
+    def extract_rgb(self, rgb: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | DepthUnits | None
+                    ) -> FrameFeatures:
         """``extract`` of the grey of ``rgb`` [H, W, 3] uint8 (RGB order), written straight into the
-        pyramid's first level: the tracker's way, one grey image less to write and read a frame."""
+        pyramid's first level: the tracker's way, one grey image less to write and read a frame.
+        ``depth_m`` may be the camera's raw image (``DepthUnits``): read at the keypoints alone."""
         if self._tests is None:
             return self._extract_opencv(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), camera, depth_m)
         return self._extract_levels(self._flat_pyramid(rgb=rgb), camera, depth_m)
 
-    def _extract_levels(self, pyr: _PyramidLayout, camera: PinholeCamera, depth_m: np.ndarray | None
+    def _extract_levels(self, pyr: _PyramidLayout, camera: PinholeCamera, depth_m: np.ndarray | DepthUnits | None
                         ) -> FrameFeatures:
         """The compiled extraction on a built pyramid: detection (retried at ``fast_min_threshold``
         when short of keypoints), smoothing, descriptors."""
@@ -215,7 +218,8 @@ class OrbExtractor:
         return orb.detect_and_select(pyr.flat, pyr.shapes, xy, score, starts, self._level_counts_arr, EDGE_PX,
                                      self._scales_arr, self.cfg.n_features, self.cfg.grid_cell_px, w, h, threshold)
 
-    def _extract_opencv(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None) -> FrameFeatures:
+    def _extract_opencv(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | DepthUnits | None
+                        ) -> FrameFeatures:
         """``extract`` where numba or the read-off tests are missing: the single-level ORBs detect
         on the one pyramid and describe by OpenCV's ``compute``, the numpy grid selects."""
         pyr = self._pyramid(gray)
@@ -266,8 +270,8 @@ class OrbExtractor:
         octave = np.array([k.octave for k in described], dtype=np.int64)
         return self._finish(gray.shape, camera, depth_m, cv2.KeyPoint_convert(described), octave, desc)  # type: ignore[attr-defined]
 
-    def _finish(self, shape: tuple[int, ...], camera: PinholeCamera, depth_m: np.ndarray | None, pts: np.ndarray,
-                octave: np.ndarray, desc: np.ndarray | None) -> FrameFeatures:
+    def _finish(self, shape: tuple[int, ...], camera: PinholeCamera, depth_m: np.ndarray | DepthUnits | None,
+                pts: np.ndarray, octave: np.ndarray, desc: np.ndarray | None) -> FrameFeatures:
         """FrameFeatures from level-0 keypoint positions pts [M, 2] (as OpenCV scales them), octaves
         [M] and descriptors [M, 32] (None when M = 0) of an image of ``shape`` (H, W, ...)."""
         if desc is None or len(pts) == 0:

@@ -27,6 +27,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from memgs_ros.core.geometry.view import DepthUnits
 from memgs_ros.core.runtime.cpu import numba_available
 
 _log = logging.getLogger(__name__)
@@ -462,9 +463,11 @@ def _centres(xy, octave, offsets, widths):
     return out
 
 
-def _depths(pts, octave, shift, depth_m, lo, hi, uv_raw, depth):
-    """Body of :func:`keypoint_depths` (``depth_m`` [H, W] float32, or [0, 0] for none)."""
-    h, w = depth_m.shape
+def _depths(pts, octave, shift, depth_img, units, scale, lo, hi, uv_raw, depth):
+    """Body of :func:`keypoint_depths`: depth_img [H, W] float32 metres or (``units``) uint16 units,
+    ``scale`` per metre, 0 = none, turned into metres as ``view.depth_to_metres`` does; [0, 0] for
+    none."""
+    h, w = depth_img.shape
     for i in range(pts.shape[0]):
         s = shift[octave[i]]
         u = np.float32(np.float64(pts[i, 0]) + s)
@@ -475,7 +478,11 @@ def _depths(pts, octave, shift, depth_m, lo, hi, uv_raw, depth):
         if h > 0:
             ui = min(max(np.int64(np.rint(u)), 0), w - 1)
             vi = min(max(np.int64(np.rint(v)), 0), h - 1)
-            m = np.float64(depth_m[vi, ui])
+            raw = depth_img[vi, ui]
+            if units:
+                m = np.nan if raw == 0 else np.float64(np.float32(raw) / scale)
+            else:
+                m = np.float64(raw)
             if np.isfinite(m) and m >= lo and m <= hi:
                 d = m
         depth[i] = d
@@ -576,23 +583,32 @@ def _level_centres_reference(xy: np.ndarray, octave: np.ndarray, offsets: np.nda
     return offsets[octave] + pix[:, 1] * widths[octave] + pix[:, 0]
 
 
-def keypoint_depths(pts: np.ndarray, octave: np.ndarray, centre_shift: np.ndarray, depth_m: np.ndarray | None,
-                    shape: tuple[int, ...], depth_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+def keypoint_depths(pts: np.ndarray, octave: np.ndarray, centre_shift: np.ndarray,
+                    depth_m: np.ndarray | DepthUnits | None, shape: tuple[int, ...], depth_range: tuple[float, float]
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints' detected pixels and depths: (uv_raw [K, 2] float32: level-0 positions pts [K, 2]
-    float32 plus centre_shift[octave] [L] float64, summed in float64; depth [K] float64: depth_m
-    [H, W] float32 metres at the nearest pixel (rounded half to even, clipped into ``shape`` (H, W)),
-    NaN where not finite, outside ``depth_range`` (metres, inclusive) or without depth). One
-    compiled pass where numba is, else ``_keypoint_depths_reference``."""
+    float32 plus centre_shift[octave] [L] float64, summed in float64; depth [K] float64: the depth
+    in metres (depth_m [H, W] float32, or the camera's units read where needed) at the nearest
+    pixel (rounded half to even, clipped into ``shape`` (H, W)), NaN where not finite, outside
+    ``depth_range`` (metres, inclusive) or without depth). One compiled pass where numba is, else
+    ``_keypoint_depths_reference``."""
+    if depth_m is not None and tuple(depth_m.shape) != tuple(shape[:2]):
+        raise ValueError(f"depth {tuple(depth_m.shape)} does not match the image {tuple(shape[:2])}")
     if not numba_available():
         return _keypoint_depths_reference(pts, octave, centre_shift, depth_m, shape, depth_range)
     n = len(pts)
     uv_raw, depth = np.empty((n, 2), np.float32), np.empty(n, np.float64)
-    d = _NO_DEPTH if depth_m is None else np.ascontiguousarray(depth_m, np.float32)
-    if depth_m is not None and d.shape != tuple(shape[:2]):
-        raise ValueError(f"depth {d.shape} does not match the image {tuple(shape[:2])}")
+    scale = np.float32(1.0)
+    if depth_m is None:
+        img = _NO_DEPTH
+    elif isinstance(depth_m, DepthUnits):  # 16-bit units read at the keypoints; float ones converted whole
+        img = np.ascontiguousarray(depth_m.raw) if depth_m.raw.dtype == np.uint16 else depth_m.metres()
+        scale = np.float32(depth_m.scale)
+    else:
+        img = np.ascontiguousarray(depth_m, np.float32)
     _depths(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(octave, np.int64),
-            np.ascontiguousarray(centre_shift, np.float64), d, float(depth_range[0]), float(depth_range[1]),
-            uv_raw, depth)
+            np.ascontiguousarray(centre_shift, np.float64), img, img.dtype == np.uint16, scale,
+            float(depth_range[0]), float(depth_range[1]), uv_raw, depth)
     return uv_raw, depth
 
 
@@ -600,8 +616,8 @@ _NO_DEPTH = np.zeros((0, 0), np.float32)
 
 
 def _keypoint_depths_reference(pts: np.ndarray, octave: np.ndarray, centre_shift: np.ndarray,
-                               depth_m: np.ndarray | None, shape: tuple[int, ...], depth_range: tuple[float, float]
-                               ) -> tuple[np.ndarray, np.ndarray]:
+                               depth_m: np.ndarray | DepthUnits | None, shape: tuple[int, ...],
+                               depth_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
     """numpy twin of :func:`keypoint_depths`."""
     shift = centre_shift[octave]
     uv_raw = (pts.astype(np.float64) + shift[:, None]).astype(np.float32)
@@ -609,7 +625,8 @@ def _keypoint_depths_reference(pts: np.ndarray, octave: np.ndarray, centre_shift
     if depth_m is not None:
         ui = np.clip(np.round(uv_raw[:, 0]).astype(np.int64), 0, shape[1] - 1)
         vi = np.clip(np.round(uv_raw[:, 1]).astype(np.int64), 0, shape[0] - 1)
-        d = depth_m[vi, ui].astype(np.float64)
+        metres = depth_m.metres() if isinstance(depth_m, DepthUnits) else depth_m
+        d = metres[vi, ui].astype(np.float64)
         ok = np.isfinite(d) & (d >= depth_range[0]) & (d <= depth_range[1])
         depth[ok] = d[ok]
     return uv_raw, depth
@@ -796,7 +813,7 @@ def warm_up() -> None:
     if numba_available():
         one = np.zeros((1, 2), np.float32)
         level_centres(one, np.zeros(1, np.int64), np.zeros(1, np.int64), np.ones(1, np.int64))
-        for depth in (None, np.ones((2, 2), np.float32)):
+        for depth in (None, np.ones((2, 2), np.float32), DepthUnits(np.ones((2, 2), np.uint16), 1000.0)):
             keypoint_depths(one, np.zeros(1, np.int64), np.zeros(1), depth, (2, 2), (0.1, 6.0))
 
 
