@@ -39,6 +39,38 @@ assert after == before, (before, after)
 print("OK", sorted(before))
 """
 
+# The tracker node's way: its frames are views on the messages, the depth the camera's 16-bit
+# units read at the keypoints (a read-only array: a signature of its own unless warmed).
+TRACKER_NODE = SIGNATURES + """
+from memgs_ros.core.geometry import view
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.view import DepthUnits
+from memgs_ros.core.tracking import TrackerConfig, _compiled, make_tracker, warm_up
+from memgs_ros.core.tracking.features import orb
+from memgs_ros.io.image_decoding import depth_view, rgb_view
+from memgs_ros.io.synthetic import generate_frames, parse_spec
+from memgs_ros.ros import codecs
+
+def depth_kernels():
+    return {f"view._depth_kernels[{i}]": len(k.signatures) for i, k in enumerate(view._depth_kernels)}
+
+frames = list(generate_frames(parse_spec("synthetic:w=320,h=240,n=8,seed=4")))
+msgs = [(codecs.numpy_to_image(f.rgb, "rgb8", f.stamp_ns, "cam"),
+         codecs.depth_to_image(f.depth_m, "16UC1", f.stamp_ns, "cam", 5000.0)) for f in frames]
+warm_up()
+before = {**signatures(_compiled, orb), **depth_kernels()}
+assert before and all(v == 1 for v in before.values()), before
+tracker = make_tracker(TrackerConfig(mode="rgbd", ba_threaded=False), frames[0].camera)
+for f, (color, depth) in zip(frames, msgs):
+    units = DepthUnits(*depth_view(depth, 5000.0))
+    assert not units.raw.flags.writeable and units.has_valid()
+    tracker.track(Frame(f.stamp_ns, rgb_view(color), units, f.camera))
+tracker.close()
+after = {**signatures(_compiled, orb), **depth_kernels()}
+assert after == before, (before, after)
+print("OK", sorted(before))
+"""
+
 MAPPING = SIGNATURES + """
 import numpy as np, torch
 from memgs_ros.core.mapping import losses
@@ -67,7 +99,7 @@ print("OK", sorted(before))
 """
 
 
-@pytest.mark.parametrize("check", [TRACKING, MAPPING], ids=["tracking", "mapping"])
+@pytest.mark.parametrize("check", [TRACKING, TRACKER_NODE, MAPPING], ids=["tracking", "tracker_node", "mapping"])
 def test_a_run_compiles_nothing_after_the_warm_up(check: str) -> None:
     proc = subprocess.run([sys.executable, "-c", textwrap.dedent(check)], capture_output=True, text=True,
                           timeout=600, cwd=Path(__file__).parent)

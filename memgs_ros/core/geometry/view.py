@@ -97,7 +97,7 @@ class DepthUnits:
 
     def metres(self) -> np.ndarray:
         """The whole image in metres: ``depth_to_metres(raw, scale)``."""
-        return depth_to_metres(self.raw, self.scale)
+        return depth_to_metres(_kernel_layout(self.raw), self.scale)
 
     def at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """[K] float32 metres at the pixels (rows [K], cols [K]), as ``metres()[rows, cols]``."""
@@ -107,7 +107,13 @@ class DepthUnits:
         """Whether one depth lies inside ``valid_m`` (``Frame.has_valid_depth``): a sparse grid of
         pixels first, which settles it for any frame with depth, then the whole image."""
         return (depth_to_metres_checked(np.ascontiguousarray(self.raw[::16, ::16]), self.scale, valid_m)[1]
-                or depth_to_metres_checked(self.raw, self.scale, valid_m)[1])
+                or depth_to_metres_checked(_kernel_layout(self.raw), self.scale, valid_m)[1])
+
+
+def _kernel_layout(a: np.ndarray) -> np.ndarray:
+    """``a`` C-contiguous and writable, copied only where it is not (a message's read-only view):
+    the layout the depth kernels are warmed for, so that no frame compiles a second signature."""
+    return a if a.flags.c_contiguous and a.flags.writeable else np.array(a)
 
 
 def _depth_to_metres_reference(depth: np.ndarray, depth_scale: float = 1.0) -> np.ndarray:

@@ -505,6 +505,7 @@ if numba_available():
     _fast_score = _jit(_fast_score)
     _fast_scores = _jit(_fast_scores)
     _centres = _jit(_centres)
+    _depths_units = _jit(_depths)  # the camera's 16-bit units; one dispatcher per dtype, one signature each
     _depths = _jit(_depths)
 
 
@@ -598,17 +599,18 @@ def keypoint_depths(pts: np.ndarray, octave: np.ndarray, centre_shift: np.ndarra
         return _keypoint_depths_reference(pts, octave, centre_shift, depth_m, shape, depth_range)
     n = len(pts)
     uv_raw, depth = np.empty((n, 2), np.float32), np.empty(n, np.float64)
-    scale = np.float32(1.0)
-    if depth_m is None:
-        img = _NO_DEPTH
-    elif isinstance(depth_m, DepthUnits):  # 16-bit units read at the keypoints; float ones converted whole
-        img = np.ascontiguousarray(depth_m.raw) if depth_m.raw.dtype == np.uint16 else depth_m.metres()
-        scale = np.float32(depth_m.scale)
-    else:
-        img = np.ascontiguousarray(depth_m, np.float32)
-    _depths(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(octave, np.int64),
-            np.ascontiguousarray(centre_shift, np.float64), img, img.dtype == np.uint16, scale,
-            float(depth_range[0]), float(depth_range[1]), uv_raw, depth)
+    kernel, img, scale = _depths, _NO_DEPTH, np.float32(1.0)
+    if isinstance(depth_m, DepthUnits) and depth_m.raw.dtype == np.uint16:  # read at the keypoints
+        # Read-only, as the node's views on its messages are: the one signature the warm-up compiles.
+        kernel, img, scale = _depths_units, np.ascontiguousarray(depth_m.raw).view(), np.float32(depth_m.scale)
+        img.flags.writeable = False
+    elif depth_m is not None:  # metres (float units converted whole)
+        metres = depth_m.metres() if isinstance(depth_m, DepthUnits) else depth_m
+        img = np.ascontiguousarray(metres, np.float32)
+        img = img if img.flags.writeable else img.copy()
+    kernel(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(octave, np.int64),
+           np.ascontiguousarray(centre_shift, np.float64), img, img.dtype == np.uint16, scale,
+           float(depth_range[0]), float(depth_range[1]), uv_raw, depth)
     return uv_raw, depth
 
 
@@ -813,7 +815,9 @@ def warm_up() -> None:
     if numba_available():
         one = np.zeros((1, 2), np.float32)
         level_centres(one, np.zeros(1, np.int64), np.zeros(1, np.int64), np.ones(1, np.int64))
-        for depth in (None, np.ones((2, 2), np.float32), DepthUnits(np.ones((2, 2), np.uint16), 1000.0)):
+        units = np.ones((2, 2), np.uint16)
+        units.flags.writeable = False  # as the tracker node's view on a message
+        for depth in (None, np.ones((2, 2), np.float32), DepthUnits(units, 1000.0)):
             keypoint_depths(one, np.zeros(1, np.int64), np.zeros(1), depth, (2, 2), (0.1, 6.0))
 
 
