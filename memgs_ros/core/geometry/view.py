@@ -78,9 +78,10 @@ def depth_to_metres_checked(depth: np.ndarray,  # [H, W] uint16 units or float m
 class DepthUnits:
     """A depth image as the camera gave it, turned into metres only where read: raw [H, W] uint16
     units (``scale`` per metre, 0 = no measurement) or float32 (metres times ``scale``), as
-    :func:`depth_to_metres` reads them. A tracker reads depth at its keypoints alone, so the node
-    hands it this (a read-only view on the message) rather than a converted float image: 1.2 MB
-    less written and read again a 640x480 frame."""
+    :func:`depth_to_metres` reads them. A tracker reads depth at its keypoints alone
+    (``orb.keypoint_depths`` reads the units there), so the node hands it this (a read-only view
+    on the message) rather than a converted float image: 1.2 MB less written and read again a
+    640x480 frame."""
 
     raw: np.ndarray
     scale: float
@@ -98,10 +99,6 @@ class DepthUnits:
     def metres(self) -> np.ndarray:
         """The whole image in metres: ``depth_to_metres(raw, scale)``."""
         return depth_to_metres(_kernel_layout(self.raw), self.scale)
-
-    def at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """[K] float32 metres at the pixels (rows [K], cols [K]), as ``metres()[rows, cols]``."""
-        return depth_to_metres(np.ascontiguousarray(self.raw[rows, cols]).reshape(1, -1), self.scale)[0]
 
     def has_valid(self, valid_m: tuple[float, float] = VALID_DEPTH_M) -> bool:
         """Whether one depth lies inside ``valid_m`` (``Frame.has_valid_depth``): a sparse grid of
