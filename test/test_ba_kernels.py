@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from kernel_support import BF, K, needs_numba
 
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking import TrackerConfig, make_tracker
@@ -18,16 +19,6 @@ from memgs_ros.core.tracking.backend.bundle_adjustment import (
 )
 from memgs_ros.core.tracking.backend.global_ba import global_bundle_adjustment
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
-
-K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
-BF = 500.0 * 0.08
-
-
-def _needs_numba() -> None:
-    from memgs_ros.core.runtime.cpu import numba_available
-
-    if not numba_available():
-        pytest.skip("numba is disabled here (MEMGS_DISABLE_NUMBA)")
 
 
 def _problem(seed: int = 4, n_cams: int = 6, n_pts: int = 400) -> BAProblem:
@@ -71,7 +62,7 @@ def _assert_same(got: BAResult, ref: BAResult) -> None:
 
 
 def test_each_kernel_equals_its_numpy_twin() -> None:
-    _needs_numba()
+    needs_numba()
     prob = _problem()
     fast, ref = BAGeometry(prob, K, BF, 2.45, compiled=True), BAGeometry(prob, K, BF, 2.45, compiled=False)
     x = fast.initial()
@@ -98,7 +89,7 @@ def test_each_kernel_equals_its_numpy_twin() -> None:
 
 
 def test_local_and_global_ba_compiled_equal_numpy() -> None:
-    _needs_numba()
+    needs_numba()
     prob = _problem(seed=5)
     got = local_bundle_adjustment(prob, K, BF, 2.45, 10, compiled=True)
     ref = local_bundle_adjustment(prob, K, BF, 2.45, 10, compiled=False)
@@ -120,7 +111,7 @@ def test_local_and_global_ba_compiled_equal_numpy() -> None:
 def test_the_trackers_local_bas_compiled_equal_numpy(mode: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """Every local BA a tracker asks for over a synthetic sequence (its own features, map and
     back-end inline), solved by the kernels and by the numpy twins: the same poses within 1e-9."""
-    _needs_numba()
+    needs_numba()
     from memgs_ros.core.tracking.frontend import monocular
 
     asked: list[tuple] = []

@@ -193,7 +193,7 @@ def test_level_centres_and_keypoint_depths_equal_their_numpy_twins() -> None:
     depths, pixels rounded half to even and clipped at the image's edges)."""
     rng = np.random.default_rng(21)
     ex = OrbExtractor(TrackerConfig())
-    layout = ex._flat_pyramid(gray=rng.integers(0, 256, (480, 640), dtype=np.uint8))  # noqa: SLF001
+    layout = ex._reused_layout((480, 640))  # noqa: SLF001
     octave = rng.integers(0, len(layout.levels), 3000)
     xy = np.column_stack([rng.uniform(19, layout.widths[octave] - 20), rng.uniform(19, layout.shapes[octave, 1] - 20)])
     xy[:40] = np.floor(xy[:40]) + 0.5  # halves: rounded to even, as numpy's rint

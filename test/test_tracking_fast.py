@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+from kernel_support import BF, K, needs_numba
 from scipy.spatial.transform import Rotation
 
 from memgs_ros.core.tracking import TrackerConfig
@@ -24,17 +25,6 @@ from memgs_ros.core.tracking.features.features import (
     unroll_rolling_shutter,
 )
 from memgs_ros.errors import ConfigError
-
-K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
-BF = 500.0 * 0.08
-
-
-def _needs_numba() -> None:
-    pytest.importorskip("numba")
-    from memgs_ros.core.tracking._compiled import numba_available
-
-    if not numba_available():
-        pytest.skip("numba is disabled here (MEMGS_DISABLE_NUMBA)")
 
 
 def _features(rng: np.random.Generator, m: int) -> FrameFeatures:
@@ -55,7 +45,7 @@ def _map_points(rng: np.random.Generator, feats: FrameFeatures, p: int) -> tuple
 
 @pytest.mark.parametrize("m,p", [(0, 50), (50, 0), (1, 1), (300, 200), (1000, 1500)])
 def test_match_by_projection_matches_reference(m: int, p: int) -> None:
-    _needs_numba()
+    needs_numba()
     rng = np.random.default_rng(m + 7 * p)
     feats = _features(rng, m)
     proj, desc = _map_points(rng, feats, p)
@@ -75,7 +65,7 @@ def test_match_by_projection_breaks_ties_as_the_reference() -> None:
     early-stopping ring scan still keeps the reference's nearest candidates and order. (At
     max_candidates of 1-4 the reference's k-d tree cuts a tie its own way; the kernel keeps the
     one a row-major scan of the window meets first, as before the ring scan.)"""
-    _needs_numba()
+    needs_numba()
     rng = np.random.default_rng(3)
     for _ in range(60):
         feats = _features(rng, 400)
@@ -96,7 +86,7 @@ def test_match_by_projection_in_crowded_tight_windows(k: int) -> None:
     """Tight radii among crowded keypoints (a textured patch: more within reach than ``k``): the
     windows read whole, cut to the k nearest, give the reference's matches. (Distances that tie
     at the cut are left to the test above: the reference's k-d tree cuts those its own way.)"""
-    _needs_numba()
+    needs_numba()
     rng = np.random.default_rng(11 + k)
     for _ in range(30):
         uv = rng.uniform(200.0, 260.0, (600, 2))
@@ -129,7 +119,7 @@ def _pose_problem(rng: np.random.Generator, n: int) -> tuple:
 @pytest.mark.parametrize("n,rounds,chi2_scale", [(4, 4, 1.0), (12, 1, 1.0), (200, 4, 1.0), (500, 3, 2.0),
                                                  (500, 2, 0.5)])
 def test_optimize_pose_matches_reference(n: int, rounds: int, chi2_scale: float) -> None:
-    _needs_numba()
+    needs_numba()
     rng = np.random.default_rng(n + rounds)
     T, T0, p_w, uv, depth, inv_sigma = _pose_problem(rng, n)
     fast_T, fast_inl = optimize_pose(T0, p_w, uv, depth, inv_sigma, K, BF, chi2_scale=chi2_scale, rounds=rounds)
@@ -142,7 +132,7 @@ def test_optimize_pose_matches_reference(n: int, rounds: int, chi2_scale: float)
 
 
 def test_optimize_pose_degenerate_inputs_match_reference() -> None:
-    _needs_numba()
+    needs_numba()
     rng = np.random.default_rng(3)
     _, T0, p_w, uv, depth, inv_sigma = _pose_problem(rng, 50)
     p_w[:] = p_w[0]  # every observation of one point: rank-deficient normal equations
@@ -290,7 +280,7 @@ def test_the_motion_prediction_spans_a_gap_of_skipped_frames() -> None:
 # ---------------------------------------------------------------- the compiled frame path, stage by stage
 
 def test_the_compiled_rolling_shutter_correction_equals_the_reference() -> None:
-    _needs_numba()
+    needs_numba()
     from memgs_ros.core.tracking.features.features import _unroll_rolling_shutter
 
     rng = np.random.default_rng(8)
@@ -341,7 +331,7 @@ def _tracked_passes(mode: str, n_frames: int) -> list[tuple]:
 def test_the_compiled_projection_passes_equal_the_reference_on_tracked_frames(mode: str) -> None:
     """Same matches (points, keypoints, count before outlier rejection) and the same pose within
     1e-6, frame after frame of a tracked sequence (the fr1/rpy head gave 200 of 200 identical)."""
-    _needs_numba()
+    needs_numba()
     pairs = _tracked_passes(mode, 24 if mode == "rgbd" else 40)
     tracked = [(r, c) for r, c in pairs if r is not None or c is not None]
     assert len(tracked) >= 10
@@ -354,7 +344,7 @@ def test_the_compiled_projection_passes_equal_the_reference_on_tracked_frames(mo
 
 def test_the_compiled_statistics_equal_the_reference() -> None:
     """``SparseMap.count_seen`` adds what ``project`` + ``count_visible`` + ``count_found`` add."""
-    _needs_numba()
+    needs_numba()
     from memgs_ros.core.geometry.camera import PinholeCamera
     from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
     from memgs_ros.core.tracking.frontend.pose_tracking import LocalMapMatcher

@@ -142,22 +142,13 @@ class OrbExtractor:
         layout.resize()
         return layout.levels
 
-    def _flat_pyramid(self, gray: np.ndarray | None = None, rgb: np.ndarray | None = None) -> _PyramidLayout:
-        """The extractor's pyramid of ``gray`` [H, W], or of ``rgb`` [H, W, 3] turned grey straight
-        into its first level: the levels laid out one after another in one buffer, reused from frame
-        to frame (valid until the next call), for the kernels."""
-        image = gray if gray is not None else rgb
-        if image is None:
-            raise ValueError("_flat_pyramid needs gray or rgb")
-        if self._layout is None or self._layout.image_shape != image.shape[:2]:
-            self._layout = _PyramidLayout(image.shape, self._scales)
-        layout = self._layout
-        if gray is not None:
-            layout.levels[0][...] = gray
-        else:
-            cv2.cvtColor(image, cv2.COLOR_RGB2GRAY, dst=layout.levels[0])
-        layout.resize()
-        return layout
+    def _reused_layout(self, shape: tuple[int, ...]) -> _PyramidLayout:
+        """The extractor's pyramid buffers for an image of ``shape`` (H, W, ...), kept from frame to
+        frame (their contents valid until the next extraction); its first level is the caller's to
+        write."""
+        if self._layout is None or self._layout.image_shape != shape[:2]:
+            self._layout = _PyramidLayout(shape, self._scales)
+        return self._layout
 
     def extract(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | None,
                 mask: np.ndarray | None = None) -> FrameFeatures:
@@ -167,7 +158,9 @@ class OrbExtractor:
             return self._extract_reference(gray, camera, depth_m, mask)
         if self._tests is None:
             return self._extract_opencv(gray, camera, depth_m)
-        return self._extract_levels(self._flat_pyramid(gray=gray), camera, depth_m)
+        layout = self._reused_layout(gray.shape)
+        layout.levels[0][...] = gray
+        return self._extract_levels(layout, camera, depth_m)
 
     def extract_rgb(self, rgb: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | DepthUnits | None
                     ) -> FrameFeatures:
@@ -176,12 +169,15 @@ class OrbExtractor:
         ``depth_m`` may be the camera's raw image (``DepthUnits``): read at the keypoints alone."""
         if self._tests is None:
             return self._extract_opencv(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), camera, depth_m)
-        return self._extract_levels(self._flat_pyramid(rgb=rgb), camera, depth_m)
+        layout = self._reused_layout(rgb.shape)
+        cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY, dst=layout.levels[0])
+        return self._extract_levels(layout, camera, depth_m)
 
     def _extract_levels(self, pyr: _PyramidLayout, camera: PinholeCamera, depth_m: np.ndarray | DepthUnits | None
                         ) -> FrameFeatures:
-        """The compiled extraction on a built pyramid: detection (retried at ``fast_min_threshold``
-        when short of keypoints), smoothing, descriptors."""
+        """The compiled extraction on a pyramid whose first level is written: the other levels,
+        detection (retried at ``fast_min_threshold`` when short of keypoints), smoothing, descriptors."""
+        pyr.resize()
         found = self._detect(pyr, self._fast, self.cfg.fast_threshold, skip_short=True)
         if found is None or found[4] < self.cfg.n_features:
             found = self._detect(pyr, self._fast_low, self.cfg.fast_min_threshold)
@@ -204,7 +200,7 @@ class OrbExtractor:
         positions [K, 2] float32, level positions [K, 2], octaves [K], angles [K], how many ORB kept
         before the grid). ``skip_short``: None, without the selection, when FAST found fewer corners
         than ``n_features``: ORB keeps no more than FAST found, so the retry at the lower threshold
-        is certain (one frame in ten on fr1/rpy; 0.85 ms a retry)."""
+        is certain (14 of 200 fr1/rpy frames; 0.85 ms each)."""
         corners = [_fast_in_band(fast, level) for level in pyr.levels]
         starts = np.fromiter(accumulate(map(len, corners), initial=0), np.int64, len(corners) + 1)
         if skip_short and starts[-1] < self.cfg.n_features:

@@ -543,7 +543,7 @@ def detect_and_select(flat: np.ndarray, shapes: np.ndarray, xy: np.ndarray, scor
                       width: int, height: int, threshold: int = -1
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """``detect_level`` on every level of a pyramid and the grid's selection (``select_grid``) in
-    one call. flat: the levels one after another (``OrbExtractor._flat_pyramid``), shapes [L, 3] (offset, height,
+    one call. flat: the levels one after another (``features._PyramidLayout``), shapes [L, 3] (offset, height,
     width); xy [N, 2] float32 FAST's corners of all levels, level k's at xy[starts[k]:starts[k + 1]]
     (starts [L + 1]), scores [N] (or None: computed where needed, as :func:`fast_scores` does, for
     corners FAST found at ``threshold``); counts [L]: ORB's n of each level; scales [L] float32. Returns
