@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from memgs_ros.cli.rerun_options import add_rerun_arguments, rerun_target
-from memgs_ros.cli.run import add_record_argument, check_inputs, guess_config, run_log
+from memgs_ros.cli.run import add_record_argument, check_inputs, check_repeat, guess_config, run_log
 from memgs_ros.errors import ConfigError
 from memgs_ros.orchestration.run_files import check_record_path
 
@@ -46,6 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
                    help="override a node parameter, e.g. mapper.final_iterations=500 (repeatable)")
     p.add_argument("--max-frames", type=int, default=0, help="use only the first N frames (0 = all)")
+    p.add_argument("--repeat", type=int, default=1, metavar="N",
+                   help="play the source N times, every other pass backward (a long flight over the same room); "
+                        "every pass is scored (default: %(default)s)")
     p.add_argument("--domain-id", type=int, default=None,
                    help="ROS_DOMAIN_ID (default: a random one no other node is using)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up a run after this many seconds")
@@ -101,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError("--record records one run; run the variants one at a time to record them")
         args.record = check_record_path(args.record)
     rerun = rerun_target(args)  # ConfigError without rerun-sdk, before anything starts
-    warnings = check_inputs(source, config, args.max_frames, overrides, args.out)  # before torch, rclpy, nodes
+    check_repeat(args.repeat)
+    warnings = check_inputs(source, config, args.max_frames, overrides, args.out, args.repeat)  # before torch, nodes
     with run_log(args.out):
         for warning in warnings:
             logger.warning(warning)
@@ -124,7 +128,8 @@ def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dic
 
     if not torch.cuda.is_available():
         configure_cpu_runtime()  # this process renders every frame on CPU
-    kwargs = {"max_frames": args.max_frames, "domain_id": args.domain_id, "timeout_s": args.timeout,
+    kwargs = {"max_frames": args.max_frames, "repeat": args.repeat, "domain_id": args.domain_id,
+              "timeout_s": args.timeout,
                   "composed": args.composed, "use_lpips": not args.no_lpips, "rerun": rerun}
     if args.record is not None:
         kwargs["record"] = args.record

@@ -56,6 +56,9 @@ def add_graph_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--namespace", default="", help="ROS namespace for every node (e.g. /uav1)")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: a random free-ish one)")
     p.add_argument("--max-frames", type=int, default=0, help="stop after this many frames (0 = all)")
+    p.add_argument("--repeat", type=int, default=1, metavar="N",
+                   help="play the source N times, every other pass backward, on one clock with its ground truth: "
+                        "a long flight over the same room (default: %(default)s)")
     p.add_argument("--strict", action="store_true",
                    help="stop at the first bad frame (unreadable or mis-sized image, stamp going backwards, "
                         "camera changing) instead of skipping it and counting it in the summary")
@@ -106,6 +109,7 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
     if not args.rate > 0 or not args.timeout > 0 or args.max_frames < 0:
         raise ConfigError(f"--rate and --timeout must be positive and --max-frames >= 0, got {args.rate}, "
                           f"{args.timeout}, {args.max_frames}")
+    check_repeat(args.repeat)
     overrides = {}
     for item in args.set:
         key, sep, value = item.partition("=")
@@ -115,10 +119,18 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
     return RunOptions(
         source=source, config=args.config or guess_config(source), out_dir=args.out,
         composed=args.composed, lockstep=not args.realtime, rate=args.rate,
-        namespace=args.namespace, domain_id=args.domain_id, max_frames=args.max_frames,
+        namespace=args.namespace, domain_id=args.domain_id, max_frames=args.max_frames, repeat=args.repeat,
         overrides=overrides, timeout_s=args.timeout, kill_after_s=kills, strict=args.strict,
         record=check_record_path(args.record) if getattr(args, "record", None) is not None else None,
         rerun=rerun_target(args))
+
+
+def check_repeat(repeat: int) -> None:
+    """ConfigError unless ``--repeat`` is a pass count the player takes."""
+    from memgs_ros.io.repeat import MAX_PASSES
+
+    if not 1 <= repeat <= MAX_PASSES:
+        raise ConfigError(f"--repeat must be in [1, {MAX_PASSES}], got {repeat}")
 
 
 def check_config(config: str, overrides: dict | None = None) -> dict[str, dict]:
@@ -142,7 +154,7 @@ def check_out_dir(out_dir: Path) -> None:
 
 
 def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict | None = None,
-                 out_dir: Path | None = None) -> list[str]:
+                 out_dir: Path | None = None, repeat: int = 1) -> list[str]:
     """Fail before any node starts, with one line naming the file: the config must load, the
     overrides name real nodes, the source must open (a bag is scanned whole, so a truncated or
     corrupt one is found here rather than by the player in the middle of the run), a TUM folder's
@@ -151,12 +163,16 @@ def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict 
 
     Returns the warnings to show before the run: the source's camera_info against the config's
     calibration (:func:`calibration_warning`)."""
+    from memgs_ros.io.repeat import RepeatedSource
     from memgs_ros.io.sources import open_source  # opening a source loads the bag readers
     from memgs_ros.io.tum import CAMERA_JSON, TumFolder
 
     params = check_config(config, overrides)
     configured = configured_camera(params)
-    src = open_source(source, max_frames=max_frames or None, default_camera=configured.camera)
+    src = open_source(source, max_frames=(max_frames or None) if repeat == 1 else None,
+                      default_camera=configured.camera, repeat=repeat)  # a source that cannot repeat fails here
+    if isinstance(src, RepeatedSource):
+        src = src.source
     if isinstance(src, TumFolder) and not src.camera_origin:
         raise ConfigError(f"{src.name}: cannot tell the camera: no {CAMERA_JSON}, folder name has no "
                           f"freiburg1/2/3 and the config ({config}) gives no calibration; pass --config tum_fr1 "
@@ -270,14 +286,14 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
         json_path.write_text(json.dumps(s.as_dict(), indent=2))
 
 
-def print_trajectory_error(source: str, trajectory_path: str) -> None:
+def print_trajectory_error(source: str, trajectory_path: str, repeat: int = 1) -> None:
     """When the source has ground truth (TUM folders and bags, the synthetic room), print the
     tracked trajectory's ATE after an SE(3) alignment; print nothing when it has none."""
     from memgs_ros.core.metrics.trajectory import ate
     from memgs_ros.io.sources import open_source
     from memgs_ros.io.tum import read_trajectory
 
-    gt_stamps, gt_poses = open_source(source).ground_truth()
+    gt_stamps, gt_poses = open_source(source, repeat=repeat).ground_truth()
     if not len(gt_stamps):
         return
     est_stamps, est_poses = read_trajectory(trajectory_path)
@@ -296,14 +312,14 @@ def run(args: argparse.Namespace) -> int:
 
     options = options_from_args(args, args.bag)
     warnings = check_inputs(options.source, options.config, options.max_frames, dict(options.overrides),
-                            options.out_dir)
+                            options.out_dir, options.repeat)
     with run_log(options.out_dir):
         for warning in warnings:
             logger.warning(warning)
         summary = run_pipeline(options)
     print_summary(summary, args.json, options.record)
     if summary.poses:
-        print_trajectory_error(options.source, summary.trajectory_path)
+        print_trajectory_error(options.source, summary.trajectory_path, options.repeat)
     if not summary.source_complete:
         cause = player_error(options.out_dir)
         print(f"memgs run: error: {options.source} failed part-way{f': {cause}' if cause else ''} (see "

@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     def frames(desc: str) -> Iterator[Frame]:
         # rendering is deterministic, so each output renders afresh: memory stays at one frame
         gen = generate_frames(spec, scene)
-        for _ in tqdm(range(spec.n_frames), desc=desc, unit="frame", disable=args.no_progress):
+        for _ in tqdm(range(spec.total_frames), desc=desc, unit="frame", disable=args.no_progress):
             t = time.perf_counter()
             f = next(gen)
             render_s[0] += time.perf_counter() - t

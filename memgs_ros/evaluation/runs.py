@@ -30,6 +30,7 @@ What is measured:
 """
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import math
@@ -314,7 +315,7 @@ _UNCONFIGURED = ConfiguredCamera(None, False)
 
 
 def _ground_truth_images(source: str, max_frames: int, scale: float,
-                         configured: ConfiguredCamera = _UNCONFIGURED,
+                         configured: ConfiguredCamera = _UNCONFIGURED, repeat: int = 1,
                          ) -> tuple[np.ndarray, list[np.ndarray], PinholeCamera, Any, np.ndarray | None]:
     """Ground-truth images prepared as the mapper prepares its keyframes, with the camera the
     run's tracker used: the configured calibration when it overrode camera_info, else the source's.
@@ -323,14 +324,16 @@ def _ground_truth_images(source: str, max_frames: int, scale: float,
     the source (for its ground-truth trajectory), valid-pixel mask [h, w] bool or None when the
     camera has no distortion).
     """
-    src = open_source(source, with_depth=False, max_frames=max_frames or None, default_camera=configured.camera)
+    # ``max_frames`` caps the frames played: under ``repeat`` those of all passes together.
+    src = open_source(source, with_depth=False, max_frames=(max_frames or None) if repeat == 1 else None,
+                      default_camera=configured.camera, repeat=repeat)
     camera = src.camera
     if configured.override and configured.camera is not None:
         camera = configured.camera.fitted(camera.width, camera.height)
     view = view_preparation(camera, scale)
     stamps: list[int] = []
     images: list[np.ndarray] = []
-    for frame in src:
+    for frame in itertools.islice(src, max_frames or None):
         stamps.append(int(frame.stamp_ns))
         images.append(view(frame.rgb)[0])
     return np.asarray(stamps, dtype=np.int64), images, view.camera, src, view.valid_mask
@@ -416,7 +419,7 @@ def evaluate_run(out_dir: str | os.PathLike[str], source: str | None = None, mod
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
     gt_stamps, gt_images, camera, src, valid_mask = _ground_truth_images(
-        source, int(max_frames), scale, configured_camera(run_params))
+        source, int(max_frames), scale, configured_camera(run_params), summary.repeat)
     traj_stamps, traj_poses = read_trajectory(summary.trajectory_path)
     kf_path = out / KEYFRAMES_FILE
     kf_stamps, kf_poses = (read_trajectory(kf_path) if kf_path.is_file()
@@ -502,7 +505,7 @@ def _memory_result(summary: RunSummary, timeline: Sequence[Mapping[str, Any]], s
 def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
              resolution_scale: float | None = None, seed: int = 0,
              out_dir: str | os.PathLike[str] = "memgs_eval",
-             overrides: Mapping[str, Any] | None = None, *, max_frames: int = 0,
+             overrides: Mapping[str, Any] | None = None, *, max_frames: int = 0, repeat: int = 1,
              domain_id: int | None = None, namespace: str = "", timeout_s: float = 3600.0,
              composed: bool = False, variant: str = "full", use_lpips: bool = True,
              device: str | None = None, progress: bool = True, record: Path | None = None,
@@ -511,6 +514,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
 
     resolution_scale: mapping resolution (``mapper.mapping.resolution_scale``); None keeps the
     config's. seed: seeds the mapper and the Patch-Grid sampler (and the tracker's RANSAC).
+    repeat: the source played this many times, every other pass backward (``open_source``).
     overrides: "node.param" -> value, applied after mode/scale/seed. domain_id: DDS domain of
     the run; None lets the run pick a free one. record: also record the run's output topics into
     this .mcap file. rerun: stream the run to Rerun (see RunOptions). device: where the evaluation
@@ -532,7 +536,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
     run_overrides.update(dict(overrides or {}))
     options = RunOptions(source=str(source), config=config, out_dir=out, composed=composed,
                          lockstep=True, namespace=namespace, domain_id=domain_id,
-                         max_frames=int(max_frames), overrides=run_overrides, timeout_s=timeout_s,
+                         max_frames=int(max_frames), repeat=int(repeat), overrides=run_overrides, timeout_s=timeout_s,
                          record=record, rerun=rerun)
     run_pipeline(options, progress=progress)
     return evaluate_run(out, str(source), mode, variant=variant, config=config, seed=seed,

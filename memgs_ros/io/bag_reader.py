@@ -339,6 +339,10 @@ class BagSource:
     def __len__(self) -> int:
         return len(self._plan)
 
+    def frame_stamps(self) -> np.ndarray:
+        """[N] int64 the stamps of the frames the scan paired, in order."""
+        return np.array([p[2] for p in self._plan], dtype=np.int64)
+
     def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
         """The whole ground-truth trajectory in the bag: (stamps_ns [M], T_wc [M, 4, 4]); empty when absent."""
         return self._gt_stamps.copy(), self._gt_poses.copy()

@@ -10,6 +10,7 @@ from collections.abc import Iterable, Iterator
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.view import DepthUnits
 from memgs_ros.errors import ConfigError, MemgsError
 from memgs_ros.io.skips import SkipLog
 
@@ -18,15 +19,16 @@ __all__ = ["DEFAULT_PERIOD_NS", "Preloaded", "ReplayFeed", "frames_total", "open
 DEFAULT_PERIOD_NS = 33_333_333  # loop gap for a one-frame source (30 Hz)
 
 
-def open_frames(spec: str, folder_camera: PinholeCamera | None, strict: bool) -> Iterable[Frame]:
-    """The source ``spec`` names (a TUM folder, a bag, ``synthetic:...``), checked before the first
-    frame: ConfigError when empty, and a TUM folder that names no camera (nor has ``folder_camera``)
-    fails here."""
+def open_frames(spec: str, folder_camera: PinholeCamera | None, strict: bool, repeat: int = 1) -> Iterable[Frame]:
+    """The source ``spec`` names (a TUM folder, a bag, ``synthetic:...``), played ``repeat`` times
+    forward and back (``open_source``), checked before the first frame: ConfigError when empty, and
+    a TUM folder that names no camera (nor has ``folder_camera``) fails here."""
     if not spec:
         raise ConfigError("parameter 'source' is empty: give a TUM folder, bag or 'synthetic:...' spec")
     from memgs_ros.io.sources import open_source  # heavy readers only when replaying files
 
-    source = open_source(spec, default_camera=folder_camera, strict=strict)
+    # A TUM folder's depth PNGs as stored: a 16UC1 replay publishes them unchanged (FrameOutbox).
+    source = open_source(spec, default_camera=folder_camera, strict=strict, repeat=repeat, raw_depth=True)
     _ = source.camera
     return source
 
@@ -113,10 +115,14 @@ class Preloaded:
         self.frames: list[Frame] = []
         self.nbytes = 0
         self.error: MemgsError | None = None
+        seen: set[int] = set()  # a lap shown again (synthetic laps) holds its images once
         try:
             for frame in source:
-                depth_m = frame.depth_metres()
-                self.nbytes += frame.rgb.nbytes + (0 if depth_m is None else depth_m.nbytes)
+                if id(frame.rgb) not in seen:
+                    seen.add(id(frame.rgb))
+                    depth = frame.depth_m
+                    self.nbytes += frame.rgb.nbytes + (0 if depth is None else depth.raw.nbytes
+                                                       if isinstance(depth, DepthUnits) else depth.nbytes)
                 if self.nbytes > budget_mb * 1e6:
                     raise ConfigError(f"the source does not fit preload_mb={budget_mb} MB ({len(self.frames)} "
                                       "frames did): raise preload_mb, or set it to 0 to decode frames as they go out")

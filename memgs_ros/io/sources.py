@@ -8,6 +8,7 @@ ground-truth trajectory (stamps_ns [M], T_wc [M, 4, 4]), empty arrays when there
 """
 from __future__ import annotations
 
+import itertools
 import os
 from collections.abc import Iterator
 from dataclasses import replace
@@ -21,6 +22,7 @@ from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.bag_reader import BagSource, BagTopics
 from memgs_ros.io.image_decoding import DEFAULT_DEPTH_SCALE
+from memgs_ros.io.repeat import RepeatedSource
 from memgs_ros.io.synthetic import (
     SyntheticScene,
     SyntheticSpec,
@@ -54,9 +56,10 @@ class FrameSource(Protocol):
 class SyntheticSource:
     """The synthetic room as a frame source; the scene is baked once, on first iteration."""
 
-    def __init__(self, spec: SyntheticSpec, with_depth: bool = True) -> None:
+    def __init__(self, spec: SyntheticSpec, with_depth: bool = True, max_frames: int | None = None) -> None:
         self.spec = spec
         self.with_depth = with_depth
+        self._n = spec.total_frames if max_frames is None else min(max_frames, spec.total_frames)
         self.name = spec.to_string()
         self._scene: SyntheticScene | None = None
 
@@ -65,16 +68,21 @@ class SyntheticSource:
         return self.spec.camera
 
     def __len__(self) -> int:
-        return self.spec.n_frames
+        return self._n
 
     def __iter__(self) -> Iterator[Frame]:
         if self._scene is None:
             self._scene = build_scene(self.spec.seed)
-        for f in generate_frames(self.spec, self._scene):
+        for f in itertools.islice(generate_frames(self.spec, self._scene), self._n):
             yield f if self.with_depth else replace(f, depth_m=None)
 
     def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
-        return trajectory(self.spec)
+        stamps, poses = trajectory(self.spec)
+        return stamps[: self._n], poses[: self._n]
+
+    def frame_stamps(self) -> np.ndarray:
+        """[N] int64 the stamps of the frames, in order."""
+        return trajectory(self.spec)[0][: self._n]
 
 
 def source_kind(spec: str | os.PathLike[str]) -> str:
@@ -102,7 +110,7 @@ def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = Non
                 depth_factor: float | None = None, depth_scale: float = DEFAULT_DEPTH_SCALE,
                 topics: BagTopics = _TUM_TOPICS, with_depth: bool = True,
                 max_frames: int | None = None, default_camera: PinholeCamera | None = None,
-                strict: bool = False) -> FrameSource:
+                strict: bool = False, repeat: int = 1, raw_depth: bool = False) -> FrameSource:
     """Open any frame input (module docstring).
 
     camera: overrides the camera from the data (TUM name/camera.json, bag CameraInfo);
@@ -114,22 +122,30 @@ def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = Non
     topics: bag topic/frame names. with_depth: False = colour only (monocular).
     max_frames: keep only the first N frames. strict: a bad frame of a TUM folder or bag is a
       DataError instead of being skipped and counted in the source's ``skipped``.
+    repeat: play the (first ``max_frames``) frames this many times, every other pass backward,
+      ground truth re-stamped with them (:class:`memgs_ros.io.repeat.RepeatedSource`: a long
+      flight over the same room).
+    raw_depth: a TUM folder's frames carry its depth PNGs as stored (``DepthUnits``) instead of metres.
     """
     if max_frames is not None and max_frames < 1:
         raise ConfigError(f"max_frames must be >= 1, got {max_frames}")
+    if not isinstance(repeat, int) or repeat < 1:
+        raise ConfigError(f"repeat must be an integer >= 1, got {repeat!r}")
     kind = source_kind(spec)
     if kind == "synthetic":
         if camera is not None:
             raise ConfigError("a synthetic source defines its own camera (w=, h=); do not pass one")
         s = parse_spec(str(spec))
-        if max_frames is not None and max_frames < s.n_frames:
+        if max_frames is not None and s.laps == 1 and max_frames < s.n_frames:
             s = replace(s, n_frames=max_frames)
-        return SyntheticSource(s, with_depth=with_depth)
-    if kind == "tum":
-        return TumFolder(spec, camera=camera, depth_factor=depth_factor, max_dt_s=max_dt_s, with_depth=with_depth,
-                         max_frames=max_frames, default_camera=default_camera, strict=strict)
-    return BagSource(spec, topics=topics, camera=camera, max_dt_s=max_dt_s, depth_scale=depth_scale,
-                     with_depth=with_depth, max_frames=max_frames, strict=strict)
+        source: FrameSource = SyntheticSource(s, with_depth=with_depth, max_frames=max_frames)
+    elif kind == "tum":
+        source = TumFolder(spec, camera=camera, depth_factor=depth_factor, max_dt_s=max_dt_s, with_depth=with_depth,
+                           max_frames=max_frames, default_camera=default_camera, strict=strict, raw_depth=raw_depth)
+    else:
+        source = BagSource(spec, topics=topics, camera=camera, max_dt_s=max_dt_s, depth_scale=depth_scale,
+                           with_depth=with_depth, max_frames=max_frames, strict=strict)
+    return source if repeat == 1 else RepeatedSource(source, repeat)
 
 
 __all__ = ["FrameSource", "SyntheticSource", "open_source", "source_kind"]

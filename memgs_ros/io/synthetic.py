@@ -19,14 +19,18 @@ Spec strings for the CLIs (``parse_spec``)::
     synthetic:w=160,h=120,n=60,seed=0,noise=0.01,holes=0.05
 
 keys: w, h (image size, px), n (frames), fps, seed, noise (depth noise std, m),
-holes (fraction of depth pixels zeroed in random blobs), path (wobble or loop), amp (path translation scale,
+holes (fraction of depth pixels zeroed in random blobs), path (wobble, loop or orbit), amp (path translation scale,
 1 = about 1.9 m of travel), rot (path rotation scale, 1 = yaw +-35 deg, pitch +-8 deg,
-roll +-8 deg), aa (colour supersampling factor; 0 = auto: 2 up to 320x240, else 1).
-Defaults: 640x480, 120 frames at 30 fps, seed 0, no noise, no holes, path=wobble.
+roll +-8 deg), aa (colour supersampling factor; 0 = auto: 2 up to 320x240, else 1), laps (the n
+frames flown this many times on one clock: ``n * laps`` frames, each lap's images rendered once).
+Defaults: 640x480, 120 frames at 30 fps, seed 0, no noise, no holes, path=wobble, laps=1.
 
 ``path=loop`` is a loop-closure sequence: the camera goes once round the room (about 10 m,
 looking out at the walls and furniture) and then retraces the first ``LOOP_OVERLAP`` of the
-round, so the last frames revisit the start views (``loop_revisit_frames``).
+round, so the last frames revisit the start views (``loop_revisit_frames``). ``path=orbit`` is the
+same round without the retrace, closed: its frame n would be its frame 0, so ``laps`` flies it round
+and round without a jump (a long flight over one room: ``synthetic:w=320,h=240,path=orbit,n=450,laps=40``
+is 10 minutes at 30 fps).
 
 The room geometry (6 x 5 x 2.7 m, six boxes) is fixed; the seed changes the textures and
 the phases of the camera path. The camera is TUM fr3-like without distortion, scaled to
@@ -39,7 +43,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import cv2
@@ -57,9 +61,10 @@ SYNTH_START_NS = 1_700_000_000 * 1_000_000_000
 SPEC_KEYS = {
     "w": "width", "h": "height", "n": "n_frames", "fps": "fps", "seed": "seed",
     "noise": "depth_noise_std_m", "holes": "hole_fraction", "amp": "path_amp", "rot": "path_rot",
-    "aa": "supersample", "path": "path",
+    "aa": "supersample", "path": "path", "laps": "laps",
 }
-PATH_KINDS = ("wobble", "loop")
+PATH_KINDS = ("wobble", "loop", "orbit")
+MAX_LAPS = 100_000
 
 
 @dataclass(frozen=True)
@@ -77,6 +82,7 @@ class SyntheticSpec:
     path_rot: float = 1.0  # rotation scale of the camera path
     supersample: int = 0  # colour rays per pixel per axis; 0 = auto
     path: str = "wobble"  # "wobble": small closed path near x = -1.3; "loop": round the room and back
+    laps: int = 1  # the n_frames flown this many times (n_frames * laps frames on one clock)
 
     def __post_init__(self) -> None:
         if self.width < 8 or self.height < 8:
@@ -94,6 +100,8 @@ class SyntheticSpec:
                               f"got {self.path_amp}, {self.path_rot}")
         if self.path not in PATH_KINDS:
             raise ConfigError(f"synthetic path must be one of {PATH_KINDS}, got {self.path!r}")
+        if not 1 <= self.laps <= MAX_LAPS:
+            raise ConfigError(f"synthetic laps must be in [1, {MAX_LAPS}], got {self.laps}")
         if not 0 <= self.supersample <= 4:
             raise ConfigError(f"synthetic supersample must be 0 (auto) .. 4, got {self.supersample}")
 
@@ -104,6 +112,11 @@ class SyntheticSpec:
                              (TUM_FR3.cx + 0.5) * sx - 0.5, (TUM_FR3.cy + 0.5) * sy - 0.5)
 
     @property
+    def total_frames(self) -> int:
+        """Frames of the whole sequence: ``n_frames`` a lap, ``laps`` laps."""
+        return self.n_frames * self.laps
+
+    @property
     def aa(self) -> int:
         if self.supersample:
             return self.supersample
@@ -111,8 +124,10 @@ class SyntheticSpec:
 
     def to_string(self) -> str:
         """The spec string that ``parse_spec`` turns back into this spec."""
-        # path only when not the default, so default specs keep their old names
-        parts = [f"{k}={getattr(self, f)}" for k, f in SPEC_KEYS.items() if k != "path" or self.path != "wobble"]
+        # path and laps only when not the default, so default specs keep their old names
+        defaults = {"path": "wobble", "laps": 1}
+        parts = [f"{k}={getattr(self, f)}" for k, f in SPEC_KEYS.items()
+                 if k not in defaults or getattr(self, f) != defaults[k]]
         return "synthetic:" + ",".join(parts)
 
 
@@ -302,12 +317,16 @@ def _loop_phase(n: int) -> np.ndarray:
 def _loop_trajectory(spec: SyntheticSpec) -> np.ndarray:
     """T_wc [N, 4, 4] of the loop path: an ellipse round the room at 1.35 m, looking outwards
     (yaw = polar angle + 135 deg: inwards and ahead), small seeded height/pitch/roll wobble."""
+    return _round_trajectory(spec, _loop_phase(spec.n_frames))
+
+
+def _round_trajectory(spec: SyntheticSpec, s: np.ndarray) -> np.ndarray:
+    """T_wc [N, 4, 4] at phases ``s`` [N] of the round (1 = once round): the loop and orbit paths."""
     rng = np.random.default_rng([spec.seed, 4])
     ph = rng.uniform(0, 2 * np.pi, 3)
-    s = _loop_phase(spec.n_frames)
     a, r = spec.path_amp, spec.path_rot * np.pi / 180
-    poses = np.empty((spec.n_frames, 4, 4))
-    for k, sk in enumerate(s):
+    poses = np.empty((len(s), 4, 4))
+    for k, sk in enumerate(s.tolist()):
         th = 2 * np.pi * sk
         pos = np.array([_LOOP_CENTRE[0] + _LOOP_RADII[0] * math.cos(th),
                         _LOOP_CENTRE[1] + _LOOP_RADII[1] * math.sin(th),
@@ -320,16 +339,26 @@ def _loop_trajectory(spec: SyntheticSpec) -> np.ndarray:
 
 
 def trajectory(spec: SyntheticSpec) -> tuple[np.ndarray, np.ndarray]:
-    """The camera path: (stamps_ns [N] int64, T_wc [N, 4, 4] float64).
+    """The camera path: (stamps_ns [N] int64, T_wc [N, 4, 4] float64), N = ``total_frames``: one lap
+    of ``n_frames`` poses, flown ``laps`` times (frame k has frame k % n_frames's pose)."""
+    stamps = SYNTH_START_NS + np.round(np.arange(spec.total_frames) * 1e6 / spec.fps).astype(np.int64) * 1000
+    lap = _lap_poses(spec)
+    return stamps, np.tile(lap, (spec.laps, 1, 1)) if spec.laps > 1 else lap
+
+
+def _lap_poses(spec: SyntheticSpec) -> np.ndarray:
+    """T_wc [n_frames, 4, 4] of one lap.
 
     ``path=wobble`` (default): one smooth closed loop over the sequence (so total travel does not depend on n):
     position an ellipse-like loop around (-1.3, 0, 1.35) with a vertical wobble, yaw +-35 deg
     around +x, pitch -12 +- 8 deg, roll +-8 deg, phases seeded. Stamps are whole microseconds
-    so TUM text files round-trip exactly. ``path=loop``: see ``_loop_trajectory``.
+    so TUM text files round-trip exactly. ``path=loop``: see ``_loop_trajectory``; ``path=orbit``:
+    the loop's round at phases k / n_frames (closed: a next lap goes on without a jump).
     """
-    stamps = SYNTH_START_NS + np.round(np.arange(spec.n_frames) * 1e6 / spec.fps).astype(np.int64) * 1000
     if spec.path == "loop":
-        return stamps, _loop_trajectory(spec)
+        return _loop_trajectory(spec)
+    if spec.path == "orbit":
+        return _round_trajectory(spec, np.arange(spec.n_frames) / spec.n_frames)
     rng = np.random.default_rng([spec.seed, 2])
     ph = rng.uniform(0, 2 * np.pi, 6)
     n = spec.n_frames
@@ -345,7 +374,7 @@ def trajectory(spec: SyntheticSpec) -> tuple[np.ndarray, np.ndarray]:
         pitch = -12 * np.pi / 180 + 8 * r * math.sin(2 * two_pi * s[k] + ph[4])
         roll = 8 * r * math.sin(two_pi * s[k] + ph[5])
         poses[k] = _look_pose(pos, yaw, pitch, roll)
-    return stamps, poses
+    return poses
 
 
 def _corrupt_depth(depth: np.ndarray, spec: SyntheticSpec, index: int) -> np.ndarray:
@@ -369,6 +398,8 @@ def generate_frames(spec: SyntheticSpec, scene: SyntheticScene | None = None) ->
 
     Deterministic: the same spec gives the same bytes. The scene is built lazily on the
     first frame (pass ``scene`` to reuse one across calls; it must come from ``build_scene(spec.seed)``).
+    With ``laps`` > 1 the first lap's images are kept and shown again on every later lap (restamped:
+    a lap's frame k is the same view every time round), so a long flight renders one lap.
     """
     stamps, poses = trajectory(spec)
     camera = spec.camera
@@ -376,10 +407,16 @@ def generate_frames(spec: SyntheticSpec, scene: SyntheticScene | None = None) ->
         scene = build_scene(spec.seed)
     elif scene.seed != spec.seed:
         raise ConfigError(f"scene was built with seed {scene.seed}, the spec has seed {spec.seed}")
+    lap: list[Frame] = []
     for k in range(spec.n_frames):
         rgb, depth = render(scene, camera, poses[k], spec.aa)
         depth = _corrupt_depth(depth, spec, k)
-        yield Frame(int(stamps[k]), rgb, depth, camera, poses[k].copy())
+        frame = Frame(int(stamps[k]), rgb, depth, camera, poses[k].copy())
+        if spec.laps > 1:
+            lap.append(frame)
+        yield frame
+    for k in range(spec.n_frames, spec.total_frames):
+        yield replace(lap[k % spec.n_frames], stamp_ns=int(stamps[k]))
 
 
 # --------------------------------------------------------------------- TUM folder out

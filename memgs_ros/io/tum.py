@@ -26,6 +26,7 @@ import numpy as np
 from memgs_ros.core.geometry.camera import TUM_CAMERAS, TUM_DEPTH_FACTORS, PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.poses import interpolate_poses, pose_to_tq, quat_xyzw_to_rotmat
+from memgs_ros.core.geometry.view import DepthUnits
 from memgs_ros.core.metrics.trajectory import associate as associate_stamps
 from memgs_ros.errors import DataError
 from memgs_ros.io.skips import SkipLog
@@ -172,12 +173,17 @@ def load_rgb(path: Path) -> np.ndarray:
 
 def load_depth(path: Path, depth_factor: float) -> np.ndarray:
     """16-bit depth PNG -> [H, W] float32 metres, 0 where there is no measurement."""
+    return (load_depth_units(path).astype(np.float32) / np.float32(depth_factor)).astype(np.float32)
+
+
+def load_depth_units(path: Path) -> np.ndarray:
+    """16-bit depth PNG -> [H, W] uint16 as stored (the folder's depth factor per metre, 0 = none)."""
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise DataError(f"{path}: missing or unreadable depth image")
     if img.ndim != 2 or img.dtype != np.uint16:
         raise DataError(f"{path}: depth must be a single-channel 16-bit PNG, got {img.dtype} {img.shape}")
-    return (img.astype(np.float32) / np.float32(depth_factor)).astype(np.float32)
+    return img
 
 
 @dataclass(frozen=True)
@@ -198,13 +204,17 @@ class TumFolder:
     ground truth interpolated at that time (None outside the ground-truth range or across
     a gap longer than ``gt_max_gap_s``). A frame whose image is missing, unreadable or of another
     size is skipped and counted in ``skipped`` by kind (``strict``: DataError instead).
+    ``raw_depth``: frames carry the depth PNG as stored (:class:`DepthUnits`, the folder's depth
+    factor per metre) instead of float metres, for a player that publishes it as 16UC1 unchanged.
     """
 
     def __init__(self, path: str | Path, camera: PinholeCamera | None = None, depth_factor: float | None = None,
                  max_dt_s: float = 0.02, with_depth: bool = True, gt_max_gap_s: float = 0.1,
                  max_frames: int | None = None, default_camera: PinholeCamera | None = None,
-                 strict: bool = False) -> None:
+                 strict: bool = False, raw_depth: bool = False) -> None:
         self.path = Path(path)
+        self.raw_depth = raw_depth
+        self.strict = strict
         self._skips = SkipLog(str(self.path), strict)
         self.skipped = self._skips.counts  # frames skipped while iterating, by kind
         if not self.path.is_dir():
@@ -269,21 +279,40 @@ class TumFolder:
         return len(self.entries)
 
     def __iter__(self) -> Iterator[Frame]:
-        camera = self.camera
-        for k, e in enumerate(self.entries):
+        _ = self.camera  # an unknown camera fails the whole folder, not each frame
+        for k in range(len(self.entries)):
             try:
-                rgb = load_rgb(self.path / e.rgb_path)
-                depth = load_depth(self.path / e.depth_path, self.depth_factor) if e.depth_path is not None else None
-            except DataError as err:
-                self._skips.skip("unreadable_image", str(err))
-                continue
-            gt = self._frame_gt[k].copy() if self._frame_gt_valid[k] else None
-            try:
-                frame = Frame(e.stamp_ns, rgb, depth, camera, gt)
-            except DataError as err:
-                self._skips.skip("size_mismatch", f"{self.path / e.rgb_path}: {err}")
-                continue
+                frame = self.load(k)
+            except DataError:
+                if self.strict:
+                    raise
+                continue  # counted in ``skipped``
             yield frame
+
+    def frame_stamps(self) -> np.ndarray:
+        """[N] int64 the stamps of the frames, in order (unreadable ones included)."""
+        return np.array([e.stamp_ns for e in self.entries], dtype=np.int64)
+
+    def load(self, k: int) -> Frame:
+        """Frame ``k`` of ``entries`` alone. An unreadable or mis-sized one is counted in
+        ``skipped`` and raises DataError (with ``strict``: the skip's own DataError)."""
+        camera = self.camera
+        e = self.entries[k]
+        try:
+            rgb = load_rgb(self.path / e.rgb_path)
+            depth: np.ndarray | DepthUnits | None = None
+            if e.depth_path is not None:
+                depth = (DepthUnits(load_depth_units(self.path / e.depth_path), self.depth_factor) if self.raw_depth
+                         else load_depth(self.path / e.depth_path, self.depth_factor))
+        except DataError as err:
+            self._skips.skip("unreadable_image", str(err))
+            raise
+        gt = self._frame_gt[k].copy() if self._frame_gt_valid[k] else None
+        try:
+            return Frame(e.stamp_ns, rgb, depth, camera, gt)
+        except DataError as err:
+            self._skips.skip("size_mismatch", f"{self.path / e.rgb_path}: {err}")
+            raise
 
     def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
         """The whole ground-truth trajectory: (stamps_ns [M], T_wc [M, 4, 4]); empty when absent."""
@@ -303,6 +332,7 @@ __all__ = [
     "format_pose_line",
     "format_stamp",
     "load_depth",
+    "load_depth_units",
     "load_rgb",
     "parse_stamp_ns",
     "read_camera_json",

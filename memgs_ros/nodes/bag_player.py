@@ -102,7 +102,7 @@ class BagPlayer(Node):
     def _open(self, folder_camera: PinholeCamera | None, frames: Iterable[Frame] | None) -> Iterable[Frame]:
         """``frames``, or the ``source`` parameter opened; preloaded when ``preload_mb`` > 0."""
         if frames is None:
-            frames = open_frames(self.cfg.source, folder_camera, self.cfg.strict)
+            frames = open_frames(self.cfg.source, folder_camera, self.cfg.strict, self.cfg.repeat)
         if self.cfg.preload_mb > 0:
             t0 = time.monotonic()
             frames = Preloaded(frames, self.cfg.preload_mb, 0 if self.cfg.loop else self.cfg.max_frames)
@@ -154,7 +154,8 @@ class BagPlayer(Node):
             self.get_logger().warning("the source has no frames")
             self._finish(ok=self.ok)
             return False
-        self.clock.start(now, self._next[1])
+        self.outbox.prepare(self._next[0])
+        self.clock.start(time.monotonic(), self._next[1])  # after the first frame was read
         return True
 
     def _sleep_until(self, t: float) -> None:

@@ -36,6 +36,9 @@ class BagPlayerParams:
     start_delay_s: float = 5.0  # wait at most this long for a color subscriber before the first frame
     wait_for_readers: str = ""
     max_frames: int = 0  # stop after this many frames, over all loops (0 = no limit)
+    # play the source this many times, every other pass backward, on one clock, ground truth with it
+    # (a long flight over the same room; memgs run --repeat)
+    repeat: int = 1
     depth_encoding: str = "32FC1"  # depth image encoding: 32FC1 metres or 16UC1 scaled units
     depth_scale: float = 1000.0  # 16UC1 units per metre (1000 = millimetres)
     frame_id: str = "camera_color_optical_frame"  # frame id of the images and camera info
@@ -50,6 +53,7 @@ class BagPlayerParams:
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "rate": (0.01, 1000.0), "ack_timeout_s": (0.05, 3600.0), "start_delay_s": (0.0, 600.0),
         "max_frames": (0, 2**31 - 1), "depth_scale": (1.0, 100000.0), "preload_mb": (0, 1_000_000),
+        "repeat": (1, 1000),
     }
     CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"depth_encoding": ("32FC1", "16UC1")}
 

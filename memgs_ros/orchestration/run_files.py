@@ -58,6 +58,7 @@ class RunOptions:
     namespace: str = ""
     domain_id: int | None = None
     max_frames: int = 0
+    repeat: int = 1  # the source played this many times, forward and back (io/repeat.py)
     overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value
     # Start these nodes this many seconds after the player starts (a ground-station merger
     # joining mid-run; separate processes only).
@@ -131,6 +132,7 @@ class RunSummary:
     # the tracker's word on it to the mapper's acknowledgement (median), ``training`` the mapper's
     # training per frame (mean); what ``frame`` holds beyond them is messages and handshakes
     lockstep_ms: dict[str, float] = field(default_factory=dict)
+    repeat: int = 1  # the source was played this many times, forward and back (``open_source(repeat=)``)
 
     @property
     def mapping_iterations_replay(self) -> int:
@@ -174,7 +176,8 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         params[node] = dict(node_params)
     params.setdefault("bag_player", {}).update(
         source=str(options.source), lockstep=options.lockstep, rate=float(options.rate),
-        max_frames=int(options.max_frames), ack_topic="memgs/frame_ack", world_frame_id="map",
+        max_frames=int(options.max_frames), repeat=int(options.repeat), ack_topic="memgs/frame_ack",
+        world_frame_id="map",
         strict=bool(options.strict))
     params.setdefault("mapper", {})["lockstep"] = options.lockstep
     if float(options.start_delays_s.get("tracker", 0.0)) <= 0:

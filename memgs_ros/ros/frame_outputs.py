@@ -1,6 +1,10 @@
 """The camera topics a replay publishes, one shared header stamp per frame: ``color/image_raw``
 (rgb8), ``depth/image_raw`` (32FC1 metres or 16UC1 scaled units), ``color/camera_info`` and, when
-the source has ground truth, ``groundtruth/pose`` (PoseStamped, camera in world)."""
+the source has ground truth, ``groundtruth/pose`` (PoseStamped, camera in world).
+
+Depth crosses once: a frame that holds its depth as stored (a TUM folder's 16-bit PNG,
+``DepthUnits``) in the units the replay publishes goes out as it is; only other depth is encoded,
+by the compiled encoder, which the player then loads (:meth:`FrameOutbox.prepare`)."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,7 +13,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.core.geometry.view import metres_to_units
+from memgs_ros.core.geometry.view import DepthUnits, load_kernels
 from memgs_ros.ros import codecs, qos
 
 __all__ = ["FrameOutbox"]
@@ -27,14 +31,25 @@ class FrameOutbox:
         self.depth = node.create_publisher(Image, "depth/image_raw", qos.reliable(5))
         self.info = node.create_publisher(CameraInfo, "color/camera_info", qos.reliable(5))
         self.gt = node.create_publisher(PoseStamped, "groundtruth/pose", qos.reliable(10))
-        if depth_encoding == "16UC1":  # its compiled encoder loaded now, not on the first frame
-            metres_to_units(np.ones((1, 1), np.float32), depth_scale)
+
+    def _as_published(self, depth: np.ndarray | DepthUnits | None) -> bool:
+        """Whether ``depth`` goes out as it is: 16-bit units at the published scale."""
+        return (isinstance(depth, DepthUnits) and self._depth_encoding == "16UC1" and depth.raw.dtype == np.uint16
+                and depth.scale == self._depth_scale)
+
+    def prepare(self, first: Frame) -> None:
+        """Before the first frame (``first``) goes out: load the compiled depth passes when frames
+        like it need converting (not on a frame whose replay runs against the clock)."""
+        if first.depth_m is not None and not self._as_published(first.depth_m):
+            load_kernels()
 
     def publish(self, frame: Frame, stamp_ns: int) -> None:
         fid = self._frame_id
         self.color.publish(codecs.numpy_to_image(frame.rgb, "rgb8", stamp_ns, fid))
-        depth_m = frame.depth_metres()
-        if depth_m is not None:
+        if self._as_published(frame.depth_m):
+            assert isinstance(frame.depth_m, DepthUnits)
+            self.depth.publish(codecs.numpy_to_image(frame.depth_m.raw, "16UC1", stamp_ns, fid))
+        elif (depth_m := frame.depth_metres()) is not None:
             self.depth.publish(codecs.depth_to_image(depth_m, self._depth_encoding, stamp_ns, fid, self._depth_scale))
         self.info.publish(codecs.camera_to_camera_info(frame.camera, stamp_ns, fid))
         if frame.T_wc_gt is not None:

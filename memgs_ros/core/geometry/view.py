@@ -33,7 +33,7 @@ from memgs_ros.errors import ConfigError, DataError
 
 __all__ = [
     "VALID_DEPTH_M", "DepthUnits", "Undistorter", "ViewPreparation", "check_depth_scale", "depth_scale_ratio",
-    "depth_to_metres", "depth_to_metres_checked", "undistort_uv",
+    "depth_to_metres", "depth_to_metres_checked", "load_kernels", "undistort_uv",
     "undistorter_for", "valid_pixel_mask", "view_preparation",
 ]
 
@@ -168,14 +168,27 @@ def _metres_to_units(depth, scale, out):
             out[r, c] = np.uint16(u) if u <= 65535.0 else np.uint16(0)
 
 
+# The compiled depth passes, once ``load_kernels`` ran in this process (None: the numpy twins).
 _depth_kernels = None
 _units_kernel = None
-if numba_available():
-    import numba
 
-    _depth_kernels = (numba.njit(cache=True, nogil=True)(_units_to_metres),
-                      numba.njit(cache=True, nogil=True)(_float_to_metres))
-    _units_kernel = numba.njit(cache=True, nogil=True)(_metres_to_units)
+
+def load_kernels() -> bool:
+    """Compile (or load from numba's cache) the depth passes, so that this process converts depth
+    compiled from now on; False where numba is missing. Only a process that converts every frame
+    calls it (the tracker's warm-up, a player that encodes depth): numba costs a process ~100 MB,
+    which the sampler and merger, converting a keyframe now and then, do without."""
+    global _depth_kernels, _units_kernel
+    if _depth_kernels is None and numba_available():
+        import numba
+
+        _depth_kernels = (numba.njit(cache=True, nogil=True)(_units_to_metres),
+                          numba.njit(cache=True, nogil=True)(_float_to_metres))
+        _units_kernel = numba.njit(cache=True, nogil=True)(_metres_to_units)
+        depth_to_metres_checked(np.ones((2, 2), np.uint16), 1000.0)  # both depth encodings
+        depth_to_metres_checked(np.ones((2, 2), np.float32))
+        metres_to_units(np.ones((2, 2), np.float32), 1000.0)
+    return _depth_kernels is not None
 
 
 def metres_to_units(depth_m: np.ndarray,  # [H, W] float32 metres

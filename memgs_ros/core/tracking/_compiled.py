@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from memgs_ros.core.geometry.view import depth_to_metres
+from memgs_ros.core.geometry.view import load_kernels as load_view_kernels
 from memgs_ros.core.runtime.cpu import numba_available  # noqa: F401 - re-exported
 from memgs_ros.core.tracking.features import orb
 
@@ -706,6 +706,5 @@ def warm_up() -> None:
                       obs, np.zeros(4, bool), np.ones(4), 80, 0.85, 4, 16.0, 40.0, 5.991, 7.815, 1, 1)
     count_seen_kernel(p_w, pids, np.eye(4), view, pids, np.zeros(4, np.int64), np.zeros(4, np.int64))
     unroll_kernel(obs[:, :2].astype(np.float32), obs[:, :2], K, np.ones(3), 0.02, 640)
-    depth_to_metres(np.ones((2, 2), np.uint16), 1000.0)  # the frame's depth, both encodings
-    depth_to_metres(np.ones((2, 2), np.float32))
+    load_view_kernels()  # the frame's depth, both encodings
     words_kernel(desc, np.zeros((6, 32), np.uint8), 2, 2)  # place recognition, on the back-end
