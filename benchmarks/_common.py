@@ -102,20 +102,21 @@ class MemgsRun:
 
 def run_memgs(args: Sequence[str | os.PathLike[str]], out: Path | None = None, *, log: Path | None = None,
               echo: bool = False, timeout_s: float | None = None, env: Mapping[str, str] | None = None,
-              prefix: Sequence[str] = ()) -> MemgsRun:
+              prefix: Sequence[str] = (), checkout: Path = ROOT) -> MemgsRun:
     """Run ``memgs ARGS [--out OUT]`` (``python -m memgs_ros`` of this checkout, whatever is
     installed) and read back the summary a finished run left in ``OUT``.
 
     log: stdout and stderr go to this file; echo: they go to the terminal, after a ``$ memgs ...``
     line; neither: captured into ``MemgsRun.output``. timeout_s: kill it then (its nodes end with it)
     and report TIMED_OUT. env: added to this process's environment. prefix: a command to run it
-    under (``taskset -c 0-5``)."""
+    under (``taskset -c 0-5``). checkout: the tree whose ``memgs_ros`` runs (another commit's
+    worktree, for an A/B in one session; it runs in that folder, so give absolute paths)."""
     from memgs_ros.orchestration.run_files import SUMMARY_FILE, read_summary
 
     words = [str(a) for a in args] + (["--out", str(out)] if out is not None else [])
     cmd = [*prefix, sys.executable, "-m", "memgs_ros", *words]
     child_env = {**os.environ, **(env or {})}
-    child_env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [child_env.get("PYTHONPATH")])])
+    child_env["PYTHONPATH"] = os.pathsep.join([str(checkout), *filter(None, [child_env.get("PYTHONPATH")])])
     if echo:
         print("$ memgs " + " ".join(words), flush=True)
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -127,7 +128,9 @@ def run_memgs(args: Sequence[str | os.PathLike[str]], out: Path | None = None, *
         elif not echo:
             where = {"capture_output": True}
         try:
-            proc = subprocess.run(cmd, env=child_env, text=True, timeout=timeout_s, check=False, **where)
+            # ``python -m`` puts the working directory first on sys.path: run another checkout from its own.
+            cwd = None if Path(checkout).resolve() == ROOT else str(checkout)
+            proc = subprocess.run(cmd, env=child_env, text=True, timeout=timeout_s, check=False, cwd=cwd, **where)
             code, output = proc.returncode, (proc.stdout or "") + (proc.stderr or "")
         except subprocess.TimeoutExpired as err:
             code, output = TIMED_OUT, _text(err.stdout) + _text(err.stderr)

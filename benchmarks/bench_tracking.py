@@ -9,6 +9,12 @@ Cases:
   tum          real fr1/rpy (target <= 3 cm, no frame lost), with BA in its thread
   tum_nothread same sequence with local BA run inline and excluded from timing: pure track() cost
   mono         synthetic monocular: initialised within 30 frames, Sim(3) ATE <= 3 % of path length
+  pingpong     real fr1/rpy played --repeat times forward and back (a long flight over one room) with
+               the tum_fr1 config's keyframe rule, BA inline: keyframes inserted and kept, ATE of each pass
+               after one alignment (a revisit should neither add keyframes nor lose accuracy); with
+               --flip-backward-readout the backward passes read the shutter bottom to top (readout
+               -0.02 s), as a camera flying that way would: a replayed rolling-shutter sequence
+               played backward otherwise shows its rows in the wrong order
 Accuracy: ATE (RMSE after SE(3)/Sim(3) alignment) and RPE over one frame (RMSE of the translation
 and rotation error of each consecutive pair's relative motion: the frame-to-frame jitter).
 Per-frame time: median and p95 of track(); with threaded BA that includes competition for the
@@ -21,6 +27,7 @@ import os
 import platform
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 # One BLAS thread: a threaded GEMM on 2 cores shared with other work stalls (measured 460 ms vs 1 ms).
@@ -32,6 +39,7 @@ from _common import TUM_HELP, tum_path_or_exit, write_results  # noqa: E402
 
 from memgs_ros.core.metrics.trajectory import ate, path_length_m, rpe  # noqa: E402
 from memgs_ros.core.tracking import TrackerConfig, TrackingState, make_tracker  # noqa: E402
+from memgs_ros.io.repeat import RepeatClock  # noqa: E402
 
 # The Kinect v1 colour camera's rolling shutter, as config/tum_fr*.yaml sets it for the node.
 TUM_READOUT_S = 0.02
@@ -51,12 +59,14 @@ def _frames(source: str, n_frames: int | None, noise: float = 0.0, holes: float 
 
 
 def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: bool = False,
-             pure_timing: bool = False, pace: bool = False) -> dict:
+             pure_timing: bool = False, pace: bool = False, passes: RepeatClock | None = None,
+             flip_backward_readout: bool = False) -> dict:
     """Track every frame; returns the numbers for the JSON (and the trajectories for a plot).
 
     pace: hand frames over no faster than their stamps, as a live camera would; otherwise the
     next frame follows at once, and the threaded local BA lands more frames late the faster
-    track() is (a monocular run depends on that).
+    track() is (a monocular run depends on that). passes: the clock of a repeated source: the ATE
+    of each pass is reported too (one alignment over all).
     """
     tracker = make_tracker(cfg, camera)
     times, cpu, proc, states, est, stamps, n_inl = [], [], [], [], [], [], []
@@ -69,6 +79,11 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
             wait = (f.stamp_ns - stamp0) * 1e-9 - (time.perf_counter() - wall0)
             if wait > 0:
                 time.sleep(wait)
+        if flip_backward_readout and passes is not None:
+            backward = passes.backward(int(passes.pass_of(np.array([f.stamp_ns]))[0]))
+            readout = -cfg.rolling_shutter_readout_s if backward else cfg.rolling_shutter_readout_s
+            if readout != tracker.cfg.rolling_shutter_readout_s:  # an experiment: the camera's readout per pass
+                tracker.cfg = replace(tracker.cfg, rolling_shutter_readout_s=readout)
         t0, c0, p0 = time.perf_counter(), time.thread_time(), time.process_time()
         res = tracker.track(f)
         dt, dc, dp = time.perf_counter() - t0, time.thread_time() - c0, time.process_time() - p0
@@ -90,11 +105,12 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
             est.append(res.T_wc)
             stamps.append(f.stamp_ns)
     kept = len(tracker.map.keyframes) if hasattr(tracker, "map") else None
+    culled = int(getattr(tracker, "keyframes_culled", 0))
     tracker.close()
     gt_st = np.array([f.stamp_ns for f in frames if f.T_wc_gt is not None])
     gt_T = np.array([f.T_wc_gt for f in frames if f.T_wc_gt is not None])
     out: dict = {"case": name, "n_frames": len(frames), "n_keyframes": n_kf,
-                 "map_keyframes_kept": kept,
+                 "map_keyframes_kept": kept, "keyframes_culled": culled,
                  "n_ok": states.count("ok"), "n_recently_lost": states.count("recently_lost"),
                  "n_lost": states.count("lost"), "n_not_initialized": states.count("not_initialized"),
                  "first_ok_frame": first_ok,
@@ -122,6 +138,10 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
         out["gt_path_length_m"] = plen
         out["ate_percent_of_path"] = 100.0 * r.rmse_m / plen if plen > 0 else None
         out["_traj"] = (r.alignment.apply(np.array(est)[r.est_index, :3, 3]), gt_T[r.gt_index, :3, 3])
+        if passes is not None:
+            which = passes.pass_of(r.stamps_ns)
+            out["ate_pass_cm"] = [100 * float(np.sqrt(np.mean(r.errors_m[which == p] ** 2)))
+                                  if (which == p).any() else None for p in range(passes.passes)]
     return out
 
 
@@ -135,6 +155,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tum", default=None, help=TUM_HELP)
     ap.add_argument("--cases", default="synth,synth_noisy,tum,tum_nothread,mono")
     ap.add_argument("--n-frames", type=int, default=None, help="limit every sequence (default: all / 120 synthetic)")
+    ap.add_argument("--repeat", type=int, default=5, help="pingpong: passes forward and back")
+    ap.add_argument("--repeat-forward", action="store_true", help="pingpong: every pass forward")
+    ap.add_argument("--flip-backward-readout", action="store_true",
+                    help="pingpong: read the shutter bottom to top on the backward passes (the case list)")
     ap.add_argument("--pace", action="store_true",
                     help="feed frames at their recorded rate (live camera) instead of back to back")
     ap.add_argument("--plot", default=None, help="save a trajectory PNG (top view) here")
@@ -151,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         return TrackerConfig(**{**kw, **overrides})  # type: ignore[arg-type]
 
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
-    if any(c.startswith("tum") for c in cases):
+    if any(c.startswith("tum") or c == "pingpong" for c in cases):
         args.tum = str(tum_path_or_exit(ap, args.tum))
     results = []
     cache: dict[str, tuple[list, object]] = {}
@@ -181,6 +205,16 @@ def main(argv: list[str] | None = None) -> int:
         elif case == "tum_noba":
             fr, cam = get("tum", args.tum, args.n_frames)
             results.append(run_case(case, fr, cam, config(ba_enabled=False, rolling_shutter_readout_s=TUM_READOUT_S)))
+        elif case == "pingpong":
+            from memgs_ros.io.sources import open_source
+
+            src = open_source(args.tum, max_frames=args.n_frames, repeat=args.repeat,
+                              repeat_forward=args.repeat_forward)
+            fr = list(src)
+            results.append(run_case(case, fr, src.camera, config(ba_threaded=False, keyframe_max_frames=10,
+                                                                 rolling_shutter_readout_s=TUM_READOUT_S),
+                                    passes=src.clock,
+                                    flip_backward_readout=args.flip_backward_readout))
         elif case == "mono":
             fr, cam = get("synth", "synthetic", args.n_frames)
             mono = [type(f)(f.stamp_ns, f.rgb, None, f.camera, f.T_wc_gt) for f in fr]
@@ -197,7 +231,9 @@ def main(argv: list[str] | None = None) -> int:
               + (f", process {r['proc_cpu_ms_median']:5.1f} / {r['proc_cpu_ms_p95']:5.1f}" if pure_timing_case(r) else "")
               + ")  "
               f"ok {r['n_ok']}/{r['n_frames']} lost {r['n_lost']} kf {r['n_keyframes']} "
-              f"BA {r['ba_runs']} ({r['ba_time_s']:.1f} s)", flush=True)
+              f"(kept {r['map_keyframes_kept']}) BA {r['ba_runs']} ({r['ba_time_s']:.1f} s)"
+              + (" per pass " + " ".join(f"{v:.2f}" for v in r["ate_pass_cm"]) if r.get("ate_pass_cm") else ""),
+              flush=True)
 
     print()
     print(f"{'case':>13} | {'ATE cm':>7} | {'RPE1 cm':>7} | {'RPE1 deg':>8} | {'%path':>6} | {'med ms':>7} | {'p95 ms':>7} | {'cpu med':>7} | {'cpu p95':>7} | {'ok':>5} | {'lost':>4} | {'1st ok':>6} | {'KFs':>4}")

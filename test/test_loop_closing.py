@@ -182,3 +182,16 @@ def test_anchored_path_interpolates_corrections_between_keyframes() -> None:
     path.correct({1: D1})  # keyframe 0 not corrected: its frames stay
     _, T = path.poses()
     np.testing.assert_allclose(T[:, 0, 3], [0.0, 0.1, 0.2, 0.6, 0.6, 0.6], atol=1e-12)
+
+
+def test_frames_of_a_culled_keyframe_follow_its_heir() -> None:
+    path = AnchoredPath()
+    for i in range(4):  # keyframe 3 on frames 0-1, keyframe 5 on frames 2-3
+        path.add(i, np.eye(4), 3 if i < 2 else 5)
+    path.reanchor({3: 5})  # keyframe 3 culled, 5 its heir
+    D = np.eye(4)
+    D[:3, 3] = (0.0, 0.2, 0.0)
+    assert path.correct({3: D}) == set()  # the culled keyframe gets no corrections
+    assert path.correct({5: D}) == {5}
+    _, T = path.poses()
+    np.testing.assert_allclose(T[:, 1, 3], [0.2, 0.2, 0.2, 0.2], atol=1e-12)

@@ -159,7 +159,7 @@ def test_seed_opacity_applies_to_new_seeds_only() -> None:
     cam = PinholeCamera(32, 24, 30.0, 30.0, 16.0, 12.0)
     rgb = np.full((24, 32, 3), 100, np.uint8)
     pts = np.random.default_rng(0).uniform(-1, 1, (20, 3)) + [0, 0, 3]
-    m = GaussianMapper(MappingConfig(min_keyframes=1, seed_opacity=0.5))
+    m = GaussianMapper(MappingConfig(min_keyframes=1, seed_opacity=0.5, seed_coverage=False))
     assert m.add_keyframe(0, 0, np.eye(4), rgb, None, cam, pts, np.full((20, 3), 0.4)) == 20
     assert torch.allclose(m.gmap.opacities(), torch.full((20, 1), 0.5), atol=1e-6)
     with torch.no_grad():
@@ -421,3 +421,115 @@ def test_max_keyframes_drops_the_most_redundant_never_the_newest() -> None:
     assert m2.update_keyframe_pose(1, np.eye(4))
     with pytest.raises(ConfigError, match="max_keyframes"):
         MappingConfig(max_keyframes=-1)
+
+
+def test_a_new_keyframe_is_drawn_next() -> None:
+    """A keyframe is trained at the first step after its insertion, however many wait in the store
+    (a long flight's keyframe waited for half of it before)."""
+    store = KeyframeStore(new_keyframe_budget=2, uses_per_level=2, seed=0)
+    for k in range(20):
+        store.add(_kf(k))
+    for _ in range(7):
+        store.next_view()
+    store.add(_kf(99))
+    assert store.next_view().keyframe.kf_id == 99
+
+
+def test_seeds_go_only_where_the_map_lacks_gaussians(tiny_frames: list[Frame]) -> None:
+    """The same view inserted again after training seeds (almost) nothing: the map already explains
+    it; without the coverage test it doubles the map."""
+    f = tiny_frames[0]
+    p, c = grid_seeds(f)
+    for coverage, most_added in ((True, 0.1 * len(p)), (False, len(p))):
+        m = GaussianMapper(MappingConfig(min_keyframes=1, merge_enabled=False, densify_start_iter=10_000,
+                                         seed_opacity=0.5, seed_coverage=coverage, seed_coverage_window=1))
+        assert m.add_keyframe(0, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c) == len(p)
+        for _ in range(30):
+            m.step()
+        added = m.add_keyframe(1, f.stamp_ns + 1, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+        assert added <= most_added, (coverage, added, len(p))
+        assert m.seeds_covered == len(p) - added
+
+
+def test_the_newest_keyframes_gaussians_do_not_count_as_coverage(tiny_frames: list[Frame]) -> None:
+    """The surface the last few keyframes seeded is still being trained: a keyframe beside them
+    seeds as without the coverage test (its detail is not hidden by their blobs)."""
+    f = tiny_frames[0]
+    p, c = grid_seeds(f)
+    m = GaussianMapper(MappingConfig(min_keyframes=1, merge_enabled=False, densify_start_iter=10_000,
+                                     seed_opacity=0.5, seed_coverage_window=2))
+    m.add_keyframe(0, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+    for _ in range(30):
+        m.step()
+    assert m.add_keyframe(1, f.stamp_ns + 1, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c) == len(p)
+    assert m.add_keyframe(2, f.stamp_ns + 2, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c) < 0.1 * len(p)
+
+
+def test_uncovered_seeds_by_opacity_and_depth() -> None:
+    from memgs_ros.core.mapping.coverage import uncovered_seeds
+
+    cam = PinholeCamera(8, 6, 10.0, 10.0, 3.5, 2.5)
+    alpha = torch.ones(6, 8)
+    alpha[:, :4] = 0.2  # the left half thin
+    depth = 2.0 * alpha  # alpha-blended: the surface at 2 m everywhere
+    pts = np.array([[0.5, 0.0, 2.0],    # right half, on the surface: explained
+                    [0.5, 0.0, 1.5],    # right half, in front of the surface: new
+                    [0.5, 0.0, 2.5],    # behind it: hidden by what the map shows
+                    [-0.5, 0.0, 2.0],   # left half: thin
+                    [5.0, 0.0, 2.0],    # outside the image
+                    [0.5, 0.0, -2.0]])  # behind the camera
+    got = uncovered_seeds(pts, np.eye(4), cam, alpha, depth, alpha_max=0.5, depth_abs_m=0.05, depth_rel=0.05)
+    assert got.tolist() == [False, True, False, True, False, False]
+    assert uncovered_seeds(np.zeros((0, 3)), np.eye(4), cam, alpha, depth, 0.5, 0.05, 0.05).shape == (0,)
+
+
+def test_a_retired_keyframe_hands_its_gaussians_to_the_nearest_kept_one() -> None:
+    """Culled by the tracker: its view leaves training, its Gaussians follow the nearest keyframe's
+    loop corrections from then on."""
+    cam = PinholeCamera(16, 12, 10.0, 10.0, 8.0, 6.0)
+    rgb = np.zeros((12, 16, 3), np.uint8)
+    m = GaussianMapper(MappingConfig(min_keyframes=1, seed_coverage=False))
+    for i, x in enumerate([0.0, 1.0, 1.05]):
+        T = np.eye(4)
+        T[0, 3] = x
+        m.add_keyframe(i, i, T, rgb, None, cam, np.array([[x, 0.0, 2.0], [x, 0.1, 2.0]]), np.full((2, 3), 0.5))
+    assert m.retire_keyframes([2, 7]) == (1, 2)  # 7: unknown, ignored
+    assert m.keyframes.ids() == [0, 1] and m.keyframes_retired == 1
+    assert (m.gmap.keyframe_ids == 1).sum() == 4  # 1.05 m: keyframe 1 is its nearest
+    T1 = np.eye(4)
+    T1[0, 3], T1[1, 3] = 1.0, 0.5
+    assert m.correct_keyframes({1: T1}) == (1, 4)  # the handed-on Gaussians move with keyframe 1
+    assert torch.allclose(m.gmap.means[m.gmap.keyframe_ids == 1][:, 1].sort().values,
+                          torch.tensor([0.5, 0.5, 0.6, 0.6]))
+
+
+def test_merges_run_every_few_keyframes_in_flight(tiny_frames: list[Frame]) -> None:
+    """A live mapper reaches merge_every_keyframes long before merge_start_iter."""
+    calls = []
+
+    class Result:
+        removed_ids = torch.tensor([1])
+        added_ids = torch.tensor([999])
+
+    def fake_merge(gmap, cfg, newest, iteration):  # noqa: ANN001, ANN202
+        calls.append(iteration)
+        return Result()
+
+    cfg = MappingConfig(min_keyframes=1, merge_enabled=True, merge_start_iter=10_000, merge_every_keyframes=2,
+                        merge_keyframes_min_iters=3, densify_start_iter=10_000, seed_coverage=False)
+    m = GaussianMapper(cfg, merge_fn=fake_merge, merge_cfg="mcfg")
+    for i, f in enumerate(tiny_frames[:2]):
+        p, c = grid_seeds(f, 8)
+        m.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+    for _ in range(5):
+        m.step()
+    assert calls == [3]  # two keyframes came, and 3 iterations since the (virtual) last pass
+    for _ in range(5):
+        m.step()
+    assert calls == [3]  # no keyframe since
+    f = tiny_frames[2]
+    p, c = grid_seeds(f, 8)
+    for i in (2, 3):
+        m.add_keyframe(i, f.stamp_ns + i, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+    m.step()
+    assert calls == [3, 11] and m.merge.passes == 2

@@ -65,7 +65,8 @@ def test_a_folder_is_read_again_each_pass_and_a_generator_kept(folder: Path) -> 
     """A TUM folder loads frame k alone (a camera's cost every pass); the synthetic room is kept."""
     src = open_source(str(folder), repeat=3)
     assert isinstance(src, RepeatedSource)
-    a, b = list(src)[0], list(src)[2 * 6]  # frame 0 in pass 0, and again at the end of pass 1
+    frames = list(src)
+    a, b = frames[0], frames[2 * 6]  # frame 0 in pass 0, and again at the end of pass 1
     assert a.rgb is not b.rgb and np.array_equal(a.rgb, b.rgb)
     syn = list(open_source(SPEC, repeat=3))
     assert syn[0].rgb is syn[12].rgb
@@ -74,9 +75,18 @@ def test_a_folder_is_read_again_each_pass_and_a_generator_kept(folder: Path) -> 
 def test_repeat_is_refused_where_it_cannot_work(folder: Path) -> None:
     with pytest.raises(ConfigError, match="repeat must be an integer >= 1"):
         open_source(SPEC, repeat=0)
-    preloaded = Preloaded(open_source(SPEC), budget_mb=10)
     with pytest.raises(ConfigError, match="cannot be repeated: it does not know its frames' stamps"):
-        RepeatedSource(preloaded, 2)  # type: ignore[arg-type]
+        RepeatedSource(list(open_source(SPEC)), 2)  # type: ignore[arg-type]
+
+
+def test_preloaded_frames_repeat_without_a_second_copy(folder: Path) -> None:
+    """The player preloads, then repeats: every pass shows the preloaded images themselves."""
+    preloaded = Preloaded(open_source(str(folder), raw_depth=True), budget_mb=10)
+    src = RepeatedSource(preloaded, 3)  # type: ignore[arg-type]
+    frames = list(src)
+    assert len(frames) == 3 * len(preloaded) - 2
+    assert frames[len(preloaded)].rgb is preloaded.frames[-2].rgb
+    assert np.array_equal([f.stamp_ns for f in frames], open_source(str(folder), repeat=3).frame_stamps())
 
 
 def test_repeat_one_is_the_source(folder: Path) -> None:
@@ -118,3 +128,22 @@ def test_laps_spec_round_trip_and_errors() -> None:
     assert "laps" not in parse_spec("synthetic:n=5").to_string()
     with pytest.raises(ConfigError, match="laps must be in"):
         parse_spec("synthetic:laps=0")
+
+
+def test_forward_only_passes_jump_back_to_the_start(folder: Path) -> None:
+    """``repeat_forward``: every pass forward, a frame period after the last, ground truth with it
+    (a rolling-shutter recording keeps its rows in the flight's order)."""
+    once = list(open_source(str(folder)))
+    src = open_source(str(folder), repeat=3, repeat_forward=True)
+    frames = list(src)
+    n = len(once)
+    assert len(src) == len(frames) == 3 * n
+    stamps = np.array([f.stamp_ns for f in frames])
+    assert np.all(np.diff(stamps) > 0) and np.array_equal(stamps, src.frame_stamps())
+    for p in range(3):
+        for k in range(n):
+            assert np.array_equal(frames[p * n + k].rgb, once[k].rgb)
+    assert src.pass_of(stamps).tolist() == [0] * n + [1] * n + [2] * n
+    gt_s, gt_T = src.ground_truth()
+    T, valid = interpolate_poses(gt_s, gt_T, stamps)
+    assert valid.all() and all(np.allclose(f.T_wc_gt, Tf, atol=1e-9) for f, Tf in zip(frames, T, strict=True))

@@ -460,8 +460,9 @@ def test_keyframe_cap_bounds_the_map_on_a_long_run(frames: list[Frame]) -> None:
     seq = frames + frames[::-1] + frames
     loop = [Frame(frames[0].stamp_ns + i * 33_000_000, f.rgb, f.depth_m, f.camera, f.T_wc_gt)
             for i, f in enumerate(seq)]
+    # Revisits adding keyframes (covering off), so that the cap has keyframes to remove.
     cfg = TrackerConfig(ba_threaded=False, max_keyframes=8, local_map_keyframes=4, ba_window=4,
-                        keyframe_max_frames=4)
+                        keyframe_max_frames=4, keyframe_cover_deg=0.0, keyframe_weak_cover_deg=0.0)
     tracker = make_tracker(cfg, frames[0].camera)
     try:
         results, store = [], []
@@ -536,3 +537,77 @@ def test_the_first_pass_searches_the_points_the_last_frame_tracked(frames: list[
         assert all(np.array_equal(s, all_pids) for s in searched)  # too few: the whole local map first
     finally:
         tracker.close()
+
+
+def _shared_map(n_kf: int, n_pts: int) -> SparseMap:
+    """Keyframes 0.1 m apart along x, every one observing every point (the first created them)."""
+    m = SparseMap()
+    rng = np.random.default_rng(1)
+    for k in range(n_kf):
+        feats = FrameFeatures(np.zeros((n_pts, 2), np.float32), rng.uniform(0, 100, (n_pts, 2)),
+                              np.zeros(n_pts, np.int64), rng.integers(0, 255, (n_pts, 32), dtype=np.uint8),
+                              np.ones(n_pts))
+        T = np.eye(4)
+        T[0, 3] = -0.1 * k  # T_cw: the camera centre at x = 0.1 k
+        kf = SparseKeyframe(m.new_keyframe_id(), k, T, feats, np.full(n_pts, -1, np.int64))
+        m.add_keyframe(kf)
+        if k == 0:
+            ids = m.add_points(rng.normal(size=(n_pts, 3)), feats.desc, np.zeros(n_pts, np.int64), 0,
+                               np.arange(n_pts))
+        else:
+            m.add_observations(ids, kf.keyframe_id, np.arange(n_pts))
+    return m
+
+
+def test_culling_removes_keyframes_whose_points_others_see() -> None:
+    """ORB-SLAM's rule: a keyframe goes when >= 90 % of its points are seen by 3 other keyframes,
+    judged one after the other (a removed keyframe no longer counts as an observer)."""
+    m = _shared_map(5, 40)
+    assert m.cull_redundant_keyframes([1, 2, 3, 4], 0.9, 3, protected={4}) == [1, 2]
+    assert sorted(m.keyframes) == [0, 3, 4] and m.keyframes_removed == 2
+    assert m.n_good_points == 40  # the points live on in the kept keyframes
+    _assert_consistent(m)
+    assert m.cull_redundant_keyframes([3], 0.9, 3, protected=set()) == []  # seen by 2 others now
+    assert m.cull_redundant_keyframes([3], 0.0, 3, protected=set()) == []  # 0: culling off
+
+
+def test_a_place_flown_again_adds_few_keyframes_culls_redundant_ones_and_keeps_its_accuracy() -> None:
+    """The synthetic room forward, back, forward, back: the revisits track against the points
+    mapped there (the local map takes the keyframes near the pose), add few keyframes, and the
+    last pass is as accurate as the first. Culled keyframes come out with a kept heir, and leave
+    the place-recognition database."""
+    from memgs_ros.io.sources import open_source
+
+    n = 2 * N_FRAMES  # the room's loop in 96 frames: a few degrees a frame
+    src = open_source(f"synthetic:w=320,h=240,n={n},seed=0,aa=1", repeat=4)
+    seq = list(src)
+    # A pass lasts 3.2 s here: keyframes a second old count as settled (5 s by default).
+    cfg = TrackerConfig(ba_threaded=False, keyframe_max_frames=4, keyframe_cover_age_s=1.0)
+    tracker = make_tracker(cfg, seq[0].camera)
+    culled = []
+    try:
+        results = []
+        for f in seq:
+            results.append(tracker.track(f))
+            culled += tracker.poll_culled_keyframes()
+            for kf_id, _, T_wc in culled[-3:]:
+                assert kf_id not in tracker.map.keyframes and T_wc.shape == (4, 4)
+        kept = set(tracker.map.keyframes)
+        db = tracker._link.keyframe_db
+        assert all(k not in db for k, _, _ in culled)
+        _assert_consistent(tracker.map)
+    finally:
+        tracker.close()
+    assert all(r.state == TrackingState.OK for r in results)
+    first = sum(r.keyframe is not None for r in results[:n])
+    later = sum(r.keyframe is not None for r in results[n:])
+    assert later <= 0.3 * first, (first, later)  # three passes more: under a third of a pass's keyframes
+    assert tracker.keyframes_culled == len(culled)
+    assert all(heir in kept or any(heir == c for c, _, _ in culled) for _, heir, _ in culled)
+    stamps = np.array([f.stamp_ns for f in seq])
+    est = np.stack([r.T_wc for r in results])
+    gt_s, gt_T = src.ground_truth()
+    res = ate(stamps, est, gt_s, gt_T)
+    passes = src.pass_of(res.stamps_ns)
+    per = [float(np.sqrt(np.mean(res.errors_m[passes == p] ** 2))) for p in range(4)]
+    assert max(per[1:]) <= 1.5 * per[0] + 0.005, per

@@ -49,6 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--repeat", type=int, default=1, metavar="N",
                    help="play the source N times, every other pass backward (a long flight over the same room); "
                         "every pass is scored (default: %(default)s)")
+    p.add_argument("--repeat-forward", action="store_true",
+                   help="with --repeat: every pass forward, the camera jumping back to the start between them")
     p.add_argument("--domain-id", type=int, default=None,
                    help="ROS_DOMAIN_ID (default: a random one no other node is using)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up a run after this many seconds")
@@ -105,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
         args.record = check_record_path(args.record)
     rerun = rerun_target(args)  # ConfigError without rerun-sdk, before anything starts
     check_repeat(args.repeat)
-    warnings = check_inputs(source, config, args.max_frames, overrides, args.out, args.repeat)  # before torch, nodes
+    warnings = check_inputs(source, config, args.max_frames, overrides, args.out, args.repeat,
+                            args.repeat_forward)  # before torch, rclpy, nodes
     with run_log(args.out):
         for warning in warnings:
             logger.warning(warning)
@@ -128,7 +131,8 @@ def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dic
 
     if not torch.cuda.is_available():
         configure_cpu_runtime()  # this process renders every frame on CPU
-    kwargs = {"max_frames": args.max_frames, "repeat": args.repeat, "domain_id": args.domain_id,
+    kwargs = {"max_frames": args.max_frames, "repeat": args.repeat, "repeat_forward": args.repeat_forward,
+              "domain_id": args.domain_id,
               "timeout_s": args.timeout,
                   "composed": args.composed, "use_lpips": not args.no_lpips, "rerun": rerun}
     if args.record is not None:

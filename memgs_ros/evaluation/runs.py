@@ -315,7 +315,7 @@ _UNCONFIGURED = ConfiguredCamera(None, False)
 
 
 def _ground_truth_images(source: str, max_frames: int, scale: float,
-                         configured: ConfiguredCamera = _UNCONFIGURED, repeat: int = 1,
+                         configured: ConfiguredCamera = _UNCONFIGURED, repeat: int = 1, repeat_forward: bool = False,
                          ) -> tuple[np.ndarray, list[np.ndarray], PinholeCamera, Any, np.ndarray | None]:
     """Ground-truth images prepared as the mapper prepares its keyframes, with the camera the
     run's tracker used: the configured calibration when it overrode camera_info, else the source's.
@@ -326,7 +326,7 @@ def _ground_truth_images(source: str, max_frames: int, scale: float,
     """
     # ``max_frames`` caps the frames played: under ``repeat`` those of all passes together.
     src = open_source(source, with_depth=False, max_frames=(max_frames or None) if repeat == 1 else None,
-                      default_camera=configured.camera, repeat=repeat)
+                      default_camera=configured.camera, repeat=repeat, repeat_forward=repeat_forward)
     camera = src.camera
     if configured.override and configured.camera is not None:
         camera = configured.camera.fitted(camera.width, camera.height)
@@ -419,7 +419,7 @@ def evaluate_run(out_dir: str | os.PathLike[str], source: str | None = None, mod
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
     gt_stamps, gt_images, camera, src, valid_mask = _ground_truth_images(
-        source, int(max_frames), scale, configured_camera(run_params), summary.repeat)
+        source, int(max_frames), scale, configured_camera(run_params), summary.repeat, summary.repeat_forward)
     traj_stamps, traj_poses = read_trajectory(summary.trajectory_path)
     kf_path = out / KEYFRAMES_FILE
     kf_stamps, kf_poses = (read_trajectory(kf_path) if kf_path.is_file()
@@ -506,6 +506,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
              resolution_scale: float | None = None, seed: int = 0,
              out_dir: str | os.PathLike[str] = "memgs_eval",
              overrides: Mapping[str, Any] | None = None, *, max_frames: int = 0, repeat: int = 1,
+             repeat_forward: bool = False,
              domain_id: int | None = None, namespace: str = "", timeout_s: float = 3600.0,
              composed: bool = False, variant: str = "full", use_lpips: bool = True,
              device: str | None = None, progress: bool = True, record: Path | None = None,
@@ -536,7 +537,8 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
     run_overrides.update(dict(overrides or {}))
     options = RunOptions(source=str(source), config=config, out_dir=out, composed=composed,
                          lockstep=True, namespace=namespace, domain_id=domain_id,
-                         max_frames=int(max_frames), repeat=int(repeat), overrides=run_overrides, timeout_s=timeout_s,
+                         max_frames=int(max_frames), repeat=int(repeat), repeat_forward=bool(repeat_forward),
+                         overrides=run_overrides, timeout_s=timeout_s,
                          record=record, rerun=rerun)
     run_pipeline(options, progress=progress)
     return evaluate_run(out, str(source), mode, variant=variant, config=config, seed=seed,

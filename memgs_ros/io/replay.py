@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
 
+import numpy as np
+
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.view import DepthUnits
@@ -19,16 +21,16 @@ __all__ = ["DEFAULT_PERIOD_NS", "Preloaded", "ReplayFeed", "frames_total", "open
 DEFAULT_PERIOD_NS = 33_333_333  # loop gap for a one-frame source (30 Hz)
 
 
-def open_frames(spec: str, folder_camera: PinholeCamera | None, strict: bool, repeat: int = 1) -> Iterable[Frame]:
-    """The source ``spec`` names (a TUM folder, a bag, ``synthetic:...``), played ``repeat`` times
-    forward and back (``open_source``), checked before the first frame: ConfigError when empty, and
-    a TUM folder that names no camera (nor has ``folder_camera``) fails here."""
+def open_frames(spec: str, folder_camera: PinholeCamera | None, strict: bool) -> Iterable[Frame]:
+    """The source ``spec`` names (a TUM folder, a bag, ``synthetic:...``), checked before the first
+    frame: ConfigError when empty, and a TUM folder that names no camera (nor has ``folder_camera``)
+    fails here."""
     if not spec:
         raise ConfigError("parameter 'source' is empty: give a TUM folder, bag or 'synthetic:...' spec")
     from memgs_ros.io.sources import open_source  # heavy readers only when replaying files
 
     # A TUM folder's depth PNGs as stored: a 16UC1 replay publishes them unchanged (FrameOutbox).
-    source = open_source(spec, default_camera=folder_camera, strict=strict, repeat=repeat, raw_depth=True)
+    source = open_source(spec, default_camera=folder_camera, strict=strict, raw_depth=True)
     _ = source.camera
     return source
 
@@ -107,7 +109,8 @@ class Preloaded:
     preloading is raised where it happened, after the frames read before it.
 
     Raises ConfigError when the frames need more than ``budget_mb``; ``max_frames`` > 0 stops
-    reading there.
+    reading there. Knows its frames' stamps (``frame_stamps``), so a replay can repeat the
+    preloaded frames (:class:`~memgs_ros.io.repeat.RepeatedSource`) without holding them twice.
     """
 
     def __init__(self, source: Iterable[Frame], budget_mb: int, max_frames: int = 0) -> None:
@@ -138,6 +141,25 @@ class Preloaded:
     def skipped(self) -> dict[str, int]:
         """The source's own count of skipped bad frames, by kind."""
         return dict(getattr(self._source, "skipped", {}))
+
+    @property
+    def name(self) -> str:
+        return str(getattr(self._source, "name", "preloaded frames"))
+
+    @property
+    def camera(self) -> PinholeCamera:
+        if not self.frames:
+            raise ConfigError(f"{self.name}: no frames preloaded")
+        return self.frames[0].camera
+
+    def frame_stamps(self) -> np.ndarray:
+        """[N] int64 the stamps of the preloaded frames, in order."""
+        return np.array([f.stamp_ns for f in self.frames], dtype=np.int64)
+
+    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
+        """The source's ground truth (none when it offers none)."""
+        gt = getattr(self._source, "ground_truth", None)
+        return gt() if gt is not None else (np.zeros(0, np.int64), np.zeros((0, 4, 4)))
 
     def __len__(self) -> int:
         return len(self.frames)

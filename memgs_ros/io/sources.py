@@ -110,7 +110,8 @@ def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = Non
                 depth_factor: float | None = None, depth_scale: float = DEFAULT_DEPTH_SCALE,
                 topics: BagTopics = _TUM_TOPICS, with_depth: bool = True,
                 max_frames: int | None = None, default_camera: PinholeCamera | None = None,
-                strict: bool = False, repeat: int = 1, raw_depth: bool = False) -> FrameSource:
+                strict: bool = False, repeat: int = 1, repeat_forward: bool = False,
+                raw_depth: bool = False) -> FrameSource:
     """Open any frame input (module docstring).
 
     camera: overrides the camera from the data (TUM name/camera.json, bag CameraInfo);
@@ -124,7 +125,7 @@ def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = Non
       DataError instead of being skipped and counted in the source's ``skipped``.
     repeat: play the (first ``max_frames``) frames this many times, every other pass backward,
       ground truth re-stamped with them (:class:`memgs_ros.io.repeat.RepeatedSource`: a long
-      flight over the same room).
+      flight over the same room); ``repeat_forward``: every pass forward, jumping back between them.
     raw_depth: a TUM folder's frames carry its depth PNGs as stored (``DepthUnits``) instead of metres.
     """
     if max_frames is not None and max_frames < 1:
@@ -145,7 +146,7 @@ def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = Non
     else:
         source = BagSource(spec, topics=topics, camera=camera, max_dt_s=max_dt_s, depth_scale=depth_scale,
                            with_depth=with_depth, max_frames=max_frames, strict=strict)
-    return source if repeat == 1 else RepeatedSource(source, repeat)
+    return source if repeat == 1 else RepeatedSource(source, repeat, forward_only=repeat_forward)
 
 
 __all__ = ["FrameSource", "SyntheticSource", "open_source", "source_kind"]

@@ -42,6 +42,7 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.runtime.replay_pacing import AckWait, RealTimeClock, StartGate
 from memgs_ros.errors import MemgsError
+from memgs_ros.io.repeat import RepeatedSource
 from memgs_ros.io.replay import Preloaded, ReplayFeed, frames_total, open_frames
 from memgs_ros.nodes.params import NODE_CONFIGS, BagPlayerParams
 from memgs_ros.ros import codecs, qos
@@ -102,12 +103,15 @@ class BagPlayer(Node):
     def _open(self, folder_camera: PinholeCamera | None, frames: Iterable[Frame] | None) -> Iterable[Frame]:
         """``frames``, or the ``source`` parameter opened; preloaded when ``preload_mb`` > 0."""
         if frames is None:
-            frames = open_frames(self.cfg.source, folder_camera, self.cfg.strict, self.cfg.repeat)
+            frames = open_frames(self.cfg.source, folder_camera, self.cfg.strict)
+        whole = self.cfg.loop or self.cfg.repeat > 1  # max_frames counts the frames played, over every pass
         if self.cfg.preload_mb > 0:
             t0 = time.monotonic()
-            frames = Preloaded(frames, self.cfg.preload_mb, 0 if self.cfg.loop else self.cfg.max_frames)
+            frames = Preloaded(frames, self.cfg.preload_mb, 0 if whole else self.cfg.max_frames)
             self.get_logger().info(f"preloaded {len(frames)} frames ({frames.nbytes / 1e6:.0f} MB) "
                                    f"in {time.monotonic() - t0:.1f} s")
+        if self.cfg.repeat > 1:  # after preloading: the passes share the preloaded frames
+            frames = RepeatedSource(frames, self.cfg.repeat, self.cfg.repeat_forward)  # type: ignore[arg-type]
         return frames
 
     # ------------------------------------------------------------------ pacing

@@ -3,6 +3,7 @@
 
 In: ``memgs/keyframe/{color,depth,camera_info,pose,seeds}`` (one stamp per keyframe),
 ``memgs/keyframe/refined_poses`` (bundle adjustment), ``memgs/keyframe/loop_corrected_poses``,
+``memgs/keyframe/culled`` (keyframes the tracker culled: out of training),
 ``memgs/pose`` (live view), ``memgs/render/view_pose``, ``memgs/tracker/processed`` (lockstep).
 Out: ``memgs/map/delta`` (core/maps/map_delta.py), ``memgs/mapper/snapshot`` (latched, with a packed ``rgb`` colour),
 ``memgs/render/{color,depth,camera_info}``, ``memgs/frame_ack``, ``memgs/mapper/stats``; services
@@ -105,6 +106,7 @@ class MapperNode(Node):
             self.create_subscription(msg_type, f"memgs/keyframe/{part}", lambda m, info, p=part: self._part(p, m, info),
                                      kfq)
         self.create_subscription(Path, "memgs/keyframe/refined_poses", self.on_refined, qos.reliable(20))
+        self.create_subscription(Path, "memgs/keyframe/culled", self.on_culled, qos.reliable(20))
         self.create_subscription(Path, "memgs/keyframe/loop_corrected_poses", self.on_loop_corrected,
                                  qos.reliable(20))
         self.create_subscription(Header, "memgs/tracker/processed", self.on_processed, qos.reliable(100))
@@ -172,6 +174,13 @@ class MapperNode(Node):
         poses = self._keyframe_poses(msg)
         if poses:
             self.stats.watch(self.session.update_poses(poses), "update_poses")
+
+    def on_culled(self, msg: Path) -> None:
+        """Keyframes the tracker culled as redundant: their views leave training and their Gaussians
+        follow the nearest kept keyframe (``MappingSession.retire_keyframes``)."""
+        poses = self._keyframe_poses(msg)
+        if poses:
+            self.stats.watch(self.session.retire_keyframes(list(poses)), "retire_keyframes")
 
     def on_loop_corrected(self, msg: Path) -> None:
         """Keyframe poses a loop closure corrected: each keyframe's Gaussians move with it and

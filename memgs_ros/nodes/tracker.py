@@ -5,9 +5,10 @@ Publishes: ``memgs/pose`` (PoseStamped), ``memgs/odom`` (Odometry), ``memgs/path
 ``memgs/tracking_state`` (String), per keyframe ``memgs/keyframe/{color,depth,camera_info,pose,
 keypoints}`` sharing the frame's stamp (images as recorded with the camera's distortion in
 camera_info; keypoint u, v are undistorted pixel positions), refined keyframe poses after local
-BA on ``memgs/keyframe/refined_poses`` and the keyframes a loop closure corrected on
-``memgs/keyframe/loop_corrected_poses`` (Path each, one PoseStamped per keyframe stamp: the mapper
-takes the first as new training poses and moves each keyframe's Gaussians with the second), and
+BA on ``memgs/keyframe/refined_poses``, the keyframes a loop closure corrected on
+``memgs/keyframe/loop_corrected_poses`` and the keyframes culling removed on ``memgs/keyframe/culled``
+(Path each, one PoseStamped per keyframe stamp: the mapper takes the first as new training poses,
+moves each keyframe's Gaussians with the second, and retires the third's views), and
 ``memgs/tracker/processed`` (Header; frame_id "keyframe" or "frame") for every frame handled, which
 the lockstep player or the mapper waits on.
 
@@ -207,7 +208,7 @@ class TrackerNode(Node):
         assert t is not None and cam is not None  # made together with the camera (_camera_set)
         result = self._track(t, frame)
         self.out.frame(result, cam, color, depth, t.poll_refined_keyframes(),
-                       t.poll_loop_corrected_keyframes(), t.poll_loop_corrections())
+                       t.poll_loop_corrected_keyframes(), t.poll_loop_corrections(), t.poll_culled_keyframes())
         cost_ms = (time.thread_time() - cpu0) * 1e3
         self._frame_cpu_ms.add(cost_ms)
         self._frame_ms.add((time.perf_counter() - wall0) * 1e3)
@@ -233,6 +234,7 @@ class TrackerNode(Node):
         if smap is not None:
             g["map_keyframes"], g["map_points"] = smap.keyframes, smap.points
             g["map_keyframes_removed"] = smap.keyframes_removed
+            g["map_keyframes_culled"] = int(getattr(tracker, "keyframes_culled", 0))
             self.out.keyframes.forget(smap.keyframe_ids, smap.keyframes)
         return result
 

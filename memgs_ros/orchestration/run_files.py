@@ -59,6 +59,7 @@ class RunOptions:
     domain_id: int | None = None
     max_frames: int = 0
     repeat: int = 1  # the source played this many times, forward and back (io/repeat.py)
+    repeat_forward: bool = False  # ... every pass forward
     overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value
     # Start these nodes this many seconds after the player starts (a ground-station merger
     # joining mid-run; separate processes only).
@@ -133,6 +134,7 @@ class RunSummary:
     # training per frame (mean); what ``frame`` holds beyond them is messages and handshakes
     lockstep_ms: dict[str, float] = field(default_factory=dict)
     repeat: int = 1  # the source was played this many times, forward and back (``open_source(repeat=)``)
+    repeat_forward: bool = False  # ... every pass forward
 
     @property
     def mapping_iterations_replay(self) -> int:
@@ -176,7 +178,8 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         params[node] = dict(node_params)
     params.setdefault("bag_player", {}).update(
         source=str(options.source), lockstep=options.lockstep, rate=float(options.rate),
-        max_frames=int(options.max_frames), repeat=int(options.repeat), ack_topic="memgs/frame_ack",
+        max_frames=int(options.max_frames), repeat=int(options.repeat), repeat_forward=bool(options.repeat_forward),
+        ack_topic="memgs/frame_ack",
         world_frame_id="map",
         strict=bool(options.strict))
     params.setdefault("mapper", {})["lockstep"] = options.lockstep

@@ -47,9 +47,11 @@ class CorrectedPath:
         self._stale: set[int] = set()  # keyframes moved since the last message
         self._changed = False
 
-    def add(self, result: TrackResult, pose: PoseStamped | None, loops: list[Mapping[int, np.ndarray]]) -> None:
+    def add(self, result: TrackResult, pose: PoseStamped | None, loops: list[Mapping[int, np.ndarray]],
+            heirs: Mapping[int, int] | None = None) -> None:
         """A tracked frame (``pose``: its published pose, None when lost) after the loop
-        corrections committed while it was tracked."""
+        corrections committed while it was tracked; ``heirs``: {culled keyframe: heir} since the last."""
+        self.anchored.reanchor(heirs or {})
         if pose is not None:
             append_to_path(self.msg, pose, self.max_len)
             self._changed = True
@@ -86,6 +88,7 @@ class KeyframeOutbox:
         self.keypoints = node.create_publisher(PointCloud2, "memgs/keyframe/keypoints", kf)
         self.refined = node.create_publisher(Path, "memgs/keyframe/refined_poses", qos.reliable(20))
         self.loop = node.create_publisher(Path, "memgs/keyframe/loop_corrected_poses", qos.reliable(20))
+        self.culled = node.create_publisher(Path, "memgs/keyframe/culled", qos.reliable(20))
         self.stamps: dict[int, int] = {}
         self._poses = Path()
         self._poses.header.frame_id = world_frame
@@ -118,6 +121,14 @@ class KeyframeOutbox:
             self._poses.poses = msgs
             pub.publish(self._poses)
         return len(msgs)
+
+    def publish_culled(self, culled: list[tuple[int, int, np.ndarray]]) -> int:
+        """Keyframes culling removed, by stamp (their last poses), on ``memgs/keyframe/culled``; the
+        table forgets them. Returns how many went out."""
+        n = self.publish_poses([(k, T) for k, _, T in culled], self.culled)
+        for k, _, _ in culled:
+            self.stamps.pop(k, None)
+        return n
 
     def forget(self, kept_ids: set[int] | frozenset[int], map_keyframes: int) -> None:
         """Drop the stamps of keyframes the map no longer holds (bundle adjustment refines only
@@ -153,10 +164,11 @@ class TrackerOutbox:
 
     def frame(self, result: TrackResult, camera: PinholeCamera, color: Image, depth: Image | None,
               refined: list[tuple[int, np.ndarray]], corrected: list[tuple[int, np.ndarray]],
-              loops: list[Mapping[int, np.ndarray]]) -> None:
+              loops: list[Mapping[int, np.ndarray]], culled: list[tuple[int, int, np.ndarray]] = ()) -> None:
         """A tracked frame: its state, pose and odometry (when not lost), its keyframe messages,
         the keyframe poses that moved meanwhile (``refined`` by local BA, ``corrected`` by a loop
-        closure; ``loops``: the closures' world-frame corrections), then its answer."""
+        closure; ``loops``: the closures' world-frame corrections), the keyframes culling removed
+        (``culled``: (id, heir id, T_wc)), then its answer."""
         stats, stamp = self.stats, result.stamp_ns
         camera_frame = color.header.frame_id or self.camera_frame
         self._state.data = name = result.state.name
@@ -176,7 +188,9 @@ class TrackerOutbox:
                                     (corrected, self.keyframes.loop, "loop_corrected_keyframe_poses")):
             if poses:
                 stats.counters[counter] += self.keyframes.publish_poses(poses, pub)
-        self.path.add(result, pose, loops)
+        if culled:
+            stats.counters["culled_keyframes"] += self.keyframes.publish_culled(list(culled))
+        self.path.add(result, pose, loops, {k: heir for k, heir, _ in culled})
         self.processed(stamp, keyframe=result.keyframe is not None)
 
     def publish_path(self) -> None:

@@ -114,6 +114,18 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def pose_distances(T_wc: np.ndarray,  # [4, 4]
+                   others: np.ndarray,  # [K, 4, 4]
+                   rotation_weight_m: float = 0.5) -> np.ndarray:  # [K]
+    """Distance of the pose ``T_wc`` to each of ``others``: translation in metres + ``rotation_weight_m``
+    per radian of relative rotation (``nearest_pose_distance``'s measure)."""
+    T, Ts = np.asarray(T_wc, dtype=np.float64), np.asarray(others, dtype=np.float64).reshape(-1, 4, 4)
+    trans = np.linalg.norm(Ts[:, :3, 3] - T[:3, 3], axis=-1)
+    rel = np.einsum("ba,kbc->kac", T[:3, :3], Ts[:, :3, :3])  # R^T R_k
+    angle = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    return trans + rotation_weight_m * angle
+
+
 def nearest_pose_distance(T_wc: np.ndarray, rotation_weight_m: float = 0.5) -> np.ndarray:
     """For each pose, the distance to its nearest other pose.
 

@@ -83,6 +83,17 @@ class MappingConfig:
     mask_invalid_pixels: bool = True
     # Initial opacity of keyframe seeds (3DGS: 0.1)
     seed_opacity: float = 0.1
+    # Gaussians only where the map lacks them (core/mapping/coverage.py): a keyframe's seed becomes a
+    # Gaussian only where the settled map (Gaussians of keyframes older than the newest
+    # seed_coverage_window) rendered at the keyframe (at seed_coverage_scale of its resolution) is
+    # thinner than seed_alpha_max or the seed lies in front of its surface by more than
+    # seed_depth_abs_m + seed_depth_rel x depth; a place flown again seeds little
+    seed_coverage: bool = True
+    seed_coverage_window: int = 10
+    seed_coverage_scale: float = 0.5
+    seed_alpha_max: float = 0.5
+    seed_depth_abs_m: float = 0.05
+    seed_depth_rel: float = 0.05
     # Per-keyframe affine colour correction trained with the map (core/mapping/exposure.py); renders
     # for evaluation and the rendered-view topics never use it. Off by default: on the fr1/rpy
     # head it cost 0.40 dB under the paper's protocol (docs/results.md, Map quality)
@@ -119,15 +130,21 @@ class MappingConfig:
     merge_start_iter: int = 1000  # first merge pass at this iteration
     merge_interval: int = 1000  # then every this many iterations
     merge_stop_iter: int = 15_000  # and none after this one
+    # ... and in flight, on a schedule a live mapper reaches: a pass once this many keyframes came since
+    # the last, at least merge_keyframes_min_iters iterations after it (0: the iteration schedule only)
+    merge_every_keyframes: int = 5
+    merge_keyframes_min_iters: int = 20
     seed: int = 0  # view selection and densification draws
     # Memory budget (0 = none): when the map exceeds it, relaxed merge passes then pruning of
     # the least contributing Gaussians bring it to budget_target_fraction of it; densification
     # never grows it past the budget
     max_gaussians: int = 0  # budget on the number of Gaussians (0 = none)
-    # Keyframes kept for training (0 = all). Over it, the most redundant one (nearest pose to
-    # another keyframe; never the newest) leaves the store: its Gaussians stay in the map. Bounds
-    # the mapper's image memory on long runs that revisit places
+    # Keyframes kept for training (0 = all): the newest training_window ones, and a set over the whole
+    # flight chosen for coverage. Over it, the most redundant one outside the window (nearest pose to
+    # another keyframe) leaves the store: its Gaussians stay in the map. Bounds the mapper's image
+    # memory and keeps its per-iteration work flat on long flights that revisit places
     max_keyframes: int = 0
+    training_window: int = 10
     max_model_mbytes: float = 0.0  # budget in MiB of parameters + gradients + Adam moments (0 = none)
     # Cap in MiB on the mapper's accounted working memory (0 = none): model (as above) + stored
     # keyframes + the training step's buffers + the delta mirror and one full-map message
@@ -148,6 +165,9 @@ class MappingConfig:
         "lr_rotation": (0.0, 1.0), "scene_extent": (0.0, 1e4), "min_scene_extent": (1e-3, 1e4),
         "ssim_lambda": (0.0, 1.0), "iso_weight": (0.0, 1e3), "depth_weight": (0.0, 1e3),
         "seed_opacity": (1e-4, 0.9999), "exposure_lr": (0.0, 1.0), "exposure_reg": (0.0, 1e3),
+        "seed_coverage_scale": (0.01, 1.0), "seed_alpha_max": (0.0, 1.0), "seed_depth_abs_m": (0.0, 100.0),
+        "seed_depth_rel": (0.0, 100.0), "merge_every_keyframes": (0, 10**6), "merge_keyframes_min_iters": (0, 10**8),
+        "training_window": (1, 10**5), "seed_coverage_window": (0, 10**6),
         "max_sh_degree": (0, 3), "sh_up_interval": (1, 10**8),
         "densify_start_iter": (0, 10**8), "densify_stop_iter": (0, 10**8), "densify_interval": (1, 10**8),
         "densify_grad_threshold": (0.0, 1.0), "percent_dense": (0.0, 1.0), "split_children": (2, 16),
@@ -166,7 +186,7 @@ class MappingConfig:
     def __post_init__(self) -> None:
         for name in ("lr_means", "lr_means_final", "lr_sh_dc", "lr_sh_rest", "lr_opacity",
                      "lr_scaling", "lr_rotation", "min_scene_extent", "split_scale_factor",
-                     "resolution_scale", "exposure_lr"):
+                     "resolution_scale", "exposure_lr", "seed_coverage_scale"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"MappingConfig.{name} must be positive, got {v}")
@@ -175,16 +195,17 @@ class MappingConfig:
                 raise ConfigError(f"MappingConfig.{name} must be in [0, 1], got {getattr(self, name)}")
         for name in ("iso_weight", "depth_weight", "densify_grad_threshold", "percent_dense",
                      "prune_opacity", "max_screen_size_px", "near_m", "max_model_mbytes", "exposure_reg",
-                     "max_mapper_mbytes"):
+                     "max_mapper_mbytes", "seed_alpha_max", "seed_depth_abs_m", "seed_depth_rel"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"MappingConfig.{name} must be >= 0, got {v}")
         for name in ("sh_up_interval", "densify_interval", "merge_interval", "split_children",
-                     "new_keyframe_budget", "lr_means_decay_steps"):
+                     "new_keyframe_budget", "lr_means_decay_steps", "training_window"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"MappingConfig.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("min_keyframes", "pyramid_uses_per_level", "prune_min_age_iters",
-                     "densify_start_iter", "merge_start_iter", "max_gaussians", "max_keyframes"):
+                     "densify_start_iter", "merge_start_iter", "max_gaussians", "max_keyframes",
+                     "merge_every_keyframes", "merge_keyframes_min_iters", "seed_coverage_window"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"MappingConfig.{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.budget_target_fraction <= 1.0:

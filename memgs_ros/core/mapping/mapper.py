@@ -30,10 +30,16 @@ import numpy as np
 import torch
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.geometry.poses import invert_pose, nearest_pose_distance, rotmat_to_quat_wxyz_torch
+from memgs_ros.core.geometry.poses import (
+    invert_pose,
+    nearest_pose_distance,
+    pose_distances,
+    rotmat_to_quat_wxyz_torch,
+)
 from memgs_ros.core.geometry.view import view_preparation
 from memgs_ros.core.mapping.checkpoint import ID_BLOCK, KeyframeState, MapperCheckpoint
 from memgs_ros.core.mapping.config import MappingConfig
+from memgs_ros.core.mapping.coverage import uncovered_seeds
 from memgs_ros.core.mapping.device_peaks import PeakAttribution
 from memgs_ros.core.mapping.device_view import device_view
 from memgs_ros.core.mapping.exposure import ExposureCompensation
@@ -141,6 +147,8 @@ class GaussianMapper:
                                        seed=self.cfg.seed)
         self.iteration = 0
         self.keyframes_dropped = 0  # by max_keyframes
+        self.keyframes_retired = 0  # culled by the tracker
+        self.seeds_covered = 0  # seeds not made Gaussians: the map already explained them
         self._newest_kf_id = -1
         # Pose of every keyframe ever inserted, also those max_keyframes dropped from training:
         # a rigid correction moves their Gaussians too (~130 B a keyframe).
@@ -239,8 +247,15 @@ class GaussianMapper:
         self._insert(kf)
         self._drop_redundant_keyframes()
         self._update_extent()
+        self.merge.keyframe_added()
         added = 0
         if points_w is not None and len(points_w) and colors is not None:  # colors checked above
+            keep = self._uncovered(kf, points_w)
+            if keep is not None:
+                self.seeds_covered += int(np.count_nonzero(~keep))
+                points_w, colors = np.asarray(points_w)[keep], np.asarray(colors)[keep]
+            if not len(points_w):
+                return 0
             ids = self.gmap.add_from_points(points_w, colors, kf.kf_id, self.iteration, opacity=self.cfg.seed_opacity)
             added = int(ids.numel())
             # A memory cap is a promise about every moment, not about the next step: keep it here
@@ -248,6 +263,31 @@ class GaussianMapper:
             if enforce_budget or self.cfg.max_mapper_mbytes > 0:
                 self._enforce_budget()
         return added
+
+    def _uncovered(self, kf: TrainingKeyframe, points_w: np.ndarray) -> np.ndarray | None:
+        """[M] bool: the seeds the settled map does not explain yet (``core/mapping/coverage.py``),
+        from a render at the keyframe of the Gaussians older keyframes made (older than the newest
+        ``seed_coverage_window``: a surface the last few keyframes seeded is still being trained, and
+        its blobs would hide the detail the new seeds bring); None (keep all) with ``seed_coverage``
+        off or nothing settled yet."""
+        cfg = self.cfg
+        if not cfg.seed_coverage or len(self.gmap) == 0:
+            return None
+        g = self.gmap
+        settled = torch.nonzero(g.keyframe_ids <= self._newest_kf_id - cfg.seed_coverage_window).reshape(-1)
+        if settled.numel() == 0:
+            return None
+        cam = kf.camera.scaled(cfg.seed_coverage_scale) if cfg.seed_coverage_scale != 1.0 else kf.camera
+        from memgs_ros.core.raster import Gaussians, rasterize
+
+        T_cw = torch.as_tensor(invert_pose(np.asarray(kf.T_wc, dtype=np.float64)), dtype=torch.float32,
+                               device=self.device)
+        with torch.no_grad(), self.peaks.work("coverage"):
+            part = Gaussians(*(t.detach()[settled] for t in g.gaussians()))
+            out = rasterize(part, T_cw, cam, g.active_sh_degree, background=self._background, near=cfg.near_m,
+                            backend=cfg.raster_backend)
+        return uncovered_seeds(np.asarray(points_w), kf.T_wc, cam, out.alpha, out.depth, cfg.seed_alpha_max,
+                               cfg.seed_depth_abs_m, cfg.seed_depth_rel)
 
     def _insert(self, kf: TrainingKeyframe) -> None:
         self.keyframes.add(kf)
@@ -265,17 +305,47 @@ class GaussianMapper:
         """Keep at most ``max_keyframes``, and drop keyframes while the accounted memory is over
         ``max_mapper_mbytes`` (before the map is merged or pruned for it): each time the keyframe
         whose pose is closest to another one (translation in metres + 0.5 m per radian of
-        rotation), never the newest."""
+        rotation), never one of the newest ``training_window`` (the window; what stays beside it is
+        the flight's most spread-out views)."""
         cap = self.cfg.max_keyframes
         while (cap > 0 and len(self.keyframes) > cap) or self._over_memory_cap():
             kfs = self.keyframes.all()
             nearest = nearest_pose_distance(np.stack([k.T_wc for k in kfs]))
-            nearest[[i for i, k in enumerate(kfs) if k.kf_id == self._newest_kf_id]] = np.inf
+            window = min(self.cfg.training_window, cap - 1 if cap > 0 else len(kfs) - 1, len(kfs) - 1)
+            if window > 0:
+                nearest[-window:] = np.inf  # id order: the newest last
+            if not np.isfinite(nearest).any():
+                break
             dropped = kfs[int(np.argmin(nearest))].kf_id
             self.keyframes.remove(dropped)
             if self.exposure is not None:
                 self.exposure.remove(dropped)
             self.keyframes_dropped += 1
+
+    def retire_keyframes(self, kf_ids: list[int]) -> tuple[int, int]:
+        """Keyframes the tracker culled as redundant: their views leave training, and the Gaussians
+        they created follow the nearest kept keyframe (by pose, its heir) from now on, so a loop
+        correction still moves them. Unknown ids are ignored. Returns (retired, Gaussians handed on)."""
+        retired = handed = 0
+        g = self.gmap
+        for kf_id in kf_ids:
+            T = self._anchor_poses.pop(int(kf_id), None)
+            if T is None:
+                continue
+            retired += 1
+            if kf_id in self.keyframes:
+                self.keyframes.remove(kf_id)
+                if self.exposure is not None:
+                    self.exposure.remove(kf_id)
+            if not self._anchor_poses:
+                continue
+            others = list(self._anchor_poses)
+            heir = others[int(np.argmin(pose_distances(T, np.stack([self._anchor_poses[k] for k in others]))))]
+            rows = g.keyframe_ids == int(kf_id)
+            handed += int(rows.sum())
+            g.keyframe_ids[rows] = heir
+        self.keyframes_retired += retired
+        return retired, handed
 
     def update_keyframe_pose(self, kf_id: int, T_wc: np.ndarray) -> bool:
         """Replace a keyframe's pose (e.g. after bundle adjustment). Returns False (and changes

@@ -332,6 +332,12 @@ class MappingSession(CommandWorker):
         stay. The future gives how many keyframes were updated (unknown and dropped ones are not)."""
         return self.submit("update_poses", lambda: self._update_poses(dict(poses)))
 
+    def retire_keyframes(self, stamps: list[int]) -> Future[tuple[int, int]]:
+        """Keyframes the tracker culled (by stamp): out of training, their Gaussians handed on to the
+        nearest kept keyframe (``GaussianMapper.retire_keyframes``). The future gives (retired,
+        Gaussians handed on); unknown stamps are ignored."""
+        return self.submit("retire", lambda: self._retire(list(stamps)))
+
     def correct_keyframes(self, poses: Mapping[int, np.ndarray]) -> Future[tuple[int, int]]:
         """Rigidly move keyframes ({stamp_ns: corrected T_wc}) and the Gaussians anchored to them,
         then train them with priority (``GaussianMapper.correct_keyframes``). The future gives
@@ -479,7 +485,8 @@ class MappingSession(CommandWorker):
             keyframe_timing=self._intake.summary(), iterations_final=self._iterations_final,
             cuda_peak_by_work=dict(m.peaks.by_work),
             insert_queue=self._pending_inserts,
-            finished=self._finished, render_camera=self._render_camera, counters=dict(self._counters))
+            finished=self._finished, render_camera=self._render_camera,
+            counters={**self._counters, "merge_passes": m.merge.passes, "seeds_covered": m.seeds_covered})
 
     def _event(self, kind: str, message: str) -> None:
         self._events.put(SessionEvent(kind, message))
@@ -525,6 +532,12 @@ class MappingSession(CommandWorker):
         self._counters["keyframe_pose_updates"] += updated
         self._counters["refined_poses_of_dropped_keyframes"] += len(poses) - updated
         return updated
+
+    def _retire(self, stamps: list[int]) -> tuple[int, int]:
+        retired, handed = self._mapper.retire_keyframes([self._stamps[s] for s in stamps if s in self._stamps])
+        self._counters["keyframes_retired"] += retired
+        self._counters["gaussians_handed_on"] += handed
+        return retired, handed
 
     def _correct(self, poses: Mapping[int, np.ndarray]) -> tuple[int, int]:
         corrected, moved = self._mapper.correct_keyframes(self._ids_of(poses))

@@ -73,16 +73,30 @@ class MergeSchedule:
         self.merge_cfg = merge_cfg
         self.last: Any = None
         self.last_budget: Any = None
+        self.passes = 0  # scheduled passes run
+        self._keyframes_since = 0  # keyframes inserted since the last pass
+        self._last_iteration = 0  # of the last pass
 
     @property
     def available(self) -> bool:
         return self.merge_fn is not None
 
+    def keyframe_added(self) -> None:
+        """Count a keyframe towards the in-flight schedule (``merge_every_keyframes``)."""
+        self._keyframes_since += 1
+
     def due(self, iteration: int) -> bool:
+        """On the iteration schedule (``merge_start_iter`` + k ``merge_interval``), or in flight once
+        ``merge_every_keyframes`` keyframes came since the last pass and it is at least
+        ``merge_keyframes_min_iters`` iterations old (their seeds have been trained on a little): a
+        live mapper, which trains a few hundred iterations while the camera moves, merges then too."""
         cfg = self.cfg
-        return (self.merge_fn is not None and cfg.merge_enabled
-                and cfg.merge_start_iter <= iteration <= cfg.merge_stop_iter
-                and iteration % cfg.merge_interval == 0)
+        if self.merge_fn is None or not cfg.merge_enabled or iteration > cfg.merge_stop_iter:
+            return False
+        if cfg.merge_start_iter <= iteration and iteration % cfg.merge_interval == 0:
+            return True
+        return (0 < cfg.merge_every_keyframes <= self._keyframes_since
+                and iteration - self._last_iteration >= cfg.merge_keyframes_min_iters)
 
     def run(self, gmap: GaussianMap, newest_kf_id: int, iteration: int) -> tuple[int, int]:
         """One scheduled merge pass on the live map. Returns (removed, added) Gaussian counts."""
@@ -95,6 +109,8 @@ class MergeSchedule:
         result = self.merge_fn(gmap, self.merge_cfg, newest_kf_id, iteration)
         gmap.reset_merge_stats()  # each pass judges stability on the gradients seen since the last
         self.last = result
+        self.passes += 1
+        self._keyframes_since, self._last_iteration = 0, iteration
         return int(result.removed_ids.numel()), int(result.added_ids.numel())
 
     def budget_config(self, newest_kf_id: int) -> Any:

@@ -57,7 +57,9 @@ class TrackerTelemetry(NodeTelemetry):
     keyframes_deferred: int = 0  # due keyframes put off while a BA ran
     map_points: int = 0  # the sparse map's size
     map_keyframes: int = 0  # keyframes it holds
-    map_keyframes_removed: int = 0  # culled as redundant (tracker.max_keyframes)
+    map_keyframes_removed: int = 0  # removed in all: culled, and over tracker.max_keyframes
+    map_keyframes_culled: int = 0  # culled as redundant (tracker.keyframe_cull_ratio)
+    culled_keyframes: int = 0  # announced on memgs/keyframe/culled
     warm_up_s: float = 0.0  # the kernels' load (or compile) time
     skipped: Mapping[str, int] = _family()  # skipped.<warming|stale|busy|...>
     state: Mapping[str, int] = _family()  # state.<OK|LOST|...>: frames per tracking state
@@ -98,6 +100,10 @@ class MapperTelemetry(NodeTelemetry):
     keyframes: int = 0  # inserted
     duplicate_keyframes: int = 0  # inserted twice (the second ignored)
     seeded_gaussians: int = 0  # added from the sampler's seeds
+    seeds_covered: int = 0  # seeds not added: the map already explained them (mapping.seed_coverage)
+    keyframes_retired: int = 0  # culled by the tracker: out of training
+    gaussians_handed_on: int = 0  # Gaussians of retired keyframes that now follow a kept one
+    merge_passes: int = 0  # scheduled voxel-merge passes run
     insert_ms_total: int = 0  # time inserting keyframes
     keyframe_pose_updates: int = 0  # poses refined by the tracker's BA
     refined_poses_of_dropped_keyframes: int = 0  # refinements of keyframes no longer stored

@@ -69,6 +69,12 @@ class AnchoredPath:
             i = j
         return hit
 
+    def reanchor(self, heirs: Mapping[int, int]) -> None:
+        """Frames anchored to a culled keyframe follow its heir ({culled id: heir id}) from now on:
+        the culled one gets no more corrections."""
+        if heirs:
+            self._ref = [heirs.get(r, r) for r in self._ref]
+
     def update(self, result: TrackResult, corrections: list[Mapping[int, np.ndarray]]) -> set[int]:
         """The loop corrections committed during ``track()`` (oldest first), then the frame;
         returns the keyframes whose earlier frames moved."""

@@ -51,7 +51,8 @@ class TrackerConfig:
     # Use the current frame's depth in per-frame pose refinement (map points always use depth).
     track_with_depth: bool = True
     # Rolling shutter: seconds from the first to the last image row of the colour camera (0 = global
-    # shutter, e.g. rendered images). Keypoints are moved to the centre row's time with the
+    # shutter, e.g. rendered images; negative: the rows are read bottom to top, as a sensor mounted
+    # upside down reads them). Keypoints are moved to the centre row's time with the
     # tracker's angular velocity. The Kinect v1 of TUM RGB-D rolls over about 25 ms (config/tum_*.yaml).
     rolling_shutter_readout_s: float = 0.0
     # Matching.
@@ -67,12 +68,28 @@ class TrackerConfig:
     max_translation_jump_m: float = 0.25  # per-frame deviation from the velocity prediction
     max_rotation_jump_deg: float = 20.0
     # Keyframes.
+    # The reference keyframe is the one sharing the most tracked points with the frame (ORB-SLAM's),
+    # not the last inserted: on a revisit it is the keyframe already there.
     keyframe_tracked_ratio: float = 0.75  # insert when tracked points fall below this of the reference KF's
     keyframe_min_new_points: int = 70  # ... and at least this many close untracked keypoints
-    keyframe_max_frames: int = 20  # insert at least every this many frames
+    keyframe_max_frames: int = 20  # a keyframe at least every this many frames, where the map needs one
     keyframe_min_frames: int = 1
-    keyframe_max_rotation_deg: float = 15.0
+    keyframe_max_rotation_deg: float = 15.0  # ... or this far from the last keyframe
     keyframe_max_translation_m: float = 0.15
+    # ... unless a settled keyframe of the local map (taken at least keyframe_cover_age_s before)
+    # already sees from within these: a place flown again adds no keyframe for time or motion
+    # (0: never covered) ...
+    keyframe_cover_deg: float = 7.5
+    keyframe_cover_m: float = 0.075
+    # ... nor, from within these, for weak tracking (tracked ratio, close points)
+    keyframe_weak_cover_deg: float = 5.0
+    keyframe_weak_cover_m: float = 0.05
+    keyframe_cover_age_s: float = 5.0
+    # Keyframe culling (ORB-SLAM's): after each insertion, a covisible keyframe whose good points are
+    # at least this fraction seen by keyframe_cull_observers other keyframes is removed (0: never).
+    # Its points and loop-closure entry go with it; the mapper is told (poll_culled_keyframes).
+    keyframe_cull_ratio: float = 0.9
+    keyframe_cull_observers: int = 3
     # A live frame never waits for a BA: an RGB-D keyframe due while the previous local BA runs is
     # deferred, for at most this many frames; then it goes in without that result.
     keyframe_max_deferred_frames: int = 1  # RGB-D: frames a due keyframe is deferred for a running local BA
@@ -122,12 +139,16 @@ class TrackerConfig:
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "n_features": (50, 20_000), "scale_factor": (1.01, 2.0), "n_levels": (1, 16), "fast_threshold": (1, 255),
         "fast_min_threshold": (1, 255), "grid_cell_px": (8, 1024), "min_depth_m": (0.0, 100.0),
-        "max_depth_m": (0.01, 1000.0), "virtual_baseline_m": (0.001, 10.0), "rolling_shutter_readout_s": (0.0, 1.0),
+        "max_depth_m": (0.01, 1000.0), "virtual_baseline_m": (0.001, 10.0), "rolling_shutter_readout_s": (-1.0, 1.0),
         "search_radius_px": (1.0, 500.0), "refine_radius_px": (0.5, 500.0), "max_descriptor_distance": (1, 256),
         "match_ratio": (0.1, 1.0), "max_reprojection_px": (0.1, 100.0), "min_inliers": (4, 10_000),
         "ransac_iterations": (1, 100_000), "ransac_reprojection_px": (0.1, 100.0),
         "max_translation_jump_m": (0.0, 100.0), "max_rotation_jump_deg": (0.0, 180.0),
         "keyframe_tracked_ratio": (0.0, 1.0), "keyframe_min_new_points": (0, 100_000),
+        "keyframe_cover_deg": (0.0, 180.0), "keyframe_cover_m": (0.0, 100.0),
+        "keyframe_weak_cover_deg": (0.0, 180.0), "keyframe_weak_cover_m": (0.0, 100.0),
+        "keyframe_cover_age_s": (0.0, 1e6),
+        "keyframe_cull_ratio": (0.0, 1.0), "keyframe_cull_observers": (1, 100),
         "keyframe_max_frames": (1, 100_000), "keyframe_min_frames": (0, 100_000),
         "keyframe_max_rotation_deg": (0.0, 180.0), "keyframe_max_translation_m": (0.0, 100.0),
         "keyframe_max_deferred_frames": (0, 1000),
@@ -164,8 +185,8 @@ class TrackerConfig:
             raise ConfigError(
                 f"TrackerConfig.fast_min_threshold ({self.fast_min_threshold}) must be in "
                 f"[0, fast_threshold={self.fast_threshold}]")
-        if not (np.isfinite(self.rolling_shutter_readout_s) and 0 <= self.rolling_shutter_readout_s < 1):
-            raise ConfigError(f"TrackerConfig.rolling_shutter_readout_s must be in [0, 1) s, "
+        if not (np.isfinite(self.rolling_shutter_readout_s) and -1 < self.rolling_shutter_readout_s < 1):
+            raise ConfigError(f"TrackerConfig.rolling_shutter_readout_s must be in (-1, 1) s, "
                               f"got {self.rolling_shutter_readout_s}")
         if not 0 < self.min_depth_m < self.max_depth_m:
             raise ConfigError(
@@ -210,9 +231,11 @@ class TrackResult:
     keyframe: set when this frame became a keyframe.
     segment_id: increases when the tracker gave up relocalising and started a new map; poses of
       different segments share a frame only through the anchor (the last good pose).
-    reference_keyframe_id: the keyframe this pose was tracked against (the last inserted one), -1
-      when none: when bundle adjustment or a loop correction moves that keyframe, the frame's
-      corrected pose is the keyframe's new pose times the same relative pose (``AnchoredPath``).
+    reference_keyframe_id: the keyframe this pose was tracked against (the one sharing the most of
+      its tracked points; the new keyframe for a keyframe frame), -1 when none: when a loop correction
+      moves that keyframe, the frame's corrected pose is the keyframe's new pose times the same
+      relative pose (``AnchoredPath``); when culling removes it, the frame follows the keyframe the
+      tracker names instead (``poll_culled_keyframes``).
     """
 
     stamp_ns: int

@@ -52,6 +52,11 @@ class Tracker(Protocol):
     def poll_refined_keyframes(self) -> list[tuple[int, np.ndarray]]:
         """(keyframe_id, refined T_wc [4, 4]) since the last poll, oldest first."""
 
+    def poll_culled_keyframes(self) -> list[tuple[int, int, np.ndarray]]:
+        """(culled keyframe id, heir keyframe id, last T_wc [4, 4]) of the keyframes culling removed
+        since the last poll; a backend that culls none has none."""
+        return []
+
     def poll_loop_corrected_keyframes(self) -> list[tuple[int, np.ndarray]]:
         """(keyframe_id, corrected T_wc [4, 4]) of keyframes a loop closure moved since the last
         poll; a backend without loop closure has none."""

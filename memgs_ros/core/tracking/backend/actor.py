@@ -119,6 +119,13 @@ class TrackingBackend(CommandWorker):
         places = self.places
         return self.submit("place_recognition", lambda: places.process(snap, kf_id))
 
+    def forget_keyframes(self, kf_ids: tuple[int, ...]) -> Future[None]:
+        """Keyframes culled from the map leave the keyframe database (and are never indexed)."""
+        places = self.places
+        if places is None:
+            raise WorkerStopped(f"{self.name} has no vocabulary: place recognition is off")
+        return self.submit("forget", lambda: places.forget(kf_ids))
+
     def global_ba(self, snap: MapSnapshot) -> Future[GlobalBAOutcome]:
         """Global BA of the whole snapshot, run between other requests; a LoopCorrection with the
         new poses and points (``is_global_ba``) when it lowered the cost."""

@@ -73,6 +73,7 @@ class BackendLink:
         # The newest keyframe whose local BA waits for the one in flight: a BA must start from the
         # previous one's result, else it would overwrite that refinement with older poses.
         self._ba_deferred: tuple[int, int] | None = None  # (keyframe id, segment id)
+        self._removed: set[int] = set()  # culled keyframes: never indexed again
 
     # ------------------------------------------------------------------ requests
     def keyframe_added(self, smap: SparseMap, kf: SparseKeyframe, segment_id: int) -> list[KeyframesMoved]:
@@ -101,6 +102,17 @@ class BackendLink:
         moved = self.poll(smap, segment_id)
         self.ba_time_s += time.perf_counter() - t0
         return moved
+
+    def keyframes_removed(self, kf_ids: list[int], segment_id: int) -> None:
+        """Keyframes culled from the map: out of both place-recognition databases (the back-end's
+        when it next runs: an answer it sends for them meanwhile is not indexed here)."""
+        self._removed.update(kf_ids)
+        for k in kf_ids:
+            self.keyframe_db.remove(k)
+            self._path_T_cw.pop(k, None)
+        if self.backend.places is not None:
+            ids = tuple(kf_ids)
+            self._request("forget", segment_id, lambda: self.backend.forget_keyframes(ids))
 
     def _request(self, kind: str, segment_id: int, make: Callable[[], Future[Any]]) -> None:
         try:
@@ -167,8 +179,8 @@ class BackendLink:
 
     def _commit(self, smap: SparseMap, r: _Request, segment_id: int, result: object) -> KeyframesMoved | None:
         if isinstance(result, PlaceOutcome):
-            if result.bow is not None:  # every segment's keyframes: relocalisation filters by the map
-                self.keyframe_db.add(result.kf_id, result.bow)
+            if result.bow is not None and result.kf_id not in self._removed:
+                self.keyframe_db.add(result.kf_id, result.bow)  # every segment's: relocalisation filters by the map
             self.stats = self.stats.plus(result.stats)
             if result.loop is None or r.segment_id != segment_id:
                 return None

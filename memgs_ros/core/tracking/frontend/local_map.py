@@ -278,6 +278,29 @@ class SparseMap:
             return self._last_renumbering[np.asarray(point_ids, np.int64)]
         return None
 
+    def cull_redundant_keyframes(self, candidates: list[int], ratio: float, observers: int,
+                            protected: set[int]) -> list[int]:
+        """Remove the keyframes of ``candidates`` (outside ``protected``) whose good points are at
+        least ``ratio`` seen by ``observers`` other keyframes each (ORB-SLAM's culling rule), judged
+        one after the other: a removed keyframe no longer counts as an observer of the next.
+        Returns the removed ids (``remove_keyframe``: their observations go, points they alone saw
+        turn bad)."""
+        out: list[int] = []
+        if ratio <= 0.0:
+            return out
+        for kf_id in candidates:
+            kf = self.keyframes.get(kf_id)
+            if kf is None or kf_id in protected:
+                continue
+            pids = kf.point_ids[kf.point_ids >= 0]
+            pids = pids[~self._pts.bad[pids]]
+            if len(pids) == 0:
+                continue
+            if np.count_nonzero(self._pts.n_obs[pids] > observers) >= ratio * len(pids):
+                out.append(kf_id)
+                self.remove_keyframe(kf_id)
+        return out
+
     def covisible(self, point_ids: np.ndarray, k: int, exclude: int | None = None) -> list[int]:
         """The ``k`` keyframes observing most of ``point_ids``, most first."""
         # Counted in C (a Counter over the chained observation dicts' keys), in first-seen order

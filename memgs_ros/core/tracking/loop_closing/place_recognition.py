@@ -77,11 +77,18 @@ class PlaceRecognition:
         self.keyframe_db = KeyframeDatabase()
         self._detector = LoopDetector(cfg.loop_consistency)
         self._last_loop_query = -(10**9)
+        self._forgotten: set[int] = set()
+
+    def forget(self, kf_ids: tuple[int, ...]) -> None:
+        """Culled keyframes: out of the database, and not indexed should their request still come."""
+        self._forgotten.update(kf_ids)
+        for k in kf_ids:
+            self.keyframe_db.remove(k)
 
     def process(self, snap: MapSnapshot, kf_id: int) -> PlaceOutcome:
         """Index keyframe ``kf_id``; with loop closure, look for a loop and prepare its correction."""
         cfg = self.cfg
-        if kf_id not in snap:
+        if kf_id not in snap or kf_id in self._forgotten:
             return PlaceOutcome(kf_id, None, None, LoopStats())
         own = snap.kf_points(kf_id)
         connected = snap.covisible(own[own >= 0], 10**6, exclude=(kf_id,))
