@@ -442,7 +442,7 @@ def test_seeds_go_only_where_the_map_lacks_gaussians(tiny_frames: list[Frame]) -
     p, c = grid_seeds(f)
     for coverage, most_added in ((True, 0.1 * len(p)), (False, len(p))):
         m = GaussianMapper(MappingConfig(min_keyframes=1, merge_enabled=False, densify_start_iter=10_000,
-                                         seed_opacity=0.5, seed_coverage=coverage, seed_coverage_window=1))
+                                         seed_opacity=0.5, seed_coverage=coverage, seed_coverage_age_s=0.0))
         assert m.add_keyframe(0, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c) == len(p)
         for _ in range(30):
             m.step()
@@ -452,17 +452,17 @@ def test_seeds_go_only_where_the_map_lacks_gaussians(tiny_frames: list[Frame]) -
 
 
 def test_the_newest_keyframes_gaussians_do_not_count_as_coverage(tiny_frames: list[Frame]) -> None:
-    """The surface the last few keyframes seeded is still being trained: a keyframe beside them
-    seeds as without the coverage test (its detail is not hidden by their blobs)."""
+    """The surface the last seconds' keyframes seeded is still being trained: a keyframe beside
+    them seeds as without the coverage test (its detail is not hidden by their blobs)."""
     f = tiny_frames[0]
     p, c = grid_seeds(f)
     m = GaussianMapper(MappingConfig(min_keyframes=1, merge_enabled=False, densify_start_iter=10_000,
-                                     seed_opacity=0.5, seed_coverage_window=2))
+                                     seed_opacity=0.5, seed_coverage_age_s=5.0))
     m.add_keyframe(0, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
     for _ in range(30):
         m.step()
-    assert m.add_keyframe(1, f.stamp_ns + 1, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c) == len(p)
-    assert m.add_keyframe(2, f.stamp_ns + 2, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c) < 0.1 * len(p)
+    assert m.add_keyframe(1, f.stamp_ns + 4_000_000_000, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c) == len(p)
+    assert m.add_keyframe(2, f.stamp_ns + 6_000_000_000, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c) < 0.1 * len(p)
 
 
 def test_uncovered_seeds_by_opacity_and_depth() -> None:

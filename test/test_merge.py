@@ -285,7 +285,8 @@ def test_gating_merges_only_the_eligible_pair() -> None:
     gmap = _make_map(rows)
     d2_gate = (0.004 / 0.001) ** 2
     assert d2_gate > CHI2_3DOF_95
-    res = merge_pass(gmap, MergeConfig(voxel_size_m=v, window_keyframes=50), newest_keyframe_id=100, iteration=7)
+    res = merge_pass(gmap, MergeConfig(voxel_size_m=v, window_keyframes=50, min_age_iters=0), newest_keyframe_id=100,
+                     iteration=7)
     assert res.n_merged == 1
     assert _ids_of_pairs(res) == {frozenset({0, 1})}
     assert res.n_candidates == 7  # rows 6, 7, 8, 9, 11 excluded
@@ -299,10 +300,10 @@ def test_three_similar_gaussians_in_a_voxel_merge_one_pair_per_pass() -> None:
     rows = [{"pos": [0.0, 0.0, 0.0], "kf": 60}, {"pos": [0.001, 0.0, 0.0], "kf": 61},
             {"pos": [0.0, 0.0015, 0.0], "kf": 62}]
     gmap = _make_map(rows)
-    res = merge_pass(gmap, MergeConfig(), newest_keyframe_id=100, iteration=1)
+    res = merge_pass(gmap, MergeConfig(min_age_iters=0), newest_keyframe_id=100, iteration=1)
     assert res.n_pairs == 3 and res.n_merged == 1 and len(gmap) == 2
     assert _ids_of_pairs(res) == {frozenset({0, 1})}  # the minimum d2: 0.11 vs 0.25 and 0.36
-    res2 = merge_pass(gmap, MergeConfig(), newest_keyframe_id=100, iteration=2)
+    res2 = merge_pass(gmap, MergeConfig(min_age_iters=0), newest_keyframe_id=100, iteration=2)
     assert res2.n_merged == 1 and len(gmap) == 1  # the survivor and the merged one
 
 
@@ -343,7 +344,8 @@ def test_surgery_bookkeeping(colour_from: str) -> None:
     before_m = gmap.optimizer.state[gmap.means]["exp_avg"].clone()
     max_id = int(before_ids.max())
 
-    res = merge_pass(gmap, MergeConfig(colour_from=colour_from), newest_keyframe_id=100, iteration=123)
+    res = merge_pass(gmap, MergeConfig(colour_from=colour_from, min_age_iters=0), newest_keyframe_id=100,
+                     iteration=123)
     assert res.n_merged == 40
     removed, added = res.removed_ids.tolist(), res.added_ids.tolist()
     assert len(removed) == 2 * len(added) == 2 * res.n_merged
@@ -403,5 +405,13 @@ def test_config_validation_names_the_field(kwargs: dict, field: str) -> None:
 def test_unknown_keyframe_ids_are_never_candidates() -> None:
     gmap = _make_map([{"pos": [0.0, 0.0, 0.0], "kf": -1}, {"pos": [0.001, 0.0, 0.0], "kf": -1},
                       {"pos": [1.0, 0.0, 0.0], "kf": 3}, {"pos": [1.001, 0.0, 0.0], "kf": 4}])
-    res = merge_pass(gmap, MergeConfig(), newest_keyframe_id=5, iteration=0)
+    res = merge_pass(gmap, MergeConfig(min_age_iters=0), newest_keyframe_id=5, iteration=0)
     assert res.n_candidates == 2 and _ids_of_pairs(res) == {frozenset({2, 3})}
+
+
+def test_seeds_younger_than_min_age_are_not_candidates() -> None:
+    """A seed not trained yet has no gradient to be still by: it waits min_age_iters iterations."""
+    rows = [{"pos": [0.0, 0.0, 0.0], "kf": 60}, {"pos": [0.001, 0.0, 0.0], "kf": 61}]
+    gmap = _make_map(rows)  # created at iteration 0
+    assert merge_pass(gmap, MergeConfig(min_age_iters=200), newest_keyframe_id=100, iteration=199).n_merged == 0
+    assert merge_pass(gmap, MergeConfig(min_age_iters=200), newest_keyframe_id=100, iteration=200).n_merged == 1

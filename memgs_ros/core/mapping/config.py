@@ -84,12 +84,12 @@ class MappingConfig:
     # Initial opacity of keyframe seeds (3DGS: 0.1)
     seed_opacity: float = 0.1
     # Gaussians only where the map lacks them (core/mapping/coverage.py): a keyframe's seed becomes a
-    # Gaussian only where the settled map (Gaussians of keyframes older than the newest
-    # seed_coverage_window) rendered at the keyframe (at seed_coverage_scale of its resolution) is
+    # Gaussian only where the settled map (Gaussians of keyframes taken seed_coverage_age_s or more
+    # before it) rendered at the keyframe (at seed_coverage_scale of its resolution) is
     # thinner than seed_alpha_max or the seed lies in front of its surface by more than
     # seed_depth_abs_m + seed_depth_rel x depth; a place flown again seeds little
     seed_coverage: bool = True
-    seed_coverage_window: int = 10
+    seed_coverage_age_s: float = 5.0
     seed_coverage_scale: float = 0.5
     seed_alpha_max: float = 0.5
     seed_depth_abs_m: float = 0.05
@@ -167,7 +167,7 @@ class MappingConfig:
         "seed_opacity": (1e-4, 0.9999), "exposure_lr": (0.0, 1.0), "exposure_reg": (0.0, 1e3),
         "seed_coverage_scale": (0.01, 1.0), "seed_alpha_max": (0.0, 1.0), "seed_depth_abs_m": (0.0, 100.0),
         "seed_depth_rel": (0.0, 100.0), "merge_every_keyframes": (0, 10**6), "merge_keyframes_min_iters": (0, 10**8),
-        "training_window": (1, 10**5), "seed_coverage_window": (0, 10**6),
+        "training_window": (1, 10**5), "seed_coverage_age_s": (0.0, 1e6),
         "max_sh_degree": (0, 3), "sh_up_interval": (1, 10**8),
         "densify_start_iter": (0, 10**8), "densify_stop_iter": (0, 10**8), "densify_interval": (1, 10**8),
         "densify_grad_threshold": (0.0, 1.0), "percent_dense": (0.0, 1.0), "split_children": (2, 16),
@@ -195,7 +195,8 @@ class MappingConfig:
                 raise ConfigError(f"MappingConfig.{name} must be in [0, 1], got {getattr(self, name)}")
         for name in ("iso_weight", "depth_weight", "densify_grad_threshold", "percent_dense",
                      "prune_opacity", "max_screen_size_px", "near_m", "max_model_mbytes", "exposure_reg",
-                     "max_mapper_mbytes", "seed_alpha_max", "seed_depth_abs_m", "seed_depth_rel"):
+                     "max_mapper_mbytes", "seed_alpha_max", "seed_depth_abs_m", "seed_depth_rel",
+                     "seed_coverage_age_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"MappingConfig.{name} must be >= 0, got {v}")
@@ -205,7 +206,7 @@ class MappingConfig:
                 raise ConfigError(f"MappingConfig.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("min_keyframes", "pyramid_uses_per_level", "prune_min_age_iters",
                      "densify_start_iter", "merge_start_iter", "max_gaussians", "max_keyframes",
-                     "merge_every_keyframes", "merge_keyframes_min_iters", "seed_coverage_window"):
+                     "merge_every_keyframes", "merge_keyframes_min_iters"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"MappingConfig.{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.budget_target_fraction <= 1.0:

@@ -153,6 +153,7 @@ class GaussianMapper:
         # Pose of every keyframe ever inserted, also those max_keyframes dropped from training:
         # a rigid correction moves their Gaussians too (~130 B a keyframe).
         self._anchor_poses: dict[int, np.ndarray] = {}
+        self._anchor_stamps: dict[int, int] = {}  # capture time of each keyframe ever inserted, ns
         self.exposure = ExposureCompensation(self.cfg.exposure_lr, self.cfg.exposure_reg, self.device) \
             if self.cfg.exposure_compensation else None
         self._background = torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
@@ -266,15 +267,21 @@ class GaussianMapper:
 
     def _uncovered(self, kf: TrainingKeyframe, points_w: np.ndarray) -> np.ndarray | None:
         """[M] bool: the seeds the settled map does not explain yet (``core/mapping/coverage.py``),
-        from a render at the keyframe of the Gaussians older keyframes made (older than the newest
-        ``seed_coverage_window``: a surface the last few keyframes seeded is still being trained, and
-        its blobs would hide the detail the new seeds bring); None (keep all) with ``seed_coverage``
-        off or nothing settled yet."""
+        from a render at the keyframe of the Gaussians that keyframes taken ``seed_coverage_age_s``
+        or more before it made (the tracker's notion of a settled keyframe): the stretch of the last
+        seconds is still being trained, and its blobs would hide the detail the new seeds bring (on
+        the fr1/rpy head, which sweeps back over its own views, that cost 0.4 dB); None (keep all)
+        with ``seed_coverage`` off or nothing settled yet."""
         cfg = self.cfg
         if not cfg.seed_coverage or len(self.gmap) == 0:
             return None
         g = self.gmap
-        settled = torch.nonzero(g.keyframe_ids <= self._newest_kf_id - cfg.seed_coverage_window).reshape(-1)
+        before = kf.stamp_ns - int(cfg.seed_coverage_age_s * 1e9)
+        old = [k for k, s in self._anchor_stamps.items() if s <= before]
+        if not old:
+            return None
+        settled = torch.nonzero(torch.isin(g.keyframe_ids, torch.tensor(old, dtype=torch.int64,
+                                                                         device=self.device))).reshape(-1)
         if settled.numel() == 0:
             return None
         cam = kf.camera.scaled(cfg.seed_coverage_scale) if cfg.seed_coverage_scale != 1.0 else kf.camera
@@ -292,6 +299,7 @@ class GaussianMapper:
     def _insert(self, kf: TrainingKeyframe) -> None:
         self.keyframes.add(kf)
         self._anchor_poses[int(kf.kf_id)] = np.array(kf.T_wc, dtype=np.float64)
+        self._anchor_stamps[int(kf.kf_id)] = int(kf.stamp_ns)
         self._newest_kf_id = max(self._newest_kf_id, int(kf.kf_id))
 
     def _over_memory_cap(self) -> bool:
@@ -332,6 +340,7 @@ class GaussianMapper:
             T = self._anchor_poses.pop(int(kf_id), None)
             if T is None:
                 continue
+            self._anchor_stamps.pop(int(kf_id), None)
             retired += 1
             if kf_id in self.keyframes:
                 self.keyframes.remove(kf_id)

@@ -117,8 +117,8 @@ class MergeSchedule:
         """The merge configuration for budget passes, or None when there is none to relax.
 
         Relaxed from the scheduled one (``MergeConfig``): every keyframe in the window (the budget
-        binds the whole map, not the newest keyframes), no gradient gate (a Gaussian still moving
-        is better merged than pruned) and a voxel ``budget_merge_voxel_scale`` times larger (default
+        binds the whole map, not the newest keyframes), no gradient gate nor age (a Gaussian still
+        moving is better merged than pruned) and a voxel ``budget_merge_voxel_scale`` times larger (default
         1: a coarser voxel merged more without lowering the PSNR cost, see ``BudgetStrategy``); the
         Mahalanobis gate stays, so only overlapping Gaussians merge.
         """
@@ -129,7 +129,7 @@ class MergeSchedule:
         base = self.merge_cfg if self.merge_cfg is not None else merge_mod.MergeConfig()
         if not isinstance(base, merge_mod.MergeConfig) or not base.enabled:
             return None  # a caller's own merge configuration: nothing known to relax
-        return replace(base, window_keyframes=max(newest_kf_id + 1, 1), tau=_NO_GRADIENT_GATE,
+        return replace(base, window_keyframes=max(newest_kf_id + 1, 1), tau=_NO_GRADIENT_GATE, min_age_iters=0,
                        voxel_size_m=base.voxel_size_m * self.cfg.budget_merge_voxel_scale)
 
 

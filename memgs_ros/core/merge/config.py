@@ -20,6 +20,10 @@ class MergeConfig:
         configs use 1e-4 (fewer candidates, fewer merges).
     window_keyframes: only Gaussians created by the newest ``window_keyframes`` keyframes
         (``K_min = newest - window + 1 .. K_max = newest``, keyframe ids consecutive) are candidates.
+    min_age_iters: ... and only those created at least this many iterations before the pass: a seed
+        not trained yet has no gradient to be still by (the released code counts an unseen Gaussian
+        as still), and a live mapper merging every few keyframes folded 70 % of its fresh seeds
+        before they were trained (0: the released code's rule).
     voxel_size_m: voxel edge (released configs 0.01 m).
     chi2_gate: merge a voxel's best pair only if d2 < this (3 dof, 95 %: 7.815).
     max_per_voxel: occupancy cap for pair generation. A voxel with n candidates has n(n-1)/2
@@ -52,6 +56,7 @@ class MergeConfig:
     enabled: bool = True
     tau: float = 1e-3
     window_keyframes: int = 50
+    min_age_iters: int = 200
     voxel_size_m: float = 0.01
     chi2_gate: float = CHI2_3DOF_95
     max_per_voxel: int = 32
@@ -67,6 +72,7 @@ class MergeConfig:
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "tau": (0.0, 1e30), "chi2_gate": (0.0, 1e3), "window_keyframes": (1, 10**5), "voxel_size_m": (1e-4, 10.0),
+        "min_age_iters": (0, 10**8),
         "max_per_voxel": (2, 10**4),
         "lbfgs_lr": (1e-6, 1e3), "lbfgs_max_iter": (1, 10**4), "lbfgs_history": (1, 1000),
         "lbfgs_tolerance_change": (0.0, 1.0), "lbfgs_tolerance_grad": (0.0, 1.0), "slerp_t": (0.0, 1.0),

@@ -448,7 +448,8 @@ def merge_pass(gmap: GaussianMap, cfg: MergeConfig, newest_keyframe_id: int, ite
 
     Candidates: ``merge_grad_mean() < cfg.tau`` and keyframe id in
     ``[max(newest_keyframe_id - cfg.window_keyframes + 1, 0), newest_keyframe_id]`` (ids < 0,
-    i.e. loaded Gaussians of unknown keyframe, are never candidates). Per voxel the pair
+    i.e. loaded Gaussians of unknown keyframe, are never candidates), created at least
+    ``cfg.min_age_iters`` iterations before ``iteration``. Per voxel the pair
     with minimum d2 is merged iff d2 < ``cfg.chi2_gate``: at most one merge per voxel per pass, so
     no Gaussian is in two merges. Each merged pair is removed and replaced by one Gaussian with a
     fresh id: closed-form mean, L-BFGS covariance, colour/SH/opacity from the older
@@ -462,7 +463,7 @@ def merge_pass(gmap: GaussianMap, cfg: MergeConfig, newest_keyframe_id: int, ite
     if not cfg.enabled or len(gmap) == 0:
         return MergeResult(empty, empty, 0, 0, 0, 0, 0, {"total": clock.total()})
     with torch.no_grad():
-        cand, pairs = _candidate_pairs(gmap, cfg, newest_keyframe_id, clock)
+        cand, pairs = _candidate_pairs(gmap, cfg, newest_keyframe_id, clock, iteration)
         chosen = _chosen_pairs(gmap, cfg, cand, pairs)
         clock.lap("distances")
     q_k, s_k, n_iter = _pair_covariances(chosen, cfg, dev)
@@ -513,13 +514,16 @@ class _Chosen(NamedTuple):
         return int(self.mi.shape[0])
 
 
-def _candidate_pairs(gmap: GaussianMap, cfg: MergeConfig, newest_keyframe_id: int, clock: _StageClock
-                     ) -> tuple[torch.Tensor, VoxelPairs]:
-    """The candidate rows [M] and their pairs inside voxels (laps "masking" and "hashing")."""
+def _candidate_pairs(gmap: GaussianMap, cfg: MergeConfig, newest_keyframe_id: int, clock: _StageClock,
+                     iteration: int = 0) -> tuple[torch.Tensor, VoxelPairs]:
+    """The candidate rows [M] (``candidate_mask``, and old enough: ``cfg.min_age_iters``) and their
+    pairs inside voxels (laps "masking" and "hashing")."""
     k_max = int(newest_keyframe_id)
     # keyframe id -1 marks Gaussians of unknown origin (a loaded map): never in the window
     k_min = max(k_max - cfg.window_keyframes + 1, 0)
     mask = candidate_mask(gmap.merge_grad_mean(), gmap.keyframe_ids, cfg.tau, k_min, k_max)
+    if cfg.min_age_iters > 0:
+        mask &= gmap.created_iter <= iteration - cfg.min_age_iters
     cand = torch.nonzero(mask).reshape(-1)  # [M] rows
     clock.lap("masking")
     keys = voxel_keys(gmap.means.detach()[cand], cfg.voxel_size_m)
