@@ -43,7 +43,7 @@ def test_no_ate_line_without_ground_truth(tmp_path: Path, capsys: pytest.Capture
         def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
             return np.zeros(0, np.int64), np.zeros((0, 4, 4))
 
-    monkeypatch.setattr(sources, "open_source", lambda source: NoTruth())
+    monkeypatch.setattr(sources, "open_source", lambda source, **_: NoTruth())
     traj = tmp_path / "t.txt"
     traj.write_text("0.0 0 0 0 0 0 0 1\n")
     print_trajectory_error("recording.mcap", str(traj))

@@ -73,7 +73,7 @@ def test_training_step_stays_on_device(frames: list[Frame], device: str, backend
                         densify_start_iter=20, densify_interval=20, merge_start_iter=30, merge_interval=30,
                         merge_stop_iter=10_000, densify_grad_threshold=1e-7)
     # A wide gradient gate and big voxels, so that this tiny map has pairs to merge.
-    mapper = GaussianMapper(cfg, device=device, merge_cfg=MergeConfig(tau=1e3, voxel_size_m=0.2))
+    mapper = GaussianMapper(cfg, device=device, merge_cfg=MergeConfig(tau=1e3, voxel_size_m=0.2, min_age_iters=0))
     for i, f in enumerate(frames):
         p, c = grid_seeds(f)
         mapper.add_keyframe(i, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)

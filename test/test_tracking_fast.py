@@ -253,7 +253,8 @@ def test_unroll_rolling_shutter_recovers_the_centre_row_view() -> None:
 
 def test_rolling_shutter_readout_is_validated() -> None:
     with pytest.raises(ConfigError, match="rolling_shutter_readout_s"):
-        TrackerConfig(rolling_shutter_readout_s=-0.01)
+        TrackerConfig(rolling_shutter_readout_s=-1.0)
+    assert TrackerConfig(rolling_shutter_readout_s=-0.02).rolling_shutter_readout_s == -0.02  # read bottom to top
     assert TrackerConfig().rolling_shutter_readout_s == 0.0  # global shutter unless a camera says otherwise
 
 

@@ -6,6 +6,7 @@ going backwards, a camera changed); :class:`Preloaded` decodes a source into mem
 """
 from __future__ import annotations
 
+import time
 from collections.abc import Iterable, Iterator
 
 import numpy as np
@@ -16,7 +17,7 @@ from memgs_ros.core.geometry.view import DepthUnits
 from memgs_ros.errors import ConfigError, MemgsError
 from memgs_ros.io.skips import SkipLog
 
-__all__ = ["DEFAULT_PERIOD_NS", "Preloaded", "ReplayFeed", "frames_total", "open_frames"]
+__all__ = ["DEFAULT_PERIOD_NS", "Preloaded", "ReplayFeed", "frames_total", "open_frames", "replay_frames"]
 
 DEFAULT_PERIOD_NS = 33_333_333  # loop gap for a one-frame source (30 Hz)
 
@@ -33,6 +34,24 @@ def open_frames(spec: str, folder_camera: PinholeCamera | None, strict: bool) ->
     source = open_source(spec, default_camera=folder_camera, strict=strict, raw_depth=True)
     _ = source.camera
     return source
+
+
+def replay_frames(frames: Iterable[Frame], preload_mb: int, max_frames: int, loop: bool, repeat: int,
+                  repeat_forward: bool) -> tuple[Iterable[Frame], str]:
+    """What a player replays of ``frames``: decoded up front when ``preload_mb`` > 0 (``Preloaded``;
+    up to ``max_frames`` unless looping or repeating, where it counts the frames played), then
+    played ``repeat`` times (``RepeatedSource``: after preloading, the passes share its frames).
+    Returns the frames and a line saying what was preloaded ("" when nothing was)."""
+    from memgs_ros.io.repeat import RepeatedSource
+
+    note = ""
+    if preload_mb > 0:
+        t0 = time.monotonic()
+        frames = Preloaded(frames, preload_mb, 0 if loop or repeat > 1 else max_frames)
+        note = f"preloaded {len(frames)} frames ({frames.nbytes / 1e6:.0f} MB) in {time.monotonic() - t0:.1f} s"
+    if repeat > 1:
+        frames = RepeatedSource(frames, repeat, repeat_forward)  # type: ignore[arg-type]
+    return frames, note
 
 
 class ReplayFeed:

@@ -42,8 +42,7 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.runtime.replay_pacing import AckWait, RealTimeClock, StartGate
 from memgs_ros.errors import MemgsError
-from memgs_ros.io.repeat import RepeatedSource
-from memgs_ros.io.replay import Preloaded, ReplayFeed, frames_total, open_frames
+from memgs_ros.io.replay import ReplayFeed, frames_total, open_frames, replay_frames
 from memgs_ros.nodes.params import NODE_CONFIGS, BagPlayerParams
 from memgs_ros.ros import codecs, qos
 from memgs_ros.ros.camera_params import declare_calibration
@@ -101,17 +100,12 @@ class BagPlayer(Node):
                                f"{', looping' if cfg.loop else ''})")
 
     def _open(self, folder_camera: PinholeCamera | None, frames: Iterable[Frame] | None) -> Iterable[Frame]:
-        """``frames``, or the ``source`` parameter opened; preloaded when ``preload_mb`` > 0."""
-        if frames is None:
-            frames = open_frames(self.cfg.source, folder_camera, self.cfg.strict)
-        whole = self.cfg.loop or self.cfg.repeat > 1  # max_frames counts the frames played, over every pass
-        if self.cfg.preload_mb > 0:
-            t0 = time.monotonic()
-            frames = Preloaded(frames, self.cfg.preload_mb, 0 if whole else self.cfg.max_frames)
-            self.get_logger().info(f"preloaded {len(frames)} frames ({frames.nbytes / 1e6:.0f} MB) "
-                                   f"in {time.monotonic() - t0:.1f} s")
-        if self.cfg.repeat > 1:  # after preloading: the passes share the preloaded frames
-            frames = RepeatedSource(frames, self.cfg.repeat, self.cfg.repeat_forward)  # type: ignore[arg-type]
+        """``frames``, or the ``source`` parameter opened; preloaded and repeated (``replay_frames``)."""
+        c = self.cfg
+        frames, note = replay_frames(open_frames(c.source, folder_camera, c.strict) if frames is None else frames,
+                                     c.preload_mb, c.max_frames, c.loop, c.repeat, c.repeat_forward)
+        if note:
+            self.get_logger().info(note)
         return frames
 
     # ------------------------------------------------------------------ pacing

@@ -233,8 +233,7 @@ class TrackerNode(Node):
         smap = tracker.map_stats() if result.keyframe is not None else None
         if smap is not None:
             g["map_keyframes"], g["map_points"] = smap.keyframes, smap.points
-            g["map_keyframes_removed"] = smap.keyframes_removed
-            g["map_keyframes_culled"] = int(getattr(tracker, "keyframes_culled", 0))
+            g["map_keyframes_removed"], g["map_keyframes_culled"] = smap.keyframes_removed, smap.keyframes_culled
             self.out.keyframes.forget(smap.keyframe_ids, smap.keyframes)
         return result
 

@@ -18,8 +18,10 @@ import torch
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose
+from memgs_ros.core.mapping.config import MappingConfig
+from memgs_ros.core.mapping.gaussians import GaussianMap
 
-__all__ = ["uncovered_seeds"]
+__all__ = ["settled_uncovered", "uncovered_seeds"]
 
 
 def uncovered_seeds(points_w: np.ndarray,  # [M, 3] the seeds, world
@@ -53,3 +55,31 @@ def uncovered_seeds(points_w: np.ndarray,  # [M, 3] the seeds, world
     in_front = z[idx] < surface - (depth_abs_m + depth_rel * surface)
     out[idx] = thin | in_front
     return out
+
+
+def settled_uncovered(gmap: GaussianMap, settled_kf_ids: list[int], points_w: np.ndarray,  # [M, 3]
+                      T_wc: np.ndarray,  # [4, 4]
+                      camera: PinholeCamera, cfg: MappingConfig,
+                      background: torch.Tensor | None = None) -> np.ndarray | None:  # [M] bool
+    """``uncovered_seeds`` against the settled map: the Gaussians the keyframes ``settled_kf_ids``
+    made (the mapper's ``KeyframeAnchors.settled``), rendered at ``T_wc`` with ``camera`` scaled by
+    ``cfg.seed_coverage_scale``, with the config's thresholds; None (keep every seed) when nothing
+    is settled. A surface the last seconds' keyframes seeded is still being trained, and its blobs
+    would hide the detail the new seeds bring (on the fr1/rpy head, which sweeps back over its own
+    views, counting them cost 0.4 dB)."""
+    from memgs_ros.core.raster import Gaussians, rasterize
+
+    if not settled_kf_ids or len(gmap) == 0:
+        return None
+    ids = torch.tensor(settled_kf_ids, dtype=torch.int64, device=gmap.device)
+    rows = torch.nonzero(torch.isin(gmap.keyframe_ids, ids)).reshape(-1)
+    if rows.numel() == 0:
+        return None
+    cam = camera.scaled(cfg.seed_coverage_scale) if cfg.seed_coverage_scale != 1.0 else camera
+    T_cw = torch.as_tensor(invert_pose(np.asarray(T_wc, dtype=np.float64)), dtype=torch.float32, device=gmap.device)
+    with torch.no_grad():
+        part = Gaussians(*(t.detach()[rows] for t in gmap.gaussians()))
+        out = rasterize(part, T_cw, cam, gmap.active_sh_degree, background=background, near=cfg.near_m,
+                        backend=cfg.raster_backend)
+    return uncovered_seeds(points_w, T_wc, cam, out.alpha, out.depth, cfg.seed_alpha_max, cfg.seed_depth_abs_m,
+                           cfg.seed_depth_rel)

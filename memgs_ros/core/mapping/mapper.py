@@ -30,22 +30,19 @@ import numpy as np
 import torch
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.geometry.poses import (
-    invert_pose,
-    nearest_pose_distance,
-    pose_distances,
-    rotmat_to_quat_wxyz_torch,
-)
+from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.geometry.view import view_preparation
+from memgs_ros.core.mapping.anchors import KeyframeAnchors
 from memgs_ros.core.mapping.checkpoint import ID_BLOCK, KeyframeState, MapperCheckpoint
 from memgs_ros.core.mapping.config import MappingConfig
-from memgs_ros.core.mapping.coverage import uncovered_seeds
+from memgs_ros.core.mapping.coverage import settled_uncovered
 from memgs_ros.core.mapping.device_peaks import PeakAttribution
 from memgs_ros.core.mapping.device_view import device_view
 from memgs_ros.core.mapping.exposure import ExposureCompensation
 from memgs_ros.core.mapping.gaussians import GaussianMap, GaussianRecords
 from memgs_ros.core.mapping.keyframes import KeyframeStore, TrainingKeyframe, make_keyframe
 from memgs_ros.core.mapping.losses import mapping_loss
+from memgs_ros.core.mapping.rigid import move_with_keyframes
 from memgs_ros.core.mapping.strategies import (
     DELTA_BYTES_PER_GAUSSIAN,
     BudgetStrategy,
@@ -53,6 +50,7 @@ from memgs_ros.core.mapping.strategies import (
     MemoryAccount,
     MergeFn,
     MergeSchedule,
+    TrainingSetStrategy,
     step_buffer_bytes,
 )
 from memgs_ros.errors import ConfigError, DataError
@@ -150,10 +148,7 @@ class GaussianMapper:
         self.keyframes_retired = 0  # culled by the tracker
         self.seeds_covered = 0  # seeds not made Gaussians: the map already explained them
         self._newest_kf_id = -1
-        # Pose of every keyframe ever inserted, also those max_keyframes dropped from training:
-        # a rigid correction moves their Gaussians too (~130 B a keyframe).
-        self._anchor_poses: dict[int, np.ndarray] = {}
-        self._anchor_stamps: dict[int, int] = {}  # capture time of each keyframe ever inserted, ns
+        self._anchors = KeyframeAnchors()  # every keyframe inserted, also those dropped from training
         self.exposure = ExposureCompensation(self.cfg.exposure_lr, self.cfg.exposure_reg, self.device) \
             if self.cfg.exposure_compensation else None
         self._background = torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
@@ -161,6 +156,7 @@ class GaussianMapper:
         self.merge = MergeSchedule(self.cfg, merge_fn, merge_cfg)
         self.densify = DensifyStrategy(self.cfg, generator)
         self.budget = BudgetStrategy(self.cfg, self.merge, generator)
+        self.training_set = TrainingSetStrategy(self.cfg)
         self._budget_pending = (0, 0)  # (merged, pruned) by the budget since the last StepStats
         self.peaks = PeakAttribution(self.device)  # which work set the GPU's allocation peak
 
@@ -266,40 +262,18 @@ class GaussianMapper:
         return added
 
     def _uncovered(self, kf: TrainingKeyframe, points_w: np.ndarray) -> np.ndarray | None:
-        """[M] bool: the seeds the settled map does not explain yet (``core/mapping/coverage.py``),
-        from a render at the keyframe of the Gaussians that keyframes taken ``seed_coverage_age_s``
-        or more before it made (the tracker's notion of a settled keyframe): the stretch of the last
-        seconds is still being trained, and its blobs would hide the detail the new seeds bring (on
-        the fr1/rpy head, which sweeps back over its own views, that cost 0.4 dB); None (keep all)
-        with ``seed_coverage`` off or nothing settled yet."""
-        cfg = self.cfg
-        if not cfg.seed_coverage or len(self.gmap) == 0:
+        """[M] bool: the seeds the settled map (keyframes taken ``seed_coverage_age_s`` or more before
+        this one) does not explain yet (``coverage.settled_uncovered``); None: keep them all."""
+        if not self.cfg.seed_coverage:
             return None
-        g = self.gmap
-        before = kf.stamp_ns - int(cfg.seed_coverage_age_s * 1e9)
-        old = [k for k, s in self._anchor_stamps.items() if s <= before]
-        if not old:
-            return None
-        settled = torch.nonzero(torch.isin(g.keyframe_ids, torch.tensor(old, dtype=torch.int64,
-                                                                         device=self.device))).reshape(-1)
-        if settled.numel() == 0:
-            return None
-        cam = kf.camera.scaled(cfg.seed_coverage_scale) if cfg.seed_coverage_scale != 1.0 else kf.camera
-        from memgs_ros.core.raster import Gaussians, rasterize
-
-        T_cw = torch.as_tensor(invert_pose(np.asarray(kf.T_wc, dtype=np.float64)), dtype=torch.float32,
-                               device=self.device)
-        with torch.no_grad(), self.peaks.work("coverage"):
-            part = Gaussians(*(t.detach()[settled] for t in g.gaussians()))
-            out = rasterize(part, T_cw, cam, g.active_sh_degree, background=self._background, near=cfg.near_m,
-                            backend=cfg.raster_backend)
-        return uncovered_seeds(np.asarray(points_w), kf.T_wc, cam, out.alpha, out.depth, cfg.seed_alpha_max,
-                               cfg.seed_depth_abs_m, cfg.seed_depth_rel)
+        settled = self._anchors.settled(kf.stamp_ns - int(self.cfg.seed_coverage_age_s * 1e9))
+        with self.peaks.work("coverage"):
+            return settled_uncovered(self.gmap, settled, np.asarray(points_w), kf.T_wc, kf.camera, self.cfg,
+                                     self._background)
 
     def _insert(self, kf: TrainingKeyframe) -> None:
         self.keyframes.add(kf)
-        self._anchor_poses[int(kf.kf_id)] = np.array(kf.T_wc, dtype=np.float64)
-        self._anchor_stamps[int(kf.kf_id)] = int(kf.stamp_ns)
+        self._anchors.add(kf.kf_id, kf.stamp_ns, kf.T_wc)
         self._newest_kf_id = max(self._newest_kf_id, int(kf.kf_id))
 
     def _over_memory_cap(self) -> bool:
@@ -311,21 +285,8 @@ class GaussianMapper:
 
     def _drop_redundant_keyframes(self) -> None:
         """Keep at most ``max_keyframes``, and drop keyframes while the accounted memory is over
-        ``max_mapper_mbytes`` (before the map is merged or pruned for it): each time the keyframe
-        whose pose is closest to another one (translation in metres + 0.5 m per radian of
-        rotation), never one of the newest ``training_window`` (the window; what stays beside it is
-        the flight's most spread-out views)."""
-        cap = self.cfg.max_keyframes
-        while (cap > 0 and len(self.keyframes) > cap) or self._over_memory_cap():
-            kfs = self.keyframes.all()
-            nearest = nearest_pose_distance(np.stack([k.T_wc for k in kfs]))
-            window = min(self.cfg.training_window, cap - 1 if cap > 0 else len(kfs) - 1, len(kfs) - 1)
-            if window > 0:
-                nearest[-window:] = np.inf  # id order: the newest last
-            if not np.isfinite(nearest).any():
-                break
-            dropped = kfs[int(np.argmin(nearest))].kf_id
-            self.keyframes.remove(dropped)
+        ``max_mapper_mbytes`` (before the map is merged or pruned for it): ``TrainingSetStrategy``."""
+        for dropped in self.training_set.drop(self.keyframes, self._over_memory_cap):
             if self.exposure is not None:
                 self.exposure.remove(dropped)
             self.keyframes_dropped += 1
@@ -334,27 +295,18 @@ class GaussianMapper:
         """Keyframes the tracker culled as redundant: their views leave training, and the Gaussians
         they created follow the nearest kept keyframe (by pose, its heir) from now on, so a loop
         correction still moves them. Unknown ids are ignored. Returns (retired, Gaussians handed on)."""
-        retired = handed = 0
-        g = self.gmap
-        for kf_id in kf_ids:
-            T = self._anchor_poses.pop(int(kf_id), None)
-            if T is None:
-                continue
-            self._anchor_stamps.pop(int(kf_id), None)
-            retired += 1
+        known = [k for k in kf_ids if k in self._anchors]
+        handed = 0
+        for kf_id, heir in ((k, self._anchors.retire(k)) for k in known):
             if kf_id in self.keyframes:
                 self.keyframes.remove(kf_id)
                 if self.exposure is not None:
                     self.exposure.remove(kf_id)
-            if not self._anchor_poses:
-                continue
-            others = list(self._anchor_poses)
-            heir = others[int(np.argmin(pose_distances(T, np.stack([self._anchor_poses[k] for k in others]))))]
-            rows = g.keyframe_ids == int(kf_id)
-            handed += int(rows.sum())
-            g.keyframe_ids[rows] = heir
-        self.keyframes_retired += retired
-        return retired, handed
+            rows = self.gmap.keyframe_ids == int(kf_id)
+            handed += int(rows.sum()) if heir is not None else 0
+            self.gmap.keyframe_ids[rows] = heir if heir is not None else kf_id
+        self.keyframes_retired += len(known)
+        return len(known), handed
 
     def update_keyframe_pose(self, kf_id: int, T_wc: np.ndarray) -> bool:
         """Replace a keyframe's pose (e.g. after bundle adjustment). Returns False (and changes
@@ -368,56 +320,38 @@ class GaussianMapper:
         for kf_id, T_wc in poses.items():
             if kf_id in self.keyframes:
                 self.keyframes.update_pose(kf_id, T_wc)
-                self._anchor_poses[kf_id] = np.array(T_wc, dtype=np.float64)
+                self._anchors.move(kf_id, T_wc)
                 updated += 1
         if updated:
             self._update_extent()
         return updated
 
     def correct_keyframes(self, poses: Mapping[int, np.ndarray], retrain: bool = True) -> tuple[int, int]:
-        """Rigidly move keyframes and the Gaussians anchored to them (a loop closure).
-
-        poses: {kf_id: corrected T_wc [4, 4]}. Each keyframe's correction D = T_new inv(T_old) (a
-        world-frame rigid motion) moves the Gaussians it created: mean -> R_D mean + t_D, rotation
-        -> R_D rotation; their Adam moments restart (the old ones point the wrong way). Higher SH
-        bands are not rotated (view-dependent colour of a moved Gaussian is re-learnt). Keyframes
-        that max_keyframes dropped from training still move their Gaussians. ``retrain``: corrected
-        keyframes still trained on get a fresh new-keyframe budget of training views (priority).
-        Returns (keyframes corrected, Gaussians moved).
-        """
+        """Rigidly move keyframes and the Gaussians anchored to them (a loop closure). poses:
+        {kf_id: corrected T_wc [4, 4]}; each keyframe's correction D = T_new inv(T_old) moves the
+        Gaussians it created (``rigid.move_with_keyframes``), also those of keyframes no longer
+        trained on. ``retrain``: corrected keyframes still trained on get a fresh new-keyframe budget
+        of training views (priority). Returns (keyframes corrected, Gaussians moved)."""
         todo: list[tuple[int, np.ndarray, np.ndarray]] = []  # (kf_id, T_new, D), validated before any change
         for kf_id, T_new in poses.items():
             T_new = np.asarray(T_new, dtype=np.float64)
             if T_new.shape != (4, 4) or not np.all(np.isfinite(T_new)):
                 raise DataError(f"keyframe {kf_id}: corrected T_wc must be a finite 4x4 matrix")
-            T_old = self._anchor_poses.get(int(kf_id))
+            T_old = self._anchors.pose(kf_id)
             if T_old is not None:
                 todo.append((int(kf_id), T_new, T_new @ invert_pose(T_old)))
         if not todo:
             return 0, 0
         todo.sort(key=lambda c: c[0])
-        g = self.gmap
-        ids = torch.tensor([c[0] for c in todo], dtype=torch.int64, device=self.device)  # [K] sorted
-        D = torch.as_tensor(np.stack([c[2] for c in todo]), dtype=torch.float32, device=self.device)  # [K, 4, 4]
-        # One pass over the map: each Gaussian finds its keyframe's correction (or none).
-        pos = torch.searchsorted(ids, g.keyframe_ids).clamp_max(len(ids) - 1)  # [N]
-        rows = torch.nonzero(ids[pos] == g.keyframe_ids).reshape(-1)  # [M]
-        which = pos[rows]  # [M] index into the corrections
-        if rows.numel():
-            with torch.no_grad():
-                R, t = D[which, :3, :3], D[which, :3, 3]  # [M, 3, 3], [M, 3]
-                g.means[rows] = (R @ g.means[rows][..., None])[..., 0] + t
-                q_D = rotmat_to_quat_wxyz_torch(D[:, :3, :3])  # [K, 4]
-                g.quats_wxyz[rows] = _quat_multiply_wxyz(q_D[which], g.quats_wxyz[rows])
-            g.reset_rows(rows, moments=True, accumulators=False)
+        moved = move_with_keyframes(self.gmap, [c[0] for c in todo], np.stack([c[2] for c in todo]))
         for kf_id, T_new, _ in todo:
-            self._anchor_poses[kf_id] = T_new.copy()
+            self._anchors.move(kf_id, T_new)
             if kf_id in self.keyframes:
                 self.keyframes.update_pose(kf_id, T_new)
                 if retrain:
                     self.keyframes.prioritise(kf_id)
         self._update_extent()
-        return len(todo), int(rows.numel())
+        return len(todo), moved
 
     def _update_extent(self) -> None:
         if self.cfg.scene_extent > 0 or len(self.keyframes) == 0:
@@ -526,14 +460,10 @@ class GaussianMapper:
         from tqdm import tqdm
 
         last = None
-        with tqdm(total=iterations, desc="mapping", unit="it", disable=not progress) as bar:
-            for _ in range(iterations):
-                last = self.step()
-                if callback is not None and last is not None:
-                    callback(last)
-                bar.update(1)
-                if last is not None and last.iteration % 10 == 0:
-                    bar.set_postfix(loss=f"{last.terms['total']:.4f}", n=last.num_gaussians)
+        for _ in tqdm(range(iterations), desc="mapping", unit="it", disable=not progress):
+            last = self.step()
+            if callback is not None and last is not None:
+                callback(last)
         return last
 
     # -------------------------------------------------------------- outputs
@@ -597,13 +527,3 @@ class GaussianMapper:
         while gmap.active_sh_degree < min(ckpt.active_sh_degree, gmap.max_sh_degree):
             gmap.raise_sh_degree()
         self.iteration = ckpt.iteration
-
-
-def _quat_multiply_wxyz(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # [N, 4] or [4], [N, 4] -> [N, 4]
-    """Hamilton product a * b of unit quaternions (w, x, y, z): rotation b, then a."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
-                        aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx,
-                        aw * bz + ax * by - ay * bx + az * bw], -1)

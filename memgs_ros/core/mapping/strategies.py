@@ -8,7 +8,9 @@ the per-Gaussian side arrays together):
 - ``MergeSchedule``: when the MemGS voxel merge runs (``memgs_ros.core.merge.voxel_merge.merge_pass``) and the
   relaxed merge configuration the memory budget uses;
 - ``BudgetStrategy``: the memory budget (a Gaussian count), enforced by relaxed merge passes and
-  then pruning of the least contributing Gaussians; it also cuts densification to the room left.
+  then pruning of the least contributing Gaussians; it also cuts densification to the room left;
+- ``TrainingSetStrategy``: which training keyframes go when the store is over ``max_keyframes``
+  or the accounted memory over ``max_mapper_mbytes``.
 
 A policy holds its configuration and its own random generator, never the map: the mapping engine
 (``memgs_ros.core.mapping.mapper.GaussianMapper``) passes the map and the iteration to every call.
@@ -21,13 +23,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 
-from memgs_ros.core.geometry.poses import quat_wxyz_to_rotmat_torch
+from memgs_ros.core.geometry.poses import nearest_pose_distance, quat_wxyz_to_rotmat_torch
 
 if TYPE_CHECKING:
     from memgs_ros.core.mapping.config import MappingConfig
     from memgs_ros.core.mapping.gaussians import GaussianMap
+    from memgs_ros.core.mapping.keyframes import KeyframeStore
 
 logger = logging.getLogger(__name__)
 
@@ -376,3 +380,30 @@ class DensifyStrategy:
                 gmap.remove(prune)
             logger.debug("densify: %d -> %d (+%d clone/split) -> %d after pruning", n0, n1, added, len(gmap))
             return added, removed_prune + int(split_idx.numel())
+
+
+class TrainingSetStrategy:
+    """The mapper's training keyframes, bounded: the newest ``training_window`` and, beside them,
+    the flight's most spread-out views (``max_keyframes``, 0 = all), so that a long flight's image
+    memory and per-iteration work stay flat."""
+
+    def __init__(self, cfg: MappingConfig) -> None:
+        self.cfg = cfg
+
+    def drop(self, store: KeyframeStore, over_memory_cap: Callable[[], bool]) -> list[int]:
+        """Remove keyframes from ``store`` while it holds more than ``max_keyframes`` or
+        ``over_memory_cap()``: each time the one whose pose is closest to another (translation in
+        metres + 0.5 m per radian of rotation), never one of the newest ``training_window``
+        (at most ``max_keyframes - 1`` of them). Returns the removed ids, in order."""
+        cap, out = self.cfg.max_keyframes, []
+        while (cap > 0 and len(store) > cap) or over_memory_cap():
+            kfs = store.all()
+            nearest = nearest_pose_distance(np.stack([k.T_wc for k in kfs]))
+            window = min(self.cfg.training_window, cap - 1 if cap > 0 else len(kfs) - 1, len(kfs) - 1)
+            if window > 0:
+                nearest[-window:] = np.inf  # id order: the newest last
+            if not np.isfinite(nearest).any():
+                break
+            out.append(kfs[int(np.argmin(nearest))].kf_id)
+            store.remove(out[-1])
+        return out

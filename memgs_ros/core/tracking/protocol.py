@@ -28,6 +28,7 @@ class SparseMapStats:
     keyframe_ids: frozenset[int]
     points: int
     keyframes_removed: int
+    keyframes_culled: int = 0  # of those, culled as redundant (the rest: over max_keyframes)
 
     @property
     def keyframes(self) -> int:

@@ -225,6 +225,52 @@ class BackendLink:
         return KeyframesMoved(moved, loop=True)
 
 
+class BackendResults:
+    """What a tracker hands out of its back-end link (``_link``, set by the tracker): the
+    ``Tracker`` protocol's BA counters and its polls of refined and loop-corrected keyframes."""
+
+    _link: BackendLink
+
+    @property
+    def ba_time_s(self) -> float:
+        """Seconds of local BA so far (threaded), or of all back-end work done inline (lockstep)."""
+        return self._link.ba_time_s
+
+    @ba_time_s.setter
+    def ba_time_s(self, value: float) -> None:  # the Tracker protocol's attribute is writeable
+        self._link.ba_time_s = value
+
+    @property
+    def ba_runs(self) -> int:
+        return self._link.ba_runs
+
+    @property
+    def loop_stats(self) -> LoopStats:
+        return self._link.stats
+
+    def poll_refined_keyframes(self) -> list[tuple[int, np.ndarray]]:
+        """(keyframe_id, refined T_wc [4, 4]) from local BA since the last poll, oldest first:
+        small refinements the mapper takes as new training poses (its Gaussians stay)."""
+        out, self._link.refined = self._link.refined, []
+        return out
+
+    def poll_loop_corrected_keyframes(self) -> list[tuple[int, np.ndarray]]:
+        """(keyframe_id, corrected T_wc [4, 4]) of every keyframe a loop closure moved, since the
+        last poll, oldest first: the mapper moves each keyframe's Gaussians with it."""
+        out, self._link.loop_refined = self._link.loop_refined, []
+        return out
+
+    def poll_loop_corrections(self) -> list[dict[int, np.ndarray]]:
+        """Loop corrections committed since the last poll, oldest first: {keyframe_id: D [4, 4]}
+        with D = T_wc_new T_wc_old^-1 the keyframe's world-frame correction (``AnchoredPath``)."""
+        out, self._link.loop_done = self._link.loop_done, []
+        return out
+
+    def close(self) -> None:
+        """Stop the back-end; requests it has not answered are dropped (idempotent)."""
+        self._link.close()
+
+
 def commit_correction(smap: SparseMap, c: LoopCorrection) -> Moved | None:
     """Apply a loop correction or global BA to ``smap``; None when stale (its ``pose_epoch`` is not
     the map's). Returns {keyframe id: (old T_cw, new T_cw)}."""
@@ -283,4 +329,4 @@ def _correction_table(smap: SparseMap, c: LoopCorrection) -> tuple[np.ndarray, n
     return ids, D
 
 
-__all__ = ["BackendLink", "KeyframesMoved", "commit_correction"]
+__all__ = ["BackendLink", "BackendResults", "KeyframesMoved", "commit_correction"]

@@ -36,7 +36,8 @@ from memgs_ros.core.tracking.backend.bundle_adjustment import orthonormalized
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.features.features import FrameFeatures, OrbExtractor, unroll_rolling_shutter
 from memgs_ros.core.tracking.features.vocabulary import KeyframeDatabase, Vocabulary, default_vocabulary
-from memgs_ros.core.tracking.frontend.corrections import BackendLink, KeyframesMoved
+from memgs_ros.core.tracking.frontend.corrections import BackendLink, BackendResults, KeyframesMoved
+from memgs_ros.core.tracking.frontend.keyframe_rules import cull_around, keyframe_needed
 from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
 from memgs_ros.core.tracking.frontend.pose_tracking import (
     LocalMapMatcher,
@@ -89,7 +90,7 @@ def keyframe_info(smap: SparseMap, kf: SparseKeyframe) -> KeyframeInfo:
                         kf.feats.uv.astype(np.float32), depth, active)
 
 
-class FeatureTracker(Tracker):
+class FeatureTracker(BackendResults, Tracker):
     """Common machinery; subclasses add initialisation and new map points (depth or triangulation).
 
     ``ba_fixed_keyframes``: window keyframes local BA holds fixed when no keyframe outside the
@@ -144,23 +145,6 @@ class FeatureTracker(Tracker):
         self._link = BackendLink(self.backend, cfg)
 
     # -- public -------------------------------------------------------------------------
-    @property
-    def ba_time_s(self) -> float:
-        """Seconds of local BA so far (threaded), or of all back-end work done inline (lockstep)."""
-        return self._link.ba_time_s
-
-    @ba_time_s.setter
-    def ba_time_s(self, value: float) -> None:  # the Tracker protocol's attribute is writeable
-        self._link.ba_time_s = value
-
-    @property
-    def ba_runs(self) -> int:
-        return self._link.ba_runs
-
-    @property
-    def loop_stats(self) -> LoopStats:
-        return self._link.stats
-
     def track(self, frame: Frame) -> TrackResult:
         """Estimate the pose of ``frame``; see TrackResult for what each state carries."""
         t0 = time.perf_counter()
@@ -186,39 +170,15 @@ class FeatureTracker(Tracker):
         return TrackResult(frame.stamp_ns, T_wc, self.state, kf, n_m, n_i, time.perf_counter() - t0,
                            self.segment_id, self._ref_kf_id if T_wc is not None else -1)
 
-    def poll_refined_keyframes(self) -> list[tuple[int, np.ndarray]]:
-        """(keyframe_id, refined T_wc [4, 4]) from local BA since the last poll, oldest first:
-        small refinements the mapper takes as new training poses (its Gaussians stay)."""
-        out, self._link.refined = self._link.refined, []
-        return out
-
     def poll_culled_keyframes(self) -> list[tuple[int, int, np.ndarray]]:
-        """(culled keyframe id, heir id, its last T_wc [4, 4]) of every keyframe culling removed since
-        the last poll, oldest first. The heir is the kept keyframe that shared the most points with
-        it: what followed the culled one (its Gaussians, the frames tracked against it) follows the
-        heir's corrections from now on."""
+        """(culled keyframe id, heir id, its last T_wc [4, 4]) since the last poll (``Culled``)."""
         out, self._culled = self._culled, []
-        return out
-
-    def poll_loop_corrected_keyframes(self) -> list[tuple[int, np.ndarray]]:
-        """(keyframe_id, corrected T_wc [4, 4]) of every keyframe a loop closure moved, since the
-        last poll, oldest first: the mapper moves each keyframe's Gaussians with it."""
-        out, self._link.loop_refined = self._link.loop_refined, []
-        return out
-
-    def poll_loop_corrections(self) -> list[dict[int, np.ndarray]]:
-        """Loop corrections committed since the last poll, oldest first: {keyframe_id: D [4, 4]}
-        with D = T_wc_new T_wc_old^-1 the keyframe's world-frame correction (``AnchoredPath``)."""
-        out, self._link.loop_done = self._link.loop_done, []
         return out
 
     def map_stats(self) -> SparseMapStats:
         """The sparse map's keyframes and good points."""
-        return SparseMapStats(frozenset(self.map.keyframes), self.map.n_good_points, self.map.keyframes_removed)
-
-    def close(self) -> None:
-        """Stop the back-end; requests it has not answered are dropped (idempotent)."""
-        self._link.close()
+        m = self.map
+        return SparseMapStats(frozenset(m.keyframes), m.n_good_points, m.keyframes_removed, self.keyframes_culled)
 
     def wait_for_loop_closing(self, timeout_s: float = 60.0) -> None:
         """Block until queued keyframes are indexed and checked for loops and the corrections (and
@@ -464,51 +424,20 @@ class FeatureTracker(Tracker):
 
     # -- keyframes ----------------------------------------------------------------------
     def _need_keyframe(self, T_cw: np.ndarray, feats: FrameFeatures, outcome: TrackOutcome) -> bool:
-        """Keyframes by need. Tracking that weakens asks for one: fewer tracked points than
-        ``keyframe_tracked_ratio`` of the reference keyframe's (the one sharing the most of them,
-        not the last inserted), or too few close points; so do time (``keyframe_max_frames``) and
-        motion from the last keyframe (``keyframe_max_rotation_deg`` / ``_translation_m``). Neither
-        adds one where a settled keyframe already sees from nearby (``_covered``): a place flown
-        again is tracked on the points mapped there and adds none (on the fr1/rpy head played five
-        times, forward and back, with the shutter read in the flight's direction: 28 keyframes,
-        then 10 more in four passes, against 27-28 more each pass before)."""
+        """``keyframe_rules.keyframe_needed``, judged against the reference keyframe (the one sharing
+        the most tracked points) and covered by the local map's keyframes taken at least
+        ``keyframe_cover_age_s`` before the frame (the stretch of the last seconds is being mapped:
+        on the fr1/rpy head, which sweeps back over its views, counting it cost 0.1 cm and 0.4 dB)."""
         cfg = self.cfg
-        if self._frames_since_kf < cfg.keyframe_min_frames:
-            return False
-        n_tracked = len(outcome.point_ids)
-        if n_tracked < cfg.min_inliers:
-            return False
         last = self.map.keyframes.get(self._last_kf_id)
         ref = self.map.keyframes.get(self._ref_kf_id, last)
         if last is None or ref is None:
-            return True
-        if (n_tracked < self._keyframe_ratio() * self._reference_tracked(ref)
-                or self._need_close_points(feats, outcome.kp_idx)):
-            return not self._covered(T_cw, cfg.keyframe_weak_cover_deg, cfg.keyframe_weak_cover_m)
-        d = T_cw @ invert_pose(last.T_cw)
-        due = (self._frames_since_kf >= cfg.keyframe_max_frames
-               or rotation_angle_deg(d[:3, :3]) > cfg.keyframe_max_rotation_deg
-               or np.linalg.norm(d[:3, 3]) / self._scale_unit() > cfg.keyframe_max_translation_m)
-        return due and not self._covered(T_cw, cfg.keyframe_cover_deg, cfg.keyframe_cover_m)
-
-    def _covered(self, T_cw: np.ndarray, max_deg: float, max_m: float) -> bool:
-        """Whether a settled keyframe of the local map (or the reference) sees from within
-        ``max_deg`` and ``max_m`` (metres per map unit) of the pose T_cw [4, 4]. Settled: taken at
-        least ``keyframe_cover_age_s`` before this frame. The keyframes of the last seconds are the
-        stretch being mapped, and a new one beside them strengthens its BA: on the fr1/rpy head,
-        whose camera sweeps back and forth, covering by them too cost 0.1 cm of ATE and 0.4 dB."""
-        if max_deg <= 0.0 or max_m <= 0.0 or not self.map.keyframes:
-            return False
-        settled_before = self._stamp_ns - int(self.cfg.keyframe_cover_age_s * 1e9)
-        for kf_id in dict.fromkeys([self._ref_kf_id, *self._local_kfs]):
-            kf = self.map.keyframes.get(kf_id)
-            if kf is None or kf.stamp_ns > settled_before:
-                continue
-            d = T_cw @ invert_pose(kf.T_cw)
-            if (np.linalg.norm(d[:3, 3]) / self._scale_unit() <= max_m
-                    and rotation_angle_deg(d[:3, :3]) <= max_deg):
-                return True
-        return False
+            return self._frames_since_kf >= cfg.keyframe_min_frames and len(outcome.point_ids) >= cfg.min_inliers
+        weak = (len(outcome.point_ids) < self._keyframe_ratio() * self._reference_tracked(ref)
+                or self._need_close_points(feats, outcome.kp_idx))
+        return keyframe_needed(cfg, self.map, T_cw, last, len(outcome.point_ids), self._frames_since_kf, weak,
+                               [self._ref_kf_id, *self._local_kfs],
+                               self._stamp_ns - int(cfg.keyframe_cover_age_s * 1e9), self._scale_unit())
 
     def _reference_tracked(self, ref: SparseKeyframe) -> int:
         """Points of the reference keyframe seen by enough keyframes (ORB-SLAM's nMinObs)."""
@@ -532,38 +461,15 @@ class FeatureTracker(Tracker):
         return self._finish_keyframe(kf)
 
     def _cull_keyframes(self, kf: SparseKeyframe) -> None:
-        """ORB-SLAM's keyframe culling around the new keyframe ``kf``: its covisible keyframes whose
-        points the others see well enough (``TrackerConfig.keyframe_cull_ratio``) go, never ``kf``
-        nor the segment's first keyframe (the map's anchor). Each hands on to the kept keyframe that
-        shared the most points with it (its heir: the path's frames and the mapper's Gaussians that
-        followed it follow the heir), and leaves the place-recognition database."""
-        cfg = self.cfg
-        if cfg.keyframe_cull_ratio <= 0.0:
-            return
-        own = kf.point_ids[kf.point_ids >= 0]
-        candidates = self.map.covisible(own, cfg.local_map_keyframes, exclude=kf.keyframe_id)
-        heirs: dict[int, tuple[int, np.ndarray]] = {}
-        for c in candidates:
-            ck = self.map.keyframes[c]
-            pts = ck.point_ids[ck.point_ids >= 0]
-            heirs[c] = ((self.map.covisible(pts, 1, exclude=c) or [kf.keyframe_id])[0], ck.T_wc)
-        protected = {kf.keyframe_id, min(self.map.keyframes)}
-        removed = self.map.cull_redundant_keyframes(candidates, cfg.keyframe_cull_ratio, cfg.keyframe_cull_observers,
-                                                    protected)
-        if not removed:
-            return
-        gone = set(removed)
-        for r in removed:
-            heir, seen = heirs[r][0], {r}
-            while heir in gone:  # an heir culled in the same pass hands on to its own
-                seen.add(heir)
-                heir = heirs[heir][0]
-                if heir in seen:
-                    heir = kf.keyframe_id
-            self._culled.append((r, heir, heirs[r][1]))
-        self._local_kfs = [k for k in self._local_kfs if k not in gone]
-        self.keyframes_culled += len(removed)
-        self._link.keyframes_removed(removed, self.segment_id)
+        """Culling around the new keyframe (``keyframe_rules.cull_around``): the culled ones leave the
+        local map and the place-recognition databases, and wait for ``poll_culled_keyframes``."""
+        c = self.cfg
+        culled = cull_around(self.map, kf, c.local_map_keyframes, c.keyframe_cull_ratio, c.keyframe_cull_observers)
+        if culled:
+            self._culled += [(k.kf_id, k.heir_id, k.T_wc) for k in culled]
+            self._local_kfs = [k for k in self._local_kfs if k in self.map.keyframes]
+            self.keyframes_culled += len(culled)
+            self._link.keyframes_removed([k.kf_id for k in culled], self.segment_id)
 
     def _cap_keyframes(self, newest_id: int) -> None:
         """Keep at most ``cfg.max_keyframes``, never one of the local map or the newest BA window."""
