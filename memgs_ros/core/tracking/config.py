@@ -79,11 +79,11 @@ class TrackerConfig:
     # ... unless a settled keyframe of the local map (taken at least keyframe_cover_age_s before)
     # already sees from within these: a place flown again adds no keyframe for time or motion
     # (0: never covered) ...
-    keyframe_cover_deg: float = 7.5
-    keyframe_cover_m: float = 0.075
+    keyframe_cover_deg: float = 15.0
+    keyframe_cover_m: float = 0.15
     # ... nor, from within these, for weak tracking (tracked ratio, close points)
-    keyframe_weak_cover_deg: float = 5.0
-    keyframe_weak_cover_m: float = 0.05
+    keyframe_weak_cover_deg: float = 7.5
+    keyframe_weak_cover_m: float = 0.075
     keyframe_cover_age_s: float = 5.0
     # Keyframe culling (ORB-SLAM's): after each insertion, a covisible keyframe whose good points are
     # at least this fraction seen by keyframe_cull_observers other keyframes is removed (0: never).
