@@ -201,8 +201,13 @@ _PLOTTED = {"gaussians", "model_bytes", "keyframes", "map_keyframes", "map_point
             "merged_removed", "merge_passes", "frames_published"}
 
 
-def plot(result: Mapping[str, Any], path: Path) -> Path:
-    """The timelines of every run (one colour per mode) and the ATE per pass, as a PNG."""
+def _label(result: Mapping[str, Any], mode: str) -> str:
+    return f"{result['label']} {mode}" if result.get("label") else mode
+
+
+def plot(results: Sequence[Mapping[str, Any]], path: Path) -> Path:
+    """The timelines of every run of ``results`` (one colour per result and mode; time since the
+    flight's first frame) and the median ATE per pass, as a PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -211,38 +216,41 @@ def plot(result: Mapping[str, Any], path: Path) -> Path:
     fig, axes = plt.subplots(2, 3, figsize=(15, 8))
     panels = [
         (axes[0, 0], "mapper", "gaussians", 1e-3, "Gaussians (thousands)"),
-        (axes[0, 1], "mapper", "model_bytes", 2**-20, "model (MiB)"),
-        (axes[0, 2], "tracker", "map_keyframes", 1.0, "tracker keyframes kept"),
+        (axes[0, 1], "tracker", "map_keyframes", 1.0, "tracker keyframes kept"),
+        (axes[0, 2], "mapper", "iteration", 1.0, "mapper iterations"),
         (axes[1, 0], "mapper", "rss_mb", 1.0, "mapper RSS (MB)"),
-        (axes[1, 1], "tracker", "map_points", 1e-3, "tracker map points (thousands)"),
+        (axes[1, 1], "merger", "rss_mb", 1.0, "merger RSS (MB)"),
     ]
-    for mode, runs in result["modes"].items():
+    series = [(_label(r, mode), runs) for r in results for mode, runs in r["modes"].items()]
+    for c, (name, runs) in enumerate(series):
         for i, run in enumerate(runs):
             for ax, node, key, scale, label in panels:
                 tl = run["timeline"].get(node, {})
                 t, v = np.asarray(tl.get("t_s", [])), np.asarray(tl.get(key, []), float)
                 if len(t) and len(v) == len(t):
-                    ax.plot(t - run["flight_window_s"][0], v * scale, label=mode if i == 0 else None,
-                            color="C0" if mode == "live" else "C1", alpha=0.8)
+                    ax.plot(t - run["flight_window_s"][0], v * scale, label=name if i == 0 else None,
+                            color=f"C{c}", alpha=0.8)
                 ax.set_xlabel("time since the first frame (s)")
                 ax.set_ylabel(label)
     ax = axes[1, 2]
-    for k, (mode, runs) in enumerate(result["modes"].items()):
+    width = 0.8 / max(len(series), 1)
+    for c, (name, runs) in enumerate(series):
         passes = [r.get("ate_pass_cm") or [] for r in runs]
         if passes and passes[0]:
             med = [statistics.median([p[j] for p in passes if p[j] is not None] or [np.nan])
                    for j in range(len(passes[0]))]
-            x = np.arange(len(med)) + (k - 0.5) * 0.4
-            ax.bar(x, med, width=0.4, label=mode)
+            ax.bar(np.arange(1, len(med) + 1) + (c - (len(series) - 1) / 2) * width, med, width=width,
+                   label=name, color=f"C{c}")
     ax.set_xlabel("pass")
-    ax.set_ylabel("ATE (cm), one alignment")
+    ax.set_ylabel("ATE (cm), one alignment over the flight")
     for a in axes.flat:
         a.grid(alpha=0.3)
         if a.get_legend_handles_labels()[0]:
-            a.legend()
-    fig.suptitle(f"{result['source']} x{result['repeat']} ({result['config']})")
+            a.legend(fontsize=8)
+    first = results[0]
+    fig.suptitle(f"{Path(first['source']).name} x{first['passes']} ({first['config']})")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=80)
     plt.close(fig)
     return path
 
@@ -257,8 +265,9 @@ def summary_row(runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     row = {k: _med(runs, k) for k in ("tracked_fraction", "keyframes", "map_keyframes_end", "gaussians",
                                       "gaussians_flight_peak", "gaussians_peak", "ate_cm", "psnr_db",
                                       "iterations_flight", "growth_gaussians", "lost")}
-    for node in ("mapper", "merger", "tracker", "keyframe_sampler", "player"):
-        row[f"rss_{node}"] = statistics.median([r["peak_rss_mb"].get(node, 0.0) for r in runs]) if runs else None
+    for node in ("mapper", "merger", "tracker", "keyframe_sampler", "player"):  # over the flight
+        vals = [r["flight_peak_rss_mb"].get(node) for r in runs if r["flight_peak_rss_mb"].get(node) is not None]
+        row[f"rss_{node}"] = statistics.median(vals) if vals else None
     lat = [r["keyframe_latency_ms"].get("median") for r in runs if r["keyframe_latency_ms"].get("median") is not None]
     row["latency_ms"] = statistics.median(lat) if lat else None
     passes = [r.get("ate_pass_cm") or [] for r in runs]
@@ -268,14 +277,14 @@ def summary_row(runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     return row
 
 
-def table(result: Mapping[str, Any]) -> str:
+def table(results: Sequence[Mapping[str, Any]]) -> str:
     def f(v: Any, fmt: str = "{:.2f}") -> str:
         return "n/a" if v is None or (isinstance(v, float) and not np.isfinite(v)) else fmt.format(v)
 
     lines = ["| mode | runs | tracked | tracker KF (kept) | Gaussians end (flight peak) | ATE cm | ATE per pass cm | "
-             "PSNR dB | KF latency s | mapper / merger peak RSS MB | iterations in flight |",
+             "PSNR dB | KF latency s | mapper / merger RSS MB, flight peak | iterations in flight |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for mode, runs in result["modes"].items():
+    for mode, runs in ((_label(res, m), runs) for res in results for m, runs in res["modes"].items()):
         r = summary_row(runs)
         per = " / ".join(f(v, "{:.1f}") for v in r.get("ate_pass_cm", []))
         lines.append(
@@ -331,15 +340,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=3600.0, help="per run (s)")
     ap.add_argument("--work", type=Path, default=ROOT / "results/long_flight", help="run folders go here")
     ap.add_argument("--out", type=Path, default=ROOT / "results/bench_long_flight.json")
-    ap.add_argument("--table", type=Path, default=None, metavar="JSON", help="print the table of a saved run and exit")
+    ap.add_argument("--table", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="print the table of saved runs (several: a row each, by their labels) and exit")
+    ap.add_argument("--figure", type=Path, default=None, metavar="PNG",
+                    help="with --table: also draw the saved runs' timelines into this PNG")
+    ap.add_argument("--label", default="", help="the runs' name in tables and figures (e.g. the commit)")
     args = ap.parse_args(argv)
     if args.table is not None:
         import json
 
-        print(table(json.loads(args.table.read_text())))
+        saved = [json.loads(p.read_text()) for p in args.table]
+        print(table(saved))
+        if args.figure is not None:
+            print(plot(saved, args.figure))
         return 0
     source = args.source if args.source else str(tum_path_or_exit(ap, args.tum))
-    result: dict[str, Any] = {"source": source, "repeat": args.repeat, "repeat_forward": args.repeat_forward,
+    result: dict[str, Any] = {"label": args.label, "source": source, "repeat": args.repeat,
+                              "repeat_forward": args.repeat_forward,
                               "passes": args.passes or args.repeat,
                               "config": args.config, "checkout": str(args.checkout), "sets": args.set,
                               "rate": args.rate, "modes": {}}
@@ -355,9 +372,9 @@ def main(argv: list[str] | None = None) -> int:
             runs.append(run_mode(mode, args, source, out))
             result["modes"][mode] = runs
             write_results(args.out, result)  # what finished so far survives a later failure
-    png = plot(result, args.out.with_suffix(".png"))
+    png = plot([result], args.out.with_suffix(".png"))
     write_results(args.out, result)
-    print(table(result))
+    print(table([result]))
     print(f"\n{args.out}\n{png}")
     return 0
 

@@ -89,7 +89,7 @@ class MappingConfig:
     # thinner than seed_alpha_max or the seed lies in front of its surface by more than
     # seed_depth_abs_m + seed_depth_rel x depth; a place flown again seeds little
     seed_coverage: bool = True
-    seed_coverage_age_s: float = 5.0
+    seed_coverage_age_s: float = 6.0
     seed_coverage_scale: float = 0.5
     seed_alpha_max: float = 0.5
     seed_depth_abs_m: float = 0.05

@@ -65,8 +65,7 @@ def settled_uncovered(gmap: GaussianMap, settled_kf_ids: list[int], points_w: np
     made (the mapper's ``KeyframeAnchors.settled``), rendered at ``T_wc`` with ``camera`` scaled by
     ``cfg.seed_coverage_scale``, with the config's thresholds; None (keep every seed) when nothing
     is settled. A surface the last seconds' keyframes seeded is still being trained, and its blobs
-    would hide the detail the new seeds bring (on the fr1/rpy head, which sweeps back over its own
-    views, counting them cost 0.4 dB)."""
+    would hide the detail the new seeds bring."""
     from memgs_ros.core.raster import Gaussians, rasterize
 
     if not settled_kf_ids or len(gmap) == 0:

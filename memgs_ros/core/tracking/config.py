@@ -84,7 +84,7 @@ class TrackerConfig:
     # ... nor, from within these, for weak tracking (tracked ratio, close points)
     keyframe_weak_cover_deg: float = 7.5
     keyframe_weak_cover_m: float = 0.075
-    keyframe_cover_age_s: float = 5.0
+    keyframe_cover_age_s: float = 6.0
     # Keyframe culling (ORB-SLAM's): after each insertion, a covisible keyframe whose good points are
     # at least this fraction seen by keyframe_cull_observers other keyframes is removed (0: never).
     # Its points and loop-closure entry go with it; the mapper is told (poll_culled_keyframes).

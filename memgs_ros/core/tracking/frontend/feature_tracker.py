@@ -427,7 +427,7 @@ class FeatureTracker(BackendResults, Tracker):
         """``keyframe_rules.keyframe_needed``, judged against the reference keyframe (the one sharing
         the most tracked points) and covered by the local map's keyframes taken at least
         ``keyframe_cover_age_s`` before the frame (the stretch of the last seconds is being mapped:
-        on the fr1/rpy head, which sweeps back over its views, counting it cost 0.1 cm and 0.4 dB)."""
+        the fr1/rpy head sweeps back over its views: settled at 5 s it lost 2 of 28 keyframes and 0.24 dB)."""
         cfg = self.cfg
         last = self.map.keyframes.get(self._last_kf_id)
         ref = self.map.keyframes.get(self._ref_kf_id, last)

@@ -56,7 +56,7 @@ def keyframe_needed(cfg: TrackerConfig, smap: SparseMap, T_cw: np.ndarray, last:
     ``keyframe_weak_cover_*`` for weak tracking, ``keyframe_cover_*`` for time and motion). A place
     flown again is tracked on the points mapped there and adds none (the fr1/rpy head played five
     times, forward and back, with the shutter read in the flight's direction: 28 keyframes, then
-    8 more in four passes, against 27-28 more each pass before). ``scale_unit``: metres per map unit."""
+    7 more in four passes, against 27-28 more each pass before). ``scale_unit``: metres per map unit."""
     if frames_since_kf < cfg.keyframe_min_frames or n_tracked < cfg.min_inliers:
         return False
     if weak:
