@@ -25,6 +25,7 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as NavPath
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image, PointCloud2
 from std_msgs.msg import Bool
 from std_srvs.srv import Trigger
@@ -73,6 +74,7 @@ __all__ = ["GRAPH_NODES", "NODE_MODULES", "PipelineError", "RunOptions", "RunSum
 GRAPH_NODES = GRAPH_NODE_NAMES
 _STATS_NODES = (*GRAPH_NODES, "player", VIEW_NODE, "recorder")  # the names on memgs/<name>/stats
 _STATS_ROUND_S = 1.5  # every node publishes its stats once a second: one round, with margin
+_PATH_DECODE_PERIOD_S = 10.0  # the runner decodes memgs/path this often (and at the end)
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -90,6 +92,8 @@ class _Observer:
         self._parsed: dict[str, tuple[dict[str, str], Any]] = {}  # node -> (values, their record)
         self.trajectory: list[tuple[int, np.ndarray]] = []
         self.corrected: dict[int, np.ndarray] = {}  # memgs/path: poses re-expressed after BA / loop closure
+        self._path_raw: bytes | None = None  # the newest memgs/path, serialized, not decoded yet
+        self._path_decoded_t = -float("inf")
         self.keyframes: list[tuple[int, np.ndarray]] = []
         self.timeline: list[dict[str, Any]] = []  # every stats message: {"t_s", "node", values...}
         self._t0 = time.monotonic()
@@ -116,13 +120,21 @@ class _Observer:
             with self._lock:
                 self.keyframes.append((stamp_to_ns(msg.header.stamp), pose_to_matrix(msg.pose)))
 
-        def on_path(msg: NavPath) -> None:
-            poses = {stamp_to_ns(p.header.stamp): pose_to_matrix(p.pose) for p in msg.poses}
+        def on_path(raw: bytes) -> None:
+            # The whole path (up to the tracker's path_max_len poses) comes once a second; decoding
+            # it is Python work per pose (at 10000 poses most of a core, and the poses the runner
+            # then missed). A pose leaves the path's window only after minutes: decode one message
+            # every _PATH_DECODE_PERIOD_S, and the newest when the run ends (corrected_poses).
+            now = time.monotonic()
             with self._lock:
-                self.corrected.update(poses)
+                self._path_raw = raw
+                if now - self._path_decoded_t < _PATH_DECODE_PERIOD_S:
+                    return
+                self._path_decoded_t = now
+            self.corrected_poses()
 
         self.node.create_subscription(PoseStamped, "memgs/pose", on_pose, qos.reliable(1000))
-        self.node.create_subscription(NavPath, "memgs/path", on_path, qos.reliable(5))
+        self.node.create_subscription(NavPath, "memgs/path", on_path, qos.reliable(5), raw=True)
         self.node.create_subscription(PoseStamped, "memgs/keyframe/pose", on_keyframe, qos.reliable(1000))
         for name in _STATS_NODES:
             self.node.create_subscription(DiagnosticArray, f"memgs/{name}/stats", stats_cb(name), qos.reliable(5))
@@ -140,6 +152,18 @@ class _Observer:
         self.publish_map_client = self.node.create_client(Trigger, "memgs/merger/publish_map")
         self.save_client = self.node.create_client(Trigger, "memgs/save_map")
         self._trigger = Trigger
+
+    def corrected_poses(self) -> dict[int, np.ndarray]:
+        """stamp (ns) -> T_wc of every pose memgs/path has corrected so far, the newest path decoded."""
+        with self._lock:
+            raw, self._path_raw = self._path_raw, None
+        if raw is not None:
+            msg = deserialize_message(raw, NavPath)
+            poses = {stamp_to_ns(p.header.stamp): pose_to_matrix(p.pose) for p in msg.poses}
+            with self._lock:
+                self.corrected.update(poses)
+        with self._lock:
+            return dict(self.corrected)
 
     def call(self, client: Any, timeout_s: float) -> str:
         """Call a Trigger service and return its message; PipelineError if it fails."""
@@ -559,9 +583,10 @@ def _wait_for_merger(obs: _Observer, procs: NodeProcesses | None, final_seq: int
 
 def _write_trajectories(obs: _Observer, out: Path) -> int:
     """trajectory.txt, keyframes.txt and stats_timeline.jsonl; the number of poses."""
+    corrected = obs.corrected_poses()
     with obs._lock:
         # Corrected poses (memgs/path) where the path has them, the per-frame odometry elsewhere.
-        traj = sorted(((s, obs.corrected.get(s, T)) for s, T in obs.trajectory), key=lambda p: p[0])
+        traj = sorted(((s, corrected.get(s, T)) for s, T in obs.trajectory), key=lambda p: p[0])
         kfs = sorted(obs.keyframes, key=lambda p: p[0])
         timeline = "".join(json.dumps(row) + "\n" for row in obs.timeline)
     _write_text(out / TRAJECTORY_FILE, _tum_trajectory(traj))
