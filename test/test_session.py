@@ -272,6 +272,28 @@ def test_final_iterations_densify_only_when_asked(frames: list[Frame], densify: 
     s.close()
 
 
+def test_densification_follows_new_keyframes_in_flight(frames: list[Frame]) -> None:
+    """In flight the map densifies only within densify_window_iters of the newest keyframe: a flight
+    over a room already mapped brings no keyframe and the map stops growing with the training time;
+    the next keyframe opens the window again."""
+    s = MappingSession(_cfg(densify_start_iter=5, densify_interval=5, densify_grad_threshold=0.0,
+                            densify_window_iters=10, prune_opacity=0.0), free_running=False)
+    size = lambda m: len(m.gmap)  # noqa: E731
+    for i, f in enumerate(frames[:3]):
+        s.insert_keyframe(_kf(f, 10 + i))
+    seeded = s.call(size).result(30)
+    s.train(10).result(60)  # densifies at 5 and 10
+    opened = s.call(size).result(30)
+    assert opened > seeded
+    s.train(20).result(60)  # iterations 11-30: the window closed at 10
+    assert s.call(size).result(30) == opened
+    s.insert_keyframe(_kf(frames[3], 13))
+    with_seeds = s.call(size).result(30)
+    s.train(10).result(60)  # densifies at 35 and 40
+    assert s.call(size).result(30) > with_seeds
+    s.close()
+
+
 def test_final_budget_ends_the_final_iterations_early(frames: list[Frame]) -> None:
     """finish(n, budget_s=b) stops once the final iterations have taken b seconds (checked after
     each: at least one runs); a budget they fit in changes nothing."""

@@ -108,6 +108,10 @@ class MappingConfig:
     densify_stop_iter: int = 15_000
     densify_interval: int = 100
     densify_grad_threshold: float = 0.001
+    # ... and only within this many iterations of the newest keyframe's arrival (0: at any time): a
+    # long flight over a room already mapped brings no keyframe, and densification would grow the
+    # map with the training time (the fr1/rpy head five times in lockstep: 2.4x one pass's Gaussians)
+    densify_window_iters: int = 500
     percent_dense: float = 0.01
     split_children: int = 2
     split_scale_factor: float = 1.6
@@ -170,6 +174,7 @@ class MappingConfig:
         "training_window": (1, 10**5), "seed_coverage_age_s": (0.0, 1e6),
         "max_sh_degree": (0, 3), "sh_up_interval": (1, 10**8),
         "densify_start_iter": (0, 10**8), "densify_stop_iter": (0, 10**8), "densify_interval": (1, 10**8),
+        "densify_window_iters": (0, 10**8),
         "densify_grad_threshold": (0.0, 1.0), "percent_dense": (0.0, 1.0), "split_children": (2, 16),
         "split_scale_factor": (1.0, 100.0), "prune_opacity": (0.0, 1.0), "prune_min_age_iters": (0, 10**8),
         "max_screen_size_px": (0.0, 1e5), "min_keyframes": (1, 10**5),
@@ -205,7 +210,7 @@ class MappingConfig:
             if getattr(self, name) < 1:
                 raise ConfigError(f"MappingConfig.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("min_keyframes", "pyramid_uses_per_level", "prune_min_age_iters",
-                     "densify_start_iter", "merge_start_iter", "max_gaussians", "max_keyframes",
+                     "densify_start_iter", "densify_window_iters", "merge_start_iter", "max_gaussians", "max_keyframes",
                      "merge_every_keyframes", "merge_keyframes_min_iters"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"MappingConfig.{name} must be >= 0, got {getattr(self, name)}")

@@ -148,6 +148,7 @@ class GaussianMapper:
         self.keyframes_retired = 0  # culled by the tracker
         self.seeds_covered = 0  # seeds not made Gaussians: the map already explained them
         self._newest_kf_id = -1
+        self._newest_kf_iter = 0  # the iteration at which the newest keyframe came (densify_window_iters)
         self._anchors = KeyframeAnchors()  # every keyframe inserted, also those dropped from training
         self.exposure = ExposureCompensation(self.cfg.exposure_lr, self.cfg.exposure_reg, self.device) \
             if self.cfg.exposure_compensation else None
@@ -275,6 +276,7 @@ class GaussianMapper:
         self.keyframes.add(kf)
         self._anchors.add(kf.kf_id, kf.stamp_ns, kf.T_wc)
         self._newest_kf_id = max(self._newest_kf_id, int(kf.kf_id))
+        self._newest_kf_iter = self.iteration
 
     def _over_memory_cap(self) -> bool:
         """The accounted memory is over ``max_mapper_mbytes`` and keyframes may still go (more
@@ -381,7 +383,8 @@ class GaussianMapper:
 
         In an iteration where a merge is scheduled, densification waits for the next interval
         (merge and densification alternate, reference section 4). ``densify=False`` skips
-        densification (a final polish of the map that should not grow it).
+        densification (a final polish of the map that should not grow it); in flight it runs only
+        within ``densify_window_iters`` of the newest keyframe.
         """
         gate = 1 if final else (self.cfg.min_keyframes if min_keyframes is None else min_keyframes)
         if len(self.keyframes) < max(gate, 1):
@@ -422,7 +425,7 @@ class GaussianMapper:
         if self.merge.due(it):
             with peaks.work("merge"):
                 merged_removed, merged_added = self.merge.run(self.gmap, self._newest_kf_id, it)
-        elif densify and self.densify.due(it):
+        elif densify and self.densify.due(it) and (final or self._densify_window_open(it)):
             with peaks.work("densify"):
                 self._record_budget(*self.budget.make_room_for_densification(
                     self.gmap, self.densify, it, self._newest_kf_id, self._fixed_bytes()))
@@ -433,6 +436,12 @@ class GaussianMapper:
         return StepStats(it, view.keyframe.kf_id, level.factor, terms, len(self.gmap), densified,
                          pruned, merged_removed, merged_added, time.perf_counter() - t0,
                          budget_merged, budget_pruned)
+
+    def _densify_window_open(self, iteration: int) -> bool:
+        """In flight, densification follows new keyframes: within ``densify_window_iters`` of the
+        newest one's arrival (the final polish has its own switch, ``densify``)."""
+        window = self.cfg.densify_window_iters
+        return window == 0 or iteration - self._newest_kf_iter <= window
 
     def densify_and_prune(self) -> tuple[int, int]:
         """Densify/prune now (``DensifyStrategy``) within the budget. Returns (added, removed)."""
