@@ -205,9 +205,9 @@ def _label(result: Mapping[str, Any], mode: str) -> str:
     return f"{result['label']} {mode}" if result.get("label") else mode
 
 
-def plot(results: Sequence[Mapping[str, Any]], path: Path) -> Path:
+def plot(results: Sequence[Mapping[str, Any]], path: Path, metadata: Mapping[str, str] | None = None) -> Path:
     """The timelines of every run of ``results`` (one colour per result and mode; time since the
-    flight's first frame) and the median ATE per pass, as a PNG."""
+    flight's first frame) and the median ATE per pass, as a PNG (``metadata``: its text chunks)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -250,7 +250,7 @@ def plot(results: Sequence[Mapping[str, Any]], path: Path) -> Path:
     first = results[0]
     fig.suptitle(f"{Path(first['source']).name} x{first['passes']} ({first['config']})")
     fig.tight_layout()
-    fig.savefig(path, dpi=80)
+    fig.savefig(path, dpi=80, metadata=dict(metadata or {}))
     plt.close(fig)
     return path
 

@@ -3,9 +3,12 @@
     python benchmarks/make_figures.py eval results/bench_eval.json --name tum_fr1_rpy --readme README.md
     python benchmarks/make_figures.py load results/bench_load_cap600.json --name load_30hz_640x480 \
         --readme docs/results.md
+    python benchmarks/make_figures.py flight docs/data/long_flight_before.json docs/data/long_flight_pingpong.json \
+        --name long_flight_tum --readme README.md
 
 ``eval`` takes the JSON ``benchmarks/bench_eval.py`` writes (one evaluation or an ablation);
-``load`` the JSON of ``benchmarks/harness/bench_load.py``. Each writes into ``benchmarks/figures/``:
+``load`` the JSON of ``benchmarks/harness/bench_load.py``; ``flight`` one or more JSONs of
+``benchmarks/bench_long_flight.py`` (a table row and a figure colour each). Each writes into ``benchmarks/figures/``:
 ``<name>.md`` (the table) and the PNGs, every PNG carrying the SHA-256 of that table in its
 metadata (``memgs-table-sha256``). With ``--readme FILE`` (``README.md`` or a page under
 ``docs/``) the block between ``<!-- figures:<name> -->`` and ``<!-- /figures:<name> -->`` in FILE
@@ -157,6 +160,28 @@ def load_figures(record: dict[str, Any], name: str, out_dir: Path) -> tuple[str,
     return table, [_save(fig, out_dir / f"{name}.png", table)]
 
 
+# ----------------------------------------------------------------------------- flight
+
+
+def flight_figures(records: Sequence[dict[str, Any]], name: str, out_dir: Path) -> tuple[str, list[Path]]:
+    """Table and timelines of one or more bench_long_flight.py JSONs, a row per result and mode."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_long_flight as blf
+
+    runs = []
+    for r in records:
+        loads = sorted({run.get("uptime_before", "").split("load average:")[-1].strip()
+                        for runs_ in r["modes"].values() for run in runs_} - {""})
+        runs.append(f"{r.get('label') or 'runs'}: {Path(r['source']).name} x{r['passes']}"
+                    f"{' forward' if r.get('repeat_forward') else ''} ({r['config']}), "
+                    f"{', '.join(f'{m} x{len(v)}' for m, v in r['modes'].items())}; load before {'; '.join(loads) or 'n/a'}")
+    table = f"{blf.table(records).rstrip()}\n\n`python benchmarks/bench_long_flight.py` runs: " + " · ".join(runs) + "\n"
+    path = out_dir / f"{name}.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    blf.plot(records, path, metadata={SHA_KEY: table_sha(table), "Software": "memgs_ros make_figures"})
+    return table, [path]
+
+
 def pages_with_block(name: str, root: Path = ROOT) -> list[Path]:
     """The documentation pages (``README.md``, ``docs/*.md``) that hold the figures block ``name``."""
     pages = [root / "README.md", *sorted((root / "docs").glob("*.md"))]
@@ -165,12 +190,13 @@ def pages_with_block(name: str, root: Path = ROOT) -> list[Path]:
 
 KINDS: dict[str, Callable[[dict[str, Any], str, Path], tuple[str, list[Path]]]] = {
     "eval": eval_figures, "load": load_figures}
+MULTI_KINDS = {"flight": flight_figures}  # these take several results, a row each
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("kind", choices=sorted(KINDS))
-    p.add_argument("result", type=Path, help="the benchmark's JSON")
+    p.add_argument("kind", choices=sorted([*KINDS, *MULTI_KINDS]))
+    p.add_argument("result", type=Path, nargs="+", help="the benchmark's JSON (flight: one or more)")
     p.add_argument("--name", required=True, help="figure name prefix and documentation block name")
     p.add_argument("--out", type=Path, default=FIGURES, help="folder for the PNGs and the table (.md)")
     p.add_argument("--readme", type=Path, default=None,
@@ -183,8 +209,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.readme} has no '<!-- figures:{args.name} -->' block" + (f"; it is in {found}" if found else ""),
               file=sys.stderr)
         return 2
-    record = json.loads(args.result.read_text(encoding="utf-8"))
-    table, images = KINDS[args.kind](record, args.name, args.out)
+    if args.kind not in MULTI_KINDS and len(args.result) != 1:
+        print(f"{args.kind} takes one result JSON, got {len(args.result)}", file=sys.stderr)
+        return 2
+    records = [json.loads(path.read_text(encoding="utf-8")) for path in args.result]
+    if args.kind in MULTI_KINDS:
+        table, images = MULTI_KINDS[args.kind](records, args.name, args.out)
+    else:
+        table, images = KINDS[args.kind](records[0], args.name, args.out)
     (args.out / f"{args.name}.md").write_text(table, encoding="utf-8")
     for path in images:
         print(f"wrote {path}")
