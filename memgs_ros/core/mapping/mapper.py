@@ -147,8 +147,7 @@ class GaussianMapper:
         self.keyframes_dropped = 0  # by max_keyframes
         self.keyframes_retired = 0  # culled by the tracker
         self.seeds_covered = 0  # seeds not made Gaussians: the map already explained them
-        self._newest_kf_id = -1
-        self._newest_kf_iter = 0  # the iteration at which the newest keyframe came (densify_window_iters)
+        self._newest_kf_id, self._newest_kf_iter = -1, 0  # the newest keyframe, the iteration it came at
         self._anchors = KeyframeAnchors()  # every keyframe inserted, also those dropped from training
         self.exposure = ExposureCompensation(self.cfg.exposure_lr, self.cfg.exposure_reg, self.device) \
             if self.cfg.exposure_compensation else None
@@ -383,8 +382,7 @@ class GaussianMapper:
 
         In an iteration where a merge is scheduled, densification waits for the next interval
         (merge and densification alternate, reference section 4). ``densify=False`` skips
-        densification (a final polish of the map that should not grow it); in flight it runs only
-        within ``densify_window_iters`` of the newest keyframe.
+        densification (a final polish that should not grow the map; in flight: DensifyStrategy.due).
         """
         gate = 1 if final else (self.cfg.min_keyframes if min_keyframes is None else min_keyframes)
         if len(self.keyframes) < max(gate, 1):
@@ -425,7 +423,7 @@ class GaussianMapper:
         if self.merge.due(it):
             with peaks.work("merge"):
                 merged_removed, merged_added = self.merge.run(self.gmap, self._newest_kf_id, it)
-        elif densify and self.densify.due(it) and (final or self._densify_window_open(it)):
+        elif densify and self.densify.due(it, None if final else it - self._newest_kf_iter):
             with peaks.work("densify"):
                 self._record_budget(*self.budget.make_room_for_densification(
                     self.gmap, self.densify, it, self._newest_kf_id, self._fixed_bytes()))
@@ -436,12 +434,6 @@ class GaussianMapper:
         return StepStats(it, view.keyframe.kf_id, level.factor, terms, len(self.gmap), densified,
                          pruned, merged_removed, merged_added, time.perf_counter() - t0,
                          budget_merged, budget_pruned)
-
-    def _densify_window_open(self, iteration: int) -> bool:
-        """In flight, densification follows new keyframes: within ``densify_window_iters`` of the
-        newest one's arrival (the final polish has its own switch, ``densify``)."""
-        window = self.cfg.densify_window_iters
-        return window == 0 or iteration - self._newest_kf_iter <= window
 
     def densify_and_prune(self) -> tuple[int, int]:
         """Densify/prune now (``DensifyStrategy``) within the budget. Returns (added, removed)."""

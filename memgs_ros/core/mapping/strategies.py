@@ -295,8 +295,13 @@ class DensifyStrategy:
         self.cfg = cfg
         self._generator = generator
 
-    def due(self, iteration: int) -> bool:
+    def due(self, iteration: int, since_keyframe: int | None = None) -> bool:
+        """Densify at ``iteration``? In flight (``since_keyframe``: iterations since the newest keyframe
+        came) only within ``densify_window_iters`` of it: over a room already mapped no keyframe
+        comes, and densification would grow the map with the training time."""
         cfg = self.cfg
+        if since_keyframe is not None and cfg.densify_window_iters and since_keyframe > cfg.densify_window_iters:
+            return False
         return cfg.densify_start_iter <= iteration <= cfg.densify_stop_iter and iteration % cfg.densify_interval == 0
 
     def prunable(self, gmap: GaussianMap, iteration: int) -> torch.Tensor:
