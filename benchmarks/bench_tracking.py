@@ -12,9 +12,9 @@ Cases:
   pingpong     real fr1/rpy played --repeat times forward and back (a long flight over one room) with
                the tum_fr1 config's keyframe rule, BA inline: keyframes inserted and kept, ATE of each pass
                after one alignment (a revisit should neither add keyframes nor lose accuracy); with
-               --flip-backward-readout the backward passes read the shutter bottom to top (readout
-               -0.02 s), as a camera flying that way would: a replayed rolling-shutter sequence
-               played backward otherwise shows its rows in the wrong order
+               --flip-backward-readout the backward passes are read bottom to top (readout -0.02 s)
+               by decree instead of by the tracker's own check (frontend/readout.py): a replayed
+               rolling-shutter sequence played backward shows its rows in the wrong order
 Accuracy: ATE (RMSE after SE(3)/Sim(3) alignment) and RPE over one frame (RMSE of the translation
 and rotation error of each consecutive pair's relative motion: the frame-to-frame jitter).
 Per-frame time: median and p95 of track(); with threaded BA that includes competition for the
@@ -27,7 +27,6 @@ import os
 import platform
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 # One BLAS thread: a threaded GEMM on 2 cores shared with other work stalls (measured 460 ms vs 1 ms).
@@ -71,6 +70,7 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
     tracker = make_tracker(cfg, camera)
     times, cpu, proc, states, est, stamps, n_inl = [], [], [], [], [], [], []
     n_kf = 0
+    flip_frames: list[int] = []
     first_ok = None
     ba_inline_s = 0.0
     wall0, stamp0 = time.perf_counter(), frames[0].stamp_ns if frames else 0
@@ -81,9 +81,8 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
                 time.sleep(wait)
         if flip_backward_readout and passes is not None:
             backward = passes.backward(int(passes.pass_of(np.array([f.stamp_ns]))[0]))
-            readout = -cfg.rolling_shutter_readout_s if backward else cfg.rolling_shutter_readout_s
-            if readout != tracker.cfg.rolling_shutter_readout_s:  # an experiment: the camera's readout per pass
-                tracker.cfg = replace(tracker.cfg, rolling_shutter_readout_s=readout)
+            tracker.readout.auto = False  # an experiment: each pass's direction known, not checked
+            tracker.readout.sign = -1 if backward else 1
         t0, c0, p0 = time.perf_counter(), time.thread_time(), time.process_time()
         res = tracker.track(f)
         dt, dc, dp = time.perf_counter() - t0, time.thread_time() - c0, time.process_time() - p0
@@ -99,6 +98,8 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
         states.append(res.state.value)
         n_inl.append(res.n_inliers)
         n_kf += res.keyframe is not None
+        if (ro := getattr(tracker, "readout", None)) is not None and ro.flips > len(flip_frames):
+            flip_frames.append(k)  # the rolling shutter's direction flipped at this frame
         if res.T_wc is not None and first_ok is None and res.state == TrackingState.OK:
             first_ok = k
         if res.T_wc is not None:
@@ -113,7 +114,7 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
                  "map_keyframes_kept": kept, "keyframes_culled": culled,
                  "n_ok": states.count("ok"), "n_recently_lost": states.count("recently_lost"),
                  "n_lost": states.count("lost"), "n_not_initialized": states.count("not_initialized"),
-                 "first_ok_frame": first_ok,
+                 "first_ok_frame": first_ok, "readout_flip_frames": flip_frames,
                  "time_ms_median": 1e3 * float(np.median(times)),
                  "time_ms_p95": 1e3 * float(np.percentile(times, 95)),
                  "time_ms_median_after_init": 1e3 * float(np.median(times[(first_ok or 0) + 1:] or times)),
@@ -232,7 +233,8 @@ def main(argv: list[str] | None = None) -> int:
               + ")  "
               f"ok {r['n_ok']}/{r['n_frames']} lost {r['n_lost']} kf {r['n_keyframes']} "
               f"(kept {r['map_keyframes_kept']}) BA {r['ba_runs']} ({r['ba_time_s']:.1f} s)"
-              + (" per pass " + " ".join(f"{v:.2f}" for v in r["ate_pass_cm"]) if r.get("ate_pass_cm") else ""),
+              + (" per pass " + " ".join(f"{v:.2f}" for v in r["ate_pass_cm"]) if r.get("ate_pass_cm") else "")
+              + (f" readout flipped at frames {r['readout_flip_frames']}" if r["readout_flip_frames"] else ""),
               flush=True)
 
     print()

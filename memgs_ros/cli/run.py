@@ -61,7 +61,7 @@ def add_graph_arguments(p: argparse.ArgumentParser) -> None:
                         "a long flight over the same room (default: %(default)s)")
     p.add_argument("--repeat-forward", action="store_true",
                    help="with --repeat: every pass forward, the camera jumping back to the start between them "
-                        "(a rolling-shutter recording played backward reads its rows the wrong way round)")
+                        "(a rolling-shutter recording played backward reads its rows bottom to top)")
     p.add_argument("--strict", action="store_true",
                    help="stop at the first bad frame (unreadable or mis-sized image, stamp going backwards, "
                         "camera changing) instead of skipping it and counting it in the summary")

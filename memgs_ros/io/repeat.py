@@ -10,10 +10,10 @@ re-stamped the same way, so every pass can be scored against it (``RepeatClock``
 
 A backward pass of a recording shows each image as its camera took it: a rolling shutter read
 its rows top to bottom in the recording's time, which runs backward there, so the pass reads them
-bottom to top in the replay's. No camera flying that way would (the tracker's shutter correction,
-set for the camera, then points the wrong way). ``forward_only`` plays every pass forward instead,
-the camera jumping back to the start between passes (``--repeat-forward``), which a rolling-shutter
-recording keeps physical; a global shutter (the synthetic room) is right either way.
+bottom to top in the replay's. No camera flying that way would; the tracker notices on the frames
+and corrects them the other way round (``core/tracking/frontend/readout.py``). ``forward_only``
+plays every pass forward instead, the camera jumping back to the start between passes
+(``--repeat-forward``); a global shutter (the synthetic room) is right either way.
 
 A source that can load a frame by index (:class:`~memgs_ros.io.tum.TumFolder`) is read again
 on every pass, as a camera would deliver it; any other is kept in memory from its first pass.

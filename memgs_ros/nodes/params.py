@@ -40,7 +40,7 @@ class BagPlayerParams:
     # (a long flight over the same room; memgs run --repeat)
     repeat: int = 1
     # ... every pass forward, the camera jumping back to the start between them (a rolling-shutter
-    # recording played backward reads its rows the wrong way round)
+    # recording played backward reads its rows bottom to top)
     repeat_forward: bool = False
     depth_encoding: str = "32FC1"  # depth image encoding: 32FC1 metres or 16UC1 scaled units
     depth_scale: float = 1000.0  # 16UC1 units per metre (1000 = millimetres)

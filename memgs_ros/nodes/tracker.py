@@ -229,6 +229,8 @@ class TrackerNode(Node):
         g["track_ms"] = round(dt * 1e3, 2)
         g["keyframes_deferred"] = int(getattr(tracker, "keyframes_deferred", 0))
         g["ba_waits"] = int(getattr(tracker, "ba_waits", 0))
+        if (readout := getattr(tracker, "readout", None)) is not None:  # the rows' direction as checked
+            g["readout_flips"], g["readout_sign"] = readout.flips, readout.sign
         self.stats.counters["track_us_total"] += int(dt * 1e6)
         smap = tracker.map_stats() if result.keyframe is not None else None
         if smap is not None:

@@ -55,6 +55,10 @@ class TrackerConfig:
     # upside down reads them). Keypoints are moved to the centre row's time with the
     # tracker's angular velocity. The Kinect v1 of TUM RGB-D rolls over about 25 ms (config/tum_*.yaml).
     rolling_shutter_readout_s: float = 0.0
+    # Rolling shutter direction: checked on fast-turning frames; the correction flips when the frames
+    # read their rows the other way than the sign above says (a recording played backward, an image
+    # rotated by its driver; frontend/readout.py).
+    rolling_shutter_auto_direction: bool = True
     # Matching.
     search_radius_px: float = 15.0  # first projection pass around the velocity-predicted pose
     refine_radius_px: float = 4.0  # second pass around the optimised pose

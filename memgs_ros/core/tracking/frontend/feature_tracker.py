@@ -45,6 +45,7 @@ from memgs_ros.core.tracking.frontend.pose_tracking import (
     TrackOutcome,
     rotation_angle_deg,
 )
+from memgs_ros.core.tracking.frontend.readout import ReadoutDirection
 from memgs_ros.core.tracking.frontend.relocalisation import relocalise
 from memgs_ros.core.tracking.loop_closing.place_recognition import LoopStats
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
@@ -117,6 +118,7 @@ class FeatureTracker(BackendResults, Tracker):
         self.inv_sigma_levels = cfg.scale_factor ** -np.arange(cfg.n_levels, dtype=np.float64)
         self.matcher = LocalMapMatcher(cfg, camera, self.inv_sigma_levels)
         self.motion = MotionModel()
+        self.readout = ReadoutDirection(cfg.rolling_shutter_readout_s, auto=cfg.rolling_shutter_auto_direction)
         self.map = SparseMap()
         self.state = TrackingState.NOT_INITIALIZED
         self.segment_id = 0
@@ -229,8 +231,7 @@ class FeatureTracker(BackendResults, Tracker):
         return self.matcher.inv_sigma(octave)
 
     def _unrolled(self, feats: FrameFeatures, omega_c: np.ndarray) -> FrameFeatures:
-        return unroll_rolling_shutter(feats, self.K, omega_c, self.cfg.rolling_shutter_readout_s,
-                                      self.camera.height)
+        return unroll_rolling_shutter(feats, self.K, omega_c, self.readout.readout_now_s, self.camera.height)
 
     def _follow(self, moves: list[KeyframesMoved]) -> None:
         """Move the last pose with its keyframe when the back-end's results moved that keyframe
@@ -264,12 +265,32 @@ class FeatureTracker(BackendResults, Tracker):
         """Re-correct the keypoints with this frame's own angular velocity (the first correction used
         the previous frame's; on fr1/rpy it changes by up to 50 % a frame), re-optimise on the same matches."""
         assert self._T_cw_last is not None
-        feats = self._unrolled(raw, self.motion.frame_angular_velocity(outcome.T_cw, self._T_cw_last, dt_s))
+        omega = self.motion.frame_angular_velocity(outcome.T_cw, self._T_cw_last, dt_s)
+        feats = self._unrolled(raw, omega)
         p_w, _, _ = self.map.point_arrays(outcome.point_ids)
         T, inl = self.matcher.optimise(outcome.T_cw, p_w, feats, outcome.kp_idx, rounds=2)
+        if self.readout.worth_checking(omega, self.K[0, 0]):
+            # The other readout direction on the same matches (see readout.py); it wins only by a
+            # clear majority of recent frames, and from then on it is the one in use.
+            other = unroll_rolling_shutter(raw, self.K, omega, -self.readout.readout_now_s, self.camera.height)
+            T_o, inl_o = self.matcher.optimise(outcome.T_cw, p_w, other, outcome.kp_idx, rounds=2)
+            both = inl | inl_o
+            if self.readout.vote(self._median_error_px(T, p_w[both], feats, outcome.kp_idx[both]),
+                                 self._median_error_px(T_o, p_w[both], other, outcome.kp_idx[both])):
+                logger.info("rolling shutter: the frames read their rows %s; correcting that way from now on",
+                            "top to bottom" if self.readout.readout_now_s > 0 else "bottom to top")
+                feats, T, inl = other, T_o, inl_o
         if inl.sum() < self.cfg.min_inliers:
             return feats, outcome
         return feats, TrackOutcome(T, outcome.point_ids[inl], outcome.kp_idx[inl], outcome.n_matches)
+
+    def _median_error_px(self, T_cw: np.ndarray, p_w: np.ndarray, feats: FrameFeatures, kp_idx: np.ndarray) -> float:
+        """Median reprojection error of points p_w [K, 3] at keypoints kp_idx [K], in level-0 pixels."""
+        if len(kp_idx) == 0:
+            return float("nan")
+        uv, _ = self.matcher.project(p_w, T_cw)
+        err = np.linalg.norm(uv - feats.uv[kp_idx], axis=1) * self._inv_sigma(feats.octave[kp_idx])
+        return float(np.median(err))
 
     def _track_local_map(self, feats: FrameFeatures, T_pred: np.ndarray, allow_fallback: bool,
                          count: bool = True, from_last: bool = False) -> TrackOutcome | None:
@@ -291,7 +312,7 @@ class FeatureTracker(BackendResults, Tracker):
         dt_s = motion.frame_dt_s(frame.stamp_ns)
         T_pred = orthonormalized(motion.motion_over(dt_s) @ self._T_cw_last)
         raw = feats
-        if cfg.rolling_shutter_readout_s != 0.0:  # first guess: the angular velocity of the previous frame
+        if self.readout.readout_now_s != 0.0:  # first guess: the angular velocity of the previous frame
             feats = self._unrolled(raw, motion.angular_velocity(motion.velocity, motion.dt_s))
         outcome = self._track_predicted(feats, T_pred, frame.stamp_ns)
         relocalised = False
@@ -361,7 +382,7 @@ class FeatureTracker(BackendResults, Tracker):
         cfg, motion = self.cfg, self.motion
         assert self._T_cw_last is not None
         keep_velocity = self.state == TrackingState.OK or not relocalised
-        if cfg.rolling_shutter_readout_s != 0.0 and keep_velocity:
+        if self.readout.readout_now_s != 0.0 and keep_velocity:
             feats, outcome = self._refine_rolling_shutter(raw, outcome, dt_s)
         T = outcome.T_cw
         if keep_velocity:
