@@ -1,4 +1,5 @@
-"""The merger node in-process: deltas, a gap and its resync, a requested view, and the save service."""
+"""The merger node in-process: deltas, a gap and its resync, a requested view, the viewer cloud and
+the save service."""
 from __future__ import annotations
 
 import time
@@ -16,12 +17,17 @@ from sensor_msgs.msg import Image, PointCloud2  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from memgs_ros.core.mapping.gaussians import GaussianMap  # noqa: E402
-from memgs_ros.core.maps.map_delta import DeltaOutbox  # noqa: E402
+from memgs_ros.core.maps.map_delta import DeltaOutbox, unpack_rgb  # noqa: E402
 from memgs_ros.core.maps.ply import load_ply  # noqa: E402
+from memgs_ros.core.maps.records import base_rgb8  # noqa: E402
+from memgs_ros.io.image_decoding import image_to_numpy  # noqa: E402
 from memgs_ros.nodes.merger import MergerNode  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
-from memgs_ros.io.image_decoding import image_to_numpy  # noqa: E402
-from memgs_ros.ros.codecs import matrix_to_pose_stamped, structured_to_pointcloud2  # noqa: E402
+from memgs_ros.ros.codecs import (  # noqa: E402
+    matrix_to_pose_stamped,
+    pointcloud2_to_structured,
+    structured_to_pointcloud2,
+)
 
 pytestmark = pytest.mark.ros
 
@@ -49,6 +55,9 @@ def test_merger_applies_deltas_resyncs_renders_and_saves(tmp_path: Path, ros_dom
     pub_view = peer.create_publisher(PoseStamped, "memgs/merger/view_pose", qos.reliable(5))
     renders: list[Image] = []
     peer.create_subscription(Image, "memgs/merger/render/color", renders.append, qos.reliable(5))
+    clouds: dict[str, list[PointCloud2]] = {"gaussians": [], "points": []}
+    for name, got in clouds.items():
+        peer.create_subscription(PointCloud2, f"memgs/map/{name}", got.append, qos.latched())
     outbox = DeltaOutbox(sh_degree=0)
     g = _wall_map(300)
     requests = []
@@ -61,6 +70,7 @@ def test_merger_applies_deltas_resyncs_renders_and_saves(tmp_path: Path, ros_dom
 
     peer.create_service(Trigger, "memgs/mapper/publish_snapshot", serve_snapshot)
     save = peer.create_client(Trigger, "memgs/save_map")
+    publish = peer.create_client(Trigger, "memgs/merger/publish_map")
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(merger)
     ex.add_node(peer)
@@ -96,6 +106,20 @@ def test_merger_applies_deltas_resyncs_renders_and_saves(tmp_path: Path, ros_dom
         gauges = merger.stats.gauges
         assert gauges["map_bytes"] == merger.map.replica.records.nbytes > 0
         assert 0 < gauges["render_cache_bytes"] <= 2 * gauges["map_bytes"] and gauges["buffered_deltas"] == 0
+        # The viewer cloud: every row a Gaussian of the map, in the map frame, near the others (the
+        # delta protocol's full map opens with its META row, whose x, y hold the 32-bit epoch).
+        done = publish.call_async(Trigger.Request())
+        assert spin_until(lambda: done.done() and clouds["points"] and clouds["gaussians"])
+        pts = pointcloud2_to_structured(clouds["points"][-1])
+        assert clouds["points"][-1].header.frame_id == merger.world_frame
+        assert pts.dtype.names == ("x", "y", "z", "rgb", "opacity") and len(pts) == len(g)
+        xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
+        far = np.linalg.norm(xyz - np.median(xyz, axis=0), axis=1) > 10.0
+        assert far.sum() == 0
+        rec = merger.map.replica.records
+        assert np.array_equal(unpack_rgb(pts["rgb"]), base_rgb8(rec.f_dc))
+        assert np.allclose(pts["opacity"], 1 / (1 + np.exp(-rec.opacity)), atol=1e-6)
+        assert clouds["points"][-1].row_step < clouds["gaussians"][-1].row_step / 4  # 20 B a Gaussian
         future = save.call_async(Trigger.Request())
         assert spin_until(future.done)
         assert future.result().success and str(path) in future.result().message

@@ -2,7 +2,8 @@
 
 Subscribes: ``memgs/map/delta`` (reliable) and ``memgs/mapper/snapshot`` (latched) from the mapper,
 ``memgs/merger/view_pose`` (PoseStamped render requests). Publishes ``memgs/map/gaussians`` (latched
-full map with a packed ``rgb`` colour field for viewers, on request and every ``publish_period_s``),
+full map in the delta protocol's layout, on request and every ``publish_period_s``) and with it
+``memgs/map/points`` (latched: the map as x, y, z, rgb, opacity points for RViz and Foxglove),
 ``memgs/merger/render/{color,depth}`` and ``memgs/merger/stats``. Services: ``memgs/save_map``
 (std_srvs/Trigger: write the PLY atomically, answers its path) and ``memgs/merger/publish_map``.
 Saves periodically and on shutdown.
@@ -42,7 +43,7 @@ from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
-from memgs_ros.ros.map_messages import decode_map_message, full_map_message
+from memgs_ros.ros.map_messages import decode_map_message, full_map_message, viewer_cloud_message
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.service_calls import PacedRequests
 from memgs_ros.ros.view_outputs import ViewOutbox
@@ -71,6 +72,7 @@ class MergerNode(Node):
         self._published_version: tuple[int, int] | None = None
 
         self.pub_map = self.create_publisher(PointCloud2, "memgs/map/gaussians", qos.latched())
+        self.pub_points = self.create_publisher(PointCloud2, "memgs/map/points", qos.latched())
         self.views = ViewOutbox(self, self.stats, "memgs/merger/render")
         self.create_subscription(PointCloud2, "memgs/map/delta", self.on_delta, qos.reliable(50))
         self.create_subscription(PointCloud2, "memgs/mapper/snapshot", self.on_snapshot, qos.latched())
@@ -177,7 +179,9 @@ class MergerNode(Node):
         if not self.map.replica.synced or (not force and version == self._published_version):
             return
         self._published_version = version
-        self.pub_map.publish(full_map_message(self.map.replica, self.get_clock().now().nanoseconds, self.world_frame))
+        now_ns = self.get_clock().now().nanoseconds
+        self.pub_map.publish(full_map_message(self.map.replica, now_ns, self.world_frame))
+        self.pub_points.publish(viewer_cloud_message(self.map.replica, now_ns, self.world_frame))
 
     def on_publish_map(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         self.publish_map()

@@ -186,7 +186,8 @@ class MergerParams:
 
     map_path: str = "memgs_map.ply"  # where the map PLY is saved (atomically)
     save_period_s: float = 60.0  # also save the PLY this often when it changed (0 = only on request and shutdown)
-    publish_period_s: float = 30.0  # publish the full map on memgs/map/gaussians this often (0 = only on request)
+    # publish the full map on memgs/map/gaussians and memgs/map/points this often (0 = only on request)
+    publish_period_s: float = 30.0
     resync_interval_s: float = 1.0  # least time between snapshot requests (doubles, up to 8x, while unanswered)
     max_buffered_deltas: int = 200  # deltas kept while resynchronising
     world_frame: str = "map"  # frame id of the published map

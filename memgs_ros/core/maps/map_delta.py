@@ -111,6 +111,21 @@ def unpack_rgb(rgb: np.ndarray) -> np.ndarray:  # [N] -> [N, 3]
     return np.stack([(bits >> 16) & 0xFF, (bits >> 8) & 0xFF, bits & 0xFF], axis=-1).astype(np.uint8)
 
 
+VIEWER_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<f4"), ("opacity", "<f4")])
+
+
+def viewer_points(records: GaussianRecords) -> np.ndarray:  # N Gaussians -> [N] VIEWER_DTYPE
+    """What a point-cloud viewer (RViz, Foxglove) draws of a map: centre, packed ``rgb`` (the SH DC
+    colour) and opacity in [0, 1]; no META row, no SH (16 bytes a Gaussian where the map message
+    takes ~250). Returns [N] rows of ``VIEWER_DTYPE``."""
+    out = np.empty(len(records), dtype=VIEWER_DTYPE)
+    for i, name in enumerate("xyz"):
+        out[name] = records.xyz[:, i]
+    out["rgb"] = packed_rgb(records.f_dc)
+    out["opacity"] = 1.0 / (1.0 + np.exp(-records.opacity.astype(np.float32)))
+    return out
+
+
 def encode(kind: MessageKind, seq: int, total: int, upserts: GaussianRecords,
            removed_ids: np.ndarray, sh_degree: int, epoch: int = 0, rgb: bool = False) -> np.ndarray:
     """A delta or snapshot as a structured array (row 0 META) ready for a PointCloud2.
