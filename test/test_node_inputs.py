@@ -1,6 +1,7 @@
 """Nodes in-process (private rclpy context): bad input is counted and logged, never fatal."""
 from __future__ import annotations
 
+import itertools
 import time
 
 import numpy as np
@@ -235,3 +236,56 @@ def test_tracker_forwards_keyframe_images_as_received(context) -> None:  # noqa:
     finally:
         node.destroy_node()
         peer.destroy_node()
+
+
+def test_tracker_takes_compressed_colour_and_depth(context) -> None:  # noqa: ANN001
+    """image_transport=compressed: JPEG colour on <color_topic>/compressed and compressedDepth PNG on
+    <depth_topic>/compressedDepth (as image_transport publishes them) track like the raw images; a
+    frame that does not decode is counted, not fatal."""
+    from sensor_msgs.msg import CompressedImage
+
+    from memgs_ros.core.geometry.view import metres_to_units
+    from memgs_ros.io.bag_writer import compress_depth_units, compress_rgb
+    from memgs_ros.ros.codecs import make_header
+
+    params = [Parameter("color_topic", value="color/image_raw"), Parameter("depth_topic", value="depth/image_raw"),
+              Parameter("camera_info_topic", value="color/camera_info"), Parameter("sync", value="exact"),
+              Parameter("image_transport", value="compressed"), Parameter("max_frame_age_s", value=0.0)]
+    node = TrackerNode(context=context, parameter_overrides=params)
+    pub_node = rclpy.create_node("feeder", context=context)
+    pc = pub_node.create_publisher(CompressedImage, "color/image_raw/compressed", qos.reliable(50))
+    pd = pub_node.create_publisher(CompressedImage, "depth/image_raw/compressedDepth", qos.reliable(50))
+    pi = pub_node.create_publisher(CameraInfo, "color/camera_info", qos.reliable(50))
+    processed: list[Header] = []
+    pub_node.create_subscription(Header, "memgs/tracker/processed", processed.append, qos.reliable(100))
+    ex = SingleThreadedExecutor(context=context)
+    ex.add_node(node)
+    ex.add_node(pub_node)
+
+    def compressed(stamp_ns: int, fmt: str, data: np.ndarray) -> CompressedImage:
+        msg = CompressedImage()
+        msg.header, msg.format, msg.data = make_header(stamp_ns, "cam"), fmt, data.tobytes()
+        return msg
+
+    try:
+        assert _spin_until(ex, lambda: pc.get_subscription_count() and pd.get_subscription_count()
+                           and pi.get_subscription_count())
+        assert node.wait_until_warm(120)
+        # the first 6 of 60 frames: the wobble path spans the sequence, so 6 of 6 would jump
+        frames = list(itertools.islice(generate_frames(parse_spec("synthetic:w=320,h=240,n=60,seed=2")), 6))
+        pi.publish(camera_to_camera_info(frames[0].camera, frames[0].stamp_ns, "cam"))
+        for k, f in enumerate(frames):
+            fmt, data = compress_rgb(f.rgb)
+            if k == 3:
+                data = data[:16]  # cut short on the link
+            pc.publish(compressed(f.stamp_ns, fmt, data))
+            pd.publish(compressed(f.stamp_ns, *compress_depth_units(metres_to_units(f.depth_m, 1000.0))))
+            assert _spin_until(ex, lambda: len(processed) > k), f"frame {k} was never handled"
+        c = node.stats.counters
+        assert c["frames_in"] == 6 and c["problem.bad_image"] == 1 and c["poses_out"] == 5, dict(c)
+        assert c["state.OK"] == 5 and not c["state.LOST"]
+    finally:
+        node.on_shutdown()
+        ex.shutdown()
+        node.destroy_node()
+        pub_node.destroy_node()

@@ -62,6 +62,10 @@ def add_graph_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--repeat-forward", action="store_true",
                    help="with --repeat: every pass forward, the camera jumping back to the start between them "
                         "(a rolling-shutter recording played backward reads its rows bottom to top)")
+    p.add_argument("--topics", default="", metavar="color=/T,depth=/T,camera_info=/T",
+                   help="a bag's colour, depth and camera_info topics (any of them); default: TUM's names, else "
+                        "found by type and encoding (a realsense-ros bag: colour, depth aligned to it, raw or "
+                        "compressed), said in the log; a bag with several candidates is refused with their list")
     p.add_argument("--strict", action="store_true",
                    help="stop at the first bad frame (unreadable or mis-sized image, stamp going backwards, "
                         "camera changing) instead of skipping it and counting it in the summary")
@@ -113,6 +117,7 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
         raise ConfigError(f"--rate and --timeout must be positive and --max-frames >= 0, got {args.rate}, "
                           f"{args.timeout}, {args.max_frames}")
     check_repeat(args.repeat)
+    check_topics(args.topics)
     overrides = {}
     for item in args.set:
         key, sep, value = item.partition("=")
@@ -123,7 +128,7 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
         source=source, config=args.config or guess_config(source), out_dir=args.out,
         composed=args.composed, lockstep=not args.realtime, rate=args.rate,
         namespace=args.namespace, domain_id=args.domain_id, max_frames=args.max_frames, repeat=args.repeat,
-        repeat_forward=args.repeat_forward,
+        repeat_forward=args.repeat_forward, bag_topics=args.topics,
         overrides=overrides, timeout_s=args.timeout, kill_after_s=kills, strict=args.strict,
         record=check_record_path(args.record) if getattr(args, "record", None) is not None else None,
         rerun=rerun_target(args))
@@ -135,6 +140,13 @@ def check_repeat(repeat: int) -> None:
 
     if not 1 <= repeat <= MAX_PASSES:
         raise ConfigError(f"--repeat must be in [1, {MAX_PASSES}], got {repeat}")
+
+
+def check_topics(text: str) -> None:
+    """ConfigError unless ``--topics`` parses (``BagTopics.parse``)."""
+    from memgs_ros.io.bag_reader import BagTopics
+
+    BagTopics.parse(text)
 
 
 def check_config(config: str, overrides: dict | None = None) -> dict[str, dict]:
@@ -158,7 +170,8 @@ def check_out_dir(out_dir: Path) -> None:
 
 
 def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict | None = None,
-                 out_dir: Path | None = None, repeat: int = 1, repeat_forward: bool = False) -> list[str]:
+                 out_dir: Path | None = None, repeat: int = 1, repeat_forward: bool = False,
+                 bag_topics: str = "") -> list[str]:
     """Fail before any node starts, with one line naming the file: the config must load, the
     overrides name real nodes, the source must open (a bag is scanned whole, so a truncated or
     corrupt one is found here rather than by the player in the middle of the run), a TUM folder's
@@ -167,6 +180,7 @@ def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict 
 
     Returns the warnings to show before the run: the source's camera_info against the config's
     calibration (:func:`calibration_warning`)."""
+    from memgs_ros.io.bag_reader import BagTopics
     from memgs_ros.io.repeat import RepeatedSource
     from memgs_ros.io.sources import open_source  # opening a source loads the bag readers
     from memgs_ros.io.tum import CAMERA_JSON, TumFolder
@@ -174,8 +188,8 @@ def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict 
     params = check_config(config, overrides)
     configured = configured_camera(params)
     src = open_source(source, max_frames=(max_frames or None) if repeat == 1 else None,
-                      default_camera=configured.camera, repeat=repeat,
-                      repeat_forward=repeat_forward)  # a source that cannot repeat fails here
+                      default_camera=configured.camera, repeat=repeat, repeat_forward=repeat_forward,
+                      topics=BagTopics.parse(bag_topics))  # a source that cannot repeat fails here
     if isinstance(src, RepeatedSource):
         src = src.source
     if isinstance(src, TumFolder) and not src.camera_origin:
@@ -291,14 +305,17 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
         json_path.write_text(json.dumps(s.as_dict(), indent=2))
 
 
-def print_trajectory_error(source: str, trajectory_path: str, repeat: int = 1, repeat_forward: bool = False) -> None:
+def print_trajectory_error(source: str, trajectory_path: str, repeat: int = 1, repeat_forward: bool = False,
+                           bag_topics: str = "") -> None:
     """When the source has ground truth (TUM folders and bags, the synthetic room), print the
     tracked trajectory's ATE after an SE(3) alignment; print nothing when it has none."""
     from memgs_ros.core.metrics.trajectory import ate
+    from memgs_ros.io.bag_reader import BagTopics
     from memgs_ros.io.sources import open_source
     from memgs_ros.io.tum import read_trajectory
 
-    gt_stamps, gt_poses = open_source(source, repeat=repeat, repeat_forward=repeat_forward).ground_truth()
+    gt_stamps, gt_poses = open_source(source, repeat=repeat, repeat_forward=repeat_forward,
+                                      topics=BagTopics.parse(bag_topics)).ground_truth()
     if not len(gt_stamps):
         return
     est_stamps, est_poses = read_trajectory(trajectory_path)
@@ -317,14 +334,15 @@ def run(args: argparse.Namespace) -> int:
 
     options = options_from_args(args, args.bag)
     warnings = check_inputs(options.source, options.config, options.max_frames, dict(options.overrides),
-                            options.out_dir, options.repeat, options.repeat_forward)
+                            options.out_dir, options.repeat, options.repeat_forward, options.bag_topics)
     with run_log(options.out_dir):
         for warning in warnings:
             logger.warning(warning)
         summary = run_pipeline(options)
     print_summary(summary, args.json, options.record)
     if summary.poses:
-        print_trajectory_error(options.source, summary.trajectory_path, options.repeat, options.repeat_forward)
+        print_trajectory_error(options.source, summary.trajectory_path, options.repeat, options.repeat_forward,
+                               options.bag_topics)
     if not summary.source_complete:
         cause = player_error(options.out_dir)
         print(f"memgs run: error: {options.source} failed part-way{f': {cause}' if cause else ''} (see "

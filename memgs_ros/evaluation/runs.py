@@ -61,6 +61,7 @@ from memgs_ros.core.metrics.scoring import (
 )
 from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.errors import ConfigError, DataError
+from memgs_ros.io.bag_reader import BagTopics
 from memgs_ros.io.sources import open_source
 from memgs_ros.io.tum import read_trajectory
 from memgs_ros.orchestration.run_files import (
@@ -316,6 +317,7 @@ _UNCONFIGURED = ConfiguredCamera(None, False)
 
 def _ground_truth_images(source: str, max_frames: int, scale: float,
                          configured: ConfiguredCamera = _UNCONFIGURED, repeat: int = 1, repeat_forward: bool = False,
+                         bag_topics: str = "",
                          ) -> tuple[np.ndarray, list[np.ndarray], PinholeCamera, Any, np.ndarray | None]:
     """Ground-truth images prepared as the mapper prepares its keyframes, with the camera the
     run's tracker used: the configured calibration when it overrode camera_info, else the source's.
@@ -326,7 +328,8 @@ def _ground_truth_images(source: str, max_frames: int, scale: float,
     """
     # ``max_frames`` caps the frames played: under ``repeat`` those of all passes together.
     src = open_source(source, with_depth=False, max_frames=(max_frames or None) if repeat == 1 else None,
-                      default_camera=configured.camera, repeat=repeat, repeat_forward=repeat_forward)
+                      default_camera=configured.camera, repeat=repeat, repeat_forward=repeat_forward,
+                      topics=BagTopics.parse(bag_topics))
     camera = src.camera
     if configured.override and configured.camera is not None:
         camera = configured.camera.fitted(camera.width, camera.height)
@@ -419,7 +422,8 @@ def evaluate_run(out_dir: str | os.PathLike[str], source: str | None = None, mod
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
     gt_stamps, gt_images, camera, src, valid_mask = _ground_truth_images(
-        source, int(max_frames), scale, configured_camera(run_params), summary.repeat, summary.repeat_forward)
+        source, int(max_frames), scale, configured_camera(run_params), summary.repeat, summary.repeat_forward,
+        summary.bag_topics)
     traj_stamps, traj_poses = read_trajectory(summary.trajectory_path)
     kf_path = out / KEYFRAMES_FILE
     kf_stamps, kf_poses = (read_trajectory(kf_path) if kf_path.is_file()

@@ -1,6 +1,10 @@
 """Read RGB-D frames and ground truth from bags: TUM's ROS 1 bags (bz2), ROS 2 MCAP and sqlite3.
 
-Opening a bag makes one pass over its small messages and image headers: it finds the
+Opening a bag first settles its topics: TUM's names when the bag has them, the ones given
+(``BagTopics.parse``: ``memgs run --topics``), or else found by type and encoding
+(``discover_topics``: a realsense-ros bag's colour, its aligned depth and camera_info; raw or
+image_transport's ``compressed`` / ``compressedDepth``), said in the log, an ambiguous bag refused
+with the candidates. Then one pass over its small messages and image headers finds the
 camera (first CameraInfo on the colour info topic, unless a camera is given), pairs colour
 and depth images by nearest header stamp (one-to-one within ``max_dt_s``) and collects
 ground truth, either from a PoseStamped topic or by composing ``/tf`` (and ``/tf_static``)
@@ -17,10 +21,11 @@ from __future__ import annotations
 
 import logging
 from collections import defaultdict
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from types import MappingProxyType
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -42,9 +47,12 @@ from memgs_ros.io.image_decoding import (
     DEFAULT_DEPTH_SCALE,
     DEPTH_ENCODINGS,
     check_image,
+    compressed_is_depth,
     decode_camera_info,
-    decode_depth,
-    decode_rgb,
+    decode_color_message,
+    decode_compressed_rgb,
+    decode_depth_message,
+    is_compressed,
 )
 from memgs_ros.io.skips import SkipLog
 from memgs_ros.io.tum import associate
@@ -52,6 +60,8 @@ from memgs_ros.io.tum import associate
 logger = logging.getLogger(__name__)
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
+IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_TYPE)
 INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
@@ -78,6 +88,119 @@ class BagTopics:
     pose: str = POSE_TOPIC
     camera_frame: str | None = None
     world_frame: str | None = None
+
+    # --topics keys -> fields
+    KEYS: ClassVar[Mapping[str, str]] = MappingProxyType(
+        {"color": "rgb", "depth": "depth", "camera_info": "rgb_info", "pose": "pose"})
+
+    @classmethod
+    def parse(cls, text: str) -> BagTopics:
+        """``color=/a,depth=/b,camera_info=/c`` (any of them; ``pose=`` the ground truth) -> BagTopics;
+        ConfigError naming the bad item. An empty text gives the defaults (found in the bag when absent)."""
+        given: dict[str, str] = {}
+        for item in (i.strip() for i in text.split(",")):
+            if not item:
+                continue
+            key, eq, topic = (x.strip() for x in item.partition("="))
+            if not eq or key not in cls.KEYS or not topic:
+                raise ConfigError(f"--topics item {item!r}: expected KEY=/topic with KEY one of "
+                                  f"{', '.join(cls.KEYS)}")
+            given[cls.KEYS[key]] = topic if topic.startswith("/") else "/" + topic
+        return cls(**given, explicit=tuple(given))  # type: ignore[arg-type]
+
+    explicit: tuple[str, ...] = ()  # fields the user named: used as given, checked against the bag
+
+
+def _transport_base(topic: str) -> str:
+    """The raw topic an image_transport topic carries (``X/compressed``, ``X/compressedDepth`` -> X)."""
+    for suffix in ("/compressed", "/compressedDepth"):
+        if topic.endswith(suffix):
+            return topic[: -len(suffix)]
+    return topic
+
+
+def _peek(reader: Any, conn: Any) -> Any | None:
+    """The first message of a connection, deserialised; None when it has none or it does not decode."""
+    try:
+        for c, _, raw in reader.messages(connections=[conn]):
+            return reader.deserialize(raw, c.msgtype)
+    except Exception:  # noqa: BLE001 - a topic that cannot be peeked is no candidate
+        return None
+    return None
+
+
+def _image_kind(msg: Any) -> str | None:
+    """'color', 'mono' or 'depth' for an Image or CompressedImage; None for anything else."""
+    if is_compressed(msg):
+        return "depth" if compressed_is_depth(msg) else "color"
+    enc = str(getattr(msg, "encoding", ""))
+    if enc in DEPTH_ENCODINGS:
+        return "depth"
+    if enc in ("mono8", "8UC1"):
+        return "mono"
+    return "color" if enc in COLOR_ENCODINGS else None
+
+
+def discover_topics(reader: Any, topics: BagTopics, with_depth: bool, where: str) -> tuple[BagTopics, str]:
+    """The bag's colour, depth and camera_info topics: TUM's (``topics``' defaults) when the bag has
+    them, the user's as given (DataError when absent), else found by type and encoding. Returns the
+    topics and a line saying what was chosen (empty when nothing was guessed)."""
+    conns = {c.topic: c for c in reader.connections}
+    for field in topics.explicit:
+        if getattr(topics, field) not in conns:
+            images = sorted(t for t, c in conns.items() if c.msgtype in IMAGE_TYPES + (INFO_TYPE,))
+            raise DataError(f"{where}: no topic {getattr(topics, field)} in the bag (its image and camera_info "
+                            f"topics: {', '.join(images) or 'none'})")
+    need_rgb = "rgb" not in topics.explicit and topics.rgb not in conns
+    need_depth = with_depth and "depth" not in topics.explicit and topics.depth not in conns
+    need_info = "rgb_info" not in topics.explicit and topics.rgb_info not in conns
+    if not (need_rgb or need_depth or need_info):
+        return topics, ""
+    # kind -> stream (raw topic) -> (topic to read, its encoding or format)
+    found: dict[str, dict[str, tuple[str, str]]] = {"color": {}, "mono": {}, "depth": {}}
+    for topic, c in sorted(conns.items()):
+        if c.msgtype not in IMAGE_TYPES or (msg := _peek(reader, c)) is None or (kind := _image_kind(msg)) is None:
+            continue
+        base = _transport_base(topic)
+        what = str(msg.format) if is_compressed(msg) else str(msg.encoding)
+        if base not in found[kind] or topic == base:  # a stream's raw topic before its transports
+            found[kind][base] = (topic, what)
+    chosen: dict[str, tuple[str, str]] = {}
+    if need_rgb:
+        pool = found["color"] or found["mono"]
+        if not pool:
+            raise DataError(f"{where}: no colour image topic (sensor_msgs/Image rgb8, bgr8 or a CompressedImage); "
+                            f"give one with --topics color=/topic")
+        if len(pool) > 1:
+            raise DataError(f"{where}: {len(pool)} colour image topics ({', '.join(t for t, _ in pool.values())}); "
+                            f"choose one with --topics color=/topic")
+        chosen["rgb"] = next(iter(pool.values()))
+    if need_depth:
+        pool = found["depth"]
+        aligned = {b: v for b, v in pool.items() if "aligned_depth_to_color" in b}
+        pool = aligned or pool
+        if not pool:
+            raise DataError(f"{where}: no depth image topic (16UC1 / 32FC1 Image or compressedDepth) to pair with "
+                            f"colour; a RealSense records depth registered to colour with align_depth.enable:=true "
+                            f"(or map colour only with --mode mono)")
+        if len(pool) > 1:
+            raise DataError(f"{where}: {len(pool)} depth image topics ({', '.join(t for t, _ in pool.values())}) "
+                            f"and none aligned to colour; choose one with --topics depth=/topic")
+        chosen["depth"] = next(iter(pool.values()))
+    fields = {k: v[0] for k, v in chosen.items()}
+    if need_info:  # the colour stream's own camera_info, or the bag's only one
+        sibling = _transport_base(fields.get("rgb", topics.rgb)).rsplit("/", 1)[0] + "/camera_info"
+        infos = [t for t, c in conns.items() if c.msgtype == INFO_TYPE]
+        if sibling in conns:
+            fields["rgb_info"] = sibling
+        elif len(infos) == 1:
+            fields["rgb_info"] = infos[0]
+    out = replace(topics, **fields)
+    if not chosen:
+        return out, (f"{where}: camera_info {out.rgb_info}" if out.rgb_info != topics.rgb_info else "")
+    line = "; ".join(f"{name} {chosen[key][0]} ({chosen[key][1]})"
+                     for name, key in (("colour", "rgb"), ("depth", "depth")) if key in chosen)
+    return out, f"{where}: topics found by type: {line}; camera_info {out.rgb_info}"
 
 
 def _frame_name(name: str) -> str:
@@ -144,6 +267,7 @@ class BagSource:
         self.path = Path(path)
         self.name = self.path.name
         self.topics = topics
+        self.topic_choice = ""  # what discover_topics chose, when it had to
         if not (np.isfinite(depth_scale) and depth_scale > 0):
             raise ConfigError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
         self.depth_scale = float(depth_scale)
@@ -171,6 +295,15 @@ class BagSource:
 
     def _scan(self, camera: PinholeCamera | None, max_dt_s: float, gt_max_gap_s: float,
               max_frames: int | None) -> None:
+        try:
+            with self._open() as reader:
+                self.topics, self.topic_choice = discover_topics(reader, self.topics, self.with_depth, str(self.path))
+        except MemgsError:
+            raise
+        except Exception as err:  # noqa: BLE001 - rosbags/mcap/sqlite raise many kinds; the bag is unusable
+            raise self._fail(err) from err
+        if self.topic_choice:
+            logger.info("%s", self.topic_choice)
         scan = self._read_headers(want_camera=camera is None)
         self.camera = self._checked_camera(camera if camera is not None else scan.info, scan.rgb_size)
         self._plan = self._pair_frames(scan, max_dt_s, max_frames)
@@ -211,7 +344,7 @@ class BagSource:
     def _wanted_connections(self, reader: Any) -> list[Any]:
         """The connections pass 1 reads; the others are counted as skipped, by topic or by type."""
         t = self.topics
-        wanted_types = {t.rgb: (IMAGE_TYPE,), t.depth: (IMAGE_TYPE,), t.rgb_info: (INFO_TYPE,),
+        wanted_types = {t.rgb: IMAGE_TYPES, t.depth: IMAGE_TYPES, t.rgb_info: (INFO_TYPE,),
                         t.tf: TF_TYPES, t.tf_static: TF_TYPES, t.pose: (POSE_TYPE,)}
         if not self.with_depth:
             del wanted_types[t.depth]
@@ -234,13 +367,21 @@ class BagSource:
         t = self.topics
         if topic == t.rgb or topic == t.depth:
             is_rgb = topic == t.rgb
-            check_image(msg, COLOR_ENCODINGS if is_rgb else DEPTH_ENCODINGS)
+            if not is_compressed(msg):
+                check_image(msg, COLOR_ENCODINGS if is_rgb else DEPTH_ENCODINGS)
+            elif compressed_is_depth(msg) == is_rgb:
+                raise MessageError(f"compressed image of format '{msg.format}' on the "
+                                   f"{'colour' if is_rgb else 'depth'} topic")
             stamp = _stamp_ns(msg.header) or bag_ns
             if is_rgb:
                 scan.rgb_stamps.append((index, stamp))
                 if scan.rgb_frame_id is None:
                     scan.rgb_frame_id = _frame_name(str(msg.header.frame_id))
-                    scan.rgb_size = (int(msg.width), int(msg.height))
+                    if is_compressed(msg):  # the size is inside the JPEG / PNG: decode the first
+                        h, w = decode_compressed_rgb(msg).shape[:2]
+                        scan.rgb_size = (w, h)
+                    else:
+                        scan.rgb_size = (int(msg.width), int(msg.height))
             else:
                 scan.depth_stamps.append((index, stamp))
         elif topic == t.rgb_info:
@@ -250,7 +391,7 @@ class BagSource:
             scan.pose_st.append(_stamp_ns(msg.header) or bag_ns)
             p, q = msg.pose.position, msg.pose.orientation
             scan.pose_T.append(pose_from_tq(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w])))
-        else:
+        elif topic in (t.tf, t.tf_static):
             for ts in msg.transforms:
                 key = (_frame_name(str(ts.header.frame_id)), _frame_name(str(ts.child_frame_id)))
                 e = scan.edges.setdefault(key, _Edge())
@@ -358,7 +499,7 @@ class BagSource:
         topics = {t.rgb, t.depth} if self.with_depth else {t.rgb}
         try:
             with self._open() as reader:
-                conns = [c for c in reader.connections if c.topic in topics and c.msgtype == IMAGE_TYPE]
+                conns = [c for c in reader.connections if c.topic in topics and c.msgtype in IMAGE_TYPES]
                 counters: dict[str, int] = defaultdict(int)
                 for c, _, raw in reader.messages(connections=conns):
                     index = counters[c.topic]
@@ -369,7 +510,7 @@ class BagSource:
                         continue
                     try:
                         msg = reader.deserialize(raw, c.msgtype)
-                        img = decode_rgb(msg) if is_rgb else decode_depth(msg, self.depth_scale)
+                        img = decode_color_message(msg) if is_rgb else decode_depth_message(msg, self.depth_scale)
                         expected = (self.camera.height, self.camera.width)
                         if img.shape[:2] != expected:
                             raise MessageError(f"image is {img.shape[1]}x{img.shape[0]}, "
@@ -413,4 +554,4 @@ def _sorted_unique(stamps: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, n
     return stamps[keep], poses[keep]
 
 
-__all__ = ["BagSource", "BagTopics"]
+__all__ = ["BagSource", "BagTopics", "discover_topics"]

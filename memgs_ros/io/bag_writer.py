@@ -1,4 +1,5 @@
-"""Write frames to ROS 2 bags (MCAP or sqlite3) and to ROS 1 bags in the official TUM layout.
+"""Write frames to ROS 2 bags (MCAP or sqlite3), in TUM's or realsense-ros's layout
+(``write_realsense_bag``, raw or compressed), and to ROS 1 bags in the official TUM layout.
 
 ROS 2 layout (TUM topic names, Jazzy types):
 
@@ -38,6 +39,7 @@ import numpy as np
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.poses import invert_pose, pose_from_tq, pose_to_tq
+from memgs_ros.core.geometry.view import metres_to_units
 from memgs_ros.errors import DataError
 from memgs_ros.io.bag_stream import BagStream, _size, _tmp_sibling, ros2_typestore
 
@@ -109,6 +111,9 @@ class MessageFactory:
         buf = raw.view(np.uint8).reshape(-1)
         return self._t("sensor_msgs/msg/Image")(header=header, height=h, width=w, encoding=encoding,
                                                 is_bigendian=0, step=step, data=buf)
+
+    def compressed_image(self, header: Any, fmt: str, data: np.ndarray) -> Any:
+        return self._t(COMPRESSED_TYPE)(header=header, format=fmt, data=np.ascontiguousarray(data, np.uint8))
 
     def camera_info(self, header: Any, camera: PinholeCamera) -> Any:
         K = camera.K.reshape(-1)
@@ -195,6 +200,96 @@ def write_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str], storage
             if f.T_wc_gt is not None:
                 tf = mf.transform_stamped(mf.header(s, world_frame_id), camera_frame_id, f.T_wc_gt)
                 put(TF_TOPIC, "tf2_msgs/msg/TFMessage", s, mf.tf_message([tf]))
+                put(POSE_TOPIC, "geometry_msgs/msg/PoseStamped", s,
+                    mf.pose_stamped(mf.header(s, world_frame_id), f.T_wc_gt))
+            n += 1
+            if on_frame is not None:
+                on_frame(f)
+        if n == 0:
+            raise DataError(f"{out}: no frames to write")
+    return BagWriteResult(out, n, _size(out))
+
+
+# realsense-ros 4.x's layout (``ros2 launch realsense2_camera rs_launch.py align_depth.enable:=true``,
+# camera_namespace and camera_name both "camera"), as ``ros2 bag record`` stores it.
+RS_PREFIX = "/camera/camera"
+RS_COLOR_TOPIC = f"{RS_PREFIX}/color/image_raw"
+RS_COLOR_INFO_TOPIC = f"{RS_PREFIX}/color/camera_info"
+RS_ALIGNED_DEPTH_TOPIC = f"{RS_PREFIX}/aligned_depth_to_color/image_raw"
+RS_ALIGNED_DEPTH_INFO_TOPIC = f"{RS_PREFIX}/aligned_depth_to_color/camera_info"
+RS_DEPTH_TOPIC = f"{RS_PREFIX}/depth/image_rect_raw"  # the depth camera's own view, not registered to colour
+RS_DEPTH_INFO_TOPIC = f"{RS_PREFIX}/depth/camera_info"
+RS_COLOR_FRAME = "camera_color_optical_frame"
+RS_DEPTH_FRAME = "camera_depth_optical_frame"
+RS_DEPTH_SCALE = 1000.0  # 16UC1 millimetres
+COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
+
+
+def compress_rgb(rgb: np.ndarray, quality: int = 95) -> tuple[str, np.ndarray]:
+    """[H, W, 3] uint8 RGB -> (format, JPEG bytes [N] uint8) as image_transport's ``compressed`` writes rgb8."""
+    import cv2
+
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise DataError("JPEG encoding failed")
+    return "rgb8; jpeg compressed bgr8", buf.reshape(-1)
+
+
+def compress_depth_units(depth_units: np.ndarray) -> tuple[str, np.ndarray]:
+    """[H, W] uint16 depth units -> (format, bytes) as image_transport's ``compressedDepth`` writes 16UC1:
+    a 12-byte header (int32 codec 0 = PNG, float32 depthParam[2], unused for 16UC1), then a PNG."""
+    import cv2
+
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(depth_units, dtype=np.uint16))
+    if not ok:
+        raise DataError("PNG encoding failed")
+    header = np.array([0], "<i4").tobytes() + np.zeros(2, "<f4").tobytes()
+    return "16UC1; compressedDepth png", np.concatenate([np.frombuffer(header, np.uint8), png.reshape(-1)])
+
+
+def write_realsense_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str], compressed: bool = False,
+                        storage: str | None = None, world_frame_id: str = WORLD_FRAME, jpeg_quality: int = 95,
+                        on_frame: Callable[[Frame], None] | None = None) -> BagWriteResult:
+    """Write frames as a ROS 2 bag in realsense-ros 4.x's layout (``RS_*`` topics): colour rgb8 and
+    depth aligned to it (16UC1 millimetres) with their camera_info, and the depth camera's own
+    stream beside them (here the same pixels; a reader must prefer the aligned one). ``compressed``:
+    colour as image_transport's ``compressed`` (JPEG, ``jpeg_quality``) and depth as its
+    ``compressedDepth`` (PNG) on ``<topic>/compressed`` and ``<topic>/compressedDepth``, as a bag
+    recorded over a radio link holds them. Ground truth, where frames carry it, goes on
+    ``/groundtruth/pose`` (PoseStamped, a motion-capture recording beside the camera's).
+    """
+    out = Path(out_path)
+    n = 0
+    with BagStream(out, storage) as bag:
+        mf = MessageFactory(bag.typestore, ros1=False)
+        topics: set[str] = set()
+
+        def put(topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
+            if topic not in topics:
+                bag.add_topic(topic, msgtype)
+                topics.add(topic)
+            bag.write(topic, stamp_ns, mf.serialize(msg, msgtype))
+
+        def image(topic: str, header: Any, data: np.ndarray, encoding: str, s: int) -> None:
+            if not compressed:
+                put(topic, "sensor_msgs/msg/Image", s, mf.image(header, data, encoding))
+                return
+            fmt, buf = compress_rgb(data, jpeg_quality) if encoding == "rgb8" else compress_depth_units(data)
+            suffix = "compressed" if encoding == "rgb8" else "compressedDepth"
+            put(f"{topic}/{suffix}", COMPRESSED_TYPE, s, mf.compressed_image(header, fmt, buf))
+
+        for f in frames:
+            s = int(f.stamp_ns)
+            put(RS_COLOR_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
+                mf.camera_info(mf.header(s, RS_COLOR_FRAME), f.camera))
+            image(RS_COLOR_TOPIC, mf.header(s, RS_COLOR_FRAME), f.rgb, "rgb8", s)
+            if (depth_m := f.depth_metres()) is not None:
+                units = metres_to_units(depth_m, RS_DEPTH_SCALE)
+                for topic, info, frame in ((RS_ALIGNED_DEPTH_TOPIC, RS_ALIGNED_DEPTH_INFO_TOPIC, RS_COLOR_FRAME),
+                                           (RS_DEPTH_TOPIC, RS_DEPTH_INFO_TOPIC, RS_DEPTH_FRAME)):
+                    put(info, "sensor_msgs/msg/CameraInfo", s, mf.camera_info(mf.header(s, frame), f.camera))
+                    image(topic, mf.header(s, frame), units, "16UC1", s)
+            if f.T_wc_gt is not None:
                 put(POSE_TOPIC, "geometry_msgs/msg/PoseStamped", s,
                     mf.pose_stamped(mf.header(s, world_frame_id), f.T_wc_gt))
             n += 1

@@ -41,12 +41,18 @@ __all__ = [
     "IMAGE_ENCODINGS",
     "check_image",
     "check_image_sizes",
+    "compressed_is_depth",
     "decode_camera_info",
+    "decode_color_message",
+    "decode_compressed_depth",
+    "decode_compressed_rgb",
     "decode_depth",
+    "decode_depth_message",
     "decode_rgb",
     "depth_view",
     "has_valid_depth",
     "image_to_numpy",
+    "is_compressed",
     "metres_to_depth_units",
     "rgb_view",
 ]
@@ -205,6 +211,82 @@ def decode_depth(msg: Any, depth_scale: float = DEFAULT_DEPTH_SCALE) -> np.ndarr
     0 = no measurement. 32FC1: metres. Zero, negative and non-finite values become NaN.
     """
     return depth_to_metres(*depth_view(msg, depth_scale))
+
+
+# ---------------------------------------------------------------- compressed images
+# sensor_msgs/CompressedImage as image_transport writes it: ``format`` is "<encoding>; <codec>
+# compressed <wire encoding>" (colour: jpeg or png) or "<encoding>; compressedDepth png" (depth:
+# a 12-byte header, int32 codec + float32 depthParam[2], then a PNG; 16UC1 as is, 32FC1 as quantised
+# inverse depth, depth = depthParam[0] / (value - depthParam[1])).
+COMPRESSED_DEPTH_HEADER_BYTES = 12
+
+
+def is_compressed(msg: Any) -> bool:
+    """Whether ``msg`` is a CompressedImage (it has ``format`` and no ``encoding``)."""
+    return hasattr(msg, "format") and not hasattr(msg, "encoding")
+
+
+def compressed_is_depth(msg: Any) -> bool:
+    """Whether a CompressedImage holds depth (image_transport's ``compressedDepth``)."""
+    return "compresseddepth" in str(_field(msg, "format")).lower()
+
+
+def _imdecode(data: np.ndarray, what: str) -> np.ndarray:
+    if data.size == 0:
+        raise MessageError(f"{what} has no data")
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise MessageError(f"{what} does not decode (corrupt or not a JPEG / PNG)")
+    return img
+
+
+def decode_compressed_rgb(msg: Any) -> np.ndarray:
+    """Compressed colour image (JPEG or PNG) -> [H, W, 3] uint8 RGB, a new array."""
+    fmt = str(_field(msg, "format"))
+    if compressed_is_depth(msg):
+        raise MessageError(f"compressed image of format '{fmt}' holds depth, not colour")
+    img = _imdecode(_buffer(_field(msg, "data")), f"compressed colour image ('{fmt}')")
+    if img.dtype != np.uint8:
+        raise MessageError(f"compressed colour image ('{fmt}') decodes to {img.dtype}, expected 8-bit channels")
+    if img.ndim == 2:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    # OpenCV decodes to BGR(A) whatever the original order: image_transport encodes rgb8 through bgr8
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGB)
+
+
+def decode_compressed_depth(msg: Any, depth_scale: float = DEFAULT_DEPTH_SCALE) -> np.ndarray:
+    """image_transport ``compressedDepth`` (PNG) -> [H, W] float32 metres, NaN where invalid."""
+    fmt = str(_field(msg, "format"))
+    if not compressed_is_depth(msg):
+        raise MessageError(f"compressed image of format '{fmt}' is not compressedDepth")
+    if "rvl" in fmt.lower():
+        raise MessageError(f"compressedDepth '{fmt}': the RVL codec is not supported; record with png")
+    enc = fmt.split(";", 1)[0].strip()
+    buf = _buffer(_field(msg, "data"))
+    if buf.size <= COMPRESSED_DEPTH_HEADER_BYTES:
+        raise MessageError(f"compressedDepth image ('{fmt}') has {buf.size} bytes: no header and PNG")
+    a, b = np.frombuffer(buf[4:COMPRESSED_DEPTH_HEADER_BYTES].tobytes(), dtype="<f4")
+    img = _imdecode(buf[COMPRESSED_DEPTH_HEADER_BYTES:], f"compressedDepth image ('{fmt}')")
+    if img.ndim != 2 or img.dtype != np.uint16:
+        raise MessageError(f"compressedDepth image ('{fmt}') decodes to {img.dtype} {img.shape}, expected 16-bit")
+    if enc in ("16UC1", "mono16"):
+        return depth_to_metres(img, float(depth_scale))
+    if enc == "32FC1":
+        v = img.astype(np.float32)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = np.where(img > 0, np.float32(a) / (v - np.float32(b)), np.float32(np.nan))
+        return depth_to_metres(d.astype(np.float32), 1.0)
+    raise MessageError(f"compressedDepth encoding '{enc}' is not a depth encoding (16UC1, 32FC1)")
+
+
+def decode_color_message(msg: Any) -> np.ndarray:
+    """A colour Image or CompressedImage -> [H, W, 3] uint8 RGB, a new array."""
+    return decode_compressed_rgb(msg) if is_compressed(msg) else decode_rgb(msg)
+
+
+def decode_depth_message(msg: Any, depth_scale: float = DEFAULT_DEPTH_SCALE) -> np.ndarray:
+    """A depth Image or compressedDepth CompressedImage -> [H, W] float32 metres, NaN invalid."""
+    return decode_compressed_depth(msg, depth_scale) if is_compressed(msg) else decode_depth(msg, depth_scale)
 
 
 def metres_to_depth_units(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:

@@ -22,16 +22,18 @@ __all__ = ["DEFAULT_PERIOD_NS", "Preloaded", "ReplayFeed", "frames_total", "open
 DEFAULT_PERIOD_NS = 33_333_333  # loop gap for a one-frame source (30 Hz)
 
 
-def open_frames(spec: str, folder_camera: PinholeCamera | None, strict: bool) -> Iterable[Frame]:
+def open_frames(spec: str, folder_camera: PinholeCamera | None, strict: bool, bag_topics: str = "") -> Iterable[Frame]:
     """The source ``spec`` names (a TUM folder, a bag, ``synthetic:...``), checked before the first
     frame: ConfigError when empty, and a TUM folder that names no camera (nor has ``folder_camera``)
-    fails here."""
+    fails here. ``bag_topics``: ``BagTopics.parse``'s text."""
     if not spec:
         raise ConfigError("parameter 'source' is empty: give a TUM folder, bag or 'synthetic:...' spec")
-    from memgs_ros.io.sources import open_source  # heavy readers only when replaying files
+    from memgs_ros.io.bag_reader import BagTopics  # heavy readers only when replaying files
+    from memgs_ros.io.sources import open_source
 
     # A TUM folder's depth PNGs as stored: a 16UC1 replay publishes them unchanged (FrameOutbox).
-    source = open_source(spec, default_camera=folder_camera, strict=strict, raw_depth=True)
+    source = open_source(spec, default_camera=folder_camera, strict=strict, raw_depth=True,
+                         topics=BagTopics.parse(bag_topics))
     _ = source.camera
     return source
 

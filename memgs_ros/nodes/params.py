@@ -28,6 +28,8 @@ class BagPlayerParams:
     """
 
     source: str = ""  # frame source: TUM folder, .bag, ROS 2 bag folder/.mcap, or 'synthetic:...' spec
+    # a bag's topics, 'color=/a,depth=/b,camera_info=/c' (any of them); empty: TUM's names, else found by type
+    bag_topics: str = ""
     rate: float = 1.0  # real-time factor (2.0 plays twice as fast); ignored in lockstep
     loop: bool = False  # start over at the end (stamps keep increasing)
     lockstep: bool = False  # publish the next frame only after the pipeline acks the current one
@@ -83,6 +85,9 @@ class TrackerParams:
     color_topic: str = "camera/camera/color/image_raw"  # colour image input
     depth_topic: str = "camera/camera/aligned_depth_to_color/image_raw"
     camera_info_topic: str = "camera/camera/color/camera_info"
+    # raw: sensor_msgs/Image; compressed: CompressedImage on <color_topic>/compressed (JPEG, PNG) and
+    # <depth_topic>/compressedDepth (image_transport's PNG), as a camera streams over a radio link
+    image_transport: str = "raw"
     depth_scale: float = 1000.0  # 16UC1 depth units per metre (RealSense 1000, TUM 5000)
     sync: str = "approximate"  # colour/depth pairing
     max_sync_dt_s: float = 0.02  # largest colour/depth stamp difference paired (approximate)
@@ -103,6 +108,7 @@ class TrackerParams:
     }
     CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {
         "sync": ("approximate", "exact"), "input_reliability": ("best_effort", "reliable"),
+        "image_transport": ("raw", "compressed"),
     }
 
 

@@ -36,7 +36,7 @@ import time
 from typing import Any
 
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from memgs_ros.core.geometry.camera import describe_camera
 from memgs_ros.core.geometry.frame import Frame
@@ -49,7 +49,7 @@ from memgs_ros.io.image_decoding import decode_camera_info, depth_view, rgb_view
 from memgs_ros.nodes.params import NODE_CONFIGS, TrackerParams
 from memgs_ros.ros import qos
 from memgs_ros.ros.camera_params import declare_calibration
-from memgs_ros.ros.codecs import stamp_to_ns
+from memgs_ros.ros.codecs import compressed_to_image, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
 from memgs_ros.ros.node_main import run_node
@@ -90,11 +90,16 @@ class TrackerNode(Node):
         self.out = TrackerOutbox(self, v.world_frame, v.camera_frame, v.path_max_len, v.path_rate_hz, self.stats)
         sensor = qos.sensor() if v.input_reliability == "best_effort" else qos.reliable(5)
         self.create_subscription(CameraInfo, v.camera_info_topic, self.on_camera_info, sensor)
-        self.create_subscription(Image, v.color_topic, self.on_color, sensor)
+        # compressed: image_transport's topics, decoded once a frame is taken (a stale one is not decoded)
+        self.compressed = v.image_transport == "compressed"
+        kind, color_topic, depth_topic = (
+            (CompressedImage, f"{v.color_topic}/compressed", f"{v.depth_topic}/compressedDepth")
+            if self.compressed else (Image, v.color_topic, v.depth_topic))
+        self.create_subscription(kind, color_topic, self.on_color, sensor)
         if self.rgbd:
-            self.create_subscription(Image, v.depth_topic, self.on_depth, sensor)
-        self.get_logger().info(f"tracking {self.cfg.mode} from {self.resolve_topic_name(v.color_topic)}"
-                               + (f" + {self.resolve_topic_name(v.depth_topic)}" if self.rgbd else ""))
+            self.create_subscription(kind, depth_topic, self.on_depth, sensor)
+        self.get_logger().info(f"tracking {self.cfg.mode} from {self.resolve_topic_name(color_topic)}"
+                               + (f" + {self.resolve_topic_name(depth_topic)}" if self.rgbd else ""))
         # The kernels load (on a fresh install: compile, ~10 s) beside the executor, neither on the
         # first frame (a live camera does not wait) nor in __init__ (a compiling node missed its stop
         # deadline). The runner starts a replay once ``kernels_warm`` is 1; a live frame before
@@ -197,6 +202,15 @@ class TrackerNode(Node):
 
     def _handle(self, color: Image, depth: Image | None) -> None:
         cpu0, wall0 = time.thread_time(), time.perf_counter()  # this thread's CPU: the frame path alone
+        if self.compressed:
+            try:
+                color, depth = (compressed_to_image(color, self.params.depth_scale),
+                                None if depth is None else compressed_to_image(depth, self.params.depth_scale))
+            except MessageError as err:
+                self.stats.counters["frames_in"] += 1
+                self.stats.problem("bad_image", f"compressed frame {stamp_to_ns(color.header.stamp)} refused: {err}")
+                self.out.processed(stamp_to_ns(color.header.stamp))
+                return
         if not self._ready_camera(color, depth):
             return
         self.stats.counters["frames_in"] += 1

@@ -497,7 +497,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
     track_s = tracker.track_us_total * 1e-6
     summary = RunSummary(
         source=str(options.source), repeat=int(options.repeat), repeat_forward=bool(options.repeat_forward),
-        frames=tracker.frames_in, poses=poses,
+        bag_topics=str(options.bag_topics), frames=tracker.frames_in, poses=poses,
         keyframes=tracker.keyframes, gaussians=gaussians,
         tracking_fps=(tracker.frames_in / track_s) if track_s > 0 else 0.0, wall_s=wall,
         ply_path=saved.split()[0] if saved else "", trajectory_path=str(out / TRAJECTORY_FILE),

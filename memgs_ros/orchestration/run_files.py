@@ -60,6 +60,7 @@ class RunOptions:
     max_frames: int = 0
     repeat: int = 1  # the source played this many times, forward and back (io/repeat.py)
     repeat_forward: bool = False  # ... every pass forward
+    bag_topics: str = ""  # a bag's topics (BagTopics.parse: memgs run --topics); empty: TUM's or found by type
     overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value
     # Start these nodes this many seconds after the player starts (a ground-station merger
     # joining mid-run; separate processes only).
@@ -135,6 +136,7 @@ class RunSummary:
     lockstep_ms: dict[str, float] = field(default_factory=dict)
     repeat: int = 1  # the source was played this many times, forward and back (``open_source(repeat=)``)
     repeat_forward: bool = False  # ... every pass forward
+    bag_topics: str = ""  # the bag topics the run was given (``BagTopics.parse``)
 
     @property
     def mapping_iterations_replay(self) -> int:
@@ -179,7 +181,7 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
     params.setdefault("bag_player", {}).update(
         source=str(options.source), lockstep=options.lockstep, rate=float(options.rate),
         max_frames=int(options.max_frames), repeat=int(options.repeat), repeat_forward=bool(options.repeat_forward),
-        ack_topic="memgs/frame_ack",
+        bag_topics=str(options.bag_topics), ack_topic="memgs/frame_ack",
         world_frame_id="map",
         strict=bool(options.strict))
     params.setdefault("mapper", {})["lockstep"] = options.lockstep

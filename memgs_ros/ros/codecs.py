@@ -21,6 +21,7 @@ import math
 import sys
 from collections.abc import Sequence
 from itertools import chain
+from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -32,7 +33,13 @@ from std_msgs.msg import Header
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import pose_from_tq, quat_xyzw_of
 from memgs_ros.errors import MessageError
-from memgs_ros.io.image_decoding import IMAGE_ENCODINGS, metres_to_depth_units
+from memgs_ros.io.image_decoding import (
+    IMAGE_ENCODINGS,
+    compressed_is_depth,
+    decode_compressed_depth,
+    decode_compressed_rgb,
+    metres_to_depth_units,
+)
 
 # Decoding lives in the one decoder; ros/pipeline.py still imports image_to_numpy from here.
 from memgs_ros.io.image_decoding import image_to_numpy as image_to_numpy
@@ -41,6 +48,7 @@ __all__ = [
     "IMAGE_ENCODINGS",
     "append_to_path",
     "camera_to_camera_info",
+    "compressed_to_image",
     "depth_to_image",
     "make_header",
     "matrix_to_odometry",
@@ -170,6 +178,15 @@ def depth_to_image(
             raise MessageError(f"depth_scale must be a positive number of units per metre, got {depth_scale}")
         return numpy_to_image(metres_to_depth_units(d, depth_scale), encoding, stamp_ns, frame_id)
     raise MessageError(f"depth encoding must be 32FC1 or 16UC1, got '{encoding}'")
+
+
+def compressed_to_image(msg: Any, depth_scale: float = 1000.0) -> Image:
+    """A sensor_msgs/CompressedImage (image_transport's ``compressed`` colour or ``compressedDepth``)
+    as the Image the tracker reads: rgb8, or 32FC1 metres; MessageError when it does not decode."""
+    stamp_ns, frame_id = stamp_to_ns(msg.header.stamp), str(msg.header.frame_id)
+    if compressed_is_depth(msg):
+        return depth_to_image(decode_compressed_depth(msg, depth_scale), "32FC1", stamp_ns, frame_id)
+    return numpy_to_image(decode_compressed_rgb(msg), "rgb8", stamp_ns, frame_id)
 
 
 # --------------------------------------------------------------------------- camera info
