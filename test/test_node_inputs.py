@@ -280,10 +280,40 @@ def test_tracker_takes_compressed_colour_and_depth(context) -> None:  # noqa: AN
                 data = data[:16]  # cut short on the link
             pc.publish(compressed(f.stamp_ns, fmt, data))
             pd.publish(compressed(f.stamp_ns, *compress_depth_units(metres_to_units(f.depth_m, 1000.0))))
-            assert _spin_until(ex, lambda: len(processed) > k), f"frame {k} was never handled"
+            assert _spin_until(ex, lambda k=k: len(processed) > k), f"frame {k} was never handled"
         c = node.stats.counters
         assert c["frames_in"] == 6 and c["problem.bad_image"] == 1 and c["poses_out"] == 5, dict(c)
         assert c["state.OK"] == 5 and not c["state.LOST"]
+    finally:
+        node.on_shutdown()
+        ex.shutdown()
+        node.destroy_node()
+        pub_node.destroy_node()
+
+
+def test_colour_without_depth_is_warned_with_its_likely_cause(context) -> None:  # noqa: ANN001
+    """A RealSense started without align_depth: colour arrives, the depth topic stays silent. The
+    tracker says so within unpaired_warn_s (and counts the colour frames it could not pair)."""
+    params = [Parameter("color_topic", value="color/image_raw"), Parameter("depth_topic", value="depth/image_raw"),
+              Parameter("camera_info_topic", value="color/camera_info"), Parameter("unpaired_warn_s", value=0.5)]
+    node = TrackerNode(context=context, parameter_overrides=params)
+    pub_node = rclpy.create_node("feeder", context=context)
+    pc = pub_node.create_publisher(Image, "color/image_raw", qos.reliable(50))
+    ex = SingleThreadedExecutor(context=context)
+    ex.add_node(node)
+    ex.add_node(pub_node)
+    try:
+        assert _spin_until(ex, lambda: pc.get_subscription_count()) and node.wait_until_warm(120)
+        f = next(iter(generate_frames(parse_spec("synthetic:w=64,h=48,n=1,seed=2"))))
+        t0, k = time.monotonic(), 0
+        while not node.stats.counters["problem.unpaired_color"] and time.monotonic() - t0 < 10:
+            pc.publish(numpy_to_image(f.rgb, "rgb8", f.stamp_ns + k * 33_333_333, "cam"))
+            k += 1
+            _spin_until(ex, lambda: False, 0.05)
+        waited = time.monotonic() - t0
+        assert node.stats.counters["problem.unpaired_color"] == 1 and 0.5 <= waited < 2.0, waited
+        assert node.stats.counters["skipped.unpaired"] >= k - 6  # all but the pairer's queue of 5
+        assert node.stats.counters["poses_out"] == 0
     finally:
         node.on_shutdown()
         ex.shutdown()

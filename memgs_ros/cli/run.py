@@ -262,7 +262,8 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
     if any(s.tracker_skipped.values()):
         print("not tracked   " + ", ".join(f"{n} {why}" for why, n in s.tracker_skipped.items() if n)
               + " (warming: came before the tracker's kernels were in; stale: dropped to catch up with the "
-                "camera; busy: never delivered while the tracker worked)")
+                "camera; busy: never delivered while the tracker worked; unpaired: colour that found no depth "
+                "within max_sync_dt_s, the tracker's log says why)")
     if s.tracker_frame_cpu_ms:
         print(f"tracker CPU   {s.tracker_frame_cpu_ms:.1f} ms a frame (median, message in to pose out)")
     print(f"keyframes     {s.keyframes}")

@@ -91,6 +91,7 @@ class TrackerParams:
     depth_scale: float = 1000.0  # 16UC1 depth units per metre (RealSense 1000, TUM 5000)
     sync: str = "approximate"  # colour/depth pairing
     max_sync_dt_s: float = 0.02  # largest colour/depth stamp difference paired (approximate)
+    unpaired_warn_s: float = 5.0  # colour arriving this long with no depth to pair it with: warn, naming why
     world_frame: str = "map"  # frame id of published poses
     camera_frame: str = "camera_color_optical_frame"  # child frame id of the odometry (camera optical frame)
     input_reliability: str = "best_effort"
@@ -102,7 +103,8 @@ class TrackerParams:
     max_frame_age_s: float = 0.1
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
-        "depth_scale": (1e-3, 1e6), "max_sync_dt_s": (0.0, 1.0), "path_max_len": (0, 10**7),
+        "depth_scale": (1e-3, 1e6), "max_sync_dt_s": (0.0, 1.0), "unpaired_warn_s": (0.1, 3600.0),
+        "path_max_len": (0, 10**7),
         "path_rate_hz": (0.01, 100.0), "time_jump_back_s": (0.0, 1e6), "max_stamp_ahead_s": (0.0, 1e9),
         "max_frame_age_s": (0.0, 60.0),
     }

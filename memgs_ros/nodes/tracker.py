@@ -83,6 +83,10 @@ class TrackerNode(Node):
         self.gate = LiveGate(int(1e9 * v.max_frame_age_s))  # 0: never stale (the runner's lockstep replays)
         self.pairer: NearestPairer[Image] = NearestPairer(
             max_dt_ns=0 if v.sync == "exact" else int(v.max_sync_dt_s * 1e9), queue_size=5)
+        # Colour waiting for depth (RGB-D): since when (monotonic s; None while frames pair), and
+        # whether any depth came at all: a camera without depth maps nothing, and says why.
+        self._unpaired_since: float | None = None
+        self._depth_seen = False
         self.tracker: Tracker | None = None
         self.stats = NodeStats(self, "tracker")
         self._frame_cpu_ms = self.stats.computed["frame_cpu_ms_median"] = RollingMedian()  # message in to pose out
@@ -152,13 +156,43 @@ class TrackerNode(Node):
             self.out.processed(stamp_to_ns(msg.header.stamp))
         elif not self.rgbd:
             self._handle(msg, None)
-        elif (pair := self.pairer.add_a(stamp_to_ns(msg.header.stamp), msg)) is not None:
-            self._handle(pair[1], pair[2])
+        else:
+            dropped = self.pairer.dropped_a
+            pair = self.pairer.add_a(stamp_to_ns(msg.header.stamp), msg)
+            self.stats.counters["skipped.unpaired"] += self.pairer.dropped_a - dropped
+            if pair is not None:
+                self._unpaired_since = None
+                self._handle(pair[1], pair[2])
+            else:
+                self._check_unpaired()
 
     def on_depth(self, msg: Image) -> None:
+        self._depth_seen = True
+        dropped = self.pairer.dropped_a
         pair = self.pairer.add_b(stamp_to_ns(msg.header.stamp), msg)
+        self.stats.counters["skipped.unpaired"] += self.pairer.dropped_a - dropped
         if pair is not None:
+            self._unpaired_since = None
             self._handle(pair[1], pair[2])
+
+    def _check_unpaired(self) -> None:
+        """Colour that has found no depth for ``unpaired_warn_s``: a problem naming the likely cause."""
+        now = time.monotonic()
+        if self._unpaired_since is None:
+            self._unpaired_since = now
+            return
+        if now - self._unpaired_since < self.params.unpaired_warn_s:
+            return
+        v, waited = self.params, now - self._unpaired_since
+        color, depth = self.resolve_topic_name(v.color_topic), self.resolve_topic_name(v.depth_topic)
+        if not self._depth_seen:
+            why = (f"colour on {color} for {waited:.0f} s but no depth on {depth}: is the depth topic right, "
+                   "and is the RealSense's align_depth.enable on? (--mode mono maps colour alone)")
+        else:
+            why = (f"no depth on {depth} within {v.max_sync_dt_s * 1e3:.0f} ms of colour for {waited:.0f} s: "
+                   "do colour and depth share a clock (max_sync_dt_s, sync)?")
+        self.stats.problem("unpaired_color", why)
+        self._unpaired_since = now  # counted again after another window
 
     def _ready_camera(self, color: Image, depth: Image | None) -> bool:
         """Whether the camera is known; else the frame waits for camera_info (the one it pushes out

@@ -511,7 +511,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
         cpu_s=_cpu_times(obs, procs), merger_resyncs=sum(merger.resync.values()), restarts=restarts,
         replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render),
         source_complete=obs.source_ok, frames_played=obs.telemetry("player").frames_published,
-        tracker_skipped={k: tracker.skipped.get(k, 0) for k in ("warming", "stale", "busy")},
+        tracker_skipped={k: tracker.skipped.get(k, 0) for k in ("warming", "stale", "busy", "unpaired")},
         tracker_frame_cpu_ms=tracker.frame_cpu_ms_median, skipped_frames=dict(obs.telemetry("player").skipped),
         **_mapper_figures(obs, options.composed))
     # The summary is a file of the run, so evaluation reads a finished run instead of watching it.

@@ -112,7 +112,7 @@ class RunSummary:
     frames_played: int = 0  # frames the player published (``frames`` is what reached the tracker)
     # frames played but not tracked, by reason: warming (came before the tracker's kernels were in),
     # stale (dropped by the tracker, which had fallen behind), busy (published, never delivered: the
-    # reader's queue overflowed or transport lost it)
+    # reader's queue overflowed or transport lost it), unpaired (colour that found no depth to pair)
     tracker_skipped: dict[str, int] = field(default_factory=dict)
     tracker_frame_cpu_ms: float = 0.0  # the tracker's CPU per frame, message in to pose out (median)
     mapping_iterations_final: int = 0  # of mapping_iterations, run by the finish (the rest while frames came)

@@ -53,12 +53,14 @@ class NearestPairer(Generic[T]):
     """Pair items of streams ``a`` and ``b`` whose stamps are within ``max_dt_ns``.
 
     ``max_dt_ns = 0`` demands exact stamps. Each item is used at most once; items that
-    can no longer be paired (older than the newest pair) are dropped and counted.
+    can no longer be paired (older than the newest pair) are dropped and counted (``dropped``;
+    ``dropped_a`` of them from stream a).
     """
 
     max_dt_ns: int
     queue_size: int = 5
     dropped: int = 0
+    dropped_a: int = 0
     _a: OrderedDict[int, T] = field(default_factory=OrderedDict)
     _b: OrderedDict[int, T] = field(default_factory=OrderedDict)
 
@@ -80,6 +82,7 @@ class NearestPairer(Generic[T]):
             while len(mine) > self.queue_size:
                 mine.popitem(last=False)
                 self.dropped += 1
+                self.dropped_a += a_first
             return None
         match = other.pop(best)
         # Anything older than this pair on either side can only pair out of order now.
@@ -87,6 +90,7 @@ class NearestPairer(Generic[T]):
             for s in [s for s in q if s < min(best, stamp_ns)]:
                 del q[s]
                 self.dropped += 1
+                self.dropped_a += q is self._a
         a, b = (item, match) if a_first else (match, item)
         return (stamp_ns if a_first else best), a, b
 
