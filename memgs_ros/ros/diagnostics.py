@@ -1,4 +1,6 @@
-"""Node statistics as diagnostic_msgs/DiagnosticArray on ``memgs/<node>/stats``.
+"""Node statistics as diagnostic_msgs/DiagnosticArray on ``memgs/<node>/stats``, and the node's
+health on ``/diagnostics`` (one DiagnosticStatus per node, its level judged on the current window
+by ``core/runtime/health.assess``: what diagnostic_aggregator and rqt read).
 
 Every node's stats carry ``peak_rss_mb``, ``rss_mb``, ``cpu_s`` (its process's CPU time so far) and
 ``nice`` (its scheduling priority) beside the node's own counters and gauges; every key is a field
@@ -19,6 +21,7 @@ from rclpy.node import Node
 from std_msgs.msg import Header
 
 from memgs_ros.core.runtime.cpu import release_free_memory
+from memgs_ros.core.runtime.health import assess
 from memgs_ros.core.runtime.telemetry import TELEMETRY, NodeTelemetry, StatsError, check_key
 from memgs_ros.ros import qos
 
@@ -112,6 +115,9 @@ class NodeStats:
         self._accepted: set[str] = set()  # keys checked once: a frame path sets a dozen a frame
         self._posted: queue.SimpleQueue[tuple[str, str, object]] = queue.SimpleQueue()
         self._pub = node.create_publisher(DiagnosticArray, f"memgs/{name}/stats", qos.reliable(5))
+        # /diagnostics: absolute (every node of the robot on one topic), the aggregator's QoS
+        self._diag_pub = node.create_publisher(DiagnosticArray, "/diagnostics", qos.reliable(10))
+        self._before: dict[str, object] | None = None  # the values of the previous window
         self._timer = node.create_timer(period_s, self.publish)
 
     def _accepts(self, key: str) -> bool:
@@ -185,16 +191,21 @@ class NodeStats:
         if hasattr(os, "getpriority"):
             self.gauges["nice"] = os.getpriority(os.PRIO_PROCESS, 0)  # the Rerun view runs at 15 under memgs run
         values: Mapping[str, object] = {**self.counters, **self.gauges}
-        level = DiagnosticStatus.WARN if any(k.startswith("problem.") for k in self.counters) else DiagnosticStatus.OK
+        health = assess(self._name, values, self._before)
+        self._before = dict(values)
         status = DiagnosticStatus(
-            level=level, name=f"memgs/{self._name}", hardware_id=self._node.get_fully_qualified_name(),
-            message="problems seen" if level else "ok",
+            level=bytes([int(health.level)]), name=f"memgs/{self._name}",
+            hardware_id=self._node.get_fully_qualified_name(), message=health.message,
             values=[KeyValue(key=k, value=str(v)) for k, v in sorted(values.items())])
         # Not codecs.make_header: codecs loads scipy, which a light node (the recorder) does without.
         return DiagnosticArray(header=Header(stamp=self._node.get_clock().now().to_msg()), status=[status])
 
     def publish(self) -> None:
-        self._pub.publish(self.message())
+        """The stats now, on ``memgs/<node>/stats`` and ``/diagnostics`` (also called at once on a
+        change a robot must hear of sooner than the next second, e.g. tracking lost)."""
+        msg = self.message()
+        self._pub.publish(msg)
+        self._diag_pub.publish(msg)
 
 
 def rss_mb() -> float:

@@ -174,7 +174,14 @@ class TrackerOutbox:
         self._state.data = name = result.state.name
         self.state.publish(self._state)
         stats.counters[f"state.{name}"] += 1
+        previous = stats.gauges.get("tracking_state")
+        stats.gauges["tracking_state"] = name
+        if result.segment_id != stats.gauges.get("segment", result.segment_id) or (
+                previous == "LOST" and name == "OK"):
+            stats.counters["resets"] += 1  # relocalised, or a new map segment: poses may jump
         stats.gauges["segment"] = result.segment_id
+        if previous is not None and (name == "LOST") != (previous == "LOST"):
+            stats.publish()  # lost, or back: /diagnostics hears it now, not at the next second
         pose = None
         if result.T_wc is not None:
             pose = matrix_to_pose_stamped(result.T_wc, stamp, self.world_frame)

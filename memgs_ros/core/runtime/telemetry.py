@@ -52,6 +52,8 @@ class TrackerTelemetry(NodeTelemetry):
     refined_keyframe_poses: int = 0  # keyframe poses re-published after local BA
     loop_corrected_keyframe_poses: int = 0  # ... after a loop closure
     segment: int = 0  # the map segment tracked on (a new one after a long loss)
+    tracking_state: str = ""  # the last frame's: NOT_INITIALIZED, OK, RECENTLY_LOST or LOST
+    resets: int = 0  # relocalisations and new segments: the pose may jump there
     track_ms: float = 0.0  # the last frame's track() time
     ba_waits: int = 0  # frames that waited for the back-end's BA
     keyframes_deferred: int = 0  # due keyframes put off while a BA ran

@@ -1,0 +1,115 @@
+"""Health on /diagnostics: a node's level judged on the current window (core/runtime/health.py), and
+the tracker's ERROR when tracking is lost and OK once it relocalises, over real DDS."""
+from __future__ import annotations
+
+import itertools
+import time
+
+import numpy as np
+import pytest
+
+from memgs_ros.core.runtime.health import Level, assess
+
+
+def test_the_level_follows_the_window_not_the_past() -> None:
+    before = {"problem.bad_image": 1, "skipped.stale": 3, "tracking_state": "OK"}
+    assert assess("tracker", {**before}, before).level is Level.OK  # an old problem: OK now
+    h = assess("tracker", {**before, "problem.bad_image": 2}, before)
+    assert h.level is Level.WARN and "bad_image" in h.message
+    assert assess("tracker", {**before, "skipped.stale": 4}, before).level is Level.WARN
+    assert assess("tracker", {**before, "tracking_state": "RECENTLY_LOST"}, before).level is Level.WARN
+    lost = assess("tracker", {**before, "tracking_state": "LOST"}, before)
+    assert lost.level is Level.ERROR and "lost" in lost.message
+    assert assess("merger", {"problem.save_failed": 1}, None).level is Level.WARN  # the first window: all of it
+
+
+def test_the_mapper_is_in_error_when_its_worker_stops_and_warns_when_behind() -> None:
+    ok = {"alive": 1, "insert_queue": 0}
+    assert assess("mapper", ok, ok).level is Level.OK
+    assert assess("mapper", {**ok, "alive": 0}, ok).level is Level.ERROR
+    assert assess("mapper", {**ok, "problem.command_failed": 1}, ok).level is Level.ERROR
+    assert assess("mapper", {**ok, "insert_queue": 9}, ok).level is Level.WARN
+    assert assess("mapper", {"alive": 0}, None).level is Level.OK  # not started yet: nothing stopped
+
+
+@pytest.mark.ros
+def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noqa: ANN001
+    rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import CameraInfo, Image
+    from std_msgs.msg import Header
+
+    from memgs_ros.io.synthetic import generate_frames, parse_spec
+    from memgs_ros.nodes.tracker import TrackerNode
+    from memgs_ros.ros import qos
+    from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image
+
+    params = [Parameter("color_topic", value="color/image_raw"), Parameter("depth_topic", value="depth/image_raw"),
+              Parameter("camera_info_topic", value="color/camera_info"), Parameter("sync", value="exact"),
+              Parameter("max_frame_age_s", value=0.0)]
+    node = TrackerNode(context=context, parameter_overrides=params)
+    feeder = rclpy.create_node("feeder", context=context)
+    pc = feeder.create_publisher(Image, "color/image_raw", qos.reliable(50))
+    pd = feeder.create_publisher(Image, "depth/image_raw", qos.reliable(50))
+    pi = feeder.create_publisher(CameraInfo, "color/camera_info", qos.reliable(5))
+    processed: list[Header] = []
+    feeder.create_subscription(Header, "memgs/tracker/processed", processed.append, qos.reliable(100))
+    heard: list[tuple[float, int, str]] = []  # (arrival, level, message) of the tracker's status
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        for s in msg.status:
+            if s.name == "memgs/tracker":
+                heard.append((time.monotonic(), s.level[0], s.message))
+
+    feeder.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos.reliable(10))
+    ex = SingleThreadedExecutor(context=context)
+    ex.add_node(node)
+    ex.add_node(feeder)
+
+    def spin_until(cond, timeout_s: float = 20.0) -> bool:  # noqa: ANN001
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.02)
+            if cond():
+                return True
+        return False
+
+    try:
+        assert spin_until(lambda: pc.get_subscription_count() and pd.get_subscription_count()
+                          and pi.get_subscription_count()) and node.wait_until_warm(120)
+        frames = list(itertools.islice(generate_frames(parse_spec("synthetic:w=320,h=240,n=60,seed=2")), 8))
+        pi.publish(camera_to_camera_info(frames[0].camera, frames[0].stamp_ns, "cam"))
+        stamp, sent = frames[0].stamp_ns, 0
+
+        def send(rgb: np.ndarray, depth: np.ndarray) -> str:
+            nonlocal stamp, sent
+            stamp += 33_333_333
+            pc.publish(numpy_to_image(rgb, "rgb8", stamp, "cam"))
+            pd.publish(depth_to_image(depth, "32FC1", stamp, "cam"))
+            sent += 1
+            assert spin_until(lambda: len(processed) >= sent), f"frame {sent} was never handled"
+            return str(node.stats.gauges["tracking_state"])
+
+        for f in frames[:4]:
+            assert send(f.rgb, f.depth_m) == "OK"
+        black = np.zeros_like(frames[4].rgb)  # the lens covered: no features, depth still there
+        while (state := send(black, frames[4].depth_m)) != "LOST":
+            assert state == "RECENTLY_LOST"
+        lost_at = time.monotonic()
+        assert spin_until(lambda: any(t >= lost_at - 0.5 and lvl == 2 for t, lvl, _ in heard), 1.0), heard[-3:]
+        error = next(m for t, lvl, m in heard if lvl == 2)
+        assert "lost" in error
+        for f in itertools.islice(itertools.cycle(frames[:4]), 20):  # back over the mapped room
+            if send(f.rgb, f.depth_m) == "OK":  # relocalised
+                break
+        assert node.stats.gauges["tracking_state"] == "OK"
+        found_at = time.monotonic()
+        assert spin_until(lambda: any(t >= found_at - 0.5 and lvl == 0 for t, lvl, _ in heard), 1.0), heard[-3:]
+        assert node.stats.counters["resets"] == 1
+    finally:
+        node.on_shutdown()
+        ex.shutdown()
+        node.destroy_node()
+        feeder.destroy_node()
