@@ -71,6 +71,7 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
     times, cpu, proc, states, est, stamps, n_inl = [], [], [], [], [], [], []
     n_kf = 0
     flip_frames: list[int] = []
+    cov_trace: list[tuple[float, int]] = []  # (position covariance trace m^2, inliers) of tracked frames
     first_ok = None
     ba_inline_s = 0.0
     wall0, stamp0 = time.perf_counter(), frames[0].stamp_ns if frames else 0
@@ -97,6 +98,8 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
         proc.append(dp)
         states.append(res.state.value)
         n_inl.append(res.n_inliers)
+        if res.pose_cov is not None:
+            cov_trace.append((float(np.trace(res.pose_cov[:3, :3])), res.n_inliers))
         n_kf += res.keyframe is not None
         if (ro := getattr(tracker, "readout", None)) is not None and ro.flips > len(flip_frames):
             flip_frames.append(k)  # the rolling shutter's direction flipped at this frame
@@ -127,6 +130,13 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
                  "proc_cpu_ms_p95": 1e3 * float(np.percentile(proc, 95)) if pure_timing else None,
                  "inliers_median": float(np.median(n_inl)), "ba_runs": tracker.ba_runs,
                  "ba_time_s": tracker.ba_time_s, "pure_track_timing": pure_timing, "paced": pace}
+    if len(cov_trace) >= 3:
+        from scipy.stats import spearmanr
+
+        tr, inl = np.array(cov_trace).T
+        # the odometry's covariance means something: larger where fewer points held the pose
+        out["cov_pos_sd_cm_median"] = 100 * float(np.sqrt(np.median(tr)))
+        out["cov_spearman_vs_inverse_inliers"] = float(spearmanr(tr, 1.0 / np.maximum(inl, 1)).statistic)
     if len(est) >= 3:
         r = ate(np.array(stamps), np.array(est), gt_st, gt_T, sim3=sim3)
         out.update(ate_rmse_m=r.rmse_m, ate_max_m=r.max_m, ate_rot_rmse_deg=r.rotation_rmse_deg,
@@ -234,7 +244,9 @@ def main(argv: list[str] | None = None) -> int:
               f"ok {r['n_ok']}/{r['n_frames']} lost {r['n_lost']} kf {r['n_keyframes']} "
               f"(kept {r['map_keyframes_kept']}) BA {r['ba_runs']} ({r['ba_time_s']:.1f} s)"
               + (" per pass " + " ".join(f"{v:.2f}" for v in r["ate_pass_cm"]) if r.get("ate_pass_cm") else "")
-              + (f" readout flipped at frames {r['readout_flip_frames']}" if r["readout_flip_frames"] else ""),
+              + (f" readout flipped at frames {r['readout_flip_frames']}" if r["readout_flip_frames"] else "")
+              + (f" covariance: position sd {r['cov_pos_sd_cm_median']:.2f} cm (median), Spearman vs 1/inliers "
+                 f"{r['cov_spearman_vs_inverse_inliers']:.2f}" if "cov_spearman_vs_inverse_inliers" in r else ""),
               flush=True)
 
     print()

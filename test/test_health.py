@@ -36,6 +36,7 @@ def test_the_mapper_is_in_error_when_its_worker_stops_and_warns_when_behind() ->
 def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noqa: ANN001
     rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
     from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import CameraInfo, Image
@@ -56,6 +57,8 @@ def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noq
     pi = feeder.create_publisher(CameraInfo, "color/camera_info", qos.reliable(5))
     processed: list[Header] = []
     feeder.create_subscription(Header, "memgs/tracker/processed", processed.append, qos.reliable(100))
+    odometry: list[Odometry] = []
+    feeder.create_subscription(Odometry, "memgs/odom", odometry.append, qos.reliable(100))
     heard: list[tuple[float, int, str]] = []  # (arrival, level, message) of the tracker's status
 
     def on_diag(msg: DiagnosticArray) -> None:
@@ -108,8 +111,43 @@ def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noq
         found_at = time.monotonic()
         assert spin_until(lambda: any(t >= found_at - 0.5 and lvl == 0 for t, lvl, _ in heard), 1.0), heard[-3:]
         assert node.stats.counters["resets"] == 1
+        # Odometry: tracked frames only (none while coasting or lost), each with a covariance
+        # (the first frame starts the map: its pose is the origin, fitted to nothing)
+        assert spin_until(lambda: len(odometry) == node.stats.counters["state.OK"] - 1, 2.0), (
+            len(odometry), node.stats.counters["state.OK"])
+        assert node.stats.counters["state.RECENTLY_LOST"] > 0 and node.stats.counters["state.LOST"] > 0
+        covs = [np.array(o.pose.covariance).reshape(6, 6) for o in odometry]
+        assert all(np.all(np.linalg.eigvalsh(c) > 0) for c in covs) and len({c[0, 0] for c in covs}) > 1
     finally:
         node.on_shutdown()
         ex.shutdown()
         node.destroy_node()
         feeder.destroy_node()
+
+
+def test_pose_covariance_grows_with_fewer_points_and_turns_with_the_camera() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from memgs_ros.core.geometry.poses import invert_pose
+    from memgs_ros.core.tracking.backend.bundle_adjustment import pose_covariance
+
+    rng = np.random.default_rng(0)
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    p_c = np.column_stack([rng.uniform(-1, 1, 200), rng.uniform(-0.7, 0.7, 200), rng.uniform(1, 4, 200)])
+    depth, w = p_c[:, 2].copy(), np.ones(200)
+    T_wc = np.eye(4)
+    T_wc[:3, :3], T_wc[:3, 3] = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix(), [1.0, 2.0, 0.5]
+    p_w = p_c @ T_wc[:3, :3].T + T_wc[:3, 3]
+    T_cw = invert_pose(T_wc)
+    full = pose_covariance(T_cw, p_w, depth, w, K, 40.0)
+    few = pose_covariance(T_cw, p_w[:20], depth[:20], w[:20], K, 40.0)
+    assert full is not None and few is not None and np.trace(few) > 5 * np.trace(full)
+    assert np.trace(pose_covariance(T_cw, p_w, np.full(200, np.nan), w, K, 40.0)) > np.trace(full)  # no depth
+    assert pose_covariance(T_cw, p_w[:2], depth[:2], w[:2], K, 40.0) is None
+    # The same view from a camera turned in the world: the covariance turns with it (world frame).
+    R0 = Rotation.from_rotvec([0.0, 0.0, 1.0]).as_matrix()
+    T0 = np.eye(4)
+    T0[:3, :3] = R0
+    turned = pose_covariance(invert_pose(T0 @ T_wc), p_w @ R0.T, depth, w, K, 40.0)
+    A = np.kron(np.eye(2), R0)
+    assert np.allclose(turned, A @ full @ A.T, rtol=1e-6, atol=1e-12)

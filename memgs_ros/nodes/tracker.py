@@ -1,7 +1,10 @@
 """tracker node: colour (+ depth) + camera_info in; pose, path, tracking state and keyframes out.
 
 Subscribes (sensor-data QoS): ``color_topic``, ``depth_topic`` (RGB-D only), ``camera_info_topic``.
-Publishes: ``memgs/pose`` (PoseStamped), ``memgs/odom`` (Odometry), ``memgs/path`` (Path),
+Publishes: ``memgs/pose`` (PoseStamped, every pose: coasted ones too), ``memgs/odom`` (Odometry) and
+``memgs/pose_with_covariance`` (tracked poses only, state OK: what a flight controller fuses; the
+covariance is the pose optimisation's at 1 px noise, ``pose_covariance``; twist in the camera
+frame from the last tracked pose), ``memgs/path`` (Path),
 ``memgs/tracking_state`` (String), per keyframe ``memgs/keyframe/{color,depth,camera_info,pose,
 keypoints}`` sharing the frame's stamp (images as recorded with the camera's distortion in
 camera_info; keypoint u, v are undistorted pixel positions), refined keyframe poses after local
@@ -12,7 +15,8 @@ moves each keyframe's Gaussians with the second, and retires the third's views),
 ``memgs/tracker/processed`` (Header; frame_id "keyframe" or "frame") for every frame handled, which
 the lockstep player or the mapper waits on.
 
-``memgs/pose`` and ``memgs/odom`` are per-frame odometry, published once and never revised.
+``memgs/pose``, ``memgs/odom`` and ``memgs/pose_with_covariance`` are per-frame odometry, published
+once and never revised.
 ``memgs/path`` is the corrected trajectory: each pose moves with the keyframe it was tracked
 against when a loop closure corrects that keyframe (``AnchoredPath``; local BA refinements go
 only to the mapper).

@@ -31,7 +31,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.geometry.poses import pose_from_tq, quat_xyzw_of
+from memgs_ros.core.geometry.poses import pose_from_tq, quat_xyzw_of, rotmat_to_rotvec
 from memgs_ros.errors import MessageError
 from memgs_ros.io.image_decoding import (
     IMAGE_ENCODINGS,
@@ -59,6 +59,7 @@ __all__ = [
     "pointcloud2_to_structured",
     "pose_to_matrix",
     "pose_to_odometry",
+    "set_tracked_odometry",
     "stamp_to_ns",
     "structured_to_pointcloud2",
 ]
@@ -248,6 +249,30 @@ def matrix_to_pose_stamped(T_wc: np.ndarray, stamp_ns: int, frame_id: str) -> Po
 def matrix_to_odometry(T_wc: np.ndarray, stamp_ns: int, frame_id: str, child_frame_id: str) -> Odometry:
     """Camera-in-world [4, 4] -> Odometry (pose only; twist left zero with zero covariance)."""
     return pose_to_odometry(matrix_to_pose_stamped(T_wc, stamp_ns, frame_id), child_frame_id)
+
+
+def set_tracked_odometry(msg: Odometry, pose_cov: np.ndarray, T_wc: np.ndarray, T_wc_prev: np.ndarray | None,
+                         dt_s: float) -> Odometry:
+    """Fill ``msg``'s pose covariance [6, 6] (ROS order, world frame) and its twist in the child
+    (camera) frame from the motion since ``T_wc_prev`` over ``dt_s``, with a covariance of twice the
+    pose's over dt^2 (two poses' noise in one difference); zero twist, covariance -1 (unknown) on its
+    diagonal, without a previous pose."""
+    msg.pose.covariance = [float(v) for v in np.asarray(pose_cov, np.float64).reshape(36)]
+    tw = msg.twist.twist
+    if T_wc_prev is None or not dt_s > 0:
+        tw.linear.x = tw.linear.y = tw.linear.z = tw.angular.x = tw.angular.y = tw.angular.z = 0.0
+        msg.twist.covariance = [-1.0 if i % 7 == 0 else 0.0 for i in range(36)]
+        return msg
+    d = np.linalg.inv(T_wc_prev) @ T_wc  # the motion in the previous camera frame
+    R_cw = T_wc[:3, :3].T
+    v = R_cw @ (T_wc[:3, 3] - T_wc_prev[:3, 3]) / dt_s
+    w = rotmat_to_rotvec(d[:3, :3]) / dt_s
+    tw.linear.x, tw.linear.y, tw.linear.z = (float(x) for x in v)
+    tw.angular.x, tw.angular.y, tw.angular.z = (float(x) for x in w)
+    A = np.zeros((6, 6))
+    A[:3, :3] = A[3:, 3:] = R_cw  # world -> child frame
+    msg.twist.covariance = [float(x) for x in (2.0 * A @ pose_cov @ A.T / dt_s ** 2).reshape(36)]
+    return msg
 
 
 def pose_to_odometry(pose: PoseStamped, child_frame_id: str, out: Odometry | None = None) -> Odometry:

@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from rclpy.publisher import Publisher
@@ -24,6 +24,7 @@ from memgs_ros.ros.codecs import (
     matrix_to_pose_stamped,
     pose_to_odometry,
     set_header,
+    set_tracked_odometry,
     stamp_to_ns,
     structured_to_pointcloud2,
 )
@@ -147,7 +148,10 @@ class TrackerOutbox:
         self.world_frame, self.camera_frame, self.stats = world_frame, camera_frame, stats
         rel = qos.reliable(10)
         self.pose = node.create_publisher(PoseStamped, "memgs/pose", rel)
+        # Tracked poses only (state OK), with the covariance: what a flight controller fuses
         self.odom = node.create_publisher(Odometry, "memgs/odom", rel)
+        self.pose_cov = node.create_publisher(PoseWithCovarianceStamped, "memgs/pose_with_covariance", rel)
+        self._last_tracked: tuple[int, np.ndarray] | None = None  # (stamp, T_wc) of the last OK pose
         self.path_pub = node.create_publisher(Path, "memgs/path", rel)
         self.state = node.create_publisher(String, "memgs/tracking_state", rel)
         self.processed_pub = node.create_publisher(Header, "memgs/tracker/processed", qos.reliable(100))
@@ -186,8 +190,21 @@ class TrackerOutbox:
         if result.T_wc is not None:
             pose = matrix_to_pose_stamped(result.T_wc, stamp, self.world_frame)
             self.pose.publish(pose)
-            self.odom.publish(pose_to_odometry(pose, camera_frame, self._odom))
             stats.counters["poses_out"] += 1
+            if result.pose_cov is not None:  # tracked: not coasted, not a start without a pose fit
+                prev = self._last_tracked
+                dt_s = (stamp - prev[0]) * 1e-9 if prev is not None else 0.0
+                odom = pose_to_odometry(pose, camera_frame, self._odom)
+                set_tracked_odometry(odom, result.pose_cov, result.T_wc,
+                                     prev[1] if prev is not None and 0 < dt_s <= 0.5 else None, dt_s)
+                self.odom.publish(odom)
+                cov = PoseWithCovarianceStamped(header=pose.header)
+                cov.pose.pose, cov.pose.covariance = pose.pose, odom.pose.covariance
+                self.pose_cov.publish(cov)
+                self._last_tracked = (stamp, result.T_wc)
+                stats.counters["odometry_out"] += 1
+            else:
+                self._last_tracked = None
             if result.keyframe is not None:
                 self.keyframes.publish(result, camera, camera_frame, color, depth)
                 stats.counters["keyframes"] += 1

@@ -212,6 +212,40 @@ def _optimize_pose(T_cw: np.ndarray, p_w: np.ndarray, uv: np.ndarray, depth_m: n
     return orthonormalized(T), inlier
 
 
+def pose_covariance(T_cw: np.ndarray, p_w: np.ndarray, depth_m: np.ndarray, inv_sigma: np.ndarray,
+                    K: np.ndarray, bf: float, pixel_sigma: float = 1.0) -> np.ndarray | None:
+    """The covariance [6, 6] of a pose optimised on K inlier matches (points p_w [K, 3], their
+    observations' depth_m [K] (NaN where none) and inv_sigma [K]), from the motion-only problem's
+    information matrix H = J^T W J at the pose (``optimize_pose``'s residuals and weights, no robust
+    kernel): Sigma = pixel_sigma^2 H^-1. Returned for the camera's pose in the world (T_wc), in ROS
+    order (x, y, z, then rotations about the world's x, y, z); None when H is singular (fewer than
+    3 points). Fewer or worse-spread inliers give a larger covariance."""
+    if len(p_w) < 3:
+        return None
+    p_c = p_w @ T_cw[:3, :3].T + T_cw[:3, 3]
+    p_c[:, 2] = np.maximum(p_c[:, 2], 1e-6)
+    has_depth = np.isfinite(depth_m) & (depth_m > 0)
+    Jp = _projection_jacobian(p_c, K[0, 0], K[1, 1], bf)
+    Jp[~has_depth, 2, :] = 0.0
+    J = np.concatenate([-Jp @ _skew(p_c), Jp], axis=2)  # [K, 3, 6]: left update (rotation, translation) of T_cw
+    Jw = (J * inv_sigma[:, None, None]).reshape(-1, 6)
+    H = Jw.T @ Jw
+    try:
+        cov_cw = pixel_sigma ** 2 * np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(cov_cw)):
+        return None
+    # T_cw <- Exp(d) T_cw is T_wc <- T_wc Exp(-d): a perturbation in the camera frame; in the world
+    # frame (ROS: position, then rotation about fixed axes) both blocks turn by R_wc.
+    R_wc = T_cw[:3, :3].T
+    A = np.zeros((6, 6))
+    A[:3, 3:] = R_wc  # position <- the translation part
+    A[3:, :3] = R_wc  # rotation <- the rotation part
+    cov = A @ cov_cw @ A.T
+    return 0.5 * (cov + cov.T)
+
+
 @dataclass(frozen=True, eq=False)
 class BAProblem:
     """A local bundle adjustment snapshot.

@@ -32,7 +32,7 @@ from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking._compiled import warm_up
 from memgs_ros.core.tracking.backend.actor import TrackingBackend
-from memgs_ros.core.tracking.backend.bundle_adjustment import orthonormalized
+from memgs_ros.core.tracking.backend.bundle_adjustment import orthonormalized, pose_covariance
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.features.features import FrameFeatures, OrbExtractor, unroll_rolling_shutter
 from memgs_ros.core.tracking.features.vocabulary import KeyframeDatabase, Vocabulary, default_vocabulary
@@ -151,6 +151,7 @@ class FeatureTracker(BackendResults, Tracker):
         """Estimate the pose of ``frame``; see TrackResult for what each state carries."""
         t0 = time.perf_counter()
         self._stamp_ns = frame.stamp_ns
+        self._pose_cov: np.ndarray | None = None  # set by _tracked
         if frame.camera.width != self.camera.width or frame.camera.height != self.camera.height:
             raise DataError(
                 f"frame is {frame.camera.width}x{frame.camera.height} but the tracker was built for "
@@ -170,7 +171,8 @@ class FeatureTracker(BackendResults, Tracker):
         self.motion.last_stamp_ns = frame.stamp_ns
         T_wc = None if T_cw is None else invert_pose(T_cw)
         return TrackResult(frame.stamp_ns, T_wc, self.state, kf, n_m, n_i, time.perf_counter() - t0,
-                           self.segment_id, self._ref_kf_id if T_wc is not None else -1)
+                           self.segment_id, self._ref_kf_id if T_wc is not None else -1,
+                           self._pose_cov if self.state == TrackingState.OK and T_wc is not None else None)
 
     def poll_culled_keyframes(self) -> list[tuple[int, int, np.ndarray]]:
         """(culled keyframe id, heir id, its last T_wc [4, 4]) since the last poll (``Culled``)."""
@@ -385,6 +387,9 @@ class FeatureTracker(BackendResults, Tracker):
         if self.readout.readout_now_s != 0.0 and keep_velocity:
             feats, outcome = self._refine_rolling_shutter(raw, outcome, dt_s)
         T = outcome.T_cw
+        p_w, _, _ = self.map.point_arrays(outcome.point_ids)
+        depth = feats.depth_m[outcome.kp_idx] if cfg.track_with_depth and self.uses_depth else np.full(len(p_w), np.nan)
+        self._pose_cov = pose_covariance(T, p_w, depth, self._inv_sigma(feats.octave[outcome.kp_idx]), self.K, self.bf)
         if keep_velocity:
             motion.update(T, self._T_cw_last, dt_s)
         else:
