@@ -223,7 +223,7 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
     os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(config_path("fastdds.xml")))
     ns = options.namespace
     ros_args = ["--ros-args", "--params-file", str(params_file)] + (["-r", f"__ns:={ns}"] if ns else [])
-    context, domain = open_context(options.domain_id, ros_args)
+    context, domain = open_context(options.domain_id, ros_args, namespace=ns)
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     # One thread: the observer's callbacks only store what arrives, and composed nodes' callbacks
     # never wait (their work runs on their own threads). rclpy's multi-threaded executor spent CPU

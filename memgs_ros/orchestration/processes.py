@@ -166,24 +166,37 @@ def _reap(name: str, p: subprocess.Popen[Any]) -> None:
         logger.error("node %s (pid %d) has not exited %.0f s after SIGKILL; leaving it", name, p.pid, KILL_WAIT_S)
 
 
+GRAPH_NAMES = frozenset({"tracker", "keyframe_sampler", "mapper", "merger", "bag_player", "memgs_run_observer"})
+
+
 def open_context(domain_id: int | None, ros_args: list[str], probe_s: float = 1.0,
-                  tries: int = 12) -> tuple[Any, int]:
+                 tries: int = 12, namespace: str = "") -> tuple[Any, int]:
     """An rclpy context on ``domain_id``, or on a random domain where no other node is seen.
 
     Two graphs on one domain hear each other (another run's camera_info reached a tracker):
-    a run that picks its own domain first listens for ``probe_s`` that nobody is there.
+    a run that picks its own domain first listens for ``probe_s`` that nobody is there. On a
+    domain the user named, it listens as long for another memgs graph in the same ``namespace``
+    and refuses to mix with it (PipelineError naming the way out); other nodes are welcome.
     """
 
     candidates = [domain_id] if domain_id is not None else random.sample(range(1, 233), tries)
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else "/"
     for domain in candidates:
         context = rclpy.Context()
         rclpy.init(args=ros_args, context=context, domain_id=domain)
-        if domain_id is not None:
-            return context, domain
         probe = rclpy.create_node("memgs_run_domain_probe", context=context)
         time.sleep(probe_s)
-        busy = [n for n in probe.get_node_names() if n != "memgs_run_domain_probe"]
+        seen = [(n, s) for n, s in probe.get_node_names_and_namespaces() if n != "memgs_run_domain_probe"]
         probe.destroy_node()
+        if domain_id is not None:
+            ours = sorted({n for n, s in seen if s == ns and n in GRAPH_NAMES})
+            if ours:
+                rclpy.try_shutdown(context=context)
+                raise PipelineError(
+                    f"another memgs graph runs on ROS domain {domain} in namespace {ns} (its {', '.join(ours)}): "
+                    f"the two would mix their frames and maps; pass --namespace /another or --domain-id N")
+            return context, domain
+        busy = [n for n, _ in seen]
         if not busy:
             return context, domain
         rclpy.try_shutdown(context=context)
