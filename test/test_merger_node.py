@@ -13,7 +13,7 @@ rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from sensor_msgs.msg import Image, PointCloud2  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from memgs_ros.core.mapping.gaussians import GaussianMap  # noqa: E402
@@ -55,6 +55,8 @@ def test_merger_applies_deltas_resyncs_renders_and_saves(tmp_path: Path, ros_dom
     pub_view = peer.create_publisher(PoseStamped, "memgs/merger/view_pose", qos.reliable(5))
     renders: list[Image] = []
     peer.create_subscription(Image, "memgs/merger/render/color", renders.append, qos.reliable(5))
+    infos: list[CameraInfo] = []
+    peer.create_subscription(CameraInfo, "memgs/merger/render/camera_info", infos.append, qos.reliable(5))
     clouds: dict[str, list[PointCloud2]] = {"gaussians": [], "points": []}
     for name, got in clouds.items():
         peer.create_subscription(PointCloud2, f"memgs/map/{name}", got.append, qos.latched())
@@ -96,7 +98,9 @@ def test_merger_applies_deltas_resyncs_renders_and_saves(tmp_path: Path, ros_dom
         assert spin_until(lambda: requests and merger.map.replica.seq >= 3 and not merger.map.resyncing)
         assert np.array_equal(merger.map.replica.records.ids, np.sort(g.to_records().ids))
         pub_view.publish(matrix_to_pose_stamped(np.eye(4), 123, "map"))
-        assert spin_until(lambda: renders)  # rendered on the merger's render thread
+        assert spin_until(lambda: renders and infos)  # rendered on the merger's render thread
+        assert (infos[0].width, infos[0].height, infos[0].k[0]) == (64, 48, 50.0)
+        assert infos[0].header.frame_id == renders[0].header.frame_id
         img = image_to_numpy(renders[0])
         assert img.shape == (48, 64, 3) and img.std() > 5.0
         merger.stats.apply_posted()

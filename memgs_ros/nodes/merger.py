@@ -4,7 +4,7 @@ Subscribes: ``memgs/map/delta`` (reliable) and ``memgs/mapper/snapshot`` (latche
 ``memgs/merger/view_pose`` (PoseStamped render requests). Publishes ``memgs/map/gaussians`` (latched
 full map in the delta protocol's layout, on request and every ``publish_period_s``) and with it
 ``memgs/map/points`` (latched: the map as x, y, z, rgb, opacity points for RViz and Foxglove),
-``memgs/merger/render/{color,depth}`` and ``memgs/merger/stats``. Services: ``memgs/save_map``
+``memgs/merger/render/{color,depth,camera_info}`` and ``memgs/merger/stats``. Services: ``memgs/save_map``
 (std_srvs/Trigger: write the PLY atomically, answers its path) and ``memgs/merger/publish_map``.
 Saves periodically and on shutdown.
 
@@ -63,8 +63,9 @@ class MergerNode(Node):
         self.drop_delta = EveryNth(fault("merger.drop_every_nth_delta"))  # tests only: memgs_ros.testing.faults
         if self.drop_delta.n:
             self.get_logger().warning(f"test fault: one delta in every {self.drop_delta.n} is dropped on arrival")
-        self.renderer = ViewRenderer(PinholeCamera(v.render_width, v.render_height, v.render_fx, v.render_fy,
-                                                   v.render_cx, v.render_cy), sh_degree=3)
+        render_camera = PinholeCamera(v.render_width, v.render_height, v.render_fx, v.render_fy,
+                                      v.render_cx, v.render_cy)
+        self.renderer = ViewRenderer(render_camera, sh_degree=3)
         self.stats = NodeStats(self, "merger")
         # The map's deltas need no compiled code; the renders on request load theirs when first asked.
         self.stats.gauges["kernels_warm"] = 1
@@ -73,7 +74,7 @@ class MergerNode(Node):
 
         self.pub_map = self.create_publisher(PointCloud2, "memgs/map/gaussians", qos.latched())
         self.pub_points = self.create_publisher(PointCloud2, "memgs/map/points", qos.latched())
-        self.views = ViewOutbox(self, self.stats, "memgs/merger/render")
+        self.views = ViewOutbox(self, self.stats, "memgs/merger/render", render_camera)
         self.create_subscription(PointCloud2, "memgs/map/delta", self.on_delta, qos.reliable(50))
         self.create_subscription(PointCloud2, "memgs/mapper/snapshot", self.on_snapshot, qos.latched())
         self.create_subscription(PoseStamped, "memgs/merger/view_pose", self.on_view_request, qos.reliable(5))
