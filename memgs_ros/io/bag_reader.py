@@ -182,7 +182,7 @@ def discover_topics(reader: Any, topics: BagTopics, with_depth: bool, where: str
         if not pool:
             raise DataError(f"{where}: no depth image topic (16UC1 / 32FC1 Image or compressedDepth) to pair with "
                             f"colour; a RealSense records depth registered to colour with align_depth.enable:=true "
-                            f"(or map colour only with --mode mono)")
+                            f"(or map colour only: memgs eval --mode mono)")
         if len(pool) > 1:
             raise DataError(f"{where}: {len(pool)} depth image topics ({', '.join(t for t, _ in pool.values())}) "
                             f"and none aligned to colour; choose one with --topics depth=/topic")
