@@ -191,7 +191,7 @@ class TrackerNode(Node):
         color, depth = self.resolve_topic_name(v.color_topic), self.resolve_topic_name(v.depth_topic)
         if not self._depth_seen:
             why = (f"colour on {color} for {waited:.0f} s but no depth on {depth}: is the depth topic right, "
-                   "and is the RealSense's align_depth.enable on? (monocular mode, tracker.mode mono, maps colour alone)")
+                   "and is the RealSense's align_depth.enable on? (tracker.mode mono maps colour alone)")
         else:
             why = (f"no depth on {depth} within {v.max_sync_dt_s * 1e3:.0f} ms of colour for {waited:.0f} s: "
                    "do colour and depth share a clock (max_sync_dt_s, sync)?")
