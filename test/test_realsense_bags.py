@@ -117,7 +117,7 @@ def test_colour_without_depth_says_what_to_turn_on(frames: list[Frame], tmp_path
 def test_compressed_depth_is_image_transports_format(frames: list[Frame]) -> None:
     units = np.nan_to_num(frames[0].depth_m * 1000).astype(np.uint16)
     fmt, data = compress_depth_units(units)
-    assert fmt == "16UC1; compressedDepth png" and bytes(data[1:4]) == b"\0\0\0" and bytes(data[12:16]) == b"\x89PNG"
+    assert fmt == "16UC1; compressedDepth png" and bytes(data[:4]) == b"\1\0\0\0" and bytes(data[12:16]) == b"\x89PNG"
 
     class Msg:  # a CompressedImage as rclpy or rosbags hands it over
         def __init__(self, fmt: str, data: np.ndarray) -> None:

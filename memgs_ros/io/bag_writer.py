@@ -237,13 +237,14 @@ def compress_rgb(rgb: np.ndarray, quality: int = 95) -> tuple[str, np.ndarray]:
 
 def compress_depth_units(depth_units: np.ndarray) -> tuple[str, np.ndarray]:
     """[H, W] uint16 depth units -> (format, bytes) as image_transport's ``compressedDepth`` writes 16UC1:
-    a 12-byte header (int32 codec 0 = PNG, float32 depthParam[2], unused for 16UC1), then a PNG."""
+    a 12-byte header (int32 format 1 = PNG, of 0 inverse depth, 1 PNG, 2 RVL; float32 depthParam[2],
+    unused for 16UC1), then the PNG."""
     import cv2
 
     ok, png = cv2.imencode(".png", np.ascontiguousarray(depth_units, dtype=np.uint16))
     if not ok:
         raise DataError("PNG encoding failed")
-    header = np.array([0], "<i4").tobytes() + np.zeros(2, "<f4").tobytes()
+    header = np.array([1], "<i4").tobytes() + np.zeros(2, "<f4").tobytes()
     return "16UC1; compressedDepth png", np.concatenate([np.frombuffer(header, np.uint8), png.reshape(-1)])
 
 

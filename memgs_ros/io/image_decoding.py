@@ -216,8 +216,8 @@ def decode_depth(msg: Any, depth_scale: float = DEFAULT_DEPTH_SCALE) -> np.ndarr
 # ---------------------------------------------------------------- compressed images
 # sensor_msgs/CompressedImage as image_transport writes it: ``format`` is "<encoding>; <codec>
 # compressed <wire encoding>" (colour: jpeg or png) or "<encoding>; compressedDepth png" (depth:
-# a 12-byte header, int32 codec + float32 depthParam[2], then a PNG; 16UC1 as is, 32FC1 as quantised
-# inverse depth, depth = depthParam[0] / (value - depthParam[1])).
+# a 12-byte header, int32 format (0 inverse depth, 1 PNG, 2 RVL) + float32 depthParam[2], then the
+# image; 16UC1 as is, 32FC1 as quantised inverse depth, depth = depthParam[0] / (value - depthParam[1])).
 COMPRESSED_DEPTH_HEADER_BYTES = 12
 
 
@@ -259,12 +259,12 @@ def decode_compressed_depth(msg: Any, depth_scale: float = DEFAULT_DEPTH_SCALE) 
     fmt = str(_field(msg, "format"))
     if not compressed_is_depth(msg):
         raise MessageError(f"compressed image of format '{fmt}' is not compressedDepth")
-    if "rvl" in fmt.lower():
-        raise MessageError(f"compressedDepth '{fmt}': the RVL codec is not supported; record with png")
     enc = fmt.split(";", 1)[0].strip()
     buf = _buffer(_field(msg, "data"))
     if buf.size <= COMPRESSED_DEPTH_HEADER_BYTES:
         raise MessageError(f"compressedDepth image ('{fmt}') has {buf.size} bytes: no header and PNG")
+    if "rvl" in fmt.lower() or int(np.frombuffer(buf[:4].tobytes(), "<i4")[0]) == 2:
+        raise MessageError(f"compressedDepth '{fmt}': the RVL codec is not supported; record with png")
     a, b = np.frombuffer(buf[4:COMPRESSED_DEPTH_HEADER_BYTES].tobytes(), dtype="<f4")
     img = _imdecode(buf[COMPRESSED_DEPTH_HEADER_BYTES:], f"compressedDepth image ('{fmt}')")
     if img.ndim != 2 or img.dtype != np.uint16:
