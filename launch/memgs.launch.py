@@ -45,6 +45,9 @@ from memgs_ros.nodes.registry import COMPOSED, GRAPH
 PACKAGE = "memgs_ros"
 NODES = GRAPH  # memgs_ros/nodes/registry.py
 (COMPOSED_EXECUTABLE,) = COMPOSED  # the graph's nodes in one process
+# seconds from SIGTERM to SIGKILL: the mapper's shutdown budget (checkpoint 15 s, then its session's
+# close 30 s: nodes/mapper.py) and a margin
+SIGTERM_TIMEOUT_S = "50"
 
 # Tracker parameter -> default topic: realsense2_camera with align_depth.enable:=true.
 CAMERA_TOPICS = {
@@ -85,8 +88,10 @@ def generate_launch_description():
 
     composed = LaunchConfiguration("composed")
     params_file = LaunchConfiguration("params_file")
+    # Ctrl-C: launch sends SIGTERM, then SIGKILL after sigterm_timeout (5 s by default): the mapper
+    # writes its checkpoint and the merger its PLY on the way out, so wait for them.
     shared = {"package": PACKAGE, "namespace": LaunchConfiguration("namespace"), "additional_env": env,
-              "output": "screen", "emulate_tty": True}
+              "output": "screen", "emulate_tty": True, "sigterm_timeout": SIGTERM_TIMEOUT_S}
     nodes = [
         Node(executable=name, name=name, parameters=[params_file, {**common, **own.get(name, {})}],
              condition=UnlessCondition(composed), **shared)
