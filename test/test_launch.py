@@ -132,6 +132,7 @@ class LaunchedNode:
     params: dict[str, object]  # to every node the process hosts
     env: dict[str, str]
     hosts: tuple[str, ...] = ()  # the nodes the process runs: (name,), or the graph when composed
+    sigterm_timeout_s: float = 5.0  # launch's SIGTERM-to-SIGKILL wait (its default: 5 s)
     node_params: dict[str, dict[str, object]] = field(default_factory=dict)  # --param node:param:=value
 
 
@@ -220,6 +221,7 @@ def load_launch(path: Path, share_dirs: Mapping[str, Path], overrides: Mapping[s
             param_files=files, params=params,
             env={str(k): str(resolve(v)) for k, v in (kw.get("additional_env") or {}).items()},
             hosts=GRAPH if executable == COMPOSED else (str(resolve(kw.get("name") or executable)),),
+            sigterm_timeout_s=float(str(resolve(kw.get("sigterm_timeout") or 5.0))),
             node_params=node_params,
         ))
     return launch
@@ -301,6 +303,16 @@ def test_the_launch_file_starts_the_registry_graph() -> None:
 
     assert set(REGISTRY_GRAPH) == set(GRAPH)
     assert {n.name for n in load_launch(LAUNCH_FILE, {PKG: REPO}).nodes} == set(GRAPH)
+
+
+@pytest.mark.parametrize("composed", ["false", "true"])
+def test_ctrl_c_leaves_the_nodes_time_to_save(composed: str) -> None:
+    """launch escalates SIGTERM to SIGKILL after sigterm_timeout: it must cover the mapper's shutdown
+    (its checkpoint, then its session's close), or Ctrl-C loses the map's last minutes."""
+    from memgs_ros.nodes.mapper import SESSION_CLOSE_TIMEOUT_S, SHUTDOWN_SAVE_TIMEOUT_S
+
+    for node in load_launch(LAUNCH_FILE, {PKG: REPO}, {"composed": composed}).nodes:
+        assert node.sigterm_timeout_s > SHUTDOWN_SAVE_TIMEOUT_S + SESSION_CLOSE_TIMEOUT_S, node.name
 
 
 def test_checker_accepts_the_launch_file_against_the_source_tree() -> None:
