@@ -309,6 +309,7 @@ def test_the_launch_file_starts_the_registry_graph() -> None:
 def test_ctrl_c_leaves_the_nodes_time_to_save(composed: str) -> None:
     """launch escalates SIGTERM to SIGKILL after sigterm_timeout: it must cover the mapper's shutdown
     (its checkpoint, then its session's close), or Ctrl-C loses the map's last minutes."""
+    pytest.importorskip("rclpy", reason="the ROS extra is not installed")
     from memgs_ros.nodes.mapper import SESSION_CLOSE_TIMEOUT_S, SHUTDOWN_SAVE_TIMEOUT_S
 
     for node in load_launch(LAUNCH_FILE, {PKG: REPO}, {"composed": composed}).nodes:
