@@ -13,9 +13,12 @@ Arguments (``ros2 launch memgs_ros memgs.launch.py --show-args``):
   the absolute topics of realsense2_camera 4.x with ``align_depth.enable:=true`` and its default
   ``camera_namespace``/``camera_name`` (``camera``/``camera``), so they do not move with
   ``namespace``.
-- ``map_path``: where the merger writes the map PLY (on ``memgs/save_map``, every
-  ``save_period_s`` and at shutdown; wins over the params file); a relative path is taken from
-  the directory ``ros2 launch`` runs in.
+- ``run_dir``: this launch's folder, new for every launch and never reused (default
+  ``$ROS_HOME/memgs/<date>-<time>``, ``~/.ros`` without ROS_HOME): the merger's ``map.ply`` and the
+  mapper's checkpoint (``mapper_checkpoint.npz``, every ``checkpoint_period_s``: a node killed or
+  restarted resumes from it) go there.
+- ``map_path``: where the merger writes the map PLY instead (on ``memgs/save_map``, every
+  ``save_period_s`` and at shutdown; wins over the params file).
 - ``use_sim_time``: true when a ``/clock`` publisher (a replayed bag) drives time.
 - ``composed``: true runs the four nodes as components of one process (the ``composed``
   executable: one executor, the libraries loaded once; on a Jetson, whose CPU and GPU share one
@@ -31,6 +34,7 @@ Fast DDS: unless FASTRTPS_DEFAULT_PROFILES_FILE is already set, the nodes get th
 ``config/fastdds.xml`` (a 50 ms heartbeat that repairs large reliable messages quickly).
 """
 import os
+import time
 
 from ament_index_python.packages import get_package_share_directory
 from launch.actions import DeclareLaunchArgument
@@ -57,16 +61,29 @@ CAMERA_TOPICS = {
 }
 
 
+def new_run_dir() -> str:
+    """A folder no earlier launch used: ``$ROS_HOME/memgs/<date>-<time>[-n]`` (made by the first save)."""
+    root = os.path.join(os.environ.get("ROS_HOME") or os.path.join(os.path.expanduser("~"), ".ros"), "memgs")
+    base = os.path.join(root, time.strftime("%Y%m%d-%H%M%S"))
+    path, n = base, 1
+    while os.path.exists(path):
+        path, n = f"{base}-{n}", n + 1
+    return path
+
+
 def generate_launch_description():
     share = get_package_share_directory(PACKAGE)
+    run_dir = new_run_dir()
     arguments = [
         DeclareLaunchArgument("namespace", default_value="",
                               description="namespace of the four nodes (e.g. /uav1)"),
         DeclareLaunchArgument("params_file",
                               default_value=os.path.join(share, "config", "realsense_d435i.yaml"),
                               description="ROS parameter file of the nodes"),
-        DeclareLaunchArgument("map_path", default_value="memgs_map.ply",
-                              description="map PLY written by the merger (relative: to the launch directory)"),
+        DeclareLaunchArgument("run_dir", default_value=run_dir,
+                              description="this launch's folder: the map PLY and the mapper's checkpoint"),
+        DeclareLaunchArgument("map_path", default_value=os.path.join(run_dir, "map.ply"),
+                              description="map PLY written by the merger (default: in run_dir)"),
         DeclareLaunchArgument("use_sim_time", default_value="false", choices=["true", "false"],
                               description="take time from /clock"),
         DeclareLaunchArgument("composed", default_value="false", choices=["true", "false"],
@@ -78,10 +95,14 @@ def generate_launch_description():
     ]
 
     common = {"use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool)}
-    own = {
-        "tracker": {name: ParameterValue(LaunchConfiguration(name), value_type=str) for name in CAMERA_TOPICS},
-        "merger": {"map_path": ParameterValue(LaunchConfiguration("map_path"), value_type=str)},
+    # node -> parameter -> its value (substitutions, joined): string parameters the launch sets
+    own_text = {
+        "tracker": {name: [LaunchConfiguration(name)] for name in CAMERA_TOPICS},
+        "merger": {"map_path": [LaunchConfiguration("map_path")]},
+        "mapper": {"checkpoint_path": [LaunchConfiguration("run_dir"), "/mapper_checkpoint.npz"]},
     }
+    own = {node: {param: ParameterValue(value, value_type=str) for param, value in values.items()}
+           for node, values in own_text.items()}
     env = {}
     if "FASTRTPS_DEFAULT_PROFILES_FILE" not in os.environ:
         env["FASTRTPS_DEFAULT_PROFILES_FILE"] = os.path.join(share, "config", "fastdds.xml")
@@ -102,7 +123,7 @@ def generate_launch_description():
     # parameter it does not declare.
     nodes.append(Node(
         executable=COMPOSED_EXECUTABLE, parameters=[params_file, common],
-        arguments=[arg for node, values in own.items() for param in values
-                   for arg in ("--param", [f"{node}:{param}:=", LaunchConfiguration(param)])],
+        arguments=[arg for node, values in own_text.items() for param, value in values.items()
+                   for arg in ("--param", [f"{node}:{param}:=", *value])],
         condition=IfCondition(composed), **shared))
     return LaunchDescription(arguments + nodes)

@@ -287,6 +287,7 @@ def _declared_by_source() -> dict[str, set[str]]:
     declared = {name: params_file_keys(config, name) for name in GRAPH}
     declared["tracker"] |= {"color_topic", "depth_topic", "camera_info_topic"}
     declared["merger"] |= {"map_path"}
+    declared["mapper"] |= {"checkpoint_path"}
     return declared
 
 
@@ -303,6 +304,21 @@ def test_the_launch_file_starts_the_registry_graph() -> None:
 
     assert set(REGISTRY_GRAPH) == set(GRAPH)
     assert {n.name for n in load_launch(LAUNCH_FILE, {PKG: REPO}).nodes} == set(GRAPH)
+
+
+def test_every_launch_keeps_its_map_in_a_new_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """No relaunch overwrites a map: the PLY and the mapper's checkpoint go into a folder of its own,
+    absolute, under $ROS_HOME/memgs, never one an earlier launch made."""
+    monkeypatch.setenv("ROS_HOME", str(tmp_path))
+    first = load_launch(LAUNCH_FILE, {PKG: REPO})
+    run_dir = Path(first.arguments["run_dir"])
+    assert run_dir.is_absolute() and run_dir.parent == tmp_path / "memgs"
+    by_name = {n.name: n for n in first.nodes}
+    assert by_name["merger"].params["map_path"] == str(run_dir / "map.ply")
+    assert by_name["mapper"].params["checkpoint_path"] == str(run_dir / "mapper_checkpoint.npz")
+    run_dir.mkdir(parents=True)  # the first launch saved something
+    second = Path(load_launch(LAUNCH_FILE, {PKG: REPO}).arguments["run_dir"])
+    assert second != run_dir and second.parent == run_dir.parent and not second.exists()
 
 
 @pytest.mark.parametrize("composed", ["false", "true"])
@@ -329,7 +345,7 @@ def test_checker_accepts_the_launch_file_against_the_source_tree() -> None:
     ("NODES = GRAPH", 'NODES = tuple("mapping" if n == "mapper" else n for n in GRAPH)',
      "executable 'mapping' is not installed"),
     ('"color_topic": "/camera', '"colour_topic": "/camera', "tracker: parameter 'colour_topic' is not declared"),
-    ('"map_path": ParameterValue', '"map_file": ParameterValue', "merger: parameter 'map_file' is not declared"),
+    ('"map_path": [LaunchConfiguration', '"map_file": [LaunchConfiguration', "merger: parameter 'map_file' is not declared"),
     ('"realsense_d435i.yaml"', '"realsense_d435.yaml"', "realsense_d435.yaml does not exist"),
     ('LaunchConfiguration("params_file")', 'LaunchConfiguration("param_file")', "undeclared launch argument: param_file"),
     ('"fastdds.xml"', '"fast_dds.xml"', "FASTRTPS_DEFAULT_PROFILES_FILE="),
@@ -344,13 +360,14 @@ def test_checker_reports_a_wrong_name(tmp_path: Path, monkeypatch: pytest.Monkey
 
 
 def test_composed_runs_the_graph_in_one_process_each_node_with_its_own_parameters() -> None:
-    launch = load_launch(LAUNCH_FILE, {PKG: REPO}, {"composed": "true", "map_path": "/data/m.ply"})
+    launch = load_launch(LAUNCH_FILE, {PKG: REPO}, {"composed": "true", "map_path": "/data/m.ply", "run_dir": "/data"})
     assert [(n.executable, n.hosts) for n in launch.nodes] == [(COMPOSED, GRAPH)]
     (node,) = launch.nodes
     assert node.node_params == {"tracker": {"color_topic": "/camera/camera/color/image_raw",
                                             "depth_topic": "/camera/camera/aligned_depth_to_color/image_raw",
                                             "camera_info_topic": "/camera/camera/color/camera_info"},
-                                "merger": {"map_path": "/data/m.ply"}}
+                                "merger": {"map_path": "/data/m.ply"},
+                                "mapper": {"checkpoint_path": "/data/mapper_checkpoint.npz"}}
     assert node.params == {"use_sim_time": False}  # the one parameter every node declares
     assert check_launch(launch, {COMPOSED}, _declared_by_source()) == []
     assert check_launch(launch, set(GRAPH), _declared_by_source()) == ["executable 'composed' is not installed"]
@@ -359,7 +376,8 @@ def test_composed_runs_the_graph_in_one_process_each_node_with_its_own_parameter
 def test_checker_reports_a_composed_parameter_sent_to_the_wrong_node(tmp_path: Path) -> None:
     path = _mutated(tmp_path, '("--param", [f"{node}:{param}:="', '("--param", [f"tracker:{param}:="')
     problems = check_launch(load_launch(path, {PKG: REPO}, {"composed": "true"}), {COMPOSED}, _declared_by_source())
-    assert problems == ["tracker: parameter 'map_path' is not declared by the node"]
+    assert problems == ["tracker: parameter 'map_path' is not declared by the node",
+                        "tracker: parameter 'checkpoint_path' is not declared by the node"]
 
 
 def test_checker_reports_a_params_file_key_no_node_declares(tmp_path: Path) -> None:
