@@ -337,8 +337,33 @@ def _stop_graph(procs: NodeProcesses | None, in_process: Sequence[Any], executor
     for node in in_process:
         node.destroy_node()
     if observer is not None:
-        observer.node.destroy_node()
-    rclpy.try_shutdown(context=context)
+        # Bounded: with another graph's publishers on the same topics, destroying the observer's
+        # publishers once hung in rclpy for over 5 minutes (and SIGTERM could not end the runner).
+        _bounded(observer.node.destroy_node, _DESTROY_TIMEOUT_S, "destroying the runner's node")
+    _bounded(lambda: rclpy.try_shutdown(context=context), _DESTROY_TIMEOUT_S, "shutting down the runner's context")
+
+
+_DESTROY_TIMEOUT_S = 10.0
+
+
+def _bounded(fn: Any, timeout_s: float, what: str) -> None:
+    """Run ``fn`` on a daemon thread and wait at most ``timeout_s``: a call stuck in native code
+    is left behind (logged) rather than holding the runner, whose process then exits."""
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            fn()
+        except BaseException as err:  # noqa: BLE001 - reported in the caller's thread below
+            errors.append(err)
+
+    t = threading.Thread(target=run, name="memgs-run-stop", daemon=True)
+    t.start()
+    t.join(timeout_s)
+    if t.is_alive():
+        logger.warning("%s took over %.0f s; going on without it", what, timeout_s)
+    elif errors:
+        raise errors[0]
 
 
 def _wait_for_fresh_stats(obs: _Observer, names: Sequence[str], timeout_s: float = _STATS_ROUND_S) -> None:
