@@ -54,11 +54,12 @@ def run_one(label: str, source: Path, tum: Path, config: str, work: Path, timeou
     from memgs_ros.io.sources import open_source
 
     src = open_source(source)
-    out = work / label
-    _log(f"{label}: memgs run {source} --config {config} -> {out}")
-    run = run_memgs([source, "--config", config], out, log=work / f"{label}.log", timeout_s=timeout_s)
+    slug = "".join(c if c.isalnum() else "_" for c in label)
+    out, log = work / slug, work / f"{slug}.log"
+    _log(f"{label}: memgs run --bag {source} --config {config} -> {out}")
+    run = run_memgs(["run", "--bag", source, "--config", config], out, log=log, timeout_s=timeout_s)
     if not run.ok or run.summary is None:
-        raise SystemExit(f"{label}: memgs run failed (exit {run.returncode}); see {work / f'{label}.log'}")
+        raise SystemExit(f"{label}: memgs run failed (exit {run.returncode}); see {log}")
     r = evaluate_run(out, source=str(tum), use_lpips=False, progress=False)  # the folder's images and poses
     return {"label": label, "source": str(source), "size_mb": round(_size_mb(source), 1),
             "topics": getattr(src, "topic_choice", "") or "TUM layout", "frames": run.summary.frames,
