@@ -107,6 +107,9 @@ def test_only_frames_turning_fast_enough_are_checked() -> None:
     fx = 500.0
     d = ReadoutDirection(0.02)
     assert not d.worth_checking(np.array([0.0, 0.2, 0.0]), fx)  # 1 px at the first and last rows
-    assert d.worth_checking(np.array([0.0, 0.4, 0.0]), fx)
+    fast = np.array([0.0, 0.4, 0.0])
+    assert [d.worth_checking(fast, fx) for _ in range(4)] == [False, True, False, True]  # idle: every 2nd
+    d.vote(0.9, 0.8)  # some evidence for the other way: every turning frame
+    assert [d.worth_checking(fast, fx) for _ in range(3)] == [True, True, True]
     assert not ReadoutDirection(0.02, auto=False).worth_checking(np.array([0.0, 3.0, 0.0]), fx)
     assert not ReadoutDirection(0.0).worth_checking(np.array([0.0, 3.0, 0.0]), fx)

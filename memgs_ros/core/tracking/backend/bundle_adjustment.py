@@ -223,13 +223,20 @@ def pose_covariance(T_cw: np.ndarray, p_w: np.ndarray, depth_m: np.ndarray, inv_
     if len(p_w) < 3:
         return None
     p_c = p_w @ T_cw[:3, :3].T + T_cw[:3, 3]
-    p_c[:, 2] = np.maximum(p_c[:, 2], 1e-6)
+    x, y, z = p_c[:, 0], p_c[:, 1], np.maximum(p_c[:, 2], 1e-6)
     has_depth = np.isfinite(depth_m) & (depth_m > 0)
-    Jp = _projection_jacobian(p_c, K[0, 0], K[1, 1], bf)
-    Jp[~has_depth, 2, :] = 0.0
-    J = np.concatenate([-Jp @ _skew(p_c), Jp], axis=2)  # [K, 3, 6]: left update (rotation, translation) of T_cw
-    Jw = (J * inv_sigma[:, None, None]).reshape(-1, 6)
-    H = Jw.T @ Jw
+    fx, fy = K[0, 0], K[1, 1]
+    iz, zero = 1.0 / z, np.zeros(len(z))
+    # The rows a = d(u, v, u_right) / d p_c of the observations (u_right only with depth), then
+    # a @ [-[p_c]x, I]: the left update (rotation, translation) of T_cw, as optimize_pose's J.
+    d = has_depth
+    a0 = np.concatenate([fx * iz, zero, fx * iz[d]])
+    a1 = np.concatenate([zero, fy * iz, zero[d]])
+    a2 = np.concatenate([-fx * x * iz * iz, -fy * y * iz * iz, (bf - fx * x[d]) * iz[d] * iz[d]])
+    px, py, pz = (np.concatenate([c, c, c[d]]) for c in (x, y, z))
+    w = np.concatenate([inv_sigma, inv_sigma, inv_sigma[d]])
+    J = np.column_stack([a2 * py - a1 * pz, a0 * pz - a2 * px, a1 * px - a0 * py, a0, a1, a2]) * w[:, None]
+    H = J.T @ J
     try:
         cov_cw = pixel_sigma ** 2 * np.linalg.inv(H)
     except np.linalg.LinAlgError:

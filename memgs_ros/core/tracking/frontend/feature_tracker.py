@@ -277,8 +277,9 @@ class FeatureTracker(BackendResults, Tracker):
             other = unroll_rolling_shutter(raw, self.K, omega, -self.readout.readout_now_s, self.camera.height)
             T_o, inl_o = self.matcher.optimise(outcome.T_cw, p_w, other, outcome.kp_idx, rounds=2)
             both = inl | inl_o
-            if self.readout.vote(self._median_error_px(T, p_w[both], feats, outcome.kp_idx[both]),
-                                 self._median_error_px(T_o, p_w[both], other, outcome.kp_idx[both])):
+            kp, w = outcome.kp_idx[both], self._inv_sigma(raw.octave[outcome.kp_idx[both]])
+            if self.readout.vote(self._median_error_px(T, p_w[both], feats.uv[kp], w),
+                                 self._median_error_px(T_o, p_w[both], other.uv[kp], w)):
                 logger.info("rolling shutter: the frames read their rows %s; correcting that way from now on",
                             "top to bottom" if self.readout.readout_now_s > 0 else "bottom to top")
                 feats, T, inl = other, T_o, inl_o
@@ -286,13 +287,16 @@ class FeatureTracker(BackendResults, Tracker):
             return feats, outcome
         return feats, TrackOutcome(T, outcome.point_ids[inl], outcome.kp_idx[inl], outcome.n_matches)
 
-    def _median_error_px(self, T_cw: np.ndarray, p_w: np.ndarray, feats: FrameFeatures, kp_idx: np.ndarray) -> float:
-        """Median reprojection error of points p_w [K, 3] at keypoints kp_idx [K], in level-0 pixels."""
-        if len(kp_idx) == 0:
+    def _median_error_px(self, T_cw: np.ndarray, p_w: np.ndarray, uv: np.ndarray, inv_sigma: np.ndarray) -> float:
+        """Median reprojection error of points p_w [K, 3] observed at uv [K, 2] (weights inv_sigma [K]),
+        in level-0 pixels; NaN without points. Lean: it runs twice on every checked frame."""
+        if len(uv) == 0:
             return float("nan")
-        uv, _ = self.matcher.project(p_w, T_cw)
-        err = np.linalg.norm(uv - feats.uv[kp_idx], axis=1) * self._inv_sigma(feats.octave[kp_idx])
-        return float(np.median(err))
+        p_c = p_w @ T_cw[:3, :3].T + T_cw[:3, 3]
+        z = np.maximum(p_c[:, 2], 1e-6)
+        du = self.K[0, 0] * p_c[:, 0] / z + self.K[0, 2] - uv[:, 0]
+        dv = self.K[1, 1] * p_c[:, 1] / z + self.K[1, 2] - uv[:, 1]
+        return float(np.median(np.sqrt(du * du + dv * dv) * inv_sigma))
 
     def _track_local_map(self, feats: FrameFeatures, T_pred: np.ndarray, allow_fallback: bool,
                          count: bool = True, from_last: bool = False) -> TrackOutcome | None:

@@ -35,20 +35,27 @@ class ReadoutDirection:
     flip_evidence: float = 0.5  # the CUSUM that flips the direction
     drift: float = 0.02  # taken off every term: equal errors (slow frames) add nothing up
     min_skew_px: float = 1.5  # check only frames whose skew at the image's top and bottom rows reaches this
+    idle_stride: int = 2  # while there is no evidence, check every this many turning frames (each check
+    # costs a pose optimisation); once there is, every one
     sign: int = 1
     flips: int = 0
     checks: int = 0
     evidence: float = 0.0
+    _turning: int = 0  # turning frames seen
 
     @property
     def readout_now_s(self) -> float:
         return self.sign * self.readout_s
 
     def worth_checking(self, omega_c: np.ndarray, fx: float) -> bool:
-        """Whether a frame turning at ``omega_c`` [3] rad/s shows enough skew to tell the directions apart:
-        a rotation moves the first and last rows by about |omega| * fx * readout / 2 pixels."""
-        return (self.auto and self.readout_s != 0.0
-                and float(np.linalg.norm(omega_c)) * fx * abs(self.readout_s) * 0.5 >= self.min_skew_px)
+        """Whether to check this frame: it turns at ``omega_c`` [3] rad/s fast enough for the skew to
+        tell the directions apart (a rotation moves the first and last rows by about
+        |omega| * fx * readout / 2 pixels), and it is its turn (``idle_stride``)."""
+        if not (self.auto and self.readout_s != 0.0
+                and float(np.linalg.norm(omega_c)) * fx * abs(self.readout_s) * 0.5 >= self.min_skew_px):
+            return False
+        self._turning += 1
+        return self.evidence > 0.0 or self._turning % self.idle_stride == 0
 
     def vote(self, err_now: float, err_other: float) -> bool:
         """One frame's check: the reprojection error (median, pixels at level 0) with the direction in
