@@ -516,7 +516,7 @@ def _check_installed_launch(colcon_prefix: Path, launch: Launch, default: Launch
     assert tracker["depth_topic"] == "/camera/camera/aligned_depth_to_color/image_raw"
     assert tracker["camera_info_topic"] == "/camera/camera/color/camera_info"
     assert all(r["values"]["use_sim_time"] is True for r in report.values())
-    assert merger["map_path"] == "memgs_map.ply"
+    assert merger["map_path"].endswith("/map.ply") and Path(merger["map_path"]).is_absolute()  # in run_dir
     assert report["merger"]["save_map"] == "/uav1/memgs/save_map"
 
 

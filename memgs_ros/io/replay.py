@@ -43,14 +43,16 @@ def replay_frames(frames: Iterable[Frame], preload_mb: int, max_frames: int, loo
     """What a player replays of ``frames``: decoded up front when ``preload_mb`` > 0 (``Preloaded``;
     up to ``max_frames`` unless looping or repeating, where it counts the frames played), then
     played ``repeat`` times (``RepeatedSource``: after preloading, the passes share its frames).
-    Returns the frames and a line saying what was preloaded ("" when nothing was)."""
+    Returns the frames and a line saying which topics of a bag were found by type and what was
+    preloaded ("" when neither)."""
     from memgs_ros.io.repeat import RepeatedSource
 
-    note = ""
+    note = getattr(frames, "topic_choice", "")  # a bag whose topics were found by type
     if preload_mb > 0:
         t0 = time.monotonic()
         frames = Preloaded(frames, preload_mb, 0 if loop or repeat > 1 else max_frames)
-        note = f"preloaded {len(frames)} frames ({frames.nbytes / 1e6:.0f} MB) in {time.monotonic() - t0:.1f} s"
+        note += ("; " if note else "") + (f"preloaded {len(frames)} frames ({frames.nbytes / 1e6:.0f} MB) in "
+                                          f"{time.monotonic() - t0:.1f} s")
     if repeat > 1:
         frames = RepeatedSource(frames, repeat, repeat_forward)  # type: ignore[arg-type]
     return frames, note

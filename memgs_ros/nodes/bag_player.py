@@ -102,11 +102,8 @@ class BagPlayer(Node):
     def _open(self, folder_camera: PinholeCamera | None, frames: Iterable[Frame] | None) -> Iterable[Frame]:
         """``frames``, or the ``source`` parameter opened; preloaded and repeated (``replay_frames``)."""
         c = self.cfg
-        if frames is None:
-            frames = open_frames(c.source, folder_camera, c.strict, c.bag_topics)
-            if choice := getattr(frames, "topic_choice", ""):  # a bag whose topics were found by type
-                self.get_logger().info(choice)
-        frames, note = replay_frames(frames, c.preload_mb, c.max_frames, c.loop, c.repeat, c.repeat_forward)
+        frames, note = replay_frames(open_frames(c.source, folder_camera, c.strict, c.bag_topics) if frames is None
+                                     else frames, c.preload_mb, c.max_frames, c.loop, c.repeat, c.repeat_forward)
         if note:
             self.get_logger().info(note)
         return frames

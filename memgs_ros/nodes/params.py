@@ -220,7 +220,8 @@ class MergerParams:
 DEFAULT_TOPICS: tuple[str, ...] = (
     # tracker
     "memgs/pose",                            # geometry_msgs/PoseStamped, every frame tracked
-    "memgs/odom",                            # nav_msgs/Odometry
+    "memgs/odom",                            # nav_msgs/Odometry (tracked frames, with covariance)
+    "memgs/pose_with_covariance",            # geometry_msgs/PoseWithCovarianceStamped (tracked frames)
     "memgs/path",                            # nav_msgs/Path (loop-corrected trajectory)
     "memgs/tracking_state",                  # std_msgs/String
     "memgs/keyframe/pose",                   # geometry_msgs/PoseStamped, at keyframe insertion
@@ -234,8 +235,10 @@ DEFAULT_TOPICS: tuple[str, ...] = (
     "memgs/render/camera_info",              # sensor_msgs/CameraInfo
     # merger
     "memgs/map/gaussians",                   # sensor_msgs/PointCloud2 (latched, rgb)
+    "memgs/map/points",                      # sensor_msgs/PointCloud2 (latched: x, y, z, rgb, opacity)
     "memgs/merger/render/color",             # sensor_msgs/Image
     "memgs/merger/render/depth",             # sensor_msgs/Image
+    "memgs/merger/render/camera_info",       # sensor_msgs/CameraInfo
     # every node: diagnostic_msgs/DiagnosticArray
     "memgs/tracker/stats", "memgs/keyframe_sampler/stats", "memgs/mapper/stats", "memgs/merger/stats",
     "memgs/player/stats",

@@ -40,7 +40,7 @@ import time
 from typing import Any
 
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, Image
 
 from memgs_ros.core.geometry.camera import describe_camera
 from memgs_ros.core.geometry.frame import Frame
@@ -52,12 +52,12 @@ from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, depth_view, rgb_view
 from memgs_ros.nodes.params import NODE_CONFIGS, TrackerParams
 from memgs_ros.ros import qos
+from memgs_ros.ros.camera_input import RgbdPairing, decompressed, subscribe_camera
 from memgs_ros.ros.camera_params import declare_calibration
-from memgs_ros.ros.codecs import compressed_to_image, stamp_to_ns
+from memgs_ros.ros.codecs import stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.stamp_sync import NearestPairer
 from memgs_ros.ros.tracker_outputs import KEYPOINT_DTYPE, TrackerOutbox
 
 __all__ = ["KEYPOINT_DTYPE", "TrackerNode", "main"]
@@ -85,12 +85,7 @@ class TrackerNode(Node):
         self.rgbd = self.cfg.mode == "rgbd"
         self.stamps = StampRules(int(1e9 * v.time_jump_back_s), int(1e9 * v.max_stamp_ahead_s))
         self.gate = LiveGate(int(1e9 * v.max_frame_age_s))  # 0: never stale (the runner's lockstep replays)
-        self.pairer: NearestPairer[Image] = NearestPairer(
-            max_dt_ns=0 if v.sync == "exact" else int(v.max_sync_dt_s * 1e9), queue_size=5)
-        # Colour waiting for depth (RGB-D): since when (monotonic s; None while frames pair), and
-        # whether any depth came at all: a camera without depth maps nothing, and says why.
-        self._unpaired_since: float | None = None
-        self._depth_seen = False
+        self.pairing = RgbdPairing(self, v, lambda pair: self._handle(pair[1], pair[2]))
         self.tracker: Tracker | None = None
         self.stats = NodeStats(self, "tracker")
         self._frame_cpu_ms = self.stats.computed["frame_cpu_ms_median"] = RollingMedian()  # message in to pose out
@@ -98,16 +93,10 @@ class TrackerNode(Node):
         self.out = TrackerOutbox(self, v.world_frame, v.camera_frame, v.path_max_len, v.path_rate_hz, self.stats)
         sensor = qos.sensor() if v.input_reliability == "best_effort" else qos.reliable(5)
         self.create_subscription(CameraInfo, v.camera_info_topic, self.on_camera_info, sensor)
-        # compressed: image_transport's topics, decoded once a frame is taken (a stale one is not decoded)
-        self.compressed = v.image_transport == "compressed"
-        kind, color_topic, depth_topic = (
-            (CompressedImage, f"{v.color_topic}/compressed", f"{v.depth_topic}/compressedDepth")
-            if self.compressed else (Image, v.color_topic, v.depth_topic))
-        self.create_subscription(kind, color_topic, self.on_color, sensor)
-        if self.rgbd:
-            self.create_subscription(kind, depth_topic, self.on_depth, sensor)
-        self.get_logger().info(f"tracking {self.cfg.mode} from {self.resolve_topic_name(color_topic)}"
-                               + (f" + {self.resolve_topic_name(depth_topic)}" if self.rgbd else ""))
+        self.compressed = v.image_transport == "compressed"  # decoded once a frame is taken
+        self.get_logger().info(f"tracking {self.cfg.mode} from " + subscribe_camera(
+            self, v.color_topic, v.depth_topic if self.rgbd else None, self.compressed, self.on_color,
+            self.pairing.depth_message, sensor))
         # The kernels load (on a fresh install: compile, ~10 s) beside the executor, neither on the
         # first frame (a live camera does not wait) nor in __init__ (a compiling node missed its stop
         # deadline). The runner starts a replay once ``kernels_warm`` is 1; a live frame before
@@ -161,42 +150,7 @@ class TrackerNode(Node):
         elif not self.rgbd:
             self._handle(msg, None)
         else:
-            dropped = self.pairer.dropped_a
-            pair = self.pairer.add_a(stamp_to_ns(msg.header.stamp), msg)
-            self.stats.counters["skipped.unpaired"] += self.pairer.dropped_a - dropped
-            if pair is not None:
-                self._unpaired_since = None
-                self._handle(pair[1], pair[2])
-            else:
-                self._check_unpaired()
-
-    def on_depth(self, msg: Image) -> None:
-        self._depth_seen = True
-        dropped = self.pairer.dropped_a
-        pair = self.pairer.add_b(stamp_to_ns(msg.header.stamp), msg)
-        self.stats.counters["skipped.unpaired"] += self.pairer.dropped_a - dropped
-        if pair is not None:
-            self._unpaired_since = None
-            self._handle(pair[1], pair[2])
-
-    def _check_unpaired(self) -> None:
-        """Colour that has found no depth for ``unpaired_warn_s``: a problem naming the likely cause."""
-        now = time.monotonic()
-        if self._unpaired_since is None:
-            self._unpaired_since = now
-            return
-        if now - self._unpaired_since < self.params.unpaired_warn_s:
-            return
-        v, waited = self.params, now - self._unpaired_since
-        color, depth = self.resolve_topic_name(v.color_topic), self.resolve_topic_name(v.depth_topic)
-        if not self._depth_seen:
-            why = (f"colour on {color} for {waited:.0f} s but no depth on {depth}: is the depth topic right, "
-                   "and is the RealSense's align_depth.enable on? (tracker.mode mono maps colour alone)")
-        else:
-            why = (f"no depth on {depth} within {v.max_sync_dt_s * 1e3:.0f} ms of colour for {waited:.0f} s: "
-                   "do colour and depth share a clock (max_sync_dt_s, sync)?")
-        self.stats.problem("unpaired_color", why)
-        self._unpaired_since = now  # counted again after another window
+            self.pairing.color(stamp_to_ns(msg.header.stamp), msg)
 
     def _ready_camera(self, color: Image, depth: Image | None) -> bool:
         """Whether the camera is known; else the frame waits for camera_info (the one it pushes out
@@ -240,15 +194,10 @@ class TrackerNode(Node):
 
     def _handle(self, color: Image, depth: Image | None) -> None:
         cpu0, wall0 = time.thread_time(), time.perf_counter()  # this thread's CPU: the frame path alone
-        if self.compressed:
-            try:
-                color, depth = (compressed_to_image(color, self.params.depth_scale),
-                                None if depth is None else compressed_to_image(depth, self.params.depth_scale))
-            except MessageError as err:
-                self.stats.counters["frames_in"] += 1
-                self.stats.problem("bad_image", f"compressed frame {stamp_to_ns(color.header.stamp)} refused: {err}")
-                self.out.processed(stamp_to_ns(color.header.stamp))
-                return
+        if self.compressed and (images := decompressed(color, depth, self.params.depth_scale, self.stats)) is None:
+            self.out.processed(stamp_to_ns(color.header.stamp))  # refused, counted
+            return
+        color, depth = images if self.compressed else (color, depth)
         if not self._ready_camera(color, depth):
             return
         self.stats.counters["frames_in"] += 1
@@ -279,10 +228,10 @@ class TrackerNode(Node):
             self.stats.counters["ba_us_total"] += int(ba_dt * 1e6)
         g = self.stats.gauges
         g["track_ms"] = round(dt * 1e3, 2)
-        g["keyframes_deferred"] = int(getattr(tracker, "keyframes_deferred", 0))
-        g["ba_waits"] = int(getattr(tracker, "ba_waits", 0))
-        if (readout := getattr(tracker, "readout", None)) is not None:  # the rows' direction as checked
-            g["readout_flips"], g["readout_sign"] = readout.flips, readout.sign
+        g["keyframes_deferred"], g["ba_waits"] = (int(getattr(tracker, k, 0)) for k in ("keyframes_deferred",
+                                                                                         "ba_waits"))
+        if (ro := getattr(tracker, "readout", None)) is not None:
+            g["readout_flips"], g["readout_sign"] = ro.flips, ro.sign  # the rows' direction as checked
         self.stats.counters["track_us_total"] += int(dt * 1e6)
         smap = tracker.map_stats() if result.keyframe is not None else None
         if smap is not None:

@@ -150,3 +150,31 @@ class KeyframeIntake:
             self._complete_set.discard(self._complete[0])
         self._complete.append(stamp_ns)
         self._complete_set.add(stamp_ns)
+
+
+class UnpairedWatch:
+    """Colour waiting for depth (RGB-D): ``waiting`` says why once colour has found no depth for
+    ``warn_s`` (then again after each further ``warn_s``), else None; ``paired`` resets it. A
+    camera without depth maps nothing, and says so."""
+
+    def __init__(self, warn_s: float) -> None:
+        self.warn_s = warn_s
+        self.depth_seen = False  # any depth message at all
+        self._since: float | None = None  # monotonic s of the first colour since the last pair
+
+    def paired(self) -> None:
+        self._since = None
+
+    def waiting(self, now_s: float, color: str, depth: str, max_sync_dt_s: float) -> str | None:
+        if self._since is None:
+            self._since = now_s
+            return None
+        waited = now_s - self._since
+        if waited < self.warn_s:
+            return None
+        self._since = now_s  # said again after another window
+        if not self.depth_seen:
+            return (f"colour on {color} for {waited:.0f} s but no depth on {depth}: is the depth topic right, "
+                    "and is the RealSense's align_depth.enable on? (tracker.mode mono maps colour alone)")
+        return (f"no depth on {depth} within {max_sync_dt_s * 1e3:.0f} ms of colour for {waited:.0f} s: "
+                "do colour and depth share a clock (max_sync_dt_s, sync)?")

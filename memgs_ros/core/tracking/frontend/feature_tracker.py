@@ -32,7 +32,7 @@ from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking._compiled import warm_up
 from memgs_ros.core.tracking.backend.actor import TrackingBackend
-from memgs_ros.core.tracking.backend.bundle_adjustment import orthonormalized, pose_covariance
+from memgs_ros.core.tracking.backend.bundle_adjustment import orthonormalized
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
 from memgs_ros.core.tracking.features.features import FrameFeatures, OrbExtractor, unroll_rolling_shutter
 from memgs_ros.core.tracking.features.vocabulary import KeyframeDatabase, Vocabulary, default_vocabulary
@@ -45,7 +45,7 @@ from memgs_ros.core.tracking.frontend.pose_tracking import (
     TrackOutcome,
     rotation_angle_deg,
 )
-from memgs_ros.core.tracking.frontend.readout import ReadoutDirection
+from memgs_ros.core.tracking.frontend.readout import ReadoutDirection, refine_with_readout
 from memgs_ros.core.tracking.frontend.relocalisation import relocalise
 from memgs_ros.core.tracking.loop_closing.place_recognition import LoopStats
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
@@ -172,7 +172,7 @@ class FeatureTracker(BackendResults, Tracker):
         T_wc = None if T_cw is None else invert_pose(T_cw)
         return TrackResult(frame.stamp_ns, T_wc, self.state, kf, n_m, n_i, time.perf_counter() - t0,
                            self.segment_id, self._ref_kf_id if T_wc is not None else -1,
-                           self._pose_cov if self.state == TrackingState.OK and T_wc is not None else None)
+                           self._pose_cov)  # set by _tracked alone: a tracked pose
 
     def poll_culled_keyframes(self) -> list[tuple[int, int, np.ndarray]]:
         """(culled keyframe id, heir id, its last T_wc [4, 4]) since the last poll (``Culled``)."""
@@ -232,9 +232,6 @@ class FeatureTracker(BackendResults, Tracker):
     def _inv_sigma(self, octave: np.ndarray) -> np.ndarray:
         return self.matcher.inv_sigma(octave)
 
-    def _unrolled(self, feats: FrameFeatures, omega_c: np.ndarray) -> FrameFeatures:
-        return unroll_rolling_shutter(feats, self.K, omega_c, self.readout.readout_now_s, self.camera.height)
-
     def _follow(self, moves: list[KeyframesMoved]) -> None:
         """Move the last pose with its keyframe when the back-end's results moved that keyframe
         (a loop moves the last good pose too); the velocity stays."""
@@ -267,36 +264,12 @@ class FeatureTracker(BackendResults, Tracker):
         """Re-correct the keypoints with this frame's own angular velocity (the first correction used
         the previous frame's; on fr1/rpy it changes by up to 50 % a frame), re-optimise on the same matches."""
         assert self._T_cw_last is not None
-        omega = self.motion.frame_angular_velocity(outcome.T_cw, self._T_cw_last, dt_s)
-        feats = self._unrolled(raw, omega)
         p_w, _, _ = self.map.point_arrays(outcome.point_ids)
-        T, inl = self.matcher.optimise(outcome.T_cw, p_w, feats, outcome.kp_idx, rounds=2)
-        if self.readout.worth_checking(omega, self.K[0, 0]):
-            # The other readout direction on the same matches (see readout.py); it wins only by a
-            # clear majority of recent frames, and from then on it is the one in use.
-            other = unroll_rolling_shutter(raw, self.K, omega, -self.readout.readout_now_s, self.camera.height)
-            T_o, inl_o = self.matcher.optimise(outcome.T_cw, p_w, other, outcome.kp_idx, rounds=2)
-            both = inl | inl_o
-            kp, w = outcome.kp_idx[both], self._inv_sigma(raw.octave[outcome.kp_idx[both]])
-            if self.readout.vote(self._median_error_px(T, p_w[both], feats.uv[kp], w),
-                                 self._median_error_px(T_o, p_w[both], other.uv[kp], w)):
-                logger.info("rolling shutter: the frames read their rows %s; correcting that way from now on",
-                            "top to bottom" if self.readout.readout_now_s > 0 else "bottom to top")
-                feats, T, inl = other, T_o, inl_o
+        feats, T, inl = refine_with_readout(self.readout, raw, p_w, outcome, self.matcher,  # readout.py
+                                            self.motion.frame_angular_velocity(outcome.T_cw, self._T_cw_last, dt_s))
         if inl.sum() < self.cfg.min_inliers:
             return feats, outcome
         return feats, TrackOutcome(T, outcome.point_ids[inl], outcome.kp_idx[inl], outcome.n_matches)
-
-    def _median_error_px(self, T_cw: np.ndarray, p_w: np.ndarray, uv: np.ndarray, inv_sigma: np.ndarray) -> float:
-        """Median reprojection error of points p_w [K, 3] observed at uv [K, 2] (weights inv_sigma [K]),
-        in level-0 pixels; NaN without points. Lean: it runs twice on every checked frame."""
-        if len(uv) == 0:
-            return float("nan")
-        p_c = p_w @ T_cw[:3, :3].T + T_cw[:3, 3]
-        z = np.maximum(p_c[:, 2], 1e-6)
-        du = self.K[0, 0] * p_c[:, 0] / z + self.K[0, 2] - uv[:, 0]
-        dv = self.K[1, 1] * p_c[:, 1] / z + self.K[1, 2] - uv[:, 1]
-        return float(np.median(np.sqrt(du * du + dv * dv) * inv_sigma))
 
     def _track_local_map(self, feats: FrameFeatures, T_pred: np.ndarray, allow_fallback: bool,
                          count: bool = True, from_last: bool = False) -> TrackOutcome | None:
@@ -319,7 +292,8 @@ class FeatureTracker(BackendResults, Tracker):
         T_pred = orthonormalized(motion.motion_over(dt_s) @ self._T_cw_last)
         raw = feats
         if self.readout.readout_now_s != 0.0:  # first guess: the angular velocity of the previous frame
-            feats = self._unrolled(raw, motion.angular_velocity(motion.velocity, motion.dt_s))
+            feats = unroll_rolling_shutter(raw, self.K, motion.angular_velocity(motion.velocity, motion.dt_s),
+                                           self.readout.readout_now_s, self.camera.height)
         outcome = self._track_predicted(feats, T_pred, frame.stamp_ns)
         relocalised = False
         if outcome is None and self.state != TrackingState.OK:
@@ -391,9 +365,7 @@ class FeatureTracker(BackendResults, Tracker):
         if self.readout.readout_now_s != 0.0 and keep_velocity:
             feats, outcome = self._refine_rolling_shutter(raw, outcome, dt_s)
         T = outcome.T_cw
-        p_w, _, _ = self.map.point_arrays(outcome.point_ids)
-        depth = feats.depth_m[outcome.kp_idx] if cfg.track_with_depth and self.uses_depth else np.full(len(p_w), np.nan)
-        self._pose_cov = pose_covariance(T, p_w, depth, self._inv_sigma(feats.octave[outcome.kp_idx]), self.K, self.bf)
+        self._pose_cov = self.matcher.covariance(T, self.map.point_arrays(outcome.point_ids)[0], feats, outcome.kp_idx)
         if keep_velocity:
             motion.update(T, self._T_cw_last, dt_s)
         else:

@@ -26,6 +26,7 @@ from memgs_ros.core.tracking.backend.bundle_adjustment import (
     observed_uvr,
     optimize_pose,
     orthonormalized,
+    pose_covariance,
     so3_exp,
 )
 from memgs_ros.core.tracking.config import TrackerConfig
@@ -182,6 +183,13 @@ class LocalMapMatcher:
         inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < self.camera.width) & \
             (uv[:, 1] >= 0) & (uv[:, 1] < self.camera.height)
         return uv, inside
+
+    def covariance(self, T_cw: np.ndarray, p_w: np.ndarray, feats: FrameFeatures, kp_idx: np.ndarray
+                   ) -> np.ndarray | None:
+        """``bundle_adjustment.pose_covariance`` of a pose fitted on matches (points p_w [K, 3] at
+        keypoints kp_idx [K]), with the residuals ``optimise`` uses."""
+        depth = feats.depth_m[kp_idx] if self.cfg.track_with_depth else np.full(len(kp_idx), np.nan)
+        return pose_covariance(T_cw, p_w, depth, self.inv_sigma(feats.octave[kp_idx]), self.K, self.bf)
 
     def optimise(self, T_cw: np.ndarray, p_w: np.ndarray, feats: FrameFeatures, kp_idx: np.ndarray,
                  rounds: int) -> tuple[np.ndarray, np.ndarray]:

@@ -13,11 +13,19 @@ keypoints corrected the other way and weighs the two reprojection errors
 """
 from __future__ import annotations
 
+import logging
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-__all__ = ["ReadoutDirection"]
+from memgs_ros.core.tracking.features.features import FrameFeatures, unroll_rolling_shutter
+
+__all__ = ["ReadoutDirection", "check_other_direction", "median_reprojection_px", "refine_with_readout"]
+
+logger = logging.getLogger(__name__)
+logger.addHandler(logging.NullHandler())
 
 
 @dataclass
@@ -70,3 +78,60 @@ class ReadoutDirection:
         self.flips += 1
         self.evidence = 0.0
         return True
+
+
+def median_reprojection_px(K: np.ndarray, T_cw: np.ndarray, p_w: np.ndarray, uv: np.ndarray,
+                           inv_sigma: np.ndarray) -> float:
+    """Median reprojection error of points p_w [K, 3] observed at uv [K, 2] (weights inv_sigma [K]),
+    in level-0 pixels; NaN without points. Lean: it runs twice on every checked frame."""
+    if len(uv) == 0:
+        return float("nan")
+    p_c = p_w @ T_cw[:3, :3].T + T_cw[:3, 3]
+    z = np.maximum(p_c[:, 2], 1e-6)
+    du = K[0, 0] * p_c[:, 0] / z + K[0, 2] - uv[:, 0]
+    dv = K[1, 1] * p_c[:, 1] / z + K[1, 2] - uv[:, 1]
+    return float(np.median(np.sqrt(du * du + dv * dv) * inv_sigma))
+
+
+Fit = tuple[FrameFeatures, np.ndarray, np.ndarray]  # (corrected features, T_cw [4, 4], inlier mask [K])
+
+
+def check_other_direction(readout: ReadoutDirection, raw: FrameFeatures, in_use: Fit,
+                          p_w: np.ndarray, kp_idx: np.ndarray, omega_c: np.ndarray, K: np.ndarray, height: int,
+                          optimise: Callable[[FrameFeatures], tuple[np.ndarray, np.ndarray]],
+                          inv_sigma: np.ndarray) -> Fit:
+    """One frame's check: ``raw``'s keypoints corrected the other way, the pose re-optimised on the
+    same matches (points p_w [K, 3] at keypoints kp_idx [K], by ``optimise``), and the
+    two fits' median errors over the points either kept weighed by ``readout.vote``. Returns the fit
+    of the direction in use afterwards: ``in_use``, or the other one when this vote flipped it."""
+    feats, T, inl = in_use
+    other = unroll_rolling_shutter(raw, K, omega_c, -readout.readout_now_s, height)
+    T_o, inl_o = optimise(other)
+    both = inl | inl_o
+    kp, w = kp_idx[both], inv_sigma[both]
+    if not readout.vote(median_reprojection_px(K, T, p_w[both], feats.uv[kp], w),
+                        median_reprojection_px(K, T_o, p_w[both], other.uv[kp], w)):
+        return in_use
+    logger.info("rolling shutter: the frames read their rows %s; correcting that way from now on",
+                "top to bottom" if readout.readout_now_s > 0 else "bottom to top")
+    return other, T_o, inl_o
+
+
+def refine_with_readout(readout: ReadoutDirection, raw: FrameFeatures, p_w: np.ndarray, outcome: Any,
+                        matcher: Any, omega_c: np.ndarray) -> Fit:
+    """``raw``'s keypoints corrected with the frame's own angular velocity ``omega_c`` [3] (the first
+    correction used the previous frame's; on fr1/rpy it changes by up to 50 % a frame) and the pose
+    re-optimised by ``matcher`` (a LocalMapMatcher) on the outcome's matches (points p_w [K, 3]); on
+    a frame worth it, the other direction checked too (``check_other_direction``). Returns the fit
+    of the direction in use."""
+    K, height, kp_idx = matcher.K, matcher.camera.height, outcome.kp_idx
+
+    def optimise(f: FrameFeatures) -> tuple[np.ndarray, np.ndarray]:
+        return matcher.optimise(outcome.T_cw, p_w, f, kp_idx, rounds=2)
+
+    inv_sigma = matcher.inv_sigma(raw.octave[kp_idx])
+    feats = unroll_rolling_shutter(raw, K, omega_c, readout.readout_now_s, height)
+    T, inl = optimise(feats)
+    if not readout.worth_checking(omega_c, K[0, 0]):
+        return feats, T, inl
+    return check_other_direction(readout, raw, (feats, T, inl), p_w, kp_idx, omega_c, K, height, optimise, inv_sigma)
