@@ -86,7 +86,7 @@ def _names(record: type, key: str) -> bool:
 
 # Which record each file's stats writes go to (the node whose NodeStats it is handed).
 _WRITERS = {
-    "nodes/tracker.py": "tracker", "ros/tracker_outputs.py": "tracker",
+    "nodes/tracker.py": "tracker", "ros/tracker_outputs.py": "tracker", "ros/camera_input.py": "tracker",
     "nodes/keyframe_sampler.py": "keyframe_sampler",
     "nodes/mapper.py": "mapper", "ros/mapper_stats.py": "mapper", "core/mapping/checkpoint_saver.py": "mapper",
     "nodes/merger.py": "merger", "ros/view_outputs.py": "merger",
