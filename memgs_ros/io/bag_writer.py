@@ -166,6 +166,19 @@ class BagWriteResult:
     bytes: int
 
 
+def _topic_writer(bag: BagStream, mf: MessageFactory) -> Callable[[str, str, int, Any], None]:
+    """``put(topic, msgtype, stamp_ns, msg)`` into a ROS 2 bag: the topic added at its first message."""
+    topics: set[str] = set()
+
+    def put(topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
+        if topic not in topics:
+            bag.add_topic(topic, msgtype)
+            topics.add(topic)
+        bag.write(topic, stamp_ns, mf.serialize(msg, msgtype))
+
+    return put
+
+
 def write_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str], storage: str | None = None,
               camera_frame_id: str = CAMERA_FRAME, world_frame_id: str = WORLD_FRAME,
               on_frame: Callable[[Frame], None] | None = None) -> BagWriteResult:
@@ -179,13 +192,7 @@ def write_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str], storage
     n = 0
     with BagStream(out, storage) as bag:
         mf = MessageFactory(bag.typestore, ros1=False)
-        topics: set[str] = set()
-
-        def put(topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
-            if topic not in topics:
-                bag.add_topic(topic, msgtype)
-                topics.add(topic)
-            bag.write(topic, stamp_ns, mf.serialize(msg, msgtype))
+        put = _topic_writer(bag, mf)
 
         for f in frames:
             s = int(f.stamp_ns)
@@ -263,13 +270,7 @@ def write_realsense_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str
     n = 0
     with BagStream(out, storage) as bag:
         mf = MessageFactory(bag.typestore, ros1=False)
-        topics: set[str] = set()
-
-        def put(topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
-            if topic not in topics:
-                bag.add_topic(topic, msgtype)
-                topics.add(topic)
-            bag.write(topic, stamp_ns, mf.serialize(msg, msgtype))
+        put = _topic_writer(bag, mf)
 
         def image(topic: str, header: Any, data: np.ndarray, encoding: str, s: int) -> None:
             if not compressed:
