@@ -5,6 +5,7 @@ import argparse
 import contextlib
 import importlib
 import importlib.metadata
+import importlib.util
 import json
 import os
 import platform
@@ -155,6 +156,10 @@ def collect(check_gsplat: bool = True) -> dict[str, Any]:
     for name, info in (("rclpy", rclpy_info), *packages.items()):
         if not info["available"]:
             problems.append(f"{name} is missing or broken: {info['error']}")
+    tf2 = {"available": importlib.util.find_spec("tf2_msgs") is not None}
+    if rclpy_info["available"] and not tf2["available"]:
+        warnings.append("tf2_msgs is missing: the tracker publishes no /tf (apt's ROS has it; with the PyPI "
+                        "wheels: python -m memgs_ros.ros.tf2_msgs_build)")
     if choice.fallback_warning:
         warnings.append("CUDA is present but gsplat is not: the mapper uses the torch fallback rasterizer, "
                         "several times slower; install gsplat: see README 'On a Jetson'")
@@ -185,7 +190,7 @@ def collect(check_gsplat: bool = True) -> dict[str, Any]:
         "mapper": {"device": device, "device_label": device_label(device), "raster_backend": choice.backend,
                    "requested_backend": choice.requested, "fallback_warning": choice.fallback_warning},
         "ros": {"rclpy": rclpy_info, "rmw_implementation": rclpy_info["rmw"], "rmw_source": rclpy_info["rmw_source"],
-                "ros_domain_id": os.environ.get("ROS_DOMAIN_ID"), "dds_profile": dds},
+                "ros_domain_id": os.environ.get("ROS_DOMAIN_ID"), "dds_profile": dds, "tf2_msgs": tf2},
         "packages": packages,
         "kernel_cache": cache,
         "problems": problems,
@@ -241,6 +246,7 @@ def format_report(r: dict[str, Any]) -> str:
                    f"-> {r['mapper']['raster_backend']}"),
         ("rclpy", rclpy_s),
         ("rmw", f"{ros['rmw_implementation']} ({ros['rmw_source']})"),
+        ("tf2_msgs", "yes" if ros["tf2_msgs"]["available"] else "MISSING (no /tf; below)"),
         ("domain", f"ROS_DOMAIN_ID={domain}" if domain is not None
                    else "ROS_DOMAIN_ID unset (0; memgs run picks a free one)"),
         ("dds", f"{dds['file'] or '-'} [{dds['source']}]"

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from memgs_ros.core.geometry.camera import CAMERA_PREFIX, CameraCalibration
+from memgs_ros.core.geometry.frames import FrameConvention, mount_transform
 from memgs_ros.core.mapping.config import MappingConfig
 from memgs_ros.core.merge.config import MergeConfig
 from memgs_ros.core.sampling import PatchGridConfig
@@ -92,8 +93,28 @@ class TrackerParams:
     sync: str = "approximate"  # colour/depth pairing
     max_sync_dt_s: float = 0.02  # largest colour/depth stamp difference paired (approximate)
     unpaired_warn_s: float = 5.0  # colour arriving this long with no depth to pair it with: warn, naming why
-    world_frame: str = "map"  # frame id of published poses
-    camera_frame: str = "camera_color_optical_frame"  # child frame id of the odometry (camera optical frame)
+    # the SLAM world: the first camera's optical frame (x right, y down, z forward); memgs/pose, the path,
+    # keyframes and maps are in it, TF relates it to map_frame by a static transform
+    world_frame: str = "map_optical"
+    map_frame: str = "map"  # REP-105 map: z up, the body's first pose (odometry and TF are in it)
+    base_frame: str = "base_link"  # the body (REP-103: x forward, y left, z up); the odometry's child frame
+    # non-empty (e.g. odom): broadcast map -> odom_frame from the odom_frame -> base_frame another source
+    # publishes on /tf (a flight controller, wheels), instead of map -> base_frame
+    odom_frame: str = ""
+    odom_tolerance_s: float = 0.05  # the odom_frame -> base_frame transform used lies this close to the frame
+    publish_tf: bool = True  # /tf map -> base_frame (or odom_frame) per tracked frame, /tf_static map -> world_frame
+    # /tf_static base_frame -> the images' optical frame from camera_mount_*; false where the robot
+    # description or the camera driver already publishes the camera in TF
+    publish_camera_tf: bool = True
+    # the camera's mount in base_frame: metres and radians of its own REP-103 frame (x along the lens), as a
+    # URDF joint; all zero: looking forward from the body's origin
+    camera_mount_x: float = 0.0
+    camera_mount_y: float = 0.0
+    camera_mount_z: float = 0.0
+    camera_mount_roll: float = 0.0
+    camera_mount_pitch: float = 0.0
+    camera_mount_yaw: float = 0.0
+    camera_frame: str = "camera_color_optical_frame"  # the images' frame when their header names none
     input_reliability: str = "best_effort"
     path_max_len: int = 10000  # poses kept in memgs/path (0 = all)
     path_rate_hz: float = 1.0
@@ -106,12 +127,27 @@ class TrackerParams:
         "depth_scale": (1e-3, 1e6), "max_sync_dt_s": (0.0, 1.0), "unpaired_warn_s": (0.1, 3600.0),
         "path_max_len": (0, 10**7),
         "path_rate_hz": (0.01, 100.0), "time_jump_back_s": (0.0, 1e6), "max_stamp_ahead_s": (0.0, 1e9),
-        "max_frame_age_s": (0.0, 60.0),
+        "max_frame_age_s": (0.0, 60.0), "odom_tolerance_s": (0.0, 10.0),
+        "camera_mount_x": (-100.0, 100.0), "camera_mount_y": (-100.0, 100.0), "camera_mount_z": (-100.0, 100.0),
+        "camera_mount_roll": (-7.0, 7.0), "camera_mount_pitch": (-7.0, 7.0), "camera_mount_yaw": (-7.0, 7.0),
     }
     CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {
         "sync": ("approximate", "exact"), "input_reliability": ("best_effort", "reliable"),
         "image_transport": ("raw", "compressed"),
     }
+
+    def __post_init__(self) -> None:
+        names = {"world_frame": self.world_frame, "map_frame": self.map_frame, "base_frame": self.base_frame}
+        if self.odom_frame:
+            names["odom_frame"] = self.odom_frame
+        if not all(names.values()) or len(set(names.values())) != len(names):
+            raise ConfigError(f"tracker frames must be non-empty and distinct: {names}")
+
+    def frame_convention(self) -> FrameConvention:
+        """The SLAM world's relation to map and base_frame, from the camera's mount."""
+        return FrameConvention(mount_transform((self.camera_mount_x, self.camera_mount_y, self.camera_mount_z,
+                                                self.camera_mount_roll, self.camera_mount_pitch,
+                                                self.camera_mount_yaw)))
 
 
 @dataclass(frozen=True)
@@ -120,7 +156,7 @@ class KeyframeSamplerParams:
 
     mode: str = "rgbd"  # camera mode (mono: depth from the nearest keypoint)
     depth_scale: float = 1000.0  # 16UC1 keyframe depth units per metre: the tracker's (depth travels as sent)
-    world_frame: str = "map"  # frame id of the seed cloud
+    world_frame: str = "map_optical"  # frame id (the SLAM world; TF: map -> map_optical) of the seed cloud
     niceness: int = 5  # CPU niceness of the whole process (0..19): below the tracker, above the mapper
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {"depth_scale": (1e-3, 1e6), "niceness": (0, 19)}
@@ -165,7 +201,7 @@ class MapperParams:
     delta_tolerance: float = 1e-3
     snapshot_period_s: float = 0.0  # publish a full snapshot this often (0 = only on request)
     render_rate_hz: float = 1.0  # live view renders per second (0 = off)
-    world_frame: str = "map"  # frame id of published maps and poses
+    world_frame: str = "map_optical"  # frame id (the SLAM world; TF: map -> map_optical) of published maps and poses
     ack_topic: str = "memgs/frame_ack"  # lockstep acknowledgement topic (to the player)
     checkpoint_path: str = ""  # file for map + keyframe checkpoints (.npz); empty = no checkpoints
     checkpoint_period_s: float = 30.0
@@ -198,7 +234,7 @@ class MergerParams:
     publish_period_s: float = 30.0
     resync_interval_s: float = 1.0  # least time between snapshot requests (doubles, up to 8x, while unanswered)
     max_buffered_deltas: int = 200  # deltas kept while resynchronising
-    world_frame: str = "map"  # frame id of the published map
+    world_frame: str = "map_optical"  # frame id (the SLAM world; TF: map -> map_optical) of the published map
     render_width: int = 320  # render width (px) for view requests
     render_height: int = 240  # render height (px) for view requests
     render_fx: float = 258.65  # render focal length x (px)

@@ -1,10 +1,12 @@
 """tracker node: colour (+ depth) + camera_info in; pose, path, tracking state and keyframes out.
 
 Subscribes (sensor-data QoS): ``color_topic``, ``depth_topic`` (RGB-D only), ``camera_info_topic``.
-Publishes: ``memgs/pose`` (PoseStamped, every pose: coasted ones too), ``memgs/odom`` (Odometry) and
-``memgs/pose_with_covariance`` (tracked poses only, state OK: what a flight controller fuses; the
-covariance is the pose optimisation's at 1 px noise, ``pose_covariance``; twist in the camera
-frame from the last tracked pose), ``memgs/path`` (Path),
+Publishes: ``memgs/pose`` (PoseStamped, the camera in ``world_frame``, every pose: coasted ones
+too), ``memgs/odom`` (Odometry) and ``memgs/pose_with_covariance`` (tracked poses only, state OK:
+what a flight controller fuses; the body ``base_frame`` in ``map_frame``, z up; the covariance is
+the pose optimisation's at 1 px noise, ``pose_covariance``, carried to the body; twist in the body
+frame from the last tracked pose), TF (``ros/tf_outputs.py``: ``map -> base_link`` per tracked
+frame, ``map -> map_optical`` and the camera mount static), ``memgs/path`` (Path),
 ``memgs/tracking_state`` (String), per keyframe ``memgs/keyframe/{color,depth,camera_info,pose,
 keypoints}`` sharing the frame's stamp (images as recorded with the camera's distortion in
 camera_info; keypoint u, v are undistorted pixel positions), refined keyframe poses after local
@@ -90,7 +92,7 @@ class TrackerNode(Node):
         self.stats = NodeStats(self, "tracker")
         self._frame_cpu_ms = self.stats.computed["frame_cpu_ms_median"] = RollingMedian()  # message in to pose out
         self._frame_ms = self.stats.computed["frame_ms_median"] = RollingMedian()  # wall: a lockstep frame's share
-        self.out = TrackerOutbox(self, v.world_frame, v.camera_frame, v.path_max_len, v.path_rate_hz, self.stats)
+        self.out = TrackerOutbox(self, v, self.stats)
         sensor = qos.sensor() if v.input_reliability == "best_effort" else qos.reliable(5)
         self.create_subscription(CameraInfo, v.camera_info_topic, self.on_camera_info, sensor)
         self.compressed = v.image_transport == "compressed"  # decoded once a frame is taken

@@ -59,6 +59,8 @@ __all__ = [
     "pointcloud2_to_structured",
     "pose_to_matrix",
     "pose_to_odometry",
+    "set_pose_fields",
+    "set_stamp",
     "set_tracked_odometry",
     "stamp_to_ns",
     "structured_to_pointcloud2",
@@ -220,16 +222,22 @@ def pose_to_matrix(pose: Pose) -> np.ndarray:
     return pose_from_tq(t, q_xyzw / n)
 
 
-def set_pose(pose: Pose, T: np.ndarray) -> Pose:
-    """Write the [4, 4] rigid transform T into ``pose`` in place (checked first: finite, 4x4)."""
+def set_pose_fields(position: Any, orientation: Any, T: np.ndarray) -> None:
+    """Write the [4, 4] rigid transform T (checked first: finite, 4x4) into a position (Point or
+    Vector3: a Pose's or a Transform's) and a Quaternion, in place."""
     T = np.asarray(T, dtype=np.float64)
     rows = T.tolist()
     if T.shape != (4, 4) or not all(map(math.isfinite, chain.from_iterable(rows))):
         raise MessageError(f"pose must be a finite 4x4 matrix, got shape {T.shape}")
     (m00, m01, m02, tx), (m10, m11, m12, ty), (m20, m21, m22, tz), _ = rows
-    p, o = pose.position, pose.orientation
-    p.x, p.y, p.z = tx, ty, tz
-    o.x, o.y, o.z, o.w = quat_xyzw_of(m00, m01, m02, m10, m11, m12, m20, m21, m22)
+    position.x, position.y, position.z = tx, ty, tz
+    orientation.x, orientation.y, orientation.z, orientation.w = quat_xyzw_of(
+        m00, m01, m02, m10, m11, m12, m20, m21, m22)
+
+
+def set_pose(pose: Pose, T: np.ndarray) -> Pose:
+    """Write the [4, 4] rigid transform T into ``pose`` in place (checked first: finite, 4x4)."""
+    set_pose_fields(pose.position, pose.orientation, T)
     return pose
 
 

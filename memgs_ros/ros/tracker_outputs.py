@@ -1,10 +1,11 @@
-"""Everything the tracker node publishes, from its results: per frame the tracking state, pose and
-odometry and the ``processed`` answer a lockstep player waits on; the corrected trajectory
+"""Everything the tracker node publishes, from its results: per frame the tracking state, pose,
+odometry and TF and the ``processed`` answer a lockstep player waits on; the corrected trajectory
 (``memgs/path``); per keyframe its images as received, camera_info, pose and keypoints; the
 refined and loop-corrected poses of earlier keyframes."""
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
@@ -15,6 +16,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header, String
 
 from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.frames import FrameConvention
 from memgs_ros.core.tracking import TrackResult
 from memgs_ros.core.tracking.anchored_path import AnchoredPath
 from memgs_ros.ros import qos
@@ -29,6 +31,7 @@ from memgs_ros.ros.codecs import (
     structured_to_pointcloud2,
 )
 from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.tf_outputs import TfOutbox
 
 __all__ = ["KEYPOINT_DTYPE", "CorrectedPath", "KeyframeOutbox", "TrackerOutbox"]
 
@@ -143,12 +146,19 @@ class TrackerOutbox:
     counted in ``stats`` (``state.<STATE>``, ``poses_out``, ``keyframes``, the refined and
     loop-corrected keyframe poses)."""
 
-    def __init__(self, node: Node, world_frame: str, camera_frame: str, path_max_len: int, path_rate_hz: float,
-                 stats: NodeStats) -> None:
-        self.world_frame, self.camera_frame, self.stats = world_frame, camera_frame, stats
+    def __init__(self, node: Node, params: Any, stats: NodeStats) -> None:
+        """``params``: the node's TrackerParams (frames, mount, path length and rate)."""
+        world_frame, path_max_len = params.world_frame, params.path_max_len
+        self.world_frame, self.camera_frame, self.stats = world_frame, params.camera_frame, stats
+        self.frames: FrameConvention = params.frame_convention()
+        self.map_frame, self.base_frame = params.map_frame, params.base_frame
+        self.tf = TfOutbox(node, self.frames, params.map_frame, world_frame, params.base_frame, params.camera_frame,
+                           params.publish_camera_tf, params.odom_frame,
+                           params.odom_tolerance_s) if params.publish_tf else None
         rel = qos.reliable(10)
-        self.pose = node.create_publisher(PoseStamped, "memgs/pose", rel)
-        # Tracked poses only (state OK), with the covariance: what a flight controller fuses
+        self.pose = node.create_publisher(PoseStamped, "memgs/pose", rel)  # the camera in world_frame
+        # Tracked poses only (state OK), with the covariance: what a flight controller fuses. The body
+        # (base_frame) in map_frame, z up (REP-103/105)
         self.odom = node.create_publisher(Odometry, "memgs/odom", rel)
         self.pose_cov = node.create_publisher(PoseWithCovarianceStamped, "memgs/pose_with_covariance", rel)
         self._last_tracked: tuple[int, np.ndarray] | None = None  # (stamp, T_wc) of the last OK pose
@@ -157,7 +167,7 @@ class TrackerOutbox:
         self.processed_pub = node.create_publisher(Header, "memgs/tracker/processed", qos.reliable(100))
         self.keyframes = KeyframeOutbox(node, world_frame)
         self.path = CorrectedPath(world_frame, path_max_len)
-        node.create_timer(1.0 / path_rate_hz, self.publish_path)
+        node.create_timer(1.0 / params.path_rate_hz, self.publish_path)
         # Filled in place and published at once (publish serializes before it returns): the
         # per-frame messages nothing keeps. The poses are new each frame: the path keeps them.
         self._state, self._odom, self._processed = String(), Odometry(), Header()
@@ -187,24 +197,18 @@ class TrackerOutbox:
         if previous is not None and (name == "LOST") != (previous == "LOST"):
             stats.publish()  # lost, or back: /diagnostics hears it now, not at the next second
         pose = None
+        if self.tf is not None:
+            self.tf.set_camera_frame(camera_frame)
         if result.T_wc is not None:
             pose = matrix_to_pose_stamped(result.T_wc, stamp, self.world_frame)
             self.pose.publish(pose)
             stats.counters["poses_out"] += 1
             if result.pose_cov is not None:  # tracked: not coasted, not a start without a pose fit
-                prev = self._last_tracked
-                dt_s = (stamp - prev[0]) * 1e-9 if prev is not None else 0.0
-                odom = pose_to_odometry(pose, camera_frame, self._odom)
-                set_tracked_odometry(odom, result.pose_cov, result.T_wc,
-                                     prev[1] if prev is not None and 0 < dt_s <= 0.5 else None, dt_s)
-                self.odom.publish(odom)
-                cov = PoseWithCovarianceStamped(header=pose.header)
-                cov.pose.pose, cov.pose.covariance = pose.pose, odom.pose.covariance
-                self.pose_cov.publish(cov)
-                self._last_tracked = (stamp, result.T_wc)
-                stats.counters["odometry_out"] += 1
+                self._tracked_odometry(result.T_wc, result.pose_cov, stamp)
             else:
                 self._last_tracked = None
+            if self.tf is not None and name == "OK" and self.tf.tracked(result.T_wc, stamp):
+                stats.counters["tf_out"] += 1
             if result.keyframe is not None:
                 self.keyframes.publish(result, camera, camera_frame, color, depth)
                 stats.counters["keyframes"] += 1
@@ -216,6 +220,23 @@ class TrackerOutbox:
             stats.counters["culled_keyframes"] += self.keyframes.publish_culled(list(culled))
         self.path.add(result, pose, loops, {k: heir for k, heir, _ in culled})
         self.processed(stamp, keyframe=result.keyframe is not None)
+
+    def _tracked_odometry(self, T_wc: np.ndarray, pose_cov: np.ndarray, stamp: int) -> None:
+        """``memgs/odom`` and ``memgs/pose_with_covariance``: the body in map_frame, the covariance
+        carried over from the camera's, the twist from the last tracked pose (within 0.5 s)."""
+        T_mb = self.frames.base_in_map(T_wc)
+        prev = self._last_tracked
+        dt_s = (stamp - prev[0]) * 1e-9 if prev is not None else 0.0
+        body = matrix_to_pose_stamped(T_mb, stamp, self.map_frame)
+        odom = pose_to_odometry(body, self.base_frame, self._odom)
+        set_tracked_odometry(odom, self.frames.covariance_in_map(pose_cov, T_wc), T_mb,
+                             prev[1] if prev is not None and 0 < dt_s <= 0.5 else None, dt_s)
+        self.odom.publish(odom)
+        cov = PoseWithCovarianceStamped(header=body.header)
+        cov.pose.pose, cov.pose.covariance = body.pose, odom.pose.covariance
+        self.pose_cov.publish(cov)
+        self._last_tracked = (stamp, T_mb)
+        self.stats.counters["odometry_out"] += 1
 
     def publish_path(self) -> None:
         msg = self.path.take_message()

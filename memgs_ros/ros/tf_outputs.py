@@ -1,0 +1,148 @@
+"""The tracker's TF (REP-105): ``map -> base_link`` per tracked frame on ``/tf``, at the frame's
+stamp; ``map -> <world_frame>`` (the SLAM world: the first camera's optical frame) and
+``base_link -> <camera optical frame>`` (the mount, unless the robot publishes it) on
+``/tf_static``. With an ``odom_frame``, ``map -> odom`` instead of ``map -> base_link``, from the
+``odom -> base_link`` a flight controller or wheel odometry publishes (the one nearest the frame's
+stamp, within ``odom_tolerance_s``).
+
+``tf2_msgs`` comes with ROS; where the PyPI wheels stand in for it, ``python -m
+memgs_ros.ros.tf2_msgs_build`` generates it. Without it the node says so once and publishes no TF
+(everything else is unchanged).
+"""
+from __future__ import annotations
+
+import bisect
+from collections import deque
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import Transform, TransformStamped
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from memgs_ros.core.geometry.frames import FrameConvention
+from memgs_ros.core.geometry.poses import pose_from_tq
+from memgs_ros.ros.codecs import set_pose_fields, set_stamp, stamp_to_ns
+
+__all__ = ["TfOutbox", "tf_message_type", "tf_qos", "tf_static_qos"]
+
+
+def tf_message_type() -> Any | None:
+    """``tf2_msgs/msg/TFMessage``, or None where it is not installed."""
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError:
+        return None
+    return TFMessage
+
+
+def tf_qos() -> QoSProfile:
+    """What tf2_ros's broadcaster and listener use on ``/tf``: reliable, volatile, keep last 100."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+def tf_static_qos() -> QoSProfile:
+    """tf2_ros's ``/tf_static``: reliable, transient local, keep last 1 (one message, all statics)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def _transform(T: np.ndarray, stamp_ns: int, parent: str, child: str) -> TransformStamped:
+    msg = TransformStamped()
+    set_stamp(msg.header.stamp, stamp_ns)
+    msg.header.frame_id, msg.child_frame_id = parent, child
+    set_pose_fields(msg.transform.translation, msg.transform.rotation, T)
+    return msg
+
+
+def _matrix(tf: Transform) -> np.ndarray:
+    t, q = tf.translation, tf.rotation
+    return pose_from_tq(np.array([t.x, t.y, t.z]), np.array([q.x, q.y, q.z, q.w]))
+
+
+class OdomTrack:
+    """The latest ``odom -> base`` transforms seen on ``/tf`` (a bounded, stamp-ordered window)."""
+
+    def __init__(self, odom_frame: str, base_frame: str, window: int = 400) -> None:
+        self.odom_frame, self.base_frame = odom_frame, base_frame
+        self.stamps: deque[int] = deque(maxlen=window)
+        self.poses: deque[np.ndarray] = deque(maxlen=window)
+
+    def add(self, msg: Any) -> None:
+        for t in msg.transforms:
+            if t.header.frame_id.lstrip("/") == self.odom_frame and t.child_frame_id.lstrip("/") == self.base_frame:
+                stamp = stamp_to_ns(t.header.stamp)
+                if self.stamps and stamp <= self.stamps[-1]:
+                    if stamp < self.stamps[-1]:  # time went back (a bag looped): start over
+                        self.stamps.clear()
+                        self.poses.clear()
+                    else:
+                        continue
+                self.stamps.append(stamp)
+                self.poses.append(_matrix(t.transform))
+
+    def nearest(self, stamp_ns: int, tolerance_ns: int) -> np.ndarray | None:
+        """``T_odom_base`` nearest ``stamp_ns`` if one lies within ``tolerance_ns``."""
+        if not self.stamps:
+            return None
+        stamps = list(self.stamps)
+        i = bisect.bisect_left(stamps, stamp_ns)
+        best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp_ns))
+        return self.poses[best] if abs(stamps[best] - stamp_ns) <= tolerance_ns else None
+
+
+class TfOutbox:
+    """The tracker's transforms (see the module docstring); ``available`` is False without tf2_msgs."""
+
+    def __init__(self, node: Node, frames: FrameConvention, map_frame: str, world_frame: str, base_frame: str,
+                 camera_frame: str, publish_camera_tf: bool, odom_frame: str = "",
+                 odom_tolerance_s: float = 0.05) -> None:
+        self.frames, self.map_frame, self.world_frame = frames, map_frame, world_frame
+        self.base_frame, self.publish_camera_tf = base_frame, publish_camera_tf
+        self.camera_frame = ""
+        self.odom_frame, self._odom_tol_ns = odom_frame, int(odom_tolerance_s * 1e9)
+        msg_type = tf_message_type()
+        self.available = msg_type is not None
+        self.sent = self.missed_odom = 0
+        if msg_type is None:
+            node.get_logger().warning("tf2_msgs is not installed: publishing no /tf (ROS installs it; with the "
+                                      "PyPI wheels run python -m memgs_ros.ros.tf2_msgs_build)")
+            return
+        self._type = msg_type
+        self.pub = node.create_publisher(msg_type, "/tf", tf_qos())
+        self.pub_static = node.create_publisher(msg_type, "/tf_static", tf_static_qos())
+        self.odom: OdomTrack | None = None
+        if odom_frame:
+            self.odom = OdomTrack(odom_frame, base_frame)
+            node.create_subscription(msg_type, "/tf", self.odom.add, tf_qos())
+        self._stamp_ns = node.get_clock().now().nanoseconds
+        self.set_camera_frame(camera_frame)
+
+    def set_camera_frame(self, camera_frame: str) -> None:
+        """(Re)publish the statics, naming the images' optical frame (the first frame's header)."""
+        if not self.available or camera_frame == self.camera_frame:
+            return
+        self.camera_frame = camera_frame
+        statics = [_transform(self.frames.T_map_world, self._stamp_ns, self.map_frame, self.world_frame)]
+        if self.publish_camera_tf and camera_frame:
+            statics.append(_transform(self.frames.T_base_optical, self._stamp_ns, self.base_frame, camera_frame))
+        self.pub_static.publish(self._type(transforms=statics))
+
+    def tracked(self, T_wc: np.ndarray, stamp_ns: int) -> bool:
+        """Broadcast a tracked frame's body pose; False when it could not (no tf2_msgs, or no
+        odometry near the stamp with an ``odom_frame``)."""
+        if not self.available:
+            return False
+        T_map_base = self.frames.base_in_map(T_wc)
+        if self.odom is None:
+            tf = _transform(T_map_base, stamp_ns, self.map_frame, self.base_frame)
+        else:
+            T_odom_base = self.odom.nearest(stamp_ns, self._odom_tol_ns)
+            if T_odom_base is None:
+                self.missed_odom += 1
+                return False
+            tf = _transform(T_map_base @ np.linalg.inv(T_odom_base), stamp_ns, self.map_frame, self.odom_frame)
+        self.pub.publish(self._type(transforms=[tf]))
+        self.sent += 1
+        return True
