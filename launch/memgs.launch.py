@@ -9,8 +9,9 @@ Arguments (``ros2 launch memgs_ros memgs.launch.py --show-args``):
   ``<namespace>/memgs/*`` (default: none).
 - ``params_file``: the nodes' parameters (default: the installed ``config/realsense_d435i.yaml``).
 - ``color_topic``, ``depth_topic``, ``camera_info_topic``: the camera's topics, given to the
-  tracker as its parameters of the same names (they win over the params file). The defaults are
-  the absolute topics of realsense2_camera 4.x with ``align_depth.enable:=true`` and its default
+  tracker as its parameters of the same names when given (then they win over the params file).
+  Not given: a ``params_file`` of yours keeps its topics; with the default params file, the
+  absolute topics of realsense2_camera 4.x with ``align_depth.enable:=true`` and its default
   ``camera_namespace``/``camera_name`` (``camera``/``camera``), so they do not move with
   ``namespace``.
 - ``run_dir``: this launch's folder, new for every launch and never reused (default
@@ -37,7 +38,7 @@ import os
 import time
 
 from ament_index_python.packages import get_package_share_directory
-from launch.actions import DeclareLaunchArgument
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.conditions import IfCondition, UnlessCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
@@ -74,11 +75,12 @@ def new_run_dir() -> str:
 def generate_launch_description():
     share = get_package_share_directory(PACKAGE)
     run_dir = new_run_dir()
+    default_params = os.path.join(share, "config", "realsense_d435i.yaml")
     arguments = [
         DeclareLaunchArgument("namespace", default_value="",
                               description="namespace of the four nodes (e.g. /uav1)"),
         DeclareLaunchArgument("params_file",
-                              default_value=os.path.join(share, "config", "realsense_d435i.yaml"),
+                              default_value=default_params,
                               description="ROS parameter file of the nodes"),
         DeclareLaunchArgument("run_dir", default_value=run_dir,
                               description="this launch's folder: the map PLY and the mapper's checkpoint"),
@@ -90,14 +92,25 @@ def generate_launch_description():
                               description="the four nodes as components of one process (libraries loaded once)"),
     ]
     arguments += [
-        DeclareLaunchArgument(name, default_value=topic, description=f"tracker input ({name})")
+        DeclareLaunchArgument(name, default_value="",
+                              description=f"tracker input ({name}); empty: the params file's ({topic} "
+                                          "with the default params file)")
         for name, topic in CAMERA_TOPICS.items()
     ]
+    # The nodes are made once the arguments are known: a camera topic goes to the tracker only
+    # when given (or with the default params file), so a params file's own topics are not overridden.
+    return LaunchDescription(arguments + [OpaqueFunction(function=_nodes, args=[share, default_params])])
 
+
+def _nodes(context, share: str, default_params: str) -> list:
+    params_file = LaunchConfiguration("params_file")
+    default_file = params_file.perform(context) == default_params
+    topics = {name: LaunchConfiguration(name).perform(context) or (topic if default_file else "")
+              for name, topic in CAMERA_TOPICS.items()}
     common = {"use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool)}
     # node -> parameter -> its value (substitutions, joined): string parameters the launch sets
     own_text = {
-        "tracker": {name: [LaunchConfiguration(name)] for name in CAMERA_TOPICS},
+        "tracker": {name: [topic] for name, topic in topics.items() if topic},
         "merger": {"map_path": [LaunchConfiguration("map_path")]},
         "mapper": {"checkpoint_path": [LaunchConfiguration("run_dir"), "/mapper_checkpoint.npz"]},
     }
@@ -108,7 +121,6 @@ def generate_launch_description():
         env["FASTRTPS_DEFAULT_PROFILES_FILE"] = os.path.join(share, "config", "fastdds.xml")
 
     composed = LaunchConfiguration("composed")
-    params_file = LaunchConfiguration("params_file")
     # Ctrl-C: launch sends SIGTERM, then SIGKILL after sigterm_timeout (5 s by default): the mapper
     # writes its checkpoint and the merger its PLY on the way out, so wait for them.
     shared = {"package": PACKAGE, "namespace": LaunchConfiguration("namespace"), "additional_env": env,
@@ -126,4 +138,4 @@ def generate_launch_description():
         arguments=[arg for node, values in own_text.items() for param, value in values.items()
                    for arg in ("--param", [f"{node}:{param}:=", *value])],
         condition=IfCondition(composed), **shared))
-    return LaunchDescription(arguments + nodes)
+    return nodes

@@ -41,6 +41,27 @@ class _LaunchConfiguration:
         self.name = variable_name
         self.default = default
 
+    def perform(self, context: _Context) -> str:
+        return context.value(self)
+
+
+class _Context:
+    """What an OpaqueFunction is given: the launch arguments' values (recording undeclared ones)."""
+
+    def __init__(self, launch: Launch) -> None:
+        self.launch = launch
+
+    def value(self, config: _LaunchConfiguration) -> str:
+        if config.name not in self.launch.arguments:
+            self.launch.problems.append(f"undeclared launch argument: {config.name}")
+            return str(config.default or "")
+        return self.launch.arguments[config.name]
+
+
+class _OpaqueFunction:
+    def __init__(self, *, function: object, args: list[object] | None = None) -> None:
+        self.function, self.args = function, list(args or [])
+
 
 class _DeclareLaunchArgument:
     def __init__(self, name: str, *, default_value: object = None, description: str = "",
@@ -82,7 +103,7 @@ def _stub_modules(share_dirs: Mapping[str, Path]) -> dict[str, types.ModuleType]
 
     spec = {
         "launch": {"LaunchDescription": _LaunchDescription},
-        "launch.actions": {"DeclareLaunchArgument": _DeclareLaunchArgument},
+        "launch.actions": {"DeclareLaunchArgument": _DeclareLaunchArgument, "OpaqueFunction": _OpaqueFunction},
         "launch.conditions": {"IfCondition": _IfCondition, "UnlessCondition": _UnlessCondition},
         "launch.substitutions": {"LaunchConfiguration": _LaunchConfiguration},
         "launch_ros": {},
@@ -177,7 +198,13 @@ def load_launch(path: Path, share_dirs: Mapping[str, Path], overrides: Mapping[s
             return parsed
         return value
 
-    for entity in description.entities:
+    entities: list[object] = []
+    for entity in description.entities:  # an OpaqueFunction's entities, made from the arguments
+        if isinstance(entity, _OpaqueFunction):
+            entities += entity.function(_Context(launch), *entity.args)  # type: ignore[operator]
+        else:
+            entities.append(entity)
+    for entity in entities:
         if isinstance(entity, _DeclareLaunchArgument):
             continue
         if not isinstance(entity, _Node):
@@ -339,6 +366,19 @@ def test_checker_accepts_the_launch_file_against_the_source_tree() -> None:
     tracker = next(n for n in launch.nodes if n.name == "tracker")
     assert tracker.params["color_topic"] == "/camera/camera/color/image_raw"
     assert tracker.params["use_sim_time"] is False
+
+
+def test_a_params_files_topics_win_unless_an_argument_is_given(tmp_path: Path) -> None:
+    mine = tmp_path / "mine.yaml"
+    mine.write_text("/**/tracker:\n  ros__parameters:\n    color_topic: /drone/rgb\n")
+    tracker = next(n for n in load_launch(LAUNCH_FILE, {PKG: REPO}, {"params_file": str(mine)}).nodes
+                   if n.name == "tracker")
+    assert tracker.param_files == [str(mine)] and not {"color_topic", "depth_topic"} & set(tracker.params)
+    given = load_launch(LAUNCH_FILE, {PKG: REPO}, {"params_file": str(mine), "color_topic": "/cam/color"})
+    tracker = next(n for n in given.nodes if n.name == "tracker")
+    assert tracker.params["color_topic"] == "/cam/color" and "depth_topic" not in tracker.params
+    composed = load_launch(LAUNCH_FILE, {PKG: REPO}, {"params_file": str(mine), "composed": "true"}).nodes[0]
+    assert "tracker" not in composed.node_params
 
 
 @pytest.mark.parametrize(("old", "new", "expected"), [
@@ -528,7 +568,7 @@ def test_real_launch_ros_loads_the_same_description(installed_share: Path) -> No
         pytest.skip("launch_ros is not installed: it is not on PyPI (apt: ros-jazzy-launch-ros); "
                     "the stand-in tests above cover the file")
     from launch import LaunchContext, LaunchDescription  # noqa: I001 (launch/ here is not the package)
-    from launch.actions import DeclareLaunchArgument
+    from launch.actions import DeclareLaunchArgument, OpaqueFunction
     from launch.utilities import normalize_to_list_of_substitutions, perform_substitutions
     from launch_ros.actions import Node
 
@@ -541,9 +581,14 @@ def test_real_launch_ros_loads_the_same_description(installed_share: Path) -> No
         return perform_substitutions(context, normalize_to_list_of_substitutions(value))
 
     arguments, executables = {}, []
-    for entity in description.entities:
+    entities = list(description.entities)
+    while entities:
+        entity = entities.pop(0)
         if isinstance(entity, DeclareLaunchArgument):
             arguments[entity.name] = text(entity.default_value)
+            context.launch_configurations[entity.name] = arguments[entity.name]
+        elif isinstance(entity, OpaqueFunction):  # the nodes, made once the arguments are known
+            entities[:0] = entity.execute(context) or []
         elif isinstance(entity, Node):
             assert text(entity.node_package) == PKG
             executables.append(text(entity.node_executable))
