@@ -279,7 +279,11 @@ def test_run_records_every_output_topic(tmp_path: Path, ros_domain_id: int) -> N
     assert counts[t["keyframe/pose"]] == s.keyframes
     assert counts[t["map/delta"]] == s.delta_messages
     assert counts[t["render/color"]] == counts[t["render/camera_info"]]
-    assert all(name.startswith(f"{ns}/memgs/") for name in types)  # the run's own namespace only
+    # TF in the run's namespace (<ns>/tf, as multi-robot launches remap it): the body per tracked frame
+    assert types.get(f"{ns}/tf") == types.get(f"{ns}/tf_static") == "tf2_msgs/msg/TFMessage", types
+    assert counts[f"{ns}/tf"] == s.frames and counts[f"{ns}/tf_static"] >= 1
+    # the run's own namespace only
+    assert all(name.startswith(f"{ns}/memgs/") or name in (f"{ns}/tf", f"{ns}/tf_static") for name in types)
 
     ts = ros2_typestore()  # rosbags alone reads it, as Foxglove would
     raw_map = [raw for n, _, raw in msgs if n == t["map/gaussians"]][-1]

@@ -263,7 +263,7 @@ DEFAULT_TOPICS: tuple[str, ...] = (
     "memgs/keyframe/pose",                   # geometry_msgs/PoseStamped, at keyframe insertion
     "memgs/keyframe/refined_poses",          # nav_msgs/Path (local BA)
     "memgs/keyframe/loop_corrected_poses",   # nav_msgs/Path (loop closure)
-    "/tf", "/tf_static",                     # tf2_msgs/TFMessage: map -> base_link; map -> map_optical, the mount
+    "tf", "tf_static",                       # tf2_msgs/TFMessage: map -> base_link; map -> map_optical, the mount
     # mapper
     "memgs/map/delta",                       # sensor_msgs/PointCloud2
     "memgs/mapper/snapshot",                 # sensor_msgs/PointCloud2 (latched, rgb)

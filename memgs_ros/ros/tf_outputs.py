@@ -1,7 +1,8 @@
 """The tracker's TF (REP-105): ``map -> base_link`` per tracked frame on ``/tf``, at the frame's
 stamp; ``map -> <world_frame>`` (the SLAM world: the first camera's optical frame) and
 ``base_link -> <camera optical frame>`` (the mount, unless the robot publishes it) on
-``/tf_static``. With an ``odom_frame``, ``map -> odom`` instead of ``map -> base_link``, from the
+``/tf_static``. Both topics are relative (``<namespace>/tf`` under a namespace, as multi-robot
+Nav2 launches remap them). With an ``odom_frame``, ``map -> odom`` instead of ``map -> base_link``, from the
 ``odom -> base_link`` a flight controller or wheel odometry publishes (the one nearest the frame's
 stamp, within ``odom_tolerance_s``).
 
@@ -110,12 +111,14 @@ class TfOutbox:
                                       "PyPI wheels run python -m memgs_ros.ros.tf2_msgs_build)")
             return
         self._type = msg_type
-        self.pub = node.create_publisher(msg_type, "/tf", tf_qos())
-        self.pub_static = node.create_publisher(msg_type, "/tf_static", tf_static_qos())
+        # Relative: /tf in the root namespace; under a namespace (a second drone) <ns>/tf, as Nav2's
+        # multi-robot launches remap it, so two graphs on one domain never mix their transforms.
+        self.pub = node.create_publisher(msg_type, "tf", tf_qos())
+        self.pub_static = node.create_publisher(msg_type, "tf_static", tf_static_qos())
         self.odom: OdomTrack | None = None
         if odom_frame:
             self.odom = OdomTrack(odom_frame, base_frame)
-            node.create_subscription(msg_type, "/tf", self.odom.add, tf_qos())
+            node.create_subscription(msg_type, "tf", self.odom.add, tf_qos())
         self._stamp_ns = node.get_clock().now().nanoseconds
         self.set_camera_frame(camera_frame)
 
