@@ -79,7 +79,7 @@ def run(tum: Path, drop: float, seed: int, frames: int, config: str) -> dict[str
             if i == 0:  # the node made its tracker on the first frame: record what it tracks
                 poses = _recording(node.tracker)
         states = {k.split(".", 1)[1]: v for k, v in node.stats.counters.items() if k.startswith("state.")}
-        node.on_shutdown()
+        node.close()
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)

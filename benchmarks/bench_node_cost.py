@@ -138,7 +138,7 @@ def node_cost(tum: Path, params: dict[str, Any], player: dict[str, Any], frames:
             if i >= 5:  # the first frames build the map: not the steady cost
                 node_ms.append(ms)
                 orb_ms.append(o)
-        node.on_shutdown()
+        node.close()
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)

@@ -307,7 +307,7 @@ def test_tracker_hands_on_the_configured_camera(context, override: bool) -> None
             assert got == wrong
             assert node.stats.counters["camera_info_differs"] == 0
     finally:
-        node.on_shutdown()
+        node.close()
         ex.shutdown()
         node.destroy_node()
         feeder.destroy_node()

@@ -119,7 +119,7 @@ def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noq
         covs = [np.array(o.pose.covariance).reshape(6, 6) for o in odometry]
         assert all(np.all(np.linalg.eigvalsh(c) > 0) for c in covs) and len({c[0, 0] for c in covs}) > 1
     finally:
-        node.on_shutdown()
+        node.close()
         ex.shutdown()
         node.destroy_node()
         feeder.destroy_node()

@@ -49,6 +49,6 @@ def test_a_failed_periodic_delta_or_snapshot_is_counted(context, kind: str) -> N
         node.session.call(unreadable).result(120)  # behind the kernels' warm-up
         assert _spin_until(ex, lambda: c["problem.command_failed"] >= 1), dict(c)  # each cuts the map
     finally:
-        node.on_shutdown()
+        node.close()
         ex.shutdown()
         node.destroy_node()

@@ -249,7 +249,7 @@ def test_mapper_refuses_bad_bundles_without_touching_the_map(context, frames) ->
         assert _spin_until(feeder.ex, lambda: c["problem.bad_pose"] == 2)
         assert c["keyframe_pose_updates"] == 0
     finally:
-        node.on_shutdown()
+        node.close()
         feeder.close()
 
 
@@ -294,7 +294,7 @@ def test_a_depth_scale_that_disagrees_with_the_trackers_is_refused(context, fram
             assert (c["keyframes"], c["problem.depth_scale"]) == ((1, 0) if accepted else (0, 1)), dict(c)
         finally:
             if node_name == "mapper":
-                feeder.node.on_shutdown()
+                feeder.node.close()
             feeder.close()
 
 
@@ -374,7 +374,7 @@ def test_free_running_mapper_drops_and_counts_keyframes_it_cannot_insert(context
         assert c["keyframes_corrected"] == 1
     finally:
         gate.set()
-        node.on_shutdown()
+        node.close()
         feeder.close()
 
 
@@ -433,7 +433,7 @@ def test_tracker_stamp_rules(context) -> None:  # noqa: ANN001
         assert c["problem.stamp_order"] == 1 and c["problem.stamp_duplicate"] == 1
         assert c["poses_out"] >= 4
     finally:
-        node.on_shutdown()
+        node.close()
         ex.shutdown()
         node.destroy_node()
         peer.destroy_node()
@@ -606,7 +606,7 @@ def test_mapper_checkpoints_written_while_keyframes_arrive_are_whole(context, fr
     finally:
         stop.set()
         saver.join(60)
-        node.on_shutdown()
+        node.close()
         feeder.close()
     assert not errors and c["problem.checkpoint_failed"] == 0, (errors, dict(c))
     assert len(written) >= 3

@@ -98,7 +98,7 @@ def test_tracker_survives_bad_frames_and_tracks_good_ones(context) -> None:  # n
         assert c["problem.stamp_order"] == 1
         assert c["poses_out"] >= 2
     finally:
-        node.on_shutdown()
+        node.close()
         ex.shutdown()
         node.destroy_node()
         pub_node.destroy_node()
@@ -285,7 +285,7 @@ def test_tracker_takes_compressed_colour_and_depth(context) -> None:  # noqa: AN
         assert c["frames_in"] == 6 and c["problem.bad_image"] == 1 and c["poses_out"] == 5, dict(c)
         assert c["state.OK"] == 5 and not c["state.LOST"]
     finally:
-        node.on_shutdown()
+        node.close()
         ex.shutdown()
         node.destroy_node()
         pub_node.destroy_node()
@@ -315,7 +315,7 @@ def test_colour_without_depth_is_warned_with_its_likely_cause(context) -> None: 
         assert node.stats.counters["skipped.unpaired"] >= k - 6  # all but the pairer's queue of 5
         assert node.stats.counters["poses_out"] == 0
     finally:
-        node.on_shutdown()
+        node.close()
         ex.shutdown()
         node.destroy_node()
         pub_node.destroy_node()

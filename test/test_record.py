@@ -220,7 +220,7 @@ def test_recorder_node_adapts_to_publishers_and_writes_the_file_on_shutdown(
                                       or rec.bag.counts.get("/memgs/tracking_state", 0) < 1):
         best_effort.publish(PoseStamped())
         executor.spin_once(timeout_sec=0.05)
-    rec.on_shutdown()
+    rec.close()
     executor.shutdown()
     rec.destroy_node()
     peer.destroy_node()

@@ -184,7 +184,7 @@ def test_tf_and_odometry_on_real_dds(context) -> None:  # noqa: ANN001
         T_last = invert_pose(by_stamp[frames[0].stamp_ns]) @ by_stamp[max(by_stamp)]
         assert np.linalg.norm(T_last[:3, 3]) > 0.01  # the camera moved: the checks above saw motion
     finally:
-        node.on_shutdown()
+        node.close()
         ex.shutdown()
         node.destroy_node()
         feeder.destroy_node()

@@ -238,7 +238,7 @@ class MapperNode(Node):
         if not requested:
             self.live_view.started(rendered)
 
-    def on_shutdown(self) -> None:
+    def close(self) -> None:
         self.session.interrupt()  # a finish in progress ends after its step: the save comes next
         try:  # bounded: the runner kills a node that takes longer than its stop deadline
             saved = self.checkpoints.save_within(SHUTDOWN_SAVE_TIMEOUT_S)
@@ -250,7 +250,7 @@ class MapperNode(Node):
         self.session.close(SESSION_CLOSE_TIMEOUT_S)
 
     def destroy_node(self) -> None:
-        # The session's threads end with the node (idempotent after on_shutdown): a worker still in
+        # The session's threads end with the node (idempotent after close): a worker still in
         # native code (a warm-up's compile) when the process exits aborts it.
         self.session.close(SESSION_CLOSE_TIMEOUT_S)
         super().destroy_node()

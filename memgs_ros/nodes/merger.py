@@ -197,7 +197,7 @@ class MergerNode(Node):
         self.views.when_done(self.renderer.render(self.map.replica.records, self.map.version,
                                                   pose_to_matrix(msg.pose), stamp_to_ns(msg.header.stamp)))
 
-    def on_shutdown(self) -> None:
+    def close(self) -> None:
         self.renderer.close(timeout_s=5.0)
         path = self.save()
         if path is not None:

@@ -93,7 +93,7 @@ def _bag_qos(profile: QoSProfile) -> Any:
 
 
 class RecorderNode(Node):
-    """Records ``topics`` into ``path`` (module docstring); the file is finished by :meth:`on_shutdown`."""
+    """Records ``topics`` into ``path`` (module docstring); the file is finished by :meth:`close`."""
 
     def __init__(self, **node_kwargs: object) -> None:
         # The type store is the slow part of starting (rosbags builds it): load it before the node
@@ -158,7 +158,7 @@ class RecorderNode(Node):
             self.stats.counters["messages"] += 1
             self.stats.counters["bytes"] += len(data)
 
-    def on_shutdown(self) -> None:
+    def close(self) -> None:
         """Close the file (summary, footer) and move it into place."""
         if not self.bag.is_open:
             return

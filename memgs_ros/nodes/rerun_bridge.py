@@ -178,7 +178,7 @@ class RerunBridgeNode(Node):
         if numbers:
             self.view.scalars(node, numbers)
 
-    def on_shutdown(self) -> None:
+    def close(self) -> None:
         self.view.close()
 
 

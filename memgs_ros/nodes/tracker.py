@@ -242,7 +242,7 @@ class TrackerNode(Node):
             self.out.keyframes.forget(smap.keyframe_ids, smap.keyframes)
         return result
 
-    def on_shutdown(self) -> None:
+    def close(self) -> None:
         if self.tracker is not None:
             self.tracker.close()
 

@@ -330,7 +330,7 @@ def _stop_graph(procs: NodeProcesses | None, in_process: Sequence[Any], executor
     if procs is not None:
         procs.stop()
     for node in in_process:
-        hook = getattr(node, "on_shutdown", None)
+        hook = getattr(node, "close", None)
         if hook is not None:
             hook()
     stop_spinning(executor, spin)  # before the context ends, or rclpy may abort at exit

@@ -1,7 +1,7 @@
 """One ``main()`` for every node, and for the nodes composed in one process: init, spin, clean
 shutdown on Ctrl-C or SIGTERM.
 
-A node may define ``on_shutdown()`` (save the map, stop threads); it runs before
+A node may define ``close()`` (save the map, stop threads); it runs before
 ``destroy_node()`` whether the node ends normally, by signal, or by error. A
 ``MemgsError`` at start (a refused parameter, say) is one fatal log line and exit 2. A node whose
 work ends (the bag player) hands ``until`` its completion future: the spin ends with it, and its
@@ -49,14 +49,14 @@ def run_nodes(factories: Sequence[Callable[[], Node]], name: str, args: Sequence
               lower_process: bool = False, until: Until | None = None) -> int:
     """Create the nodes (in order) after rclpy.init and spin them on one single-threaded executor
     until shutdown, or until the future ``until(nodes)`` completes (its result: exit 0 when true, 1
-    when false; a stop by signal before it completes is exit 0); each node's ``on_shutdown()`` runs
+    when false; a stop by signal before it completes is exit 0); each node's ``close()`` runs
     before ``destroy_node()``, in reverse order. ``lower_process``: apply the (one) node's
     ``niceness`` to the whole process. Nodes sharing a process (composed) lower their own
     background threads instead."""
     if not started_by_runner():
         return 0
     # rclpy's own handlers (SignalHandlerOptions.ALL) turn SIGINT and SIGTERM into a context
-    # shutdown that wakes the executor, which then ends the spin, so on_shutdown still runs.
+    # shutdown that wakes the executor, which then ends the spin, so close still runs.
     # (A Python handler that shuts the context down could land while the executor builds its
     # wait set, which then fails with RCLError instead of ending cleanly.)
     rclpy.init(args=list(args) if args is not None else None, signal_handler_options=SignalHandlerOptions.ALL)
@@ -94,7 +94,7 @@ def run_nodes(factories: Sequence[Callable[[], Node]], name: str, args: Sequence
         code = 2
     finally:
         for node in reversed(nodes):
-            hook = getattr(node, "on_shutdown", None)
+            hook = getattr(node, "close", None)
             if hook is not None:
                 try:
                     hook()
