@@ -21,6 +21,9 @@ Arguments (``ros2 launch memgs_ros memgs.launch.py --show-args``):
 - ``map_path``: where the merger writes the map PLY instead (on ``memgs/save_map``, every
   ``save_period_s`` and at shutdown; wins over the params file).
 - ``use_sim_time``: true when a ``/clock`` publisher (a replayed bag) drives time.
+- ``autostart``: false leaves the four (managed) nodes unconfigured until a lifecycle manager or
+  ``ros2 lifecycle set <ns>/tracker configure`` ... ``activate`` drives them (warm up on the
+  ground, map from take-off, ``deactivate`` to pause; ros/lifecycle.py).
 - ``composed``: true runs the four nodes as components of one process (the ``composed``
   executable: one executor, the libraries loaded once; on a Jetson, whose CPU and GPU share one
   memory, 828 MB where four processes took 1290 MB on the fr1/rpy head). Each node keeps its name
@@ -88,6 +91,9 @@ def generate_launch_description():
                               description="map PLY written by the merger (default: in run_dir)"),
         DeclareLaunchArgument("use_sim_time", default_value="false", choices=["true", "false"],
                               description="take time from /clock"),
+        DeclareLaunchArgument("autostart", default_value="true", choices=["true", "false"],
+                              description="configure and activate the nodes at start; false: wait for "
+                                          "lifecycle transitions (ros2 lifecycle set, a lifecycle manager)"),
         DeclareLaunchArgument("composed", default_value="false", choices=["true", "false"],
                               description="the four nodes as components of one process (libraries loaded once)"),
     ]
@@ -107,7 +113,8 @@ def _nodes(context, share: str, default_params: str) -> list:
     default_file = params_file.perform(context) == default_params
     topics = {name: LaunchConfiguration(name).perform(context) or (topic if default_file else "")
               for name, topic in CAMERA_TOPICS.items()}
-    common = {"use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool)}
+    common = {"use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool),
+              "autostart": ParameterValue(LaunchConfiguration("autostart"), value_type=bool)}
     # node -> parameter -> its value (substitutions, joined): string parameters the launch sets
     own_text = {
         "tracker": {name: [topic] for name, topic in topics.items() if topic},

@@ -312,6 +312,8 @@ def _declared_by_source() -> dict[str, set[str]]:
     file's own parameter names say (the install test asks the nodes themselves)."""
     config = REPO / "config" / "realsense_d435i.yaml"
     declared = {name: params_file_keys(config, name) for name in GRAPH}
+    for name in GRAPH:  # every managed node (ros/lifecycle.py)
+        declared[name] |= {"autostart"}
     declared["tracker"] |= {"color_topic", "depth_topic", "camera_info_topic"}
     declared["merger"] |= {"map_path"}
     declared["mapper"] |= {"checkpoint_path"}
@@ -408,7 +410,7 @@ def test_composed_runs_the_graph_in_one_process_each_node_with_its_own_parameter
                                             "camera_info_topic": "/camera/camera/color/camera_info"},
                                 "merger": {"map_path": "/data/m.ply"},
                                 "mapper": {"checkpoint_path": "/data/mapper_checkpoint.npz"}}
-    assert node.params == {"use_sim_time": False}  # the one parameter every node declares
+    assert node.params == {"use_sim_time": False, "autostart": True}  # the parameters every node declares
     assert check_launch(launch, {COMPOSED}, _declared_by_source()) == []
     assert check_launch(launch, set(GRAPH), _declared_by_source()) == ["executable 'composed' is not installed"]
 

@@ -402,3 +402,25 @@ def test_final_iterations_go_on_to_a_total_when_little_was_trained(frames: list[
         assert s.finish(3, total_iterations=20).result(60).final_iterations == 3
     finally:
         s.close()
+
+
+def test_paused_training_holds_the_iteration_and_resumes(frames: list[Frame]) -> None:
+    """set_training(False) (a managed mapper's deactivate) stops the free-running steps between
+    commands; keyframes are still taken in; set_training(True) goes on from there."""
+    s = MappingSession(_cfg())
+    try:
+        s.insert_keyframe(_kf(frames[0], 100)).result(30)
+        end = time.monotonic() + 30
+        while s.status.iteration < 2 and time.monotonic() < end:
+            time.sleep(0.01)
+        assert s.set_training(False).result(30) is False
+        held = s.status.iteration
+        s.insert_keyframe(_kf(frames[1], 200)).result(30)  # taken in while paused
+        time.sleep(0.3)  # a window in which a running session steps many times (~50 ms a step here)
+        assert s.status.iteration == held and s.status.keyframes == 2
+        assert s.set_training(True).result(30) is True
+        while s.status.iteration <= held and time.monotonic() < end:
+            time.sleep(0.01)
+        assert s.status.iteration > held
+    finally:
+        s.close()

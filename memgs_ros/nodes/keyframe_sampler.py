@@ -19,7 +19,6 @@ import sys
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from memgs_ros.core.geometry.view import check_depth_scale, undistorter_for, view_preparation
@@ -35,6 +34,7 @@ from memgs_ros.ros.codecs import (
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.keyframe_bundle import KeyframeBundleError, decode_keyframe_images
+from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.seed_cloud import encode_seeds
 from memgs_ros.ros.stamp_sync import StampBundler
@@ -42,13 +42,16 @@ from memgs_ros.ros.stamp_sync import StampBundler
 CONFIGS = NODE_CONFIGS["keyframe_sampler"]
 
 
-class KeyframeSamplerNode(Node):
+class KeyframeSamplerNode(ManagedNode):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("keyframe_sampler", **node_kwargs)
         v = declare_config(self, KeyframeSamplerParams, "")
         self.niceness = v.niceness  # applied by run_node to this node's process
         self.mode, self.depth_scale, self.world_frame = v.mode, v.depth_scale, v.world_frame
         self.cfg: PatchGridConfig = declare_config(self, PatchGridConfig, "patch_grid")
+        self.start_lifecycle(v.autostart)
+
+    def configure_node(self) -> None:
         self.stats = NodeStats(self, "keyframe_sampler")
         self.stats.gauges["kernels_warm"] = 1  # nothing to compile: warm as soon as it runs
         parts = {"color", "camera_info", "pose", "keypoints"} | ({"depth"} if self.mode == "rgbd" else set())
@@ -65,6 +68,9 @@ class KeyframeSamplerNode(Node):
             self.create_subscription(Image, "memgs/keyframe/depth", lambda m: self._add("depth", m), kf)
 
     def _add(self, part: str, msg) -> None:  # noqa: ANN001 - any of the bundle's message types
+        if not self.active:  # paused (lifecycle inactive): the keyframe's parts are counted, not sampled
+            self.stats.counters["skipped.inactive"] += 1
+            return
         bundle = self.bundler.add(part, stamp_to_ns(msg.header.stamp), msg)
         self.stats.gauges["pending_bundles"] = self.bundler.pending
         self.stats.gauges["dropped_bundles"] = self.bundler.dropped

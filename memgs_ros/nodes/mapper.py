@@ -28,7 +28,6 @@ from typing import Any
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
@@ -46,6 +45,7 @@ from memgs_ros.nodes.params import NODE_CONFIGS, MapperParams
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
+from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.mapper_inputs import KeyframeReceiver, keyframe_poses
 from memgs_ros.ros.mapper_outputs import MapperOutbox
 from memgs_ros.ros.mapper_stats import MapperStats
@@ -56,15 +56,21 @@ SHUTDOWN_SAVE_TIMEOUT_S = 15.0  # within the runner's stop deadline (20 s)
 SESSION_CLOSE_TIMEOUT_S = 30.0  # the step or command in progress ends first (a cold warm-up: ~20 s)
 
 
-class MapperNode(Node):
+class MapperNode(ManagedNode):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("mapper", **node_kwargs)
         self.params = p = declare_config(self, MapperParams, "")
         self.niceness = p.niceness  # applied by run_node to this node's process
         self.cfg: MappingConfig = declare_config(self, MappingConfig, "mapping")
+        self.merge_cfg: MergeConfig = declare_config(self, MergeConfig, "merge")
+        self.start_lifecycle(p.autostart)
+
+    def configure_node(self) -> None:
+        """torch and the device, the session (resumed from the checkpoint), the topics and timers."""
+        p = self.params
         opts = SessionOptions(lockstep=p.lockstep, insert_queue=p.insert_queue, delta_tolerance=p.delta_tolerance,
                               niceness=p.niceness, checkpoint_path=p.checkpoint_path, resume=p.resume)
-        start = start_mapper(self.cfg, declare_config(self, MergeConfig, "merge"), p.device, opts)
+        start = start_mapper(self.cfg, self.merge_cfg, p.device, opts)
         self.session = start.session
         self.stats = MapperStats(self, start.raster.backend, p.checkpoint_period_s if p.checkpoint_path else 0.0)
         self.checkpoints = CheckpointSaver(self.session, start.checkpoint, self.stats)
@@ -238,7 +244,13 @@ class MapperNode(Node):
         if not requested:
             self.live_view.started(rendered)
 
-    def close(self) -> None:
+    def set_active(self, active: bool) -> None:
+        """Inactive: training pauses (keyframes are still taken in, the map is served and saved)."""
+        super().set_active(active)
+        if self.configured:
+            self.stats.watch(self.session.set_training(active), "set_training")
+
+    def close_node(self) -> None:
         self.session.interrupt()  # a finish in progress ends after its step: the save comes next
         try:  # bounded: the runner kills a node that takes longer than its stop deadline
             saved = self.checkpoints.save_within(SHUTDOWN_SAVE_TIMEOUT_S)
@@ -252,7 +264,8 @@ class MapperNode(Node):
     def destroy_node(self) -> None:
         # The session's threads end with the node (idempotent after close): a worker still in
         # native code (a warm-up's compile) when the process exits aborts it.
-        self.session.close(SESSION_CLOSE_TIMEOUT_S)
+        if (session := getattr(self, "session", None)) is not None:
+            session.close(SESSION_CLOSE_TIMEOUT_S)
         super().destroy_node()
 
 

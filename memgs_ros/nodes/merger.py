@@ -20,6 +20,9 @@ The merger holds the map as numpy records (no training state) and loads torch an
 only on its first view request, on a render thread of its own (:class:`ViewRenderer`: deltas keep
 flowing while a view renders); its stats report ``map_bytes``, ``render_cache_bytes`` and
 ``buffered_deltas``. The deltas are followed by :class:`MapFollower`, as the Rerun bridge does.
+
+A managed node (ros/lifecycle.py): inactive, it keeps following and serving the map, so a paused
+graph's map stays saved and viewable; deactivating the tracker and mapper is what pauses mapping.
 """
 from __future__ import annotations
 
@@ -28,7 +31,6 @@ import time
 from pathlib import Path
 
 from geometry_msgs.msg import PoseStamped
-from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
@@ -43,6 +45,7 @@ from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.map_messages import decode_map_message, full_map_message, viewer_cloud_message
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.service_calls import PacedRequests
@@ -53,25 +56,28 @@ CONFIGS = NODE_CONFIGS["merger"]
 START_ASK_AFTER_S = 2.0  # a merger that heard no delta this long after its start asks for the map
 
 
-class MergerNode(Node):
+class MergerNode(ManagedNode):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("merger", **node_kwargs)
-        v = declare_config(self, MergerParams, "")
+        self.params = v = declare_config(self, MergerParams, "")
         self.niceness = v.niceness  # applied by run_node to this node's process
+        self.start_lifecycle(v.autostart)
+
+    def configure_node(self) -> None:
+        v = self.params
         self.map_path, self.world_frame = Path(v.map_path), v.world_frame
         self.map = MapFollower(v.max_buffered_deltas)
         self.drop_delta = EveryNth(fault("merger.drop_every_nth_delta"))  # tests only: memgs_ros.testing.faults
         if self.drop_delta.n:
             self.get_logger().warning(f"test fault: one delta in every {self.drop_delta.n} is dropped on arrival")
-        render_camera = PinholeCamera(v.render_width, v.render_height, v.render_fx, v.render_fy,
-                                      v.render_cx, v.render_cy)
+        render_camera = PinholeCamera(v.render_width, v.render_height, v.render_fx, v.render_fy, v.render_cx,
+                                      v.render_cy)
         self.renderer = ViewRenderer(render_camera, sh_degree=3)
         self.stats = NodeStats(self, "merger")
         # The map's deltas need no compiled code; the renders on request load theirs when first asked.
         self.stats.gauges["kernels_warm"] = 1
-        self._saved_version: tuple[int, int] | None = None
-        self._published_version: tuple[int, int] | None = None
-
+        self._saved_version: tuple[int, int] | None = None  # (epoch, seq) of the map saved and published
+        self._published_version = self._saved_version
         self.pub_map = self.create_publisher(PointCloud2, "memgs/map/gaussians", qos.latched())
         self.pub_points = self.create_publisher(PointCloud2, "memgs/map/points", qos.latched())
         self.views = ViewOutbox(self, self.stats, "memgs/merger/render", render_camera)
@@ -123,23 +129,22 @@ class MergerNode(Node):
             # agree (a mismatch resyncs), but it means the two maps drifted apart once.
             self.stats.problem("unknown_removal", f"delta {outcome.seq} removes {outcome.unknown_removals} "
                                                   "id(s) the replica does not hold; ignored")
-        if outcome.lost_step:
-            assert outcome.status is not None
+        if outcome.lost_step and outcome.status is not None:
             self.stats.counters[f"resync.{outcome.status.value}"] += 1
             self.get_logger().warning(f"delta {outcome.seq}: {outcome.status.value} at replica seq "
                                       f"{self.map.replica.seq}; resynchronising")
             self._ask_snapshot()
 
-    def _ask_snapshot(self) -> None:
-        self.snapshots.ask(self.map.resyncing)  # the snapshot arrives on its topic
+    def _ask_snapshot(self) -> None:  # the snapshot arrives on its topic
+        self.snapshots.ask(self.map.resyncing)
 
     def _gauges(self) -> None:
         replica = self.map.replica
-        self.stats.gauges.update(seq=replica.seq, epoch=replica.epoch, gaussians=len(replica),
-                                 resyncing=int(self.map.resyncing), unknown_removals=replica.unknown_removals)
         # What the merger holds: the replica's rows, deltas buffered during a resync, and the
         # render inputs of the last view request (no training state: no gradients, no Adam).
-        self.stats.gauges.update(map_bytes=replica.records.nbytes if len(replica) else 0,
+        self.stats.gauges.update(seq=replica.seq, epoch=replica.epoch, gaussians=len(replica),
+                                 resyncing=int(self.map.resyncing), unknown_removals=replica.unknown_removals,
+                                 map_bytes=replica.records.nbytes if len(replica) else 0,
                                  buffered_deltas=self.map.buffered, render_cache_bytes=self.renderer.cache_bytes)
 
     # ------------------------------------------------------------------ outputs
@@ -155,9 +160,8 @@ class MergerNode(Node):
         return self.map_path
 
     def _save_periodic(self) -> None:
-        """The timer's save. A full or read-only disk must not end the node (the timer's exception
-        would, losing the map it holds): counted, logged once, retried next period; the last
-        complete PLY stays (atomic write)."""
+        """The timer's save. A full or read-only disk must not end the node (losing the map it holds):
+        counted, logged once, retried next period; the last complete PLY stays (atomic write)."""
         try:
             self.save()
         except (MemgsError, OSError) as err:
@@ -197,7 +201,7 @@ class MergerNode(Node):
         self.views.when_done(self.renderer.render(self.map.replica.records, self.map.version,
                                                   pose_to_matrix(msg.pose), stamp_to_ns(msg.header.stamp)))
 
-    def close(self) -> None:
+    def close_node(self) -> None:
         self.renderer.close(timeout_s=5.0)
         path = self.save()
         if path is not None:

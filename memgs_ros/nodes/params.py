@@ -82,6 +82,9 @@ class TrackerParams:
         wait seen, is stale (the tracker fell behind) and is dropped so that tracking catches up with the
         camera (counted as skipped.stale); 0 = never drop (memgs run's lockstep replays)
     """
+    # configure and activate at start (ros2 run, launch); false: wait for lifecycle transitions
+    # (<node>/change_state, lifecycle_msgs/srv/ChangeState), as memgs run and a lifecycle manager drive them
+    autostart: bool = True
 
     color_topic: str = "camera/camera/color/image_raw"  # colour image input
     depth_topic: str = "camera/camera/aligned_depth_to_color/image_raw"
@@ -153,6 +156,9 @@ class TrackerParams:
 @dataclass(frozen=True)
 class KeyframeSamplerParams:
     """The keyframe sampler's own parameters (no prefix)."""
+    # configure and activate at start (ros2 run, launch); false: wait for lifecycle transitions
+    # (<node>/change_state, lifecycle_msgs/srv/ChangeState), as memgs run and a lifecycle manager drive them
+    autostart: bool = True
 
     mode: str = "rgbd"  # camera mode (mono: depth from the nearest keypoint)
     depth_scale: float = 1000.0  # 16UC1 keyframe depth units per metre: the tracker's (depth travels as sent)
@@ -185,6 +191,9 @@ class MapperParams:
         included) is unfinished, so the tracker works on the next frame while the mapper trains (1); 0 waits
         for the frame's own training. The map is the same either way (core/mapping/lockstep.py)
     """
+    # configure and activate at start (ros2 run, launch); false: wait for lifecycle transitions
+    # (<node>/change_state, lifecycle_msgs/srv/ChangeState), as memgs run and a lifecycle manager drive them
+    autostart: bool = True
 
     mode: str = "rgbd"  # camera mode: rgbd, or mono (keyframes carry no depth)
     depth_scale: float = 1000.0  # 16UC1 keyframe depth units per metre: the tracker's (depth travels as sent)
@@ -227,6 +236,9 @@ class MapperParams:
 @dataclass(frozen=True)
 class MergerParams:
     """The merger's own parameters (no prefix)."""
+    # configure and activate at start (ros2 run, launch); false: wait for lifecycle transitions
+    # (<node>/change_state, lifecycle_msgs/srv/ChangeState), as memgs run and a lifecycle manager drive them
+    autostart: bool = True
 
     map_path: str = "memgs_map.ply"  # where the map PLY is saved (atomically)
     save_period_s: float = 60.0  # also save the PLY this often when it changed (0 = only on request and shutdown)

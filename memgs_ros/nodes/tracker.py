@@ -41,7 +41,6 @@ import sys
 import time
 from typing import Any
 
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
 from memgs_ros.core.geometry.camera import describe_camera
@@ -59,8 +58,9 @@ from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.codecs import stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
+from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.tracker_outputs import KEYPOINT_DTYPE, TrackerOutbox
+from memgs_ros.ros.tracker_outputs import KEYPOINT_DTYPE, TrackerOutbox, track_stats
 
 __all__ = ["KEYPOINT_DTYPE", "TrackerNode", "main"]
 
@@ -72,15 +72,19 @@ CONFIGS = NODE_CONFIGS["tracker"]
 _WARM_UP_JOIN_S = 10.0  # how long a node being destroyed waits for its warm-up thread
 
 
-class TrackerNode(Node):
+class TrackerNode(ManagedNode):
     def __init__(self, **node_kwargs: object) -> None:
         super().__init__("tracker", **node_kwargs)
         self.params = v = declare_config(self, TrackerParams, "")
         self.cfg: TrackerConfig = declare_config(self, TrackerConfig, "tracker")
-        calibration = declare_calibration(self)
-        if v.camera_info_override and calibration is None:
+        self.calibration = declare_calibration(self)
+        if v.camera_info_override and self.calibration is None:
             raise ConfigError("camera_info_override is true but no calibration is set: give camera.width, "
                               "camera.height, camera.fx, camera.fy, camera.cx, camera.cy (and distortion)")
+        self.start_lifecycle(v.autostart)
+
+    def configure_node(self) -> None:
+        v, calibration = self.params, self.calibration
         # The configured camera replaces camera_info (override), else the first camera_info's.
         self.cams: CameraSource[tuple[Image, Image | None]] = CameraSource(
             calibration if v.camera_info_override else None)
@@ -143,6 +147,10 @@ class TrackerNode(Node):
         self.get_logger().info(f"camera from {origin}: {describe_camera(self.cams.camera)}")
 
     def on_color(self, msg: Image, info: MessageInfo) -> None:
+        if not self.active:  # paused (lifecycle inactive): counted, answered, not tracked
+            self.stats.counters["skipped.inactive"] += 1
+            self.out.processed(stamp_to_ns(msg.header.stamp))
+            return
         seq, sent = int(info.get("publication_sequence_number") or 0), int(info.get("source_timestamp") or 0)
         refused, lost = self.gate.admit(seq, sent, time.time_ns(), self._warm.ready.is_set())
         self.stats.counters["skipped.busy"] += lost
@@ -228,28 +236,21 @@ class TrackerNode(Node):
             ba_dt = tracker.ba_time_s - ba_before
             dt -= ba_dt
             self.stats.counters["ba_us_total"] += int(ba_dt * 1e6)
-        g = self.stats.gauges
-        g["track_ms"] = round(dt * 1e3, 2)
-        g["keyframes_deferred"], g["ba_waits"] = (int(getattr(tracker, k, 0)) for k in ("keyframes_deferred",
-                                                                                         "ba_waits"))
-        if (ro := getattr(tracker, "readout", None)) is not None:
-            g["readout_flips"], g["readout_sign"] = ro.flips, ro.sign  # the rows' direction as checked
-        self.stats.counters["track_us_total"] += int(dt * 1e6)
-        smap = tracker.map_stats() if result.keyframe is not None else None
+        smap = track_stats(self.stats, tracker, dt, result.keyframe is not None)
         if smap is not None:
-            g["map_keyframes"], g["map_points"] = smap.keyframes, smap.points
-            g["map_keyframes_removed"], g["map_keyframes_culled"] = smap.keyframes_removed, smap.keyframes_culled
             self.out.keyframes.forget(smap.keyframe_ids, smap.keyframes)
         return result
 
-    def close(self) -> None:
+    def close_node(self) -> None:
         if self.tracker is not None:
             self.tracker.close()
+            self.tracker = None
 
     def destroy_node(self) -> None:
         # The warm-up starts by reading ORB's tests off OpenCV (~0.5 s, in native code): a process
         # that exits under it aborts. Bounded: a first compile after that can take ~10 s.
-        self._warm.join(_WARM_UP_JOIN_S)
+        if (warm := getattr(self, "_warm", None)) is not None:
+            warm.join(_WARM_UP_JOIN_S)
         super().destroy_node()
 
 

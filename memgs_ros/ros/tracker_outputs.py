@@ -33,7 +33,7 @@ from memgs_ros.ros.codecs import (
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.tf_outputs import TfOutbox
 
-__all__ = ["KEYPOINT_DTYPE", "CorrectedPath", "KeyframeOutbox", "TrackerOutbox"]
+__all__ = ["KEYPOINT_DTYPE", "CorrectedPath", "KeyframeOutbox", "TrackerOutbox", "track_stats"]
 
 KEYPOINT_DTYPE = np.dtype([("u", np.float32), ("v", np.float32), ("depth", np.float32), ("active", np.uint8)])
 
@@ -139,6 +139,22 @@ class KeyframeOutbox:
         kept ones), once the table has grown well past the map."""
         if len(self.stamps) > 2 * map_keyframes + 64:
             self.stamps = {i: s for i, s in self.stamps.items() if i in kept_ids}
+
+
+def track_stats(stats: NodeStats, tracker: Any, dt_s: float, keyframe: bool) -> Any | None:
+    """A tracked frame's cost (``dt_s``: the front end alone) and the tracker's gauges; on a
+    keyframe the sparse map's size too, whose stats it returns (else None)."""
+    g = stats.gauges
+    g["track_ms"] = round(dt_s * 1e3, 2)
+    g["keyframes_deferred"], g["ba_waits"] = (int(getattr(tracker, k, 0)) for k in ("keyframes_deferred", "ba_waits"))
+    if (ro := getattr(tracker, "readout", None)) is not None:
+        g["readout_flips"], g["readout_sign"] = ro.flips, ro.sign  # the rows' direction as checked
+    stats.counters["track_us_total"] += int(dt_s * 1e6)
+    smap = tracker.map_stats() if keyframe else None
+    if smap is not None:
+        g["map_keyframes"], g["map_points"] = smap.keyframes, smap.points
+        g["map_keyframes_removed"], g["map_keyframes_culled"] = smap.keyframes_removed, smap.keyframes_culled
+    return smap
 
 
 class TrackerOutbox:

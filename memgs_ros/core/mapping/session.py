@@ -344,6 +344,15 @@ class MappingSession(CommandWorker):
         (keyframes corrected, Gaussians moved)."""
         return self.submit("correct", lambda: self._correct(dict(poses)))
 
+    def set_training(self, on: bool) -> Future[bool]:
+        """Pause (False) or resume the free-running training between commands (a managed node's
+        deactivate / activate); keyframes, deltas, renders and saves go on. Lockstep sessions train
+        by command only and are unchanged. The future gives whether it trains now."""
+        def run() -> bool:
+            self._training = bool(on) and self.free_running and not self._finished
+            return self._training
+        return self.submit("set_training", run)
+
     def train(self, iterations: int) -> Future[StepStats | None]:
         """Run ``iterations`` training steps now (nothing before ``ready``); the future gives the
         last step's stats. Lockstep replays call this once per frame."""

@@ -78,6 +78,7 @@ class SamplerTelemetry(NodeTelemetry):
     seeds_patch_grid: int = 0  # seeds the Patch-Grid added in sparse cells
     dropped_bundles: int = 0  # incomplete keyframe bundles given up
     pending_bundles: int = 0  # bundles waiting for a part
+    skipped: Mapping[str, int] = _family()  # skipped.inactive: keyframe parts that came while paused (lifecycle)
 
 
 @dataclass(frozen=True)
