@@ -107,8 +107,9 @@ def test_the_tracker_is_configured_activated_paused_and_resumed_by_service(conte
         sup.destroy_node()
 
 
-def test_a_bad_parameter_refuses_the_node_and_autostart_keeps_one_command_behaviour(context) -> None:  # noqa: ANN001
-    pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+def test_a_bad_parameter_refuses_the_node_and_autostart_keeps_one_command_behaviour(
+        context, ros_domain_id: int) -> None:  # noqa: ANN001
+    rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
     from rclpy.parameter import Parameter
 
     from memgs_ros.errors import ConfigError
@@ -124,3 +125,17 @@ def test_a_bad_parameter_refuses_the_node_and_autostart_keeps_one_command_behavi
     finally:
         node.close()
         node.destroy_node()
+    # Destroyed means gone from the graph (rclpy's lifecycle state machine held the node's handle,
+    # which kept it discoverable while the Python object lived).
+    watcher_ctx = rclpy.Context()
+    rclpy.init(context=watcher_ctx, domain_id=ros_domain_id)
+    watcher = rclpy.create_node("watcher", context=watcher_ctx)
+    try:
+        end = time.monotonic() + 10.0
+        # neither the refused node nor the destroyed one
+        while time.monotonic() < end and "merger" in dict(watcher.get_node_names_and_namespaces()):
+            time.sleep(0.05)
+        assert "merger" not in dict(watcher.get_node_names_and_namespaces())
+    finally:
+        watcher.destroy_node()
+        rclpy.try_shutdown(context=watcher_ctx)

@@ -15,6 +15,7 @@ nav2's lifecycle manager does.
 """
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any
 
@@ -32,6 +33,23 @@ class ManagedNode(LifecycleNode):
     they implement ``configure_node()``, ``close_node()`` (save, stop threads) and may override
     ``set_active(active)``. Entities created while configuring are recorded and destroyed on cleanup.
     """
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """A node whose constructor raises (a refused parameter) is destroyed before the error
+        leaves it: a half-built lifecycle node otherwise stays on the DDS graph until collected."""
+        super().__init_subclass__(**kwargs)
+        init = cls.__init__
+
+        @functools.wraps(init)
+        def guarded(self: ManagedNode, *args: Any, **kw: Any) -> None:
+            try:
+                init(self, *args, **kw)
+            except BaseException:
+                if type(self) is cls and getattr(self, "_state_machine", None) is not None:
+                    self.destroy_node()
+                raise
+
+        cls.__init__ = guarded  # type: ignore[method-assign]
 
     def __init__(self, node_name: str, **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
@@ -66,6 +84,12 @@ class ManagedNode(LifecycleNode):
         if self.configured:
             self.configured = False
             self.close_node()
+
+    def destroy_node(self) -> None:
+        # rclpy's lifecycle state machine holds the node's handle: destroyed with the node, not
+        # left to the garbage collector (until then the node stayed on the DDS graph).
+        self._state_machine.destroy_when_not_in_use()
+        super().destroy_node()
 
     # ------------------------------------------------------------------ entity bookkeeping
     def create_publisher(self, *args: Any, **kwargs: Any) -> Any:
