@@ -4,6 +4,7 @@ none tracked), cleanup removes what configure made and a second configure starts
 from __future__ import annotations
 
 import itertools
+import threading
 import time
 
 import numpy as np
@@ -68,7 +69,7 @@ def test_the_tracker_is_configured_activated_paused_and_resumed_by_service(conte
             pc.publish(numpy_to_image(f.rgb, "rgb8", f.stamp_ns, "cam"))
             pd.publish(depth_to_image(f.depth_m, "32FC1", f.stamp_ns, "cam"))
             sent += 1
-            assert spin_until(lambda: len(processed) >= sent), f"frame {sent} was never answered"
+            assert spin_until(lambda n=sent: len(processed) >= n), f"frame {sent} was never answered"
 
     try:
         assert spin_until(lambda: change.service_is_ready() and get.service_is_ready())
@@ -139,3 +140,51 @@ def test_a_bad_parameter_refuses_the_node_and_autostart_keeps_one_command_behavi
     finally:
         watcher.destroy_node()
         rclpy.try_shutdown(context=watcher_ctx)
+
+
+def test_the_runner_brings_managed_nodes_up_and_names_one_that_refuses(context) -> None:  # noqa: ANN001
+    rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from memgs_ros.errors import ConfigError, PipelineError
+    from memgs_ros.nodes.merger import MergerNode
+    from memgs_ros.orchestration.bring_up import bring_up
+    from memgs_ros.ros.lifecycle import ManagedNode
+
+    class Refuses(ManagedNode):
+        def __init__(self, **kw: object) -> None:
+            super().__init__("refuses", **kw)
+            self.start_lifecycle(False)
+
+        def configure_node(self) -> None:
+            raise ConfigError("no camera here")
+
+    merger = MergerNode(context=context, parameter_overrides=[Parameter("autostart", value=False)])
+    refuses = Refuses(context=context)
+    runner = rclpy.create_node("runner", context=context)
+    ex = SingleThreadedExecutor(context=context)
+    for n in (merger, refuses, runner):
+        ex.add_node(n)
+    spinning = True
+
+    def spin() -> None:
+        while spinning:
+            ex.spin_once(timeout_sec=0.02)
+
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    try:
+        assert not merger.configured
+        seconds = bring_up(runner, ["merger"], lambda: None, time.monotonic() + 30)
+        assert merger.configured and merger.active and 0 < seconds < 30
+        with pytest.raises(PipelineError, match="refuses refused to configure"):
+            bring_up(runner, ["refuses"], lambda: None, time.monotonic() + 30)
+        with pytest.raises(PipelineError, match="nobody offered no lifecycle service"):
+            bring_up(runner, ["nobody"], lambda: None, time.monotonic() + 0.5)
+    finally:
+        spinning = False
+        thread.join(5)
+        ex.shutdown()
+        for n in (merger, refuses, runner):
+            n.destroy_node()

@@ -37,6 +37,7 @@ from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.core.runtime.cpu import MALLOC_ARENAS
 from memgs_ros.core.runtime.telemetry import TELEMETRY, parse_stats
 from memgs_ros.errors import ConfigError, PipelineError
+from memgs_ros.orchestration.bring_up import AUTOSTART_OFF, bring_up
 from memgs_ros.orchestration.processes import (
     NODE_FACTORIES,
     NODE_MODULES,
@@ -87,6 +88,7 @@ class _Observer:
     def __init__(self, context: Any) -> None:
         self.node = Node("memgs_run_observer", context=context)
         self.done = threading.Event()
+        self.bring_up_s: float | None = None  # the managed nodes' configure -> active (bring_up.py)
         self.source_ok = True  # False when the player reported a source that failed part-way
         self.stats: dict[str, dict[str, str]] = {}  # each node's latest stats, replaced whole
         self._parsed: dict[str, tuple[dict[str, str], Any]] = {}  # node -> (values, their record)
@@ -308,11 +310,13 @@ def _start_processes(options: RunOptions, observer: _Observer, params: dict[str,
     deadline = t0 + options.timeout_s
     procs = NodeProcesses(params_file, options.namespace, _node_env(domain), out / LOGS_DIR)
     delayed = {n: float(d) for n, d in options.start_delays_s.items() if float(d) > 0}
+    managed = [n for n in GRAPH_NODES if n in graph and n not in delayed]  # brought up by the runner
     for name in graph:
         if name not in delayed:
-            procs.start(name)
+            procs.start(name, AUTOSTART_OFF if name in managed else ())
     for name in recording:  # beside the graph; it subscribes as it discovers their publishers
         procs.start(name)
+    observer.bring_up_s = bring_up(observer.node, managed, procs.check, deadline)
     _wait_for_graph(observer, procs, [n for n in graph if n not in delayed], deadline)
     if recording:
         topics = node_params(params).get("recorder", {}).get("topics", NODE_MODULES["recorder"].DEFAULT_TOPICS)
@@ -536,8 +540,10 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
         cpu_s=_cpu_times(obs, procs), merger_resyncs=sum(merger.resync.values()), restarts=restarts,
         replica_identical=identical, replica_max_abs_diff=max_diff, **_render_info(obs.render),
         source_complete=obs.source_ok, frames_played=obs.telemetry("player").frames_published,
-        tracker_skipped={k: tracker.skipped.get(k, 0) for k in ("warming", "stale", "busy", "unpaired")},
+        tracker_skipped={k: tracker.skipped.get(k, 0) for k in ("warming", "stale", "busy", "unpaired",
+                                                                 "inactive")},
         tracker_frame_cpu_ms=tracker.frame_cpu_ms_median, skipped_frames=dict(obs.telemetry("player").skipped),
+        bring_up_s=None if obs.bring_up_s is None else round(obs.bring_up_s, 2),
         **_mapper_figures(obs, options.composed))
     # The summary is a file of the run, so evaluation reads a finished run instead of watching it.
     _write_text(out / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2) + "\n")

@@ -14,7 +14,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -88,8 +88,9 @@ class NodeProcesses:
         self._params_file, self._ns = params_file, namespace
         self._env = dict(env, **{PARENT_PID_ENV: str(os.getpid())})
 
-    def start(self, name: str) -> None:
-        cmd = [sys.executable, "-m", NODES[name][0], "--ros-args", "--params-file", str(self._params_file)]
+    def start(self, name: str, extra_ros_args: Sequence[str] = ()) -> None:
+        cmd = [sys.executable, "-m", NODES[name][0], "--ros-args", "--params-file", str(self._params_file),
+               *extra_ros_args]
         if self._ns:
             cmd += ["-r", f"__ns:={self._ns}"]
         log = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 - owned by the child

@@ -122,6 +122,9 @@ class RunSummary:
     # the wall time from the tracker's decision to the first training step that drew it
     keyframe_intake_ms: dict[str, float] = field(default_factory=dict)
     keyframe_latency_ms: dict[str, float] = field(default_factory=dict)
+    # the managed nodes' configure requests to all active, as the runner drove them (None: composed,
+    # or an earlier run's summary)
+    bring_up_s: float | None = None
     cuda_peak_mb: float | None = None  # the mapper's torch.cuda.max_memory_allocated (None on the CPU)
     # per kind of mapper work (forward, backward, merge, keyframe upload...), the highest CUDA peak
     # it raised the device to: the largest names the work that set the peak
