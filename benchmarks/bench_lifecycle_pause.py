@@ -135,11 +135,26 @@ def _score(out: Path, tum: Path, only: Path | None = None) -> dict[str, Any]:
             "ate_cm": round(100 * r.trajectory.rmse_m, 3) if r.trajectory else None}
 
 
+def _tf_counts(mcap_path: Path) -> dict[str, int]:
+    """Messages on the run's tf, tf_static and odometry topics in its recording."""
+    from mcap.reader import make_reader
+
+    counts = {"tf": 0, "tf_static": 0, "odom": 0, "tracked_state_ok": 0}
+    names = {f"{NAMESPACE}/tf": "tf", f"{NAMESPACE}/tf_static": "tf_static", f"{NAMESPACE}/memgs/odom": "odom"}
+    with open(mcap_path, "rb") as f:
+        for _schema, channel, message in make_reader(f).iter_messages():
+            if channel.topic in names:
+                counts[names[channel.topic]] += 1
+            elif channel.topic == f"{NAMESPACE}/memgs/tracking_state" and b"OK" in message.data:
+                counts["tracked_state_ok"] += 1
+    return counts
+
+
 def run_one(label: str, tum: Path, config: str, work: Path, pause: tuple[int, int] | None) -> dict[str, Any]:
     out, log = work / label, work / f"{label}.log"
     domain = random.Random(time.time_ns()).randrange(120, 220)
     args = ["run", "--bag", tum, "--config", config, "--realtime", "--domain-id", str(domain),
-            "--namespace", NAMESPACE]
+            "--namespace", NAMESPACE, "--record", out / "run.mcap"]
     _log(f"{label}: memgs {' '.join(map(str, args))} -> {out}")
     pauser = Pauser(domain, *pause) if pause is not None else None
     try:
@@ -153,6 +168,8 @@ def run_one(label: str, tum: Path, config: str, work: Path, pause: tuple[int, in
     row: dict[str, Any] = {"label": label, "frames": s.frames, "poses": s.poses, "keyframes": s.keyframes,
                            "gaussians": s.gaussians, "iterations": s.mapping_iterations,
                            "skipped": dict(s.tracker_skipped), "wall_s": round(run.wall_s, 1), "uptime": uptime()}
+    row["bring_up_s"] = s.bring_up_s
+    row.update(_tf_counts(out / "run.mcap"))
     if pauser is not None:
         from memgs_ros.io.tum import read_trajectory
 
@@ -189,6 +206,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nframes answered while inactive (skipped.inactive): {inactive}; poses of frames that came while "
           f"the tracker was inactive: {paused.get('posed_while_inactive')}; PSNR paused - unpaused over the "
           f"same frames: {paused['psnr_db'] - plain_over_paused['psnr_db']:+.2f} dB")
+    for r in (plain, paused):
+        print(f"{r['label']}: bring-up (configure -> active, all four) {r['bring_up_s']} s; tf {r['tf']} for "
+              f"{r['tracked_state_ok']} frames tracked OK ({100 * r['tf'] / max(r['tracked_state_ok'], 1):.1f} %), "
+              f"tf_static {r['tf_static']}, odometry {r['odom']}")
     for e in paused.get("events", []):
         print(f"  {e['node']} {e['transition']} at frame {e['at_frame']}: {'ok' if e['ok'] else 'FAILED'}, "
               f"answered in {e['answer_ms']} ms")
