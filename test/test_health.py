@@ -34,31 +34,18 @@ def test_the_mapper_is_in_error_when_its_worker_stops_and_warns_when_behind() ->
 
 @pytest.mark.ros
 def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noqa: ANN001
-    rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+    pytest.importorskip("rclpy", reason="the ROS extra is not installed")
     from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.parameter import Parameter
-    from sensor_msgs.msg import CameraInfo, Image
-    from std_msgs.msg import Header
+    from tracker_harness import TrackerFeed
 
     from memgs_ros.io.synthetic import generate_frames, parse_spec
-    from memgs_ros.nodes.tracker import TrackerNode
     from memgs_ros.ros import qos
-    from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image
 
-    params = [Parameter("color_topic", value="color/image_raw"), Parameter("depth_topic", value="depth/image_raw"),
-              Parameter("camera_info_topic", value="color/camera_info"), Parameter("sync", value="exact"),
-              Parameter("max_frame_age_s", value=0.0)]
-    node = TrackerNode(context=context, parameter_overrides=params)
-    feeder = rclpy.create_node("feeder", context=context)
-    pc = feeder.create_publisher(Image, "color/image_raw", qos.reliable(50))
-    pd = feeder.create_publisher(Image, "depth/image_raw", qos.reliable(50))
-    pi = feeder.create_publisher(CameraInfo, "color/camera_info", qos.reliable(5))
-    processed: list[Header] = []
-    feeder.create_subscription(Header, "memgs/tracker/processed", processed.append, qos.reliable(100))
+    feed = TrackerFeed(context)
+    node = feed.node
     odometry: list[Odometry] = []
-    feeder.create_subscription(Odometry, "memgs/odom", odometry.append, qos.reliable(100))
+    feed.peer.create_subscription(Odometry, "memgs/odom", odometry.append, qos.reliable(100))
     heard: list[tuple[float, int, str]] = []  # (arrival, level, message) of the tracker's status
 
     def on_diag(msg: DiagnosticArray) -> None:
@@ -66,33 +53,18 @@ def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noq
             if s.name == "memgs/tracker":
                 heard.append((time.monotonic(), s.level[0], s.message))
 
-    feeder.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos.reliable(10))
-    ex = SingleThreadedExecutor(context=context)
-    ex.add_node(node)
-    ex.add_node(feeder)
-
-    def spin_until(cond, timeout_s: float = 20.0) -> bool:  # noqa: ANN001
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.02)
-            if cond():
-                return True
-        return False
-
+    feed.peer.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos.reliable(10))
+    spin_until = feed.spin_until
     try:
-        assert spin_until(lambda: pc.get_subscription_count() and pd.get_subscription_count()
-                          and pi.get_subscription_count()) and node.wait_until_warm(120)
+        feed.wait_for_inputs()
         frames = list(itertools.islice(generate_frames(parse_spec("synthetic:w=320,h=240,n=60,seed=2")), 8))
-        pi.publish(camera_to_camera_info(frames[0].camera, frames[0].stamp_ns, "cam"))
-        stamp, sent = frames[0].stamp_ns, 0
+        feed.camera(frames[0].camera, frames[0].stamp_ns)
+        stamp = frames[0].stamp_ns
 
         def send(rgb: np.ndarray, depth: np.ndarray) -> str:
-            nonlocal stamp, sent
+            nonlocal stamp
             stamp += 33_333_333
-            pc.publish(numpy_to_image(rgb, "rgb8", stamp, "cam"))
-            pd.publish(depth_to_image(depth, "32FC1", stamp, "cam"))
-            sent += 1
-            assert spin_until(lambda: len(processed) >= sent), f"frame {sent} was never handled"
+            feed.send(rgb, depth, stamp)
             return str(node.stats.gauges["tracking_state"])
 
         for f in frames[:4]:
@@ -119,10 +91,7 @@ def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noq
         covs = [np.array(o.pose.covariance).reshape(6, 6) for o in odometry]
         assert all(np.all(np.linalg.eigvalsh(c) > 0) for c in covs) and len({c[0, 0] for c in covs}) > 1
     finally:
-        node.close()
-        ex.shutdown()
-        node.destroy_node()
-        feeder.destroy_node()
+        feed.close()
 
 
 def test_pose_covariance_grows_with_fewer_points_and_turns_with_the_camera() -> None:

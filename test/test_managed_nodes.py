@@ -12,46 +12,22 @@ import pytest
 
 
 def test_the_tracker_is_configured_activated_paused_and_resumed_by_service(context) -> None:  # noqa: ANN001
-    rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+    pytest.importorskip("rclpy", reason="the ROS extra is not installed")
     from lifecycle_msgs.msg import State, Transition
     from lifecycle_msgs.srv import ChangeState, GetState
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
-    from sensor_msgs.msg import CameraInfo, Image
-    from std_msgs.msg import Header
+    from tracker_harness import TrackerFeed
 
     from memgs_ros.io.synthetic import generate_frames, parse_spec
-    from memgs_ros.nodes.tracker import TrackerNode
-    from memgs_ros.ros import qos
-    from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image
 
-    params = [Parameter("color_topic", value="color/image_raw"), Parameter("depth_topic", value="depth/image_raw"),
-              Parameter("camera_info_topic", value="color/camera_info"), Parameter("sync", value="exact"),
-              Parameter("max_frame_age_s", value=0.0), Parameter("autostart", value=False)]
-    node = TrackerNode(context=context, parameter_overrides=params)
-    sup = rclpy.create_node("supervisor", context=context)
+    feed = TrackerFeed(context, [Parameter("autostart", value=False)])
+    node, sup = feed.node, feed.peer
     change = sup.create_client(ChangeState, "tracker/change_state")
     get = sup.create_client(GetState, "tracker/get_state")
-    pc = sup.create_publisher(Image, "color/image_raw", qos.reliable(50))
-    pd = sup.create_publisher(Image, "depth/image_raw", qos.reliable(50))
-    pi = sup.create_publisher(CameraInfo, "color/camera_info", qos.reliable(5))
-    processed: list[Header] = []
-    sup.create_subscription(Header, "memgs/tracker/processed", processed.append, qos.reliable(100))
-    ex = SingleThreadedExecutor(context=context)
-    ex.add_node(node)
-    ex.add_node(sup)
-
-    def spin_until(cond, timeout_s: float = 20.0) -> bool:  # noqa: ANN001
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.02)
-            if cond():
-                return True
-        return False
 
     def call(client, request):  # noqa: ANN001, ANN202
         future = client.call_async(request)
-        assert spin_until(future.done, 30.0), f"{client.srv_name} did not answer"
+        assert feed.spin_until(future.done, 30.0), f"{client.srv_name} did not answer"
         return future.result()
 
     def transition(tid: int) -> bool:
@@ -61,28 +37,21 @@ def test_the_tracker_is_configured_activated_paused_and_resumed_by_service(conte
         return call(get, GetState.Request()).current_state.id
 
     frames = list(itertools.islice(generate_frames(parse_spec("synthetic:w=320,h=240,n=60,seed=3")), 15))
-    sent = 0
 
     def send(fs) -> None:  # noqa: ANN001
-        nonlocal sent
         for f in fs:
-            pc.publish(numpy_to_image(f.rgb, "rgb8", f.stamp_ns, "cam"))
-            pd.publish(depth_to_image(f.depth_m, "32FC1", f.stamp_ns, "cam"))
-            sent += 1
-            assert spin_until(lambda n=sent: len(processed) >= n), f"frame {sent} was never answered"
+            feed.send(f.rgb, f.depth_m, f.stamp_ns)
 
     try:
-        assert spin_until(lambda: change.service_is_ready() and get.service_is_ready())
+        assert feed.spin_until(lambda: change.service_is_ready() and get.service_is_ready())
         assert state() == State.PRIMARY_STATE_UNCONFIGURED and not node.configured
-        assert pc.get_subscription_count() == 0  # nothing subscribed before configure
+        assert feed.color.get_subscription_count() == 0  # nothing subscribed before configure
         t0 = time.perf_counter()
         assert transition(Transition.TRANSITION_CONFIGURE) and state() == State.PRIMARY_STATE_INACTIVE
         assert transition(Transition.TRANSITION_ACTIVATE) and state() == State.PRIMARY_STATE_ACTIVE
-        assert node.wait_until_warm(120)
+        feed.wait_for_inputs()
         print(f"configure -> active, kernels warm: {time.perf_counter() - t0:.2f} s")
-        assert spin_until(lambda: pc.get_subscription_count() and pd.get_subscription_count()
-                          and pi.get_subscription_count())
-        pi.publish(camera_to_camera_info(frames[0].camera, frames[0].stamp_ns, "cam"))
+        feed.camera(frames[0].camera, frames[0].stamp_ns)
         send(frames[:5])
         tracked = node.stats.counters["state.OK"]
         assert tracked >= 4
@@ -97,15 +66,12 @@ def test_the_tracker_is_configured_activated_paused_and_resumed_by_service(conte
         # Cleanup removes the topics configure made; a second configure makes them again.
         assert transition(Transition.TRANSITION_DEACTIVATE) and transition(Transition.TRANSITION_CLEANUP)
         assert state() == State.PRIMARY_STATE_UNCONFIGURED and node.tracker is None
-        assert spin_until(lambda: pc.get_subscription_count() == 0)
+        assert feed.spin_until(lambda: feed.color.get_subscription_count() == 0)
         assert transition(Transition.TRANSITION_CONFIGURE) and transition(Transition.TRANSITION_ACTIVATE)
-        assert spin_until(lambda: pc.get_subscription_count() == 1)
+        assert feed.spin_until(lambda: feed.color.get_subscription_count() == 1)
         assert transition(Transition.TRANSITION_ACTIVE_SHUTDOWN) and state() == State.PRIMARY_STATE_FINALIZED
     finally:
-        node.close()
-        ex.shutdown()
-        node.destroy_node()
-        sup.destroy_node()
+        feed.close()
 
 
 def test_a_bad_parameter_refuses_the_node_and_autostart_keeps_one_command_behaviour(

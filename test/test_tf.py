@@ -3,7 +3,6 @@ carried to the body, and /tf + /tf_static with the standard tf2_msgs/TFMessage o
 from __future__ import annotations
 
 import itertools
-import time
 
 import numpy as np
 import pytest
@@ -89,66 +88,41 @@ def test_tf_and_odometry_on_real_dds(context) -> None:  # noqa: ANN001
                     "python -m memgs_ros.ros.tf2_msgs_build (the README's test command does)")
     from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Odometry
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
-    from sensor_msgs.msg import CameraInfo, Image
-    from std_msgs.msg import Header
+    from tracker_harness import TrackerFeed
 
     from memgs_ros.io.synthetic import generate_frames, parse_spec
-    from memgs_ros.nodes.tracker import TrackerNode
     from memgs_ros.ros import qos
-    from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image, pose_to_matrix, stamp_to_ns
+    from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
     from memgs_ros.ros.tf_outputs import tf_qos, tf_static_qos
 
     mount = [0.1, 0.0, -0.05, 0.0, 0.2, 0.0]
     names = ("x", "y", "z", "roll", "pitch", "yaw")
-    params = [Parameter("color_topic", value="color/image_raw"), Parameter("depth_topic", value="depth/image_raw"),
-              Parameter("camera_info_topic", value="color/camera_info"), Parameter("sync", value="exact"),
-              Parameter("max_frame_age_s", value=0.0),
-              *(Parameter(f"camera_mount_{n}", value=float(v)) for n, v in zip(names, mount))]
-    node = TrackerNode(context=context, parameter_overrides=params)
-    feeder = rclpy.create_node("feeder", context=context)
-    pc = feeder.create_publisher(Image, "color/image_raw", qos.reliable(50))
-    pd = feeder.create_publisher(Image, "depth/image_raw", qos.reliable(50))
-    pi = feeder.create_publisher(CameraInfo, "color/camera_info", qos.reliable(5))
-    processed: list[Header] = []
-    feeder.create_subscription(Header, "memgs/tracker/processed", processed.append, qos.reliable(100))
+    feed = TrackerFeed(context, [Parameter(f"camera_mount_{n}", value=float(v)) for n, v in zip(names, mount)],
+                       frame_id="cam_optical")
+    node = feed.node
     tf: list = []
     static: list = []
     odom: list[Odometry] = []
     poses: list[PoseStamped] = []
-    feeder.create_subscription(TFMessage, "/tf", tf.append, tf_qos())
-    feeder.create_subscription(Odometry, "memgs/odom", odom.append, qos.reliable(100))
-    feeder.create_subscription(PoseStamped, "memgs/pose", poses.append, qos.reliable(100))
-    ex = SingleThreadedExecutor(context=context)
-    ex.add_node(node)
-    ex.add_node(feeder)
-
-    def spin_until(cond, timeout_s: float = 20.0) -> bool:  # noqa: ANN001
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.02)
-            if cond():
-                return True
-        return False
-
+    feed.peer.create_subscription(TFMessage, "/tf", tf.append, tf_qos())
+    feed.peer.create_subscription(Odometry, "memgs/odom", odom.append, qos.reliable(100))
+    feed.peer.create_subscription(PoseStamped, "memgs/pose", poses.append, qos.reliable(100))
     try:
-        assert spin_until(lambda: pc.get_subscription_count() and pd.get_subscription_count()
-                          and pi.get_subscription_count()) and node.wait_until_warm(120)
+        feed.wait_for_inputs()
         frames = list(itertools.islice(generate_frames(parse_spec("synthetic:w=320,h=240,n=60,seed=2")), 20))
-        pi.publish(camera_to_camera_info(frames[0].camera, frames[0].stamp_ns, "cam_optical"))
-        for i, f in enumerate(frames):
-            pc.publish(numpy_to_image(f.rgb, "rgb8", f.stamp_ns, "cam_optical"))
-            pd.publish(depth_to_image(f.depth_m, "32FC1", f.stamp_ns, "cam_optical"))
-            assert spin_until(lambda: len(processed) > i), f"frame {i} was never handled"
+        feed.camera(frames[0].camera, frames[0].stamp_ns)
+        for f in frames:
+            feed.send(f.rgb, f.depth_m, f.stamp_ns)
         tracked = node.stats.counters["state.OK"]
         assert tracked >= 15
-        assert spin_until(lambda: len(tf) >= tracked and len(odom) >= tracked - 1 and len(poses) >= tracked, 5.0)
+        assert feed.spin_until(lambda: len(tf) >= tracked and len(odom) >= tracked - 1 and len(poses) >= tracked,
+                               5.0)
         # A late joiner to /tf_static gets every static transform (transient local, one message).
         late = rclpy.create_node("late", context=context)
         late.create_subscription(TFMessage, "/tf_static", static.append, tf_static_qos())
-        ex.add_node(late)
-        assert spin_until(lambda: bool(static), 5.0)
+        feed.ex.add_node(late)
+        assert feed.spin_until(lambda: bool(static), 5.0)
         st = {(t.header.frame_id, t.child_frame_id): t for t in static[-1].transforms}
         assert set(st) == {("map", "map_optical"), ("base_link", "cam_optical")}
         E = mount_transform(mount)
@@ -184,7 +158,4 @@ def test_tf_and_odometry_on_real_dds(context) -> None:  # noqa: ANN001
         T_last = invert_pose(by_stamp[frames[0].stamp_ns]) @ by_stamp[max(by_stamp)]
         assert np.linalg.norm(T_last[:3, 3]) > 0.01  # the camera moved: the checks above saw motion
     finally:
-        node.close()
-        ex.shutdown()
-        node.destroy_node()
-        feeder.destroy_node()
+        feed.close()
