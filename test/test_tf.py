@@ -159,3 +159,61 @@ def test_tf_and_odometry_on_real_dds(context) -> None:  # noqa: ANN001
         assert np.linalg.norm(T_last[:3, 3]) > 0.01  # the camera moved: the checks above saw motion
     finally:
         feed.close()
+
+
+def test_the_mount_is_read_from_the_robots_tf_static(context) -> None:  # noqa: ANN001
+    """With publish_camera_tf false the robot publishes the camera (base_link -> camera_link ->
+    the optical frame, as a URDF and realsense-ros do): the tracker reads the mount from there and
+    anchors map by it, publishing no camera transform of its own."""
+    rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+    from geometry_msgs.msg import TransformStamped
+    from nav_msgs.msg import Odometry
+    from rclpy.parameter import Parameter
+    from tf2_msgs.msg import TFMessage
+    from tracker_harness import TrackerFeed
+
+    from memgs_ros.io.synthetic import generate_frames, parse_spec
+    from memgs_ros.ros import qos
+    from memgs_ros.ros.codecs import pose_to_matrix, set_pose_fields, stamp_to_ns
+    from memgs_ros.ros.tf_outputs import tf_static_qos
+
+    def transform(parent: str, child: str, T: np.ndarray) -> TransformStamped:
+        t = TransformStamped()
+        t.header.frame_id, t.child_frame_id = parent, child
+        set_pose_fields(t.transform.translation, t.transform.rotation, T)
+        return t
+
+    link = mount_transform([0.2, 0.0, 0.1, 0.0, 0.3, 0.0]) @ invert_pose(_T(OPTICAL_IN_BODY, [0, 0, 0]))
+    optical = _T(OPTICAL_IN_BODY, [0.0, 0.015, 0.0])  # camera_link -> its colour optical frame
+    E = link @ optical
+    feed = TrackerFeed(context, [Parameter("publish_camera_tf", value=False)], frame_id="cam_optical")
+    robot = rclpy.create_node("robot_state_publisher", context=context)
+    robot_static = robot.create_publisher(TFMessage, "/tf_static", tf_static_qos())
+    robot_static.publish(TFMessage(transforms=[transform("base_link", "camera_link", link),
+                                               transform("camera_link", "cam_optical", optical)]))
+    feed.ex.add_node(robot)
+    odom: list[Odometry] = []
+    feed.peer.create_subscription(Odometry, "memgs/odom", odom.append, qos.reliable(100))
+    statics: list = []
+    feed.peer.create_subscription(TFMessage, "/tf_static", statics.append, tf_static_qos())
+    try:
+        feed.wait_for_inputs()
+        assert feed.spin_until(lambda: feed.node.out.tf.mount("cam_optical") is not None, 10.0)
+        frames = list(itertools.islice(generate_frames(parse_spec("synthetic:w=320,h=240,n=60,seed=2")), 8))
+        feed.camera(frames[0].camera, frames[0].stamp_ns)
+        for f in frames:
+            feed.send(f.rgb, f.depth_m, f.stamp_ns)
+        assert feed.node.out.mount_settled and np.allclose(feed.node.out.frames.T_base_optical, E, atol=1e-6)
+        assert feed.spin_until(lambda: len(odom) >= 7 and any(
+            t.child_frame_id == "map_optical" for m in statics for t in m.transforms), 5.0)
+        ours = [t for m in statics for t in m.transforms if t.header.frame_id == "map"]
+        assert [t.child_frame_id for t in ours] == ["map_optical"]  # the camera's is the robot's
+        assert not any(t.header.frame_id == "base_link" and t.child_frame_id == "cam_optical"
+                       for m in statics for t in m.transforms)
+        by_stamp = {f.stamp_ns: f for f in frames}
+        first = pose_to_matrix(odom[0].pose.pose)
+        assert stamp_to_ns(odom[0].header.stamp) in by_stamp and np.isfinite(first).all()
+        assert feed.node.stats.counters["odometry_withheld"] == 0  # the robot's statics came first
+    finally:
+        feed.close()
+        robot.destroy_node()

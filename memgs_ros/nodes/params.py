@@ -107,8 +107,11 @@ class TrackerParams:
     odom_tolerance_s: float = 0.05  # the odom_frame -> base_frame transform used lies this close to the frame
     publish_tf: bool = True  # /tf map -> base_frame (or odom_frame) per tracked frame, /tf_static map -> world_frame
     # /tf_static base_frame -> the images' optical frame from camera_mount_*; false where the robot
-    # description or the camera driver already publishes the camera in TF
+    # description or the camera driver already publishes the camera in TF (the mount is then read there)
     publish_camera_tf: bool = True
+    # with publish_camera_tf false: how long to wait for base_frame -> the camera on tf_static (read as the
+    # mount) before the camera_mount_* parameters stand in; the body's poses wait with it
+    camera_mount_wait_s: float = 2.0
     # the camera's mount in base_frame: metres and radians of its own REP-103 frame (x along the lens), as a
     # URDF joint; all zero: looking forward from the body's origin
     camera_mount_x: float = 0.0
@@ -130,7 +133,7 @@ class TrackerParams:
         "depth_scale": (1e-3, 1e6), "max_sync_dt_s": (0.0, 1.0), "unpaired_warn_s": (0.1, 3600.0),
         "path_max_len": (0, 10**7),
         "path_rate_hz": (0.01, 100.0), "time_jump_back_s": (0.0, 1e6), "max_stamp_ahead_s": (0.0, 1e9),
-        "max_frame_age_s": (0.0, 60.0), "odom_tolerance_s": (0.0, 10.0),
+        "max_frame_age_s": (0.0, 60.0), "odom_tolerance_s": (0.0, 10.0), "camera_mount_wait_s": (0.0, 600.0),
         "camera_mount_x": (-100.0, 100.0), "camera_mount_y": (-100.0, 100.0), "camera_mount_z": (-100.0, 100.0),
         "camera_mount_roll": (-7.0, 7.0), "camera_mount_pitch": (-7.0, 7.0), "camera_mount_yaw": (-7.0, 7.0),
     }

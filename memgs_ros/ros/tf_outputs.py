@@ -4,7 +4,9 @@ stamp; ``map -> <world_frame>`` (the SLAM world: the first camera's optical fram
 ``/tf_static``. Both topics are relative (``<namespace>/tf`` under a namespace, as multi-robot
 Nav2 launches remap them). With an ``odom_frame``, ``map -> odom`` instead of ``map -> base_link``, from the
 ``odom -> base_link`` a flight controller or wheel odometry publishes (the one nearest the frame's
-stamp, within ``odom_tolerance_s``).
+stamp, within ``odom_tolerance_s``). Where the robot publishes the camera (``publish_camera_tf``
+false), the mount is read from ``tf_static`` (``StaticTree``) and fixed before the first pose goes
+out; the ``camera_mount_*`` parameters stand in after ``camera_mount_wait_s``.
 
 ``tf2_msgs`` comes with ROS; where the PyPI wheels stand in for it, ``python -m
 memgs_ros.ros.tf2_msgs_build`` generates it. Without it the node says so once and publishes no TF
@@ -25,7 +27,7 @@ from memgs_ros.core.geometry.frames import FrameConvention
 from memgs_ros.core.geometry.poses import pose_from_tq
 from memgs_ros.ros.codecs import set_pose_fields, set_stamp, stamp_to_ns
 
-__all__ = ["TfOutbox", "tf_message_type", "tf_qos", "tf_static_qos"]
+__all__ = ["StaticTree", "TfOutbox", "tf_message_type", "tf_qos", "tf_static_qos"]
 
 
 def tf_message_type() -> Any | None:
@@ -93,6 +95,31 @@ class OdomTrack:
         return self.poses[best] if abs(stamps[best] - stamp_ns) <= tolerance_ns else None
 
 
+class StaticTree:
+    """The static transforms seen on ``tf_static`` (child -> its parent and pose in it), chained on
+    lookup: the camera's mount as a robot description and the camera driver publish it
+    (``base_link -> camera_link -> camera_color_optical_frame``)."""
+
+    def __init__(self) -> None:
+        self.parents: dict[str, tuple[str, np.ndarray]] = {}
+
+    def add(self, msg: Any) -> None:
+        for t in msg.transforms:
+            self.parents[t.child_frame_id.lstrip("/")] = (t.header.frame_id.lstrip("/"), _matrix(t.transform))
+
+    def lookup(self, parent: str, child: str) -> np.ndarray | None:
+        """``T_parent_child`` [4, 4] along the chain of static transforms, or None."""
+        T, frame = np.eye(4), child
+        for _ in range(64):  # a cycle or a broken chain ends the walk
+            if frame == parent:
+                return T
+            if frame not in self.parents:
+                return None
+            frame, T_up = self.parents[frame][0], self.parents[frame][1]
+            T = T_up @ T
+        return None
+
+
 class TfOutbox:
     """The tracker's transforms (see the module docstring); ``available`` is False without tf2_msgs."""
 
@@ -119,11 +146,19 @@ class TfOutbox:
         if odom_frame:
             self.odom = OdomTrack(odom_frame, base_frame)
             node.create_subscription(msg_type, "tf", self.odom.add, tf_qos())
+        self.statics: StaticTree | None = None
+        if not publish_camera_tf:  # the robot publishes the camera: read its mount there
+            self.statics = StaticTree()
+            node.create_subscription(msg_type, "tf_static", self.statics.add, tf_static_qos())
         self._stamp_ns = node.get_clock().now().nanoseconds
-        self.set_camera_frame(camera_frame)
+
+    def mount(self, camera_frame: str) -> np.ndarray | None:
+        """The camera's optical frame in the body as TF has it [4, 4] (None: not (yet) on tf_static)."""
+        return None if self.statics is None else self.statics.lookup(self.base_frame, camera_frame)
 
     def set_camera_frame(self, camera_frame: str) -> None:
-        """(Re)publish the statics, naming the images' optical frame (the first frame's header)."""
+        """(Re)publish the statics, naming the images' optical frame (the first frame's header),
+        once the mount is settled (``frames``)."""
         if not self.available or camera_frame == self.camera_frame:
             return
         self.camera_frame = camera_frame

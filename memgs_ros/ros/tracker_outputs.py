@@ -4,6 +4,7 @@ odometry and TF and the ``processed`` answer a lockstep player waits on; the cor
 refined and loop-corrected poses of earlier keyframes."""
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -171,6 +172,11 @@ class TrackerOutbox:
         self.tf = TfOutbox(node, self.frames, params.map_frame, world_frame, params.base_frame, params.camera_frame,
                            params.publish_camera_tf, params.odom_frame,
                            params.odom_tolerance_s) if params.publish_tf else None
+        # The mount is settled before the first body pose goes out (map is anchored by it): the
+        # parameters', or TF's where the robot publishes the camera (waited for camera_mount_wait_s).
+        self.mount_settled = self.tf is None or not self.tf.available or self.tf.statics is None
+        self._mount_wait_ns, self._mount_asked_ns = int(params.camera_mount_wait_s * 1e9), None
+        self._log = node.get_logger()
         rel = qos.reliable(10)
         self.pose = node.create_publisher(PoseStamped, "memgs/pose", rel)  # the camera in world_frame
         # Tracked poses only (state OK), with the covariance: what a flight controller fuses. The body
@@ -213,17 +219,19 @@ class TrackerOutbox:
         if previous is not None and (name == "LOST") != (previous == "LOST"):
             stats.publish()  # lost, or back: /diagnostics hears it now, not at the next second
         pose = None
-        if self.tf is not None:
+        if self.settle_mount(camera_frame) and self.tf is not None:
             self.tf.set_camera_frame(camera_frame)
         if result.T_wc is not None:
             pose = matrix_to_pose_stamped(result.T_wc, stamp, self.world_frame)
             self.pose.publish(pose)
             stats.counters["poses_out"] += 1
-            if result.pose_cov is not None:  # tracked: not coasted, not a start without a pose fit
+            if not self.mount_settled:
+                stats.counters["odometry_withheld"] += 1  # the body's pose waits for the camera's mount
+            elif result.pose_cov is not None:  # tracked: not coasted, not a start without a pose fit
                 self._tracked_odometry(result.T_wc, result.pose_cov, stamp)
             else:
                 self._last_tracked = None
-            if self.tf is not None and name == "OK" and self.tf.tracked(result.T_wc, stamp):
+            if self.mount_settled and self.tf is not None and name == "OK" and self.tf.tracked(result.T_wc, stamp):
                 stats.counters["tf_out"] += 1
             if result.keyframe is not None:
                 self.keyframes.publish(result, camera, camera_frame, color, depth)
@@ -236,6 +244,27 @@ class TrackerOutbox:
             stats.counters["culled_keyframes"] += self.keyframes.publish_culled(list(culled))
         self.path.add(result, pose, loops, {k: heir for k, heir, _ in culled})
         self.processed(stamp, keyframe=result.keyframe is not None)
+
+    def settle_mount(self, camera_frame: str) -> bool:
+        """Whether the camera's mount is settled; settles it from TF when TF has it, else from the
+        parameters once ``camera_mount_wait_s`` has passed (warned)."""
+        if self.mount_settled:
+            return True
+        assert self.tf is not None
+        now = time.monotonic_ns()
+        self._mount_asked_ns = self._mount_asked_ns or now
+        E = self.tf.mount(camera_frame)
+        if E is not None:
+            self.frames = self.tf.frames = FrameConvention(E)
+            self._log.info(f"camera mount from tf_static: {self.base_frame} -> {camera_frame} at "
+                           f"{np.round(E[:3, 3], 3).tolist()} m")
+        elif now - self._mount_asked_ns >= self._mount_wait_ns:
+            self._log.warning(f"no {self.base_frame} -> {camera_frame} on tf_static within the wait: using the "
+                              "camera_mount_* parameters (set publish_camera_tf true if nothing publishes it)")
+        else:
+            return False
+        self.mount_settled = True
+        return True
 
     def _tracked_odometry(self, T_wc: np.ndarray, pose_cov: np.ndarray, stamp: int) -> None:
         """``memgs/odom`` and ``memgs/pose_with_covariance``: the body in map_frame, the covariance
