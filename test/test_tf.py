@@ -217,3 +217,84 @@ def test_the_mount_is_read_from_the_robots_tf_static(context) -> None:  # noqa: 
     finally:
         feed.close()
         robot.destroy_node()
+
+
+def test_odometry_from_tf_is_interpolated_to_the_frame_and_never_extrapolated() -> None:
+    pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+    from types import SimpleNamespace
+
+    from geometry_msgs.msg import TransformStamped
+
+    from memgs_ros.ros.codecs import set_pose_fields, set_stamp
+    from memgs_ros.ros.tf_outputs import OdomTrack
+
+    def tf(stamp_ns: int, x: float, yaw: float, parent: str = "odom") -> TransformStamped:
+        t = TransformStamped()
+        set_stamp(t.header.stamp, stamp_ns)
+        t.header.frame_id, t.child_frame_id = parent, "base_link"
+        set_pose_fields(t.transform.translation, t.transform.rotation, _T(_rot("z", yaw), [x, 0, 0]))
+        return t
+
+    track = OdomTrack("odom", "base_link")
+    track.add(SimpleNamespace(transforms=[tf(1_000_000_000, 0.0, 0.0), tf(1_100_000_000, 1.0, 0.2),
+                                          tf(1_050_000_000, 9.0, 0.0, parent="map")]))  # another parent: ignored
+    mid = track.at(1_050_000_000, 10_000_000)
+    assert np.allclose(mid[:3, 3], [0.5, 0, 0]) and np.allclose(rotmat_to_rotvec(mid[:3, :3]), [0, 0, 0.1])
+    assert np.allclose(track.at(1_120_000_000, 30_000_000)[:3, 3], [1.0, 0, 0])  # nearest, within tolerance
+    assert track.at(1_200_000_000, 30_000_000) is None  # past the odometry: no extrapolation
+    track.add(SimpleNamespace(transforms=[tf(500_000_000, 3.0, 0.0)]))  # time went back (a looped bag)
+    assert track.at(1_050_000_000, 10_000_000) is None and np.allclose(track.at(500_000_000, 0)[:3, 3], [3, 0, 0])
+
+
+def test_with_an_odom_frame_the_tracker_broadcasts_map_to_odom(context) -> None:  # noqa: ANN001
+    """A flight controller publishes odom -> base_link; the tracker then broadcasts map -> odom so
+    that map -> odom -> base_link is its own body pose (REP-105)."""
+    pytest.importorskip("rclpy", reason="the ROS extra is not installed")
+    from geometry_msgs.msg import PoseStamped, TransformStamped
+    from rclpy.parameter import Parameter
+    from tf2_msgs.msg import TFMessage
+    from tracker_harness import TrackerFeed
+
+    from memgs_ros.io.synthetic import generate_frames, parse_spec
+    from memgs_ros.ros import qos
+    from memgs_ros.ros.codecs import pose_to_matrix, set_pose_fields, set_stamp, stamp_to_ns
+    from memgs_ros.ros.tf_outputs import tf_qos
+
+    feed = TrackerFeed(context, [Parameter("odom_frame", value="odom")])
+    heard: list = []
+    poses: list[PoseStamped] = []
+    pub = feed.peer.create_publisher(TFMessage, "/tf", tf_qos())
+    feed.peer.create_subscription(TFMessage, "/tf", heard.append, tf_qos())
+    feed.peer.create_subscription(PoseStamped, "memgs/pose", poses.append, qos.reliable(100))
+    fc = feed.node.out.frames
+    try:
+        feed.wait_for_inputs()
+        assert feed.spin_until(lambda: pub.get_subscription_count() >= 2)  # the tracker's and ours
+        frames = list(itertools.islice(generate_frames(parse_spec("synthetic:w=320,h=240,n=60,seed=2")), 6))
+        feed.camera(frames[0].camera, frames[0].stamp_ns)
+        drift = {}
+        for i, f in enumerate(frames):
+            T = _T(_rot("z", 0.01 * i), [0.02 * i, 0.0, 0.0])  # the flight controller's drifting odometry
+            drift[f.stamp_ns] = T
+            t = TransformStamped()
+            set_stamp(t.header.stamp, f.stamp_ns)
+            t.header.frame_id, t.child_frame_id = "odom", "base_link"
+            set_pose_fields(t.transform.translation, t.transform.rotation, T)
+            pub.publish(TFMessage(transforms=[t]))
+            track = feed.node.out.tf.odom
+            assert feed.spin_until(lambda s=f.stamp_ns: s in track.stamps, 5.0)  # the tracker has it
+            feed.send(f.rgb, f.depth_m, f.stamp_ns)
+        tracked = feed.node.stats.counters["tf_out"]
+        assert tracked >= 5
+        assert feed.spin_until(lambda: len(poses) >= tracked and sum(
+            t.header.frame_id == "map" for m in heard for t in m.transforms) >= tracked, 5.0)
+        ours = [t for m in heard for t in m.transforms if t.header.frame_id == "map"]
+        assert all(t.child_frame_id == "odom" for t in ours)
+        camera = {stamp_to_ns(p.header.stamp): pose_to_matrix(p.pose) for p in poses}
+        for t in ours:  # map -> odom -> base_link is the tracker's body pose
+            tr, q = t.transform.translation, t.transform.rotation
+            T_map_odom = pose_from_tq(np.array([tr.x, tr.y, tr.z]), np.array([q.x, q.y, q.z, q.w]))
+            stamp = stamp_to_ns(t.header.stamp)
+            assert np.allclose(T_map_odom @ drift[stamp], fc.base_in_map(camera[stamp]), atol=1e-6)
+    finally:
+        feed.close()

@@ -3,8 +3,8 @@ stamp; ``map -> <world_frame>`` (the SLAM world: the first camera's optical fram
 ``base_link -> <camera optical frame>`` (the mount, unless the robot publishes it) on
 ``/tf_static``. Both topics are relative (``<namespace>/tf`` under a namespace, as multi-robot
 Nav2 launches remap them). With an ``odom_frame``, ``map -> odom`` instead of ``map -> base_link``, from the
-``odom -> base_link`` a flight controller or wheel odometry publishes (the one nearest the frame's
-stamp, within ``odom_tolerance_s``). Where the robot publishes the camera (``publish_camera_tf``
+``odom -> base_link`` a flight controller or wheel odometry publishes (interpolated to the
+frame's stamp, or the nearest within ``odom_tolerance_s``). Where the robot publishes the camera (``publish_camera_tf``
 false), the mount is read from ``tf_static`` (``StaticTree``) and fixed before the first pose goes
 out; the ``camera_mount_*`` parameters stand in after ``camera_mount_wait_s``.
 
@@ -24,10 +24,12 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from memgs_ros.core.geometry.frames import FrameConvention
-from memgs_ros.core.geometry.poses import pose_from_tq
+from memgs_ros.core.geometry.poses import interpolate_poses, pose_from_tq
 from memgs_ros.ros.codecs import set_pose_fields, set_stamp, stamp_to_ns
 
-__all__ = ["StaticTree", "TfOutbox", "tf_message_type", "tf_qos", "tf_static_qos"]
+MAX_ODOM_GAP_S = 0.5  # odometry further apart than this is not interpolated across
+
+__all__ = ["OdomTrack", "StaticTree", "TfOutbox", "tf_message_type", "tf_qos", "tf_static_qos"]
 
 
 def tf_message_type() -> Any | None:
@@ -85,12 +87,19 @@ class OdomTrack:
                 self.stamps.append(stamp)
                 self.poses.append(_matrix(t.transform))
 
-    def nearest(self, stamp_ns: int, tolerance_ns: int) -> np.ndarray | None:
-        """``T_odom_base`` nearest ``stamp_ns`` if one lies within ``tolerance_ns``."""
+    def at(self, stamp_ns: int, tolerance_ns: int) -> np.ndarray | None:
+        """``T_odom_base`` at ``stamp_ns``: interpolated between the two transforms around it (at
+        most ``MAX_ODOM_GAP_S`` apart), else the nearest if it lies within ``tolerance_ns`` (no
+        extrapolation past that); None otherwise."""
         if not self.stamps:
             return None
         stamps = list(self.stamps)
         i = bisect.bisect_left(stamps, stamp_ns)
+        if 0 < i < len(stamps):
+            pair, valid = interpolate_poses(np.array(stamps[i - 1:i + 1]), np.stack([self.poses[i - 1], self.poses[i]]),
+                                            np.array([stamp_ns]), max_gap_ns=int(MAX_ODOM_GAP_S * 1e9))
+            if valid[0]:
+                return pair[0]
         best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp_ns))
         return self.poses[best] if abs(stamps[best] - stamp_ns) <= tolerance_ns else None
 
@@ -176,7 +185,7 @@ class TfOutbox:
         if self.odom is None:
             tf = _transform(T_map_base, stamp_ns, self.map_frame, self.base_frame)
         else:
-            T_odom_base = self.odom.nearest(stamp_ns, self._odom_tol_ns)
+            T_odom_base = self.odom.at(stamp_ns, self._odom_tol_ns)
             if T_odom_base is None:
                 self.missed_odom += 1
                 return False
