@@ -489,7 +489,10 @@ def probe_nodes(prefix: Path, launch: Launch, workdir: Path) -> dict[str, dict]:
         # --param values as the node's parameter overrides (memgs_ros/nodes/composed.py).
         for hosted in node.hosts:
             own_values = node.node_params.get(hosted, {})
-            nodes.append({"name": hosted, "executable": hosted, "cli_args": cli, "overrides": own_values,
+            # Unconfigured (autostart off): the parameters are declared and checked at construction;
+            # configure's work (the session, the kernels' warm-up) is not what this probes.
+            nodes.append({"name": hosted, "executable": hosted, "cli_args": cli,
+                          "overrides": {**own_values, "autostart": False},
                           "check_values": sorted({*node.params, *own_values})})
     domain = random.Random().randrange(100, 200)
     proc = subprocess.run([sys.executable, "-c", _PROBE, json.dumps({"domain": domain, "nodes": nodes})],
