@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from memgs_ros.core.geometry.frames import OPTICAL_IN_BODY, FrameConvention, FrameError, mount_transform
-from memgs_ros.core.geometry.poses import invert_pose, pose_from_tq, rotmat_to_rotvec
+from memgs_ros.core.geometry.poses import invert_pose, rotmat_to_rotvec
 from memgs_ros.errors import ConfigError
 from memgs_ros.nodes.params import TrackerParams
 
@@ -93,7 +93,7 @@ def test_tf_and_odometry_on_real_dds(context) -> None:  # noqa: ANN001
 
     from memgs_ros.io.synthetic import generate_frames, parse_spec
     from memgs_ros.ros import qos
-    from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
+    from memgs_ros.ros.codecs import pose_fields_to_matrix, pose_to_matrix, stamp_to_ns
     from memgs_ros.ros.tf_outputs import tf_qos, tf_static_qos
 
     mount = [0.1, 0.0, -0.05, 0.0, 0.2, 0.0]
@@ -126,10 +126,7 @@ def test_tf_and_odometry_on_real_dds(context) -> None:  # noqa: ANN001
         st = {(t.header.frame_id, t.child_frame_id): t for t in static[-1].transforms}
         assert set(st) == {("map", "map_optical"), ("base_link", "cam_optical")}
         E = mount_transform(mount)
-        tf_mat = {k: pose_from_tq(np.array([v.transform.translation.x, v.transform.translation.y,
-                                            v.transform.translation.z]),
-                                  np.array([v.transform.rotation.x, v.transform.rotation.y, v.transform.rotation.z,
-                                            v.transform.rotation.w])) for k, v in st.items()}
+        tf_mat = {k: pose_fields_to_matrix(v.transform.translation, v.transform.rotation) for k, v in st.items()}
         assert np.allclose(tf_mat[("base_link", "cam_optical")], E, atol=1e-9)
         assert np.allclose(tf_mat[("map", "map_optical")], E, atol=1e-9)
         # /tf: map -> base_link for every tracked frame, stamped with the frame's stamp.
@@ -144,8 +141,7 @@ def test_tf_and_odometry_on_real_dds(context) -> None:  # noqa: ANN001
         # The tree closes: map -> base_link -> camera == map -> map_optical -> camera (memgs/pose).
         by_stamp = {stamp_to_ns(p.header.stamp): pose_to_matrix(p.pose) for p in poses}
         for t in sent:
-            tr, q = t.transform.translation, t.transform.rotation
-            T_mb = pose_from_tq(np.array([tr.x, tr.y, tr.z]), np.array([q.x, q.y, q.z, q.w]))
+            T_mb = pose_fields_to_matrix(t.transform.translation, t.transform.rotation)
             assert np.allclose(T_mb @ E, E @ by_stamp[stamp_to_ns(t.header.stamp)], atol=1e-6)
         # Odometry: the body in map, child base_link, the same pose as TF.
         tf_by_stamp = {stamp_to_ns(t.header.stamp): t.transform for t in sent}
@@ -236,8 +232,11 @@ def test_odometry_from_tf_is_interpolated_to_the_frame_and_never_extrapolated() 
         return t
 
     track = OdomTrack("odom", "base_link")
+    broken = tf(1_060_000_000, 0.0, 0.0)
+    broken.transform.translation.x = float("nan")  # another node's bad message: skipped, no crash
     track.add(SimpleNamespace(transforms=[tf(1_000_000_000, 0.0, 0.0), tf(1_100_000_000, 1.0, 0.2),
-                                          tf(1_050_000_000, 9.0, 0.0, parent="map")]))  # another parent: ignored
+                                          tf(1_050_000_000, 9.0, 0.0, parent="map"), broken]))  # map: ignored
+    assert len(track.stamps) == 2
     mid = track.at(1_050_000_000, 10_000_000)
     assert np.allclose(mid[:3, 3], [0.5, 0, 0]) and np.allclose(rotmat_to_rotvec(mid[:3, :3]), [0, 0, 0.1])
     assert np.allclose(track.at(1_120_000_000, 30_000_000)[:3, 3], [1.0, 0, 0])  # nearest, within tolerance
@@ -257,7 +256,7 @@ def test_with_an_odom_frame_the_tracker_broadcasts_map_to_odom(context) -> None:
 
     from memgs_ros.io.synthetic import generate_frames, parse_spec
     from memgs_ros.ros import qos
-    from memgs_ros.ros.codecs import pose_to_matrix, set_pose_fields, set_stamp, stamp_to_ns
+    from memgs_ros.ros.codecs import pose_fields_to_matrix, pose_to_matrix, set_pose_fields, set_stamp, stamp_to_ns
     from memgs_ros.ros.tf_outputs import tf_qos
 
     feed = TrackerFeed(context, [Parameter("odom_frame", value="odom")])
@@ -284,15 +283,14 @@ def test_with_an_odom_frame_the_tracker_broadcasts_map_to_odom(context) -> None:
             assert feed.spin_until(lambda s=f.stamp_ns: s in feed.node.out.tf.odom.stamps, 5.0)  # the tracker has it
             feed.send(f.rgb, f.depth_m, f.stamp_ns)
         tracked = feed.node.stats.counters["tf_out"]
-        assert tracked >= 5
+        assert tracked >= 5 and feed.node.stats.counters["tf_no_odom"] == 0
         assert feed.spin_until(lambda: len(poses) >= tracked and sum(
             t.header.frame_id == "map" for m in heard for t in m.transforms) >= tracked, 5.0)
         ours = [t for m in heard for t in m.transforms if t.header.frame_id == "map"]
         assert all(t.child_frame_id == "odom" for t in ours)
         camera = {stamp_to_ns(p.header.stamp): pose_to_matrix(p.pose) for p in poses}
         for t in ours:  # map -> odom -> base_link is the tracker's body pose
-            tr, q = t.transform.translation, t.transform.rotation
-            T_map_odom = pose_from_tq(np.array([tr.x, tr.y, tr.z]), np.array([q.x, q.y, q.z, q.w]))
+            T_map_odom = pose_fields_to_matrix(t.transform.translation, t.transform.rotation)
             stamp = stamp_to_ns(t.header.stamp)
             assert np.allclose(T_map_odom @ drift[stamp], fc.base_in_map(camera[stamp]), atol=1e-6)
     finally:

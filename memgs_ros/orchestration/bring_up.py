@@ -38,7 +38,7 @@ def _await(futures: Mapping[str, Any], check: Callable[[], None], deadline: floa
         check()
         if time.monotonic() > deadline:
             raise PipelineError(f"{', '.join(sorted(pending))} did not answer {what} in time")
-    return {name: f.result() for name, f in futures.items()}
+    return {name: f.result() for name, f in futures.items()}  # all done: result() returns at once
 
 
 def bring_up(node: Any, names: Sequence[str], check: Callable[[], None], deadline: float) -> float:

@@ -57,6 +57,7 @@ __all__ = [
     "ns_to_stamp",
     "numpy_to_image",
     "pointcloud2_to_structured",
+    "pose_fields_to_matrix",
     "pose_to_matrix",
     "pose_to_odometry",
     "set_pose_fields",
@@ -213,7 +214,12 @@ def camera_to_camera_info(cam: PinholeCamera, stamp_ns: int, frame_id: str) -> C
 
 def pose_to_matrix(pose: Pose) -> np.ndarray:
     """geometry_msgs/Pose -> [4, 4] float64 (the quaternion is normalised)."""
-    p, o = pose.position, pose.orientation
+    return pose_fields_to_matrix(pose.position, pose.orientation)
+
+
+def pose_fields_to_matrix(p: Any, o: Any) -> np.ndarray:
+    """A position (Point or Vector3: a Pose's or a Transform's) and a Quaternion -> [4, 4] float64,
+    the quaternion normalised; MessageError when not finite or the quaternion is zero."""
     t = np.array([p.x, p.y, p.z], dtype=np.float64)
     q_xyzw = np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
     n = float(np.linalg.norm(q_xyzw))

@@ -24,8 +24,9 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from memgs_ros.core.geometry.frames import FrameConvention
-from memgs_ros.core.geometry.poses import interpolate_poses, pose_from_tq
-from memgs_ros.ros.codecs import set_pose_fields, set_stamp, stamp_to_ns
+from memgs_ros.core.geometry.poses import interpolate_poses
+from memgs_ros.errors import MessageError
+from memgs_ros.ros.codecs import pose_fields_to_matrix, set_pose_fields, set_stamp, stamp_to_ns
 
 MAX_ODOM_GAP_S = 0.5  # odometry further apart than this is not interpolated across
 
@@ -61,9 +62,13 @@ def _transform(T: np.ndarray, stamp_ns: int, parent: str, child: str) -> Transfo
     return msg
 
 
-def _matrix(tf: Transform) -> np.ndarray:
-    t, q = tf.translation, tf.rotation
-    return pose_from_tq(np.array([t.x, t.y, t.z]), np.array([q.x, q.y, q.z, q.w]))
+def _matrix(tf: Transform) -> np.ndarray | None:
+    """A received transform as [4, 4], or None when it is not finite (another node's bad message
+    is skipped, not a crash of this one)."""
+    try:
+        return pose_fields_to_matrix(tf.translation, tf.rotation)
+    except MessageError:
+        return None
 
 
 class OdomTrack:
@@ -77,6 +82,8 @@ class OdomTrack:
     def add(self, msg: Any) -> None:
         for t in msg.transforms:
             if t.header.frame_id.lstrip("/") == self.odom_frame and t.child_frame_id.lstrip("/") == self.base_frame:
+                if (T := _matrix(t.transform)) is None:
+                    continue
                 stamp = stamp_to_ns(t.header.stamp)
                 if self.stamps and stamp <= self.stamps[-1]:
                     if stamp < self.stamps[-1]:  # time went back (a bag looped): start over
@@ -85,7 +92,7 @@ class OdomTrack:
                     else:
                         continue
                 self.stamps.append(stamp)
-                self.poses.append(_matrix(t.transform))
+                self.poses.append(T)
 
     def at(self, stamp_ns: int, tolerance_ns: int) -> np.ndarray | None:
         """``T_odom_base`` at ``stamp_ns``: interpolated between the two transforms around it (at
@@ -114,7 +121,8 @@ class StaticTree:
 
     def add(self, msg: Any) -> None:
         for t in msg.transforms:
-            self.parents[t.child_frame_id.lstrip("/")] = (t.header.frame_id.lstrip("/"), _matrix(t.transform))
+            if (T := _matrix(t.transform)) is not None:
+                self.parents[t.child_frame_id.lstrip("/")] = (t.header.frame_id.lstrip("/"), T)
 
     def lookup(self, parent: str, child: str) -> np.ndarray | None:
         """``T_parent_child`` [4, 4] along the chain of static transforms, or None."""
@@ -141,7 +149,6 @@ class TfOutbox:
         self.odom_frame, self._odom_tol_ns = odom_frame, int(odom_tolerance_s * 1e9)
         msg_type = tf_message_type()
         self.available = msg_type is not None
-        self.sent = self.missed_odom = 0
         if msg_type is None:
             node.get_logger().warning("tf2_msgs is not installed: publishing no /tf (ROS installs it; with the "
                                       "PyPI wheels run python -m memgs_ros.ros.tf2_msgs_build)")
@@ -187,9 +194,7 @@ class TfOutbox:
         else:
             T_odom_base = self.odom.at(stamp_ns, self._odom_tol_ns)
             if T_odom_base is None:
-                self.missed_odom += 1
                 return False
             tf = _transform(T_map_base @ np.linalg.inv(T_odom_base), stamp_ns, self.map_frame, self.odom_frame)
         self.pub.publish(self._type(transforms=[tf]))
-        self.sent += 1
         return True

@@ -183,7 +183,7 @@ class TrackerOutbox:
         # (base_frame) in map_frame, z up (REP-103/105)
         self.odom = node.create_publisher(Odometry, "memgs/odom", rel)
         self.pose_cov = node.create_publisher(PoseWithCovarianceStamped, "memgs/pose_with_covariance", rel)
-        self._last_tracked: tuple[int, np.ndarray] | None = None  # (stamp, T_wc) of the last OK pose
+        self._last_tracked: tuple[int, np.ndarray] | None = None  # (stamp, body in map) of the last OK pose
         self.path_pub = node.create_publisher(Path, "memgs/path", rel)
         self.state = node.create_publisher(String, "memgs/tracking_state", rel)
         self.processed_pub = node.create_publisher(Header, "memgs/tracker/processed", qos.reliable(100))
@@ -231,8 +231,9 @@ class TrackerOutbox:
                 self._tracked_odometry(result.T_wc, result.pose_cov, stamp)
             else:
                 self._last_tracked = None
-            if self.mount_settled and self.tf is not None and name == "OK" and self.tf.tracked(result.T_wc, stamp):
-                stats.counters["tf_out"] += 1
+            if self.mount_settled and self.tf is not None and self.tf.available and name == "OK":
+                # False only with an odom_frame and no odom -> base_link near the frame's stamp
+                stats.counters["tf_out" if self.tf.tracked(result.T_wc, stamp) else "tf_no_odom"] += 1
             if result.keyframe is not None:
                 self.keyframes.publish(result, camera, camera_frame, color, depth)
                 stats.counters["keyframes"] += 1

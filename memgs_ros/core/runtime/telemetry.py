@@ -43,6 +43,7 @@ class TrackerTelemetry(NodeTelemetry):
     poses_out: int = 0  # poses published on memgs/pose (coasted ones too)
     odometry_out: int = 0  # tracked poses (state OK) on memgs/odom and memgs/pose_with_covariance
     odometry_withheld: int = 0  # poses whose odometry and TF waited for the camera's mount on tf_static
+    tf_no_odom: int = 0  # tracked frames with an odom_frame but no odom -> base_link near their stamp: no TF
     tf_out: int = 0  # map -> base_link (or map -> odom) transforms broadcast on /tf, one per tracked frame
     keyframes: int = 0  # keyframes sent to the sampler and mapper
     track_us_total: int = 0  # time in track(), microseconds
