@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import random
 import subprocess
 import sys
 import types
@@ -473,7 +472,7 @@ print("PROBE" + json.dumps(out))
 """
 
 
-def probe_nodes(prefix: Path, launch: Launch, workdir: Path) -> dict[str, dict]:
+def probe_nodes(prefix: Path, launch: Launch, workdir: Path, domain: int) -> dict[str, dict]:
     nodes = []
     for i, node in enumerate(launch.nodes):
         own = workdir / f"launch_params_{i}.yaml"
@@ -494,7 +493,6 @@ def probe_nodes(prefix: Path, launch: Launch, workdir: Path) -> dict[str, dict]:
             nodes.append({"name": hosted, "executable": hosted, "cli_args": cli,
                           "overrides": {**own_values, "autostart": False},
                           "check_values": sorted({*node.params, *own_values})})
-    domain = random.Random().randrange(100, 200)
     proc = subprocess.run([sys.executable, "-c", _PROBE, json.dumps({"domain": domain, "nodes": nodes})],
                           env=install_env(prefix, domain), cwd=workdir, capture_output=True, text=True,
                           timeout=300, check=False)
@@ -531,7 +529,8 @@ def test_launch_file_is_installed_where_ros2_launch_finds_it(colcon_prefix: Path
 @pytest.mark.ros
 @pytest.mark.slow
 def test_installed_launch_names_only_what_the_install_has(colcon_prefix: Path, installed_share: Path,
-                                                          tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+                                                          tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                          ros_domain_id: int) -> None:
     monkeypatch.delenv("FASTRTPS_DEFAULT_PROFILES_FILE", raising=False)
     path = installed_share / "launch" / LAUNCH_NAME
     default = load_launch(path, {PKG: installed_share})
@@ -541,13 +540,13 @@ def test_installed_launch_names_only_what_the_install_has(colcon_prefix: Path, i
     for composed in ("false", "true"):
         launch = load_launch(path, {PKG: installed_share},
                              {"namespace": "/uav1", "use_sim_time": "true", "composed": composed})
-        _check_installed_launch(colcon_prefix, launch, default, executables, tmp_path / composed)
+        _check_installed_launch(colcon_prefix, launch, default, executables, tmp_path / composed, ros_domain_id)
 
 
 def _check_installed_launch(colcon_prefix: Path, launch: Launch, default: Launch, executables: set[str],
-                            tmp_path: Path) -> None:
+                            tmp_path: Path, domain: int) -> None:
     tmp_path.mkdir()
-    report = probe_nodes(colcon_prefix, launch, tmp_path)
+    report = probe_nodes(colcon_prefix, launch, tmp_path, domain)
     refused = {name: r["error"] for name, r in report.items() if "error" in r}
     assert not refused, f"nodes refused the launch's parameters: {refused}"
     declared = {name: set(r["declared"]) for name, r in report.items()}
