@@ -15,6 +15,12 @@ Cases:
                --flip-backward-readout the backward passes are read bottom to top (readout -0.02 s)
                by decree instead of by the tracker's own check (frontend/readout.py): a replayed
                rolling-shutter sequence played backward shows its rows in the wrong order
+  perturbed    real fr1/rpy as a realsense-layout bag carries it (depth in whole millimetres), with the
+               tum_fr1 keyframe rule and BA inline (what `memgs run` lockstep tracks, ATE for ATE):
+               raw, colour through JPEG at 95 and 90 (image_transport's ``compressed``, the project's
+               encoder and decoder), and --draws runs with +-1 grey level of uniform noise on every
+               channel (seeds 1..N): how far a change no one can see moves the ATE, the yardstick
+               for a compressed bag's
 Accuracy: ATE (RMSE after SE(3)/Sim(3) alignment) and RPE over one frame (RMSE of the translation
 and rotation error of each consecutive pair's relative motion: the frame-to-frame jitter).
 Per-frame time: median and p95 of track(); with threaded BA that includes competition for the
@@ -28,6 +34,7 @@ import platform
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 # One BLAS thread: a threaded GEMM on 2 cores shared with other work stalls (measured 460 ms vs 1 ms).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -129,6 +136,7 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
                  "proc_cpu_ms_median": 1e3 * float(np.median(proc)) if pure_timing else None,
                  "proc_cpu_ms_p95": 1e3 * float(np.percentile(proc, 95)) if pure_timing else None,
                  "inliers_median": float(np.median(n_inl)), "ba_runs": tracker.ba_runs,
+                 "ba_refused": int(getattr(tracker, "ba_refused", 0)),
                  "ba_time_s": tracker.ba_time_s, "pure_track_timing": pure_timing, "paced": pace}
     if len(cov_trace) >= 3:
         from scipy.stats import spearmanr
@@ -156,6 +164,31 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
     return out
 
 
+def perturbed_frames(frames: list, kind: str) -> list:
+    """The head as a realsense-layout bag would give it: depth rounded to whole millimetres (16UC1),
+    and ``kind``: "raw", "jpegQ" (colour encoded at quality Q and decoded as the tracker does), or
+    "noiseS" (+-1 grey level, uniform, every channel; seed S)."""
+    import dataclasses
+
+    from memgs_ros.io.bag_writer import compress_rgb
+    from memgs_ros.io.image_decoding import decode_compressed_rgb
+
+    def mm(d: np.ndarray | None) -> np.ndarray | None:
+        return None if d is None else (np.round(d * 1000.0) / 1000.0).astype(d.dtype)
+
+    rng = np.random.default_rng(int(kind[5:])) if kind.startswith("noise") else None
+    out = []
+    for f in frames:
+        rgb = f.rgb
+        if kind.startswith("jpeg"):
+            fmt, data = compress_rgb(rgb, int(kind[4:]))
+            rgb = decode_compressed_rgb(SimpleNamespace(format=fmt, data=data))
+        elif rng is not None:
+            rgb = np.clip(rgb.astype(np.int16) + rng.integers(-1, 2, rgb.shape), 0, 255).astype(np.uint8)
+        out.append(dataclasses.replace(f, rgb=rgb, depth_m=mm(f.depth_m)))
+    return out
+
+
 def pure_timing_case(r: dict) -> bool:
     return bool(r.get("pure_track_timing")) and r.get("proc_cpu_ms_median") is not None
 
@@ -170,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat-forward", action="store_true", help="pingpong: every pass forward")
     ap.add_argument("--flip-backward-readout", action="store_true",
                     help="pingpong: read the shutter bottom to top on the backward passes (the case list)")
+    ap.add_argument("--draws", type=int, default=11, help="perturbed: runs with +-1 grey level of noise")
     ap.add_argument("--pace", action="store_true",
                     help="feed frames at their recorded rate (live camera) instead of back to back")
     ap.add_argument("--plot", default=None, help="save a trajectory PNG (top view) here")
@@ -186,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
         return TrackerConfig(**{**kw, **overrides})  # type: ignore[arg-type]
 
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
-    if any(c.startswith("tum") or c == "pingpong" for c in cases):
+    if any(c.startswith("tum") or c in ("pingpong", "perturbed") for c in cases):
         args.tum = str(tum_path_or_exit(ap, args.tum))
     results = []
     cache: dict[str, tuple[list, object]] = {}
@@ -226,6 +260,25 @@ def main(argv: list[str] | None = None) -> int:
                                                                  rolling_shutter_readout_s=TUM_READOUT_S),
                                     passes=src.clock,
                                     flip_backward_readout=args.flip_backward_readout))
+        elif case == "perturbed":
+            fr, cam = get("tum", args.tum, args.n_frames)
+            kinds = ["raw", "jpeg95", "jpeg90", *(f"noise{k}" for k in range(1, args.draws + 1))]
+            for kind in kinds:
+                results.append(run_case(f"perturbed:{kind}", perturbed_frames(fr, kind), cam,
+                                        config(ba_threaded=False, keyframe_max_frames=10,
+                                               rolling_shutter_readout_s=TUM_READOUT_S)))
+                r = results[-1]
+                print(f"perturbed {kind:>8}: ATE {100 * r['ate_rmse_m']:.3f} cm, ok {r['n_ok']}/{r['n_frames']}, "
+                      f"local BAs refused {r['ba_refused']}", flush=True)
+            ate_of = {r["case"].split(":", 1)[1]: 100 * r["ate_rmse_m"] for r in results if r["case"].startswith("perturbed:")}
+            noise = sorted(v for k, v in ate_of.items() if k.startswith("noise"))
+            if noise:
+                print(f"perturbed: +-1 grey level, {len(noise)} draws: ATE median {float(np.median(noise)):.3f} cm, "
+                      f"range {noise[0]:.3f}-{noise[-1]:.3f}, quartiles {np.percentile(noise, 25):.3f}-"
+                      f"{np.percentile(noise, 75):.3f}; raw {ate_of['raw']:.3f}, JPEG 95 {ate_of['jpeg95']:.3f} "
+                      f"(above {sum(v < ate_of['jpeg95'] for v in noise)} of {len(noise)} draws), "
+                      f"JPEG 90 {ate_of['jpeg90']:.3f}", flush=True)
+            continue
         elif case == "mono":
             fr, cam = get("synth", "synthetic", args.n_frames)
             mono = [type(f)(f.stamp_ns, f.rgb, None, f.camera, f.T_wc_gt) for f in fr]

@@ -15,7 +15,7 @@ from memgs_ros.core.tracking.backend import actor as backend_module
 from memgs_ros.core.tracking.backend import ba_problem
 from memgs_ros.core.tracking.backend.actor import GlobalBAOutcome, LocalBAOutcome, TrackingBackend
 from memgs_ros.core.tracking.backend.ba_problem import global_problem, local_problem
-from memgs_ros.core.tracking.backend.bundle_adjustment import apply_left_update
+from memgs_ros.core.tracking.backend.bundle_adjustment import apply_left_update, camera_shift_ratio
 from memgs_ros.core.tracking.features.features import FrameFeatures
 from memgs_ros.core.tracking.frontend.corrections import BackendLink
 from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
@@ -109,6 +109,46 @@ def test_local_ba_correction_arrives_through_its_future_and_the_front_end_commit
         assert _pose_err(m, T_true) < 0.5 * err0
     finally:
         backend.close()
+
+
+def test_a_local_ba_that_slides_its_new_keyframe_far_is_answered_but_not_committed() -> None:
+    """``ba_max_shift_ratio``: a local BA that moves its new keyframe by more than that fraction of
+    the keyframe's median point depth is refused at commit and counted; the map stays as tracked.
+    With 0 the same BA is committed. Keyframe 5 is put 12 cm off (its points lie 2.5-5 m away, so
+    the BA's pull back is ~0.03 of their depth)."""
+    for ratio, committed in ((0.012, False), (0.0, True)):
+        m, T_true = _noisy_map()
+        kf = m.keyframes[5]
+        kf.T_cw = apply_left_update(kf.T_cw, np.array([0.0, 0.0, 0.0, 0.12, 0.0, 0.0]))
+        before = {k: k_.T_cw.copy() for k, k_ in m.keyframes.items()}
+        backend = _backend(threaded=False, loop_closure=False, ba_max_shift_ratio=ratio)
+        link = BackendLink(backend, backend.cfg)
+        try:
+            moves = link.keyframe_added(m, kf, segment_id=0)  # inline: answered and committed in the call
+        finally:
+            backend.close()
+        if committed:
+            assert len(moves) == 1 and link.ba_runs == 1 and link.ba_refused == 0
+            assert np.linalg.norm(kf.T_cw[:3, 3] - T_true[5, :3, 3]) < 0.03  # pulled back
+        else:
+            assert moves == [] and link.ba_runs == 0 and link.ba_refused == 1
+            for k, k_ in m.keyframes.items():
+                np.testing.assert_array_equal(k_.T_cw, before[k])
+
+
+def test_camera_shift_ratio_is_the_centre_move_over_the_median_depth() -> None:
+    m, _ = _noisy_map()
+    prob = local_problem(m.snapshot(), 5, 7, 1, LEVELS).problem
+    c = len(prob.T_cw) - 1 if prob.fixed[0] else 0
+    after = prob.T_cw.copy()
+    after[c] = apply_left_update(after[c], np.array([0.0, 0.2, 0.0, 0.0, 0.0, 0.0]))  # a turn about the centre...
+    after[c, :3, 3] = after[c, :3, :3] @ (prob.T_cw[c, :3, :3].T @ prob.T_cw[c, :3, 3])  # ...kept in place
+    assert camera_shift_ratio(prob, after, c) == pytest.approx(0.0, abs=1e-9)
+    R0, t0 = prob.T_cw[c, :3, :3], prob.T_cw[c, :3, 3]
+    after = prob.T_cw.copy()
+    after[c, :3, 3] = t0 - R0 @ np.array([0.05, 0.0, 0.0])  # the centre 5 cm along x
+    z = prob.points_w[prob.obs_point[prob.obs_cam == c]] @ R0[2] + t0[2]
+    assert camera_shift_ratio(prob, after, c) == pytest.approx(0.05 / np.median(z))
 
 
 def test_the_link_commits_results_at_poll_and_drops_stale_ones() -> None:

@@ -23,7 +23,7 @@ import logging
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TypeVar
 
 import numpy as np
@@ -31,7 +31,13 @@ import numpy as np
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.runtime.worker import CommandWorker, WorkerStopped
 from memgs_ros.core.tracking.backend.ba_problem import SnapshotProblem, global_problem, local_problem
-from memgs_ros.core.tracking.backend.bundle_adjustment import BAAux, BAGeometry, BAState, local_bundle_adjustment
+from memgs_ros.core.tracking.backend.bundle_adjustment import (
+    BAAux,
+    BAGeometry,
+    BAState,
+    camera_shift_ratio,
+    local_bundle_adjustment,
+)
 from memgs_ros.core.tracking.backend.global_ba import global_ba_iterations
 from memgs_ros.core.tracking.backend.lm import LMProgress
 from memgs_ros.core.tracking.config import TrackerConfig
@@ -60,6 +66,8 @@ class LocalBAOutcome:
     layout_version: int
     pose_epoch: int
     time_s: float
+    # Not to be committed: it moved the new keyframe over ``ba_max_shift_ratio`` (this ratio).
+    shift_refused: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -174,9 +182,16 @@ class TrackingBackend(CommandWorker):
         if not np.isfinite(res.final_cost) or res.final_cost > res.initial_cost:
             return None
         free = ~sp.problem.fixed
-        return LocalBAOutcome(tuple(c for c, f in zip(sp.cams, free) if f), res.T_cw[free], sp.point_ids,
-                              res.points_w, sp.outliers(res.obs_inlier), sp.layout_version, sp.pose_epoch,
-                              time.perf_counter() - t0)
+        out = LocalBAOutcome(tuple(c for c, f in zip(sp.cams, free) if f), res.T_cw[free], sp.point_ids,
+                             res.points_w, sp.outliers(res.obs_inlier), sp.layout_version, sp.pose_epoch,
+                             time.perf_counter() - t0)
+        if cfg.ba_max_shift_ratio > 0 and cfg.mode == "rgbd" and kf_id in sp.cams:
+            ratio = camera_shift_ratio(sp.problem, res.T_cw, sp.cams.index(kf_id))
+            if ratio > cfg.ba_max_shift_ratio:
+                logger.debug("local BA of keyframe %d not committed: it moved the keyframe %.3f of its "
+                             "median depth", kf_id, ratio)
+                return replace(out, shift_refused=ratio)
+        return out
 
     def _start_global_ba(self, snap: MapSnapshot, done: Future[GlobalBAOutcome]) -> None:
         if self._gba is not None:  # a newer snapshot: the older result would be discarded at commit

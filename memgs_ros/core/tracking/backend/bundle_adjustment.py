@@ -566,6 +566,18 @@ class BAGeometry:
         return BAResult(T, X, inl, progress.initial_cost, progress.cost, progress.n_evaluations)
 
 
+def camera_shift_ratio(prob: BAProblem, T_cw_after: np.ndarray, cam: int) -> float:
+    """How far camera ``cam`` moved (its centre, metres) over the median depth (metres) of the
+    points it observes at its pose before; ``T_cw_after``: [C, 4, 4]. 0.0 when it sees no point in
+    front of it. A scale-free size of a move: 1 cm at 1 m and 4 cm at 4 m are the same 0.01."""
+    R0, t0 = prob.T_cw[cam, :3, :3], prob.T_cw[cam, :3, 3]
+    R1, t1 = T_cw_after[cam, :3, :3], T_cw_after[cam, :3, 3]
+    shift = float(np.linalg.norm(R1.T @ t1 - R0.T @ t0))  # camera centres -R^T t
+    z = prob.points_w[prob.obs_point[prob.obs_cam == cam]] @ R0[2] + t0[2]
+    z = z[z > 0]
+    return shift / float(np.median(z)) if len(z) else 0.0
+
+
 def local_bundle_adjustment(prob: BAProblem, K: np.ndarray, bf: float, huber_px: float,
                             max_iterations: int, compiled: bool | None = None) -> BAResult:
     """Jointly refine free keyframe poses and all points: Levenberg-Marquardt with the Schur complement.

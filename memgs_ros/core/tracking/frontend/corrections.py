@@ -60,6 +60,7 @@ class BackendLink:
         self.keyframe_db = KeyframeDatabase()  # the front-end's copy, for relocalisation
         self.stats = LoopStats()
         self.ba_runs = 0
+        self.ba_refused = 0  # local BAs not committed: they moved their new keyframe too far
         self.ba_time_s = 0.0  # local BA time (threaded); every inline back-end second (lockstep)
         self.refined: list[tuple[int, np.ndarray]] = []
         self.loop_refined: list[tuple[int, np.ndarray]] = []
@@ -195,6 +196,9 @@ class BackendLink:
         return None
 
     def _commit_local_ba(self, smap: SparseMap, res: LocalBAOutcome) -> KeyframesMoved | None:
+        if res.shift_refused:
+            self.ba_refused += 1
+            return None
         moved = smap.commit_refinement(list(res.kf_ids), res.T_cw, res.point_ids, res.points_w, list(res.outliers),
                                        layout_version=res.layout_version, pose_epoch=res.pose_epoch)
         if not moved:
@@ -243,6 +247,11 @@ class BackendResults:
     @property
     def ba_runs(self) -> int:
         return self._link.ba_runs
+
+    @property
+    def ba_refused(self) -> int:
+        """Local BAs not committed because they moved their new keyframe too far (``ba_max_shift_ratio``)."""
+        return self._link.ba_refused
 
     @property
     def loop_stats(self) -> LoopStats:
