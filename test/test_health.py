@@ -45,7 +45,6 @@ def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noq
     feed = TrackerFeed(context)
     node = feed.node
     odometry: list[Odometry] = []
-    feed.peer.create_subscription(Odometry, "memgs/odom", odometry.append, qos.reliable(100))
     heard: list[tuple[float, int, str]] = []  # (arrival, level, message) of the tracker's status
 
     def on_diag(msg: DiagnosticArray) -> None:
@@ -67,8 +66,17 @@ def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noq
             feed.send(rgb, depth, stamp)
             return str(node.stats.gauges["tracking_state"])
 
-        for f in frames[:4]:
+        for f in frames[:2]:
             assert send(f.rgb, f.depth_m) == "OK"
+        # No one reads the odometry yet: no covariance is computed and no odometry built.
+        assert node.stats.counters["odometry_out"] == 0 and node.tracker is not None
+        assert not node.tracker.covariance_wanted
+        unread_ok = node.stats.counters["state.OK"]
+        feed.peer.create_subscription(Odometry, "memgs/odom", odometry.append, qos.reliable(100))
+        assert spin_until(node.out.odometry_wanted, 5.0)
+        for f in frames[2:4]:
+            assert send(f.rgb, f.depth_m) == "OK"
+        assert node.tracker.covariance_wanted
         black = np.zeros_like(frames[4].rgb)  # the lens covered: no features, depth still there
         while (state := send(black, frames[4].depth_m)) != "LOST":
             assert state == "RECENTLY_LOST"
@@ -83,10 +91,10 @@ def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noq
         found_at = time.monotonic()
         assert spin_until(lambda: any(t >= found_at - 0.5 and lvl == 0 for t, lvl, _ in heard), 1.0), heard[-3:]
         assert node.stats.counters["resets"] == 1
-        # Odometry: tracked frames only (none while coasting or lost), each with a covariance
-        # (the first frame starts the map: its pose is the origin, fitted to nothing)
-        assert spin_until(lambda: len(odometry) == node.stats.counters["state.OK"] - 1, 2.0), (
-            len(odometry), node.stats.counters["state.OK"])
+        # Odometry: tracked frames only (none while coasting or lost), each with a covariance,
+        # from the frame a subscriber came on
+        assert spin_until(lambda: len(odometry) == node.stats.counters["state.OK"] - unread_ok, 2.0), (
+            len(odometry), node.stats.counters["state.OK"], unread_ok)
         assert node.stats.counters["state.RECENTLY_LOST"] > 0 and node.stats.counters["state.LOST"] > 0
         covs = [np.array(o.pose.covariance).reshape(6, 6) for o in odometry]
         assert all(np.all(np.linalg.eigvalsh(c) > 0) for c in covs) and len({c[0, 0] for c in covs}) > 1

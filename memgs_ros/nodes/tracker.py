@@ -5,7 +5,8 @@ Publishes: ``memgs/pose`` (PoseStamped, the camera in ``world_frame``, every pos
 too), ``memgs/odom`` (Odometry) and ``memgs/pose_with_covariance`` (tracked poses only, state OK:
 what a flight controller fuses; the body ``base_frame`` in ``map_frame``, z up; the covariance is
 the pose optimisation's at 1 px noise, ``pose_covariance``, carried to the body; twist in the body
-frame from the last tracked pose), TF (``ros/tf_outputs.py``: ``map -> base_link`` per tracked
+frame from the last tracked pose; with no subscriber on either, neither the covariance nor the
+messages are made), TF (``ros/tf_outputs.py``: ``map -> base_link`` per tracked
 frame, ``map -> map_optical`` and the camera mount static), ``memgs/path`` (Path),
 ``memgs/tracking_state`` (String), per keyframe ``memgs/keyframe/{color,depth,camera_info,pose,
 keypoints}`` sharing the frame's stamp (images as recorded with the camera's distortion in
@@ -230,6 +231,7 @@ class TrackerNode(ManagedNode):
         """``tracker.track(frame)`` with its cost in the stats: the front end alone (an inline local
         BA, in lockstep replays, is back-end work and counted beside it) and the sparse map's size."""
         ba_before, t0 = tracker.ba_time_s, time.perf_counter()
+        tracker.covariance_wanted = self.out.odometry_wanted()
         result = tracker.track(frame)
         dt = time.perf_counter() - t0
         if not self.cfg.ba_threaded:

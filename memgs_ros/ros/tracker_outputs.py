@@ -227,7 +227,7 @@ class TrackerOutbox:
             stats.counters["poses_out"] += 1
             if not self.mount_settled:
                 stats.counters["odometry_withheld"] += 1  # the body's pose waits for the camera's mount
-            elif result.pose_cov is not None:  # tracked: not coasted, not a start without a pose fit
+            elif result.pose_cov is not None:  # tracked (not coasted, not a start without a pose fit), and read
                 self._tracked_odometry(result.T_wc, result.pose_cov, stamp)
             else:
                 self._last_tracked = None
@@ -266,6 +266,12 @@ class TrackerOutbox:
             return False
         self.mount_settled = True
         return True
+
+    def odometry_wanted(self) -> bool:
+        """Whether anything subscribes to ``memgs/odom`` or ``memgs/pose_with_covariance``: without a
+        reader the tracker skips the covariance and no odometry is built (a live subscriber, a
+        recorder, a flight controller's bridge each count)."""
+        return self.odom.get_subscription_count() > 0 or self.pose_cov.get_subscription_count() > 0
 
     def _tracked_odometry(self, T_wc: np.ndarray, pose_cov: np.ndarray, stamp: int) -> None:
         """``memgs/odom`` and ``memgs/pose_with_covariance``: the body in map_frame, the covariance

@@ -261,5 +261,6 @@ class TrackResult:
     segment_id: int = 0
     reference_keyframe_id: int = -1
     # [6, 6] covariance of T_wc (ROS order: x, y, z, rotation about the world's x, y, z; metres^2,
-    # rad^2) from the pose optimisation's information matrix at 1 px noise; None unless OK
+    # rad^2) from the pose optimisation's information matrix at 1 px noise; None unless OK, or
+    # when the tracker was told no one reads it (``Tracker.covariance_wanted``)
     pose_cov: np.ndarray | None = None

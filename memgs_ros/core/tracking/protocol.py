@@ -41,9 +41,13 @@ class Tracker(Protocol):
 
     ba_time_s: seconds spent in local bundle adjustment so far, inline or threaded; 0.0 for a
     backend that does its own BA out of sight. The node subtracts inline BA from front-end time.
+    covariance_wanted: whether tracked frames carry ``pose_cov`` (default True).
     """
 
     ba_time_s: float
+    # False: tracked frames' TrackResult.pose_cov stays None (the node sets it from its odometry
+    # subscribers: no one fusing the odometry, no covariance to compute, ~0.25 ms a frame).
+    covariance_wanted: bool = True
 
     @abstractmethod
     def track(self, frame: Frame) -> TrackResult:
