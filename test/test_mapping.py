@@ -533,3 +533,27 @@ def test_merges_run_every_few_keyframes_in_flight(tiny_frames: list[Frame]) -> N
         m.add_keyframe(i, f.stamp_ns + i, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
     m.step()
     assert calls == [3, 11] and m.merge.passes == 2
+
+
+def test_a_revisits_keyframe_opens_densification_only_for_what_it_adds(tiny_frames: list[Frame]) -> None:
+    """densify_window_iters in proportion to the share of a keyframe's seeds the map lacked: a new
+    view opens the whole window (the map densifies), the same view again, whose seeds the trained
+    map explains, opens none (only its few seeds are added)."""
+    f = tiny_frames[0]
+    p, c = grid_seeds(f)
+    m = GaussianMapper(MappingConfig(min_keyframes=1, merge_enabled=False, seed_opacity=0.5, seed_coverage_age_s=0.0,
+                                     densify_start_iter=1, densify_interval=1, densify_window_iters=2,
+                                     densify_grad_threshold=0.0, prune_opacity=0.0))
+    seeded = m.add_keyframe(0, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+    for _ in range(3):
+        m.step()
+    opened = len(m.gmap)
+    assert opened > seeded  # a new view: densified inside its window
+    for _ in range(27):
+        m.step()
+    assert len(m.gmap) == opened  # the window closed
+    added = m.add_keyframe(1, f.stamp_ns + 1, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+    assert added <= 0.1 * len(p)
+    for _ in range(5):
+        m.step()
+    assert len(m.gmap) == opened + added  # a revisit: its seeds, no densification

@@ -147,7 +147,9 @@ class GaussianMapper:
         self.keyframes_dropped = 0  # by max_keyframes
         self.keyframes_retired = 0  # culled by the tracker
         self.seeds_covered = 0  # seeds not made Gaussians: the map already explained them
-        self._newest_kf_id, self._newest_kf_iter = -1, 0  # the newest keyframe, the iteration it came at
+        # The newest keyframe, and the iteration its densification window counts from (a revisit's
+        # keyframe counts as come earlier: ``_open_densify_window``).
+        self._newest_kf_id, self._newest_kf_iter = -1, 0
         self._anchors = KeyframeAnchors()  # every keyframe inserted, also those dropped from training
         self.exposure = ExposureCompensation(self.cfg.exposure_lr, self.cfg.exposure_reg, self.device) \
             if self.cfg.exposure_compensation else None
@@ -245,21 +247,31 @@ class GaussianMapper:
         self._drop_redundant_keyframes()
         self._update_extent()
         self.merge.keyframe_added()
-        added = 0
+        novel = 1.0  # the share of the keyframe's seeds the settled map lacked
         if points_w is not None and len(points_w) and colors is not None:  # colors checked above
             keep = self._uncovered(kf, points_w)
             if keep is not None:
                 self.seeds_covered += int(np.count_nonzero(~keep))
+                novel = float(np.count_nonzero(keep)) / len(keep)
                 points_w, colors = np.asarray(points_w)[keep], np.asarray(colors)[keep]
-            if not len(points_w):
-                return 0
-            ids = self.gmap.add_from_points(points_w, colors, kf.kf_id, self.iteration, opacity=self.cfg.seed_opacity)
-            added = int(ids.numel())
-            # A memory cap is a promise about every moment, not about the next step: keep it here
-            # even when the caller leaves the Gaussian budget to the step (free-running inserts).
-            if enforce_budget or self.cfg.max_mapper_mbytes > 0:
-                self._enforce_budget()
-        return added
+        self._open_densify_window(novel)
+        if points_w is None or colors is None or not len(points_w):
+            return 0
+        ids = self.gmap.add_from_points(points_w, colors, kf.kf_id, self.iteration, opacity=self.cfg.seed_opacity)
+        # A memory cap is a promise about every moment, not about the next step: keep it here
+        # even when the caller leaves the Gaussian budget to the step (free-running inserts).
+        if enforce_budget or self.cfg.max_mapper_mbytes > 0:
+            self._enforce_budget()
+        return int(ids.numel())
+
+    def _open_densify_window(self, novel: float) -> None:
+        """A keyframe opens densification for ``densify_window_iters`` in proportion to ``novel``, the
+        share of its seeds the settled map lacked: a new view gets the whole window, a revisit whose
+        seeds the map already explained almost none (it counts as having come that much earlier).
+        Without it a flight over one room densified after every revisit's keyframe and grew the map
+        with the flight (lockstep ping-pong: 1.35x one pass's Gaussians)."""
+        unseen = self.cfg.densify_window_iters * (1.0 - min(max(novel, 0.0), 1.0))
+        self._newest_kf_iter = max(self._newest_kf_iter, self.iteration - round(unseen))
 
     def _uncovered(self, kf: TrainingKeyframe, points_w: np.ndarray) -> np.ndarray | None:
         """[M] bool: the seeds the settled map (keyframes taken ``seed_coverage_age_s`` or more before
@@ -275,7 +287,6 @@ class GaussianMapper:
         self.keyframes.add(kf)
         self._anchors.add(kf.kf_id, kf.stamp_ns, kf.T_wc)
         self._newest_kf_id = max(self._newest_kf_id, int(kf.kf_id))
-        self._newest_kf_iter = self.iteration
 
     def _over_memory_cap(self) -> bool:
         """The accounted memory is over ``max_mapper_mbytes`` and keyframes may still go (more
