@@ -110,7 +110,8 @@ class MappingConfig:
     densify_grad_threshold: float = 0.001
     # ... and only within this many iterations of the newest keyframe's arrival (0: at any time): a
     # long flight over a room already mapped brings no keyframe, and densification would grow the
-    # map with the training time (the fr1/rpy head five times in lockstep: 2.4x one pass's Gaussians)
+    # map with the training time (the fr1/rpy head five times in lockstep: 2.4x one pass's Gaussians);
+    # a keyframe opens it in proportion to the share of its seeds the map lacked (a revisit: ~none)
     densify_window_iters: int = 500
     percent_dense: float = 0.01
     split_children: int = 2
