@@ -58,7 +58,7 @@ from memgs_ros.ros.camera_input import RgbdPairing, decompressed, subscribe_came
 from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.codecs import stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
+from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.tracker_outputs import KEYPOINT_DTYPE, TrackerOutbox, track_stats
@@ -95,8 +95,6 @@ class TrackerNode(ManagedNode):
         self.pairing = RgbdPairing(self, v, lambda pair: self._handle(pair[1], pair[2]))
         self.tracker: Tracker | None = None
         self.stats = NodeStats(self, "tracker")
-        self._frame_cpu_ms = self.stats.computed["frame_cpu_ms_median"] = RollingMedian()  # message in to pose out
-        self._frame_ms = self.stats.computed["frame_ms_median"] = RollingMedian()  # wall: a lockstep frame's share
         self.out = TrackerOutbox(self, v, self.stats)
         sensor = qos.sensor() if v.input_reliability == "best_effort" else qos.reliable(5)
         self.create_subscription(CameraInfo, v.camera_info_topic, self.on_camera_info, sensor)
@@ -221,11 +219,7 @@ class TrackerNode(ManagedNode):
         result = self._track(t, frame)
         self.out.frame(result, cam, color, depth, t.poll_refined_keyframes(),
                        t.poll_loop_corrected_keyframes(), t.poll_loop_corrections(), t.poll_culled_keyframes())
-        cost_ms = (time.thread_time() - cpu0) * 1e3
-        self._frame_cpu_ms.add(cost_ms)
-        self._frame_ms.add((time.perf_counter() - wall0) * 1e3)
-        self.stats.counters["frame_cpu_us_total"] += int(cost_ms * 1e3)
-        self.stats.gauges["frame_cpu_ms"] = round(cost_ms, 2)
+        self.out.frame_cost(cpu0, wall0)
 
     def _track(self, tracker: Tracker, frame: Frame) -> TrackResult:
         """``tracker.track(frame)`` with its cost in the stats: the front end alone (an inline local

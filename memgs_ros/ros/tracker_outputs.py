@@ -31,7 +31,7 @@ from memgs_ros.ros.codecs import (
     stamp_to_ns,
     structured_to_pointcloud2,
 )
-from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
 from memgs_ros.ros.tf_outputs import TfOutbox
 
 __all__ = ["KEYPOINT_DTYPE", "CorrectedPath", "KeyframeOutbox", "TrackerOutbox", "track_stats"]
@@ -177,6 +177,8 @@ class TrackerOutbox:
         self.mount_settled = self.tf is None or not self.tf.available or self.tf.statics is None
         self._mount_wait_ns, self._mount_asked_ns = int(params.camera_mount_wait_s * 1e9), None
         self._log = node.get_logger()
+        self._frame_cpu_ms = stats.computed["frame_cpu_ms_median"] = RollingMedian()  # message in to pose out
+        self._frame_ms = stats.computed["frame_ms_median"] = RollingMedian()  # wall: a lockstep frame's share
         rel = qos.reliable(10)
         self.pose = node.create_publisher(PoseStamped, "memgs/pose", rel)  # the camera in world_frame
         # Tracked poses only (state OK), with the covariance: what a flight controller fuses. The body
@@ -266,6 +268,15 @@ class TrackerOutbox:
             return False
         self.mount_settled = True
         return True
+
+    def frame_cost(self, cpu0: float, wall0: float) -> None:
+        """The frame path's cost since ``cpu0`` (this thread's CPU: the frame path alone) and ``wall0``
+        (perf_counter), into the stats."""
+        cost_ms = (time.thread_time() - cpu0) * 1e3
+        self._frame_cpu_ms.add(cost_ms)
+        self._frame_ms.add((time.perf_counter() - wall0) * 1e3)
+        self.stats.counters["frame_cpu_us_total"] += int(cost_ms * 1e3)
+        self.stats.gauges["frame_cpu_ms"] = round(cost_ms, 2)
 
     def odometry_wanted(self) -> bool:
         """Whether anything subscribes to ``memgs/odom`` or ``memgs/pose_with_covariance``: without a

@@ -147,9 +147,7 @@ class GaussianMapper:
         self.keyframes_dropped = 0  # by max_keyframes
         self.keyframes_retired = 0  # culled by the tracker
         self.seeds_covered = 0  # seeds not made Gaussians: the map already explained them
-        # The newest keyframe, and the iteration its densification window counts from (a revisit's
-        # keyframe counts as come earlier: ``_open_densify_window``).
-        self._newest_kf_id, self._newest_kf_iter = -1, 0
+        self._newest_kf_id = -1
         self._anchors = KeyframeAnchors()  # every keyframe inserted, also those dropped from training
         self.exposure = ExposureCompensation(self.cfg.exposure_lr, self.cfg.exposure_reg, self.device) \
             if self.cfg.exposure_compensation else None
@@ -254,7 +252,7 @@ class GaussianMapper:
                 self.seeds_covered += int(np.count_nonzero(~keep))
                 novel = float(np.count_nonzero(keep)) / len(keep)
                 points_w, colors = np.asarray(points_w)[keep], np.asarray(colors)[keep]
-        self._open_densify_window(novel)
+        self.densify.keyframe_came(self.iteration, novel)
         if points_w is None or colors is None or not len(points_w):
             return 0
         ids = self.gmap.add_from_points(points_w, colors, kf.kf_id, self.iteration, opacity=self.cfg.seed_opacity)
@@ -263,15 +261,6 @@ class GaussianMapper:
         if enforce_budget or self.cfg.max_mapper_mbytes > 0:
             self._enforce_budget()
         return int(ids.numel())
-
-    def _open_densify_window(self, novel: float) -> None:
-        """A keyframe opens densification for ``densify_window_iters`` in proportion to ``novel``, the
-        share of its seeds the settled map lacked: a new view gets the whole window, a revisit whose
-        seeds the map already explained almost none (it counts as having come that much earlier).
-        Without it a flight over one room densified after every revisit's keyframe and grew the map
-        with the flight (lockstep ping-pong: 1.35x one pass's Gaussians)."""
-        unseen = self.cfg.densify_window_iters * (1.0 - min(max(novel, 0.0), 1.0))
-        self._newest_kf_iter = max(self._newest_kf_iter, self.iteration - round(unseen))
 
     def _uncovered(self, kf: TrainingKeyframe, points_w: np.ndarray) -> np.ndarray | None:
         """[M] bool: the seeds the settled map (keyframes taken ``seed_coverage_age_s`` or more before
@@ -434,7 +423,7 @@ class GaussianMapper:
         if self.merge.due(it):
             with peaks.work("merge"):
                 merged_removed, merged_added = self.merge.run(self.gmap, self._newest_kf_id, it)
-        elif densify and self.densify.due(it, None if final else it - self._newest_kf_iter):
+        elif densify and self.densify.due(it, in_flight=not final):
             with peaks.work("densify"):
                 self._record_budget(*self.budget.make_room_for_densification(
                     self.gmap, self.densify, it, self._newest_kf_id, self._fixed_bytes()))

@@ -294,13 +294,23 @@ class DensifyStrategy:
     def __init__(self, cfg: MappingConfig, generator: torch.Generator) -> None:
         self.cfg = cfg
         self._generator = generator
+        self._window_from = 0  # the iteration the densification window counts from
 
-    def due(self, iteration: int, since_keyframe: int | None = None) -> bool:
-        """Densify at ``iteration``? In flight (``since_keyframe``: iterations since the newest keyframe
-        came) only within ``densify_window_iters`` of it: over a room already mapped no keyframe
-        comes, and densification would grow the map with the training time."""
+    def keyframe_came(self, iteration: int, novel: float = 1.0) -> None:
+        """A keyframe came at ``iteration``; ``novel``: the share of its seeds the settled map lacked.
+        It opens the window in that proportion: a new view all of it, a revisit whose seeds the map
+        already explains almost none (it counts as having come that much earlier). Without this a
+        flight over one room densified after every revisit's keyframe and grew the map with the
+        flight (lockstep ping-pong: 1.35x one pass's Gaussians, 1.24x with it)."""
+        unseen = self.cfg.densify_window_iters * (1.0 - min(max(novel, 0.0), 1.0))
+        self._window_from = max(self._window_from, iteration - round(unseen))
+
+    def due(self, iteration: int, in_flight: bool = False) -> bool:
+        """Densify at ``iteration``? In flight only within ``densify_window_iters`` of the newest
+        keyframe (``keyframe_came``): over a room already mapped no keyframe comes, and
+        densification would grow the map with the training time."""
         cfg = self.cfg
-        if since_keyframe is not None and cfg.densify_window_iters and since_keyframe > cfg.densify_window_iters:
+        if in_flight and cfg.densify_window_iters and iteration - self._window_from > cfg.densify_window_iters:
             return False
         return cfg.densify_start_iter <= iteration <= cfg.densify_stop_iter and iteration % cfg.densify_interval == 0
 

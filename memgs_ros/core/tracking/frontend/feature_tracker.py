@@ -365,9 +365,7 @@ class FeatureTracker(BackendResults, Tracker):
         if self.readout.readout_now_s != 0.0 and keep_velocity:
             feats, outcome = self._refine_rolling_shutter(raw, outcome, dt_s)
         T = outcome.T_cw
-        if self.covariance_wanted:
-            self._pose_cov = self.matcher.covariance(T, self.map.point_arrays(outcome.point_ids)[0], feats,
-                                                     outcome.kp_idx)
+        self._pose_cov = self.matcher.covariance(T, self.map, feats, outcome) if self.covariance_wanted else None
         if keep_velocity:
             motion.update(T, self._T_cw_last, dt_s)
         else:

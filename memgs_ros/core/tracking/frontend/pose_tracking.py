@@ -184,10 +184,11 @@ class LocalMapMatcher:
             (uv[:, 1] >= 0) & (uv[:, 1] < self.camera.height)
         return uv, inside
 
-    def covariance(self, T_cw: np.ndarray, p_w: np.ndarray, feats: FrameFeatures, kp_idx: np.ndarray
+    def covariance(self, T_cw: np.ndarray, smap: SparseMap, feats: FrameFeatures, outcome: TrackOutcome
                    ) -> np.ndarray | None:
-        """``bundle_adjustment.pose_covariance`` of a pose fitted on matches (points p_w [K, 3] at
-        keypoints kp_idx [K]), with the residuals ``optimise`` uses."""
+        """``bundle_adjustment.pose_covariance`` of a pose fitted on ``outcome``'s matches (its map
+        points at its keypoints), with the residuals ``optimise`` uses."""
+        kp_idx, p_w = outcome.kp_idx, smap.point_arrays(outcome.point_ids)[0]
         depth = feats.depth_m[kp_idx] if self.cfg.track_with_depth else np.full(len(kp_idx), np.nan)
         return pose_covariance(T_cw, p_w, depth, self.inv_sigma(feats.octave[kp_idx]), self.K, self.bf)
 
