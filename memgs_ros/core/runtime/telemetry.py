@@ -61,6 +61,7 @@ class TrackerTelemetry(NodeTelemetry):
     track_ms: float = 0.0  # the last frame's track() time
     ba_waits: int = 0  # frames that waited for the back-end's BA
     keyframes_deferred: int = 0  # due keyframes put off while a BA ran
+    ba_refused: int = 0  # local BAs not committed: they slid their new keyframe (tracker.ba_max_shift_ratio)
     readout_flips: int = 0  # times the rolling shutter's row order flipped (tracking/frontend/readout.py)
     readout_sign: int = 1  # -1: the frames read their rows bottom to top
     map_points: int = 0  # the sparse map's size
