@@ -20,7 +20,7 @@ Cases:
                raw, colour through JPEG at 95 and 90 (image_transport's ``compressed``, the project's
                encoder and decoder), and --draws runs with +-1 grey level of uniform noise on every
                channel (seeds 1..N): how far a change no one can see moves the ATE, the yardstick
-               for a compressed bag's
+               for a compressed bag's ATE
 Accuracy: ATE (RMSE after SE(3)/Sim(3) alignment) and RPE over one frame (RMSE of the translation
 and rotation error of each consecutive pair's relative motion: the frame-to-frame jitter).
 Per-frame time: median and p95 of track(); with threaded BA that includes competition for the
@@ -170,11 +170,12 @@ def perturbed_frames(frames: list, kind: str) -> list:
     "noiseS" (+-1 grey level, uniform, every channel; seed S)."""
     import dataclasses
 
-    from memgs_ros.io.bag_writer import compress_rgb
+    from memgs_ros.core.geometry.view import depth_to_metres, metres_to_units
+    from memgs_ros.io.bag_writer import RS_DEPTH_SCALE, compress_rgb
     from memgs_ros.io.image_decoding import decode_compressed_rgb
 
-    def mm(d: np.ndarray | None) -> np.ndarray | None:
-        return None if d is None else (np.round(d * 1000.0) / 1000.0).astype(d.dtype)
+    def mm(d: np.ndarray | None) -> np.ndarray | None:  # through the bag's 16UC1, as the writer and tracker do
+        return None if d is None else depth_to_metres(metres_to_units(d, RS_DEPTH_SCALE), RS_DEPTH_SCALE)
 
     rng = np.random.default_rng(int(kind[5:])) if kind.startswith("noise") else None
     out = []
@@ -270,7 +271,8 @@ def main(argv: list[str] | None = None) -> int:
                 r = results[-1]
                 print(f"perturbed {kind:>8}: ATE {100 * r['ate_rmse_m']:.3f} cm, ok {r['n_ok']}/{r['n_frames']}, "
                       f"local BAs refused {r['ba_refused']}", flush=True)
-            ate_of = {r["case"].split(":", 1)[1]: 100 * r["ate_rmse_m"] for r in results if r["case"].startswith("perturbed:")}
+            ate_of = {r["case"].split(":", 1)[1]: 100 * r["ate_rmse_m"]
+                      for r in results if r["case"].startswith("perturbed:")}
             noise = sorted(v for k, v in ate_of.items() if k.startswith("noise"))
             if noise:
                 print(f"perturbed: +-1 grey level, {len(noise)} draws: ATE median {float(np.median(noise)):.3f} cm, "

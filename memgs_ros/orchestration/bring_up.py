@@ -38,7 +38,8 @@ def _await(futures: Mapping[str, Any], check: Callable[[], None], deadline: floa
         check()
         if time.monotonic() > deadline:
             raise PipelineError(f"{', '.join(sorted(pending))} did not answer {what} in time")
-    return {name: f.result() for name, f in futures.items()}  # all done: result() returns at once
+    # All done (the callbacks said so); rclpy's Future.result() never waits, it reads what was set.
+    return {name: f.result() for name, f in futures.items()}
 
 
 def bring_up(node: Any, names: Sequence[str], check: Callable[[], None], deadline: float) -> float:
