@@ -430,7 +430,9 @@ def test_run_rerun_save_end_to_end(tmp_path: Path, ros_domain_id: int) -> None:
     assert _component(rows["/views/render"], "EncodedImage:blob")
     assert _component(rows["/views/frame"], "EncodedImage:blob")
     psnr = [v[0] for v in _component(rows["/quality/psnr_db"], "Scalars:scalars")]
-    assert psnr and max(psnr) > 15.0  # a live render of the room, not a blank image (~8-12 dB)
+    # It ends on a render of the final map (the runner asks for one): the room, not a blank image
+    # (~8-12 dB); a render from early in the run may be lower (CI once ended on 14.0 dB).
+    assert psnr and psnr[-1] > 15.0
     gaussians = [v[0] for v in _component(rows["/stats/gaussians/mapper"], "Scalars:scalars")]
     assert gaussians and max(gaussians) > 1000
     assert _component(rows["/stats/poses_out/tracker"], "Scalars:scalars")

@@ -65,7 +65,13 @@ from memgs_ros.orchestration.run_files import (
 )
 from memgs_ros.orchestration.signals import stop_on_signals
 from memgs_ros.ros import qos
-from memgs_ros.ros.codecs import image_to_numpy, pointcloud2_to_structured, pose_to_matrix, stamp_to_ns
+from memgs_ros.ros.codecs import (
+    image_to_numpy,
+    matrix_to_pose_stamped,
+    pointcloud2_to_structured,
+    pose_to_matrix,
+    stamp_to_ns,
+)
 from memgs_ros.ros.diagnostics import stats_values
 
 logger = logging.getLogger(__name__)
@@ -76,6 +82,7 @@ GRAPH_NODES = GRAPH_NODE_NAMES
 _STATS_NODES = (*GRAPH_NODES, "player", VIEW_NODE, "recorder")  # the names on memgs/<name>/stats
 _STATS_ROUND_S = 1.5  # every node publishes its stats once a second: one round, with margin
 _PATH_DECODE_PERIOD_S = 10.0  # the runner decodes memgs/path this often (and at the end)
+_FINAL_RENDER_TIMEOUT_S = 30.0  # a render of the final map takes < 1 s on CPU at 640x480
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -93,6 +100,7 @@ class _Observer:
         self.stats: dict[str, dict[str, str]] = {}  # each node's latest stats, replaced whole
         self._parsed: dict[str, tuple[dict[str, str], Any]] = {}  # node -> (values, their record)
         self.trajectory: list[tuple[int, np.ndarray]] = []
+        self.pose_frame = ""  # memgs/pose's frame_id
         self.corrected: dict[int, np.ndarray] = {}  # memgs/path: poses re-expressed after BA / loop closure
         self._path_raw: bytes | None = None  # the newest memgs/path, serialized, not decoded yet
         self._path_decoded_t = -float("inf")
@@ -104,6 +112,7 @@ class _Observer:
         def on_pose(msg: PoseStamped) -> None:
             with self._lock:
                 self.trajectory.append((stamp_to_ns(msg.header.stamp), pose_to_matrix(msg.pose)))
+                self.pose_frame = msg.header.frame_id
 
         def stats_cb(name: str):  # noqa: ANN202
             def cb(msg: DiagnosticArray) -> None:
@@ -149,6 +158,7 @@ class _Observer:
                                       lambda m: self.maps.__setitem__("merger", m), qos.latched())
         self.node.create_subscription(Image, "memgs/render/color", lambda m: setattr(self, "render", m),
                                       qos.reliable(2))
+        self.view_request = self.node.create_publisher(PoseStamped, "memgs/render/view_pose", qos.reliable(5))
         self.finish_client = self.node.create_client(Trigger, "memgs/mapper/finish")
         self.snapshot_client = self.node.create_client(Trigger, "memgs/mapper/publish_snapshot")
         self.publish_map_client = self.node.create_client(Trigger, "memgs/merger/publish_map")
@@ -517,6 +527,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
     identical, max_diff = _compare_maps(obs, final_seq, epoch, end)
     if options.rerun is not None:
         _wait_for_view(obs, procs, final_seq, epoch, end)
+        _wait_for_final_render(obs, procs, end)
     extra = (("recorder",) if options.record is not None else ()) + ((VIEW_NODE,) if options.rerun is not None else ())
     _wait_for_fresh_stats(obs, (*GRAPH_NODES, *extra))  # so the summary sees the final counts
     saved = obs.call(obs.save_client, 120.0) if gaussians or final_seq else ""
@@ -718,6 +729,30 @@ def _wait_for_view(obs: _Observer, procs: NodeProcesses | None, final_seq: int, 
             procs.check()
         if time.monotonic() > end:
             raise PipelineError(f"the Rerun view did not log the final map (delta {final_seq}) in time")
+        time.sleep(0.1)
+
+
+def _wait_for_final_render(obs: _Observer, procs: NodeProcesses | None, end: float) -> None:
+    """Have the mapper render the final map at the last pose and wait until the Rerun view has
+    logged it, so the recording ends with a view of the saved map: the live render's next tick may
+    come after the nodes are stopped (a recording ended on a view 100 iterations old). A view that
+    does not come in time is a warning: the final map itself is logged."""
+    with obs._lock:
+        last, frame_id = (obs.trajectory[-1] if obs.trajectory else None), obs.pose_frame
+    if last is None:
+        return
+    _wait_for_fresh_stats(obs, (VIEW_NODE,))  # a count from after the finish, not a stale one
+    before = obs.telemetry(VIEW_NODE).logged.get("views", 0)
+    stamp_ns, T_wc = last
+    obs.view_request.publish(matrix_to_pose_stamped(T_wc, stamp_ns, frame_id))
+    deadline = min(end, time.monotonic() + _FINAL_RENDER_TIMEOUT_S)
+    while obs.telemetry(VIEW_NODE).logged.get("views", 0) <= before:
+        if procs is not None:
+            procs.check()
+        if time.monotonic() > deadline:
+            logger.warning("the Rerun view did not log a render of the final map within %.0f s; the recording "
+                           "ends with the final map and an earlier render", _FINAL_RENDER_TIMEOUT_S)
+            return
         time.sleep(0.1)
 
 
