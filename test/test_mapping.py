@@ -465,6 +465,26 @@ def test_the_newest_keyframes_gaussians_do_not_count_as_coverage(tiny_frames: li
     assert m.add_keyframe(2, f.stamp_ns + 6_000_000_000, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c) < 0.1 * len(p)
 
 
+def test_a_surface_trained_long_enough_counts_as_coverage_however_recent(tiny_frames: list[Frame]) -> None:
+    """A flight that turns back over what it saw seconds ago: the surface is recent by the clock
+    but trained by the iterations since (seed_coverage_trained_iters), and the revisit seeds little."""
+    f = tiny_frames[0]
+    p, c = grid_seeds(f)
+
+    def revisit(trained_iters: int, steps: int) -> int:
+        m = GaussianMapper(MappingConfig(min_keyframes=1, merge_enabled=False, densify_start_iter=10_000,
+                                         seed_opacity=0.5, seed_coverage_age_s=5.0,
+                                         seed_coverage_trained_iters=trained_iters))
+        m.add_keyframe(0, f.stamp_ns, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+        for _ in range(steps):
+            m.step()
+        return m.add_keyframe(1, f.stamp_ns + 1_000_000_000, f.T_wc_gt, f.rgb, f.depth_m, f.camera, p, c)
+
+    assert revisit(0, 30) == len(p)  # by age only: one second old, not settled
+    assert revisit(30, 29) == len(p)  # one iteration short
+    assert revisit(30, 30) < 0.1 * len(p)
+
+
 def test_uncovered_seeds_by_opacity_and_depth() -> None:
     from memgs_ros.core.mapping.coverage import uncovered_seeds
 

@@ -264,17 +264,20 @@ class GaussianMapper:
 
     def _uncovered(self, kf: TrainingKeyframe, points_w: np.ndarray) -> np.ndarray | None:
         """[M] bool: the seeds the settled map (keyframes taken ``seed_coverage_age_s`` or more before
-        this one) does not explain yet (``coverage.settled_uncovered``); None: keep them all."""
+        this one, or inserted ``seed_coverage_trained_iters`` or more iterations ago) does not explain
+        yet (``coverage.settled_uncovered``); None: keep them all."""
         if not self.cfg.seed_coverage:
             return None
-        settled = self._anchors.settled(kf.stamp_ns - int(self.cfg.seed_coverage_age_s * 1e9))
+        trained = self.cfg.seed_coverage_trained_iters
+        settled = self._anchors.settled(kf.stamp_ns - int(self.cfg.seed_coverage_age_s * 1e9),
+                                        self.iteration - trained if trained > 0 else None)
         with self.peaks.work("coverage"):
             return settled_uncovered(self.gmap, settled, np.asarray(points_w), kf.T_wc, kf.camera, self.cfg,
                                      self._background)
 
     def _insert(self, kf: TrainingKeyframe) -> None:
         self.keyframes.add(kf)
-        self._anchors.add(kf.kf_id, kf.stamp_ns, kf.T_wc)
+        self._anchors.add(kf.kf_id, kf.stamp_ns, kf.T_wc, self.iteration)
         self._newest_kf_id = max(self._newest_kf_id, int(kf.kf_id))
 
     def _over_memory_cap(self) -> bool:
