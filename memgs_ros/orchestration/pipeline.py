@@ -527,7 +527,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
     identical, max_diff = _compare_maps(obs, final_seq, epoch, end)
     if options.rerun is not None:
         _wait_for_view(obs, procs, final_seq, epoch, end)
-        _wait_for_final_render(obs, procs, end)
+        if gaussians:  # an empty map has no view to show
+            _wait_for_final_render(obs, procs, end)
     extra = (("recorder",) if options.record is not None else ()) + ((VIEW_NODE,) if options.rerun is not None else ())
     _wait_for_fresh_stats(obs, (*GRAPH_NODES, *extra))  # so the summary sees the final counts
     saved = obs.call(obs.save_client, 120.0) if gaussians or final_seq else ""
