@@ -177,7 +177,7 @@ class MappingConfig:
         "seed_opacity": (1e-4, 0.9999), "exposure_lr": (0.0, 1.0), "exposure_reg": (0.0, 1e3),
         "seed_coverage_scale": (0.01, 1.0), "seed_alpha_max": (0.0, 1.0), "seed_depth_abs_m": (0.0, 100.0),
         "seed_depth_rel": (0.0, 100.0), "merge_every_keyframes": (0, 10**6), "merge_keyframes_min_iters": (0, 10**8),
-        "training_window": (1, 10**5), "seed_coverage_age_s": (0.0, 1e6),
+        "training_window": (1, 10**5), "seed_coverage_age_s": (0.0, 1e6), "seed_coverage_trained_iters": (0, 10**8),
         "max_sh_degree": (0, 3), "sh_up_interval": (1, 10**8),
         "densify_start_iter": (0, 10**8), "densify_stop_iter": (0, 10**8), "densify_interval": (1, 10**8),
         "densify_window_iters": (0, 10**8),
@@ -217,7 +217,7 @@ class MappingConfig:
                 raise ConfigError(f"MappingConfig.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("min_keyframes", "pyramid_uses_per_level", "prune_min_age_iters",
                      "densify_start_iter", "densify_window_iters", "merge_start_iter", "max_gaussians", "max_keyframes",
-                     "merge_every_keyframes", "merge_keyframes_min_iters"):
+                     "merge_every_keyframes", "merge_keyframes_min_iters", "seed_coverage_trained_iters"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"MappingConfig.{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.budget_target_fraction <= 1.0:

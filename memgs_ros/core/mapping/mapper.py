@@ -263,14 +263,11 @@ class GaussianMapper:
         return int(ids.numel())
 
     def _uncovered(self, kf: TrainingKeyframe, points_w: np.ndarray) -> np.ndarray | None:
-        """[M] bool: the seeds the settled map (keyframes taken ``seed_coverage_age_s`` or more before
-        this one, or inserted ``seed_coverage_trained_iters`` or more iterations ago) does not explain
-        yet (``coverage.settled_uncovered``); None: keep them all."""
+        """[M] bool: the seeds the settled map lacks (``coverage.settled_uncovered``); None: keep all."""
         if not self.cfg.seed_coverage:
             return None
-        trained = self.cfg.seed_coverage_trained_iters
-        settled = self._anchors.settled(kf.stamp_ns - int(self.cfg.seed_coverage_age_s * 1e9),
-                                        self.iteration - trained if trained > 0 else None)
+        age_ns, trained = int(self.cfg.seed_coverage_age_s * 1e9), self.cfg.seed_coverage_trained_iters  # 0: age only
+        settled = self._anchors.settled(kf.stamp_ns - age_ns, (self.iteration - trained) if trained else None)
         with self.peaks.work("coverage"):
             return settled_uncovered(self.gmap, settled, np.asarray(points_w), kf.T_wc, kf.camera, self.cfg,
                                      self._background)
