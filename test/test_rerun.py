@@ -7,6 +7,7 @@ import os
 import sys
 from collections import defaultdict
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import cv2
@@ -21,6 +22,7 @@ from memgs_ros.cli import main  # noqa: E402
 from memgs_ros.core.maps.ply import load_ply, save_ply  # noqa: E402
 from memgs_ros.core.maps.records import GaussianRecords  # noqa: E402
 from memgs_ros.errors import ConfigError  # noqa: E402
+from memgs_ros.io.image_decoding import decode_compressed_rgb  # noqa: E402
 from memgs_ros.viz import RerunTarget  # noqa: E402
 from memgs_ros.viz import rerun_log as rl  # noqa: E402
 from memgs_ros.viz.splats import psnr_db, sh_rest_rgb, splat_arrays  # noqa: E402
@@ -436,8 +438,7 @@ def test_run_rerun_save_end_to_end(tmp_path: Path, ros_domain_id: int) -> None:
     assert [v[0] for v in _component(rows["/quality/psnr_db"], "Scalars:scalars")]
     # ... and the recording ends on a render of the final map at the last pose (the runner asks
     # for one): the room, not a blank image (~8-12 dB; CI once ended on an early render, 14.0 dB).
-    last = cv2.cvtColor(cv2.imdecode(np.frombuffer(bytes(np.ravel(renders[-1]).astype(np.uint8)), np.uint8),
-                                     cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    last = decode_compressed_rgb(SimpleNamespace(format="jpeg", data=np.ravel(renders[-1]).astype(np.uint8)))
     src = cv2.resize(frames[-1].rgb, (last.shape[1], last.shape[0]), interpolation=cv2.INTER_AREA)  # the render's size
     assert psnr_db(last, src) > 15.0
     gaussians = [v[0] for v in _component(rows["/stats/gaussians/mapper"], "Scalars:scalars")]
