@@ -80,5 +80,11 @@ class Tracker(Protocol):
     def close(self) -> None:
         """Release threads and native resources (idempotent)."""
 
+    def __enter__(self) -> Tracker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
 
 __all__ = ["SparseMapStats", "Tracker"]

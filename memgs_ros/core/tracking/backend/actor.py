@@ -41,7 +41,7 @@ from memgs_ros.core.tracking.backend.bundle_adjustment import (
 from memgs_ros.core.tracking.backend.global_ba import global_ba_iterations
 from memgs_ros.core.tracking.backend.lm import LMProgress
 from memgs_ros.core.tracking.config import TrackerConfig
-from memgs_ros.core.tracking.features.vocabulary import Vocabulary
+from memgs_ros.core.tracking.features.vocabulary import BowVector, Vocabulary
 from memgs_ros.core.tracking.frontend.map_snapshot import MapSnapshot
 from memgs_ros.core.tracking.loop_closing.loops import LoopCorrection
 from memgs_ros.core.tracking.loop_closing.place_recognition import LoopStats, PlaceOutcome, PlaceRecognition
@@ -133,6 +133,13 @@ class TrackingBackend(CommandWorker):
         if places is None:
             raise WorkerStopped(f"{self.name} has no vocabulary: place recognition is off")
         return self.submit("forget", lambda: places.forget(kf_ids))
+
+    def load_places(self, vectors: list[tuple[int, BowVector]]) -> Future[None] | None:
+        """A loaded map's keyframe vectors into the loop-search database (None: no place recognition)."""
+        places = self.places
+        if places is None:
+            return None
+        return self.submit("load_places", lambda: places.load(vectors))
 
     def global_ba(self, snap: MapSnapshot) -> Future[GlobalBAOutcome]:
         """Global BA of the whole snapshot, run between other requests; a LoopCorrection with the

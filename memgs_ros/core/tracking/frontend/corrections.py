@@ -104,6 +104,10 @@ class BackendLink:
         self.ba_time_s += time.perf_counter() - t0
         return moved
 
+    def keyframes_loaded(self, smap: SparseMap) -> None:
+        """A loaded map's keyframes: the corrected path takes their poses as it saw them."""
+        self._path_T_cw.update({k: kf.T_cw.copy() for k, kf in smap.keyframes.items()})
+
     def keyframes_removed(self, kf_ids: list[int], segment_id: int) -> None:
         """Keyframes culled from the map: out of both place-recognition databases (the back-end's
         when it next runs: an answer it sends for them meanwhile is not indexed here)."""

@@ -39,6 +39,7 @@ from memgs_ros.core.tracking.features.vocabulary import KeyframeDatabase, Vocabu
 from memgs_ros.core.tracking.frontend.corrections import BackendLink, BackendResults, KeyframesMoved
 from memgs_ros.core.tracking.frontend.keyframe_rules import cull_around, keyframe_needed
 from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
+from memgs_ros.core.tracking.frontend.map_session import MapSession
 from memgs_ros.core.tracking.frontend.pose_tracking import (
     LocalMapMatcher,
     MotionModel,
@@ -91,7 +92,7 @@ def keyframe_info(smap: SparseMap, kf: SparseKeyframe) -> KeyframeInfo:
                         kf.feats.uv.astype(np.float32), depth, active)
 
 
-class FeatureTracker(BackendResults, Tracker):
+class FeatureTracker(BackendResults, MapSession, Tracker):
     """Common machinery; subclasses add initialisation and new map points (depth or triangulation).
 
     ``ba_fixed_keyframes``: window keyframes local BA holds fixed when no keyframe outside the
@@ -193,12 +194,6 @@ class FeatureTracker(BackendResults, Tracker):
         """Block until requested local BAs are done and committed (tests and offline evaluation)."""
         self._follow(self._link.wait(self.map, self.segment_id, _WAIT_KINDS_BA, timeout_s))
 
-    def __enter__(self) -> FeatureTracker:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     # -- subclass hooks -----------------------------------------------------------------
     def _initialise(self, frame: Frame, feats: FrameFeatures
                     ) -> tuple[np.ndarray | None, KeyframeInfo | None, int, int]:
@@ -287,7 +282,8 @@ class FeatureTracker(BackendResults, Tracker):
     def _track_frame(self, frame: Frame, feats: FrameFeatures
                      ) -> tuple[np.ndarray | None, KeyframeInfo | None, int, int]:
         cfg, motion = self.cfg, self.motion
-        assert self._T_cw_last is not None
+        if self._T_cw_last is None:  # a loaded map (map_session.py): no pose before relocalising
+            return self._relocalise_loaded(frame, feats)
         dt_s = motion.frame_dt_s(frame.stamp_ns)
         T_pred = orthonormalized(motion.motion_over(dt_s) @ self._T_cw_last)
         raw = feats
@@ -308,7 +304,7 @@ class FeatureTracker(BackendResults, Tracker):
             self._T_cw_last = T_pred
             return T_pred, None, 0, 0
         self.state = TrackingState.LOST
-        if self._lost_frames > cfg.new_segment_after_lost_frames:
+        if self._lost_frames > cfg.new_segment_after_lost_frames and not self.localize_only:
             T_new = self._lost_timeout(frame, feats)
             if T_new is not None:
                 return T_new, self._last_kf_info, 0, 0
@@ -433,6 +429,8 @@ class FeatureTracker(BackendResults, Tracker):
         cfg = self.cfg
         last = self.map.keyframes.get(self._last_kf_id)
         ref = self.map.keyframes.get(self._ref_kf_id, last)
+        if self.localize_only:
+            return False
         if last is None or ref is None:
             return self._frames_since_kf >= cfg.keyframe_min_frames and len(outcome.point_ids) >= cfg.min_inliers
         weak = (len(outcome.point_ids) < self._keyframe_ratio() * self._reference_tracked(ref)

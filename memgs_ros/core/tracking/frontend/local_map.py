@@ -146,6 +146,25 @@ class SparseMap:
             self._pts.bad[pid] = True
             self._pts.n_obs[pid] = 0
 
+    def export_points(self) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
+        """Copies of the store's (pos, desc, octave, n_visible, n_found, first_kf) and the good mask [n_points]."""
+        p, n = self._pts, self._pts.size
+        return tuple(a[:n].copy() for a in (p.pos, p.desc, p.octave, p.n_visible, p.n_found, p.first_kf)), ~p.bad[:n]
+
+    def restore_points(self, *arrays: np.ndarray) -> None:
+        """Fill an empty store with ``export_points``' arrays (good points); observations from the keyframes."""
+        self._grow(len(arrays[0]))
+        p, n = self._pts, len(arrays[0])
+        for name, arr in zip(("pos", "desc", "octave", "n_visible", "n_found", "first_kf"), arrays):
+            getattr(p, name)[:n] = arr
+        p.bad[:n], p.size = False, n
+        self.observations = [{} for _ in range(n)]
+        for kf in self.keyframes.values():
+            for i in np.flatnonzero(kf.point_ids >= 0).tolist():
+                self.observations[int(kf.point_ids[i])][kf.keyframe_id] = i
+        p.n_obs[:n] = [len(o) for o in self.observations]
+        p.bad[:n] = p.n_obs[:n] == 0
+
     def point_arrays(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(pos [K, 3], desc [K, 32], octave [K]) copies for point ids [K]."""
         p = self._pts

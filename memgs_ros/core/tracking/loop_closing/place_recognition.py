@@ -85,6 +85,11 @@ class PlaceRecognition:
         for k in kf_ids:
             self.keyframe_db.remove(k)
 
+    def load(self, vectors: list[tuple[int, BowVector]]) -> None:
+        """A loaded map's keyframes, indexed: loops close onto the earlier session too."""
+        for k, bow in vectors:
+            self.keyframe_db.add(k, bow)
+
     def process(self, snap: MapSnapshot, kf_id: int) -> PlaceOutcome:
         """Index keyframe ``kf_id``; with loop closure, look for a loop and prepare its correction."""
         cfg = self.cfg
