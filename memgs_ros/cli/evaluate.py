@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from memgs_ros.cli.rerun_options import add_rerun_arguments, rerun_target
-from memgs_ros.cli.run import add_record_argument, check_inputs, check_repeat, guess_config, run_log
+from memgs_ros.cli.run import add_map_arguments, add_record_argument, check_inputs, check_repeat, guess_config, run_log
 from memgs_ros.errors import ConfigError
 from memgs_ros.orchestration.run_files import check_record_path
 
@@ -58,6 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the nodes as components of one process (this one): the libraries load once")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS even when the lpips package is there")
     p.add_argument("--no-plots", action="store_true", help="write JSON and tables only")
+    add_map_arguments(p, ("--map-mode",))
     add_record_argument(p)
     add_rerun_arguments(p)
 
@@ -107,8 +108,10 @@ def run(args: argparse.Namespace) -> int:
         args.record = check_record_path(args.record)
     rerun = rerun_target(args)  # ConfigError without rerun-sdk, before anything starts
     check_repeat(args.repeat)
+    if args.map is not None and args.ablation:
+        raise ConfigError("--map scores one session; drop --ablation")
     warnings = check_inputs(source, config, args.max_frames, overrides, args.out, args.repeat,
-                            args.repeat_forward)  # before torch, rclpy, nodes
+                            args.repeat_forward, map_bundle=args.map, map_mode=args.map_mode)  # before torch, nodes
     with run_log(args.out):
         for warning in warnings:
             logger.warning(warning)
@@ -135,6 +138,8 @@ def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dic
               "domain_id": args.domain_id,
               "timeout_s": args.timeout,
                   "composed": args.composed, "use_lpips": not args.no_lpips, "rerun": rerun}
+    if args.map is not None:
+        kwargs.update(map_bundle=args.map, map_mode=args.map_mode)
     if args.record is not None:
         kwargs["record"] = args.record
     out = Path(args.out)

@@ -77,8 +77,19 @@ def add_graph_arguments(p: argparse.ArgumentParser) -> None:
                    help="fault injection: SIGKILL NODE (mapper, merger, ...) this many seconds after the "
                         "player starts, once it has state to lose (the mapper a checkpoint with Gaussians, "
                         "the merger a delta), and restart it at once (repeatable; separate processes only)")
+    add_map_arguments(p)
     add_record_argument(p)
     add_rerun_arguments(p)
+
+
+def add_map_arguments(p: argparse.ArgumentParser, mode_flags: tuple[str, ...] = ("--mode", "--map-mode")) -> None:
+    """``--map`` and ``--mode`` (``eval``, whose ``--mode`` is the camera's: ``--map-mode``)."""
+    p.add_argument("--map", type=Path, default=None, metavar="BUNDLE",
+                   help="start from a saved map bundle (a folder of OUT/maps/, or OUT/maps for its latest): "
+                        "no pose until a frame relocalises in it, then its world frame")
+    p.add_argument(*mode_flags, dest="map_mode", choices=("mapping", "localize"), default="mapping",
+                   help="with --map: mapping continues the map (and saves a new bundle); localize tracks in "
+                        "it and changes nothing")
 
 
 def add_record_argument(p: argparse.ArgumentParser) -> None:
@@ -131,7 +142,7 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
         repeat_forward=args.repeat_forward, bag_topics=args.topics,
         overrides=overrides, timeout_s=args.timeout, kill_after_s=kills, strict=args.strict,
         record=check_record_path(args.record) if getattr(args, "record", None) is not None else None,
-        rerun=rerun_target(args))
+        rerun=rerun_target(args), map_bundle=getattr(args, "map", None), map_mode=getattr(args, "map_mode", "mapping"))
 
 
 def check_repeat(repeat: int) -> None:
@@ -171,12 +182,13 @@ def check_out_dir(out_dir: Path) -> None:
 
 def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict | None = None,
                  out_dir: Path | None = None, repeat: int = 1, repeat_forward: bool = False,
-                 bag_topics: str = "") -> list[str]:
+                 bag_topics: str = "", map_bundle: Path | None = None, map_mode: str = "mapping") -> list[str]:
     """Fail before any node starts, with one line naming the file: the config must load, the
     overrides name real nodes, the source must open (a bag is scanned whole, so a truncated or
     corrupt one is found here rather than by the player in the middle of the run), a TUM folder's
     camera must be known and the output folder must be creatable (:func:`check_config`: every
-    parameter named must exist).
+    parameter named must exist); a map bundle must be whole and made with this camera, depth unit
+    and tracker mode (:func:`check_map_bundle`).
 
     Returns the warnings to show before the run: the source's camera_info against the config's
     calibration (:func:`calibration_warning`)."""
@@ -197,9 +209,27 @@ def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict 
                           f"freiburg1/2/3 and the config ({config}) gives no calibration; pass --config tum_fr1 "
                           f"(tum_fr2, tum_fr3) or write {CAMERA_JSON} (see README)")
     warning = calibration_warning(str(source), src.camera, configured, config)
+    check_map_bundle(map_bundle, map_mode, params, src.camera if configured.camera is None or not configured.override
+                     else configured.camera.fitted(src.camera.width, src.camera.height))
     if out_dir is not None:
         check_out_dir(out_dir)
     return [warning] if warning else []
+
+
+def check_map_bundle(bundle: Path | None, mode: str, params: dict[str, dict], camera: PinholeCamera) -> None:
+    """ConfigError for ``--mode localize`` without a map; BundleError (one line naming the field or
+    file) for a bundle that is damaged or made with another camera, depth unit or tracker mode."""
+    from memgs_ros.core.maps.bundle import check_bundle
+
+    if bundle is None:
+        if mode == "localize":
+            raise ConfigError("--mode localize needs --map BUNDLE: a map to localise in")
+        return
+    tracker = params.get("tracker", {})
+    cam = {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx,
+           "cy": camera.cy}
+    check_bundle(bundle, cam, float(tracker.get("depth_scale", 1000.0)),
+                 str(tracker.get("tracker.mode", "rgbd")))
 
 
 def calibration_warning(source: str, source_camera: PinholeCamera, configured: ConfiguredCamera,
@@ -299,6 +329,10 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
     if s.cpu_s:
         print("CPU time      " + ", ".join(f"{n} {v:.1f} s" for n, v in s.cpu_s.items()))
     print(f"map           {s.ply_path}")
+    if s.bundle_path:
+        print(f"map bundle    {s.bundle_path}")
+    if s.map_bundle:
+        print(f"started from  {s.map_bundle} ({s.relocalizing} frames before the first relocalised pose)")
     print(f"trajectory    {s.trajectory_path}")
     if record is not None:
         print(f"recording     {record} ({record.stat().st_size / 1e6:.1f} MB)")
@@ -335,7 +369,8 @@ def run(args: argparse.Namespace) -> int:
 
     options = options_from_args(args, args.bag)
     warnings = check_inputs(options.source, options.config, options.max_frames, dict(options.overrides),
-                            options.out_dir, options.repeat, options.repeat_forward, options.bag_topics)
+                            options.out_dir, options.repeat, options.repeat_forward, options.bag_topics,
+                            options.map_bundle, options.map_mode)
     with run_log(options.out_dir):
         for warning in warnings:
             logger.warning(warning)

@@ -514,8 +514,10 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
              domain_id: int | None = None, namespace: str = "", timeout_s: float = 3600.0,
              composed: bool = False, variant: str = "full", use_lpips: bool = True,
              device: str | None = None, progress: bool = True, record: Path | None = None,
-             rerun: RerunTarget | None = None) -> EvalResult:
-    """Run the graph on ``source`` in lockstep, then :func:`evaluate_run` on its output.
+             rerun: RerunTarget | None = None, map_bundle: Path | None = None,
+             map_mode: str = "mapping") -> EvalResult:
+    """Run the graph on ``source`` in lockstep (from ``map_bundle`` in ``map_mode`` when given),
+    then :func:`evaluate_run` on its output.
 
     resolution_scale: mapping resolution (``mapper.mapping.resolution_scale``); None keeps the
     config's. seed: seeds the mapper and the Patch-Grid sampler (and the tracker's RANSAC).
@@ -543,7 +545,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
                          lockstep=True, namespace=namespace, domain_id=domain_id,
                          max_frames=int(max_frames), repeat=int(repeat), repeat_forward=bool(repeat_forward),
                          overrides=run_overrides, timeout_s=timeout_s,
-                         record=record, rerun=rerun)
+                         record=record, rerun=rerun, map_bundle=map_bundle, map_mode=map_mode)
     run_pipeline(options, progress=progress)
     return evaluate_run(out, str(source), mode, variant=variant, config=config, seed=seed,
                         overrides=run_overrides, max_frames=max_frames, use_lpips=use_lpips,

@@ -47,6 +47,7 @@ from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.mapper_inputs import KeyframeReceiver, keyframe_poses
+from memgs_ros.ros.mapper_map_part import MapperMapPart
 from memgs_ros.ros.mapper_outputs import MapperOutbox
 from memgs_ros.ros.mapper_stats import MapperStats
 from memgs_ros.ros.node_main import run_node
@@ -68,8 +69,10 @@ class MapperNode(ManagedNode):
     def configure_node(self) -> None:
         """torch and the device, the session (resumed from the checkpoint), the topics and timers."""
         p = self.params
+        self.frozen = p.map_mode == "localize"  # a loaded map rendered, never trained
         opts = SessionOptions(lockstep=p.lockstep, insert_queue=p.insert_queue, delta_tolerance=p.delta_tolerance,
-                              niceness=p.niceness, checkpoint_path=p.checkpoint_path, resume=p.resume)
+                              niceness=p.niceness, checkpoint_path=p.checkpoint_path, resume=p.resume,
+                              map_bundle=p.map_bundle, frozen=self.frozen)
         start = start_mapper(self.cfg, self.merge_cfg, p.device, opts)
         self.session = start.session
         self.stats = MapperStats(self, start.raster.backend, p.checkpoint_period_s if p.checkpoint_path else 0.0)
@@ -83,7 +86,8 @@ class MapperNode(ManagedNode):
             lambda: self.stats.post_count("delta_waits"))
         self.live_view = LiveView()
         self.lockstep = LockstepAcknowledger(
-            p.lockstep_window, lambda: self.stats.watch(self.session.train(p.lockstep_iterations), "train"),
+            p.lockstep_window, lambda: self.stats.watch(self.session.train(0 if self.frozen else p.lockstep_iterations),
+                                                        "train"),
             self.out.hand_over, self.out.ack, self.stats.ack_ms.add)
         self.latest_pose: PoseStamped | None = None
         topics = {"color": Image, "camera_info": CameraInfo, "pose": PoseStamped, "seeds": PointCloud2,
@@ -91,6 +95,7 @@ class MapperNode(ManagedNode):
         self.keyframes = KeyframeReceiver(set(topics), self.session.resumed_stamps, p.depth_scale)
         self._subscribe(topics)
         self._serve(checkpoints=start.checkpoint is not None)
+        MapperMapPart(self, p, self.stats, self.session, self.out.hand_over, self.cfg.max_sh_degree)
         if start.resumed is not None:
             self._periodic_snapshot()  # latched: the merger takes the resumed map and its epoch
         # The rasterizer's and SSIM's compiled kernels load (on a fresh install: compile) as the
@@ -138,11 +143,11 @@ class MapperNode(ManagedNode):
         log = self.get_logger()
         if start.set_aside:
             log.error(start.set_aside)
-        elif start.resumed is not None and start.checkpoint is not None:
+        elif start.resumed is not None and (where := start.from_bundle or start.checkpoint) is not None:
             self.stats.counters["resumed"] += 1
             r = start.resumed
-            log.info(f"resumed from {start.checkpoint.path}: {len(r.gaussians)} Gaussians, {len(r.keyframes)} "
-                     f"keyframes, iteration {r.iteration}")
+            log.info(f"resumed from {getattr(where, 'path', where)}: {len(r.gaussians)} Gaussians, {len(r.keyframes)} "
+                     f"keyframes, iteration {r.iteration}{' (localize: not trained)' if self.frozen else ''}")
         log.info(f"mapper on {device_label(start.device)}, rasterizer {start.raster.backend}, "
                  f"{'lockstep' if self.params.lockstep else 'free-running'} training")
         if start.raster.fallback_warning:
@@ -228,7 +233,8 @@ class MapperNode(ManagedNode):
             flush=lambda: self.session.delta(None, True, self.out.delta_rows), snapshot=self.publish_snapshot,
             save=self.save_checkpoint, receivers_acked=self.out.receivers_acked, wait=hand_over.result,
             sleep=hand_over.sleep, log=self.get_logger().info)
-        plan = FinalPlan(p.final_iterations, p.final_densify, p.final_budget_s, p.final_total_iterations)
+        plan = FinalPlan() if self.frozen else FinalPlan(p.final_iterations, p.final_densify, p.final_budget_s,
+                                                         p.final_total_iterations)
         res.success, res.message = True, await finish_map(self.session, plan, steps)
         return res
 

@@ -5,7 +5,9 @@ Subscribes: ``memgs/map/delta`` (reliable) and ``memgs/mapper/snapshot`` (latche
 full map in the delta protocol's layout, on request and every ``publish_period_s``) and with it
 ``memgs/map/points`` (latched: the map as x, y, z, rgb, opacity points for RViz and Foxglove),
 ``memgs/merger/render/{color,depth,camera_info}`` and ``memgs/merger/stats``. Services: ``memgs/save_map``
-(std_srvs/Trigger: write the PLY atomically, answers its path) and ``memgs/merger/publish_map``.
+(std_srvs/Trigger: write the PLY atomically, answers its path; with ``bundle_dir`` also a map bundle,
+``ros/map_bundles.py``, whose path then comes first: ``<bundle> ply=<ply> gaussians=.. seq=..``) and
+``memgs/merger/publish_map``.
 Saves periodically and on shutdown.
 
 A gap in the delta sequence, a late start or a count mismatch triggers a resync: deltas are
@@ -31,6 +33,7 @@ import time
 from pathlib import Path
 
 from geometry_msgs.msg import PoseStamped
+from rclpy.callback_groups import ReentrantCallbackGroup
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
@@ -46,6 +49,7 @@ from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.lifecycle import ManagedNode
+from memgs_ros.ros.map_bundles import BundleAssembler
 from memgs_ros.ros.map_messages import decode_map_message, full_map_message, viewer_cloud_message
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.service_calls import PacedRequests
@@ -88,7 +92,8 @@ class MergerNode(ManagedNode):
                              started_s=time.monotonic())
         self.snapshots = PacedRequests(self, "memgs/mapper/publish_snapshot", self.stats, pacer, "snapshot_requests",
                                        "snapshot_request", "the mapper did not take a snapshot request")
-        self.create_service(Trigger, "memgs/save_map", self.on_save)
+        self.bundles = BundleAssembler(self, v, self.stats)
+        self.create_service(Trigger, "memgs/save_map", self.on_save, callback_group=ReentrantCallbackGroup())
         self.create_service(Trigger, "memgs/merger/publish_map", self.on_publish_map)
         if v.save_period_s > 0:
             self.create_timer(v.save_period_s, self._save_periodic)
@@ -140,8 +145,7 @@ class MergerNode(ManagedNode):
 
     def _gauges(self) -> None:
         replica = self.map.replica
-        # What the merger holds: the replica's rows, deltas buffered during a resync, and the
-        # render inputs of the last view request (no training state: no gradients, no Adam).
+        # The replica's rows, deltas buffered in a resync, the last view's render inputs (no training state).
         self.stats.gauges.update(seq=replica.seq, epoch=replica.epoch, gaussians=len(replica),
                                  resyncing=int(self.map.resyncing), unknown_removals=replica.unknown_removals,
                                  map_bytes=replica.records.nbytes if len(replica) else 0,
@@ -160,22 +164,23 @@ class MergerNode(ManagedNode):
         return self.map_path
 
     def _save_periodic(self) -> None:
-        """The timer's save. A full or read-only disk must not end the node (losing the map it holds):
-        counted, logged once, retried next period; the last complete PLY stays (atomic write)."""
+        """The timer's save; a full disk is counted and retried, never ends the node (the last PLY stays)."""
         try:
             self.save()
         except (MemgsError, OSError) as err:
             self.stats.problem("save_failed", f"could not save {self.map_path}: {err}; the previous file stays")
 
-    def on_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+    async def on_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         try:
             path = self.save()
+            bundle = await self.bundles.save(self.map.replica.records, self.world_frame) if (
+                path is not None and self.params.bundle_dir) else None
         except (MemgsError, OSError) as err:
-            res.success, res.message = False, f"could not save {self.map_path}: {err}"
+            res.success, res.message = False, f"could not save: {err}"
             return res
-        res.success = path is not None
-        res.message = (f"{path.resolve()} gaussians={len(self.map.replica)} seq={self.map.replica.seq}" if path
-                       else "no map received yet")
+        res.success, first = path is not None, f"{bundle} ply=" if bundle is not None else ""  # the bundle first
+        res.message = (f"{first}{path.resolve()} gaussians={len(self.map.replica)} seq={self.map.replica.seq}"
+                       if path else "no map received yet")
         return res
 
     def publish_map(self, force: bool = True) -> None:
@@ -194,8 +199,7 @@ class MergerNode(ManagedNode):
         return res
 
     def on_view_request(self, msg: PoseStamped) -> None:
-        """Render on the renderer's thread (torch loads there on the first request: a merger that
-        only holds, publishes and saves the map stays without it, ~200 MB less resident memory)."""
+        """Render on the renderer's thread (torch loads there on the first request: ~200 MB not taken before)."""
         if len(self.map.replica) == 0:
             return
         self.views.when_done(self.renderer.render(self.map.replica.records, self.map.version,

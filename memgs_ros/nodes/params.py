@@ -128,6 +128,10 @@ class TrackerParams:
     max_stamp_ahead_s: float = 3600.0  # drop frames stamped more than this ahead of the node's clock (0 = no check)
     camera_info_override: bool = False
     max_frame_age_s: float = 0.1
+    # a saved map bundle (core/maps/bundle.py) to start from: frames get no pose until one relocalises in it
+    map_bundle: str = ""
+    map_mode: str = "mapping"  # with map_bundle: mapping (continue the map) or localize (track, change nothing)
+    bundle_dir: str = ""  # where bundles are saved (memgs/save_map); this node stages its part in <bundle_dir>/.parts
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "depth_scale": (1e-3, 1e6), "max_sync_dt_s": (0.0, 1.0), "unpaired_warn_s": (0.1, 3600.0),
@@ -139,7 +143,7 @@ class TrackerParams:
     }
     CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {
         "sync": ("approximate", "exact"), "input_reliability": ("best_effort", "reliable"),
-        "image_transport": ("raw", "compressed"),
+        "image_transport": ("raw", "compressed"), "map_mode": ("mapping", "localize"),
     }
 
     def __post_init__(self) -> None:
@@ -220,6 +224,10 @@ class MapperParams:
     resume: bool = True  # start from the checkpoint at checkpoint_path when one exists
     insert_queue: int = 4
     niceness: int = 10  # CPU niceness of the whole process (0..19): the tracker (0) goes first on shared cores
+    # a saved map bundle to continue (its mapper.npz; this mapper's own checkpoint, after a crash, comes first)
+    map_bundle: str = ""
+    map_mode: str = "mapping"  # with map_bundle: mapping (train it on) or localize (render it, never train)
+    bundle_dir: str = ""  # where bundles are saved (memgs/save_map); this node stages its part in <bundle_dir>/.parts
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "niceness": (0, 19), "depth_scale": (1e-3, 1e6), "lockstep_iterations": (0, 10000),
@@ -229,7 +237,7 @@ class MapperParams:
         "snapshot_period_s": (0.0, 1e6), "render_rate_hz": (0.0, 60.0), "checkpoint_period_s": (0.0, 1e6),
         "insert_queue": (1, 1000),
     }
-    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": ("rgbd", "mono")}
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": ("rgbd", "mono"), "map_mode": ("mapping", "localize")}
 
     def __post_init__(self) -> None:  # CHOICES refuses a bad parameter; this, a bad direct construction
         if self.mode not in self.CHOICES["mode"]:
@@ -244,6 +252,10 @@ class MergerParams:
     autostart: bool = True
 
     map_path: str = "memgs_map.ply"  # where the map PLY is saved (atomically)
+    # non-empty: memgs/save_map also saves a map bundle (PLY, tracker and mapper parts, manifest) in a new
+    # folder here, with a "latest" link; the tracker's and mapper's bundle_dir must name the same folder
+    bundle_dir: str = ""
+    map_source: str = ""  # what the map was made from, written into the bundle's manifest
     save_period_s: float = 60.0  # also save the PLY this often when it changed (0 = only on request and shutdown)
     # publish the full map on memgs/map/gaussians and memgs/map/points this often (0 = only on request)
     publish_period_s: float = 30.0

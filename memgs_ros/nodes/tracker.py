@@ -61,6 +61,7 @@ from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.node_main import run_node
+from memgs_ros.ros.tracker_map_part import TrackerMapPart
 from memgs_ros.ros.tracker_outputs import KEYPOINT_DTYPE, TrackerOutbox, track_stats
 
 __all__ = ["KEYPOINT_DTYPE", "TrackerNode", "main"]
@@ -96,6 +97,8 @@ class TrackerNode(ManagedNode):
         self.tracker: Tracker | None = None
         self.stats = NodeStats(self, "tracker")
         self.out = TrackerOutbox(self, v, self.stats)
+        self.bundle = TrackerMapPart(self, v, self.stats, lambda: self.tracker, lambda: {
+            "frames": self.stats.counters["frames_in"], "depth_scale": v.depth_scale, "map_frame": v.map_frame})
         sensor = qos.sensor() if v.input_reliability == "best_effort" else qos.reliable(5)
         self.create_subscription(CameraInfo, v.camera_info_topic, self.on_camera_info, sensor)
         self.compressed = v.image_transport == "compressed"  # decoded once a frame is taken
@@ -143,6 +146,7 @@ class TrackerNode(ManagedNode):
     def _camera_set(self, origin: str) -> None:
         assert self.cams.camera is not None
         self.tracker = make_tracker(self.cfg, self.cams.camera)
+        self.bundle.load_into(self.tracker)  # map_bundle: no pose until relocalised in it
         self.get_logger().info(f"camera from {origin}: {describe_camera(self.cams.camera)}")
 
     def on_color(self, msg: Image, info: MessageInfo) -> None:

@@ -531,7 +531,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
             _wait_for_final_render(obs, procs, end)
     extra = (("recorder",) if options.record is not None else ()) + ((VIEW_NODE,) if options.rerun is not None else ())
     _wait_for_fresh_stats(obs, (*GRAPH_NODES, *extra))  # so the summary sees the final counts
-    saved = obs.call(obs.save_client, 120.0) if gaussians or final_seq else ""
+    saved = obs.call(obs.save_client, 300.0) if gaussians or final_seq else ""  # a map bundle too: ~100 MB
+    first = saved.split()[0] if saved else ""
     wall = time.monotonic() - t0
     poses = _write_trajectories(obs, out)
     tracker, mapper, merger = obs.telemetry("tracker"), obs.telemetry("mapper"), obs.telemetry("merger")
@@ -541,7 +542,9 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
         bag_topics=str(options.bag_topics), frames=tracker.frames_in, poses=poses,
         keyframes=tracker.keyframes, gaussians=gaussians,
         tracking_fps=(tracker.frames_in / track_s) if track_s > 0 else 0.0, wall_s=wall,
-        ply_path=saved.split()[0] if saved else "", trajectory_path=str(out / TRAJECTORY_FILE),
+        ply_path=_parse_kv(saved).get("ply", first), trajectory_path=str(out / TRAJECTORY_FILE),
+        bundle_path=first if "ply=" in saved else "", map_bundle=str(options.map_bundle or ""),
+        relocalizing=int(tracker.relocalizing),
         delta_messages=merger.deltas,
         delta_bytes=merger.delta_bytes, delta_bytes_per_s=merger.delta_bytes / wall if wall > 0 else 0.0,
         lost_frames=tracker.state.get("LOST", 0), merger_seq=merger.seq,

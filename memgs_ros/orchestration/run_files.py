@@ -23,8 +23,8 @@ from memgs_ros.nodes.registry import GRAPH, NODES
 from memgs_ros.viz import RerunTarget
 
 __all__ = [
-    "CHECKPOINT_FILE", "GRAPH_NODE_NAMES", "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES", "PARAMS_FILE",
-    "STATS_TIMELINE_FILE",
+    "BUNDLES_DIR", "CHECKPOINT_FILE", "GRAPH_NODE_NAMES", "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES",
+    "PARAMS_FILE", "STATS_TIMELINE_FILE",
     "SUMMARY_FILE", "TRAJECTORY_FILE", "ConfiguredCamera", "RunOptions", "RunSummary", "build_params",
     "check_parameters", "check_record_path", "config_path", "configured_camera", "node_params", "read_params",
     "read_stats_timeline", "read_summary",
@@ -40,6 +40,7 @@ GRAPH_NODE_NAMES = GRAPH
 PARAMS_FILE = "params.yaml"  # the effective per-node parameters
 MAP_FILE = "map.ply"
 CHECKPOINT_FILE = "mapper_checkpoint.npz"  # the mapper's checkpoint (resumed by a mapper restarted mid-run)
+BUNDLES_DIR = "maps"  # map bundles the run saves (core/maps/bundle.py), and their "latest" link
 TRAJECTORY_FILE = "trajectory.txt"  # every tracked pose, TUM format
 KEYFRAMES_FILE = "keyframes.txt"  # keyframe poses at insertion, TUM format
 STATS_TIMELINE_FILE = "stats_timeline.jsonl"  # every node stats message: {"t_s", "node", key: value}
@@ -76,6 +77,10 @@ class RunOptions:
     record: Path | None = None
     # Stream the run to Rerun (viewer and/or .rrd file) through a rerun_bridge node; None = no view.
     rerun: RerunTarget | None = None
+    # A saved map bundle to start from (core/maps/bundle.py), and what to do with it: mapping (continue
+    # it; the run saves a new bundle) or localize (track in it, change nothing, save no bundle).
+    map_bundle: Path | None = None
+    map_mode: str = "mapping"
 
 
 @dataclass(frozen=True)
@@ -140,6 +145,9 @@ class RunSummary:
     repeat: int = 1  # the source was played this many times, forward and back (``open_source(repeat=)``)
     repeat_forward: bool = False  # ... every pass forward
     bag_topics: str = ""  # the bag topics the run was given (``BagTopics.parse``)
+    bundle_path: str = ""  # the map bundle saved at the end ("" when none: localize, or no map)
+    map_bundle: str = ""  # the bundle the run started from ("" when none)
+    relocalizing: int = 0  # frames given no pose before the first relocalisation in map_bundle
 
     @property
     def mapping_iterations_replay(self) -> int:
@@ -204,6 +212,7 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         # its keep-last queue still lets a busy tracker skip frames; stale ones are dropped.
         params.setdefault("tracker", {}).setdefault("input_reliability", "reliable")
     params.setdefault("merger", {})["map_path"] = str(map_path)
+    _bundle_params(params, options, map_path.parent / BUNDLES_DIR)
     if options.record is not None:
         params.setdefault("recorder", {})["path"] = str(Path(options.record).resolve())
     if options.rerun is not None:
@@ -226,6 +235,19 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         if name.startswith(CALIBRATION_PREFIX):
             params.setdefault("bag_player", {}).setdefault(name, value)
     return {f"/**/{node}": {"ros__parameters": p} for node, p in params.items()}
+
+
+def _bundle_params(params: dict[str, dict[str, Any]], options: RunOptions, bundle_dir: Path) -> None:
+    """Map bundles: the one to start from (tracker and mapper), and where the run saves its own
+    (tracker, mapper and merger; none in localize mode, which changes nothing)."""
+    for node in ("tracker", "mapper"):
+        params.setdefault(node, {})["map_mode"] = options.map_mode
+        if options.map_bundle is not None:
+            params[node]["map_bundle"] = str(Path(options.map_bundle).expanduser().resolve())
+    if options.map_mode != "localize":
+        for node in ("tracker", "mapper", "merger"):
+            params.setdefault(node, {}).setdefault("bundle_dir", str(bundle_dir.resolve()))
+    params.setdefault("merger", {}).setdefault("map_source", str(options.source))
 
 
 def check_record_path(path: str | os.PathLike[str]) -> Path:

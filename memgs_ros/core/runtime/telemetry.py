@@ -40,6 +40,8 @@ class NodeTelemetry:
 @dataclass(frozen=True)
 class TrackerTelemetry(NodeTelemetry):
     frames_in: int = 0  # colour frames taken
+    map_parts: int = 0  # bundle parts written (memgs/tracker/save_map_part)
+    map_part_copy_ms: float = 0.0  # the last part's copy on the tracking thread (the write runs beside it)
     poses_out: int = 0  # poses published on memgs/pose (coasted ones too)
     odometry_out: int = 0  # tracked poses (state OK) on memgs/odom and memgs/pose_with_covariance
     odometry_withheld: int = 0  # poses whose odometry and TF waited for the camera's mount on tf_static
@@ -62,6 +64,8 @@ class TrackerTelemetry(NodeTelemetry):
     ba_waits: int = 0  # frames that waited for the back-end's BA
     keyframes_deferred: int = 0  # due keyframes put off while a BA ran
     ba_refused: int = 0  # local BAs not committed: they slid their new keyframe (tracker.ba_max_shift_ratio)
+    relocalizing: int = 0  # frames with no pose before the first relocalisation in a loaded map (map_bundle)
+    relocalized_after: int = 0  # frames a loaded map took to relocalise in (-1: not yet)
     readout_flips: int = 0  # times the rolling shutter's row order flipped (tracking/frontend/readout.py)
     readout_sign: int = 1  # -1: the frames read their rows bottom to top
     map_points: int = 0  # the sparse map's size
@@ -92,6 +96,7 @@ class MapperTelemetry(NodeTelemetry):
     checkpoints: int = 0  # written
     checkpoint_gaussians: int = 0  # in the last one
     checkpoint_ms: float = 0.0  # its write time
+    map_parts: int = 0  # bundle parts written (memgs/mapper/save_map_part)
     resumed: int = 0  # 1 when it started from a checkpoint
     rss_baseline_mb: float = 0.0  # after imports, session and kernels
     warm_up_s: float = 0.0  # the kernels' load (or compile) time
@@ -162,6 +167,8 @@ class MergerTelemetry(NodeTelemetry):
     delta_bytes: int = 0  # their size
     renders: int = 0  # views rendered on request
     saves: int = 0  # PLY files written
+    bundles: int = 0  # map bundles saved (memgs/save_map with bundle_dir)
+    bundle_mb: float = 0.0  # the last one's size on disk
     snapshot_requests: int = 0  # full maps asked of the mapper
     snapshots: int = 0  # full maps applied
     buffered_deltas: int = 0  # held while resynchronising

@@ -89,8 +89,7 @@ def export_map(smap: SparseMap, keyframe_db: KeyframeDatabase, camera: PinholeCa
     a["kf_point_ids"] = np.where(pid >= 0, new_id[np.maximum(pid, 0)], -1) if len(new_id) else np.full_like(pid, -1)
     for name, arr in zip(_POINT_ARRAYS, pts):
         a[f"pt_{name}"] = arr[good]
-    vectors = [(k.keyframe_id, keyframe_db.vector(k.keyframe_id)) for k in kfs]
-    vectors = [(k, v) for k, v in vectors if v is not None]
+    vectors = [(k.keyframe_id, v) for k in kfs if (v := keyframe_db.vector(k.keyframe_id)) is not None]
     a["bow_kf"] = np.array([k for k, _ in vectors], np.int64)
     a["bow_offsets"] = np.r_[0, np.cumsum([len(v) for _, v in vectors])].astype(np.int64)
     a["bow_words"] = np.concatenate([v.words for _, v in vectors]) if vectors else np.zeros(0, np.int64)
