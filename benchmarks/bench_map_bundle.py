@@ -10,7 +10,7 @@ over DDS, lockstep unless said):
 - **session 1**: frames 0-119, which saves a bundle (``OUT/maps``);
 - **session 2**: frames 80-199 with ``--map`` session 1's bundle, restamped 1000 s later (a later
   flight: stamps never repeat), which continues the map and saves a new bundle;
-- **localize**: all 200 frames, restamped, ``--map`` session 1's bundle ``--mode localize``;
+- **localize**: all 200 frames, restamped, ``--map`` the one session's bundle ``--mode localize``;
 - **live session 2**: session 2 again with ``--realtime`` (2 cores: frames the tracker posed).
 
 Printed: frames session 2 took to relocalise; ATE of both sessions' trajectories under **one**
@@ -117,14 +117,18 @@ def psnr_at_gt(ply: Path, tum: Path, A: np.ndarray, run_dir: Path) -> float:
     from memgs_ros.orchestration.run_files import configured_camera, read_params
 
     params = read_params(run_dir)
-    scale = float(params.get("mapper", {}).get("mapping.resolution_scale", 1.0))
+    mapper = params.get("mapper", {})
+    scale = float(mapper.get("mapping.resolution_scale", 1.0))
+    background = tuple(float(v) for v in mapper.get("mapping.background", (0.0, 0.0, 0.0)))  # as memgs eval
     stamps, images, camera, _, mask = _ground_truth_images(str(tum), 0, scale, configured_camera(params))
     gt_s, gt_T = TumFolder(tum).ground_truth()
     ia, ib = associate(stamps, gt_s, 20_000_000)
     poses = invert_pose(A) @ gt_T[ib]
-    quality, _, _ = score_map(ply, {"gt": (stamps[ia], poses)}, stamps, images, camera, use_lpips=False,
-                              progress=False, valid_mask=mask)
-    return float(quality["gt"].psnr)
+    quality, _, _ = score_map(ply, {"gt": (stamps[ia], poses)}, stamps, images, camera, background=background,
+                              use_lpips=False, progress=False, valid_mask=mask)
+    psnr = quality["gt"].psnr_db
+    assert psnr is not None
+    return float(psnr)
 
 
 def _files(root: Path) -> dict[str, tuple[int, str]]:
@@ -197,13 +201,14 @@ def kills_during_save(good: Path, work: Path, trials: int) -> dict[str, Any]:
     shutil.copytree(good, root / "first")
     os.symlink("first", root / LATEST)
     rng = np.random.default_rng(0)
-    bad, staged = 0, 0
+    bad, staged, saved = 0, 0, 0
     for _ in range(trials):
         proc = subprocess.Popen([sys.executable, "-c", _SAVER, str(good), str(root)], cwd=ROOT,
                                 env={**os.environ, "PYTHONPATH": str(ROOT)})
         time.sleep(float(rng.uniform(1.0, 4.0)))
         proc.send_signal(signal.SIGKILL)
         proc.wait()
+        latest = os.readlink(root / LATEST)
         for d in root.iterdir():
             if d.name.startswith("."):
                 staged += 1
@@ -212,14 +217,18 @@ def kills_during_save(good: Path, work: Path, trials: int) -> dict[str, Any]:
                 check_bundle(d)
             except Exception:  # noqa: BLE001 - counted: a visible bundle that does not load
                 bad += 1
+            else:
+                saved += d.name not in ("first", LATEST)
+                if d.name not in ("first", LATEST, latest):
+                    shutil.rmtree(d)  # checked: the disk need not hold every save
     latest_ok = True
     try:
         check_bundle(root)
     except Exception:  # noqa: BLE001
         latest_ok = False
-    visible = [d.name for d in root.iterdir() if not d.name.startswith(".")]
-    return {"trials": trials, "visible_bundles": len(visible) - 1, "visible_that_fail": bad,
-            "latest_loads": latest_ok, "hidden_leftovers_seen": staged}
+    shutil.rmtree(root)
+    return {"trials": trials, "bundles_saved_and_checked": saved, "visible_that_fail": bad,
+            "latest_loads": latest_ok, "unfinished_staging_seen": staged}
 
 
 def load_time(bundle: Path, tum2: Path) -> dict[str, float]:
@@ -264,36 +273,45 @@ def main() -> int:
     p.add_argument("--skip-live", action="store_true")
     p.add_argument("--skip-bad", action="store_true")
     p.add_argument("--kill-trials", type=int, default=8)
+    p.add_argument("--reuse", action="store_true", help="take the runs already finished in --work (scoring again)")
     args = p.parse_args()
     tum = tum_path_or_exit(p, args.tum)
-    if args.work.exists():
+    w, base = args.work, tum.name
+    if args.work.exists() and not args.reuse:
         shutil.rmtree(args.work)
-    w = args.work
-    w.mkdir(parents=True)
-    base = tum.name
-    s1 = tum_slice(tum, w / f"{base}_s1", *S1)
-    s2 = tum_slice(tum, w / f"{base}_s2", *S2, offset_ns=OFFSET_NS)
-    whole2 = tum_slice(tum, w / f"{base}_later", 0, 200, offset_ns=OFFSET_NS)
+    fresh = not (w / f"{base}_s1").exists()
+    w.mkdir(parents=True, exist_ok=True)
+    s1, s2, whole2 = w / f"{base}_s1", w / f"{base}_s2", w / f"{base}_later"
+    if fresh:
+        tum_slice(tum, s1, *S1)
+        tum_slice(tum, s2, *S2, offset_ns=OFFSET_NS)
+        tum_slice(tum, whole2, 0, 200, offset_ns=OFFSET_NS)
     common = ["--config", "tum_fr1"]
     res: dict[str, Any] = {"host": uptime(), "tum": str(tum)}
     runs: dict[str, Any] = {}
 
     def run(name: str, *extra: Any) -> Any:
-        r = run_memgs(["run", *extra, *common], w / name, log=w / f"{name}.log")
-        if r.summary is None:
-            raise SystemExit(f"{name} failed ({r.returncode}): see {w / f'{name}.log'}")
-        runs[name] = {"wall_s": round(r.wall_s, 1), "frames": r.summary.frames, "poses": r.summary.poses,
-                      "keyframes": r.summary.keyframes, "gaussians": r.summary.gaussians,
-                      "relocalizing": r.summary.relocalizing, "tracker_frame_cpu_ms": r.summary.tracker_frame_cpu_ms,
-                      "bundle": r.summary.bundle_path}
+        from memgs_ros.orchestration.run_files import SUMMARY_FILE, read_summary
+
+        if args.reuse and (w / name / SUMMARY_FILE).is_file():
+            summary = read_summary(w / name)
+        else:
+            r = run_memgs(["run", *extra, *common], w / name, log=w / f"{name}.log")
+            if r.summary is None:
+                raise SystemExit(f"{name} failed ({r.returncode}): see {w / f'{name}.log'}")
+            summary = r.summary
+        runs[name] = {"wall_s": round(summary.wall_s, 1), "frames": summary.frames, "poses": summary.poses,
+                      "keyframes": summary.keyframes, "gaussians": summary.gaussians,
+                      "relocalizing": summary.relocalizing, "tracker_frame_cpu_ms": summary.tracker_frame_cpu_ms,
+                      "bundle": summary.bundle_path}
         print(f"{name}: {runs[name]}", flush=True)
-        return r.summary
+        return summary
 
     one = run("one_session", "--bag", tum)
     first = run("session1", "--bag", s1)
     bundle = Path(first.bundle_path)
     second = run("session2", "--bag", s2, "--map", bundle)
-    loc = run("localize", "--bag", whole2, "--map", bundle, "--mode", "localize")
+    loc = run("localize", "--bag", whole2, "--map", one.bundle_path, "--mode", "localize")  # the whole room's map
     from memgs_ros.io.tum import TumFolder
 
     gt_s, gt_T = TumFolder(tum).ground_truth()
@@ -312,7 +330,7 @@ def main() -> int:
                       "psnr_gt_db": round(psnr_at_gt(Path(second.ply_path), tum, A_two, w / "session2"), 2),
                       "keyframes_added": second.keyframes},
         localize={"posed_pct": round(100 * loc.poses / max(loc.frames, 1), 1), "ate_cm": round(100 * loc_rmse, 2),
-                  "keyframes_added": loc.keyframes, "gaussians": loc.gaussians, "bundle_gaussians": first.gaussians,
+                  "keyframes_added": loc.keyframes, "gaussians": loc.gaussians, "bundle_gaussians": one.gaussians,
                   "relocalized_after_frames": loc.relocalizing, "tracker_frame_cpu_ms": loc.tracker_frame_cpu_ms},
         bundle={"path": str(bundle), "mb": round(manifest.bytes / 1e6, 2),
                 "ply_mb": round(manifest.files[PLY_FILE]["bytes"] / 1e6, 2),

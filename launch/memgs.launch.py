@@ -1,7 +1,7 @@
 """The MemGS graph (tracker, keyframe_sampler, mapper, merger) on a live RGB-D camera.
 
     ros2 launch realsense2_camera rs_launch.py align_depth.enable:=true
-    ros2 launch memgs_ros memgs.launch.py [namespace:=/uav1] [params_file:=my.yaml] [map_path:=/data/map.ply]
+    ros2 launch memgs_ros memgs.launch.py [namespace:=/uav1] [params_file:=my.yaml] [map:=~/.ros/memgs/.../maps]
 
 Arguments (``ros2 launch memgs_ros memgs.launch.py --show-args``):
 
@@ -20,6 +20,13 @@ Arguments (``ros2 launch memgs_ros memgs.launch.py --show-args``):
   restarted resumes from it) go there.
 - ``map_path``: where the merger writes the map PLY instead (on ``memgs/save_map``, every
   ``save_period_s`` and at shutdown; wins over the params file).
+- ``map``: a saved map bundle to start from (a bundle folder, or a folder holding ``latest``):
+  the tracker gives no pose until a frame relocalises in it, then maps on in its world frame
+  (default: none, a new map).
+- ``map_mode``: with ``map``, ``mapping`` (continue it) or ``localize`` (track in it, render it,
+  add nothing: repeat flights, a second robot).
+- ``bundle_dir``: where ``memgs/save_map`` saves map bundles (default ``<run_dir>/maps``, with a
+  ``latest`` link); each save is a new folder.
 - ``use_sim_time``: true when a ``/clock`` publisher (a replayed bag) drives time.
 - ``autostart``: false leaves the four (managed) nodes unconfigured until a lifecycle manager or
   ``ros2 lifecycle set <ns>/tracker configure`` ... ``activate`` drives them (warm up on the
@@ -89,6 +96,12 @@ def generate_launch_description():
                               description="this launch's folder: the map PLY and the mapper's checkpoint"),
         DeclareLaunchArgument("map_path", default_value=os.path.join(run_dir, "map.ply"),
                               description="map PLY written by the merger (default: in run_dir)"),
+        DeclareLaunchArgument("map", default_value="",
+                              description="a saved map bundle to start from (empty: a new map)"),
+        DeclareLaunchArgument("map_mode", default_value="mapping", choices=["mapping", "localize"],
+                              description="with map: mapping continues it, localize only tracks in it"),
+        DeclareLaunchArgument("bundle_dir", default_value="",
+                              description="where memgs/save_map saves map bundles (empty: run_dir/maps)"),
         DeclareLaunchArgument("use_sim_time", default_value="false", choices=["true", "false"],
                               description="take time from /clock"),
         DeclareLaunchArgument("autostart", default_value="true", choices=["true", "false"],
@@ -116,10 +129,15 @@ def _nodes(context, share: str, default_params: str) -> list:
     common = {"use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool),
               "autostart": ParameterValue(LaunchConfiguration("autostart"), value_type=bool)}
     # node -> parameter -> its value (substitutions, joined): string parameters the launch sets
+    given_dir = LaunchConfiguration("bundle_dir").perform(context)
+    bundles = {"bundle_dir": ([LaunchConfiguration("bundle_dir")] if given_dir
+                              else [LaunchConfiguration("run_dir"), "/maps"])}
+    if LaunchConfiguration("map").perform(context):  # a map to start from: given to tracker and mapper
+        bundles.update(map_bundle=[LaunchConfiguration("map")], map_mode=[LaunchConfiguration("map_mode")])
     own_text = {
-        "tracker": {name: [topic] for name, topic in topics.items() if topic},
-        "merger": {"map_path": [LaunchConfiguration("map_path")]},
-        "mapper": {"checkpoint_path": [LaunchConfiguration("run_dir"), "/mapper_checkpoint.npz"]},
+        "tracker": {**{name: [topic] for name, topic in topics.items() if topic}, **bundles},
+        "merger": {"map_path": [LaunchConfiguration("map_path")], "bundle_dir": bundles["bundle_dir"]},
+        "mapper": {"checkpoint_path": [LaunchConfiguration("run_dir"), "/mapper_checkpoint.npz"], **bundles},
     }
     own = {node: {param: ParameterValue(value, value_type=str) for param, value in values.items()}
            for node, values in own_text.items()}

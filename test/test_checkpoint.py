@@ -66,6 +66,10 @@ def test_round_trip_restores_map_keyframes_and_training(tmp_path: Path) -> None:
         assert (a.valid_mask is None) == (b.valid_mask is None)
         assert len(a.levels) == len(b.levels)
         assert r.exposure.get(a.kf_id) == pytest.approx(m.exposure.get(a.kf_id), abs=1e-7)
+        # Its training schedule travels: a restored keyframe is drawn at the level it had reached,
+        # not again from the coarsest as a new one (a continued map's first ~400 iterations were).
+        assert r.keyframes.uses(a.kf_id) == m.keyframes.uses(a.kf_id) > 0
+        assert r.keyframes.level_index(a.kf_id) == m.keyframes.level_index(a.kf_id)
     assert any(v != 0.0 for v in m.exposure.get(0))  # training moved the corrections; they travel
     # Same renders, and training goes on; new ids start in a fresh block above every old id.
     T = m.keyframes.get(0).T_wc

@@ -314,8 +314,9 @@ def _declared_by_source() -> dict[str, set[str]]:
     for name in GRAPH:  # every managed node (ros/lifecycle.py)
         declared[name] |= {"autostart"}
     declared["tracker"] |= {"color_topic", "depth_topic", "camera_info_topic"}
-    declared["merger"] |= {"map_path"}
-    declared["mapper"] |= {"checkpoint_path"}
+    declared["merger"] |= {"map_path", "bundle_dir"}
+    declared["mapper"] |= {"checkpoint_path", "map_bundle", "map_mode", "bundle_dir"}
+    declared["tracker"] |= {"map_bundle", "map_mode", "bundle_dir"}
     return declared
 
 
@@ -369,6 +370,9 @@ def test_checker_accepts_the_launch_file_against_the_source_tree() -> None:
     assert tracker.params["use_sim_time"] is False
 
 
+CAMERA_TOPIC_PARAMS = ("color_topic", "depth_topic", "camera_info_topic")
+
+
 def test_a_params_files_topics_win_unless_an_argument_is_given(tmp_path: Path) -> None:
     mine = tmp_path / "mine.yaml"
     mine.write_text("/**/tracker:\n  ros__parameters:\n    color_topic: /drone/rgb\n")
@@ -379,7 +383,18 @@ def test_a_params_files_topics_win_unless_an_argument_is_given(tmp_path: Path) -
     tracker = next(n for n in given.nodes if n.name == "tracker")
     assert tracker.params["color_topic"] == "/cam/color" and "depth_topic" not in tracker.params
     composed = load_launch(LAUNCH_FILE, {PKG: REPO}, {"params_file": str(mine), "composed": "true"}).nodes[0]
-    assert "tracker" not in composed.node_params
+    assert not set(CAMERA_TOPIC_PARAMS) & set(composed.node_params.get("tracker", {}))
+
+
+def test_a_map_to_start_from_reaches_tracker_and_mapper_and_bundles_go_to_the_run_dir() -> None:
+    launch = load_launch(LAUNCH_FILE, {PKG: REPO}, {"map": "/data/maps/latest", "map_mode": "localize"})
+    by_name = {n.name: n for n in launch.nodes}
+    run_dir = launch.arguments["run_dir"]
+    for name in ("tracker", "mapper"):
+        assert by_name[name].params["map_bundle"] == "/data/maps/latest"
+        assert by_name[name].params["map_mode"] == "localize"
+    assert {by_name[n].params["bundle_dir"] for n in ("tracker", "mapper", "merger")} == {f"{run_dir}/maps"}
+    assert "map_bundle" not in {n.name: n for n in load_launch(LAUNCH_FILE, {PKG: REPO}).nodes}["tracker"].params
 
 
 @pytest.mark.parametrize(("old", "new", "expected"), [
@@ -406,9 +421,11 @@ def test_composed_runs_the_graph_in_one_process_each_node_with_its_own_parameter
     (node,) = launch.nodes
     assert node.node_params == {"tracker": {"color_topic": "/camera/camera/color/image_raw",
                                             "depth_topic": "/camera/camera/aligned_depth_to_color/image_raw",
-                                            "camera_info_topic": "/camera/camera/color/camera_info"},
-                                "merger": {"map_path": "/data/m.ply"},
-                                "mapper": {"checkpoint_path": "/data/mapper_checkpoint.npz"}}
+                                            "camera_info_topic": "/camera/camera/color/camera_info",
+                                            "bundle_dir": "/data/maps"},
+                                "merger": {"map_path": "/data/m.ply", "bundle_dir": "/data/maps"},
+                                "mapper": {"checkpoint_path": "/data/mapper_checkpoint.npz",
+                                           "bundle_dir": "/data/maps"}}
     assert node.params == {"use_sim_time": False, "autostart": True}  # the parameters every node declares
     assert check_launch(launch, {COMPOSED}, _declared_by_source()) == []
     assert check_launch(launch, set(GRAPH), _declared_by_source()) == ["executable 'composed' is not installed"]

@@ -4,13 +4,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-HELP = "show a saved map (map.ply or a run folder) with its trajectory and keyframes in Rerun"
+HELP = "show a saved map (map.ply, a run folder or a map bundle) with its trajectory and keyframes in Rerun"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("map", type=Path, metavar="MAP",
                    help="map.ply, or a run's output folder; trajectory.txt, keyframes.txt, params.yaml (camera) "
-                        "and stats_timeline.jsonl beside it are used when present")
+                        "and stats_timeline.jsonl beside it are used when present; or a map bundle (OUT/maps "
+                        "for the latest): its map, keyframes and camera")
     p.add_argument("--trajectory", type=Path, default=None, metavar="TUM_FILE",
                    help="camera trajectory (TUM format; default: trajectory.txt beside the map)")
     p.add_argument("--keyframes", type=Path, default=None, metavar="TUM_FILE",

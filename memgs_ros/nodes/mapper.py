@@ -46,6 +46,7 @@ from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.lifecycle import ManagedNode
+from memgs_ros.ros.map_loading import NodeMapLoader, set_aside_checkpoint
 from memgs_ros.ros.mapper_inputs import KeyframeReceiver, keyframe_poses
 from memgs_ros.ros.mapper_map_part import MapperMapPart
 from memgs_ros.ros.mapper_outputs import MapperOutbox
@@ -64,6 +65,8 @@ class MapperNode(ManagedNode):
         self.niceness = p.niceness  # applied by run_node to this node's process
         self.cfg: MappingConfig = declare_config(self, MappingConfig, "mapping")
         self.merge_cfg: MergeConfig = declare_config(self, MergeConfig, "merge")
+        NodeMapLoader(self, "memgs/mapper/load_map", lambda: {"depth_scale": self.params.depth_scale},
+                      set_aside_checkpoint(p.checkpoint_path))  # a map at run time: its checkpoint won't win
         self.start_lifecycle(p.autostart)
 
     def configure_node(self) -> None:

@@ -50,6 +50,7 @@ from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.map_bundles import BundleAssembler
+from memgs_ros.ros.map_loading import GraphMapLoader
 from memgs_ros.ros.map_messages import decode_map_message, full_map_message, viewer_cloud_message
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.service_calls import PacedRequests
@@ -92,7 +93,7 @@ class MergerNode(ManagedNode):
                              started_s=time.monotonic())
         self.snapshots = PacedRequests(self, "memgs/mapper/publish_snapshot", self.stats, pacer, "snapshot_requests",
                                        "snapshot_request", "the mapper did not take a snapshot request")
-        self.bundles = BundleAssembler(self, v, self.stats)
+        self.bundles, _ = BundleAssembler(self, v, self.stats), GraphMapLoader(self)  # save and load bundles
         self.create_service(Trigger, "memgs/save_map", self.on_save, callback_group=ReentrantCallbackGroup())
         self.create_service(Trigger, "memgs/merger/publish_map", self.on_publish_map)
         if v.save_period_s > 0:

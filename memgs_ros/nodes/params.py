@@ -128,8 +128,7 @@ class TrackerParams:
     max_stamp_ahead_s: float = 3600.0  # drop frames stamped more than this ahead of the node's clock (0 = no check)
     camera_info_override: bool = False
     max_frame_age_s: float = 0.1
-    # a saved map bundle (core/maps/bundle.py) to start from: frames get no pose until one relocalises in it
-    map_bundle: str = ""
+    map_bundle: str = ""  # a saved map bundle to start from (core/maps/bundle.py): no pose until relocalised in it
     map_mode: str = "mapping"  # with map_bundle: mapping (continue the map) or localize (track, change nothing)
     bundle_dir: str = ""  # where bundles are saved (memgs/save_map); this node stages its part in <bundle_dir>/.parts
 
@@ -224,8 +223,7 @@ class MapperParams:
     resume: bool = True  # start from the checkpoint at checkpoint_path when one exists
     insert_queue: int = 4
     niceness: int = 10  # CPU niceness of the whole process (0..19): the tracker (0) goes first on shared cores
-    # a saved map bundle to continue (its mapper.npz; this mapper's own checkpoint, after a crash, comes first)
-    map_bundle: str = ""
+    map_bundle: str = ""  # a saved map bundle to continue (this mapper's own checkpoint, after a crash, comes first)
     map_mode: str = "mapping"  # with map_bundle: mapping (train it on) or localize (render it, never train)
     bundle_dir: str = ""  # where bundles are saved (memgs/save_map); this node stages its part in <bundle_dir>/.parts
 
@@ -252,9 +250,8 @@ class MergerParams:
     autostart: bool = True
 
     map_path: str = "memgs_map.ply"  # where the map PLY is saved (atomically)
-    # non-empty: memgs/save_map also saves a map bundle (PLY, tracker and mapper parts, manifest) in a new
-    # folder here, with a "latest" link; the tracker's and mapper's bundle_dir must name the same folder
-    bundle_dir: str = ""
+    # the tracker's and mapper's bundle_dir must name the same folder (they stage their parts there)
+    bundle_dir: str = ""  # non-empty: memgs/save_map also saves a map bundle here (a new folder, a latest link)
     map_source: str = ""  # what the map was made from, written into the bundle's manifest
     save_period_s: float = 60.0  # also save the PLY this often when it changed (0 = only on request and shutdown)
     # publish the full map on memgs/map/gaussians and memgs/map/points this often (0 = only on request)

@@ -60,8 +60,9 @@ from memgs_ros.ros.codecs import stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.lifecycle import ManagedNode
+from memgs_ros.ros.map_loading import NodeMapLoader
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.tracker_map_part import TrackerMapPart
+from memgs_ros.ros.tracker_map_part import TrackerMapPart, map_check
 from memgs_ros.ros.tracker_outputs import KEYPOINT_DTYPE, TrackerOutbox, track_stats
 
 __all__ = ["KEYPOINT_DTYPE", "TrackerNode", "main"]
@@ -83,6 +84,7 @@ class TrackerNode(ManagedNode):
         if v.camera_info_override and self.calibration is None:
             raise ConfigError("camera_info_override is true but no calibration is set: give camera.width, "
                               "camera.height, camera.fx, camera.fy, camera.cx, camera.cy (and distortion)")
+        NodeMapLoader(self, "memgs/tracker/load_map", lambda: map_check(self))  # a map at run time
         self.start_lifecycle(v.autostart)
 
     def configure_node(self) -> None:

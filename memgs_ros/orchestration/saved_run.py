@@ -12,6 +12,8 @@ from typing import Any
 import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.poses import invert_pose
+from memgs_ros.core.maps.bundle import LATEST, MANIFEST, PLY_FILE, TRACKER_FILE, check_bundle, resolve_bundle
 from memgs_ros.core.maps.ply import load_ply
 from memgs_ros.core.maps.records import GaussianRecords
 from memgs_ros.errors import DataError
@@ -55,13 +57,15 @@ class SavedRun:
 
 def load_saved_run(path: str | os.PathLike[str], trajectory: str | os.PathLike[str] | None = None,
                    keyframes: str | os.PathLike[str] | None = None) -> SavedRun:
-    """Read a map (a PLY, or a run folder holding ``map.ply``) and the run files beside it.
+    """Read a map (a PLY, a run folder holding ``map.ply``, or a map bundle) and the run files beside it.
 
     trajectory / keyframes: TUM files; None takes ``trajectory.txt`` / ``keyframes.txt`` from the
     map's folder when they are there. A file given explicitly must exist; files found beside the
     map that cannot be read raise DataError too (a half-written run is worth knowing about).
     """
     map_path = Path(path)
+    if map_path.is_dir() and ((map_path / MANIFEST).is_file() or (map_path / LATEST).exists()):
+        return _saved_bundle(resolve_bundle(map_path), trajectory)
     if map_path.is_dir():
         map_path = map_path / MAP_FILE
     if not map_path.exists():
@@ -87,6 +91,24 @@ def load_saved_run(path: str | os.PathLike[str], trajectory: str | os.PathLike[s
         sources["stats"] = folder / STATS_TIMELINE_FILE
     return SavedRun(map_path, records, poses(trajectory, TRAJECTORY_FILE, "trajectory"),
                     poses(keyframes, KEYFRAMES_FILE, "keyframes"), camera, stats, sources)
+
+
+def _saved_bundle(bundle: Path, trajectory: str | os.PathLike[str] | None) -> SavedRun:
+    """A map bundle (core/maps/bundle.py): its map, its tracker's keyframes and its camera."""
+    _, m = check_bundle(bundle, verify_files=False)
+    try:
+        with np.load(bundle / TRACKER_FILE, allow_pickle=False) as z:
+            keyframes = (z["kf_stamps"].astype(np.int64), invert_pose(z["kf_T_cw"].astype(np.float64)))
+    except (OSError, KeyError, ValueError) as err:
+        raise DataError(f"{bundle / TRACKER_FILE}: not a readable tracker map ({err})") from err
+    c = m.camera
+    camera = PinholeCamera(int(c["width"]), int(c["height"]), float(c["fx"]), float(c["fy"]), float(c["cx"]),
+                           float(c["cy"]))
+    sources = {"map": bundle / PLY_FILE, "keyframes": bundle / TRACKER_FILE, "camera": bundle / MANIFEST}
+    traj = None
+    if trajectory is not None:
+        traj, sources["trajectory"] = read_trajectory(trajectory), Path(trajectory)
+    return SavedRun(bundle / PLY_FILE, load_ply(bundle / PLY_FILE), traj, keyframes, camera, [], sources)
 
 
 def log_saved_run(rec: Any, run: SavedRun, sh: bool = True) -> None:

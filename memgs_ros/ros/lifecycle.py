@@ -15,8 +15,10 @@ nav2's lifecycle manager does.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
+from collections.abc import Callable
 from typing import Any
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
@@ -33,6 +35,8 @@ class ManagedNode(LifecycleNode):
     they implement ``configure_node()``, ``close_node()`` (save, stop threads) and may override
     ``set_active(active)``. Entities created while configuring are recorded and destroyed on cleanup.
     """
+
+    params: Any  # the node's own parameters, a frozen dataclass (declare_config)
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """A node whose constructor raises (a refused parameter) is destroyed before the error
@@ -90,6 +94,32 @@ class ManagedNode(LifecycleNode):
         # left to the garbage collector (until then the node stayed on the DDS graph).
         self._state_machine.destroy_when_not_in_use()
         super().destroy_node()
+
+    def restart_with(self, changes: dict[str, Any], prepare: Callable[[], Callable[[], None]] | None = None
+                     ) -> str | None:
+        """Deactivate and clean up (the node saves what it holds), take ``changes`` into its
+        parameters (``self.params``), configure and activate again as it was: a new map at run time.
+        ``prepare()`` runs between cleanup and configure and returns its undo. When the new
+        configure fails, the undo runs and the old parameters are configured again; returns why."""
+        was_active, old = self.active, self.params
+        if self.active:
+            self.trigger_deactivate()
+        if self.configured:
+            self.trigger_cleanup()
+        undo = prepare() if prepare is not None else (lambda: None)
+        self.params = dataclasses.replace(old, **changes)
+        why = None
+        try:
+            self._configure()
+        except MemgsError as err:
+            why = str(err)
+            undo()
+            self.params = old
+            self._configure()
+        self.trigger_configure()  # the state machine follows; the work above is already done
+        if was_active:
+            self.trigger_activate()
+        return why
 
     # ------------------------------------------------------------------ entity bookkeeping
     def create_publisher(self, *args: Any, **kwargs: Any) -> Any:

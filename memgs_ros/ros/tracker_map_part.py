@@ -12,13 +12,21 @@ from std_srvs.srv import Trigger
 
 from memgs_ros.core.maps.bundle import TRACKER_FILE, resolve_bundle
 from memgs_ros.core.tracking.config import TrackingState
-from memgs_ros.core.tracking.map_io import read_tracker_map, write_tracker_map
+from memgs_ros.core.tracking.map_io import camera_dict, read_tracker_map, write_tracker_map
 from memgs_ros.errors import DataError, MemgsError
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.hand_over import HandOver
 from memgs_ros.ros.map_bundles import answer, in_thread, part_path
 
-__all__ = ["TrackerMapPart"]
+__all__ = ["TrackerMapPart", "map_check"]
+
+
+def map_check(node: Any) -> dict[str, Any]:
+    """What a bundle loaded into the tracker ``node`` must match (``check_bundle``'s keywords):
+    its depth unit and tracker mode, and its camera once the node has one."""
+    cam = node.cams.camera if getattr(node, "cams", None) is not None else None
+    return {"depth_scale": node.params.depth_scale, "tracker_mode": node.cfg.mode,
+            "camera": None if cam is None else camera_dict(cam)}
 
 
 class TrackerMapPart:

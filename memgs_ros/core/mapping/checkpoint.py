@@ -59,6 +59,7 @@ class KeyframeState:
     valid_mask: np.ndarray | None
     camera: PinholeCamera
     exposure: tuple[float, ...] | None = None  # (gain offsets rgb, biases rgb), core/mapping/exposure.py
+    uses: int = -1  # training draws so far (the coarse-to-fine schedule); -1: unknown (taken as trained)
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,7 +89,8 @@ def save(ckpt: MapperCheckpoint, path: str | os.PathLike[str]) -> Path:
               "saved_at_s": ckpt.saved_at_s, "extra": ckpt.extra,
               "keyframes": [{"kf_id": k.kf_id, "stamp_ns": k.stamp_ns, "camera": _camera_dict(k.camera),
                              "depth": k.depth_m is not None, "mask": k.valid_mask is not None,
-                             "exposure": None if k.exposure is None else [float(x) for x in k.exposure]}
+                             "exposure": None if k.exposure is None else [float(x) for x in k.exposure],
+                             "uses": int(k.uses)}
                             for k in ckpt.keyframes]}
     arrays: dict[str, np.ndarray] = {
         "header": np.frombuffer(json.dumps(header).encode(), dtype=np.uint8),
@@ -144,7 +146,7 @@ def load(path: str | os.PathLike[str]) -> MapperCheckpoint:
                     if len(exposure) != 6 or not all(np.isfinite(exposure)):
                         raise DataError(f"{path}: keyframe {k['kf_id']} exposure is not 6 finite numbers")
                 kfs.append(KeyframeState(int(k["kf_id"]), int(k["stamp_ns"]), T, image, depth, mask, cam,
-                                         exposure))
+                                         exposure, int(k.get("uses", -1))))
             return MapperCheckpoint(g, kf_of.astype(np.int64), created.astype(np.int64), tuple(kfs),
                                     int(header["iteration"]), int(header["next_id"]),
                                     int(header["active_sh_degree"]), float(header["scene_extent"]),

@@ -197,6 +197,20 @@ class KeyframeStore:
         self._uses[kf.kf_id] = 0
         self._pool.append(kf.kf_id)
 
+    def uses(self, kf_id: int) -> int:
+        """Draws of keyframe ``kf_id`` so far (a checkpoint keeps them)."""
+        return self._uses[kf_id]
+
+    def restored(self, kf_id: int, uses: int) -> None:
+        """Keyframe ``kf_id`` came from a checkpoint with ``uses`` draws (< 0: unknown, taken as
+        trained through every level): no new keyframe's budget, and its next draw at the level
+        it had reached. A loaded map's keyframes retrained coarse-to-fine from the start took
+        the first ~400 iterations of a continued session (fr1/rpy head: -1 dB on its new views)."""
+        full = self.uses_per_level * len(PYRAMID_FACTORS)
+        self._uses[kf_id] = full if uses < 0 else int(uses)
+        self._budget[kf_id] = 0
+        self._pool = [k for k in self._pool if k != kf_id]
+
     def remove(self, kf_id: int) -> None:
         """Drop a keyframe from training (its Gaussians stay in the map)."""
         if kf_id not in self._kfs:

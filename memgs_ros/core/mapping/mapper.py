@@ -485,18 +485,17 @@ class GaussianMapper:
 
     # ----------------------------------------------------------- state
     def state_dict(self, extra: Mapping[str, Any] | None = None) -> MapperCheckpoint:
-        """Everything needed to resume, copied to host memory (Adam moments are not kept: a
-        restored map restarts them at zero, as merged Gaussians do). ``extra``: the caller's
-        JSON-able additions (the session keeps its keyframe-stamp table there)."""
-        gmap = self.gmap
-        kfs = []
+        """Everything needed to resume, in host memory (no Adam moments: restored, they restart at zero,
+        as merged Gaussians do). ``extra``: JSON-able additions (the session's keyframe-stamp table)."""
+        gmap, kfs = self.gmap, []
         for kf in self.keyframes.all():
             kfs.append(KeyframeState(
                 int(kf.kf_id), int(kf.stamp_ns), np.array(kf.T_wc, dtype=np.float64),
                 kf.rgb.permute(1, 2, 0).contiguous().cpu().numpy(),
                 None if kf.depth_m is None else kf.depth_m.detach().cpu().numpy().astype(np.float32),
                 None if kf.valid_mask is None else kf.valid_mask.detach().cpu().numpy().astype(bool),
-                kf.camera, None if self.exposure is None else self.exposure.get(kf.kf_id)))
+                kf.camera, None if self.exposure is None else self.exposure.get(kf.kf_id),
+                self.keyframes.uses(kf.kf_id)))
         return MapperCheckpoint(gmap.to_records(), gmap.keyframe_ids.detach().cpu().numpy().astype(np.int64),
                                 gmap.created_iter.detach().cpu().numpy().astype(np.int64), tuple(kfs),
                                 int(self.iteration), int(gmap.next_id), int(gmap.active_sh_degree),
@@ -517,6 +516,7 @@ class GaussianMapper:
             mask = None if k.valid_mask is None else torch.from_numpy(k.valid_mask).to(dev)
             self.add_prepared_keyframe(make_keyframe(k.kf_id, k.stamp_ns, k.T_wc, image.contiguous(), depth,
                                                      k.camera, valid_mask=mask))
+            self.keyframes.restored(k.kf_id, k.uses)  # trained already: no new keyframe's coarse draws
             if self.exposure is not None and k.exposure is not None:
                 self.exposure.set(k.kf_id, k.exposure)
         gmap = self.gmap

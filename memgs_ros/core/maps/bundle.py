@@ -63,7 +63,13 @@ _CHUNK = 1 << 20
 
 
 class BundleError(DataError):
-    """A map bundle that cannot be used: missing, damaged, or made for another camera or format."""
+    """A map bundle that cannot be used. ``kind``: ``missing`` (no bundle there), ``metadata`` (its
+    manifest is unreadable or made for another camera, depth unit, tracker mode or format) or
+    ``data`` (a file missing, truncated or changed): Nav2's LoadMap result codes follow it."""
+
+    def __init__(self, message: str, kind: str = "data") -> None:
+        super().__init__(message)
+        self.kind = kind
 
 
 @dataclass(frozen=True)
@@ -150,11 +156,12 @@ def resolve_bundle(path: str | os.PathLike[str]) -> Path:
         p = p / LATEST
     p = p.resolve()
     if not p.is_dir():
-        raise BundleError(f"map bundle {path}: no such folder")
+        raise BundleError(f"map bundle {path}: no such folder", "missing")
     if p.name.startswith(_STAGING):
-        raise BundleError(f"map bundle {path}: an unfinished save (staging folder), not a bundle")
+        raise BundleError(f"map bundle {path}: an unfinished save (staging folder), not a bundle", "missing")
     if not (p / MANIFEST).exists():
-        raise BundleError(f"map bundle {path}: no {MANIFEST} (not a bundle, or a save that did not finish)")
+        raise BundleError(f"map bundle {path}: no {MANIFEST} (not a bundle, or a save that did not finish)",
+                          "missing")
     return p
 
 
@@ -162,14 +169,15 @@ def read_manifest(bundle: Path) -> Manifest:
     try:
         raw = json.loads((bundle / MANIFEST).read_text())
     except (OSError, ValueError) as err:
-        raise BundleError(f"map bundle {bundle}: {MANIFEST} is unreadable ({err})") from err
+        raise BundleError(f"map bundle {bundle}: {MANIFEST} is unreadable ({err})", "metadata") from err
     version = raw.get("format_version") if isinstance(raw, dict) else None
     if version != BUNDLE_FORMAT:
-        raise BundleError(f"map bundle {bundle}: format_version {version!r}, this build reads {BUNDLE_FORMAT}")
+        raise BundleError(f"map bundle {bundle}: format_version {version!r}, this build reads {BUNDLE_FORMAT}",
+                          "metadata")
     try:
         return Manifest(**raw)
     except TypeError as err:
-        raise BundleError(f"map bundle {bundle}: {MANIFEST} fields: {err}") from err
+        raise BundleError(f"map bundle {bundle}: {MANIFEST} fields: {err}", "metadata") from err
 
 
 def _camera_mismatch(saved: dict[str, Any], camera: dict[str, Any]) -> str | None:
@@ -191,15 +199,16 @@ def check_bundle(path: str | os.PathLike[str], camera: dict[str, Any] | None = N
     bundle = resolve_bundle(path)
     m = read_manifest(bundle)
     if camera is not None and (why := _camera_mismatch(m.camera, camera)):
-        raise BundleError(f"map bundle {bundle} was made with another camera: {why}")
+        raise BundleError(f"map bundle {bundle} was made with another camera: {why}", "metadata")
     if depth_scale is not None and abs(m.depth_scale - depth_scale) > 1e-6 * depth_scale:
         raise BundleError(f"map bundle {bundle} has depth_scale {m.depth_scale:g} units per metre "
-                          f"(this source: {depth_scale:g})")
+                          f"(this source: {depth_scale:g})", "metadata")
     if tracker_mode is not None and m.tracker_mode != tracker_mode:
-        raise BundleError(f"map bundle {bundle} was made by a {m.tracker_mode} tracker (this run: {tracker_mode})")
+        raise BundleError(f"map bundle {bundle} was made by a {m.tracker_mode} tracker (this run: {tracker_mode})",
+                          "metadata")
     for need in (PLY_FILE, TRACKER_FILE, MAPPER_FILE):
         if need not in m.files:
-            raise BundleError(f"map bundle {bundle}: the manifest lists no {need}")
+            raise BundleError(f"map bundle {bundle}: the manifest lists no {need}", "metadata")
     if verify_files:
         for name, info in m.files.items():
             f = bundle / name
