@@ -201,7 +201,7 @@ def kills_during_save(good: Path, work: Path, trials: int) -> dict[str, Any]:
     shutil.copytree(good, root / "first")
     os.symlink("first", root / LATEST)
     rng = np.random.default_rng(0)
-    bad, staged, saved = 0, 0, 0
+    bad, staged, saved = 0, 0, set()
     for _ in range(trials):
         proc = subprocess.Popen([sys.executable, "-c", _SAVER, str(good), str(root)], cwd=ROOT,
                                 env={**os.environ, "PYTHONPATH": str(ROOT)})
@@ -218,7 +218,8 @@ def kills_during_save(good: Path, work: Path, trials: int) -> dict[str, Any]:
             except Exception:  # noqa: BLE001 - counted: a visible bundle that does not load
                 bad += 1
             else:
-                saved += d.name not in ("first", LATEST)
+                if d.name not in ("first", LATEST):
+                    saved.add(d.name)
                 if d.name not in ("first", LATEST, latest):
                     shutil.rmtree(d)  # checked: the disk need not hold every save
     latest_ok = True
@@ -227,7 +228,7 @@ def kills_during_save(good: Path, work: Path, trials: int) -> dict[str, Any]:
     except Exception:  # noqa: BLE001
         latest_ok = False
     shutil.rmtree(root)
-    return {"trials": trials, "bundles_saved_and_checked": saved, "visible_that_fail": bad,
+    return {"trials": trials, "bundles_saved_and_checked": len(saved), "visible_that_fail": bad,
             "latest_loads": latest_ok, "unfinished_staging_seen": staged}
 
 
