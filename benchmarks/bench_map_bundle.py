@@ -2,6 +2,7 @@
 
     python benchmarks/bench_map_bundle.py [--tum DIR] [--out results/bench_map_bundle.json]
     python benchmarks/bench_map_bundle.py --skip-live --skip-bad      # the lockstep figures alone
+    python benchmarks/bench_map_bundle.py --table docs/data/map_bundle.json   # the README's table
 
 On the head of fr1/rpy (200 frames, config ``tum_fr1``), each a real ``memgs run`` (node processes
 over DDS, lockstep unless said):
@@ -266,6 +267,53 @@ def load_time(bundle: Path, tum2: Path) -> dict[str, float]:
             "mapper_state_s": round(time.perf_counter() - t1, 2), "relocalized_after": t.relocalized_after}
 
 
+def table(r: dict[str, Any]) -> str:
+    """The README's table of one result (``--table``)."""
+    one, two, loc, b, ld = r["one_session"], r["two_sessions"], r["localize"], r["bundle"], r["load"]
+    d_psnr = two["psnr_gt_db"] - one["psnr_gt_db"]
+    rows = [
+        "| figure | one session, frames 0-199 | two sessions: 0-119, then 80-199 with `--map` | asked |",
+        "|---|---|---|---|",
+        f"| frames of session 2 before its first pose (relocalised) | - | {two['relocalized_after_frames']} | <= 10 |",
+        f"| ATE, one SE(3) alignment over every pose | {one['ate_cm']:.2f} cm | {two['ate_cm']:.2f} cm | <= 1.5 cm |",
+        f"| PSNR of the final map at all 200 ground-truth poses | {one['psnr_gt_db']:.2f} dB | "
+        f"{two['psnr_gt_db']:.2f} dB ({d_psnr:+.2f}) | >= -0.3 dB |",
+        f"| Gaussians | {one['gaussians'] / 1000:.1f}k | {two['gaussians'] / 1000:.1f}k "
+        f"({two['gaussians'] / one['gaussians']:.2f}x; session 1 {two['session1_gaussians'] / 1000:.1f}k) | <= 1.15x |",
+        f"| tracker keyframes | {one['keyframes']} | {two['keyframes_added']} added | - |",
+    ]
+    if "live_session2" in r:
+        lv = r["live_session2"]
+        rows.append(f"| session 2 live (`--realtime`, 2 cores): frames posed | - | {lv['tracked_pct']:.1f} % "
+                    f"({lv['poses']} of {lv['frames_played']}) | >= 95 % |")
+    rows += [
+        "",
+        "| `--mode localize`, frames 0-199 against the one session's bundle | value | asked |",
+        "|---|---|---|",
+        f"| frames posed | {loc['posed_pct']:.1f} % | >= 98 % |",
+        f"| ATE | {loc['ate_cm']:.2f} cm | <= 1.5 cm |",
+        f"| keyframes / Gaussians added | {loc['keyframes_added']} / "
+        f"{loc['gaussians'] - loc['bundle_gaussians']} | 0 / 0 |",
+        f"| tracker CPU a frame (mapping mode: the one session's) | {loc['tracker_frame_cpu_ms']:.2f} ms "
+        f"({one['tracker_frame_cpu_ms']:.2f}) | not above |",
+        f"| bundle read to the first relocalised pose (kernels warm) / mapper state in memory | "
+        f"{ld['first_pose_s']:.2f} s / {ld['mapper_state_s']:.2f} s | <= 3 s |",
+        f"| session 1's bundle on disk: all / its PLY | {b['mb']:.1f} MB / {b['ply_mb']:.1f} MB "
+        f"({', '.join(f'{k} {v:.1f}' for k, v in b['files_mb'].items())}) | reported |",
+    ]
+    if "bad_bundles" in r:
+        bad = r["bad_bundles"]
+        ok = sum(1 for c in bad if c["returncode"] == 2 and len(c["lines"]) == 1 and not c["files_changed"]
+                 and not c["nodes_started"])
+        k = r["sigkill_during_save"]
+        rows += [f"| bad bundles ({', '.join(c['case'] for c in bad)}): refused before any node, one line, "
+                 f"no file changed | {ok} of {len(bad)} | all |",
+                 f"| SIGKILL at a random moment of a save ({k['trials']} times): visible bundles that do not load / "
+                 f"`latest` loads | {k['visible_that_fail']} of {k['bundles_saved_and_checked']} / "
+                 f"{'yes' if k['latest_loads'] else 'no'} | 0 / yes |"]
+    return "\n".join(rows) + "\n"
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--tum", default=None, help=TUM_HELP)
@@ -275,7 +323,11 @@ def main() -> int:
     p.add_argument("--skip-bad", action="store_true")
     p.add_argument("--kill-trials", type=int, default=8)
     p.add_argument("--reuse", action="store_true", help="take the runs already finished in --work (scoring again)")
+    p.add_argument("--table", type=Path, default=None, metavar="JSON", help="print the README's table of a result")
     args = p.parse_args()
+    if args.table is not None:
+        print(table(json.loads(args.table.read_text())), end="")
+        return 0
     tum = tum_path_or_exit(p, args.tum)
     w, base = args.work, tum.name
     if args.work.exists() and not args.reuse:
@@ -346,8 +398,8 @@ def main() -> int:
         res["bad_bundles"] = bad_bundles(bundle, w / "bad", s2)
         res["sigkill_during_save"] = kills_during_save(bundle, w, args.kill_trials)
     res["runs"] = runs
-    print(json.dumps({k: v for k, v in res.items() if k != "runs"}, indent=1))
     write_results(args.out, res)
+    print(table(res), end="")
     return 0
 
 

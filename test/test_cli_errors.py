@@ -300,3 +300,39 @@ def test_a_device_or_rasterizer_this_machine_lacks_is_one_line_before_start(
     code = main(["run", "--bag", SPEC, "--set", "mapper.device=gpu0", "--out", str(out)])
     _one_line_error(capsys, code, "'gpu0' is not a torch device")
     assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["run", "eval"])
+def test_a_map_bundle_that_does_not_fit_is_one_line(command: str, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """--map is checked against the source before any node starts: missing, another camera, a
+    changed file; --mode localize needs a map."""
+    from memgs_ros.core.maps.bundle import MAPPER_FILE, PLY_FILE, TRACKER_FILE, Manifest, commit_bundle, new_staging
+
+    from memgs_ros.io.synthetic import parse_spec
+
+    source_cam = parse_spec(SPEC).camera
+
+    def bundle(fx: float) -> Path:
+        staging = new_staging(tmp_path / "maps")
+        for f in (PLY_FILE, TRACKER_FILE, MAPPER_FILE):
+            (staging / f).write_bytes(f.encode())
+        cam = {"width": 32, "height": 24, "fx": fx, "fy": source_cam.fy, "cx": source_cam.cx, "cy": source_cam.cy}
+        return commit_bundle(staging, Manifest(0, cam, "rgbd", 1000.0, 3, "map_optical", 3, 1, 1, "", ""))
+
+    args = (["run", "--bag", SPEC] if command == "run" else ["eval", SPEC]) + ["--config", "synthetic",
+                                                                              "--timeout", "5"]
+    mode = "--mode" if command == "run" else "--map-mode"
+    out = tmp_path / "out"
+    code = main([*args, "--out", str(out), "--map", str(tmp_path / "nowhere")])
+    _one_line_error(capsys, code, "nowhere", "no such folder")
+    code = main([*args, "--out", str(out), mode, "localize"])
+    _one_line_error(capsys, code, "--mode localize needs --map")
+    other = bundle(fx=99.0)
+    code = main([*args, "--out", str(out), "--map", str(other)])
+    _one_line_error(capsys, code, other.name, "another camera: camera.fx 99.00")
+    good = bundle(fx=source_cam.fx)
+    (good / TRACKER_FILE).write_bytes(b"changed")
+    code = main([*args, "--out", str(out), "--map", str(good)])
+    _one_line_error(capsys, code, "tracker.npz is 7 bytes")
+    assert not (out / "params.yaml").exists()  # nothing ran

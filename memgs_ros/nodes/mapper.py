@@ -78,6 +78,8 @@ class MapperNode(ManagedNode):
                               map_bundle=p.map_bundle, frozen=self.frozen)
         start = start_mapper(self.cfg, self.merge_cfg, p.device, opts)
         self.session = start.session
+        before = start.resumed.iteration if start.from_bundle is not None and start.resumed else 0  # a bundle's
+        self.final_total = p.final_total_iterations and p.final_total_iterations + before  # ... are not this flight's
         self.stats = MapperStats(self, start.raster.backend, p.checkpoint_period_s if p.checkpoint_path else 0.0)
         self.checkpoints = CheckpointSaver(self.session, start.checkpoint, self.stats)
         self.out = MapperOutbox(self, p.world_frame, p.ack_topic)
@@ -237,7 +239,7 @@ class MapperNode(ManagedNode):
             save=self.save_checkpoint, receivers_acked=self.out.receivers_acked, wait=hand_over.result,
             sleep=hand_over.sleep, log=self.get_logger().info)
         plan = FinalPlan() if self.frozen else FinalPlan(p.final_iterations, p.final_densify, p.final_budget_s,
-                                                         p.final_total_iterations)
+                                                         self.final_total)
         res.success, res.message = True, await finish_map(self.session, plan, steps)
         return res
 
