@@ -56,6 +56,7 @@ def test_a_second_session_relocalises_in_the_first_ones_world(frames: list[Frame
         results = [t.track(f) for f in frames[25:60]]  # overlaps session 1, then goes on past it
         posed = [(r, f) for r, f in zip(results, frames[25:60]) if r.T_wc is not None]
         assert 0 <= t.relocalized_after <= 2 and t.frames_relocalizing == t.relocalized_after
+        assert t.stamps_before_map  # session 1's own frames again: flagged (stamps key the keyframes)
         assert results[t.relocalized_after].state == TrackingState.OK
         # No new world: the frames both sessions tracked get the same place in it (within ~2 cm),
         # and the rest no further from the ground truth than session 1's own drift allows.

@@ -47,6 +47,7 @@ from memgs_ros.core.maps.records import GaussianRecords
 from memgs_ros.errors import PipelineError
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.hand_over import HandOver
+from memgs_ros.ros.service_calls import call_within
 
 __all__ = ["BundleAssembler", "answer", "in_thread", "part_path"]
 
@@ -97,13 +98,7 @@ class BundleAssembler:
     async def _part(self, client: Client, what: str) -> list[str]:
         if not client.service_is_ready():
             raise PipelineError(f"no {what} answers {client.srv_name}: cannot save a map bundle")
-        future = client.call_async(Trigger.Request())
-        timer = self.node.create_timer(PART_TIMEOUT_S, future.cancel)
-        try:
-            res = await future
-        finally:
-            timer.cancel()
-            self.node.destroy_timer(timer)
+        res = await call_within(self.node, client, Trigger.Request(), PART_TIMEOUT_S)
         if res is None:
             raise PipelineError(f"the {what} did not write its part within {PART_TIMEOUT_S:.0f} s")
         if not res.success:

@@ -27,6 +27,7 @@ from rclpy.client import Client
 from rclpy.node import Node
 
 from memgs_ros.core.maps.bundle import BundleError, check_bundle
+from memgs_ros.ros.service_calls import call_within
 
 __all__ = ["GraphMapLoader", "NodeMapLoader", "bundle_from_url", "set_aside_checkpoint"]
 
@@ -89,13 +90,7 @@ class GraphMapLoader:
     async def _call(self, client: Client, url: str) -> int:
         if not client.service_is_ready():
             return R.RESULT_UNDEFINED_FAILURE
-        future = client.call_async(LoadMap.Request(map_url=url))
-        timer = self.node.create_timer(NODE_TIMEOUT_S, future.cancel)
-        try:
-            res = await future
-        finally:
-            timer.cancel()
-            self.node.destroy_timer(timer)
+        res = await call_within(self.node, client, LoadMap.Request(map_url=url), NODE_TIMEOUT_S)
         return R.RESULT_UNDEFINED_FAILURE if res is None else int(res.result)
 
     async def on_load(self, req: LoadMap.Request, res: LoadMap.Response) -> LoadMap.Response:

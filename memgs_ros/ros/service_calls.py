@@ -8,6 +8,7 @@ service for a full map when a :class:`RequestPacer` says so (the merger, the Rer
 from __future__ import annotations
 
 import time
+from typing import Any
 
 from rclpy.client import Client
 from rclpy.node import Node
@@ -17,7 +18,7 @@ from std_srvs.srv import Trigger
 from memgs_ros.core.maps.follower import RequestPacer
 from memgs_ros.ros.diagnostics import NodeStats
 
-__all__ = ["PacedRequests", "call_trigger"]
+__all__ = ["PacedRequests", "call_trigger", "call_within"]
 
 
 def call_trigger(client: Client, stats: NodeStats, kind: str, what: str) -> Future:
@@ -60,3 +61,15 @@ class PacedRequests:
         if self.client.service_is_ready() and self.pacer.ask(time.monotonic(), out_of_step):
             self._last = call_trigger(self.client, self._stats, self._kind, self._what)
             self._stats.counters[self._counter] += 1
+
+
+async def call_within(node: Node, client: Client, request: Any, timeout_s: float) -> Any | None:
+    """In a coroutine callback: the answer of ``client`` to ``request``, or None when none came
+    within ``timeout_s`` (a one-shot timer cancels the call; the executor runs on meanwhile)."""
+    future = client.call_async(request)
+    timer = node.create_timer(timeout_s, future.cancel)
+    try:
+        return await future
+    finally:
+        timer.cancel()
+        node.destroy_timer(timer)

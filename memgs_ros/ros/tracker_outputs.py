@@ -149,6 +149,9 @@ def track_stats(stats: NodeStats, tracker: Any, dt_s: float, keyframe: bool) -> 
     g["track_ms"] = round(dt_s * 1e3, 2)
     g["keyframes_deferred"], g["ba_waits"], g["ba_refused"] = (
         int(getattr(tracker, k, 0)) for k in ("keyframes_deferred", "ba_waits", "ba_refused"))
+    if getattr(tracker, "stamps_before_map", False):
+        stats.problem("map_stamps", "frames stamped before the loaded map's newest keyframe (the same recording "
+                                    "played again?): their keyframes may collide with the map's, keyed by stamp")
     # A loaded map (map_bundle): frames given no pose before the first relocalisation in it.
     g["relocalizing"], g["relocalized_after"] = (int(getattr(tracker, k, 0)) for k in ("frames_relocalizing",
                                                                                      "relocalized_after"))

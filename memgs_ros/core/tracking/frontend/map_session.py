@@ -35,6 +35,8 @@ class MapSession:
     frames_relocalizing = 0  # frames given no pose while a loaded map waited for its first relocalisation
     relocalized_after = -1  # frames it took (-1: not yet, or no map loaded)
     loaded_keyframes = 0
+    loaded_until_ns = 0  # the loaded map's newest keyframe stamp
+    stamps_before_map = False  # a frame stamped before it came: the same recording played again?
 
     def load_map(self: Any, m: TrackerMap) -> None:
         """Start from ``m`` (before the first frame). DataError when it is another camera's or mode's."""
@@ -60,6 +62,7 @@ class MapSession:
         self.backend.load_places(vectors)
         self.state = TrackingState.LOST
         self.loaded_keyframes = len(smap.keyframes)
+        self.loaded_until_ns = max((kf.stamp_ns for kf in smap.keyframes.values()), default=0)
         self.relocalized_after = -1
 
     def export_map(self: Any, extra: dict[str, Any] | None = None) -> TrackerMap:
@@ -68,7 +71,10 @@ class MapSession:
 
     def _relocalise_loaded(self: Any, frame: Frame, feats: FrameFeatures
                            ) -> tuple[np.ndarray | None, KeyframeInfo | None, int, int]:
-        """A frame before the first pose in a loaded map: relocalised, or counted and given no pose."""
+        """A frame before the first pose in a loaded map: relocalised, or counted and given no pose.
+        Keyframes are keyed by stamp between tracker and mapper: a frame stamped before the map's
+        newest keyframe (its recording played again) is flagged (``stamps_before_map``)."""
+        self.stamps_before_map = self.stamps_before_map or frame.stamp_ns <= self.loaded_until_ns
         outcome = self._relocalise(feats)
         if outcome is None:
             self.frames_relocalizing += 1
