@@ -58,10 +58,6 @@ def test_round_trip_restores_map_keyframes_and_training(tmp_path: Path) -> None:
     assert torch.equal(r.gmap.keyframe_ids, m.gmap.keyframe_ids)
     assert torch.equal(r.gmap.created_iter, m.gmap.created_iter)
     assert r.iteration == 12 and r.gmap.active_sh_degree == 1
-    # Adam's moments travel: a restored map steps on as the saved one would have.
-    before, after = m.gmap.adam_moments(), r.gmap.adam_moments()
-    assert set(before) == set(after) and {"means.m", "means.v", "means.step", "sh_dc.v"} <= set(after)
-    assert all(np.array_equal(before[k], after[k]) for k in before)
     assert r.keyframes.ids() == m.keyframes.ids() and r.scene_extent == pytest.approx(m.scene_extent)
     for a, b in zip(m.keyframes.all(), r.keyframes.all()):
         assert a.stamp_ns == b.stamp_ns and a.camera == b.camera and np.array_equal(a.T_wc, b.T_wc)

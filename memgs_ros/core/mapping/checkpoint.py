@@ -18,7 +18,7 @@ executable) holding:
   scene extent, the time it was written, and the caller's ``extra`` (the mapper node keeps
   its keyframe-stamp table and delta sequence there).
 
-Adam's moments travel too (``adam.<param>.m/.v/.step``; a file without them restarts them at zero).
+Adam moments are not saved (a restored map restarts them at zero, as merged Gaussians do).
 Files are written to a temporary name in the same folder, flushed to disk, then renamed over
 the old one, so a reader only ever sees a complete checkpoint.
 """
@@ -77,7 +77,6 @@ class MapperCheckpoint:
     scene_extent: float  # m, the densification scale
     saved_at_s: float = 0.0  # wall clock
     extra: dict[str, Any] = field(default_factory=dict)  # free-form, for diagnosis
-    adam: dict[str, np.ndarray] = field(default_factory=dict)  # GaussianMap.adam_moments(); {} for none
 
 
 # ------------------------------------------------------------------------------ files
@@ -99,7 +98,6 @@ def save(ckpt: MapperCheckpoint, path: str | os.PathLike[str]) -> Path:
         "opacity": g.opacity, "scale": g.scale, "rot": g.rot,
         "keyframe_ids": ckpt.keyframe_ids.astype(np.int64), "created_iter": ckpt.created_iter.astype(np.int64),
     }
-    arrays.update({f"adam.{k}": v for k, v in ckpt.adam.items()})
     for i, k in enumerate(ckpt.keyframes):
         arrays[f"kf{i}_T_wc"] = k.T_wc
         arrays[f"kf{i}_image"] = k.image
@@ -152,8 +150,7 @@ def load(path: str | os.PathLike[str]) -> MapperCheckpoint:
             return MapperCheckpoint(g, kf_of.astype(np.int64), created.astype(np.int64), tuple(kfs),
                                     int(header["iteration"]), int(header["next_id"]),
                                     int(header["active_sh_degree"]), float(header["scene_extent"]),
-                                    float(header.get("saved_at_s", 0.0)), dict(header.get("extra", {})),
-                                    {k[len("adam."):]: z[k] for k in z.files if k.startswith("adam.")})
+                                    float(header.get("saved_at_s", 0.0)), dict(header.get("extra", {})))
     except DataError:
         raise
     except FileNotFoundError as err:

@@ -453,33 +453,6 @@ class GaussianMap:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
 
-    # ------------------------------------------------------------- Adam moments
-    def adam_moments(self) -> dict[str, np.ndarray]:
-        """Host copies of Adam's moments, ``<param>.m`` / ``<param>.v`` [N, ...] and ``<param>.step``
-        [1], for the parameters that have them (a checkpoint keeps them: a map restarted with empty
-        moments takes full-rate steps in sign of its first gradients, shaking a converged map)."""
-        out: dict[str, np.ndarray] = {}
-        for name in PARAM_NAMES:
-            state = self.optimizer.state.get(getattr(self, name)) if self._optimizer is not None else None
-            if state and "exp_avg" in state and "exp_avg_sq" in state:
-                out[f"{name}.m"] = state["exp_avg"].detach().cpu().numpy()
-                out[f"{name}.v"] = state["exp_avg_sq"].detach().cpu().numpy()
-                out[f"{name}.step"] = np.array([float(state["step"])], np.float32)
-        return out
-
-    def load_adam_moments(self, moments: dict[str, np.ndarray]) -> None:
-        """Restore ``adam_moments()``' arrays (those whose shapes fit the parameters; others stay empty)."""
-        for name in PARAM_NAMES:
-            p = getattr(self, name)
-            m, v, step = (moments.get(f"{name}.{k}") for k in ("m", "v", "step"))
-            if m is None or v is None or step is None or m.shape != tuple(p.shape) or v.shape != tuple(p.shape):
-                continue
-            on_device = self.optimizer.defaults.get("fused") or self.optimizer.defaults.get("capturable")
-            self.optimizer.state[p] = {  # torch keeps a fused Adam's step on the device, else on the CPU
-                "step": torch.tensor(float(step[0]), dtype=torch.float32, device=self.device if on_device else "cpu"),
-                "exp_avg": torch.tensor(m, dtype=torch.float32, device=self.device),
-                "exp_avg_sq": torch.tensor(v, dtype=torch.float32, device=self.device)}
-
     # ------------------------------------------------------------- memory
     def memory_bytes(self) -> MemoryReport:
         """Bytes of parameters, allocated gradients and Adam moments (see ``MemoryReport``)."""

@@ -485,8 +485,8 @@ class GaussianMapper:
 
     # ----------------------------------------------------------- state
     def state_dict(self, extra: Mapping[str, Any] | None = None) -> MapperCheckpoint:
-        """Everything needed to resume, in host memory, Adam's moments included. ``extra``: JSON-able
-        additions (the session's keyframe-stamp table)."""
+        """Everything needed to resume, in host memory (no Adam moments: restored, they restart at zero,
+        as merged Gaussians do). ``extra``: JSON-able additions (the session's keyframe-stamp table)."""
         gmap, kfs = self.gmap, []
         for kf in self.keyframes.all():
             kfs.append(KeyframeState(
@@ -499,12 +499,14 @@ class GaussianMapper:
         return MapperCheckpoint(gmap.to_records(), gmap.keyframe_ids.detach().cpu().numpy().astype(np.int64),
                                 gmap.created_iter.detach().cpu().numpy().astype(np.int64), tuple(kfs),
                                 int(self.iteration), int(gmap.next_id), int(gmap.active_sh_degree),
-                                float(self.scene_extent), time.time(), dict(extra or {}), gmap.adam_moments())
+                                float(self.scene_extent), time.time(), dict(extra or {}))
 
     def load_state_dict(self, ckpt: MapperCheckpoint) -> None:
-        """Load ``ckpt`` into this fresh mapper (no keyframes, no Gaussians yet). New Gaussians get ids
-        from the next ``ID_BLOCK`` above the checkpoint's next id, above every id its writer could
-        have handed out after it: ids are never reused."""
+        """Load ``ckpt`` into this fresh mapper (no keyframes, no Gaussians yet).
+
+        New Gaussians get ids from the next ``ID_BLOCK`` boundary above the checkpoint's next id,
+        above every id the writer could have handed out after it: ids are never reused.
+        """
         if len(self.gmap) or len(self.keyframes):
             raise DataError("a checkpoint can only be restored into an empty mapper")
         dev = self.device
@@ -522,7 +524,6 @@ class GaussianMapper:
             gmap.load_records(ckpt.gaussians, iteration=0)
             gmap.keyframe_ids[:] = torch.from_numpy(ckpt.keyframe_ids).to(gmap.keyframe_ids)
             gmap.created_iter[:] = torch.from_numpy(ckpt.created_iter).to(gmap.created_iter)
-            gmap.load_adam_moments(ckpt.adam)
         gmap.next_id = -(-max(ckpt.next_id, 1) // ID_BLOCK) * ID_BLOCK
         while gmap.active_sh_degree < min(ckpt.active_sh_degree, gmap.max_sh_degree):
             gmap.raise_sh_degree()
