@@ -173,3 +173,14 @@ def test_the_node_cost_table_in_the_results_is_the_saved_run() -> None:
                           str(ROOT / "docs" / "data" / "bench_node_cost.json")], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert out.strip() and out in (ROOT / "docs" / "results.md").read_text()
+
+
+def test_the_map_bundle_table_in_the_readme_is_the_saved_run() -> None:
+    """The README's map-bundle table is what ``bench_map_bundle.py --table`` prints for the JSON in docs/data."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_map_bundle.py"), "--table",
+                          str(ROOT / "docs" / "data" / "map_bundle.json")], capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    assert out.strip() and out in (ROOT / "README.md").read_text()
