@@ -318,7 +318,8 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--tum", default=None, help=TUM_HELP)
     p.add_argument("--out", type=Path, default=ROOT / "results" / "bench_map_bundle.json")
-    p.add_argument("--work", type=Path, default=Path("/tmp/bench_map_bundle"))
+    p.add_argument("--work", type=Path, default=ROOT / "results" / "bench_map_bundle",
+                   help="the runs' folders (replaced unless --reuse)")
     p.add_argument("--skip-live", action="store_true")
     p.add_argument("--skip-bad", action="store_true")
     p.add_argument("--kill-trials", type=int, default=8)

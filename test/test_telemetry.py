@@ -89,7 +89,8 @@ _WRITERS = {
     "nodes/tracker.py": "tracker", "ros/tracker_outputs.py": "tracker", "ros/camera_input.py": "tracker",
     "nodes/keyframe_sampler.py": "keyframe_sampler",
     "nodes/mapper.py": "mapper", "ros/mapper_stats.py": "mapper", "core/mapping/checkpoint_saver.py": "mapper",
-    "nodes/merger.py": "merger", "ros/view_outputs.py": "merger",
+    "nodes/merger.py": "merger", "ros/view_outputs.py": "merger", "ros/map_bundles.py": "merger",
+    "ros/tracker_map_part.py": "tracker", "ros/mapper_map_part.py": "mapper",
     "nodes/bag_player.py": "player", "nodes/recorder.py": "recorder",
     "nodes/rerun_bridge.py": "rerun_bridge", "viz/live_view.py": "rerun_bridge",
 }

@@ -160,8 +160,7 @@ class MapperNode(ManagedNode):
                         "install gsplat (README 'On a Jetson')")
 
     def save_checkpoint(self, force: bool = False) -> Future[pathlib.Path | None]:
-        """Write the session's state when it changed since the last write (``CheckpointSaver``);
-        the future gives the path, or None (unchanged, none, or failed: counted)."""
+        """The session's state written if changed (``CheckpointSaver``): its path, or None (counted)."""
         return self.checkpoints.save(force)
 
     def _part(self, part: str, msg: Any, info: dict[str, Any]) -> None:
@@ -271,6 +270,7 @@ class MapperNode(ManagedNode):
             if saved is not None:
                 self.get_logger().info(f"checkpoint written to {saved} ({self.session.status.gaussians} Gaussians)")
         self.session.close(SESSION_CLOSE_TIMEOUT_S)
+        self.out.hand_over.close()  # a cleanup destroys the publishers: what the session sent late is dropped
 
     def destroy_node(self) -> None:
         # The session's threads end with the node (idempotent after close): a worker still in

@@ -174,11 +174,10 @@ class MergerNode(ManagedNode):
     async def on_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         try:
             path = self.save()
-            bundle = await self.bundles.save(self.map.replica.records, self.world_frame) if (
-                path is not None and self.params.bundle_dir) else None
         except (MemgsError, OSError) as err:
-            res.success, res.message = False, f"could not save: {err}"
+            res.success, res.message = False, f"could not save {self.map_path}: {err}"
             return res
+        bundle = await self.bundles.save(self.map.replica.records, self.world_frame) if path is not None else None
         res.success, first = path is not None, f"{bundle} ply=" if bundle is not None else ""  # the bundle first
         res.message = (f"{first}{path.resolve()} gaussians={len(self.map.replica)} seq={self.map.replica.seq}"
                        if path else "no map received yet")

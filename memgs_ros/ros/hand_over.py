@@ -25,11 +25,17 @@ class HandOver:
         self._node = node
         self._queue: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
         self._ready = node.create_guard_condition(self._run)
+        self._closed = False
 
     def __call__(self, fn: Callable[[], None]) -> None:
         """From any thread: run ``fn`` on the executor's thread."""
         self._queue.put(fn)
         self._ready.trigger()
+
+    def close(self) -> None:
+        """What is handed over from now on is dropped: the publishers it would use were made by a
+        configuration that a lifecycle cleanup has since destroyed (a map loaded at run time)."""
+        self._closed = True
 
     def _run(self) -> None:
         while True:
@@ -37,7 +43,8 @@ class HandOver:
                 fn = self._queue.get_nowait()
             except queue.Empty:
                 return
-            fn()
+            if not self._closed:
+                fn()
 
     async def result(self, future: Future[T]) -> T:
         """Await a future of another thread in a coroutine callback without holding the executor:

@@ -44,7 +44,7 @@ from memgs_ros.core.maps.bundle import (
 )
 from memgs_ros.core.maps.ply import ids_sidecar_path, save_ply
 from memgs_ros.core.maps.records import GaussianRecords
-from memgs_ros.errors import PipelineError
+from memgs_ros.errors import MemgsError, PipelineError
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.hand_over import HandOver
 from memgs_ros.ros.service_calls import call_within
@@ -105,7 +105,18 @@ class BundleAssembler:
             raise PipelineError(f"the {what} could not save its part: {res.message}")
         return str(res.message).split()
 
-    async def save(self, records: GaussianRecords, frame: str) -> Path:
+    async def save(self, records: GaussianRecords, frame: str) -> Path | None:
+        """The bundle of ``records`` and the nodes' parts, or None: no ``bundle_dir``, an empty map,
+        or a save that failed (``problem.bundle_failed``: the PLY beside it is saved all the same)."""
+        if not self.params.bundle_dir or not len(records):
+            return None
+        try:
+            return await self._save(records, frame)
+        except (MemgsError, OSError) as err:
+            self.stats.problem("bundle_failed", f"could not save a map bundle in {self.params.bundle_dir}: {err}")
+            return None
+
+    async def _save(self, records: GaussianRecords, frame: str) -> Path:
         """Ask for the parts, then stage and commit the bundle (on a thread: hashing ~100 MB)."""
         tracker_part = Path((await self._part(self.tracker, "tracker"))[0])
         mapper_answer = await self._part(self.mapper, "mapper")

@@ -12,7 +12,6 @@ from std_srvs.srv import Trigger
 
 from memgs_ros.core.maps.bundle import TRACKER_FILE, resolve_bundle
 from memgs_ros.core.tracking.config import TrackingState
-from memgs_ros.core.tracking.map_io import camera_dict, read_tracker_map, write_tracker_map
 from memgs_ros.errors import DataError, MemgsError
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.hand_over import HandOver
@@ -25,8 +24,8 @@ def map_check(node: Any) -> dict[str, Any]:
     """What a bundle loaded into the tracker ``node`` must match (``check_bundle``'s keywords):
     its depth unit and tracker mode, and its camera once the node has one."""
     cam = node.cams.camera if getattr(node, "cams", None) is not None else None
-    return {"depth_scale": node.params.depth_scale, "tracker_mode": node.cfg.mode,
-            "camera": None if cam is None else camera_dict(cam)}
+    camera = None if cam is None else {k: getattr(cam, k) for k in ("width", "height", "fx", "fy", "cx", "cy")}
+    return {"depth_scale": node.params.depth_scale, "tracker_mode": node.cfg.mode, "camera": camera}
 
 
 class TrackerMapPart:
@@ -48,6 +47,8 @@ class TrackerMapPart:
         tracker.localize_only = p.map_mode == "localize"
         if not p.map_bundle:
             return
+        from memgs_ros.core.tracking.map_io import read_tracker_map  # numba: the tracker's, once it tracks
+
         try:
             m = read_tracker_map(resolve_bundle(p.map_bundle) / TRACKER_FILE)
             tracker.load_map(m)
@@ -64,6 +65,8 @@ class TrackerMapPart:
             return answer(res, False, "bundle_dir is not set: no map bundle to save into")
         if tracker is None or not hasattr(tracker, "export_map"):
             return answer(res, False, "no tracker map yet (no camera or no frame)")
+        from memgs_ros.core.tracking.map_io import write_tracker_map
+
         t0 = time.perf_counter()
         m = tracker.export_map(self._extra())  # on the tracking thread: a copy, milliseconds
         self.stats.gauges["map_part_copy_ms"] = round((time.perf_counter() - t0) * 1e3, 2)
