@@ -437,7 +437,7 @@ class FeatureTracker(BackendResults, MapSession, Tracker):
                 or self._need_close_points(feats, outcome.kp_idx))
         return keyframe_needed(cfg, self.map, T_cw, last, len(outcome.point_ids), self._frames_since_kf, weak,
                                [self._ref_kf_id, *self._local_kfs],
-                               self._stamp_ns - int(cfg.keyframe_cover_age_s * 1e9), self._scale_unit(), self.clock)
+                               self._stamp_ns - int(cfg.keyframe_cover_age_s * 1e9), self._scale_unit())
 
     def _reference_tracked(self, ref: SparseKeyframe) -> int:
         """Points of the reference keyframe seen by enough keyframes (ORB-SLAM's nMinObs)."""

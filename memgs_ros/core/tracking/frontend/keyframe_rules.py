@@ -15,7 +15,7 @@ from memgs_ros.core.tracking.config import TrackerConfig
 from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
 from memgs_ros.core.tracking.frontend.pose_tracking import rotation_angle_deg
 
-__all__ = ["Culled", "LoadedClock", "covered", "cull_around", "keyframe_needed"]
+__all__ = ["Culled", "covered", "cull_around", "keyframe_needed"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -28,28 +28,15 @@ class Culled:
     T_wc: np.ndarray
 
 
-@dataclass(frozen=True)
-class LoadedClock:
-    """A loaded map's keyframes (ids below ``below_id``) on this flight's clock: stamped ``shift_ns``
-    later, as if the flight had gone on from the save (``map_session.py``). Zero: no loaded map."""
-
-    below_id: int = 0
-    shift_ns: int = 0
-
-    def stamp(self, kf: SparseKeyframe) -> int:
-        return kf.stamp_ns + (self.shift_ns if kf.keyframe_id < self.below_id else 0)
-
-
 def covered(smap: SparseMap, kf_ids: Iterable[int], T_cw: np.ndarray, settled_before_ns: int,
-            max_deg: float, max_m: float, clock: LoadedClock = LoadedClock()) -> bool:
-    """Whether one of ``kf_ids`` taken at or before ``settled_before_ns`` (a settled keyframe; a
-    loaded one on ``clock``) sees from within ``max_deg`` and ``max_m`` (map units) of the pose
-    T_cw [4, 4]; never with a bound <= 0."""
+            max_deg: float, max_m: float) -> bool:
+    """Whether one of ``kf_ids`` taken at or before ``settled_before_ns`` (a settled keyframe) sees
+    from within ``max_deg`` and ``max_m`` (map units) of the pose T_cw [4, 4]; never with a bound <= 0."""
     if max_deg <= 0.0 or max_m <= 0.0:
         return False
     for kf_id in dict.fromkeys(kf_ids):
         kf = smap.keyframes.get(kf_id)
-        if kf is None or clock.stamp(kf) > settled_before_ns:
+        if kf is None or kf.stamp_ns > settled_before_ns:
             continue
         d = T_cw @ invert_pose(kf.T_cw)
         if float(np.linalg.norm(d[:3, 3])) <= max_m and rotation_angle_deg(d[:3, :3]) <= max_deg:
@@ -59,7 +46,7 @@ def covered(smap: SparseMap, kf_ids: Iterable[int], T_cw: np.ndarray, settled_be
 
 def keyframe_needed(cfg: TrackerConfig, smap: SparseMap, T_cw: np.ndarray, last: SparseKeyframe, n_tracked: int,
                     frames_since_kf: int, weak: bool, local_kfs: list[int], settled_before_ns: int,
-                    scale_unit: float = 1.0, clock: LoadedClock = LoadedClock()) -> bool:
+                    scale_unit: float = 1.0) -> bool:
     """Keyframes by need, for a frame at T_cw [4, 4] tracking ``n_tracked`` points ``frames_since_kf``
     frames after the last keyframe ``last``. Tracking that weakens (``weak``: fewer tracked points
     than ``keyframe_tracked_ratio`` of the reference keyframe's, too few close points) asks for one,
@@ -74,13 +61,13 @@ def keyframe_needed(cfg: TrackerConfig, smap: SparseMap, T_cw: np.ndarray, last:
         return False
     if weak:
         return not covered(smap, local_kfs, T_cw, settled_before_ns, cfg.keyframe_weak_cover_deg,
-                           cfg.keyframe_weak_cover_m * scale_unit, clock)
+                           cfg.keyframe_weak_cover_m * scale_unit)
     d = T_cw @ invert_pose(last.T_cw)
     due = bool(frames_since_kf >= cfg.keyframe_max_frames
                or rotation_angle_deg(d[:3, :3]) > cfg.keyframe_max_rotation_deg
                or np.linalg.norm(d[:3, 3]) / scale_unit > cfg.keyframe_max_translation_m)
     return due and not covered(smap, local_kfs, T_cw, settled_before_ns, cfg.keyframe_cover_deg,
-                               cfg.keyframe_cover_m * scale_unit, clock)
+                               cfg.keyframe_cover_m * scale_unit)
 
 
 def cull_around(smap: SparseMap, kf: SparseKeyframe, neighbours: int, ratio: float, observers: int) -> list[Culled]:

@@ -18,7 +18,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackingState
-from memgs_ros.core.tracking.frontend.keyframe_rules import LoadedClock
 from memgs_ros.core.tracking.map_io import TrackerMap, export_map, restore_map
 from memgs_ros.errors import DataError
 
@@ -37,9 +36,6 @@ class MapSession:
     relocalized_after = -1  # frames it took (-1: not yet, or no map loaded)
     loaded_keyframes = 0
     loaded_until_ns = 0  # the loaded map's newest keyframe stamp
-    # The keyframe rules' clock for loaded keyframes: set at the first pose, as if this flight went on
-    # from the save (a keyframe seen seconds before the save is seconds old, not a session old)
-    clock = LoadedClock()
     stamps_before_map = False  # a frame stamped before it came: the same recording played again?
 
     def load_map(self: Any, m: TrackerMap) -> None:
@@ -84,7 +80,6 @@ class MapSession:
             self.frames_relocalizing += 1
             return None, None, 0, 0
         self.relocalized_after = self.frames_relocalizing
-        self.clock = LoadedClock(int(self.map.next_keyframe_id), frame.stamp_ns - self.loaded_until_ns)
         self._T_cw_last = outcome.T_cw
         self.motion.reset()
         best = self.map.covisible(outcome.point_ids, 1)
