@@ -78,6 +78,7 @@ LATE_FRACTION = 0.8  # the late point: this share of the frames acknowledged
 GONE_LIMIT_S = 10.0  # every process of the run must be gone this long after the runner ended
 RUN_TIMEOUT_S = 240.0  # the runner's own --timeout
 POINT_TIMEOUT_S = 150.0  # how long to wait for a fault point
+SAVE_FAIL_WAIT_S = 10.0  # after a disk fault, how long to wait for the merger's first failed save
 TMPFS_MB = 32
 TEMP_GLOB = ".*.tmp"  # atomic_write's temporary files
 ENOSPC_ENV, FAULT_DIR_ENV = "MEMGS_FAULT_ENOSPC_FLAG", "MEMGS_FAULT_DIR"
@@ -416,6 +417,15 @@ class Watch:
                 return True
         return False
 
+    def until(self, cond: Callable[[], bool], runner: subprocess.Popen, timeout_s: float) -> bool:
+        """Spin until ``cond()`` holds; False when the runner ended or time ran out first."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end and runner.poll() is None:
+            self.executor.spin_once(timeout_sec=0.05)
+            if cond():
+                return True
+        return False
+
     def close(self) -> None:
         self.executor.shutdown()
         self.node.destroy_node()
@@ -548,8 +558,13 @@ def run_case(fault: Fault, work: Path, index: int, mount: bool, keep: bool = Fal
                         os.kill(pid, fault.sig)
                         killed_merger = fault.target == "merger" and fault.sig == signal.SIGKILL
                 else:
+                    failed = watch.stat("merger", "problem.save_failed")
                     folder.break_it()
-                    # What is on disk once it refuses writes (a save that slipped in just before counts).
+                    # What is on disk once it refuses writes. A save that slipped in just before counts,
+                    # also one whose files were written before the disk filled and renamed after (a
+                    # niced merger on a busy machine): its saves are one at a time, so once one has
+                    # failed none is in flight.
+                    watch.until(lambda: watch.stat("merger", "problem.save_failed") > failed, runner, SAVE_FAIL_WAIT_S)
                     before = check_map(out)
                     if fault.until and watch.wait_for(fault.until, runner, POINT_TIMEOUT_S):
                         folder.repair()
