@@ -195,3 +195,24 @@ def test_frames_of_a_culled_keyframe_follow_its_heir() -> None:
     assert path.correct({5: D}) == {5}
     _, T = path.poses()
     np.testing.assert_allclose(T[:, 1, 3], [0.2, 0.2, 0.2, 0.2], atol=1e-12)
+
+
+def test_a_second_session_closes_the_loop_onto_the_first_sessions_keyframes(loop_frames: list) -> None:
+    """A saved map's keyframes are in the loaded tracker's loop database: session 2 (frames 70-159,
+    from session 1's map of frames 0-79) closes the loop onto session 1's start keyframes."""
+    cfg = TrackerConfig(n_features=300, ba_threaded=False, loop_closure=True)
+    with make_tracker(cfg, loop_frames[0].camera) as first:
+        for f in loop_frames[:80]:
+            first.track(f)
+        first.wait_for_loop_closing()
+        saved = first.export_map()
+        assert first.loop_stats.loops_accepted == 0  # session 1 never came back
+    with make_tracker(cfg, loop_frames[0].camera) as second:
+        second.load_map(saved)
+        results = [second.track(f) for f in loop_frames[70:]]
+        second.wait_for_loop_closing()
+        stats = second.loop_stats
+    assert second.relocalized_after == 0 and all(r.T_wc is not None for r in results)
+    assert stats.loops_accepted >= 1
+    query, matched = stats.last_loop
+    assert matched <= 3 < saved.n_keyframes <= query  # from a new keyframe onto session 1's start
