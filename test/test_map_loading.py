@@ -2,8 +2,7 @@
 its lifecycle and answers with Nav2's LoadMap result codes; a map it cannot take leaves the old one."""
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +13,7 @@ rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
 from nav_msgs.srv import LoadMap  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from ros_spin import spin_until  # noqa: E402
 
 from memgs_ros.core.mapping import checkpoint  # noqa: E402
 from memgs_ros.core.maps.bundle import MAPPER_FILE, PLY_FILE, TRACKER_FILE, Manifest, commit_bundle, new_staging  # noqa: E402
@@ -24,13 +24,7 @@ pytestmark = pytest.mark.ros
 R = LoadMap.Response
 
 
-def _spin_until(ex: SingleThreadedExecutor, cond: Callable[[], bool], timeout_s: float = 60.0) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        ex.spin_once(timeout_sec=0.02)
-        if cond():
-            return True
-    return False
+_spin_until = functools.partial(spin_until, timeout_s=60.0)  # a node restart saves, closes and starts a session
 
 
 def _bundle(root: Path, n: int, depth_scale: float = 1000.0, mapper_bytes: bytes | None = None) -> Path:
@@ -71,7 +65,7 @@ def test_the_mapper_restarts_on_a_loaded_map_and_keeps_it_when_the_next_cannot_b
 
     def load(url: str) -> int:
         future = client.call_async(LoadMap.Request(map_url=url))
-        assert _spin_until(ex, future.done, 120.0)
+        assert spin_until(ex, future.done, 120.0)
         return int(future.result().result)
 
     try:
@@ -125,7 +119,7 @@ def test_memgs_load_map_restarts_the_graph_on_a_bundle_and_the_merger_follows(co
         assert _spin_until(ex, missing.done) and missing.result().result == R.RESULT_MAP_DOES_NOT_EXIST
         assert asked == []  # refused before any node was asked
         future = client.call_async(LoadMap.Request(map_url=str(tmp_path / "maps")))  # "latest"
-        assert _spin_until(ex, future.done, 120.0) and future.result().result == R.RESULT_SUCCESS
+        assert spin_until(ex, future.done, 120.0) and future.result().result == R.RESULT_SUCCESS
         assert asked == [str(good)] and mapper.params.map_bundle == str(good)
         assert _spin_until(ex, lambda: len(merger.map.replica) == 200), len(merger.map.replica)
     finally:

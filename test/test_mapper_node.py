@@ -2,28 +2,17 @@
 still reaches its stats."""
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
-
 import pytest
 
 rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
 
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from ros_spin import spin_until  # noqa: E402
 
 from memgs_ros.errors import DataError  # noqa: E402
 
 pytestmark = pytest.mark.ros
-
-
-def _spin_until(ex: SingleThreadedExecutor, cond: Callable[[], bool], timeout_s: float = 30.0) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        ex.spin_once(timeout_sec=0.02)
-        if cond():
-            return True
-    return False
 
 
 # Only one of them runs within the test: the other's first tick is 100 s away (or never).
@@ -47,7 +36,7 @@ def test_a_failed_periodic_delta_or_snapshot_is_counted(context, kind: str) -> N
             m.snapshot = snapshot
 
         node.session.call(unreadable).result(120)  # behind the kernels' warm-up
-        assert _spin_until(ex, lambda: c["problem.command_failed"] >= 1), dict(c)  # each cuts the map
+        assert spin_until(ex, lambda: c["problem.command_failed"] >= 1), dict(c)  # each cuts the map
     finally:
         node.close()
         ex.shutdown()

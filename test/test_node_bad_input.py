@@ -3,7 +3,7 @@ stamp or map delta is refused and counted under one problem kind, the node keeps
 state (the map) is untouched by what it refused, and good input afterwards still goes in."""
 from __future__ import annotations
 
-import time
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -28,6 +28,7 @@ from memgs_ros.ros.codecs import (  # noqa: E402
     camera_to_camera_info, depth_to_image, matrix_to_pose_stamped, numpy_to_image, structured_to_pointcloud2,
 )
 from memgs_ros.ros.seed_cloud import encode_seeds  # noqa: E402
+from ros_spin import spin_until  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -39,13 +40,7 @@ def frames() -> list[Frame]:
     return list(generate_frames(parse_spec(SPEC)))
 
 
-def _spin_until(ex: SingleThreadedExecutor, cond: Callable[[], bool], timeout_s: float = 15.0) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        ex.spin_once(timeout_sec=0.02)
-        if cond():
-            return True
-    return False
+_spin_until = functools.partial(spin_until, timeout_s=15.0)
 
 
 def _problems(counters) -> int:  # noqa: ANN001 - a Counter

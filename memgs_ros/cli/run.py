@@ -226,9 +226,7 @@ def check_map_bundle(bundle: Path | None, mode: str, params: dict[str, dict], ca
             raise ConfigError("--mode localize needs --map BUNDLE: a map to localise in")
         return
     tracker = params.get("tracker", {})
-    cam = {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx,
-           "cy": camera.cy}
-    check_bundle(bundle, cam, float(tracker.get("depth_scale", 1000.0)),
+    check_bundle(bundle, camera.as_dict(), float(tracker.get("depth_scale", 1000.0)),
                  str(tracker.get("tracker.mode", "rgbd")))
 
 

@@ -101,9 +101,7 @@ def _saved_bundle(bundle: Path, trajectory: str | os.PathLike[str] | None) -> Sa
             keyframes = (z["kf_stamps"].astype(np.int64), invert_pose(z["kf_T_cw"].astype(np.float64)))
     except (OSError, KeyError, ValueError) as err:
         raise DataError(f"{bundle / TRACKER_FILE}: not a readable tracker map ({err})") from err
-    c = m.camera
-    camera = PinholeCamera(int(c["width"]), int(c["height"]), float(c["fx"]), float(c["fy"]), float(c["cx"]),
-                           float(c["cy"]))
+    camera = PinholeCamera.from_dict(m.camera)
     sources = {"map": bundle / PLY_FILE, "keyframes": bundle / TRACKER_FILE, "camera": bundle / MANIFEST}
     traj = None
     if trajectory is not None:

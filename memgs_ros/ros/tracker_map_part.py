@@ -24,8 +24,8 @@ def map_check(node: Any) -> dict[str, Any]:
     """What a bundle loaded into the tracker ``node`` must match (``check_bundle``'s keywords):
     its depth unit and tracker mode, and its camera once the node has one."""
     cam = node.cams.camera if getattr(node, "cams", None) is not None else None
-    camera = None if cam is None else {k: getattr(cam, k) for k in ("width", "height", "fx", "fy", "cx", "cy")}
-    return {"depth_scale": node.params.depth_scale, "tracker_mode": node.cfg.mode, "camera": camera}
+    return {"depth_scale": node.params.depth_scale, "tracker_mode": node.cfg.mode,
+            "camera": None if cam is None else cam.as_dict()}
 
 
 class TrackerMapPart:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -45,6 +45,17 @@ class PinholeCamera:
                             f"got {len(self.dist)}")
         if not all(np.isfinite(d) for d in self.dist):
             raise DataError(f"distortion coefficients must be finite, got {self.dist}")
+
+    def as_dict(self) -> dict[str, Any]:
+        """The camera as a file records it (JSON-able): width, height, fx, fy, cx, cy, dist."""
+        return {"width": int(self.width), "height": int(self.height), "fx": float(self.fx), "fy": float(self.fy),
+                "cx": float(self.cx), "cy": float(self.cy), "dist": [float(x) for x in self.dist]}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> PinholeCamera:
+        """The camera of an ``as_dict`` record (no ``dist``: none)."""
+        return cls(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
+                   tuple(float(x) for x in d.get("dist") or (0.0,) * 5))
 
     @property
     def K(self) -> np.ndarray:

@@ -87,7 +87,7 @@ def save(ckpt: MapperCheckpoint, path: str | os.PathLike[str]) -> Path:
     header = {"format": FORMAT_VERSION, "iteration": ckpt.iteration, "next_id": ckpt.next_id,
               "active_sh_degree": ckpt.active_sh_degree, "scene_extent": ckpt.scene_extent,
               "saved_at_s": ckpt.saved_at_s, "extra": ckpt.extra,
-              "keyframes": [{"kf_id": k.kf_id, "stamp_ns": k.stamp_ns, "camera": _camera_dict(k.camera),
+              "keyframes": [{"kf_id": k.kf_id, "stamp_ns": k.stamp_ns, "camera": k.camera.as_dict(),
                              "depth": k.depth_m is not None, "mask": k.valid_mask is not None,
                              "exposure": None if k.exposure is None else [float(x) for x in k.exposure],
                              "uses": int(k.uses)}
@@ -127,7 +127,7 @@ def load(path: str | os.PathLike[str]) -> MapperCheckpoint:
                 raise DataError(f"{path}: keyframe_ids/created_iter do not match {n} Gaussians")
             kfs = []
             for i, k in enumerate(header["keyframes"]):
-                cam = PinholeCamera(**{**k["camera"], "dist": tuple(k["camera"]["dist"])})
+                cam = PinholeCamera.from_dict(k["camera"])
                 image = z[f"kf{i}_image"]
                 if image.dtype != np.uint8 or image.shape != (cam.height, cam.width, 3):
                     raise DataError(f"{path}: keyframe {k['kf_id']} image is {image.dtype} {image.shape}, "
@@ -157,11 +157,6 @@ def load(path: str | os.PathLike[str]) -> MapperCheckpoint:
         raise DataError(f"{path}: no such checkpoint") from err
     except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, UnicodeDecodeError) as err:
         raise DataError(f"{path}: not a readable mapper checkpoint ({type(err).__name__}: {err})") from err
-
-
-def _camera_dict(cam: PinholeCamera) -> dict[str, Any]:
-    return {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
-            "dist": list(cam.dist)}
 
 
 @dataclass(frozen=True)

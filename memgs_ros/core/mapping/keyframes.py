@@ -204,8 +204,8 @@ class KeyframeStore:
     def restored(self, kf_id: int, uses: int) -> None:
         """Keyframe ``kf_id`` came from a checkpoint with ``uses`` draws (< 0: unknown, taken as
         trained through every level): no new keyframe's budget, and its next draw at the level
-        it had reached. A loaded map's keyframes retrained coarse-to-fine from the start took
-        the first ~400 iterations of a continued session (fr1/rpy head: -1 dB on its new views)."""
+        it had reached, not again from the coarsest (a continued session on the fr1/rpy head:
+        +0.3-0.5 dB on the frames next to the loaded map's edge)."""
         full = self.uses_per_level * len(PYRAMID_FACTORS)
         self._uses[kf_id] = full if uses < 0 else int(uses)
         self._budget[kf_id] = 0

@@ -6,7 +6,6 @@ from __future__ import annotations
 import pathlib
 import secrets
 from dataclasses import dataclass
-from pathlib import Path
 
 from memgs_ros.core.mapping import losses
 from memgs_ros.core.mapping.checkpoint import CheckpointFile, MapperCheckpoint
@@ -51,7 +50,7 @@ class MapperStart:
     checkpoint: CheckpointFile | None
     resumed: MapperCheckpoint | None
     set_aside: str | None
-    from_bundle: Path | None = None
+    from_bundle: pathlib.Path | None = None
 
 
 def start_mapper(cfg: MappingConfig, merge_cfg: MergeConfig, device_param: str, opts: SessionOptions) -> MapperStart:

@@ -32,22 +32,11 @@ from memgs_ros.core.tracking.features.vocabulary import BowVector, KeyframeDatab
 from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
 from memgs_ros.errors import DataError
 
-__all__ = ["TRACKER_MAP_VERSION", "TrackerMap", "camera_dict", "camera_from_dict", "export_map", "read_tracker_map",
-           "restore_map", "write_tracker_map"]
+__all__ = ["TRACKER_MAP_VERSION", "TrackerMap", "export_map", "read_tracker_map", "restore_map", "write_tracker_map"]
 
 TRACKER_MAP_VERSION = 1
 _FEATURE_ARRAYS = ("uv_raw", "uv", "octave", "desc", "depth_m")
 _POINT_ARRAYS = ("pos", "desc", "octave", "n_visible", "n_found", "first_kf")
-
-
-def camera_dict(cam: PinholeCamera) -> dict[str, Any]:
-    return {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
-            "dist": [float(x) for x in cam.dist]}
-
-
-def camera_from_dict(d: dict[str, Any]) -> PinholeCamera:
-    return PinholeCamera(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]), float(d["cx"]),
-                         float(d["cy"]), tuple(float(x) for x in d.get("dist", ())))
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,7 +50,7 @@ class TrackerMap:
 
     @property
     def camera(self) -> PinholeCamera:
-        return camera_from_dict(self.header["camera"])
+        return PinholeCamera.from_dict(self.header["camera"])
 
     @property
     def n_keyframes(self) -> int:
@@ -94,7 +83,7 @@ def export_map(smap: SparseMap, keyframe_db: KeyframeDatabase, camera: PinholeCa
     a["bow_offsets"] = np.r_[0, np.cumsum([len(v) for _, v in vectors])].astype(np.int64)
     a["bow_words"] = np.concatenate([v.words for _, v in vectors]) if vectors else np.zeros(0, np.int64)
     a["bow_weights"] = np.concatenate([v.weights for _, v in vectors]) if vectors else np.zeros(0)
-    header = {"format": TRACKER_MAP_VERSION, "camera": camera_dict(camera), "mode": mode,
+    header = {"format": TRACKER_MAP_VERSION, "camera": camera.as_dict(), "mode": mode,
               "segment_id": int(segment_id), "next_keyframe_id": int(smap.next_keyframe_id),
               "keyframes": len(kfs), "points": int(good.sum()), **(extra or {})}
     return TrackerMap(header, a)

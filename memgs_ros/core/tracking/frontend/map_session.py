@@ -34,7 +34,6 @@ class MapSession:
     localize_only = False
     frames_relocalizing = 0  # frames given no pose while a loaded map waited for its first relocalisation
     relocalized_after = -1  # frames it took (-1: not yet, or no map loaded)
-    loaded_keyframes = 0
     loaded_until_ns = 0  # the loaded map's newest keyframe stamp
     stamps_before_map = False  # a frame stamped before it came: the same recording played again?
 
@@ -61,7 +60,6 @@ class MapSession:
         self._link.keyframes_loaded(smap)
         self.backend.load_places(vectors)
         self.state = TrackingState.LOST
-        self.loaded_keyframes = len(smap.keyframes)
         self.loaded_until_ns = max((kf.stamp_ns for kf in smap.keyframes.values()), default=0)
         self.relocalized_after = -1
 
