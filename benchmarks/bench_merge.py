@@ -35,7 +35,7 @@ STAGES = ("masking", "hashing", "distances", "lbfgs", "surgery", "total")
 def build_map(args: argparse.Namespace):  # -> GaussianMap
     import torch
 
-    from memgs_ros.core.mapping.gaussians import GaussianMap
+    from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 
     g = torch.Generator().manual_seed(0)
     v = args.voxel_size

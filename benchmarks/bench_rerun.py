@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from _common import TUM_ENV, run_memgs, tum_path_or_exit, uptime, write_results
 
-from memgs_ros.core.maps.records import GaussianRecords
+from memgs_ros.core.gaussians.records import GaussianRecords
 
 
 def _map(n: int, seed: int = 0) -> GaussianRecords:

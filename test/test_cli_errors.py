@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 import memgs_ros
 from memgs_ros.cli import main
-from memgs_ros.core.mapping.gaussians import GaussianRecords, PLY_F_REST
+from memgs_ros.core.gaussians.gaussian_map import GaussianRecords, PLY_F_REST
 from memgs_ros.core.maps.ply import ids_sidecar_path, load_ply, save_ply
 from memgs_ros.errors import DataError
 

@@ -9,7 +9,7 @@ from test_raster import CAM_64, PARAM_NAMES, _scene
 
 from memgs_ros.core.raster import _rasterize_reference, rasterize
 from memgs_ros.core.raster.gsplat_backend import gsplat_available
-from memgs_ros.core.raster.values import Gaussians
+from memgs_ros.core.gaussians.tensors import Gaussians
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 
@@ -77,7 +77,7 @@ def test_gsplat_backend_matches_torch_forward_and_gradients(backend: str) -> Non
 def _pair_map(device: str, n_pairs: int = 3000):
     """``n_pairs`` overlapping pairs of Gaussians, one pair per 5 cm cell (so one per 1 cm voxel):
     every pair a merge candidate within the chi-square gate."""
-    from memgs_ros.core.mapping.gaussians import GaussianMap
+    from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 
     g = torch.Generator().manual_seed(5)
     cells = torch.stack(torch.meshgrid(*(torch.arange(15.0) * 0.05,) * 3, indexing="ij"), -1).reshape(-1, 3)[:n_pairs]

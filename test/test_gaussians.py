@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from memgs_ros.core.mapping.gaussians import (render_tensors, 
+from memgs_ros.core.gaussians.gaussian_map import (render_tensors, 
     PARAM_NAMES, SH_C0, SIDE_NAMES, GaussianMap, GaussianRecords, num_sh_rest,
 )
 from memgs_ros.errors import DataError
@@ -146,7 +146,7 @@ def test_accumulate_stats_scales_2d_gradient_to_ndc_and_counts_visible() -> None
 
 
 def test_position_lr_scaled_by_extent_and_decays() -> None:
-    from memgs_ros.core.mapping.gaussians import GaussianLearningRates
+    from memgs_ros.core.gaussians.learning_rates import GaussianLearningRates
 
     g = GaussianMap(0, lrs=GaussianLearningRates(means_decay=True, means_decay_steps=100),
                     spatial_lr_scale=2.0)

@@ -23,7 +23,7 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster import rasterize
 from memgs_ros.core.raster.projection import project_gaussians, screen_radii
 from memgs_ros.core.raster.reference import _composite_reference
-from memgs_ros.core.raster.values import Gaussians
+from memgs_ros.core.gaussians.tensors import Gaussians
 
 
 def _fake_rasterization(

@@ -74,6 +74,36 @@ def test_no_module_imports_from_a_higher_tier() -> None:
     assert upward == [], "imports that run up the tiers " + str(TIERS) + ":\n" + "\n".join(sorted(upward))
 
 
+# core/'s own floors, bottom up; subpackages on one floor sit side by side (neither imports the
+# other). A module directly in core/ (kernels.py, sampling.py) is placed by its name.
+CORE_FLOORS: tuple[tuple[str, ...], ...] = (
+    ("runtime",), ("geometry",), ("gaussians",), ("raster",),
+    ("metrics", "merge", "maps", "sampling", "tracking"), ("mapping",), ("kernels",),
+)
+
+
+def _core_part(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[2] if len(parts) >= 3 and parts[:2] == ["memgs_ros", "core"] else None
+
+
+def test_core_subpackages_keep_their_floors() -> None:
+    """Inside core/, every import (lazy ones too) runs down a floor: no two subpackages import each
+    other, and e.g. the rasterizer never reaches into the mapper that trains with it."""
+    floor = {name: i for i, names in enumerate(CORE_FLOORS) for name in names}
+    wrong = []
+    for mod, deps in _graph().items():
+        a = _core_part(mod)
+        if a is None:
+            continue
+        assert a in floor, f"core/{a} has no floor in CORE_FLOORS"
+        for dep in deps:
+            b = _core_part(dep)
+            if b is not None and b != a and floor[b] >= floor[a]:
+                wrong.append(f"{mod} -> {dep}")
+    assert wrong == [], "imports across core/'s floors " + str(CORE_FLOORS) + ":\n" + "\n".join(sorted(wrong))
+
+
 def test_core_does_not_import_rclpy() -> None:
     offenders = []
     for path in (PACKAGE / "core").rglob("*.py"):

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from memgs_ros.core.mapping.gaussians import GaussianRecords
+from memgs_ros.core.gaussians.gaussian_map import GaussianRecords
 from memgs_ros.core.maps.map_delta import (
     ApplyStatus, MapReplica, MessageKind, decode, encode, f_rest_columns, message_dtype,
 )

@@ -18,7 +18,7 @@ from ros_spin import spin_until  # noqa: E402
 from memgs_ros.core.mapping import checkpoint  # noqa: E402
 from memgs_ros.core.maps.bundle import MAPPER_FILE, PLY_FILE, TRACKER_FILE, Manifest, commit_bundle, new_staging  # noqa: E402
 from memgs_ros.core.maps.ply import save_ply  # noqa: E402
-from memgs_ros.core.maps.records import GaussianRecords  # noqa: E402
+from memgs_ros.core.gaussians.records import GaussianRecords  # noqa: E402
 
 pytestmark = pytest.mark.ros
 R = LoadMap.Response

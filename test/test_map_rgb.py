@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from memgs_ros.core.mapping.gaussians import SH_C0
+from memgs_ros.core.gaussians.gaussian_map import SH_C0
 from memgs_ros.core.maps.map_delta import (
     DeltaOutbox,
     MapReplica,
@@ -15,7 +15,7 @@ from memgs_ros.core.maps.map_delta import (
     packed_rgb,
     unpack_rgb,
 )
-from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords
+from memgs_ros.core.gaussians.records import PLY_F_REST, GaussianRecords
 
 
 def _records(n: int, seed: int = 0) -> GaussianRecords:

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from memgs_ros.core.mapping.gaussians import GaussianMap
+from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 from memgs_ros.core.merge.voxel_merge import (
     CHI2_3DOF_95,
     MergeConfig,

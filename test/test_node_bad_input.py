@@ -19,7 +19,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
 from memgs_ros.core.geometry.frame import Frame  # noqa: E402
-from memgs_ros.core.mapping.gaussians import GaussianMap  # noqa: E402
+from memgs_ros.core.gaussians.gaussian_map import GaussianMap  # noqa: E402
 from memgs_ros.core.maps.map_delta import DeltaOutbox, message_dtype  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.ros.tracker_outputs import KEYPOINT_DTYPE  # noqa: E402

@@ -15,7 +15,7 @@ import torch
 pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install -e '.[ros]')")
 
 from memgs_ros.core.geometry.poses import invert_pose  # noqa: E402
-from memgs_ros.core.mapping.gaussians import GaussianMap  # noqa: E402
+from memgs_ros.core.gaussians.gaussian_map import GaussianMap  # noqa: E402
 from memgs_ros.core.maps.ply import load_ply  # noqa: E402
 from memgs_ros.core.metrics.image import psnr  # noqa: E402
 from memgs_ros.core.metrics.trajectory import ate  # noqa: E402

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from memgs_ros.core.mapping.gaussians import GaussianRecords
+from memgs_ros.core.gaussians.gaussian_map import GaussianRecords
 from memgs_ros.core.maps.ply import PLY_PROPERTIES, ids_sidecar_path, load_ply, save_ply
 from memgs_ros.errors import DataError
 

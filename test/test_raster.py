@@ -15,7 +15,8 @@ from memgs_ros.core.raster.composite import composite
 from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
 from memgs_ros.core.raster.tiles import build_tile_plan
-from memgs_ros.core.raster.values import Gaussians, Splats2D
+from memgs_ros.core.gaussians.tensors import Gaussians
+from memgs_ros.core.raster.values import Splats2D
 
 PARAM_NAMES = ("means", "quats_wxyz", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 

@@ -20,7 +20,7 @@ from rerun.chunk import RrdReader  # noqa: E402
 
 from memgs_ros.cli import main  # noqa: E402
 from memgs_ros.core.maps.ply import load_ply, save_ply  # noqa: E402
-from memgs_ros.core.maps.records import GaussianRecords  # noqa: E402
+from memgs_ros.core.gaussians.records import GaussianRecords  # noqa: E402
 from memgs_ros.errors import ConfigError  # noqa: E402
 from memgs_ros.io.image_decoding import decode_compressed_rgb  # noqa: E402
 from memgs_ros.viz import RerunTarget  # noqa: E402

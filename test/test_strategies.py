@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from memgs_ros.core.mapping.gaussians import GaussianMap
+from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 from memgs_ros.core.mapping.mapper import MappingConfig
 from memgs_ros.core.merge.voxel_merge import MergeConfig
 from memgs_ros.core.mapping.strategies import BudgetStrategy, DensifyStrategy, MergeSchedule

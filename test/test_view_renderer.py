@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.maps.records import GaussianRecords
+from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.core.maps.view_renderer import ViewRenderer
 
 

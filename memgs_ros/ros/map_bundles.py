@@ -43,7 +43,7 @@ from memgs_ros.core.maps.bundle import (
     new_staging,
 )
 from memgs_ros.core.maps.ply import ids_sidecar_path, save_ply
-from memgs_ros.core.maps.records import GaussianRecords
+from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.errors import MemgsError, PipelineError
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.hand_over import HandOver

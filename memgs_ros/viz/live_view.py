@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.maps.records import GaussianRecords
+from memgs_ros.core.gaussians.records import GaussianRecords
 
 __all__ = ["LiveView"]
 

@@ -29,7 +29,7 @@ import rerun.blueprint as rrb
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import rotmat_to_quat_xyzw
-from memgs_ros.core.maps.records import GaussianRecords
+from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.viz.splats import psnr_db, splat_arrays
 
 __all__ = [

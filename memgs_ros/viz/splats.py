@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import expit
 
-from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords, base_rgb8
+from memgs_ros.core.gaussians.records import PLY_F_REST, GaussianRecords, base_rgb8
 
 __all__ = ["SplatArrays", "psnr_db", "sh_rest_rgb", "splat_arrays"]
 

@@ -6,35 +6,8 @@ import math
 from dataclasses import dataclass, fields
 from typing import Any, ClassVar
 
+from memgs_ros.core.gaussians.learning_rates import GaussianLearningRates
 from memgs_ros.errors import ConfigError
-
-
-@dataclass(frozen=True)
-class GaussianLearningRates:
-    """Adam learning rates per parameter (reference section 5).
-
-    ``means`` is multiplied by the scene extent (``spatial_lr_scale``). With ``means_decay`` the
-    position LR follows the 3DGS schedule: log-linear from ``means`` to ``means_final`` over
-    ``means_decay_steps`` iterations; otherwise it stays at ``means``.
-    """
-
-    means: float = 1.6e-4
-    means_final: float = 1.6e-6
-    means_decay_steps: int = 30_000
-    means_decay: bool = False
-    sh_dc: float = 0.0025
-    sh_rest: float = 0.0025 / 20.0
-    opacity: float = 0.05
-    scaling: float = 0.005
-    rotation: float = 0.001
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, bool):
-                continue
-            if not (math.isfinite(v) and v > 0):
-                raise ConfigError(f"learning rate {f.name} must be a positive finite number, got {v}")
 
 
 @dataclass(frozen=True)

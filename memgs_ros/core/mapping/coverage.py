@@ -19,7 +19,7 @@ import torch
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.mapping.config import MappingConfig
-from memgs_ros.core.mapping.gaussians import GaussianMap
+from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 
 __all__ = ["settled_uncovered", "uncovered_seeds"]
 

@@ -39,7 +39,7 @@ from memgs_ros.core.mapping.coverage import settled_uncovered
 from memgs_ros.core.mapping.device_peaks import PeakAttribution
 from memgs_ros.core.mapping.device_view import device_view
 from memgs_ros.core.mapping.exposure import ExposureCompensation
-from memgs_ros.core.mapping.gaussians import GaussianMap, GaussianRecords
+from memgs_ros.core.gaussians.gaussian_map import GaussianMap, GaussianRecords
 from memgs_ros.core.mapping.keyframes import KeyframeStore, TrainingKeyframe, make_keyframe
 from memgs_ros.core.mapping.losses import mapping_loss
 from memgs_ros.core.mapping.rigid import move_with_keyframes

@@ -5,7 +5,7 @@ import numpy as np
 import torch
 
 from memgs_ros.core.geometry.poses import rotmat_to_quat_wxyz_torch
-from memgs_ros.core.mapping.gaussians import GaussianMap
+from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 
 __all__ = ["move_with_keyframes"]
 

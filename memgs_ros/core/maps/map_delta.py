@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords, base_rgb8
+from memgs_ros.core.gaussians.records import PLY_F_REST, GaussianRecords, base_rgb8
 from memgs_ros.errors import MessageError
 
 OP_UPSERT = 0

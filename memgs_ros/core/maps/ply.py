@@ -21,7 +21,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from memgs_ros.core.maps.records import PLY_F_REST, GaussianRecords
+from memgs_ros.core.gaussians.records import PLY_F_REST, GaussianRecords
 from memgs_ros.core.runtime.atomic import atomic_write_all
 from memgs_ros.errors import DataError
 

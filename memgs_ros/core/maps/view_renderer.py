@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.maps.records import GaussianRecords
+from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.core.runtime.worker import CommandWorker
 
 if TYPE_CHECKING:
@@ -66,7 +66,7 @@ class ViewRenderer(CommandWorker):
     def _render(self, records: GaussianRecords, version: Hashable, T_wc: np.ndarray, stamp_ns: int) -> RenderedView:
         import torch
 
-        from memgs_ros.core.mapping.gaussians import render_tensors
+        from memgs_ros.core.gaussians.gaussian_map import render_tensors
         from memgs_ros.core.raster import rasterize
 
         if self._cache is None or self._cache[0] != version:

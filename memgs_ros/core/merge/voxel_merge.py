@@ -38,7 +38,7 @@ from memgs_ros.core.merge.wasserstein import precision_from_scale_quat, slerp_wx
 from memgs_ros.errors import ConfigError
 
 if TYPE_CHECKING:
-    from memgs_ros.core.mapping.gaussians import GaussianMap
+    from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 
 __all__ = ["CHI2_3DOF_95", "MergeConfig", "MergeResult", "VoxelPairs", "candidate_mask", "mahalanobis_sq",
            "merge_covariance", "merge_pass", "merged_mean", "select_min_pair_per_voxel", "voxel_keys", "voxel_pairs"]

@@ -22,7 +22,8 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster.backend_choice import choose_backend
 from memgs_ros.core.raster.backends import REGISTRY
 from memgs_ros.core.raster.reference import _rasterize_reference
-from memgs_ros.core.raster.values import Gaussians, RenderOutput
+from memgs_ros.core.gaussians.tensors import Gaussians
+from memgs_ros.core.raster.values import RenderOutput
 from memgs_ros.errors import ConfigError
 
 __all__ = ["Gaussians", "RenderOutput", "_rasterize_reference", "rasterize", "warm_up"]

@@ -1,6 +1,6 @@
 """The rasterizer backends, registered by name: what ``rasterize(..., backend=NAME)`` runs.
 
-A :class:`Backend` renders :class:`~memgs_ros.core.raster.values.Gaussians` into a
+A :class:`Backend` renders :class:`~memgs_ros.core.gaussians.tensors.Gaussians` into a
 :class:`~memgs_ros.core.raster.values.RenderOutput` and says whether it can run on a device now.
 ``backend="auto"`` takes the first registered backend whose ``auto`` accepts the tensors' device
 (gsplat on CUDA when importable, numba on the CPU when importable, else torch). A new backend is
@@ -23,7 +23,8 @@ from memgs_ros.core.raster.projection import Projected, alpha_cutoff_sq, project
 from memgs_ros.core.raster.projection_numba import project_gaussians_numba
 from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.tiles import TILE_SIZE, TilePlan, build_tile_plan, pairs_per_chunk_for
-from memgs_ros.core.raster.values import Gaussians, RenderOutput
+from memgs_ros.core.gaussians.tensors import Gaussians
+from memgs_ros.core.raster.values import RenderOutput
 from memgs_ros.core.runtime.cpu import numba_available
 
 # render(gaussians, T_cw [4, 4], camera, sh_degree, background [3] or None, near) -> RenderOutput

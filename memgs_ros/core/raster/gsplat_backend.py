@@ -27,7 +27,8 @@ import torch
 from torch import Tensor
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.raster.values import Gaussians, RenderOutput
+from memgs_ros.core.gaussians.tensors import Gaussians
+from memgs_ros.core.raster.values import RenderOutput
 
 
 def gsplat_available() -> bool:

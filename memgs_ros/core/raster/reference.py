@@ -13,7 +13,8 @@ from torch import Tensor
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster.projection import project_gaussians, screen_radii
 from memgs_ros.core.raster.rules import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
-from memgs_ros.core.raster.values import Gaussians, RenderOutput, Splats2D
+from memgs_ros.core.gaussians.tensors import Gaussians
+from memgs_ros.core.raster.values import RenderOutput, Splats2D
 
 
 def _composite_reference(

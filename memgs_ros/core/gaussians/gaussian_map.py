@@ -2,7 +2,7 @@
 
 Two types live here:
 
-- ``GaussianRecords`` (defined in ``core/maps/records.py``, which imports no torch, re-exported here):
+- ``GaussianRecords`` (defined in ``core/gaussians/records.py``, which imports no torch, re-exported here):
   a frozen plain-numpy record of N Gaussians whose fields are named as the INRIA 3DGS PLY
   (reference section 10). PLY files, map deltas and the merger's replica all use it.
 - ``GaussianMap``: the trainable map. Parameters are stored pre-activation (log scales, opacity
@@ -35,9 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from memgs_ros.core.mapping.config import GaussianLearningRates
-from memgs_ros.core.maps.records import PLY_F_REST, SH_C0, GaussianRecords  # noqa: F401 - re-exported
-from memgs_ros.core.raster.values import Gaussians
+from memgs_ros.core.gaussians.learning_rates import GaussianLearningRates
+from memgs_ros.core.gaussians.records import PLY_F_REST, SH_C0, GaussianRecords  # noqa: F401 - re-exported
+from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.errors import ConfigError, DataError
 
 PARAM_NAMES = ("means", "log_scales", "quats_wxyz", "opacity_logits", "sh_dc", "sh_rest")
