@@ -7,7 +7,7 @@ the first colour arrival to the last ack). Inter-ack percentiles show stalls.
 
 Frames: ``--frames random`` makes random RGB-D frames in the player process before it starts
 (transport-bound); ``--source SPEC`` replays any source through
-``python -m memgs_ros.nodes.bag_player`` (includes reading/rendering the source).
+``python -m memgs_ros.nodes.bag_player.node`` (includes reading/rendering the source).
 
 ``--heartbeat-ms N`` (0 = Fast DDS default) writes a Fast DDS XML profile with that writer
 heartbeat period and points FASTRTPS_DEFAULT_PROFILES_FILE at it in both processes: with
@@ -55,7 +55,7 @@ def serve_player(n: int, width: int, height: int) -> int:
 
     from memgs_ros.core.geometry.camera import TUM_FR3
     from memgs_ros.core.geometry.frame import Frame
-    from memgs_ros.nodes.bag_player import BagPlayer
+    from memgs_ros.nodes.bag_player.node import BagPlayer
 
     rng = np.random.default_rng(0)
     cam = TUM_FR3 if width == 640 else TUM_FR3.scaled(width / 640)
@@ -147,7 +147,7 @@ def idle_cpu_fraction(seconds: float, domain: int) -> float:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 
-    from memgs_ros.nodes.bag_player import BagPlayer
+    from memgs_ros.nodes.bag_player.node import BagPlayer
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
@@ -200,7 +200,7 @@ def main() -> int:
         os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(xml)  # this process's participant too
     common = ["--ros-args", "-p", "lockstep:=true", "-p", "start_delay_s:=60.0", "-p", "ack_timeout_s:=30.0"]
     if args.source:
-        cmd = [sys.executable, "-m", "memgs_ros.nodes.bag_player", *common, "-p", f"source:={args.source}"]
+        cmd = [sys.executable, "-m", "memgs_ros.nodes.bag_player.node", *common, "-p", f"source:={args.source}"]
         label = args.source
     else:
         cmd = [sys.executable, __file__, "--serve-player", "--n", str(args.n), "--width", str(args.width),

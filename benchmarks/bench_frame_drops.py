@@ -46,7 +46,7 @@ def run(tum: Path, drop: float, seed: int, frames: int, config: str) -> dict[str
     from memgs_ros.core.metrics.trajectory import ate
     from memgs_ros.core.tracking import warm_up
     from memgs_ros.io.tum import TumFolder
-    from memgs_ros.nodes.tracker import TrackerNode
+    from memgs_ros.nodes.tracker.node import TrackerNode
     from memgs_ros.orchestration.run_files import RunOptions, build_params, node_params
     from memgs_ros.ros import codecs
 

@@ -42,7 +42,7 @@ ORB_FEATURES = 1000  # the ORB unit: OpenCV's ORB extraction of this many featur
 # (label, module, attribute path): each one's thread CPU, less the stages called inside it. A
 # module-level name is patched where the frame path looks it up (the importing module).
 STAGES: list[tuple[str, str, str]] = [
-    ("decode (messages to a Frame)", "memgs_ros.nodes.tracker", "TrackerNode._frame"),
+    ("decode (messages to a Frame)", "memgs_ros.nodes.tracker.node", "TrackerNode._frame"),
     ("feature extraction (grey, grid ORB)", "memgs_ros.core.tracking.features.features", "OrbExtractor.extract_rgb"),
     ("rolling-shutter correction", "memgs_ros.core.tracking.frontend.feature_tracker", "unroll_rolling_shutter"),
     ("projection passes (compiled: project, match, pose)", "memgs_ros.core.tracking.frontend.pose_tracking",
@@ -58,8 +58,8 @@ STAGES: list[tuple[str, str, str]] = [
     ("keyframe insertion", "memgs_ros.core.tracking.frontend.feature_tracker", "FeatureTracker._insert_keyframe"),
     ("back-end results (poll, follow)", "memgs_ros.core.tracking.frontend.feature_tracker", "FeatureTracker._follow"),
     ("back-end results (poll, follow)", "memgs_ros.core.tracking.frontend.corrections", "BackendLink.poll"),
-    ("publishing (pose, odometry, state, keyframe, path)", "memgs_ros.ros.tracker_outputs", "TrackerOutbox.frame"),
-    ("publishing refined / loop-corrected poses", "memgs_ros.ros.tracker_outputs", "KeyframeOutbox.publish_poses"),
+    ("publishing (pose, odometry, state, keyframe, path)", "memgs_ros.nodes.tracker.outputs", "TrackerOutbox.frame"),
+    ("publishing refined / loop-corrected poses", "memgs_ros.nodes.tracker.outputs", "KeyframeOutbox.publish_poses"),
 ]
 FLOOR_PARTS = ["image pyramid", "FAST on every level", "descriptor smoothing of every level"]
 REST = "the rest (tracker bookkeeping, stamps, statistics)"
@@ -112,7 +112,7 @@ def node_cost(tum: Path, params: dict[str, Any], player: dict[str, Any], frames:
     from rclpy.parameter import Parameter
 
     from memgs_ros.io.tum import TumFolder
-    from memgs_ros.nodes.tracker import TrackerNode
+    from memgs_ros.nodes.tracker.node import TrackerNode
     from memgs_ros.ros import codecs
 
     # All of OpenCV's work on the calling thread, for both: thread CPU time then counts all of it.

@@ -61,7 +61,7 @@ PACKAGE = "memgs_ros"
 NODES = GRAPH  # memgs_ros/nodes/registry.py
 (COMPOSED_EXECUTABLE,) = COMPOSED  # the graph's nodes in one process
 # seconds from SIGTERM to SIGKILL: the mapper's shutdown budget (checkpoint 15 s, then its session's
-# close 30 s: nodes/mapper.py) and a margin
+# close 30 s: nodes/mapper/node.py) and a margin
 SIGTERM_TIMEOUT_S = "50"
 
 # Tracker parameter -> default topic: realsense2_camera with align_depth.enable:=true.

@@ -26,7 +26,7 @@ from memgs_ros.core.geometry.frame import Frame  # noqa: E402
 from memgs_ros.core.geometry.poses import pose_from_tq  # noqa: E402
 from memgs_ros.errors import ConfigError, DataError  # noqa: E402
 from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb, image_to_numpy  # noqa: E402
-from memgs_ros.nodes.bag_player import BagPlayer  # noqa: E402
+from memgs_ros.nodes.bag_player.node import BagPlayer  # noqa: E402
 from memgs_ros.ros import codecs, qos  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -341,7 +341,7 @@ def _env(domain_id: int) -> dict[str, str]:
 
 def test_process_refuses_bad_parameter_with_exit_code_2(ros_domain_id: int) -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "memgs_ros.nodes.bag_player", "--ros-args", "-p", "rate:=0.0"],
+        [sys.executable, "-m", "memgs_ros.nodes.bag_player.node", "--ros-args", "-p", "rate:=0.0"],
         env=_env(ros_domain_id), capture_output=True, text=True, timeout=60,
     )
     assert proc.returncode == 2, proc.stderr
@@ -359,7 +359,7 @@ def test_process_lockstep_replay_of_synthetic_source(ros_domain_id: int, tmp_pat
         "    frame_id: cam\n"
     )
     proc = subprocess.Popen(
-        [sys.executable, "-m", "memgs_ros.nodes.bag_player", "--ros-args", "--params-file", str(params),
+        [sys.executable, "-m", "memgs_ros.nodes.bag_player.node", "--ros-args", "--params-file", str(params),
          "-r", "__ns:=/uav1", "-p", f"source:={spec}"],
         env=_env(ros_domain_id), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )

@@ -264,7 +264,7 @@ def test_tracker_hands_on_the_configured_camera(context, override: bool) -> None
     from sensor_msgs.msg import CameraInfo, Image
 
     from memgs_ros.io.image_decoding import decode_camera_info
-    from memgs_ros.nodes.tracker import TrackerNode
+    from memgs_ros.nodes.tracker.node import TrackerNode
     from memgs_ros.ros import qos
     from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image
 
@@ -317,7 +317,7 @@ def test_tracker_hands_on_the_configured_camera(context, override: bool) -> None
 def test_tracker_override_without_calibration_is_refused(context) -> None:  # noqa: ANN001
     from rclpy.parameter import Parameter
 
-    from memgs_ros.nodes.tracker import TrackerNode
+    from memgs_ros.nodes.tracker.node import TrackerNode
 
     with pytest.raises(ConfigError, match="camera_info_override is true but no calibration is set"):
         TrackerNode(context=context, parameter_overrides=[Parameter("camera_info_override", value=True)])
@@ -330,7 +330,7 @@ def test_tracker_override_without_calibration_is_refused(context) -> None:  # no
 def test_player_gives_an_unnamed_folder_the_configured_camera(context, tmp_path: Path) -> None:  # noqa: ANN001
     from rclpy.parameter import Parameter
 
-    from memgs_ros.nodes.bag_player import BagPlayer
+    from memgs_ros.nodes.bag_player.node import BagPlayer
 
     mycopy = _folder(tmp_path, "mycopy", with_json=False)
     with pytest.raises(DataError, match="mycopy: cannot tell the camera"):

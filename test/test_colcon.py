@@ -49,7 +49,7 @@ def test_install_layout_has_ament_index_and_every_executable(prefix: Path) -> No
         assert path.is_file() and os.access(path, os.X_OK), f"missing executable {path}"
     # The installed copy is what runs, not the source tree.
     site = next((base / "lib").glob("python3*/site-packages"))
-    assert (site / PKG / "nodes" / "bag_player.py").is_file()
+    assert (site / PKG / "nodes" / "bag_player" / "node.py").is_file()
 
 
 def test_memgs_cli_runs(prefix: Path, ros_domain_id: int) -> None:

@@ -11,9 +11,9 @@ from rclpy.parameter import Parameter
 
 from memgs_ros.core.geometry.camera import CameraCalibration
 from memgs_ros.errors import ConfigError
-from memgs_ros.nodes.bag_player import BagPlayer
-from memgs_ros.nodes.keyframe_sampler import KeyframeSamplerNode
-from memgs_ros.nodes.merger import MergerNode
+from memgs_ros.nodes.bag_player.node import BagPlayer
+from memgs_ros.nodes.keyframe_sampler.node import KeyframeSamplerNode
+from memgs_ros.nodes.merger.node import MergerNode
 from memgs_ros.nodes.params import DEFAULT_TOPICS, KeyframeSamplerParams, MapperParams, MergerParams, RecorderParams
 from memgs_ros.ros.config_params import check_values, config_specs, parameter_names
 from memgs_ros.ros.params import ParamSpec

@@ -71,4 +71,4 @@ def test_the_runner_starts_one_imported_module_per_node_name() -> None:
 
     assert set(NODE_MODULES) == set(NODE_NAMES) and set(GRAPH_NODES) < set(NODE_NAMES)
     for name, module in NODE_MODULES.items():
-        assert module.__name__ == f"memgs_ros.nodes.{name}" and callable(module.main)
+        assert module.__name__ == f"memgs_ros.nodes.{name}.node" and callable(module.main)

@@ -28,7 +28,7 @@ def _paced_topics() -> set[str]:
 
 
 def test_the_paced_topics_are_the_mappers_link_topics() -> None:
-    source = (ROOT / "memgs_ros" / "ros" / "mapper_outputs.py").read_text()  # the mapper's publishers
+    source = (ROOT / "memgs_ros" / "nodes" / "mapper" / "outputs.py").read_text()  # the mapper's publishers
     published = set(re.findall(r'create_publisher\(\w+, "(memgs/(?:map/delta|mapper/snapshot|render/\w+))"', source))
     assert published == {"memgs/map/delta", "memgs/mapper/snapshot", "memgs/render/color", "memgs/render/depth",
                          "memgs/render/camera_info"}

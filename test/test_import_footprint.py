@@ -44,10 +44,10 @@ from memgs_ros.core.maps.follower import MapFollower
 
 CASES = {
     # node module: (work, heavy modules allowed, RSS ceiling MB)
-    "memgs_ros.nodes.keyframe_sampler": (_SAMPLER, set(), 140),
-    "memgs_ros.nodes.bag_player": (_PLAYER, set(), 140),
-    "memgs_ros.nodes.merger": (_MERGER, set(), 140),
-    "memgs_ros.nodes.tracker": ("", {"scipy"}, 200),
+    "memgs_ros.nodes.keyframe_sampler.node": (_SAMPLER, set(), 140),
+    "memgs_ros.nodes.bag_player.node": (_PLAYER, set(), 140),
+    "memgs_ros.nodes.merger.node": (_MERGER, set(), 140),
+    "memgs_ros.nodes.tracker.node": ("", {"scipy"}, 200),
 }
 
 # VmHWM, not getrusage's ru_maxrss: a child started by exec keeps its parent's (the suite's) peak there.

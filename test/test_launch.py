@@ -355,7 +355,7 @@ def test_ctrl_c_leaves_the_nodes_time_to_save(composed: str) -> None:
     """launch escalates SIGTERM to SIGKILL after sigterm_timeout: it must cover the mapper's shutdown
     (its checkpoint, then its session's close), or Ctrl-C loses the map's last minutes."""
     pytest.importorskip("rclpy", reason="the ROS extra is not installed")
-    from memgs_ros.nodes.mapper import SESSION_CLOSE_TIMEOUT_S, SHUTDOWN_SAVE_TIMEOUT_S
+    from memgs_ros.nodes.mapper.node import SESSION_CLOSE_TIMEOUT_S, SHUTDOWN_SAVE_TIMEOUT_S
 
     for node in load_launch(LAUNCH_FILE, {PKG: REPO}, {"composed": composed}).nodes:
         assert node.sigterm_timeout_s > SHUTDOWN_SAVE_TIMEOUT_S + SESSION_CLOSE_TIMEOUT_S, node.name
@@ -464,7 +464,7 @@ from rclpy.node import Node
 spec = json.loads(sys.argv[1])
 out = {}
 for n in spec["nodes"]:
-    mod = importlib.import_module("memgs_ros.nodes." + n["executable"])
+    mod = importlib.import_module("memgs_ros.nodes." + n["executable"] + ".node")
     (cls,) = [c for c in vars(mod).values()
               if isinstance(c, type) and issubclass(c, Node) and c.__module__ == mod.__name__]
     ctx = rclpy.Context()

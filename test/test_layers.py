@@ -104,6 +104,32 @@ def test_core_subpackages_keep_their_floors() -> None:
     assert wrong == [], "imports across core/'s floors " + str(CORE_FLOORS) + ":\n" + "\n".join(sorted(wrong))
 
 
+def test_ros_holds_only_what_several_nodes_share() -> None:
+    """A module of ros/ that one node alone imports belongs in that node's package (nodes/<name>/)."""
+    owners: dict[str, set[str]] = {}
+    for mod, deps in _graph().items():
+        parts = mod.split(".") + [""]
+        owner = parts[2] if parts[1] == "nodes" and len(parts) > 4 else parts[1]
+        for dep in deps:
+            if dep.startswith("memgs_ros.ros."):
+                owners.setdefault(dep, set()).add(owner)
+    nodes = {p.name for p in (PACKAGE / "nodes").iterdir() if (p / "node.py").is_file()}
+    lone = sorted(f"{m} (only {next(iter(o))})" for m, o in owners.items() if len(o) == 1 and o <= nodes)
+    assert lone == [], "ros/ modules that belong to one node's package: " + ", ".join(lone)
+
+
+def test_every_node_is_a_package() -> None:
+    """nodes/ holds one folder per node (its node.py beside what only it uses), and the shared
+    files: params, registry, composed."""
+    from memgs_ros.nodes.registry import NODES
+
+    for name, (module, _) in NODES.items():
+        assert module == f"memgs_ros.nodes.{name}.node", module
+        assert (PACKAGE / "nodes" / name / "node.py").is_file(), name
+    loose = sorted(p.name for p in (PACKAGE / "nodes").glob("*.py"))
+    assert loose == ["__init__.py", "composed.py", "params.py", "registry.py"], loose
+
+
 def test_core_does_not_import_rclpy() -> None:
     offenders = []
     for path in (PACKAGE / "core").rglob("*.py"):
@@ -165,7 +191,7 @@ def test_only_the_mapper_node_loads_torch() -> None:
 
     nodes = ("tracker", "keyframe_sampler", "merger", "bag_player", "recorder")
     code = ("import sys\n"
-            + "".join(f"import memgs_ros.nodes.{n}\n" for n in nodes)
+            + "".join(f"import memgs_ros.nodes.{n}.node\n" for n in nodes)
             + "print(sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.')))\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     if "No module named 'rclpy'" in done.stderr:

@@ -16,6 +16,7 @@ import pytest
 pytest.importorskip("rclpy", reason="the ROS extra is not installed")
 
 from memgs_ros.core.maps.ply import load_ply  # noqa: E402
+from memgs_ros.nodes.registry import node_name  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -35,7 +36,7 @@ def node_pids(out: Path) -> dict[int, str]:
             continue
         if marker in cmdline:
             module = next((a.decode() for a in cmdline if a.startswith(b"memgs_ros.nodes.")), "?")
-            found[int(entry)] = module.rsplit(".", 1)[-1]
+            found[int(entry)] = node_name(module) if module != "?" else module
     return found
 
 

@@ -80,7 +80,7 @@ def test_a_bad_parameter_refuses_the_node_and_autostart_keeps_one_command_behavi
     from rclpy.parameter import Parameter
 
     from memgs_ros.errors import ConfigError
-    from memgs_ros.nodes.merger import MergerNode
+    from memgs_ros.nodes.merger.node import MergerNode
 
     with pytest.raises(ConfigError):
         MergerNode(context=context, parameter_overrides=[Parameter("render_width", value=-3)])
@@ -114,7 +114,7 @@ def test_the_runner_brings_managed_nodes_up_and_names_one_that_refuses(context) 
     from rclpy.parameter import Parameter
 
     from memgs_ros.errors import ConfigError, PipelineError
-    from memgs_ros.nodes.merger import MergerNode
+    from memgs_ros.nodes.merger.node import MergerNode
     from memgs_ros.orchestration.bring_up import bring_up
     from memgs_ros.ros.lifecycle import ManagedNode
 

@@ -48,7 +48,7 @@ def _bundle(root: Path, n: int, depth_scale: float = 1000.0, mapper_bytes: bytes
 
 def test_the_mapper_restarts_on_a_loaded_map_and_keeps_it_when_the_next_cannot_be_taken(
         context, tmp_path: Path) -> None:  # noqa: ANN001
-    from memgs_ros.nodes.mapper import MapperNode
+    from memgs_ros.nodes.mapper.node import MapperNode
 
     good = _bundle(tmp_path / "maps", 300)
     other_units = _bundle(tmp_path / "maps", 10, depth_scale=5000.0)
@@ -91,8 +91,8 @@ def test_the_mapper_restarts_on_a_loaded_map_and_keeps_it_when_the_next_cannot_b
 def test_memgs_load_map_restarts_the_graph_on_a_bundle_and_the_merger_follows(context, tmp_path: Path) -> None:  # noqa: ANN001
     """The merger's memgs/load_map checks the bundle, restarts the mapper on it (then the tracker,
     here a stand-in that records the request) and takes the new map from the mapper's snapshot."""
-    from memgs_ros.nodes.mapper import MapperNode
-    from memgs_ros.nodes.merger import MergerNode
+    from memgs_ros.nodes.mapper.node import MapperNode
+    from memgs_ros.nodes.merger.node import MergerNode
 
     good = _bundle(tmp_path / "maps", 200)
     mapper = MapperNode(context=context, parameter_overrides=[

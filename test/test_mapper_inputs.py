@@ -1,4 +1,4 @@
-"""The mapper's inputs (ros/mapper_inputs.py) from messages built in the test, without DDS: a
+"""The mapper's inputs (nodes/mapper/inputs.py) from messages built in the test, without DDS: a
 keyframe's parts gathered and decoded once complete, refusals by kind, keyframe poses of a Path."""
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from test_node_bad_input import SPEC, Bundle, _bundle, _without_field  # noqa: E
 
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.ros.codecs import matrix_to_pose_stamped  # noqa: E402
-from memgs_ros.ros.mapper_inputs import KeyframeReceiver, keyframe_poses  # noqa: E402
+from memgs_ros.nodes.mapper.inputs import KeyframeReceiver, keyframe_poses  # noqa: E402
 
 PARTS = {"color": "color", "depth": "depth", "camera_info": "info", "pose": "pose", "seeds": "seeds"}
 

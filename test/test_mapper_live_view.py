@@ -23,7 +23,7 @@ def test_live_render_skips_an_unchanged_view_of_an_unchanged_map(tmp_path: Path,
     log = tmp_path / "mapper.log"
     # Lockstep without acknowledgements: the map does not train, so only the pose can change it.
     params = {"lockstep": True, "render_rate_hz": 20.0, "mapping.min_keyframes": 1, "device": "cpu"}
-    proc = _start("memgs_ros.nodes.mapper", ros_domain_id, params, log)
+    proc = _start("memgs_ros.nodes.mapper.node", ros_domain_id, params, log)
     peer = _Peer(ros_domain_id, "mapper")
     renders: list[Image] = []
     try:

@@ -22,7 +22,7 @@ PERIODIC = {"delta": [Parameter("delta_rate_hz", value=20.0)],
 
 @pytest.mark.parametrize("kind", sorted(PERIODIC))
 def test_a_failed_periodic_delta_or_snapshot_is_counted(context, kind: str) -> None:  # noqa: ANN001
-    from memgs_ros.nodes.mapper import MapperNode
+    from memgs_ros.nodes.mapper.node import MapperNode
 
     node = MapperNode(context=context, parameter_overrides=[
         Parameter("device", value="cpu"), Parameter("render_rate_hz", value=0.0), *PERIODIC[kind]])

@@ -21,7 +21,7 @@ from memgs_ros.core.maps.map_delta import DeltaOutbox, unpack_rgb  # noqa: E402
 from memgs_ros.core.maps.ply import load_ply  # noqa: E402
 from memgs_ros.core.gaussians.records import base_rgb8  # noqa: E402
 from memgs_ros.io.image_decoding import image_to_numpy  # noqa: E402
-from memgs_ros.nodes.merger import MergerNode  # noqa: E402
+from memgs_ros.nodes.merger.node import MergerNode  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
 from memgs_ros.ros.codecs import (  # noqa: E402
     matrix_to_pose_stamped,

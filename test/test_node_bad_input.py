@@ -22,7 +22,7 @@ from memgs_ros.core.geometry.frame import Frame  # noqa: E402
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap  # noqa: E402
 from memgs_ros.core.maps.map_delta import DeltaOutbox, message_dtype  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
-from memgs_ros.ros.tracker_outputs import KEYPOINT_DTYPE  # noqa: E402
+from memgs_ros.nodes.tracker.outputs import KEYPOINT_DTYPE  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
 from memgs_ros.ros.codecs import (  # noqa: E402
     camera_to_camera_info, depth_to_image, matrix_to_pose_stamped, numpy_to_image, structured_to_pointcloud2,
@@ -170,7 +170,7 @@ def _feed_bad_bundles(feeder: _Feeder, frames: list[Frame], on_refused: Callable
 
 
 def test_keyframe_sampler_refuses_bad_bundles_by_kind_and_keeps_sampling(context, frames) -> None:  # noqa: ANN001
-    from memgs_ros.nodes.keyframe_sampler import KeyframeSamplerNode
+    from memgs_ros.nodes.keyframe_sampler.node import KeyframeSamplerNode
 
     node = KeyframeSamplerNode(context=context)
     feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "keypoints"))
@@ -203,7 +203,7 @@ def test_keyframe_sampler_refuses_bad_bundles_by_kind_and_keeps_sampling(context
 
 
 def test_mapper_refuses_bad_bundles_without_touching_the_map(context, frames) -> None:  # noqa: ANN001
-    from memgs_ros.nodes.mapper import MapperNode
+    from memgs_ros.nodes.mapper.node import MapperNode
 
     node = MapperNode(context=context, parameter_overrides=[
         Parameter("lockstep", value=True), Parameter("lockstep_iterations", value=0), Parameter("device", value="cpu"),
@@ -268,8 +268,8 @@ def test_a_depth_scale_that_disagrees_with_the_trackers_is_refused(context, fram
     """Keyframe depth travels in the camera's units: a sampler or mapper reading it with another
     depth_scale than the tracker (whose keypoint depths, and the sampler's seeds, are metres)
     refuses the keyframe (problem.depth_scale) instead of building a map at 1/5 of its size."""
-    from memgs_ros.nodes.keyframe_sampler import KeyframeSamplerNode
-    from memgs_ros.nodes.mapper import MapperNode
+    from memgs_ros.nodes.keyframe_sampler.node import KeyframeSamplerNode
+    from memgs_ros.nodes.mapper.node import MapperNode
 
     def make(scale: float):  # noqa: ANN202
         common = [Parameter("depth_scale", value=scale)]
@@ -298,7 +298,7 @@ def test_free_running_mapper_drops_and_counts_keyframes_it_cannot_insert(context
     newest, drops the oldest whole and counts each; the executor keeps draining the topics."""
     import threading
 
-    from memgs_ros.nodes.mapper import MapperNode
+    from memgs_ros.nodes.mapper.node import MapperNode
 
     node = MapperNode(context=context, parameter_overrides=[
         Parameter("insert_queue", value=1), Parameter("device", value="cpu"), Parameter("render_rate_hz", value=0.0),
@@ -379,7 +379,7 @@ def test_tracker_stamp_rules(context) -> None:  # noqa: ANN001
     """Duplicate and slightly older stamps are dropped; a jump back by more than
     ``time_jump_back_s`` (a bag replayed in a loop) restarts the stamp order and tracking goes
     on; a frame stamped far ahead of the node's clock is dropped."""
-    from memgs_ros.nodes.tracker import TrackerNode
+    from memgs_ros.nodes.tracker.node import TrackerNode
 
     frames = list(generate_frames(parse_spec("synthetic:w=128,h=96,n=4,seed=2")))  # enough texture to track
     node = TrackerNode(context=context, parameter_overrides=[
@@ -437,7 +437,7 @@ def test_tracker_stamp_rules(context) -> None:  # noqa: ANN001
 # ----------------------------------------------------------------------------- merger
 
 def test_merger_refuses_malformed_deltas_and_counts_unknown_removals(context, tmp_path) -> None:  # noqa: ANN001
-    from memgs_ros.nodes.merger import MergerNode
+    from memgs_ros.nodes.merger.node import MergerNode
 
     merger = MergerNode(context=context, parameter_overrides=[
         Parameter("map_path", value=str(tmp_path / "m.ply")), Parameter("save_period_s", value=0.0),
@@ -570,7 +570,7 @@ def test_mapper_checkpoints_written_while_keyframes_arrive_are_whole(context, fr
     import threading
 
     from memgs_ros.core.mapping import checkpoint
-    from memgs_ros.nodes.mapper import MapperNode
+    from memgs_ros.nodes.mapper.node import MapperNode
 
     path = tmp_path / "ck.npz"
     node = MapperNode(context=context, parameter_overrides=[
@@ -615,9 +615,13 @@ def test_every_node_declares_exactly_its_parameter_table(context) -> None:  # no
     """The tables the CLI checks names against (CONFIGS) are what the nodes declare, and a
     parameter a node does not declare is refused at start, naming the closest real one."""
     from memgs_ros.errors import ConfigError
-    from memgs_ros.nodes import bag_player, keyframe_sampler, mapper, merger, tracker
-    from memgs_ros.nodes.merger import MergerNode
-    from memgs_ros.nodes.tracker import TrackerNode
+    from memgs_ros.nodes.bag_player import node as bag_player
+    from memgs_ros.nodes.keyframe_sampler import node as keyframe_sampler
+    from memgs_ros.nodes.mapper import node as mapper
+    from memgs_ros.nodes.merger import node as merger
+    from memgs_ros.nodes.tracker import node as tracker
+    from memgs_ros.nodes.merger.node import MergerNode
+    from memgs_ros.nodes.tracker.node import TrackerNode
     from memgs_ros.ros.config_params import check_declared, module_parameter_names
 
     for module, factory in ((merger, MergerNode), (tracker, TrackerNode), (mapper, mapper.MapperNode),

@@ -15,7 +15,7 @@ from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
-from memgs_ros.nodes.tracker import TrackerNode  # noqa: E402
+from memgs_ros.nodes.tracker.node import TrackerNode  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
 from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image  # noqa: E402
 
@@ -155,7 +155,7 @@ def test_live_frames_before_the_kernels_are_in_are_counted_as_warming(context, m
     first frame after them is tracked. A lockstep replay's frame waits instead (not counted)."""
     import threading
 
-    import memgs_ros.nodes.tracker as tracker_module
+    import memgs_ros.nodes.tracker.node as tracker_module
 
     gate = threading.Event()
     monkeypatch.setattr(tracker_module, "warm_up", lambda: gate.wait(60))  # a compile that takes its time

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import pytest
 
+from memgs_ros.nodes.registry import node_name
 from memgs_ros.orchestration import param_reference as ref
 from memgs_ros.ros.config_params import ROS_PARAMETERS, module_parameter_names, module_specs
 
@@ -24,9 +25,9 @@ def test_every_declared_parameter_is_listed_once_under_its_node() -> None:
     text = ref.render_markdown()
     sections = {s.split("\n", 1)[0]: s for s in text.split("\n## ")[1:]}
     modules = ref.node_modules()
-    assert [m.__name__.rsplit(".", 1)[-1] for m in modules] == list(sections)
+    assert [node_name(m.__name__) for m in modules] == list(sections)
     for module in modules:
-        node = module.__name__.rsplit(".", 1)[-1]
+        node = node_name(module.__name__)
         rows = ref.parameter_rows(module)
         names = [r.name for r in rows]
         assert len(names) == len(set(names)), f"{node}: a parameter listed twice"
@@ -57,7 +58,11 @@ def test_rows_equal_what_running_nodes_declare(context, tmp_path: Path) -> None:
     same declare_config, with the RANGES on its classes.)"""
     from rclpy.parameter import Parameter
 
-    from memgs_ros.nodes import bag_player, keyframe_sampler, merger, recorder, tracker
+    from memgs_ros.nodes.bag_player import node as bag_player
+    from memgs_ros.nodes.keyframe_sampler import node as keyframe_sampler
+    from memgs_ros.nodes.merger import node as merger
+    from memgs_ros.nodes.recorder import node as recorder
+    from memgs_ros.nodes.tracker import node as tracker
 
     cases = ((tracker, tracker.TrackerNode, []), (merger, merger.MergerNode, []),
              (keyframe_sampler, keyframe_sampler.KeyframeSamplerNode, []),

@@ -184,7 +184,7 @@ def test_recorder_node_adapts_to_publishers_and_writes_the_file_on_shutdown(
     from rclpy.parameter import Parameter
     from std_msgs.msg import String
 
-    from memgs_ros.nodes.recorder import RecorderNode
+    from memgs_ros.nodes.recorder.node import RecorderNode
     from memgs_ros.ros import qos
 
     with pytest.raises(ConfigError, match="'path' is required"):

@@ -367,7 +367,7 @@ def test_bridge_node_refuses_no_sink_and_missing_rerun(context: Any, tmp_path: P
     """The node fails at start with one ConfigError (run_node logs it as one fatal line, exit 2)."""
     from rclpy.parameter import Parameter
 
-    from memgs_ros.nodes.rerun_bridge import RerunBridgeNode
+    from memgs_ros.nodes.rerun_bridge.node import RerunBridgeNode
 
     with pytest.raises(ConfigError, match="parameters spawn, connect_url, save_path"):
         RerunBridgeNode(context=context)

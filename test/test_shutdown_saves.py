@@ -107,7 +107,7 @@ def send_one_keyframe(peer: _Peer, proc: subprocess.Popen, log: Path) -> tuple:
 def test_merger_saves_its_map_on_sigterm(tmp_path: Path, ros_domain_id: int) -> None:
     ply = tmp_path / "map.ply"
     log = tmp_path / "merger.log"
-    proc = _start("memgs_ros.nodes.merger", ros_domain_id, {"map_path": str(ply), "save_period_s": 3600.0}, log)
+    proc = _start("memgs_ros.nodes.merger.node", ros_domain_id, {"map_path": str(ply), "save_period_s": 3600.0}, log)
     peer = _Peer(ros_domain_id, "merger")
     try:
         g = GaussianMap(max_sh_degree=0)
@@ -133,7 +133,7 @@ def test_mapper_writes_its_checkpoint_on_sigterm(tmp_path: Path, ros_domain_id: 
     log = tmp_path / "mapper.log"
     params = {"checkpoint_path": str(ck), "checkpoint_period_s": 0.0, "render_rate_hz": 0.0,
               "mapping.min_keyframes": 1, "device": "cpu"}
-    proc = _start("memgs_ros.nodes.mapper", ros_domain_id, params, log)
+    proc = _start("memgs_ros.nodes.mapper.node", ros_domain_id, params, log)
     peer = _Peer(ros_domain_id, "mapper")
     try:
         frame, pts, msgs = send_one_keyframe(peer, proc, log)

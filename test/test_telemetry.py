@@ -86,13 +86,13 @@ def _names(record: type, key: str) -> bool:
 
 # Which record each file's stats writes go to (the node whose NodeStats it is handed).
 _WRITERS = {
-    "nodes/tracker.py": "tracker", "ros/tracker_outputs.py": "tracker", "ros/camera_input.py": "tracker",
-    "nodes/keyframe_sampler.py": "keyframe_sampler",
-    "nodes/mapper.py": "mapper", "ros/mapper_stats.py": "mapper", "core/mapping/checkpoint_saver.py": "mapper",
-    "nodes/merger.py": "merger", "ros/view_outputs.py": "merger", "ros/map_bundles.py": "merger",
-    "ros/tracker_map_part.py": "tracker", "ros/mapper_map_part.py": "mapper",
-    "nodes/bag_player.py": "player", "nodes/recorder.py": "recorder",
-    "nodes/rerun_bridge.py": "rerun_bridge", "viz/live_view.py": "rerun_bridge",
+    "nodes/tracker/node.py": "tracker", "nodes/tracker/outputs.py": "tracker", "nodes/tracker/inputs.py": "tracker",
+    "nodes/keyframe_sampler/node.py": "keyframe_sampler",
+    "nodes/mapper/node.py": "mapper", "nodes/mapper/stats.py": "mapper", "core/mapping/checkpoint_saver.py": "mapper",
+    "nodes/merger/node.py": "merger", "nodes/merger/outputs.py": "merger", "ros/map_bundles.py": "merger",
+    "nodes/tracker/map_part.py": "tracker", "nodes/mapper/map_part.py": "mapper",
+    "nodes/bag_player/node.py": "player", "nodes/recorder/node.py": "recorder",
+    "nodes/rerun_bridge/node.py": "rerun_bridge", "viz/live_view.py": "rerun_bridge",
 }
 _WRITE = re.compile(r"""(?:counters|gauges|computed|\b(?<!\.)g)\["([\w.]+)"\]|post_(?:count|counter|gauge)\("([\w.]+)"|"""
                     r"""gauges\.update\(((?:\w+=[^,)]+,?\s*)+)\)""")

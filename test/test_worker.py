@@ -169,7 +169,7 @@ def test_a_value_error_in_a_free_running_step_is_an_event_not_a_dead_worker(
 
 def test_a_dead_session_fails_the_lockstep_wait_and_the_outbox_futures(
         frames: list[Frame], monkeypatch: pytest.MonkeyPatch) -> None:
-    """The lockstep wait in nodes/mapper.py (train(...).result()) and the outbox futures resolve
+    """The lockstep wait in nodes/mapper/node.py (train(...).result()) and the outbox futures resolve
     with SessionError when the worker dies, instead of blocking the node forever."""
     s = MappingSession(_cfg(), free_running=False)
     try:

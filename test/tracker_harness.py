@@ -24,7 +24,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.nodes.tracker import TrackerNode
+from memgs_ros.nodes.tracker.node import TrackerNode
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image
 

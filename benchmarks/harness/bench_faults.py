@@ -179,7 +179,7 @@ def node_pid(out: Path, runner_pid: int, node: str) -> int | None:
     """The pid of ``node`` (tracker, ..., bag_player) of this run, or of the runner itself."""
     if node == "runner":
         return runner_pid
-    module = f"memgs_ros.nodes.{node} "
+    module = f"memgs_ros.nodes.{node}.node "
     return next((pid for pid, cmd in run_pids(out, runner_pid).items() if module in cmd + " "), None)
 
 

@@ -57,7 +57,7 @@ from std_srvs.srv import Trigger
 from memgs_ros.cli.run import check_inputs, guess_config
 from memgs_ros.core.runtime.cpu import MALLOC_ARENAS, PARENT_PID_ENV, die_with_parent
 from memgs_ros.errors import MemgsError, PipelineError
-from memgs_ros.nodes.bag_player import LINGER_S
+from memgs_ros.nodes.bag_player.node import LINGER_S
 from memgs_ros.nodes.registry import GRAPH, NODES
 from memgs_ros.orchestration.hooks import compare_maps, parse_trigger_message, wait_for_graph
 from memgs_ros.orchestration.processes import (

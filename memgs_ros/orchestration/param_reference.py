@@ -21,6 +21,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, Any, cast
 
+from memgs_ros.nodes.registry import NODES, node_name
 from memgs_ros.orchestration.run_files import NODE_NAMES
 from memgs_ros.ros.config_params import module_specs
 from memgs_ros.ros.params import declare_all
@@ -65,7 +66,7 @@ class _RecordingNode:
 
 def node_modules() -> list[ModuleType]:
     """The node modules, in the order of ``run_files.NODE_NAMES``."""
-    return [importlib.import_module(f"memgs_ros.nodes.{name}") for name in NODE_NAMES]
+    return [importlib.import_module(NODES[name][0]) for name in NODE_NAMES]
 
 
 def _type_name(value: Any) -> str:
@@ -107,7 +108,7 @@ def parameter_rows(node_module: ModuleType) -> list[ParamRow]:
 def rows_from_declarations(node_module: ModuleType, declared: Mapping[str, tuple[Any, Any]]) -> list[ParamRow]:
     """Rows of ``declared`` ({name: (value, ParameterDescriptor)}, from a stand-in or a real node)."""
     choices = {spec.name: spec.choices for spec in module_specs(node_module)}
-    node_name = node_module.__name__.rsplit(".", 1)[-1]
+    node = node_name(node_module.__name__)
     rows = []
     for name, (value, descriptor) in declared.items():
         allowed = choices.get(name, ())
@@ -116,7 +117,7 @@ def rows_from_declarations(node_module: ModuleType, declared: Mapping[str, tuple
             description = description.removesuffix(f" (one of: {', '.join(allowed)})")
         if not descriptor.read_only:
             description += " (can be set at run time)"
-        rows.append(ParamRow(node_name, name, _type_name(value), _default_text(value),
+        rows.append(ParamRow(node, name, _type_name(value), _default_text(value),
                              _range_text(descriptor, allowed), description))
     return rows
 
@@ -126,7 +127,7 @@ def _cell(text: str) -> str:
 
 
 def _node_section(module: ModuleType) -> list[str]:
-    name = module.__name__.rsplit(".", 1)[-1]
+    name = node_name(module.__name__)
     lines = [f"## {name}", "", f"`{module.__name__}`."]
     groups = [f"`{prefix}.*` from `{cls.__module__}.{cls.__name__}`" if prefix
               else f"its own parameters from `{cls.__module__}.{cls.__name__}`" for prefix, cls in module.CONFIGS]

@@ -6,7 +6,7 @@ too), ``memgs/odom`` (Odometry) and ``memgs/pose_with_covariance`` (tracked pose
 what a flight controller fuses; the body ``base_frame`` in ``map_frame``, z up; the covariance is
 the pose optimisation's at 1 px noise, ``pose_covariance``, carried to the body; twist in the body
 frame from the last tracked pose; with no subscriber on either, neither the covariance nor the
-messages are made), TF (``ros/tf_outputs.py``: ``map -> base_link`` per tracked
+messages are made), TF (``nodes/tracker/tf.py``: ``map -> base_link`` per tracked
 frame, ``map -> map_optical`` and the camera mount static), ``memgs/path`` (Path),
 ``memgs/tracking_state`` (String), per keyframe ``memgs/keyframe/{color,depth,camera_info,pose,
 keypoints}`` sharing the frame's stamp (images as recorded with the camera's distortion in
@@ -54,7 +54,7 @@ from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, depth_view, rgb_view
 from memgs_ros.nodes.params import NODE_CONFIGS, TrackerParams
 from memgs_ros.ros import qos
-from memgs_ros.ros.camera_input import RgbdPairing, decompressed, subscribe_camera
+from memgs_ros.nodes.tracker.inputs import RgbdPairing, decompressed, subscribe_camera
 from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.codecs import stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
@@ -62,8 +62,8 @@ from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.map_loading import NodeMapLoader
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.ros.tracker_map_part import TrackerMapPart, map_check
-from memgs_ros.ros.tracker_outputs import KEYPOINT_DTYPE, TrackerOutbox, track_stats
+from memgs_ros.nodes.tracker.map_part import TrackerMapPart, map_check
+from memgs_ros.nodes.tracker.outputs import KEYPOINT_DTYPE, TrackerOutbox, track_stats
 
 __all__ = ["KEYPOINT_DTYPE", "TrackerNode", "main"]
 

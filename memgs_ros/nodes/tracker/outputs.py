@@ -32,7 +32,7 @@ from memgs_ros.ros.codecs import (
     structured_to_pointcloud2,
 )
 from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
-from memgs_ros.ros.tf_outputs import TfOutbox
+from memgs_ros.nodes.tracker.tf import TfOutbox
 
 __all__ = ["KEYPOINT_DTYPE", "CorrectedPath", "KeyframeOutbox", "TrackerOutbox", "track_stats"]
 

@@ -54,7 +54,7 @@ from memgs_ros.ros.map_loading import GraphMapLoader
 from memgs_ros.ros.map_messages import decode_map_message, full_map_message, viewer_cloud_message
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.service_calls import PacedRequests
-from memgs_ros.ros.view_outputs import ViewOutbox
+from memgs_ros.nodes.merger.outputs import ViewOutbox
 from memgs_ros.testing.faults import EveryNth, fault
 
 CONFIGS = NODE_CONFIGS["merger"]

@@ -15,7 +15,7 @@ from it under a new delta epoch, publishing a snapshot so the merger replaces it
 The node translates messages and parameters; the rules are ROS-free services in core/mapping/:
 ``mapper_start`` (device, resume), ``frame_acks`` (the lockstep acknowledgement), ``output_pacing``
 (periodic deltas, live view), ``finish`` and ``checkpoint_saver``. Messages are read in
-ros/mapper_inputs.py and sent from ros/mapper_outputs.py; the stats are ros/mapper_stats.py's.
+nodes/mapper/inputs.py and sent from nodes/mapper/outputs.py; the stats are nodes/mapper/stats.py's.
 """
 from __future__ import annotations
 
@@ -47,10 +47,10 @@ from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.map_loading import NodeMapLoader, set_aside_checkpoint
-from memgs_ros.ros.mapper_inputs import KeyframeReceiver, keyframe_poses
-from memgs_ros.ros.mapper_map_part import MapperMapPart
-from memgs_ros.ros.mapper_outputs import MapperOutbox
-from memgs_ros.ros.mapper_stats import MapperStats
+from memgs_ros.nodes.mapper.inputs import KeyframeReceiver, keyframe_poses
+from memgs_ros.nodes.mapper.map_part import MapperMapPart
+from memgs_ros.nodes.mapper.outputs import MapperOutbox
+from memgs_ros.nodes.mapper.stats import MapperStats
 from memgs_ros.ros.node_main import run_node
 
 CONFIGS = NODE_CONFIGS["mapper"]

@@ -24,9 +24,9 @@ so it happens once for every source, live cameras included.
 
 The frame order, loops and skips are :class:`memgs_ros.io.replay.ReplayFeed`'s; the start rule
 and the lockstep acknowledgement are :mod:`memgs_ros.core.runtime.replay_pacing`'s; the messages
-:class:`memgs_ros.ros.frame_outputs.FrameOutbox`'s.
+:class:`memgs_ros.nodes.bag_player.outputs.FrameOutbox`'s.
 
-    python -m memgs_ros.nodes.bag_player --ros-args -p source:=synthetic:w=64,h=48,n=20 -p lockstep:=true
+    python -m memgs_ros.nodes.bag_player.node --ros-args -p source:=synthetic:w=64,h=48,n=20 -p lockstep:=true
 """
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ from memgs_ros.ros import codecs, qos
 from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
-from memgs_ros.ros.frame_outputs import FrameOutbox
+from memgs_ros.nodes.bag_player.outputs import FrameOutbox
 from memgs_ros.ros.node_main import run_node
 
 __all__ = ["LINGER_S", "BagPlayer", "main"]

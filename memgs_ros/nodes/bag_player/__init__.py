@@ -1,0 +1,1 @@
+"""The bag/folder player node: a source's frames as camera topics."""

@@ -1,0 +1,1 @@
+"""The keyframe sampler node: Patch-Grid keyframe selection."""

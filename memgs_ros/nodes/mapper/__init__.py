@@ -1,0 +1,1 @@
+"""The mapper node: keyframe intake, map outputs, stats, its map part."""

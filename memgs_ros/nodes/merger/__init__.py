@@ -1,0 +1,1 @@
+"""The merger node: the map replica, rendered views, PLY and map bundles."""

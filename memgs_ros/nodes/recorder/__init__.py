@@ -1,0 +1,1 @@
+"""The recorder node (--record): the graph's topics into an mcap bag."""

@@ -1,0 +1,1 @@
+"""The Rerun bridge node (--rerun): the graph's topics into a Rerun viewer."""
