@@ -45,9 +45,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.view import view_preparation
-from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 from memgs_ros.core.maps.ply import load_ply
 from memgs_ros.core.metrics import scoring
 from memgs_ros.core.metrics.image import make_lpips

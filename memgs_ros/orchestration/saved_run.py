@@ -11,11 +11,11 @@ from typing import Any
 
 import numpy as np
 
+from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.maps.bundle import LATEST, MANIFEST, PLY_FILE, TRACKER_FILE, check_bundle, resolve_bundle
 from memgs_ros.core.maps.ply import load_ply
-from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.errors import DataError
 from memgs_ros.io.tum import read_trajectory
 from memgs_ros.orchestration.run_files import (

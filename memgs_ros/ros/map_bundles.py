@@ -33,6 +33,7 @@ from rclpy.client import Client
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
+from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.core.maps.bundle import (
     MAPPER_FILE,
     PLY_FILE,
@@ -43,7 +44,6 @@ from memgs_ros.core.maps.bundle import (
     new_staging,
 )
 from memgs_ros.core.maps.ply import ids_sidecar_path, save_ply
-from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.errors import MemgsError, PipelineError
 from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.hand_over import HandOver

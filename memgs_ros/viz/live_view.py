@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.gaussians.records import GaussianRecords
+from memgs_ros.core.geometry.camera import PinholeCamera
 
 __all__ = ["LiveView"]
 

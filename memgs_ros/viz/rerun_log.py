@@ -27,9 +27,9 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import rotmat_to_quat_xyzw
-from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.viz.splats import psnr_db, splat_arrays
 
 __all__ = [

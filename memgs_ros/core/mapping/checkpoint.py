@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.gaussians.gaussian_map import PLY_F_REST, GaussianRecords
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.errors import DataError
 

@@ -16,10 +16,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.mapping.config import MappingConfig
-from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 
 __all__ = ["settled_uncovered", "uncovered_seeds"]
 

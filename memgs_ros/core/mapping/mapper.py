@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from memgs_ros.core.gaussians.gaussian_map import GaussianMap, GaussianRecords
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.geometry.view import view_preparation
@@ -39,7 +40,6 @@ from memgs_ros.core.mapping.coverage import settled_uncovered
 from memgs_ros.core.mapping.device_peaks import PeakAttribution
 from memgs_ros.core.mapping.device_view import device_view
 from memgs_ros.core.mapping.exposure import ExposureCompensation
-from memgs_ros.core.gaussians.gaussian_map import GaussianMap, GaussianRecords
 from memgs_ros.core.mapping.keyframes import KeyframeStore, TrainingKeyframe, make_keyframe
 from memgs_ros.core.mapping.losses import mapping_loss
 from memgs_ros.core.mapping.rigid import move_with_keyframes

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from memgs_ros.core.geometry.poses import rotmat_to_quat_wxyz_torch
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap
+from memgs_ros.core.geometry.poses import rotmat_to_quat_wxyz_torch
 
 __all__ = ["move_with_keyframes"]
 

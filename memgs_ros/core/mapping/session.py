@@ -42,10 +42,10 @@ from typing import Any, TypeVar
 import numpy as np
 import torch
 
+from memgs_ros.core.gaussians.gaussian_map import GaussianRecords
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.view import view_preparation
 from memgs_ros.core.mapping.checkpoint import MapperCheckpoint
-from memgs_ros.core.gaussians.gaussian_map import GaussianRecords
 from memgs_ros.core.mapping.keyframe_timing import KeyframeTimings, KeyframeTimingSummary
 from memgs_ros.core.mapping.keyframes import KeyframeInput, TrainingKeyframe
 from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig, StepStats, prepare_keyframe

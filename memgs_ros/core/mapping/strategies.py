@@ -29,8 +29,8 @@ import torch
 from memgs_ros.core.geometry.poses import nearest_pose_distance, quat_wxyz_to_rotmat_torch
 
 if TYPE_CHECKING:
-    from memgs_ros.core.mapping.config import MappingConfig
     from memgs_ros.core.gaussians.gaussian_map import GaussianMap
+    from memgs_ros.core.mapping.config import MappingConfig
     from memgs_ros.core.mapping.keyframes import KeyframeStore
 
 logger = logging.getLogger(__name__)

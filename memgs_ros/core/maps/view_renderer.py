@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.gaussians.records import GaussianRecords
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.runtime.worker import CommandWorker
 
 if TYPE_CHECKING:

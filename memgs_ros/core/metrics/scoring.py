@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose
-from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 from memgs_ros.core.metrics.image import FrameScore, LpipsFn, match_frames, score_frame, summarize_scores
 from memgs_ros.core.metrics.trajectory import ate
 from memgs_ros.core.raster import rasterize

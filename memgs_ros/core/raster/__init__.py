@@ -18,11 +18,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster.backend_choice import choose_backend
 from memgs_ros.core.raster.backends import REGISTRY
 from memgs_ros.core.raster.reference import _rasterize_reference
-from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.raster.values import RenderOutput
 from memgs_ros.errors import ConfigError
 

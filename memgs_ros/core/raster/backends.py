@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster.composite import composite
 from memgs_ros.core.raster.composite_numba import NUMBA_TILE_SIZE, composite_numba
@@ -23,7 +24,6 @@ from memgs_ros.core.raster.projection import Projected, alpha_cutoff_sq, project
 from memgs_ros.core.raster.projection_numba import project_gaussians_numba
 from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.tiles import TILE_SIZE, TilePlan, build_tile_plan, pairs_per_chunk_for
-from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.raster.values import RenderOutput
 from memgs_ros.core.runtime.cpu import numba_available
 

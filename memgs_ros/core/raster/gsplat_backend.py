@@ -26,8 +26,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.gaussians.tensors import Gaussians
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster.values import RenderOutput
 
 

@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import quat_wxyz_to_rotmat_torch
 from memgs_ros.core.raster.sh import eval_sh_colors
-from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.raster.values import Splats2D
 
 COV2D_DILATION = 0.3  # px^2 added to the 2D covariance diagonal (3DGS low-pass filter)

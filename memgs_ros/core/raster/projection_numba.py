@@ -20,10 +20,10 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster.projection import JACOBIAN_FOV_MARGIN, Projected
 from memgs_ros.core.raster.sh import num_sh_bases
-from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.runtime.cpu import numba_available
 from memgs_ros.core.runtime.pool import cpu_threads, parallel_map
 from memgs_ros.errors import ConfigError

@@ -43,12 +43,12 @@ from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.runtime.replay_pacing import AckWait, RealTimeClock, StartGate
 from memgs_ros.errors import MemgsError
 from memgs_ros.io.replay import ReplayFeed, frames_total, open_frames, replay_frames
+from memgs_ros.nodes.bag_player.outputs import FrameOutbox
 from memgs_ros.nodes.params import NODE_CONFIGS, BagPlayerParams
 from memgs_ros.ros import codecs, qos
 from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
-from memgs_ros.nodes.bag_player.outputs import FrameOutbox
 from memgs_ros.ros.node_main import run_node
 
 __all__ = ["LINGER_S", "BagPlayer", "main"]

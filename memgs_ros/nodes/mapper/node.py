@@ -41,16 +41,16 @@ from memgs_ros.core.mapping.output_pacing import DeltaPacer, LiveView, delta_row
 from memgs_ros.core.maps.map_delta import message_dtype
 from memgs_ros.core.merge.config import MergeConfig
 from memgs_ros.core.raster.backend_choice import device_label
+from memgs_ros.nodes.mapper.inputs import KeyframeReceiver, keyframe_poses
+from memgs_ros.nodes.mapper.map_part import MapperMapPart
+from memgs_ros.nodes.mapper.outputs import MapperOutbox
+from memgs_ros.nodes.mapper.stats import MapperStats
 from memgs_ros.nodes.params import NODE_CONFIGS, MapperParams
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.map_loading import NodeMapLoader, set_aside_checkpoint
-from memgs_ros.nodes.mapper.inputs import KeyframeReceiver, keyframe_poses
-from memgs_ros.nodes.mapper.map_part import MapperMapPart
-from memgs_ros.nodes.mapper.outputs import MapperOutbox
-from memgs_ros.nodes.mapper.stats import MapperStats
 from memgs_ros.ros.node_main import run_node
 
 CONFIGS = NODE_CONFIGS["mapper"]

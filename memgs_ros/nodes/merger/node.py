@@ -43,6 +43,7 @@ from memgs_ros.core.maps.map_delta import MessageKind
 from memgs_ros.core.maps.ply import save_ply
 from memgs_ros.core.maps.view_renderer import ViewRenderer
 from memgs_ros.errors import MemgsError
+from memgs_ros.nodes.merger.outputs import ViewOutbox
 from memgs_ros.nodes.params import NODE_CONFIGS, MergerParams
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
@@ -54,7 +55,6 @@ from memgs_ros.ros.map_loading import GraphMapLoader
 from memgs_ros.ros.map_messages import decode_map_message, full_map_message, viewer_cloud_message
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.service_calls import PacedRequests
-from memgs_ros.nodes.merger.outputs import ViewOutbox
 from memgs_ros.testing.faults import EveryNth, fault
 
 CONFIGS = NODE_CONFIGS["merger"]

@@ -53,8 +53,10 @@ from memgs_ros.core.tracking.frame_gate import CameraSource, LiveGate, StampRule
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, depth_view, rgb_view
 from memgs_ros.nodes.params import NODE_CONFIGS, TrackerParams
-from memgs_ros.ros import qos
 from memgs_ros.nodes.tracker.inputs import RgbdPairing, decompressed, subscribe_camera
+from memgs_ros.nodes.tracker.map_part import TrackerMapPart, map_check
+from memgs_ros.nodes.tracker.outputs import KEYPOINT_DTYPE, TrackerOutbox, track_stats
+from memgs_ros.ros import qos
 from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.codecs import stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
@@ -62,8 +64,6 @@ from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.map_loading import NodeMapLoader
 from memgs_ros.ros.node_main import run_node
-from memgs_ros.nodes.tracker.map_part import TrackerMapPart, map_check
-from memgs_ros.nodes.tracker.outputs import KEYPOINT_DTYPE, TrackerOutbox, track_stats
 
 __all__ = ["KEYPOINT_DTYPE", "TrackerNode", "main"]
 

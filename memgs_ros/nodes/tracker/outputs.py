@@ -20,6 +20,7 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frames import FrameConvention
 from memgs_ros.core.tracking import TrackResult
 from memgs_ros.core.tracking.anchored_path import AnchoredPath
+from memgs_ros.nodes.tracker.tf import TfOutbox
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
     append_to_path,
@@ -32,7 +33,6 @@ from memgs_ros.ros.codecs import (
     structured_to_pointcloud2,
 )
 from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
-from memgs_ros.nodes.tracker.tf import TfOutbox
 
 __all__ = ["KEYPOINT_DTYPE", "CorrectedPath", "KeyframeOutbox", "TrackerOutbox", "track_stats"]
 
