@@ -143,13 +143,13 @@ def test_node_starts_and_stops_on_sigint(node_procs: dict[str, tuple[subprocess.
         out, _ = proc.communicate()
         pytest.fail(f"{exe} never appeared in the ROS graph (exit {proc.returncode}):\n{out[-4000:]}")
     assert names == [f"/uav1/{exe}"], names
-    time.sleep(0.5)  # let it get from the constructor into spin
-    # Spinning once the first stats message is out: the recorder's file is open by then. The mapper
-    # loads (here: compiles, this workspace's copy has no cache) its kernels on its session's thread
-    # after that, and a SIGINT then waits for the compile: wait for kernels_warm, as the runner does.
-    if exe in ("recorder", "mapper"):
-        assert _wait_for_message(domain, f"/uav1/memgs/{exe}/stats", WARM_TIMEOUT_S,
-                                 key="kernels_warm" if exe == "mapper" else None), f"{exe} never spun"
+    # Spinning once the first stats message is out (a timer of the executor sends it): the
+    # recorder's file is open by then. The mapper loads (here: compiles, this workspace's copy has
+    # no cache) its kernels on its session's thread after that, and a SIGINT then waits for the
+    # compile: wait for kernels_warm, as the runner does.
+    stats = {"bag_player": "player"}.get(exe, exe)
+    assert _wait_for_message(domain, f"/uav1/memgs/{stats}/stats", WARM_TIMEOUT_S,
+                             key="kernels_warm" if exe == "mapper" else None), f"{exe} never spun"
     proc.send_signal(signal.SIGINT)
     try:
         out, _ = proc.communicate(timeout=STOP_TIMEOUT_S)

@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -155,8 +156,15 @@ def test_stop_spinning_returns_once_the_spin_thread_has_ended(context) -> None: 
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     try:
+        ticked = threading.Event()
+
+        def once() -> None:  # one callback, then nothing wakes the wait set but stop_spinning
+            timer.cancel()
+            ticked.set()
+
+        timer = node.create_timer(0.01, once)
         thread = spin_in_background(executor)
-        time.sleep(0.3)  # the thread now waits inside the wait set
+        assert ticked.wait(30)  # the thread spins, and after this callback waits inside the wait set
         stop_spinning(executor, thread)
         assert not thread.is_alive()
     finally:

@@ -121,7 +121,8 @@ def test_lockstep_is_train_then_acknowledge_and_deterministic(frames: list[Frame
             s.insert_keyframe(_kf(f, 10 + i))
             st = s.train(4).result(60)  # FIFO: trains after the insertion above
         assert st is not None and s.status.iteration == 8  # nothing before ready (2 keyframes)
-        time.sleep(0.2)
+        for _ in range(20):  # the worker idles between these round trips: a free-running one trains there
+            s.delta(0).result(30)
         assert s.status.iteration == 8  # a lockstep worker never trains on its own
         snaps.append(s.snapshot().result(30))
         s.close()

@@ -108,7 +108,9 @@ def test_close_fails_queued_commands_or_drains_them() -> None:
         queued = [w.submit(f"q{i}", lambda i=i: i) for i in range(3)]
         closer = threading.Thread(target=w.close, kwargs={"drain": drain})
         closer.start()
-        time.sleep(0.05)
+        deadline = time.monotonic() + WAIT_S
+        while w.alive and time.monotonic() < deadline:  # until close() has shut the queue
+            time.sleep(0.005)
         gate.set()
         closer.join(WAIT_S)
         if drain:
@@ -204,14 +206,16 @@ def test_close_fails_outbox_futures_and_a_cut_after_a_timed_out_join(
     for i, f in enumerate(frames[:3]):
         s.insert_keyframe(_kf(f, 100 + i)).result(WAIT_S)
     real = GaussianMapper.snapshot
+    inside = threading.Event()
 
     def slow(self):  # noqa: ANN001, ANN202
-        time.sleep(0.5)
+        inside.set()
+        time.sleep(0.5)  # the cut outlasts close's join below (not a wait for a state)
         return real(self)
 
     monkeypatch.setattr(GaussianMapper, "snapshot", slow)
     cut_late = s.delta(100)  # the worker is inside this cut when close gives up waiting
-    time.sleep(0.1)
+    assert inside.wait(WAIT_S)
     queued = s.delta(100)
     s.close(timeout_s=0.05)
     for f in (cut_late, queued):
