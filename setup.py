@@ -60,7 +60,7 @@ setup(
         # rerun-sdk with the GaussianSplats3D archetype.
         "viz": ["rerun-sdk>=0.36"],
         # rerun-sdk >= 0.41: the tests read recordings back with rerun.chunk.RrdReader.
-        # ruff and mypy pinned: test/test_lint.py holds the code to exactly these versions' rules.
+        # ruff and mypy pinned: test/unit/test_lint.py holds the code to exactly these versions' rules.
         "test": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "colcon-core", "colcon-ros", "colcon-python-setup-py",
                  "rerun-sdk>=0.41", "ruff==0.17.6", "mypy==2.4.1"],
     },

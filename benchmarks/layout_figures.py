@@ -1,5 +1,5 @@
 """The layout's size figures (issue 37): each node class's lines, the functions over 80 lines and
-the largest classes in memgs_ros/. test/test_sizes.py holds the bounds; this prints the figures.
+the largest classes in memgs_ros/. test/unit/test_sizes.py holds the bounds; this prints the figures.
 
     python benchmarks/layout_figures.py [--json OUT]
 """

@@ -12,7 +12,7 @@
 ``<name>.md`` (the table) and the PNGs, every PNG carrying the SHA-256 of that table in its
 metadata (``memgs-table-sha256``). With ``--readme FILE`` (``README.md`` or a page under
 ``docs/``) the block between ``<!-- figures:<name> -->`` and ``<!-- /figures:<name> -->`` in FILE
-is replaced by the table and the images, linked relative to FILE. ``test/test_figures.py``
+is replaced by the table and the images, linked relative to FILE. ``test/unit/test_figures.py``
 checks every such block in ``README.md`` and ``docs/*.md`` against its table and PNGs, so a
 figure and the table beside it cannot come from different runs.
 """

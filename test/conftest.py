@@ -80,3 +80,16 @@ def numba_off(monkeypatch: pytest.MonkeyPatch):  # -> Iterator[None]
     yield
     monkeypatch.undo()
     runtime.numba_available.cache_clear()
+
+
+KINDS = ("unit", "integration", "system")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Each test carries its folder's kind as a marker (``-m unit``, ``-m "not system"``):
+    test/unit (one process, no DDS), test/integration (one process, real DDS), test/system
+    (several processes: the graph's nodes, the runner, colcon, two hosts)."""
+    for item in items:
+        kind = item.path.parent.name
+        if kind in KINDS:
+            item.add_marker(getattr(pytest.mark, kind))

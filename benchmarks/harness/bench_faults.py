@@ -36,7 +36,7 @@ Each case checks, after the runner ended:
   resyncs, a source played in part), or ``none`` where the run wrote none.
 
 Prints a progress line per case, the matrix and the totals; ``--json PATH`` writes them. Exit
-status 1 when a process was left behind or a map was corrupt or lost. ``test/test_faults.py``
+status 1 when a process was left behind or a map was corrupt or lost. ``test/system/test_faults.py``
 runs five of the cases through this module.
 
     python benchmarks/harness/bench_faults.py                      # the whole matrix (~21 min on 2 cores)

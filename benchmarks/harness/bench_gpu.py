@@ -153,7 +153,7 @@ def stage_setup(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def stage_tests(args: argparse.Namespace) -> dict[str, Any]:
-    tests = ["test/test_cuda.py", "test/test_mapping_device.py", "test/test_gsplat_conventions.py"]
+    tests = ["test/unit/test_cuda.py", "test/unit/test_mapping_device.py", "test/unit/test_gsplat_conventions.py"]
     t0 = time.perf_counter()
     r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-rs", *tests], cwd=ROOT, capture_output=True, text=True)
     tail = (r.stdout + r.stderr).strip().splitlines()

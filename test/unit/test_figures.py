@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 # Images that are not plots of a benchmark table (a screenshot of a viewer): listed, not exempt silently.
 SCREENSHOTS = {"benchmarks/figures/rerun_view.png"}  # relative to the repository root

@@ -10,7 +10,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parent.parent / "memgs_ros"
+PACKAGE = Path(__file__).resolve().parents[2] / "memgs_ros"
 TIERS = ("errors", "testing", "core", "io", "viz", "ros", "nodes", "orchestration", "evaluation", "cli")
 # Tiers that may sit side by side (neither imports the other).
 SAME: dict[str, str] = {}

@@ -102,5 +102,5 @@ print("OK", sorted(before))
 @pytest.mark.parametrize("check", [TRACKING, TRACKER_NODE, MAPPING], ids=["tracking", "tracker_node", "mapping"])
 def test_a_run_compiles_nothing_after_the_warm_up(check: str) -> None:
     proc = subprocess.run([sys.executable, "-c", textwrap.dedent(check)], capture_output=True, text=True,
-                          timeout=600, cwd=Path(__file__).parent)
+                          timeout=600, cwd=Path(__file__).resolve().parents[1])  # test/: its helpers (frame_seeds)
     assert proc.returncode == 0 and proc.stdout.startswith("OK"), proc.stdout[-2000:] + proc.stderr[-3000:]

@@ -19,7 +19,7 @@ from memgs_ros.io.synthetic import generate_frames, parse_spec, write_tum_folder
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SPEC = "synthetic:w=320,h=240,n=24,seed=3"
 RATE_MBIT = 5.0
 # Short CPU training, as test_pipeline's FAST, with few final iterations: the time to converge

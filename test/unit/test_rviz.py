@@ -9,7 +9,7 @@ import yaml
 
 from memgs_ros.nodes.params import DEFAULT_TOPICS, TrackerParams
 
-RVIZ = Path(__file__).resolve().parents[1] / "rviz" / "memgs.rviz"
+RVIZ = Path(__file__).resolve().parents[2] / "rviz" / "memgs.rviz"
 
 
 def test_the_rviz_view_matches_the_nodes_topics_frames_and_qos() -> None:

@@ -16,7 +16,7 @@ pytest.importorskip("rclpy", reason="the ROS extra is not installed")
 
 pytestmark = [pytest.mark.ros]
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PROFILE = ROOT / "config" / "fastdds_radio.xml"
 NS = "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}"
 

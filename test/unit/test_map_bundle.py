@@ -26,7 +26,7 @@ from memgs_ros.core.maps.bundle import (
 )
 
 CAMERA = {"width": 64, "height": 48, "fx": 50.0, "fy": 50.0, "cx": 32.0, "cy": 24.0, "dist": [0.0] * 5}
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _manifest() -> Manifest:

@@ -9,7 +9,7 @@ from memgs_ros.nodes.registry import node_name
 from memgs_ros.orchestration import param_reference as ref
 from memgs_ros.ros.config_params import ROS_PARAMETERS, module_parameter_names, module_specs
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DOC = ROOT / ref.DEFAULT_PATH
 
 

@@ -31,7 +31,7 @@ from memgs_ros.ros import codecs, qos  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CAM = PinholeCamera(32, 24, 30.0, 30.0, 15.5, 11.5)
 KINDS = ("color", "depth", "info", "gt")
 

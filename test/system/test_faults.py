@@ -19,7 +19,7 @@ from memgs_ros.core.maps.ply import ids_sidecar_path, load_ply, save_ply
 from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.core.runtime import atomic
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 # Smaller than the benchmark's room: each case here takes ~20-25 s on two cores.
 SPEC = "synthetic:w=128,h=96,n=24,seed=3"
 

@@ -101,7 +101,7 @@ _WRITE = re.compile(r"""(?:counters|gauges|computed|\b(?<!\.)g)\["([\w.]+)"\]|po
 def test_every_stats_key_a_node_writes_is_a_field_of_its_record() -> None:
     """Read from the source: a key written by a path no test runs (a warm-up's gauge, a rare
     counter) is checked here too, and a file that writes stats must be listed above."""
-    root = Path(__file__).resolve().parent.parent / "memgs_ros"
+    root = Path(__file__).resolve().parents[2] / "memgs_ros"
     writers = {str(p.relative_to(root)) for p in root.rglob("*.py") if _WRITE.search(p.read_text())}
     # the stats class; the session's own Counter; a tensor ``g["..."]`` of gradients
     writers -= {"ros/diagnostics.py", "core/mapping/session.py", "core/gaussians/gaussian_map.py"}
