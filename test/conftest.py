@@ -39,17 +39,22 @@ def colcon_prefix(tmp_path_factory: pytest.TempPathFactory):  # -> pathlib.Path
     return build(tmp_path_factory.mktemp("colcon_ws"))
 
 
-def own_domain_id() -> int:
-    """A random DDS domain id in 100-199, from this pytest worker's share of that range: the suite
-    runs on several workers (pytest-xdist, README), and two tests running at once must never draw
-    the same domain. A namespace of its own (where a test makes one) guards against another suite
-    on the same host."""
+def own_domain_ids(n: int) -> list[int]:
+    """``n`` distinct random DDS domain ids in 100-199, from this pytest worker's share of that
+    range: the suite runs on several workers (pytest-xdist, README), and two tests running at once
+    must never draw the same domain. A namespace of its own (where a test makes one) guards against
+    another suite on the same host."""
     count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")  # gw0, gw1, ...
     index = int(worker[2:]) if worker[2:].isdigit() else 0
     span = 100 // max(1, min(count, 100))
     low = 100 + (index % max(1, min(count, 100))) * span
-    return random.Random(os.getpid() ^ id(object())).randrange(low, low + span)
+    return random.Random(os.getpid() ^ id(object())).sample(range(low, low + span), n)
+
+
+def own_domain_id() -> int:
+    """One domain id of this worker's share (:func:`own_domain_ids`)."""
+    return own_domain_ids(1)[0]
 
 
 @pytest.fixture

@@ -3,7 +3,6 @@ and each installed executable starts and shuts down cleanly on SIGINT."""
 from __future__ import annotations
 
 import os
-import random
 import signal
 import subprocess
 import time
@@ -12,6 +11,7 @@ from pathlib import Path
 
 import pytest
 from colcon_install import PKG, install_env
+from conftest import own_domain_ids
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -66,7 +66,7 @@ def node_procs(prefix: Path) -> Iterator[dict[str, tuple[subprocess.Popen, int]]
     overlap; each test below then checks and stops one of them."""
     exes = list(NODES)
     config = prefix / PKG / "share" / PKG / "config" / "tum_fr1.yaml"
-    domains = random.Random(os.getpid()).sample(range(100, 200), len(exes))
+    domains = own_domain_ids(len(exes))  # this worker's share: never a domain a test beside it draws
     procs: dict[str, tuple[subprocess.Popen, int]] = {}
     try:
         for exe, domain in zip(exes, domains):
