@@ -92,7 +92,7 @@ class TrackerParams:
     # raw: sensor_msgs/Image; compressed: CompressedImage on <color_topic>/compressed (JPEG, PNG) and
     # <depth_topic>/compressedDepth (image_transport's PNG), as a camera streams over a radio link
     image_transport: str = "raw"
-    depth_scale: float = 1000.0  # 16UC1 depth units per metre (RealSense 1000, TUM 5000)
+    depth_scale: float = 1000.0  # the camera's 16UC1 units a metre (RealSense 1000, TUM 5000): no other node reads them
     sync: str = "approximate"  # colour/depth pairing
     max_sync_dt_s: float = 0.02  # largest colour/depth stamp difference paired (approximate)
     unpaired_warn_s: float = 5.0  # colour arriving this long with no depth to pair it with: warn, naming why
@@ -167,11 +167,10 @@ class KeyframeSamplerParams:
     autostart: bool = True
 
     mode: str = "rgbd"  # camera mode (mono: depth from the nearest keypoint)
-    depth_scale: float = 1000.0  # 16UC1 keyframe depth units per metre: the tracker's (depth travels as sent)
     world_frame: str = "map_optical"  # frame id (the SLAM world; TF: map -> map_optical) of the seed cloud
     niceness: int = 5  # CPU niceness of the whole process (0..19): below the tracker, above the mapper
 
-    RANGES: ClassVar[dict[str, tuple[float, float]]] = {"depth_scale": (1e-3, 1e6), "niceness": (0, 19)}
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {"niceness": (0, 19)}
     CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": ("rgbd", "mono")}
 
 
@@ -202,7 +201,6 @@ class MapperParams:
     autostart: bool = True
 
     mode: str = "rgbd"  # camera mode: rgbd, or mono (keyframes carry no depth)
-    depth_scale: float = 1000.0  # 16UC1 keyframe depth units per metre: the tracker's (depth travels as sent)
     device: str = "auto"  # torch device for the map: auto (CUDA when present), cpu, cuda, cuda:N
     lockstep: bool = False  # train a fixed number of iterations per frame and acknowledge each (deterministic replay)
     lockstep_iterations: int = 10  # training iterations per frame in lockstep mode
@@ -228,7 +226,7 @@ class MapperParams:
     bundle_dir: str = ""  # where bundles are saved (memgs/save_map); this node stages its part in <bundle_dir>/.parts
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
-        "niceness": (0, 19), "depth_scale": (1e-3, 1e6), "lockstep_iterations": (0, 10000),
+        "niceness": (0, 19), "lockstep_iterations": (0, 10000),
         "lockstep_window": (0, 100),
         "final_iterations": (0, 10**7), "final_budget_s": (0.0, 1e6), "final_total_iterations": (0, 10**8),
         "delta_rate_hz": (0.01, 100.0), "delta_budget_kbytes_per_s": (1.0, 1e7), "delta_tolerance": (0.0, 10.0),

@@ -319,24 +319,23 @@ def _mapper_device_problem(params: Mapping[str, Mapping[str, Any]]) -> list[str]
 
 
 def _depth_scale_disagreements(params: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    """One line when the graph's nodes (those in ``params``) would read 16-bit depth with different
-    scales: the tracker forwards keyframe depth as it receives it, so sampler and mapper read the
-    camera's units too (and the player, when it publishes 16UC1, writes them)."""
+    """One line when the player writes 16UC1 depth in other units than the tracker reads it with
+    (the tracker alone reads the camera's units: it sends keyframe depth on in REP-118's)."""
     from memgs_ros.nodes.params import NODE_CONFIGS
 
     def scale(node: str) -> float:
         own = dict(NODE_CONFIGS[node])[""]
         return float(params.get(node, {}).get("depth_scale", own.depth_scale))
 
-    scales = {node: scale(node) for node in ("tracker", "keyframe_sampler", "mapper") if node in params}
+    scales = {node: scale(node) for node in ("tracker",) if node in params}
     player = params.get("bag_player", {})
     if "bag_player" in params and player.get("depth_encoding", "32FC1") == "16UC1":
         scales["bag_player"] = scale("bag_player")
     if len(set(scales.values())) <= 1:
         return []
     listed = ", ".join(f"{n} {v:g}" for n, v in scales.items())
-    return [f"depth_scale differs between nodes ({listed}): keyframe depth travels as the camera sent it, so "
-            "every node must read 16-bit depth with one scale (set depth_scale the same for each)"]
+    return [f"depth_scale differs between nodes ({listed}): the player writes 16UC1 depth in units the tracker "
+            "must read with the same scale (set depth_scale the same for both)"]
 
 
 def configured_camera(params: Mapping[str, Mapping[str, Any]]) -> ConfiguredCamera:

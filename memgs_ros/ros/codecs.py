@@ -38,6 +38,7 @@ from memgs_ros.io.image_decoding import (
     compressed_is_depth,
     decode_compressed_depth,
     decode_compressed_rgb,
+    depth_view,
     metres_to_depth_units,
 )
 
@@ -191,6 +192,19 @@ def compressed_to_image(msg: Any, depth_scale: float = 1000.0) -> Image:
     if compressed_is_depth(msg):
         return depth_to_image(decode_compressed_depth(msg, depth_scale), "32FC1", stamp_ns, frame_id)
     return numpy_to_image(decode_compressed_rgb(msg), "rgb8", stamp_ns, frame_id)
+
+
+def rep118_depth(msg: Image, depth_scale: float) -> Image:
+    """Depth in REP-118's units: 16UC1 millimetres or 32FC1 metres. ``msg`` in those goes on as
+    it is; 16-bit depth of another scale (``depth_scale`` units a metre: TUM's 5000) becomes 32FC1
+    metres, exactly (millimetres would round TUM's 0.2 mm steps). The tracker, the graph's entry,
+    sends keyframe depth this way, so no node after it needs the camera's scale."""
+    from memgs_ros.core.geometry.view import depth_to_metres  # compiled: only the tracker loads it
+
+    raw, scale = depth_view(msg, depth_scale)
+    if raw.dtype != np.uint16 or scale == 1000.0:
+        return msg
+    return depth_to_image(depth_to_metres(raw, scale), "32FC1", stamp_to_ns(msg.header.stamp), str(msg.header.frame_id))
 
 
 # --------------------------------------------------------------------------- camera info

@@ -12,7 +12,9 @@ from typing import Any
 from memgs_ros.core.mapping.keyframe_input import KeyframeInput
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.io.image_decoding import (
-    DEFAULT_DEPTH_SCALE,
+    DEFAULT_DEPTH_SCALE as REP118_MM,  # 16UC1 in REP-118: millimetres
+)
+from memgs_ros.io.image_decoding import (
     check_image_sizes,
     decode_camera_info,
     depth_view,
@@ -30,13 +32,13 @@ class KeyframeBundleError(MessageError):
         self.kind = kind
 
 
-def decode_keyframe_images(bundle: Mapping[str, Any], stamp_ns: int,
-                           depth_scale: float = DEFAULT_DEPTH_SCALE, decided_ns: int = 0) -> KeyframeInput:
+def decode_keyframe_images(bundle: Mapping[str, Any], stamp_ns: int, decided_ns: int = 0) -> KeyframeInput:
     """Decode ``camera_info``, ``color``, ``pose`` and, when present, ``depth`` of the bundle of
     keyframe ``stamp_ns`` (no seeds: the mapper adds the sampler's).
 
     The images stay as the tracker forwarded them: colour a read-only view on the message where
-    it is rgb8, depth its raw 16-bit units (``depth_scale`` per metre) or float metres. The
+    it is rgb8, depth in REP-118's units as the tracker sends it (16UC1 millimetres or 32FC1
+    metres, ``codecs.rep118_depth``). The
     bundle's messages must outlive the returned keyframe's use (the caller holds them).
     Raises KeyframeBundleError naming the kind of the first check that fails.
     """
@@ -45,7 +47,7 @@ def decode_keyframe_images(bundle: Mapping[str, Any], stamp_ns: int,
         camera = decode_camera_info(bundle["camera_info"])
         kind = "bad_image"
         rgb = rgb_view(bundle["color"])
-        depth, scale = depth_view(bundle["depth"], depth_scale) if "depth" in bundle else (None, 1.0)
+        depth, scale = depth_view(bundle["depth"], REP118_MM) if "depth" in bundle else (None, 1.0)
         kind = "size_mismatch"
         check_image_sizes(rgb, depth, camera)
         if depth is not None and not has_valid_depth(depth):

@@ -170,8 +170,7 @@ def test_parameters_are_checked_without_rclpy() -> None:
         "import sys; sys.modules['rclpy'] = None\n"
         "from memgs_ros.errors import ConfigError\n"
         "from memgs_ros.orchestration.run_files import check_parameters\n"
-        "check_parameters({'mapper': {'mapping.resolution_scale': 0.5, 'depth_scale': 5000.0},"
-        " 'tracker': {'depth_scale': 5000.0}})\n"
+        "check_parameters({'mapper': {'mapping.resolution_scale': 0.5}, 'tracker': {'depth_scale': 5000.0}})\n"
         "try:\n"
         "    check_parameters({'mapper': {'mapping.resolution_scale': 50.0}})\n"
         "except ConfigError as err:\n"
@@ -182,17 +181,18 @@ def test_parameters_are_checked_without_rclpy() -> None:
     assert "resolution_scale" in out.stdout and "50" in out.stdout, out.stdout
 
 
-def test_nodes_that_read_16_bit_depth_with_different_scales_are_refused_before_start() -> None:
-    """Keyframe depth travels as the camera sent it: tracker, sampler and mapper (and a player that
-    writes 16UC1) must share one depth_scale, or the map is built at the wrong scale."""
+def test_a_player_writing_16_bit_depth_in_other_units_than_the_tracker_reads_is_refused_before_start() -> None:
+    """The tracker alone reads the camera's units (depth_scale; sampler and mapper get REP-118's
+    from it and declare none): a player that writes 16UC1 must write them with the same scale."""
     from pathlib import Path
 
     from memgs_ros.orchestration.run_files import RunOptions, build_params, check_parameters, node_params
 
     tum = node_params(build_params(RunOptions("synthetic:w=32,h=24,n=2", config="tum_fr1"), Path("/tmp/m.ply")))
-    assert {tum[n]["depth_scale"] for n in ("tracker", "keyframe_sampler", "mapper", "bag_player")} == {5000.0}
+    assert {tum[n]["depth_scale"] for n in ("tracker", "bag_player")} == {5000.0}
+    assert "depth_scale" not in tum["keyframe_sampler"] and "depth_scale" not in tum["mapper"]
     check_parameters(tum)
-    for node in ("keyframe_sampler", "mapper", "bag_player"):
+    for node in ("tracker", "bag_player"):
         bad = {**tum, node: {**tum[node], "depth_scale": 1000.0}}
         with pytest.raises(ConfigError, match=rf"depth_scale differs between nodes \(.*{node} 1000"):
             check_parameters(bad)

@@ -3,6 +3,7 @@ its lifecycle and answers with Nav2's LoadMap result codes; a map it cannot take
 from __future__ import annotations
 
 import functools
+import json
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,15 @@ from rclpy.parameter import Parameter  # noqa: E402
 from ros_spin import spin_until  # noqa: E402
 
 from memgs_ros.core.mapping import checkpoint  # noqa: E402
-from memgs_ros.core.maps.bundle import MAPPER_FILE, PLY_FILE, TRACKER_FILE, Manifest, commit_bundle, new_staging  # noqa: E402
+from memgs_ros.core.maps.bundle import (  # noqa: E402
+    MANIFEST,
+    MAPPER_FILE,
+    PLY_FILE,
+    TRACKER_FILE,
+    Manifest,
+    commit_bundle,
+    new_staging,
+)
 from memgs_ros.core.maps.ply import save_ply  # noqa: E402
 from memgs_ros.core.gaussians.records import GaussianRecords  # noqa: E402
 
@@ -51,7 +60,9 @@ def test_the_mapper_restarts_on_a_loaded_map_and_keeps_it_when_the_next_cannot_b
     from memgs_ros.nodes.mapper.node import MapperNode
 
     good = _bundle(tmp_path / "maps", 300)
-    other_units = _bundle(tmp_path / "maps", 10, depth_scale=5000.0)
+    other_version = _bundle(tmp_path / "maps", 10)
+    manifest = json.loads((other_version / MANIFEST).read_text())
+    (other_version / MANIFEST).write_text(json.dumps({**manifest, "format_version": 99}))
     unreadable = _bundle(tmp_path / "maps", 10, mapper_bytes=b"not a checkpoint")  # whole, but no mapper state
     ckpt = tmp_path / "run" / "mapper_checkpoint.npz"
     node = MapperNode(context=context, parameter_overrides=[
@@ -76,7 +87,7 @@ def test_the_mapper_restarts_on_a_loaded_map_and_keeps_it_when_the_next_cannot_b
         assert _spin_until(ex, lambda: node.session.status.gaussians == 300), node.session.status.gaussians
         assert list(ckpt.parent.glob("mapper_checkpoint.npz.before-load-*"))  # the old map moved aside, kept
         assert load(str(tmp_path / "nowhere")) == R.RESULT_MAP_DOES_NOT_EXIST
-        assert load(str(other_units)) == R.RESULT_INVALID_MAP_METADATA
+        assert load(str(other_version)) == R.RESULT_INVALID_MAP_METADATA
         assert load(str(unreadable)) == R.RESULT_INVALID_MAP_DATA
         # Still active on the loaded map: the refused ones changed nothing.
         assert node.active and node.params.map_bundle == str(good)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -27,12 +26,11 @@ from memgs_ros.ros import qos  # noqa: E402
 from memgs_ros.ros.codecs import (  # noqa: E402
     camera_to_camera_info, depth_to_image, matrix_to_pose_stamped, numpy_to_image, structured_to_pointcloud2,
 )
-from memgs_ros.ros.seed_cloud import encode_seeds  # noqa: E402
+from keyframe_bundles import SPEC, Bundle, _bundle, _without_field  # noqa: E402
 from ros_spin import spin_until  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-SPEC = "synthetic:w=64,h=48,n=6,seed=3"
 
 
 @pytest.fixture(scope="module")
@@ -45,34 +43,6 @@ _spin_until = functools.partial(spin_until, timeout_s=15.0)
 
 def _problems(counters) -> int:  # noqa: ANN001 - a Counter
     return sum(v for k, v in counters.items() if k.startswith("problem."))
-
-
-# ----------------------------------------------------------------------------- keyframe bundles
-
-@dataclass
-class Bundle:
-    """The messages of one keyframe, all stamped ``stamp``; tests break one part at a time."""
-
-    stamp: int
-    color: Image
-    depth: Image
-    info: CameraInfo
-    pose: PoseStamped
-    keypoints: PointCloud2
-    seeds: PointCloud2
-
-
-def _bundle(f: Frame, stamp: int) -> Bundle:
-    rng = np.random.default_rng(stamp % 1000)
-    h, w = f.depth_m.shape
-    u, v = rng.integers(4, w - 4, 40), rng.integers(4, h - 4, 40)
-    kps = np.zeros(40, KEYPOINT_DTYPE)
-    kps["u"], kps["v"], kps["depth"], kps["active"] = u, v, f.depth_m[v, u], 1
-    pts = rng.uniform(-1.0, 1.0, (50, 3)) + np.array([0.0, 0.0, 2.0])
-    seeds = encode_seeds(pts, rng.uniform(0, 1, (50, 3)), np.ones(50, np.uint8))
-    return Bundle(stamp, numpy_to_image(f.rgb, "rgb8", stamp, "cam"), depth_to_image(f.depth_m, "32FC1", stamp, "cam"),
-                  camera_to_camera_info(f.camera, stamp, "cam"), matrix_to_pose_stamped(f.T_wc_gt, stamp, "map"),
-                  structured_to_pointcloud2(kps, stamp, "cam"), structured_to_pointcloud2(seeds, stamp, "map"))
 
 
 def _truncate(msg: Image) -> Image:
@@ -90,11 +60,6 @@ def _with_k(info: CameraInfo, fx: float) -> CameraInfo:
     k[0] = fx
     info.k = k
     return info
-
-
-def _without_field(cloud: PointCloud2, name: str) -> PointCloud2:
-    cloud.fields = [f for f in cloud.fields if f.name != name]
-    return cloud
 
 
 # (label, kind counted, what to break). Stamps and images come from the frame given.
@@ -248,49 +213,34 @@ def test_mapper_refuses_bad_bundles_without_touching_the_map(context, frames) ->
         feeder.close()
 
 
-def _tum_units_bundle(f: Frame, stamp: int) -> Bundle:
-    """A bundle whose depth travels as TUM stores it (16UC1, 5000 units a metre) and whose seeds
-    sit on that depth: what a tracker forwarding TUM's depth and a sampler reading it send."""
-    b = _bundle(f, stamp)
-    b.depth = depth_to_image(f.depth_m, "16UC1", stamp, "cam", 5000.0)
-    v, u = np.mgrid[4:f.camera.height - 4:4, 4:f.camera.width - 4:4]
-    d = f.depth_m[v, u]
-    ok = np.isfinite(d) & (d > 0)
-    p_c = f.camera.backproject(u[ok], v[ok], d[ok])
-    p_w = p_c @ f.T_wc_gt[:3, :3].T + f.T_wc_gt[:3, 3]
-    b.seeds = structured_to_pointcloud2(encode_seeds(p_w, np.full((len(p_w), 3), 0.5), np.ones(len(p_w), np.uint8)),
-                                        stamp, "map")
-    return b
+def test_the_sampler_reads_keyframe_depth_in_rep118_units_without_a_scale_of_its_own(context, frames) -> None:  # noqa: ANN001
+    """The tracker sends keyframe depth in REP-118's units (``rep118_depth``): TUM's 16-bit 1/5000 m
+    as 32FC1 metres, a RealSense's millimetres as they are. The sampler, which declares no
+    depth_scale, puts its seeds at the frame's depth either way (not at 5x or 1/5 of it)."""
+    from sensor_msgs.msg import PointCloud2 as Cloud
 
-
-@pytest.mark.parametrize("node_name", ["keyframe_sampler", "mapper"])
-def test_a_depth_scale_that_disagrees_with_the_trackers_is_refused(context, frames, node_name: str) -> None:  # noqa: ANN001
-    """Keyframe depth travels in the camera's units: a sampler or mapper reading it with another
-    depth_scale than the tracker (whose keypoint depths, and the sampler's seeds, are metres)
-    refuses the keyframe (problem.depth_scale) instead of building a map at 1/5 of its size."""
     from memgs_ros.nodes.keyframe_sampler.node import KeyframeSamplerNode
-    from memgs_ros.nodes.mapper.node import MapperNode
+    from memgs_ros.ros.codecs import pointcloud2_to_structured, rep118_depth
 
-    def make(scale: float):  # noqa: ANN202
-        common = [Parameter("depth_scale", value=scale)]
-        if node_name == "mapper":
-            return MapperNode(context=context, parameter_overrides=common + [
-                Parameter("lockstep", value=True), Parameter("device", value="cpu"),
-                Parameter("render_rate_hz", value=0.0)])
-        return KeyframeSamplerNode(context=context, parameter_overrides=common)
-
-    parts = ("color", "depth", "info", "pose") + (("seeds",) if node_name == "mapper" else ("keypoints",))
-    for scale, accepted in ((1000.0, False), (5000.0, True)):
-        feeder = _Feeder(context, make(scale), parts)
-        c = feeder.node.stats.counters
-        try:
-            f = frames[1]
-            feeder.send(_tum_units_bundle(f, f.stamp_ns), lambda: c["keyframes"] + _problems(c) == 1)
-            assert (c["keyframes"], c["problem.depth_scale"]) == ((1, 0) if accepted else (0, 1)), dict(c)
-        finally:
-            if node_name == "mapper":
-                feeder.node.close()
-            feeder.close()
+    feeder = _Feeder(context, KeyframeSamplerNode(context=context), ("color", "depth", "info", "pose", "keypoints"))
+    seeds: list[Cloud] = []
+    feeder.peer.create_subscription(Cloud, "memgs/keyframe/seeds", seeds.append, qos.keyframes())
+    c = feeder.node.stats.counters
+    try:
+        f = frames[1]
+        T_cw = np.linalg.inv(f.T_wc_gt)
+        for i, units in enumerate((5000.0, 1000.0)):
+            b = _bundle(f, f.stamp_ns + i)
+            b.depth = rep118_depth(depth_to_image(f.depth_m, "16UC1", b.stamp, "cam", units), units)
+            assert b.depth.encoding == ("32FC1" if units == 5000.0 else "16UC1")
+            feeder.send(b, lambda i=i: len(seeds) == i + 1)
+            cloud = pointcloud2_to_structured(seeds[-1], required=("x", "y", "z"))
+            p_w = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float64)
+            z = (p_w @ T_cw[:3, :3].T + T_cw[:3, 3])[:, 2]
+            assert np.median(z) == pytest.approx(np.nanmedian(f.depth_m[f.depth_m > 0]), rel=0.1), units
+        assert c["keyframes"] == 2 and _problems(c) == 0, dict(c)
+    finally:
+        feeder.close()
 
 
 def test_free_running_mapper_drops_and_counts_keyframes_it_cannot_insert(context, frames) -> None:  # noqa: ANN001

@@ -17,7 +17,7 @@ from std_msgs.msg import Header  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.nodes.tracker.node import TrackerNode  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
-from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image  # noqa: E402
+from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, image_to_numpy, numpy_to_image  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -200,10 +200,11 @@ def test_tracker_loads_its_kernels_before_the_first_frame(context) -> None:  # n
         node.destroy_node()
 
 
-def test_tracker_forwards_keyframe_images_as_received(context) -> None:  # noqa: ANN001
-    """A keyframe's images leave as they came in: 16UC1 depth stays 16UC1 with the same bytes (not
-    32FC1 metres), the colour message is the camera's, and a depth paired from a nearby stamp
-    takes the colour's stamp, which names the keyframe's bundle."""
+def test_tracker_forwards_keyframe_colour_as_received_and_depth_in_rep118_units(context) -> None:  # noqa: ANN001
+    """A keyframe's colour leaves as it came in (the camera's message); its depth in REP-118's units:
+    TUM's 16UC1 at 5000 a metre as 32FC1 metres, unit for unit (millimetres would pass as they
+    are: test_codecs), so no node after the tracker needs the camera's scale; a depth paired from a
+    nearby stamp takes the colour's stamp, which names the keyframe's bundle."""
     params = [Parameter("color_topic", value="color/image_raw"), Parameter("depth_topic", value="depth/image_raw"),
               Parameter("camera_info_topic", value="color/camera_info"), Parameter("depth_scale", value=5000.0),
               Parameter("max_sync_dt_s", value=0.02)]
@@ -231,7 +232,11 @@ def test_tracker_forwards_keyframe_images_as_received(context) -> None:  # noqa:
         assert _spin_until(ex, lambda: got["color"] and got["depth"], 30.0), "the first frame made no keyframe"
         kc, kd = got["color"][0], got["depth"][0]
         assert (kc.encoding, bytes(kc.data)) == ("bgr8", bytes(color.data))
-        assert (kd.encoding, kd.step, bytes(kd.data)) == ("16UC1", depth.step, bytes(depth.data))
+        units = image_to_numpy(depth).astype(np.float32)
+        metres = image_to_numpy(kd)
+        assert kd.encoding == "32FC1" and metres.shape == units.shape
+        np.testing.assert_allclose(metres[units > 0], units[units > 0] / np.float32(5000.0), rtol=1e-7)
+        assert np.isnan(metres[units == 0]).all()
         assert kd.header.stamp == kc.header.stamp == color.header.stamp
     finally:
         node.destroy_node()

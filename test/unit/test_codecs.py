@@ -482,3 +482,19 @@ def test_pointcloud2_organised_cloud_keeps_rows() -> None:
     msg = codecs.structured_to_pointcloud2(arr, 0, "m")
     assert (msg.height, msg.width, msg.row_step) == (2, 3, 36)
     np.testing.assert_array_equal(codecs.pointcloud2_to_structured(msg), arr.reshape(-1))
+
+
+def test_keyframe_depth_goes_on_in_rep118_units() -> None:
+    """Millimetres and metres pass as they are; 16-bit depth of another scale (TUM: 5000 a metre)
+    becomes 32FC1 metres with the value each unit stood for (0 -> NaN), stamp and frame kept."""
+    units = np.array([[5000, 0], [12345, 65535]], np.uint16)
+    tum = codecs.numpy_to_image(units, "16UC1", 7, "cam")
+    out = codecs.rep118_depth(tum, 5000.0)
+    assert out.encoding == "32FC1" and out.header.frame_id == "cam" and codecs.stamp_to_ns(out.header.stamp) == 7
+    got = decode_depth(out)
+    np.testing.assert_allclose(got[~np.isnan(got)], units[units > 0] / np.float32(5000.0), rtol=1e-7)
+    assert np.isnan(got[0, 1])
+    mm = codecs.numpy_to_image(units, "16UC1", 7, "cam")
+    assert codecs.rep118_depth(mm, 1000.0) is mm
+    metres = codecs.depth_to_image(np.ones((2, 2), np.float32), "32FC1", 7, "cam")
+    assert codecs.rep118_depth(metres, 5000.0) is metres

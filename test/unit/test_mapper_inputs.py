@@ -8,7 +8,7 @@ import pytest
 pytest.importorskip("rclpy", reason="the ROS extra is not installed")
 
 from nav_msgs.msg import Path  # noqa: E402
-from test_node_bad_input import SPEC, Bundle, _bundle, _without_field  # noqa: E402
+from keyframe_bundles import SPEC, Bundle, _bundle, _without_field  # noqa: E402
 
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.ros.codecs import matrix_to_pose_stamped  # noqa: E402
@@ -35,7 +35,7 @@ def _feed(rx: KeyframeReceiver, b: Bundle, pose_sent_ns: int = 0):  # noqa: ANN2
 
 
 def test_a_complete_bundle_is_one_keyframe_with_its_seeds_and_decision_time(bundle: Bundle) -> None:
-    rx = KeyframeReceiver(set(PARTS), frozenset(), depth_scale=1000.0)
+    rx = KeyframeReceiver(set(PARTS), frozenset())
     got = _feed(rx, bundle, pose_sent_ns=123)
     assert got is not None and got.keyframe is not None and got.problem == ""
     kf = got.keyframe
@@ -45,19 +45,19 @@ def test_a_complete_bundle_is_one_keyframe_with_its_seeds_and_decision_time(bund
 
 
 def test_a_keyframe_known_from_a_checkpoint_is_not_taken_again(bundle: Bundle) -> None:
-    rx = KeyframeReceiver(set(PARTS), frozenset({bundle.stamp}), depth_scale=1000.0)
+    rx = KeyframeReceiver(set(PARTS), frozenset({bundle.stamp}))
     assert _feed(rx, bundle) is None and rx.intake.duplicate_parts == 5
 
 
 def test_a_bad_bundle_is_refused_whole_by_kind(bundle: Bundle) -> None:
-    rx = KeyframeReceiver(set(PARTS), frozenset(), depth_scale=1000.0)
+    rx = KeyframeReceiver(set(PARTS), frozenset())
     bad = Bundle(**{**bundle.__dict__, "seeds": _without_field(bundle.seeds, "rgb")})
     got = _feed(rx, bad)
     assert got is not None and got.keyframe is None and got.problem == "bad_seeds"
     assert got.message.startswith(f"keyframe {bundle.stamp} refused: ")
     pose = matrix_to_pose_stamped(np.eye(4), bundle.stamp, "map")
     pose.pose.orientation.w = float("nan")
-    got = _feed(KeyframeReceiver(set(PARTS), frozenset(), 1000.0), Bundle(**{**bundle.__dict__, "pose": pose}))
+    got = _feed(KeyframeReceiver(set(PARTS), frozenset()), Bundle(**{**bundle.__dict__, "pose": pose}))
     assert got is not None and got.keyframe is None and got.problem == "bad_pose"
 
 

@@ -12,8 +12,6 @@ from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.view import (
     DepthUnits,
     Undistorter,
-    check_depth_scale,
-    depth_scale_ratio,
     depth_to_metres,
     depth_to_metres_checked,
     valid_pixel_mask,
@@ -182,20 +180,6 @@ def test_depth_source_index_is_the_opencv_depth_path_as_a_gather() -> None:
     _, ref = prep(rgb, raw.astype(np.float32))  # floats: 0 stays 0
     gathered = np.where(idx >= 0, raw.reshape(-1)[np.maximum(idx, 0)], 0).astype(np.float32)
     np.testing.assert_array_equal(np.nan_to_num(ref, nan=0.0), gathered)
-
-
-def test_a_depth_image_read_at_another_scale_is_refused_with_the_scale_that_matches() -> None:
-    rng = np.random.default_rng(3)
-    depth_m = rng.uniform(0.5, 4.0, (48, 64)).astype(np.float32)
-    uv = rng.uniform(0, [63, 47], (200, 2))
-    z = depth_m[np.rint(uv[:, 1]).astype(int), np.rint(uv[:, 0]).astype(int)]
-    assert depth_scale_ratio(depth_m, uv, z) == pytest.approx(1.0)
-    check_depth_scale(depth_m, uv, z * 1.1, "the keypoints", 1000.0)  # noise and edges pass
-    with pytest.raises(DataError, match=r"reads 5.00x the keypoints: depth_scale 1000 .* depth_scale 5000"):
-        check_depth_scale(depth_m * 5.0, uv, z, "the keypoints", 1000.0)
-    raw = np.rint(depth_m * 5000.0).astype(np.uint16)  # raw units read with their own scale agree
-    assert depth_scale_ratio(raw, uv, z, 5000.0) == pytest.approx(1.0, abs=1e-3)
-    assert depth_scale_ratio(depth_m, uv[:10], z[:10]) is None  # too few to judge
 
 
 @pytest.mark.parametrize("scale", [1.0, 1000.0, 5000.0])

@@ -32,7 +32,7 @@ from memgs_ros.core.runtime.cpu import numba_available
 from memgs_ros.errors import ConfigError, DataError
 
 __all__ = [
-    "VALID_DEPTH_M", "DepthUnits", "Undistorter", "ViewPreparation", "check_depth_scale", "depth_scale_ratio",
+    "VALID_DEPTH_M", "DepthUnits", "Undistorter", "ViewPreparation",
     "depth_to_metres", "depth_to_metres_checked", "load_kernels", "undistort_uv",
     "undistorter_for", "valid_pixel_mask", "view_preparation",
 ]
@@ -214,52 +214,6 @@ def _metres_to_units_reference(depth_m: np.ndarray, depth_scale: float) -> np.nd
     units = np.where(valid, np.rint(d.astype(np.float64) * depth_scale), 0.0)
     units[units > 65535] = 0
     return units.astype(np.uint16)
-
-
-def depth_scale_ratio(depth: np.ndarray,  # [H, W] float metres (NaN/0 invalid) or uint16 raw units
-                      uv: np.ndarray,  # [M, 2] pixel positions in depth's image
-                      z: np.ndarray,  # [M] metres measured there by the keyframe's producer
-                      depth_scale: float = 1.0,  # raw units per metre (uint16 depth)
-                      min_points: int = 20) -> float | None:
-    """Median of depth image / measured depth at the given pixels: ~1.0 when both read the depth
-    with the same scale, 5.0 when one side took TUM's 5000 units per metre for millimetres. None
-    with fewer than ``min_points`` pixels that have both depths (nothing to judge by).
-
-    Nodes that receive a keyframe's raw depth and its producer's metric depths (keypoints, seeds)
-    call it to refuse a depth_scale that disagrees with the tracker's, instead of building a map
-    at the wrong scale.
-    """
-    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-    z = np.asarray(z, dtype=np.float64).reshape(-1)
-    h, w = depth.shape
-    with np.errstate(invalid="ignore"):
-        px = np.rint(np.nan_to_num(uv, nan=-1.0)).astype(np.int64)
-        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h) & np.isfinite(z) & (z > 0)
-    if np.count_nonzero(inside) < min_points:
-        return None
-    d = np.asarray(depth[px[inside, 1], px[inside, 0]], dtype=np.float64) / depth_scale
-    with np.errstate(invalid="ignore"):
-        ok = np.isfinite(d) & (d > 0)
-    if np.count_nonzero(ok) < min_points:
-        return None
-    return float(np.median(d[ok] / z[inside][ok]))
-
-
-DEPTH_SCALE_TOLERANCE = 1.25  # a ratio beyond 1.25 either way is a scale, not noise or edges
-
-
-def check_depth_scale(depth: np.ndarray, uv: np.ndarray, z: np.ndarray, reference: str,
-                      depth_scale: float, raw_scale: float = 1.0) -> None:
-    """DataError when the keyframe's depth image and ``reference``'s depths at ``uv`` disagree by a
-    scale (:func:`depth_scale_ratio` outside 1/1.25..1.25): the message names the factor and the
-    ``depth_scale`` parameter that would match. ``raw_scale``: units per metre of ``depth`` when
-    it is raw (the caller's ``depth_scale`` then), 1.0 for metres."""
-    ratio = depth_scale_ratio(depth, uv, z, raw_scale)
-    if ratio is None or 1.0 / DEPTH_SCALE_TOLERANCE <= ratio <= DEPTH_SCALE_TOLERANCE:
-        return
-    raise DataError(f"the depth image reads {ratio:.2f}x {reference}: depth_scale {depth_scale:g} disagrees with "
-                    f"the tracker's (this keyframe matches depth_scale {depth_scale * ratio:.0f}); give tracker, "
-                    "keyframe_sampler and mapper one depth_scale")
 
 
 class Undistorter:

@@ -1,9 +1,10 @@
 """keyframe_sampler node: Patch-Grid sampling of each keyframe into seeds for new Gaussians.
 
 Subscribes (reliable): ``memgs/keyframe/{color,depth,camera_info,pose,keypoints}`` (one stamp per
-keyframe; depth only in RGB-D mode; images as recorded, undistorted here). Publishes ``memgs/keyframe/seeds``:
-PointCloud2 with x, y, z (world, float32), rgb (float32-packed 0x00RRGGBB, the PCL/RViz convention) and
-source (uint8: 0 keypoint, 1 Patch-Grid sample), stamped like the keyframe.
+keyframe; depth only in RGB-D mode, in REP-118 units as the tracker sends it; images undistorted
+here). Publishes ``memgs/keyframe/seeds``: PointCloud2 with x, y, z (world, float32), rgb
+(float32-packed 0x00RRGGBB, the PCL/RViz convention) and source (uint8: 0 keypoint, 1 Patch-Grid
+sample), stamped like the keyframe.
 
 A keyframe that cannot be used is refused whole (nothing is published for it) and counted on
 ``memgs/keyframe_sampler/stats`` as ``problem.<kind>``, with one warning per kind: ``camera_info``
@@ -21,7 +22,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
-from memgs_ros.core.geometry.view import check_depth_scale, undistorter_for, view_preparation
+from memgs_ros.core.geometry.view import undistorter_for, view_preparation
 from memgs_ros.core.sampling import PatchGridConfig, seeds_mono, seeds_rgbd
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.nodes.params import NODE_CONFIGS, KeyframeSamplerParams
@@ -47,7 +48,7 @@ class KeyframeSamplerNode(ManagedNode):
         super().__init__("keyframe_sampler", **node_kwargs)
         v = declare_config(self, KeyframeSamplerParams, "")
         self.niceness = v.niceness  # applied by run_node to this node's process
-        self.mode, self.depth_scale, self.world_frame = v.mode, v.depth_scale, v.world_frame
+        self.mode, self.world_frame = v.mode, v.world_frame
         self.cfg: PatchGridConfig = declare_config(self, PatchGridConfig, "patch_grid")
         self.start_lifecycle(v.autostart)
 
@@ -81,7 +82,7 @@ class KeyframeSamplerNode(ManagedNode):
         # Each stage names the problem kind a failure in it is counted under (module docstring).
         stage = "bad_keypoints"
         try:
-            kf = decode_keyframe_images(b, stamp_ns, self.depth_scale)
+            kf = decode_keyframe_images(b, stamp_ns)
             cam, T_wc = kf.camera, kf.T_wc
             kps = pointcloud2_to_structured(b["keypoints"], required=("u", "v", "depth"))
             uv = np.stack([kps["u"], kps["v"]], axis=1).astype(np.float32)
@@ -96,9 +97,6 @@ class KeyframeSamplerNode(ManagedNode):
             uv = undistorter_for(cam).from_pinhole_uv(uv).astype(np.float32)
             cam = view.camera
             if depth is not None:
-                stage = "depth_scale"
-                check_depth_scale(depth, uv, kp_depth, "the tracker's keypoint depths", self.depth_scale)
-                stage = "bad_keyframe"
                 seeds = seeds_rgbd(rgb, depth, cam, T_wc, kf_id, uv, kp_depth, self.cfg)  # rng from (seed, kf_id)
             else:
                 seeds = seeds_mono(rgb, cam, T_wc, kf_id, uv, kp_depth, self.cfg)

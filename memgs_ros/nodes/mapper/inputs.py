@@ -10,7 +10,7 @@ import numpy as np
 from nav_msgs.msg import Path
 
 from memgs_ros.core.mapping.keyframe_decisions import DecisionTimes
-from memgs_ros.core.mapping.keyframe_input import KeyframeInput, check_seed_depths
+from memgs_ros.core.mapping.keyframe_input import KeyframeInput
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros.codecs import pointcloud2_to_structured, pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.keyframe_bundle import KeyframeBundleError, decode_keyframe_images
@@ -23,7 +23,7 @@ __all__ = ["KeyframeReceiver", "ReceivedKeyframe", "keyframe_poses"]
 @dataclass(frozen=True)
 class ReceivedKeyframe:
     """A complete bundle: its ``keyframe``, or None and the ``problem`` kind and log line that
-    refused it (the bundle decoder's kinds, ``bad_seeds``, ``depth_scale``)."""
+    refused it (the bundle decoder's kinds, ``bad_seeds``)."""
 
     stamp_ns: int
     keyframe: KeyframeInput | None
@@ -34,12 +34,11 @@ class ReceivedKeyframe:
 class KeyframeReceiver:
     """Gathers a mapper's keyframe parts by stamp (``KeyframeIntake``: replayed parts of keyframes
     seen complete, or ``known`` from a checkpoint, are counted and ignored) and decodes each
-    complete bundle, its depth read with ``depth_scale`` units a metre. The pose's publication
+    complete bundle, its depth in REP-118's units as the tracker sends it. The pose's publication
     time is the tracker's decision: the keyframe's latency counts from it."""
 
-    def __init__(self, parts: set[str], known: frozenset[int], depth_scale: float) -> None:
+    def __init__(self, parts: set[str], known: frozenset[int]) -> None:
         self.intake = KeyframeIntake(parts, known=known)
-        self.depth_scale = depth_scale
         self._decided = DecisionTimes()
 
     def add(self, part: str, msg: Any, info: dict[str, Any]) -> ReceivedKeyframe | None:
@@ -52,11 +51,9 @@ class KeyframeReceiver:
             return None
         stage = "bad_seeds"
         try:
-            kf = decode_keyframe_images(bundle, stamp, self.depth_scale, self._decided.take(stamp))
+            kf = decode_keyframe_images(bundle, stamp, decided_ns=self._decided.take(stamp))
             points, colors = decode_seeds(pointcloud2_to_structured(bundle["seeds"]))
             kf = replace(kf, points_w=points, colors=colors)
-            stage = "depth_scale"
-            check_seed_depths(kf, self.depth_scale)
         except KeyframeBundleError as err:
             return ReceivedKeyframe(stamp, None, err.kind, f"keyframe {stamp} refused: {err}")
         except (MessageError, DataError) as err:

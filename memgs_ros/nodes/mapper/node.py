@@ -65,7 +65,7 @@ class MapperNode(ManagedNode):
         self.niceness = p.niceness  # applied by run_node to this node's process
         self.cfg: MappingConfig = declare_config(self, MappingConfig, "mapping")
         self.merge_cfg: MergeConfig = declare_config(self, MergeConfig, "merge")
-        NodeMapLoader(self, "memgs/mapper/load_map", lambda: {"depth_scale": self.params.depth_scale},
+        NodeMapLoader(self, "memgs/mapper/load_map", dict,  # its state is in metres: any depth unit will do
                       set_aside_checkpoint(p.checkpoint_path))  # a map at run time: its checkpoint won't win
         self.start_lifecycle(p.autostart)
 
@@ -97,7 +97,7 @@ class MapperNode(ManagedNode):
         self.latest_pose: PoseStamped | None = None
         topics = {"color": Image, "camera_info": CameraInfo, "pose": PoseStamped, "seeds": PointCloud2,
                   **({"depth": Image} if p.mode == "rgbd" else {})}
-        self.keyframes = KeyframeReceiver(set(topics), self.session.resumed_stamps, p.depth_scale)
+        self.keyframes = KeyframeReceiver(set(topics), self.session.resumed_stamps)
         self._subscribe(topics)
         self._serve(checkpoints=start.checkpoint is not None)
         MapperMapPart(self, p, self.stats, self.session, self.out.hand_over, self.cfg.max_sh_degree)

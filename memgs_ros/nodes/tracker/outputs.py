@@ -27,6 +27,7 @@ from memgs_ros.ros.codecs import (
     camera_to_camera_info,
     matrix_to_pose_stamped,
     pose_to_odometry,
+    rep118_depth,
     set_header,
     set_tracked_odometry,
     stamp_to_ns,
@@ -83,9 +84,9 @@ class KeyframeOutbox:
     """The keyframe topics of ``node`` (transient local: a restarted sampler or mapper gets them
     again) and the keyframe-id -> stamp table that names refined and loop-corrected poses."""
 
-    def __init__(self, node: Node, world_frame: str) -> None:
+    def __init__(self, node: Node, world_frame: str, depth_scale: float) -> None:
         kf = qos.keyframes()
-        self.world_frame = world_frame
+        self.world_frame, self.depth_scale = world_frame, depth_scale  # the camera's 16-bit units a metre
         self.color = node.create_publisher(Image, "memgs/keyframe/color", kf)
         self.depth = node.create_publisher(Image, "memgs/keyframe/depth", kf)
         self.info = node.create_publisher(CameraInfo, "memgs/keyframe/camera_info", kf)
@@ -100,9 +101,10 @@ class KeyframeOutbox:
 
     def publish(self, result: TrackResult, camera: PinholeCamera, camera_frame: str, color: Image,
                 depth: Image | None) -> None:
-        """The keyframe ``result`` made. Its image messages go out as they came in (each consumer
-        decodes and undistorts them once); a depth paired from another stamp takes the colour's,
-        which names the keyframe's bundle."""
+        """The keyframe ``result`` made. Its colour goes out as it came in (each consumer decodes
+        and undistorts it once), its depth in REP-118's units (``rep118_depth``: as it came in
+        unless the camera's 16-bit scale is not millimetres); a depth paired from another stamp
+        takes the colour's, which names the keyframe's bundle."""
         kf = result.keyframe
         assert kf is not None
         stamp = result.stamp_ns
@@ -112,6 +114,7 @@ class KeyframeOutbox:
         self.info.publish(camera_to_camera_info(camera, stamp, camera_frame))
         self.color.publish(color)
         if depth is not None:
+            depth = rep118_depth(depth, self.depth_scale)
             depth.header.stamp = color.header.stamp
             self.depth.publish(depth)
         self.keypoints.publish(structured_to_pointcloud2(kps, stamp, camera_frame))
@@ -196,7 +199,7 @@ class TrackerOutbox:
         self.path_pub = node.create_publisher(Path, "memgs/path", rel)
         self.state = node.create_publisher(String, "memgs/tracking_state", rel)
         self.processed_pub = node.create_publisher(Header, "memgs/tracker/processed", qos.reliable(100))
-        self.keyframes = KeyframeOutbox(node, world_frame)
+        self.keyframes = KeyframeOutbox(node, world_frame, params.depth_scale)
         self.path = CorrectedPath(world_frame, path_max_len)
         node.create_timer(1.0 / params.path_rate_hz, self.publish_path)
         # Filled in place and published at once (publish serializes before it returns): the
