@@ -188,27 +188,34 @@ def write_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str], storage
     else mcap. ``on_frame`` is called after each frame is written (progress bars).
     Returns the path, frame count and size in bytes.
     """
-    out = Path(out_path)
+    def write(put: Callable[..., None], mf: MessageFactory, f: Frame, s: int) -> None:
+        put(RGB_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s, mf.camera_info(mf.header(s, camera_frame_id), f.camera))
+        put(RGB_TOPIC, "sensor_msgs/msg/Image", s, mf.image(mf.header(s, camera_frame_id), f.rgb, "rgb8"))
+        if (depth_m := f.depth_metres()) is not None:
+            put(DEPTH_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
+                mf.camera_info(mf.header(s, camera_frame_id), f.camera))
+            put(DEPTH_TOPIC, "sensor_msgs/msg/Image", s,
+                mf.image(mf.header(s, camera_frame_id), depth_to_32fc1(depth_m), "32FC1"))
+        if f.T_wc_gt is not None:
+            tf = mf.transform_stamped(mf.header(s, world_frame_id), camera_frame_id, f.T_wc_gt)
+            put(TF_TOPIC, "tf2_msgs/msg/TFMessage", s, mf.tf_message([tf]))
+            put(POSE_TOPIC, "geometry_msgs/msg/PoseStamped", s,
+                mf.pose_stamped(mf.header(s, world_frame_id), f.T_wc_gt))
+
+    return _write_frames(Path(out_path), storage, frames, write, on_frame)
+
+
+def _write_frames(out: Path, storage: str | None, frames: Iterable[Frame],
+                  write: Callable[[Callable[..., None], MessageFactory, Frame, int], None],
+                  on_frame: Callable[[Frame], None] | None) -> BagWriteResult:
+    """A ROS 2 bag of ``frames``, each written by ``write(put, factory, frame, stamp_ns)``;
+    ``on_frame`` after each; DataError when there were none."""
     n = 0
     with BagStream(out, storage) as bag:
         mf = MessageFactory(bag.typestore, ros1=False)
         put = _topic_writer(bag, mf)
-
         for f in frames:
-            s = int(f.stamp_ns)
-            put(RGB_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
-                mf.camera_info(mf.header(s, camera_frame_id), f.camera))
-            put(RGB_TOPIC, "sensor_msgs/msg/Image", s, mf.image(mf.header(s, camera_frame_id), f.rgb, "rgb8"))
-            if (depth_m := f.depth_metres()) is not None:
-                put(DEPTH_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
-                    mf.camera_info(mf.header(s, camera_frame_id), f.camera))
-                put(DEPTH_TOPIC, "sensor_msgs/msg/Image", s,
-                    mf.image(mf.header(s, camera_frame_id), depth_to_32fc1(depth_m), "32FC1"))
-            if f.T_wc_gt is not None:
-                tf = mf.transform_stamped(mf.header(s, world_frame_id), camera_frame_id, f.T_wc_gt)
-                put(TF_TOPIC, "tf2_msgs/msg/TFMessage", s, mf.tf_message([tf]))
-                put(POSE_TOPIC, "geometry_msgs/msg/PoseStamped", s,
-                    mf.pose_stamped(mf.header(s, world_frame_id), f.T_wc_gt))
+            write(put, mf, f, int(f.stamp_ns))
             n += 1
             if on_frame is not None:
                 on_frame(f)
@@ -266,13 +273,8 @@ def write_realsense_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str
     recorded over a radio link holds them. Ground truth, where frames carry it, goes on
     ``/groundtruth/pose`` (PoseStamped, a motion-capture recording beside the camera's).
     """
-    out = Path(out_path)
-    n = 0
-    with BagStream(out, storage) as bag:
-        mf = MessageFactory(bag.typestore, ros1=False)
-        put = _topic_writer(bag, mf)
-
-        def image(topic: str, header: Any, data: np.ndarray, encoding: str, s: int) -> None:
+    def write(put: Callable[..., None], mf: MessageFactory, f: Frame, s: int) -> None:
+        def image(topic: str, header: Any, data: np.ndarray, encoding: str) -> None:
             if not compressed:
                 put(topic, "sensor_msgs/msg/Image", s, mf.image(header, data, encoding))
                 return
@@ -280,26 +282,20 @@ def write_realsense_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str
             suffix = "compressed" if encoding == "rgb8" else "compressedDepth"
             put(f"{topic}/{suffix}", COMPRESSED_TYPE, s, mf.compressed_image(header, fmt, buf))
 
-        for f in frames:
-            s = int(f.stamp_ns)
-            put(RS_COLOR_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
-                mf.camera_info(mf.header(s, RS_COLOR_FRAME), f.camera))
-            image(RS_COLOR_TOPIC, mf.header(s, RS_COLOR_FRAME), f.rgb, "rgb8", s)
-            if (depth_m := f.depth_metres()) is not None:
-                units = metres_to_units(depth_m, RS_DEPTH_SCALE)
-                for topic, info, frame in ((RS_ALIGNED_DEPTH_TOPIC, RS_ALIGNED_DEPTH_INFO_TOPIC, RS_COLOR_FRAME),
-                                           (RS_DEPTH_TOPIC, RS_DEPTH_INFO_TOPIC, RS_DEPTH_FRAME)):
-                    put(info, "sensor_msgs/msg/CameraInfo", s, mf.camera_info(mf.header(s, frame), f.camera))
-                    image(topic, mf.header(s, frame), units, "16UC1", s)
-            if f.T_wc_gt is not None:
-                put(POSE_TOPIC, "geometry_msgs/msg/PoseStamped", s,
-                    mf.pose_stamped(mf.header(s, world_frame_id), f.T_wc_gt))
-            n += 1
-            if on_frame is not None:
-                on_frame(f)
-        if n == 0:
-            raise DataError(f"{out}: no frames to write")
-    return BagWriteResult(out, n, _size(out))
+        put(RS_COLOR_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", s,
+            mf.camera_info(mf.header(s, RS_COLOR_FRAME), f.camera))
+        image(RS_COLOR_TOPIC, mf.header(s, RS_COLOR_FRAME), f.rgb, "rgb8")
+        if (depth_m := f.depth_metres()) is not None:
+            units = metres_to_units(depth_m, RS_DEPTH_SCALE)
+            for topic, info, frame in ((RS_ALIGNED_DEPTH_TOPIC, RS_ALIGNED_DEPTH_INFO_TOPIC, RS_COLOR_FRAME),
+                                       (RS_DEPTH_TOPIC, RS_DEPTH_INFO_TOPIC, RS_DEPTH_FRAME)):
+                put(info, "sensor_msgs/msg/CameraInfo", s, mf.camera_info(mf.header(s, frame), f.camera))
+                image(topic, mf.header(s, frame), units, "16UC1")
+        if f.T_wc_gt is not None:
+            put(POSE_TOPIC, "geometry_msgs/msg/PoseStamped", s,
+                mf.pose_stamped(mf.header(s, world_frame_id), f.T_wc_gt))
+
+    return _write_frames(Path(out_path), storage, frames, write, on_frame)
 
 
 def write_ros1_tum_bag(frames: Iterable[Frame], out_path: str | os.PathLike[str], compress: bool = True,

@@ -30,6 +30,7 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.poses import interpolate_poses
 from memgs_ros.errors import ConfigError, DataError
+from memgs_ros.io.frame_source import FrameSource
 
 __all__ = ["MAX_PASSES", "IndexedSource", "RepeatClock", "RepeatedSource", "pass_of"]
 
@@ -38,19 +39,8 @@ DEFAULT_GAP_NS = 33_333_333  # a one-frame source: 30 Hz
 
 
 @runtime_checkable
-class PlannedSource(Protocol):
+class PlannedSource(FrameSource, Protocol):
     """A source that knows the stamps of the frames it will yield before reading them."""
-
-    name: str
-
-    @property
-    def camera(self) -> PinholeCamera: ...
-
-    def __iter__(self) -> Iterator[Frame]: ...
-
-    def __len__(self) -> int: ...
-
-    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]: ...
 
     def frame_stamps(self) -> np.ndarray: ...
 

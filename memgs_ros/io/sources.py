@@ -13,7 +13,6 @@ import os
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
-from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -21,6 +20,7 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.bag_reader import BagSource, BagTopics
+from memgs_ros.io.frame_source import FrameSource as FrameSource  # the readers' protocol, here too
 from memgs_ros.io.image_decoding import DEFAULT_DEPTH_SCALE
 from memgs_ros.io.repeat import RepeatedSource
 from memgs_ros.io.synthetic import (
@@ -35,22 +35,6 @@ from memgs_ros.io.synthetic import (
 from memgs_ros.io.tum import TumFolder
 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
-
-
-@runtime_checkable
-class FrameSource(Protocol):
-    """What every reader offers (TumFolder, BagSource, SyntheticSource)."""
-
-    name: str
-
-    @property
-    def camera(self) -> PinholeCamera: ...
-
-    def __iter__(self) -> Iterator[Frame]: ...
-
-    def __len__(self) -> int: ...
-
-    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 class SyntheticSource:

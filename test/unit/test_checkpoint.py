@@ -119,7 +119,7 @@ def test_corrupt_truncated_and_foreign_files_are_data_errors(tmp_path: Path) -> 
         (tmp_path / name).write_bytes(blob)
         with pytest.raises(DataError, match=name):
             checkpoint.load(tmp_path / name)
-    with pytest.raises(DataError, match="no such checkpoint"):
+    with pytest.raises(DataError, match="no such mapper checkpoint"):
         checkpoint.load(tmp_path / "missing.npz")
     # An archive of the wrong kind, and one whose arrays would need unpickling.
     np.savez(tmp_path / "other.npz", a=np.zeros(3))

@@ -24,10 +24,8 @@ the old one, so a reader only ever sees a complete checkpoint.
 """
 from __future__ import annotations
 
-import json
 import os
 import time
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,7 +34,7 @@ import numpy as np
 
 from memgs_ros.core.gaussians.gaussian_map import PLY_F_REST, GaussianRecords
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.runtime.atomic import atomic_write
+from memgs_ros.core.runtime.npz_file import read_npz, write_npz
 from memgs_ros.errors import DataError
 
 FORMAT_VERSION = 1
@@ -93,7 +91,6 @@ def save(ckpt: MapperCheckpoint, path: str | os.PathLike[str]) -> Path:
                              "uses": int(k.uses)}
                             for k in ckpt.keyframes]}
     arrays: dict[str, np.ndarray] = {
-        "header": np.frombuffer(json.dumps(header).encode(), dtype=np.uint8),
         "ids": g.ids.astype(np.int64), "xyz": g.xyz, "f_dc": g.f_dc, "f_rest": g.f_rest,
         "opacity": g.opacity, "scale": g.scale, "rot": g.rot,
         "keyframe_ids": ckpt.keyframe_ids.astype(np.int64), "created_iter": ckpt.created_iter.astype(np.int64),
@@ -105,57 +102,51 @@ def save(ckpt: MapperCheckpoint, path: str | os.PathLike[str]) -> Path:
             arrays[f"kf{i}_depth"] = k.depth_m
         if k.valid_mask is not None:
             arrays[f"kf{i}_mask"] = k.valid_mask
-    atomic_write(path, lambda f: np.savez(f, **arrays))  # type: ignore[arg-type]  # numpy's stub types **kwds as bool
-    return path
+    return write_npz(path, header, arrays)
 
 
 def load(path: str | os.PathLike[str]) -> MapperCheckpoint:
     """Read a checkpoint written by :func:`save`; DataError naming the file when it is not one."""
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            header = json.loads(bytes(z["header"]).decode())
-            if header.get("format") != FORMAT_VERSION:
-                raise DataError(f"{path}: checkpoint format {header.get('format')!r}, expected {FORMAT_VERSION}")
-            n = int(z["ids"].shape[0])
-            g = GaussianRecords.from_arrays(z["ids"], z["xyz"], z["f_dc"], z["f_rest"], z["opacity"], z["scale"],
-                                            z["rot"])
-            if g.f_rest.shape != (n, PLY_F_REST):
-                raise DataError(f"{path}: f_rest must be [{n}, {PLY_F_REST}], got {g.f_rest.shape}")
-            kf_of, created = z["keyframe_ids"], z["created_iter"]
-            if kf_of.shape != (n,) or created.shape != (n,):
-                raise DataError(f"{path}: keyframe_ids/created_iter do not match {n} Gaussians")
-            kfs = []
-            for i, k in enumerate(header["keyframes"]):
-                cam = PinholeCamera.from_dict(k["camera"])
-                image = z[f"kf{i}_image"]
-                if image.dtype != np.uint8 or image.shape != (cam.height, cam.width, 3):
-                    raise DataError(f"{path}: keyframe {k['kf_id']} image is {image.dtype} {image.shape}, "
-                                    f"camera {cam.width}x{cam.height}")
-                depth = z[f"kf{i}_depth"].astype(np.float32) if k["depth"] else None
-                mask = z[f"kf{i}_mask"].astype(bool) if k["mask"] else None
-                for name, a in (("depth", depth), ("mask", mask)):
-                    if a is not None and a.shape != (cam.height, cam.width):
-                        raise DataError(f"{path}: keyframe {k['kf_id']} {name} is {a.shape}")
-                T = z[f"kf{i}_T_wc"].astype(np.float64)
-                if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-                    raise DataError(f"{path}: keyframe {k['kf_id']} pose is not a finite 4x4 matrix")
-                exposure = k.get("exposure")
-                if exposure is not None:
-                    exposure = tuple(float(x) for x in exposure)
-                    if len(exposure) != 6 or not all(np.isfinite(exposure)):
-                        raise DataError(f"{path}: keyframe {k['kf_id']} exposure is not 6 finite numbers")
-                kfs.append(KeyframeState(int(k["kf_id"]), int(k["stamp_ns"]), T, image, depth, mask, cam,
-                                         exposure, int(k.get("uses", -1))))
-            return MapperCheckpoint(g, kf_of.astype(np.int64), created.astype(np.int64), tuple(kfs),
-                                    int(header["iteration"]), int(header["next_id"]),
-                                    int(header["active_sh_degree"]), float(header["scene_extent"]),
-                                    float(header.get("saved_at_s", 0.0)), dict(header.get("extra", {})))
-    except DataError:
-        raise
-    except FileNotFoundError as err:
-        raise DataError(f"{path}: no such checkpoint") from err
-    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, UnicodeDecodeError) as err:
+    header, z = read_npz(path, "mapper checkpoint")
+    try:  # the archive is read whole; its arrays are checked here
+        if header.get("format") != FORMAT_VERSION:
+            raise DataError(f"{path}: checkpoint format {header.get('format')!r}, expected {FORMAT_VERSION}")
+        n = int(z["ids"].shape[0])
+        g = GaussianRecords.from_arrays(z["ids"], z["xyz"], z["f_dc"], z["f_rest"], z["opacity"], z["scale"],
+                                        z["rot"])
+        if g.f_rest.shape != (n, PLY_F_REST):
+            raise DataError(f"{path}: f_rest must be [{n}, {PLY_F_REST}], got {g.f_rest.shape}")
+        kf_of, created = z["keyframe_ids"], z["created_iter"]
+        if kf_of.shape != (n,) or created.shape != (n,):
+            raise DataError(f"{path}: keyframe_ids/created_iter do not match {n} Gaussians")
+        kfs = []
+        for i, k in enumerate(header["keyframes"]):
+            cam = PinholeCamera.from_dict(k["camera"])
+            image = z[f"kf{i}_image"]
+            if image.dtype != np.uint8 or image.shape != (cam.height, cam.width, 3):
+                raise DataError(f"{path}: keyframe {k['kf_id']} image is {image.dtype} {image.shape}, "
+                                f"camera {cam.width}x{cam.height}")
+            depth = z[f"kf{i}_depth"].astype(np.float32) if k["depth"] else None
+            mask = z[f"kf{i}_mask"].astype(bool) if k["mask"] else None
+            for name, a in (("depth", depth), ("mask", mask)):
+                if a is not None and a.shape != (cam.height, cam.width):
+                    raise DataError(f"{path}: keyframe {k['kf_id']} {name} is {a.shape}")
+            T = z[f"kf{i}_T_wc"].astype(np.float64)
+            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+                raise DataError(f"{path}: keyframe {k['kf_id']} pose is not a finite 4x4 matrix")
+            exposure = k.get("exposure")
+            if exposure is not None:
+                exposure = tuple(float(x) for x in exposure)
+                if len(exposure) != 6 or not all(np.isfinite(exposure)):
+                    raise DataError(f"{path}: keyframe {k['kf_id']} exposure is not 6 finite numbers")
+            kfs.append(KeyframeState(int(k["kf_id"]), int(k["stamp_ns"]), T, image, depth, mask, cam,
+                                     exposure, int(k.get("uses", -1))))
+        return MapperCheckpoint(g, kf_of.astype(np.int64), created.astype(np.int64), tuple(kfs),
+                                int(header["iteration"]), int(header["next_id"]),
+                                int(header["active_sh_degree"]), float(header["scene_extent"]),
+                                float(header.get("saved_at_s", 0.0)), dict(header.get("extra", {})))
+    except (ValueError, KeyError, TypeError) as err:
         raise DataError(f"{path}: not a readable mapper checkpoint ({type(err).__name__}: {err})") from err
 
 

@@ -16,9 +16,7 @@ the file can be written on another thread while tracking goes on.
 """
 from __future__ import annotations
 
-import json
 import os
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.runtime.atomic import atomic_write
+from memgs_ros.core.runtime.npz_file import read_npz, write_npz
 from memgs_ros.core.tracking.features.features import FrameFeatures
 from memgs_ros.core.tracking.features.vocabulary import BowVector, KeyframeDatabase
 from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
@@ -91,25 +89,15 @@ def export_map(smap: SparseMap, keyframe_db: KeyframeDatabase, camera: PinholeCa
 
 def write_tracker_map(m: TrackerMap, path: str | os.PathLike[str]) -> Path:
     """Write ``m`` to ``path`` atomically; returns the path."""
-    path = Path(path)
-    arrays = {"header": np.frombuffer(json.dumps(m.header).encode(), np.uint8), **m.arrays}
-    atomic_write(path, lambda f: np.savez(f, **arrays))  # type: ignore[arg-type]  # numpy's stub types **kwds as bool
-    return path
+    return write_npz(path, m.header, m.arrays)
 
 
 def read_tracker_map(path: str | os.PathLike[str]) -> TrackerMap:
     """Read and check a file of :func:`write_tracker_map`; DataError naming the file and what is wrong."""
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            header = json.loads(bytes(z["header"]).decode())
-            arrays = {k: z[k] for k in z.files if k != "header"}
-    except FileNotFoundError as err:
-        raise DataError(f"{path}: no such tracker map") from err
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, UnicodeDecodeError) as err:
-        raise DataError(f"{path}: not a readable tracker map ({type(err).__name__}: {err})") from err
-    if not isinstance(header, dict) or header.get("format") != TRACKER_MAP_VERSION:
-        got = header.get("format") if isinstance(header, dict) else header
+    header, arrays = read_npz(path, "tracker map")
+    if header.get("format") != TRACKER_MAP_VERSION:
+        got = header.get("format")
         raise DataError(f"{path}: tracker map format {got!r}, expected {TRACKER_MAP_VERSION}")
     m = TrackerMap(header, arrays)
     _check(path, m)

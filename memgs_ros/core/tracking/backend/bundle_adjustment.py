@@ -549,6 +549,31 @@ class BAGeometry:
         return BABlocks(Hpp, gp, np.matmul(wJcT, Jx[of]), self.per_cam.sum(np.matmul(wJcT, Jc)),
                         self.per_cam.sum(np.matmul(wJcT, r[of, :, None])[:, :, 0]))
 
+    def linearise(self, damp_cameras: bool) -> Callable[[BAState, BAAux], Callable[[float], BAState | None]]:
+        """LM's linearisation: at a state, its blocks; for a damping ``lam``, the Schur step (the
+        cameras' reduced system solved, the points back-substituted), or None when it is singular.
+        Damped on the reduced system's diagonal (local BA), or with ``damp_cameras`` on the camera
+        blocks' own before the points' share is taken off (global BA)."""
+
+        def at(x: BAState, aux: BAAux) -> Callable[[float], BAState | None]:
+            b = self.blocks(x, aux)
+
+            def propose(lam: float) -> BAState | None:
+                Hpp_inv, S, rhs = self.reduce(b, lam)
+                dc = np.zeros((0, 6))
+                if self.nf:
+                    diag = np.einsum("kii->ki", b.Hcc).ravel() if damp_cameras else np.diag(S)
+                    S += np.diag(lam * diag) + 1e-9 * np.eye(6 * self.nf)
+                    try:
+                        dc = -np.linalg.solve(S, rhs).reshape(self.nf, 6)
+                    except np.linalg.LinAlgError:
+                        return None
+                return self.stepped(x, dc, self.back_substitute(b, Hpp_inv, dc))
+
+            return propose
+
+        return at
+
     def stepped(self, x: BAState, dc: np.ndarray, dX: np.ndarray) -> BAState:
         """State after camera steps dc [nf, 6] (left update) and point steps dX [P, 3]."""
         T_new = x[0].copy()
@@ -589,22 +614,4 @@ def local_bundle_adjustment(prob: BAProblem, K: np.ndarray, bf: float, huber_px:
     Twin: ``_local_bundle_adjustment_scipy`` (same residuals, scipy TRF).
     """
     g = BAGeometry(prob, K, bf, huber_px, compiled)
-    nf = g.nf
-
-    def linearise(x: BAState, aux: BAAux) -> Callable[[float], BAState | None]:
-        b = g.blocks(x, aux)
-
-        def propose(lam: float) -> BAState | None:
-            Hpp_inv, S, rhs = g.reduce(b, lam)
-            dc = np.zeros((0, 6))
-            if nf:  # damped on the reduced system's diagonal (the global BA damps the camera blocks)
-                S += lam * np.diag(np.diag(S)) + 1e-9 * np.eye(6 * nf)
-                try:
-                    dc = -np.linalg.solve(S, rhs).reshape(nf, 6)
-                except np.linalg.LinAlgError:
-                    return None
-            return g.stepped(x, dc, g.back_substitute(b, Hpp_inv, dc))
-
-        return propose
-
-    return g.result(solve(lm_iterations(g.initial(), g.evaluate, linearise, max_iterations)))
+    return g.result(solve(lm_iterations(g.initial(), g.evaluate, g.linearise(damp_cameras=False), max_iterations)))

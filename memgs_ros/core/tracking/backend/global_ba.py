@@ -11,7 +11,7 @@ one iteration at a time between its other work (``global_ba_iterations``).
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -30,24 +30,7 @@ def global_ba_iterations(prob: BAProblem, K: np.ndarray, bf: float, huber_px: fl
     """The problem's geometry and its LM iterations (first the initial state); ``geometry.result``
     turns any of them into a BAResult. ``compiled``: see ``BAGeometry``."""
     g = BAGeometry(prob, K, bf, huber_px, compiled)
-    nf = g.nf
-
-    def linearise(x: BAState, aux: BAAux) -> Callable[[float], BAState | None]:
-        b = g.blocks(x, aux)
-
-        def propose(lam: float) -> BAState | None:
-            Hpp_inv, S, rhs = g.reduce(b, lam)
-            # Damped on the camera blocks' diagonal, before the points' share is taken off.
-            S += np.diag(lam * np.einsum("kii->ki", b.Hcc).ravel()) + 1e-9 * np.eye(6 * nf)
-            try:
-                dc = -np.linalg.solve(S, rhs).reshape(nf, 6)
-            except np.linalg.LinAlgError:
-                return None
-            return g.stepped(x, dc, g.back_substitute(b, Hpp_inv, dc))
-
-        return propose
-
-    return g, lm_iterations(g.initial(), g.evaluate, linearise, max_iterations)
+    return g, lm_iterations(g.initial(), g.evaluate, g.linearise(damp_cameras=True), max_iterations)
 
 
 def global_bundle_adjustment(prob: BAProblem, K: np.ndarray, bf: float, huber_px: float,
