@@ -59,7 +59,7 @@ from memgs_ros.core.runtime.cpu import MALLOC_ARENAS, PARENT_PID_ENV, die_with_p
 from memgs_ros.errors import MemgsError, PipelineError
 from memgs_ros.nodes.bag_player.node import LINGER_S
 from memgs_ros.nodes.registry import GRAPH, NODES
-from memgs_ros.orchestration.hooks import compare_maps, parse_trigger_message, wait_for_graph
+from memgs_ros.orchestration.hooks import compare_maps, parse_map_answer, wait_for_graph
 from memgs_ros.orchestration.processes import (
     NodeProcesses,
     open_context,
@@ -424,9 +424,9 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
             procs.check()  # the player ended without its done message: only exit 0 is the source's end
         procs.player_reported = True
         t_finish = time.monotonic()
-        final = parse_trigger_message(gs.call(gs.finish_client, max(60.0, end - time.monotonic())))
+        final = parse_map_answer(gs.call(gs.finish_client, max(60.0, end - time.monotonic())))
         t_finished = time.monotonic()
-        final_seq, epoch = int(final.get("seq", 0)), int(final.get("epoch", 0))
+        final_seq, epoch = final.seq, final.epoch or 0
         while (t_conv := gs.converged_at(final_seq, epoch)) is None:
             procs.check()
             if time.monotonic() > end:
@@ -441,7 +441,7 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
         return {
             "t_first": gs.first_pose_at or t_play, "t_last": t_last, "t_finish": t_finish, "t_finished": t_finished,
             "t_conv": t_conv, "t_compared": t_compared, "poses": gs.poses, "final_seq": final_seq,
-            "gaussians": int(final.get("gaussians", 0)),
+            "gaussians": final.gaussians,
             "identical": identical, "max_abs_diff": max_diff, "source_ok": gs.done_ok, "stats": gs.stats,
             "merger_series": [(t, float(v.get("delta_bytes", 0)), int(float(v.get("deltas", 0))))
                               for t, v in gs.merger_rows],

@@ -11,9 +11,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any, Protocol
 
-from memgs_ros.orchestration.pipeline import _compare_maps, _parse_kv, _wait_for_graph
+from memgs_ros.core.maps.answers import MapAnswer
+from memgs_ros.orchestration.pipeline import _compare_maps, _wait_for_graph
 
-__all__ = ["GraphWatcher", "NodeChecker", "compare_maps", "parse_trigger_message", "wait_for_graph"]
+__all__ = ["GraphWatcher", "NodeChecker", "compare_maps", "parse_map_answer", "wait_for_graph"]
 
 
 class NodeChecker(Protocol):
@@ -41,9 +42,9 @@ def wait_for_graph(watcher: GraphWatcher, procs: NodeChecker, nodes: Sequence[st
     _wait_for_graph(watcher, procs, list(nodes), deadline)  # type: ignore[arg-type]
 
 
-def parse_trigger_message(message: str) -> dict[str, str]:
-    """The ``key=value`` words of a Trigger answer (the mapper's finish: ``seq=.. epoch=.. ...``)."""
-    return _parse_kv(message)
+def parse_map_answer(message: str) -> MapAnswer:
+    """A map service's Trigger answer (the mapper's finish: seq, gaussians, epoch)."""
+    return MapAnswer.parse(message)
 
 
 def compare_maps(watcher: GraphWatcher, final_seq: int, epoch: int, deadline: float) -> tuple[bool, float]:

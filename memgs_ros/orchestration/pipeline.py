@@ -32,6 +32,7 @@ from std_srvs.srv import Trigger
 from tqdm import tqdm
 
 from memgs_ros.core.geometry.poses import pose_to_tq
+from memgs_ros.core.maps.answers import MapAnswer
 from memgs_ros.core.maps.map_delta import decode
 from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.core.runtime.cpu import MALLOC_ARENAS
@@ -205,10 +206,6 @@ class _Observer:
             cached = (values, parse_stats(TELEMETRY[node], values))
             self._parsed[node] = cached
         return cached[1]
-
-
-def _parse_kv(message: str) -> dict[str, str]:
-    return dict(part.split("=", 1) for part in message.split() if "=" in part)
 
 
 def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
@@ -520,9 +517,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
     if not options.lockstep:
         time.sleep(2.0)  # let the last frames drain through the graph
     logger.info("source finished after %.1f s; finishing the mapper", time.monotonic() - t0)
-    final = _parse_kv(obs.call(obs.finish_client, max(60.0, end - time.monotonic())))
-    final_seq, gaussians = int(final.get("seq", 0)), int(final.get("gaussians", 0))
-    epoch = int(final.get("epoch", 0))
+    final = MapAnswer.parse(obs.call(obs.finish_client, max(60.0, end - time.monotonic())))
+    final_seq, gaussians, epoch = final.seq, final.gaussians, final.epoch or 0
     _wait_for_merger(obs, procs, final_seq, epoch, end)
     identical, max_diff = _compare_maps(obs, final_seq, epoch, end)
     if options.rerun is not None:
@@ -532,7 +528,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
     extra = (("recorder",) if options.record is not None else ()) + ((VIEW_NODE,) if options.rerun is not None else ())
     _wait_for_fresh_stats(obs, (*GRAPH_NODES, *extra))  # so the summary sees the final counts
     saved = obs.call(obs.save_client, 300.0) if gaussians or final_seq else ""  # a map bundle too: ~100 MB
-    first = saved.split()[0] if saved else ""
+    saved_map = MapAnswer.parse(saved) if saved else MapAnswer(0, 0)
     wall = time.monotonic() - t0
     poses = _write_trajectories(obs, out)
     tracker, mapper, merger = obs.telemetry("tracker"), obs.telemetry("mapper"), obs.telemetry("merger")
@@ -542,8 +538,8 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
         bag_topics=str(options.bag_topics), frames=tracker.frames_in, poses=poses,
         keyframes=tracker.keyframes, gaussians=gaussians,
         tracking_fps=(tracker.frames_in / track_s) if track_s > 0 else 0.0, wall_s=wall,
-        ply_path=_parse_kv(saved).get("ply", first), trajectory_path=str(out / TRAJECTORY_FILE),
-        bundle_path=first if "ply=" in saved else "", map_bundle=str(options.map_bundle or ""),
+        ply_path=saved_map.ply or "", trajectory_path=str(out / TRAJECTORY_FILE),
+        bundle_path=saved_map.bundle or "", map_bundle=str(options.map_bundle or ""),
         relocalizing=int(tracker.relocalizing),
         delta_messages=merger.deltas,
         delta_bytes=merger.delta_bytes, delta_bytes_per_s=merger.delta_bytes / wall if wall > 0 else 0.0,

@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 
+from memgs_ros.core.maps.answers import MapAnswer
 from memgs_ros.core.mapping.finish import FinalPlan, FinishSteps, finish_map
 from memgs_ros.core.mapping.session import FinishResult
 from memgs_ros.core.runtime.worker import WorkerStopped
@@ -73,7 +74,7 @@ def test_finish_runs_its_steps_in_order_and_names_the_closing_snapshot() -> None
     node = _Node()
     answer = node.run(FinalPlan(iterations=5, densify=False, budget_s=2.0, total_iterations=100))
     assert node.calls == ["finish(5, False, 2.0, 100)", "flush", "snapshot", "save"]
-    assert answer == "seq=9 gaussians=1234 epoch=77"
+    assert MapAnswer.parse(answer) == MapAnswer(9, 1234, 77)
     assert node.logged == ["final 5 iterations in 1.2 s"]
 
 
@@ -91,7 +92,7 @@ def test_a_receiver_that_never_acknowledges_delays_the_snapshot_at_most_the_time
 
 @pytest.mark.parametrize("error", [OSError("disk full"), DataError("bad state"), WorkerStopped("closed")])
 def test_a_failed_last_checkpoint_does_not_fail_the_finish(error: BaseException) -> None:
-    assert _Node(save_error=error).run(FinalPlan()) == "seq=9 gaussians=1234 epoch=77"
+    assert MapAnswer.parse(_Node(save_error=error).run(FinalPlan())) == MapAnswer(9, 1234, 77)
 
 
 def test_an_unexpected_error_of_the_last_checkpoint_fails_the_finish() -> None:

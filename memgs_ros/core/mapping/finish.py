@@ -16,6 +16,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from memgs_ros.core.maps.answers import MapAnswer
 from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.errors import DataError
 
@@ -56,8 +57,8 @@ class FinishSteps:
 
 async def finish_map(session: MappingSession, plan: FinalPlan, steps: FinishSteps,
                      ack_timeout_s: float = FLUSH_ACK_TIMEOUT_S, clock: Callable[[], float] = time.monotonic) -> str:
-    """Run the finish (module docstring); the answer ``seq=<n> gaussians=<n> epoch=<n>`` names
-    the closing snapshot's seq, the map's size and its delta epoch."""
+    """Run the finish (module docstring); the answer (``MapAnswer``'s message) names the closing
+    snapshot's seq, the map's size and its delta epoch."""
     done = await steps.wait(session.finish(plan.iterations, plan.densify, plan.budget_s, plan.total_iterations))
     steps.log(f"final {done.final_iterations} iterations in {done.seconds:.1f} s")
     await steps.wait(steps.flush())  # resolved after the flush's messages: they are out
@@ -67,4 +68,4 @@ async def finish_map(session: MappingSession, plan: FinalPlan, steps: FinishStep
     _, _, seq = await steps.wait(steps.snapshot())
     with contextlib.suppress(OSError, DataError, WorkerStopped):  # counted as checkpoint_failed
         await steps.wait(steps.save())
-    return f"seq={seq} gaussians={session.status.gaussians} epoch={done.epoch}"
+    return MapAnswer(seq, session.status.gaussians, done.epoch).message()

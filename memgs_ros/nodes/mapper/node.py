@@ -8,7 +8,7 @@ In: ``memgs/keyframe/{color,depth,camera_info,pose,seeds}`` (one stamp per keyfr
 Out: ``memgs/map/delta`` (core/maps/map_delta.py), ``memgs/mapper/snapshot`` (latched, with a packed ``rgb`` colour),
 ``memgs/render/{color,depth,camera_info}``, ``memgs/frame_ack``, ``memgs/mapper/stats``; services
 ``memgs/mapper/publish_snapshot`` and ``memgs/mapper/finish``
-(answers ``seq=<n> gaussians=<n> epoch=<n>``). With ``checkpoint_path`` the session's state is
+(answers a ``MapAnswer``: seq, gaussians, epoch). With ``checkpoint_path`` the session's state is
 written there atomically (periodically, at finish and shutdown) and a restarted mapper resumes
 from it under a new delta epoch, publishing a snapshot so the merger replaces its copy.
 
@@ -38,6 +38,7 @@ from memgs_ros.core.mapping.frame_acks import LockstepAcknowledger
 from memgs_ros.core.mapping.mapper import MappingConfig
 from memgs_ros.core.mapping.mapper_start import MapperStart, SessionOptions, start_mapper
 from memgs_ros.core.mapping.output_pacing import DeltaPacer, LiveView, delta_rows
+from memgs_ros.core.maps.answers import MapAnswer
 from memgs_ros.core.maps.map_delta import message_dtype
 from memgs_ros.core.merge.config import MergeConfig
 from memgs_ros.core.raster.backend_choice import device_label
@@ -225,7 +226,7 @@ class MapperNode(ManagedNode):
 
     async def on_snapshot_request(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         _, n, seq = await self.out.hand_over.result(self.publish_snapshot())
-        res.success, res.message = True, f"seq={seq} gaussians={n}"
+        res.success, res.message = True, MapAnswer(seq, n).message()
         return res
 
     async def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:

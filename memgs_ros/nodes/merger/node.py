@@ -6,7 +6,7 @@ full map in the delta protocol's layout, on request and every ``publish_period_s
 ``memgs/map/points`` (latched: the map as x, y, z, rgb, opacity points for RViz and Foxglove),
 ``memgs/merger/render/{color,depth,camera_info}`` and ``memgs/merger/stats``. Services: ``memgs/save_map``
 (std_srvs/Trigger: write the PLY atomically, answers its path; with ``bundle_dir`` also a map bundle,
-``ros/map_bundles.py``, whose path then comes first: ``<bundle> ply=<ply> gaussians=.. seq=..``) and
+``ros/map_bundles.py``, whose path then comes first: a ``MapAnswer``) and
 ``memgs/merger/publish_map``.
 Saves periodically and on shutdown.
 
@@ -38,6 +38,7 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.maps.answers import MapAnswer
 from memgs_ros.core.maps.follower import DeltaOutcome, MapFollower, RequestPacer
 from memgs_ros.core.maps.map_delta import MessageKind
 from memgs_ros.core.maps.ply import save_ply
@@ -178,8 +179,9 @@ class MergerNode(ManagedNode):
             res.success, res.message = False, f"could not save {self.map_path}: {err}"
             return res
         bundle = await self.bundles.save(self.map.replica.records, self.world_frame) if path is not None else None
-        res.success, first = path is not None, f"{bundle} ply=" if bundle is not None else ""  # the bundle first
-        res.message = (f"{first}{path.resolve()} gaussians={len(self.map.replica)} seq={self.map.replica.seq}"
+        res.success = path is not None
+        res.message = (MapAnswer(self.map.replica.seq, len(self.map.replica), ply=str(path.resolve()),
+                                 bundle=None if bundle is None else str(bundle)).message()
                        if path else "no map received yet")
         return res
 
@@ -195,7 +197,7 @@ class MergerNode(ManagedNode):
 
     def on_publish_map(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         self.publish_map()
-        res.success, res.message = True, f"gaussians={len(self.map.replica)} seq={self.map.replica.seq}"
+        res.success, res.message = True, MapAnswer(self.map.replica.seq, len(self.map.replica)).message()
         return res
 
     def on_view_request(self, msg: PoseStamped) -> None:
