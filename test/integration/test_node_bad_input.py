@@ -213,14 +213,21 @@ def test_mapper_refuses_bad_bundles_without_touching_the_map(context, frames) ->
         feeder.close()
 
 
-def test_the_sampler_reads_keyframe_depth_in_rep118_units_without_a_scale_of_its_own(context, frames) -> None:  # noqa: ANN001
+def test_the_sampler_reads_keyframe_depth_in_rep118_units_without_a_scale_of_its_own(
+        context, frames, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
     """The tracker sends keyframe depth in REP-118's units (``rep118_depth``): TUM's 16-bit 1/5000 m
     as 32FC1 metres, a RealSense's millimetres as they are. The sampler, which declares no
-    depth_scale, puts its seeds at the frame's depth either way (not at 5x or 1/5 of it)."""
+    depth_scale, puts its seeds at the frame's depth either way (not at 5x or 1/5 of it), and
+    prepares (undistorts, turns into metres) each keyframe's images once."""
     from sensor_msgs.msg import PointCloud2 as Cloud
 
+    from memgs_ros.core.geometry.view import ViewPreparation
     from memgs_ros.nodes.keyframe_sampler.node import KeyframeSamplerNode
     from memgs_ros.ros.codecs import pointcloud2_to_structured, rep118_depth
+
+    prepared: list[int] = []
+    real = ViewPreparation.__call__
+    monkeypatch.setattr(ViewPreparation, "__call__", lambda self, *a, **k: prepared.append(1) or real(self, *a, **k))
 
     feeder = _Feeder(context, KeyframeSamplerNode(context=context), ("color", "depth", "info", "pose", "keypoints"))
     seeds: list[Cloud] = []
@@ -239,6 +246,7 @@ def test_the_sampler_reads_keyframe_depth_in_rep118_units_without_a_scale_of_its
             z = (p_w @ T_cw[:3, :3].T + T_cw[:3, 3])[:, 2]
             assert np.median(z) == pytest.approx(np.nanmedian(f.depth_m[f.depth_m > 0]), rel=0.1), units
         assert c["keyframes"] == 2 and _problems(c) == 0, dict(c)
+        assert len(prepared) == 2
     finally:
         feeder.close()
 

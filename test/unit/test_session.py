@@ -425,3 +425,34 @@ def test_paused_training_holds_the_iteration_and_resumes(frames: list[Frame]) ->
         assert s.status.iteration > held
     finally:
         s.close()
+
+
+@pytest.mark.parametrize("units", ["metres", "millimetres"])
+def test_each_keyframe_image_is_prepared_once(frames: list[Frame], units: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A keyframe's colour and depth are undistorted, resized and turned into metres once in the
+    mapper's process (one ``ViewPreparation`` call each), whatever trains on them afterwards and
+    in whichever of REP-118's units the depth came (32FC1 metres, 16UC1 millimetres)."""
+    from memgs_ros.core.geometry.view import ViewPreparation
+
+    calls: list[int] = []
+    real = ViewPreparation.__call__
+
+    def counting(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        calls.append(1)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(ViewPreparation, "__call__", counting)
+    s = MappingSession(_cfg(), free_running=False)
+    try:
+        for i, f in enumerate(frames[:4]):
+            kf = _kf(f, 10 + i)
+            if units == "millimetres":
+                mm = np.where(np.isfinite(kf.depth), np.rint(kf.depth * 1000.0), 0).astype(np.uint16)
+                kf = replace(kf, depth=mm, depth_scale=1000.0)
+            s.insert_keyframe(kf)
+            s.train(6).result(60)
+        s.snapshot().result(30)
+        assert s.status.keyframes == 4 and s.status.iteration > 0
+    finally:
+        s.close()
+    assert len(calls) == 4
