@@ -37,7 +37,7 @@ import math
 import os
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +48,7 @@ from tqdm import tqdm
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.view import view_preparation
+from memgs_ros.core.mapping.config import MappingConfig
 from memgs_ros.core.maps.ply import load_ply
 from memgs_ros.core.metrics import scoring
 from memgs_ros.core.metrics.image import make_lpips
@@ -60,17 +61,22 @@ from memgs_ros.core.metrics.scoring import (
     TrajectoryResult,
 )
 from memgs_ros.core.runtime.atomic import atomic_write
+from memgs_ros.core.sampling import PatchGridConfig
+from memgs_ros.core.tracking.config import TrackerConfig
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.bag_reader import BagTopics
 from memgs_ros.io.sources import open_source
 from memgs_ros.io.tum import read_trajectory
+from memgs_ros.nodes.params import KeyframeSamplerParams, MapperParams
 from memgs_ros.orchestration.run_files import (
     KEYFRAMES_FILE,
     LOGS_DIR,
+    ConfigEdit,
     ConfiguredCamera,
     RunOptions,
     RunSummary,
     configured_camera,
+    edited_parameters,
     read_params,
     read_stats_timeline,
     read_summary,
@@ -94,20 +100,22 @@ __all__ = [
     "evaluate",
     "evaluate_run",
     "map_samples",
-    "mode_overrides",
+    "mode_edits",
     "node_peak_rss_mb",
     "result_from_dict",
+    "run_edits",
     "score_map",
     "score_trajectory",
     "training_rate",
     "write_json",
 ]
 
-# Ablation variants: name -> parameter overrides on top of the run's own.
-ABLATION_VARIANTS: dict[str, dict[str, Any]] = {
-    "full": {},
-    "no_merge": {"mapper.mapping.merge_enabled": False},
-    "no_patch_grid": {"keyframe_sampler.patch_grid.enabled": False},
+# Ablation variants: name -> typed config changes on top of the run's own.
+ABLATION_VARIANTS: dict[str, tuple[ConfigEdit[Any], ...]] = {
+    "full": (),
+    "no_merge": (ConfigEdit("mapper", "mapping", MappingConfig, lambda c: replace(c, merge_enabled=False)),),
+    "no_patch_grid": (ConfigEdit("keyframe_sampler", "patch_grid", PatchGridConfig,
+                                 lambda c: replace(c, enabled=False)),),
 }
 ABLATION_LABELS = {"full": "MemGS (full)", "no_merge": "w/o merging", "no_patch_grid": "w/o Patch-Grid"}
 # Stats-timeline node name -> the node's name elsewhere (the player publishes as "player").
@@ -241,11 +249,27 @@ def _finite(obj: Any) -> Any:
     return obj
 
 
-def mode_overrides(mode: str) -> dict[str, Any]:
-    """Parameter overrides that put tracker, sampler and mapper into ``mode`` (rgbd | mono)."""
+def mode_edits(mode: str) -> tuple[ConfigEdit[Any], ...]:
+    """The config changes that put tracker, sampler and mapper into ``mode`` (rgbd | mono)."""
     if mode not in ("rgbd", "mono"):
         raise ConfigError(f"mode must be 'rgbd' or 'mono', got {mode!r}")
-    return {"tracker.tracker.mode": mode, "keyframe_sampler.mode": mode, "mapper.mode": mode}
+    return (ConfigEdit("tracker", "tracker", TrackerConfig, lambda c: replace(c, mode=mode)),
+            ConfigEdit("keyframe_sampler", "", KeyframeSamplerParams, lambda c: replace(c, mode=mode)),
+            ConfigEdit("mapper", "", MapperParams, lambda c: replace(c, mode=mode)))
+
+
+def run_edits(mode: str, seed: int, resolution_scale: float | None) -> tuple[ConfigEdit[Any], ...]:
+    """An evaluation's changes to the run's config: the mode, the seed of the mapper and the
+    Patch-Grid sampler, and the mapping resolution (None: the config's)."""
+    if resolution_scale is not None and not (resolution_scale > 0):
+        raise ConfigError(f"resolution_scale must be positive, got {resolution_scale}")
+
+    def mapping(c: MappingConfig) -> MappingConfig:
+        c = replace(c, seed=int(seed))
+        return c if resolution_scale is None else replace(c, resolution_scale=float(resolution_scale))
+
+    return (*mode_edits(mode), ConfigEdit("mapper", "mapping", MappingConfig, mapping),
+            ConfigEdit("keyframe_sampler", "patch_grid", PatchGridConfig, lambda c: replace(c, seed=int(seed))))
 
 
 def training_rate(samples: Sequence[MapSample]) -> float | None:
@@ -515,14 +539,15 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
              composed: bool = False, variant: str = "full", use_lpips: bool = True,
              device: str | None = None, progress: bool = True, record: Path | None = None,
              rerun: RerunTarget | None = None, map_bundle: Path | None = None,
-             map_mode: str = "mapping") -> EvalResult:
+             map_mode: str = "mapping", edits: Sequence[ConfigEdit[Any]] = ()) -> EvalResult:
     """Run the graph on ``source`` in lockstep (from ``map_bundle`` in ``map_mode`` when given),
     then :func:`evaluate_run` on its output.
 
     resolution_scale: mapping resolution (``mapper.mapping.resolution_scale``); None keeps the
     config's. seed: seeds the mapper and the Patch-Grid sampler (and the tracker's RANSAC).
     repeat: the source played this many times, every other pass backward (``open_source``).
-    overrides: "node.param" -> value, applied after mode/scale/seed. domain_id: DDS domain of
+    edits: typed config changes (``ConfigEdit``), applied after mode/scale/seed; overrides:
+    "node.param" -> value (a user's ``--set``), applied last. domain_id: DDS domain of
     the run; None lets the run pick a free one. record: also record the run's output topics into
     this .mcap file. rerun: stream the run to Rerun (see RunOptions). device: where the evaluation
     renders. On CPU,
@@ -534,21 +559,16 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
 
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    run_overrides: dict[str, Any] = dict(mode_overrides(mode))
-    run_overrides.update({"mapper.mapping.seed": int(seed), "keyframe_sampler.patch_grid.seed": int(seed)})
-    if resolution_scale is not None:
-        if not (resolution_scale > 0):
-            raise ConfigError(f"resolution_scale must be positive, got {resolution_scale}")
-        run_overrides["mapper.mapping.resolution_scale"] = float(resolution_scale)
-    run_overrides.update(dict(overrides or {}))
+    all_edits = (*run_edits(mode, seed, resolution_scale), *edits)
     options = RunOptions(source=str(source), config=config, out_dir=out, composed=composed,
                          lockstep=True, namespace=namespace, domain_id=domain_id,
                          max_frames=int(max_frames), repeat=int(repeat), repeat_forward=bool(repeat_forward),
-                         overrides=run_overrides, timeout_s=timeout_s,
+                         edits=all_edits, overrides=dict(overrides or {}), timeout_s=timeout_s,
                          record=record, rerun=rerun, map_bundle=map_bundle, map_mode=map_mode)
     run_pipeline(options, progress=progress)
+    changed = {**edited_parameters(config, all_edits), **dict(overrides or {})}  # what the run changed, as parameters
     return evaluate_run(out, str(source), mode, variant=variant, config=config, seed=seed,
-                        overrides=run_overrides, max_frames=max_frames, use_lpips=use_lpips,
+                        overrides=changed, max_frames=max_frames, use_lpips=use_lpips,
                         device=device, progress=progress)
 
 
@@ -562,12 +582,13 @@ def ablation(source: str, config: str = "synthetic", mode: str = "rgbd",
     for name in variants:
         if name not in ABLATION_VARIANTS:
             raise ConfigError(f"unknown ablation variant {name!r}; known: {', '.join(ABLATION_VARIANTS)}")
-        merged = {**dict(overrides or {}), **ABLATION_VARIANTS[name]}
-        logger.info("ablation variant %s (%s)", name, ", ".join(f"{k}={v}" for k, v in merged.items()) or "defaults")
+        variant_edits = ABLATION_VARIANTS[name]
+        changed = edited_parameters(config, variant_edits)
+        logger.info("ablation variant %s (%s)", name, ", ".join(f"{k}={v}" for k, v in changed.items()) or "defaults")
         rerun = kwargs.get("rerun")
         per_variant = {**kwargs, "rerun": rerun.for_variant(name)} if rerun is not None else kwargs
-        results.append(evaluate(source, config, mode, resolution_scale, seed, Path(out_dir) / name, merged,
-                                variant=name, **per_variant))
+        results.append(evaluate(source, config, mode, resolution_scale, seed, Path(out_dir) / name, overrides,
+                                variant=name, edits=variant_edits, **per_variant))
     return AblationResult(tuple(results))
 
 

@@ -10,10 +10,10 @@ from __future__ import annotations
 import json
 import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, Generic, NamedTuple, TypeVar
 
 import yaml
 
@@ -25,7 +25,7 @@ from memgs_ros.viz import RerunTarget
 __all__ = [
     "BUNDLES_DIR", "CHECKPOINT_FILE", "GRAPH_NODE_NAMES", "KEYFRAMES_FILE", "LOGS_DIR", "MAP_FILE", "NODE_NAMES",
     "PARAMS_FILE", "STATS_TIMELINE_FILE",
-    "SUMMARY_FILE", "TRAJECTORY_FILE", "ConfiguredCamera", "RunOptions", "RunSummary", "build_params",
+    "SUMMARY_FILE", "TRAJECTORY_FILE", "ConfigEdit", "ConfiguredCamera", "RunOptions", "RunSummary", "build_params",
     "check_parameters", "check_record_path", "config_path", "configured_camera", "node_params", "read_params",
     "read_stats_timeline", "read_summary",
 ]
@@ -48,6 +48,32 @@ SUMMARY_FILE = "summary.json"  # RunSummary.as_dict()
 LOGS_DIR = "logs"
 
 
+C = TypeVar("C")
+
+
+@dataclass(frozen=True)
+class ConfigEdit(Generic[C]):
+    """A typed change to one node's config group, e.g. ``ConfigEdit("mapper", "mapping",
+    MappingConfig, lambda c: replace(c, merge_enabled=False))`` (mypy checks the field names):
+    ``change`` maps the group's config as the run's config file and settings give it to the one
+    to run with. It becomes parameters only in the run's parameter file (:func:`build_params`)."""
+
+    node: str
+    prefix: str  # the group's parameter prefix, "" for the node's own parameters
+    config: type[C]
+    change: Callable[[C], C]
+
+    def parameters(self, node_params: Mapping[str, Any]) -> dict[str, Any]:
+        """The parameters that turn the group's config in ``node_params`` into the changed one."""
+        from memgs_ros.nodes.params import NODE_CONFIGS
+        from memgs_ros.ros.config_params import changed_parameters, config_from_values
+
+        if (self.prefix, self.config) not in NODE_CONFIGS.get(self.node, ()):
+            raise ConfigError(f"{self.node} has no config group {self.prefix!r} of {self.config.__name__}")
+        before = config_from_values(self.config, self.prefix, node_params)
+        return changed_parameters(self.prefix, before, self.change(before))
+
+
 @dataclass(frozen=True)
 class RunOptions:
     source: str
@@ -62,7 +88,8 @@ class RunOptions:
     repeat: int = 1  # the source played this many times, forward and back (io/repeat.py)
     repeat_forward: bool = False  # ... every pass forward
     bag_topics: str = ""  # a bag's topics (BagTopics.parse: memgs run --topics); empty: TUM's or found by type
-    overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value
+    edits: tuple[ConfigEdit[Any], ...] = ()  # typed changes, applied in order before the overrides
+    overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value (a user's --set)
     # Start these nodes this many seconds after the player starts (a ground-station merger
     # joining mid-run; separate processes only).
     start_delays_s: Mapping[str, float] = field(default_factory=dict)
@@ -220,6 +247,8 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
             options.rerun.node_params(),
             recording_name=f"{Path(str(options.source)).name} ({Path(options.out_dir).name})")
     params.setdefault("mapper", {}).setdefault("checkpoint_path", str(map_path.with_name(CHECKPOINT_FILE)))
+    for edit in options.edits:
+        params.setdefault(edit.node, {}).update(edit.parameters(params.get(edit.node, {})))
     for key, value in options.overrides.items():
         node, _, name = key.partition(".")
         if node not in NODE_NAMES or not name:
@@ -235,6 +264,18 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         if name.startswith(CALIBRATION_PREFIX):
             params.setdefault("bag_player", {}).setdefault(name, value)
     return {f"/**/{node}": {"ros__parameters": p} for node, p in params.items()}
+
+
+def edited_parameters(config: str, edits: Sequence[ConfigEdit[Any]]) -> dict[str, Any]:
+    """{"node.param": value} that ``edits`` change in ``config``'s parameters, in order (what a
+    run's record says it changed)."""
+    params = node_params(build_params(RunOptions(source="", config=config), Path(MAP_FILE)))
+    out: dict[str, Any] = {}
+    for edit in edits:
+        changed = edit.parameters(params.get(edit.node, {}))
+        params.setdefault(edit.node, {}).update(changed)
+        out.update({f"{edit.node}.{name}": value for name, value in changed.items()})
+    return out
 
 
 def _bundle_params(params: dict[str, dict[str, Any]], options: RunOptions, bundle_dir: Path) -> None:

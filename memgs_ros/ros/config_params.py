@@ -19,7 +19,7 @@ from collections.abc import Collection, Iterable, Mapping
 from dataclasses import MISSING, Field, fields, is_dataclass
 from functools import cache
 from types import ModuleType
-from typing import TYPE_CHECKING, TypeVar, cast
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 from memgs_ros.errors import ConfigError, MemgsError
 from memgs_ros.ros.params import ParamSpec, ParamValue, check_value, declare_all
@@ -199,6 +199,27 @@ def check_values(config_cls: type, prefix: str, given: Mapping[str, object], *, 
         except (MemgsError, TypeError, ValueError) as err:
             lines.append(_refusal(prefix, err))
     return [f"{node}: {line}" for line in lines] if node else lines
+
+
+def config_from_values(config_cls: type[C], prefix: str, given: Mapping[str, object]) -> C:
+    """The config a node would build from ``given`` ({parameter name: value}, as in a parameter
+    file; names of other groups ignored), without rclpy; ConfigError as the node would refuse it."""
+    if lines := check_values(config_cls, prefix, given, int_as_float=True):
+        raise ConfigError("; ".join(lines))
+    values: dict[str, object] = {}
+    for field_name, spec in _field_specs(config_cls, prefix, None, None):
+        if spec.name in given:
+            value = given[spec.name]
+            values[field_name] = tuple(value) if isinstance(value, list) else (
+                float(cast("float", value)) if isinstance(spec.default, float) else value)
+    return config_cls(**values)
+
+
+def changed_parameters(prefix: str, before: object, after: object) -> dict[str, object]:
+    """{parameter name: value} of the fields in which config ``after`` differs from ``before``
+    (one config class): what a parameter file must add to turn the one into the other."""
+    return {_param_name(prefix, f.name): getattr(after, f.name) for f in fields(cast("Any", after))
+            if getattr(after, f.name) != getattr(before, f.name)}
 
 
 def unknown_parameters(node_name: str, given: Iterable[str], declared: Collection[str]) -> list[str]:
