@@ -30,7 +30,7 @@ Stages (each can be skipped; each writes its part of one JSON, default results/b
            training step), PSNR at the tracked poses against the eval's.
   cold     the live run again with an empty numba cache (a fresh install's first run): frames tracked.
 
-    python benchmarks/harness/gpu_carry.py gpu_carry   # on a machine with the index: wheels + a TUM subset
+    python tools/gpu_carry.py gpu_carry   # on a machine with the index: wheels + a TUM subset
     TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 python benchmarks/harness/bench_gpu.py --tum DIR [--wheels gpu_carry/wheels]
     python benchmarks/harness/bench_gpu.py --table results/bench_gpu.json   # docs/results.md's GPU table (On a GPU)
     python benchmarks/harness/bench_gpu.py --merge A.json B.json --out results/bench_gpu.json   # stages in calls

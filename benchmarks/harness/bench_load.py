@@ -213,14 +213,14 @@ def main(argv: list[str] | None = None) -> int:
     slope_txt = "n/a" if floor_slope is None else f"{floor_slope:+.2f}"
     print(f"checks: keyframes dropped {lost_kf} of {made} ({100 * lost_kf / made:.2f} %, <= 1 %); mapper RSS floor "
           f"slope {slope_txt} MB/min (<= 1); node processes left behind {len(orphans)} (0)")
-    # The figure and its table are made together from this JSON (benchmarks/make_figures.py load):
+    # The figure and its table are made together from this JSON (tools/make_figures.py load):
     # keep the per-node RSS and the mapper's size over time, and the command.
     argv_used = argv if argv is not None else sys.argv[1:]
     result["command"] = " ".join(["python benchmarks/harness/bench_load.py", *argv_used])
     result["timeline"] = [{k: r[k] for k in ("t_s", "node", "rss_mb", "gaussians", "keyframes") if k in r}
                           for r in timeline]
     write_results(args.out, result)
-    print(f"wrote {args.out}; figure and table: python benchmarks/make_figures.py load {args.out} "
+    print(f"wrote {args.out}; figure and table: python tools/make_figures.py load {args.out} "
           "--name load_30hz_640x480 --readme docs/results.md")
     return 0
 

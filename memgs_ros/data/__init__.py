@@ -1,1 +1,1 @@
-"""Package data: the ORB vocabulary (built by ``python benchmarks/build_vocabulary.py``)."""
+"""Package data: the ORB vocabulary (built by ``python tools/build_vocabulary.py``)."""

@@ -1,7 +1,7 @@
 """Public hooks for harnesses that start and watch the node graph their own way.
 
 ``run_pipeline`` starts the nodes, watches them and drives the run's end. A harness that must
-place the nodes itself (``benchmarks/harness/bench_two_hosts.py`` runs the drone's nodes in one
+place the nodes itself (``test/system/harness/bench_two_hosts.py`` runs the drone's nodes in one
 network namespace and a ground station in another) repeats three of its steps; these are those
 steps under names that stay, so the harness imports nothing private. Each takes the harness's own
 watcher, which needs only the attributes of :class:`GraphWatcher` that the step names.

@@ -1,5 +1,5 @@
 """Faults a run must survive or end clearly from: representative cases of the fault matrix in
-``benchmarks/harness/bench_faults.py`` (which runs all of them), through its own machinery. Each case is
+``test/system/harness/bench_faults.py`` (which runs all of them), through its own machinery. Each case is
 ``memgs run`` in real processes over real DDS, on its own domain and namespace; each checks that
 no process of the run is left, the map on disk parses (the previous one stays when saves fail),
 and the run recovered or ended with one clear line."""
@@ -25,7 +25,7 @@ SPEC = "synthetic:w=128,h=96,n=24,seed=3"
 
 
 def _bench() -> ModuleType:  # the benchmarks folder is not a package
-    path = ROOT / "benchmarks" / "harness" / "bench_faults.py"
+    path = ROOT / "test" / "system" / "harness" / "bench_faults.py"
     spec = importlib.util.spec_from_file_location("bench_faults", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # its dataclasses look their module up

@@ -1,6 +1,6 @@
 """The drone and the ground station on two hosts: the onboard graph (player, tracker, sampler,
 mapper) in one network namespace, the merger and a ground station in another, over a veth shaped
-to 5 Mbit/s each way, as ``benchmarks/harness/bench_two_hosts.py`` runs them. Needs root and iproute2;
+to 5 Mbit/s each way, as ``test/system/harness/bench_two_hosts.py`` runs them. Needs root and iproute2;
 skipped, saying why, where namespaces cannot be made."""
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ FAST = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 20,
 @pytest.fixture(scope="module")
 def two_hosts() -> ModuleType:
     """The benchmark module (benchmarks/ is not a package); skips where namespaces cannot be made."""
-    path = ROOT / "benchmarks" / "harness" / "bench_two_hosts.py"
+    path = ROOT / "test" / "system" / "harness" / "bench_two_hosts.py"
     spec = importlib.util.spec_from_file_location("bench_two_hosts", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # its dataclasses look their module up while it loads

@@ -1,6 +1,6 @@
 """Every figure in the documentation comes from the same benchmark run as the table beside it.
 
-``benchmarks/make_figures.py`` writes a table (``benchmarks/figures/<name>.md``) and its PNGs
+``tools/make_figures.py`` writes a table (``benchmarks/figures/<name>.md``) and its PNGs
 together, each PNG carrying the table's SHA-256, and puts both in a block of a page
 (``README.md`` or ``docs/*.md``). These tests fail when a figure is re-made without its table,
 a table is edited by hand, or an image link does not resolve from the page that holds it.
@@ -19,8 +19,8 @@ PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SCREENSHOTS = {"benchmarks/figures/rerun_view.png"}  # relative to the repository root
 
 
-def _make_figures():  # noqa: ANN202 - the benchmarks folder is not a package
-    spec = importlib.util.spec_from_file_location("make_figures", ROOT / "benchmarks" / "make_figures.py")
+def _make_figures():  # noqa: ANN202 - tools/ is not a package
+    spec = importlib.util.spec_from_file_location("make_figures", ROOT / "tools" / "make_figures.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -134,7 +134,7 @@ def test_the_two_hosts_table_in_the_docs_is_the_saved_runs() -> None:
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "harness" / "bench_two_hosts.py"), "--table",
+    out = subprocess.run([sys.executable, str(ROOT / "test" / "system" / "harness" / "bench_two_hosts.py"), "--table",
                           str(ROOT / "docs" / "data" / "two_hosts_5mbit.json")], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert out.strip() and out in (ROOT / "docs" / "results.md").read_text()
@@ -146,7 +146,7 @@ def test_the_fault_matrix_in_the_docs_is_the_saved_runs() -> None:
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "harness" / "bench_faults.py"), "--table",
+    out = subprocess.run([sys.executable, str(ROOT / "test" / "system" / "harness" / "bench_faults.py"), "--table",
                           str(ROOT / "docs" / "data" / "faults_matrix.json")], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert out.strip() and out.rstrip("\n") in (ROOT / "docs" / "results.md").read_text()

@@ -10,7 +10,7 @@ are L1-normalised and compared with DBoW2's L1 score ``1 - |a - b|_1 / 2`` (1 = 
 The shipped vocabulary (``memgs_ros/data/orb_vocabulary.npz``, ~70 KB) was built from renders
 of the synthetic room (seeds 1-8, not the tests' and benchmarks' seed 0) by::
 
-    python benchmarks/build_vocabulary.py --out memgs_ros/data/orb_vocabulary.npz
+    python tools/build_vocabulary.py --out memgs_ros/data/orb_vocabulary.npz
 
 ``KeyframeDatabase`` is the inverted index (word -> keyframes containing it) that answers
 "which keyframes look like this one" in time proportional to the shared words, not to the

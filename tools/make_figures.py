@@ -1,9 +1,9 @@
 """Make the documentation's figures and the tables beside them from one benchmark run, together.
 
-    python benchmarks/make_figures.py eval results/bench_eval.json --name tum_fr1_rpy --readme README.md
-    python benchmarks/make_figures.py load results/bench_load_cap600.json --name load_30hz_640x480 \
+    python tools/make_figures.py eval results/bench_eval.json --name tum_fr1_rpy --readme README.md
+    python tools/make_figures.py load results/bench_load_cap600.json --name load_30hz_640x480 \
         --readme docs/results.md
-    python benchmarks/make_figures.py flight docs/data/long_flight_before.json docs/data/long_flight_pingpong.json \
+    python tools/make_figures.py flight docs/data/long_flight_before.json docs/data/long_flight_pingpong.json \
         --name long_flight_tum --readme README.md
 
 ``eval`` takes the JSON ``benchmarks/bench_eval.py`` writes (one evaluation or an ablation);

@@ -16,8 +16,8 @@ whether the two maps are identical, and their largest difference.
 Needs root, iproute2 (``ip``, ``tc``) and a kernel with network namespaces, veth and tbf. The
 namespaces and every process in them are removed at the end, also on error or Ctrl-C.
 
-    python benchmarks/harness/bench_two_hosts.py --rate 5 --frames 100
-    python benchmarks/harness/bench_two_hosts.py --source synthetic:w=320,h=240,n=60,seed=0 --drop-every 5 \
+    python test/system/harness/bench_two_hosts.py --rate 5 --frames 100
+    python test/system/harness/bench_two_hosts.py --source synthetic:w=320,h=240,n=60,seed=0 --drop-every 5 \
         --json two_hosts.json
 """
 from __future__ import annotations
@@ -72,7 +72,7 @@ from memgs_ros.ros import qos
 from memgs_ros.ros.diagnostics import stats_values
 from memgs_ros.testing.faults import faults_env
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "benchmarks"))  # benchmarks/ (not a package): _common
 from _common import TUM_ENV, tum_path, write_results  # noqa: E402
 
 ONBOARD = ("bag_player", "tracker", "keyframe_sampler", "mapper")  # the drone; the merger is on the ground

@@ -1,7 +1,7 @@
 """Screenshot of the Rerun web viewer showing a saved recording, taken in headless Chromium.
 
-    python benchmarks/rerun_screenshot.py run.rrd                      # -> benchmarks/figures/rerun_view.png
-    python benchmarks/rerun_screenshot.py run.rrd --matplotlib         # the same content drawn by matplotlib
+    python tools/rerun_screenshot.py run.rrd                      # -> benchmarks/figures/rerun_view.png
+    python tools/rerun_screenshot.py run.rrd --matplotlib         # the same content drawn by matplotlib
 
 The recording is served by ``rerun --serve-web`` (web viewer over HTTP, the data over gRPC) and
 opened in Debian's ``chromium`` (``apt-get install chromium``) with a software GPU (SwiftShader),
@@ -22,7 +22,7 @@ import urllib.parse
 import urllib.request
 from pathlib import Path
 
-FIGURES = Path(__file__).resolve().parent / "figures"
+FIGURES = Path(__file__).resolve().parents[1] / "benchmarks" / "figures"
 # SwiftShader: Chromium's CPU implementation of WebGL/Vulkan. The web viewer asks for WebGPU first
 # and falls back to WebGL2; ``renderer=webgl`` skips the attempt.
 GPU_FLAGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",

@@ -10,7 +10,7 @@ no package index. This writes, into a git-ignored folder that the run carries al
   tum/      every ``--stride``-th of the first ``--frames`` frames of a TUM folder (rgb.txt,
             depth.txt, the images, the whole groundtruth.txt).
 
-    python benchmarks/harness/gpu_carry.py gpu_carry --frames 120 --stride 2 [--no-ros]
+    python tools/gpu_carry.py gpu_carry --frames 120 --stride 2 [--no-ros]
 
 then, on the GPU machine (carry ``gpu_carry``):
 
@@ -36,7 +36,7 @@ from pathlib import Path
 
 from packaging.requirements import Requirement
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))  # benchmarks/ (not a package): _common
 from _common import TUM_HELP, tum_path_or_exit  # noqa: E402
 
 ROS_ROOTS = ("ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "ros-jazzy-rmw-fastrtps-cpp", "rosbags", "mcap")

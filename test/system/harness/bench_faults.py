@@ -39,8 +39,8 @@ Prints a progress line per case, the matrix and the totals; ``--json PATH`` writ
 status 1 when a process was left behind or a map was corrupt or lost. ``test/system/test_faults.py``
 runs five of the cases through this module.
 
-    python benchmarks/harness/bench_faults.py                      # the whole matrix (~21 min on 2 cores)
-    python benchmarks/harness/bench_faults.py --cases mapper,disk  # cases whose name holds a substring
+    python test/system/harness/bench_faults.py                      # the whole matrix (~21 min on 2 cores)
+    python test/system/harness/bench_faults.py --cases mapper,disk  # cases whose name holds a substring
 """
 from __future__ import annotations
 
@@ -62,7 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "benchmarks"))  # benchmarks/ (not a package): _common
 from _common import ROOT, write_results  # noqa: E402
 
 from memgs_ros.testing.faults import faults_env  # noqa: E402

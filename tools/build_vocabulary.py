@@ -2,7 +2,7 @@
 room renders: the tracker's ORB descriptors of both camera paths at two sizes, clustered into a
 vocabulary tree (memgs_ros.core.tracking.features.vocabulary.build_vocabulary).
 
-    python benchmarks/build_vocabulary.py --out memgs_ros/data/orb_vocabulary.npz
+    python tools/build_vocabulary.py --out memgs_ros/data/orb_vocabulary.npz
 """
 from __future__ import annotations
 
