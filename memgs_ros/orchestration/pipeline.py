@@ -20,25 +20,16 @@ from typing import Any
 import numpy as np
 import rclpy
 import yaml
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import Path as NavPath
 from rclpy.executors import Executor, SingleThreadedExecutor
-from rclpy.node import Node
-from rclpy.serialization import deserialize_message
-from sensor_msgs.msg import Image, PointCloud2
-from std_msgs.msg import Bool
-from std_srvs.srv import Trigger
 from tqdm import tqdm
 
 from memgs_ros.core.geometry.poses import pose_to_tq
 from memgs_ros.core.maps.answers import MapAnswer
-from memgs_ros.core.maps.map_delta import decode
 from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.core.runtime.cpu import MALLOC_ARENAS
-from memgs_ros.core.runtime.telemetry import TELEMETRY, parse_stats
 from memgs_ros.errors import ConfigError, PipelineError
 from memgs_ros.orchestration.bring_up import AUTOSTART_OFF, bring_up
+from memgs_ros.orchestration.graph_watch import STATS_NODES, GraphObserver, compare_maps, wait_for_graph
 from memgs_ros.orchestration.processes import (
     NODE_FACTORIES,
     NODE_MODULES,
@@ -65,147 +56,22 @@ from memgs_ros.orchestration.run_files import (
     node_params,
 )
 from memgs_ros.orchestration.signals import stop_on_signals
-from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
     image_to_numpy,
     matrix_to_pose_stamped,
-    pointcloud2_to_structured,
-    pose_to_matrix,
-    stamp_to_ns,
 )
-from memgs_ros.ros.diagnostics import stats_values
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["GRAPH_NODES", "NODE_MODULES", "PipelineError", "RunOptions", "RunSummary", "run_pipeline"]
 
 GRAPH_NODES = GRAPH_NODE_NAMES
-_STATS_NODES = (*GRAPH_NODES, "player", VIEW_NODE, "recorder")  # the names on memgs/<name>/stats
 _STATS_ROUND_S = 1.5  # every node publishes its stats once a second: one round, with margin
-_PATH_DECODE_PERIOD_S = 10.0  # the runner decodes memgs/path this often (and at the end)
 _FINAL_RENDER_TIMEOUT_S = 30.0  # a render of the final map takes < 1 s on CPU at 640x480
 
 
 def _write_text(path: Path, text: str) -> None:
     atomic_write(path, lambda f: f.write(text.encode("utf-8")))
-
-
-class _Observer:
-    """An rclpy node that watches the graph and drives its end (created after rclpy.init)."""
-
-    def __init__(self, context: Any) -> None:
-        self.node = Node("memgs_run_observer", context=context)
-        self.done = threading.Event()
-        self.bring_up_s: float | None = None  # the managed nodes' configure -> active (bring_up.py)
-        self.source_ok = True  # False when the player reported a source that failed part-way
-        self.stats: dict[str, dict[str, str]] = {}  # each node's latest stats, replaced whole
-        self._parsed: dict[str, tuple[dict[str, str], Any]] = {}  # node -> (values, their record)
-        self.trajectory: list[tuple[int, np.ndarray]] = []
-        self.pose_frame = ""  # memgs/pose's frame_id
-        self.corrected: dict[int, np.ndarray] = {}  # memgs/path: poses re-expressed after BA / loop closure
-        self._path_raw: bytes | None = None  # the newest memgs/path, serialized, not decoded yet
-        self._path_decoded_t = -float("inf")
-        self.keyframes: list[tuple[int, np.ndarray]] = []
-        self.timeline: list[dict[str, Any]] = []  # every stats message: {"t_s", "node", values...}
-        self._t0 = time.monotonic()
-        self._lock = threading.Lock()
-
-        def on_pose(msg: PoseStamped) -> None:
-            with self._lock:
-                self.trajectory.append((stamp_to_ns(msg.header.stamp), pose_to_matrix(msg.pose)))
-                self.pose_frame = msg.header.frame_id
-
-        def stats_cb(name: str):  # noqa: ANN202
-            def cb(msg: DiagnosticArray) -> None:
-                values = stats_values(msg)
-                self.stats[name] = values
-                with self._lock:
-                    self.timeline.append({"t_s": round(time.monotonic() - self._t0, 2), "node": name, **values})
-            return cb
-
-        def on_done(msg: Bool) -> None:
-            self.source_ok = bool(msg.data)
-            self.done.set()
-
-        self.node.create_subscription(Bool, "memgs/player/done", on_done, qos.latched())
-        def on_keyframe(msg: PoseStamped) -> None:
-            with self._lock:
-                self.keyframes.append((stamp_to_ns(msg.header.stamp), pose_to_matrix(msg.pose)))
-
-        def on_path(raw: bytes) -> None:
-            # The whole path (up to the tracker's path_max_len poses) comes once a second; decoding
-            # it is Python work per pose (at 10000 poses most of a core, and the poses the runner
-            # then missed). A pose leaves the path's window only after minutes: decode one message
-            # every _PATH_DECODE_PERIOD_S, and the newest when the run ends (corrected_poses).
-            now = time.monotonic()
-            with self._lock:
-                self._path_raw = raw
-                if now - self._path_decoded_t < _PATH_DECODE_PERIOD_S:
-                    return
-                self._path_decoded_t = now
-            self.corrected_poses()
-
-        self.node.create_subscription(PoseStamped, "memgs/pose", on_pose, qos.reliable(1000))
-        self.node.create_subscription(NavPath, "memgs/path", on_path, qos.reliable(5), raw=True)
-        self.node.create_subscription(PoseStamped, "memgs/keyframe/pose", on_keyframe, qos.reliable(1000))
-        for name in _STATS_NODES:
-            self.node.create_subscription(DiagnosticArray, f"memgs/{name}/stats", stats_cb(name), qos.reliable(5))
-
-        self.maps: dict[str, Any] = {}
-        self.render: Any = None
-        self.node.create_subscription(PointCloud2, "memgs/mapper/snapshot",
-                                      lambda m: self.maps.__setitem__("mapper", m), qos.latched())
-        self.node.create_subscription(PointCloud2, "memgs/map/gaussians",
-                                      lambda m: self.maps.__setitem__("merger", m), qos.latched())
-        self.node.create_subscription(Image, "memgs/render/color", lambda m: setattr(self, "render", m),
-                                      qos.reliable(2))
-        self.view_request = self.node.create_publisher(PoseStamped, "memgs/render/view_pose", qos.reliable(5))
-        self.finish_client = self.node.create_client(Trigger, "memgs/mapper/finish")
-        self.snapshot_client = self.node.create_client(Trigger, "memgs/mapper/publish_snapshot")
-        self.publish_map_client = self.node.create_client(Trigger, "memgs/merger/publish_map")
-        self.save_client = self.node.create_client(Trigger, "memgs/save_map")
-        self._trigger = Trigger
-
-    def corrected_poses(self) -> dict[int, np.ndarray]:
-        """stamp (ns) -> T_wc of every pose memgs/path has corrected so far, the newest path decoded."""
-        with self._lock:
-            raw, self._path_raw = self._path_raw, None
-        if raw is not None:
-            msg = deserialize_message(raw, NavPath)
-            poses = {stamp_to_ns(p.header.stamp): pose_to_matrix(p.pose) for p in msg.poses}
-            with self._lock:
-                self.corrected.update(poses)
-        with self._lock:
-            return dict(self.corrected)
-
-    def call(self, client: Any, timeout_s: float) -> str:
-        """Call a Trigger service and return its message; PipelineError if it fails."""
-        if not client.wait_for_service(timeout_sec=min(timeout_s, 30.0)):
-            raise PipelineError(f"service {client.srv_name} is not available")
-        future = client.call_async(self._trigger.Request())
-        end = time.monotonic() + timeout_s
-        while not future.done():
-            if time.monotonic() > end:
-                raise PipelineError(f"service {client.srv_name} did not answer within {timeout_s:.0f} s")
-            time.sleep(0.05)
-        res = future.result()
-        if not res.success:
-            raise PipelineError(f"service {client.srv_name} failed: {res.message}")
-        return res.message
-
-    def heard(self, node: str) -> bool:
-        """Whether ``node`` has published its stats at least once."""
-        return node in self.stats
-
-    def telemetry(self, node: str) -> Any:  # noqa: ANN401 - the node's record (core/runtime/telemetry.py)
-        """``node``'s latest stats as its typed record (its defaults before the first message); a
-        key the record does not name is a StatsError, not a figure silently read as 0."""
-        values = self.stats.get(node, {})
-        cached = self._parsed.get(node)
-        if cached is None or cached[0] is not values:
-            cached = (values, parse_stats(TELEMETRY[node], values))
-            self._parsed[node] = cached
-        return cached[1]
 
 
 def run_pipeline(options: RunOptions, progress: bool = True) -> RunSummary:
@@ -240,11 +106,11 @@ def _run_pipeline(options: RunOptions, progress: bool) -> RunSummary:
     executor: Executor = SingleThreadedExecutor(context=context)
     procs: NodeProcesses | None = None
     in_process: list[Any] = []
-    observer: _Observer | None = None
+    observer: GraphObserver | None = None
     spin: threading.Thread | None = None
     t0 = time.monotonic()
     try:
-        observer = _Observer(context)
+        observer = GraphObserver(context)
         executor.add_node(observer.node)
         if options.composed:
             spin = _start_composed(options, observer, executor, context, in_process, t0)
@@ -282,7 +148,7 @@ def _graph_names(options: RunOptions) -> tuple[tuple[str, ...], tuple[str, ...]]
     return graph, (("recorder",) if options.record is not None else ())
 
 
-def _start_composed(options: RunOptions, observer: _Observer, executor: Executor, context: Any,
+def _start_composed(options: RunOptions, observer: GraphObserver, executor: Executor, context: Any,
                     in_process: list[Any], t0: float) -> threading.Thread:
     """The nodes as components on this process's executor; the player once the graph is warm."""
     graph, recording = _graph_names(options)
@@ -309,7 +175,7 @@ def _node_env(domain: int) -> dict[str, str]:
     return env
 
 
-def _start_processes(options: RunOptions, observer: _Observer, params: dict[str, Any], params_file: Path,
+def _start_processes(options: RunOptions, observer: GraphObserver, params: dict[str, Any], params_file: Path,
                      domain: int, out: Path, t0: float) -> NodeProcesses:
     """One process per node; the player once every node listens and has its kernels in. Nodes
     with a start delay are started by _drive's loop, counted from the start of the replay."""
@@ -324,7 +190,7 @@ def _start_processes(options: RunOptions, observer: _Observer, params: dict[str,
     for name in recording:  # beside the graph; it subscribes as it discovers their publishers
         procs.start(name)
     observer.bring_up_s = bring_up(observer.node, managed, procs.check, deadline)
-    _wait_for_graph(observer, procs, [n for n in graph if n not in delayed], deadline)
+    wait_for_graph(observer, procs, [n for n in graph if n not in delayed], deadline)
     if recording:
         topics = node_params(params).get("recorder", {}).get("topics", NODE_MODULES["recorder"].DEFAULT_TOPICS)
         _wait_for_recorder(observer, procs, topics, deadline)
@@ -335,7 +201,7 @@ def _start_processes(options: RunOptions, observer: _Observer, params: dict[str,
 
 
 def _stop_graph(procs: NodeProcesses | None, in_process: Sequence[Any], executor: Executor,
-                spin: threading.Thread | None, observer: _Observer | None, context: Any) -> None:
+                spin: threading.Thread | None, observer: GraphObserver | None, context: Any) -> None:
     """Stop the node processes (each saves what it holds) or the composed nodes, then the
     runner's own executor and context."""
     if procs is not None:
@@ -377,7 +243,7 @@ def _bounded(fn: Any, timeout_s: float, what: str) -> None:
         raise errors[0]
 
 
-def _wait_for_fresh_stats(obs: _Observer, names: Sequence[str], timeout_s: float = _STATS_ROUND_S) -> None:
+def _wait_for_fresh_stats(obs: GraphObserver, names: Sequence[str], timeout_s: float = _STATS_ROUND_S) -> None:
     """Wait for one more stats message from each of ``names`` (1 Hz each), at most ``timeout_s``
     (a node that is gone sends none)."""
     with obs._lock:
@@ -390,7 +256,7 @@ def _wait_for_fresh_stats(obs: _Observer, names: Sequence[str], timeout_s: float
         time.sleep(0.05)
 
 
-def _write_ended_summary(out: Path, options: RunOptions, obs: _Observer, err: BaseException, wall_s: float) -> None:
+def _write_ended_summary(out: Path, options: RunOptions, obs: GraphObserver, err: BaseException, wall_s: float) -> None:
     """A run that ends early still says what happened in ``summary.json``: how it ended (the one
     line the CLI prints) and what the graph had done by then. Best effort: the disk may be full,
     and nothing here may replace the error that ended the run."""
@@ -434,12 +300,7 @@ def _set_aside_previous_checkpoint(path: Path) -> None:
 
 
 # A topic each node publishes: once the observer sees it, DDS discovery reached that node.
-_READY_TOPICS = {"tracker": "memgs/pose", "keyframe_sampler": "memgs/keyframe/seeds",
-                 "mapper": "memgs/frame_ack", "merger": "memgs/map/gaussians",
-                 VIEW_NODE: f"memgs/{VIEW_NODE}/stats"}
-
-
-def _wait_for_recorder(obs: _Observer, procs: NodeProcesses, topics: Sequence[str], deadline: float) -> None:
+def _wait_for_recorder(obs: GraphObserver, procs: NodeProcesses, topics: Sequence[str], deadline: float) -> None:
     """Block until the recorder subscribes to every output topic whose publisher is up, so the
     first frame's pose is in the file (topics of nodes that start later it subscribes to later)."""
     ns = "/" + obs.node.get_namespace().strip("/")
@@ -456,22 +317,11 @@ def _wait_for_recorder(obs: _Observer, procs: NodeProcesses, topics: Sequence[st
     time.sleep(0.3)  # endpoint matching settles just after discovery, as for the graph
 
 
-def _wait_for_graph(obs: _Observer, procs: NodeProcesses, nodes: list[str], deadline: float) -> None:
-    """Block until every node in ``nodes`` is discovered, so the first frame reaches all of them."""
-    missing = list(nodes)
-    while missing:
-        procs.check()
-        if time.monotonic() > deadline:
-            raise PipelineError(f"nodes did not come up: {', '.join(missing)}")
-        missing = [n for n in missing if obs.node.count_publishers(_READY_TOPICS[n]) == 0]
-        time.sleep(0.1)
-    time.sleep(0.5)  # endpoint matching between the nodes themselves settles just after discovery
-
-
 _SLOW_WARM_UP_S = 5.0  # warm-ups from the kernel cache take ~1 s; longer means compiling
 
 
-def _wait_for_warm_graph(obs: _Observer, procs: NodeProcesses | None, nodes: Sequence[str], deadline: float) -> None:
+def _wait_for_warm_graph(obs: GraphObserver, procs: NodeProcesses | None, nodes: Sequence[str],
+                         deadline: float) -> None:
     """The player starts once every node has its compiled kernels in (stats ``kernels_warm``):
     from the kernel cache in about a second; on a fresh install they compile first (a minute on 2
     cores, which ``memgs doctor --warm`` does ahead). A frame played before that would be dropped
@@ -490,7 +340,7 @@ def _wait_for_warm_graph(obs: _Observer, procs: NodeProcesses | None, nodes: Seq
         time.sleep(0.05)
 
 
-def _has_state_to_lose(obs: _Observer, name: str) -> bool:
+def _has_state_to_lose(obs: GraphObserver, name: str) -> bool:
     """Whether killing ``name`` now tests its recovery: the mapper has written a checkpoint
     holding Gaussians (or never checkpoints, and has Gaussians), the merger has applied a delta.
     (A kill counted in seconds alone once hit a mapper that had not started mapping on a loaded
@@ -505,7 +355,7 @@ def _has_state_to_lose(obs: _Observer, name: str) -> bool:
     return True
 
 
-def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out: Path, t0: float,
+def _drive(obs: GraphObserver, options: RunOptions, procs: NodeProcesses | None, out: Path, t0: float,
            progress: bool) -> RunSummary:
     """Wait for the end of the source, finish the mapper, sync the merger, save, summarise."""
     end = t0 + options.timeout_s
@@ -520,7 +370,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
     final = MapAnswer.parse(obs.call(obs.finish_client, max(60.0, end - time.monotonic())))
     final_seq, gaussians, epoch = final.seq, final.gaussians, final.epoch or 0
     _wait_for_merger(obs, procs, final_seq, epoch, end)
-    identical, max_diff = _compare_maps(obs, final_seq, epoch, end)
+    identical, max_diff = compare_maps(obs, final_seq, epoch, end)
     if options.rerun is not None:
         _wait_for_view(obs, procs, final_seq, epoch, end)
         if gaussians:  # an empty map has no view to show
@@ -561,7 +411,7 @@ def _drive(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, out
     return summary
 
 
-def _replay(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, end: float,
+def _replay(obs: GraphObserver, options: RunOptions, procs: NodeProcesses | None, end: float,
             progress: bool) -> dict[str, int]:
     """Until the player is done: the fault injection's kills and delayed starts, the nodes'
     health, the progress bar. Returns the restarts per node."""
@@ -603,7 +453,7 @@ def _replay(obs: _Observer, options: RunOptions, procs: NodeProcesses | None, en
     return restarts
 
 
-def _note_unfinished_source(obs: _Observer) -> None:
+def _note_unfinished_source(obs: GraphObserver) -> None:
     """The player exited 0 unheard: a source it stopped part-way (Ctrl-C exits 0 too) is not done."""
     player = obs.telemetry("player")
     total, played = player.frames_total, player.frames_published
@@ -612,7 +462,7 @@ def _note_unfinished_source(obs: _Observer) -> None:
         obs.source_ok = False
 
 
-def _wait_for_merger(obs: _Observer, procs: NodeProcesses | None, final_seq: int, epoch: int, end: float) -> None:
+def _wait_for_merger(obs: GraphObserver, procs: NodeProcesses | None, final_seq: int, epoch: int, end: float) -> None:
     """Until the merger holds the mapper's final delta of ``epoch``, resynchronised."""
     while (not obs.heard("merger") or (merger := obs.telemetry("merger")).seq < final_seq
            or merger.resyncing > 0 or merger.epoch != epoch):
@@ -623,7 +473,7 @@ def _wait_for_merger(obs: _Observer, procs: NodeProcesses | None, final_seq: int
         time.sleep(0.1)
 
 
-def _write_trajectories(obs: _Observer, out: Path) -> int:
+def _write_trajectories(obs: GraphObserver, out: Path) -> int:
     """trajectory.txt, keyframes.txt and stats_timeline.jsonl; the number of poses."""
     corrected = obs.corrected_poses()
     with obs._lock:
@@ -637,7 +487,7 @@ def _write_trajectories(obs: _Observer, out: Path) -> int:
     return len(traj)
 
 
-def _mapper_figures(obs: _Observer, composed: bool) -> dict[str, Any]:
+def _mapper_figures(obs: GraphObserver, composed: bool) -> dict[str, Any]:
     """The mapper's keyframe and iteration figures and the graph's memory, for RunSummary."""
     mapper = obs.telemetry("mapper")
 
@@ -658,12 +508,12 @@ def _mapper_figures(obs: _Observer, composed: bool) -> dict[str, Any]:
             "cuda_peak_by_work_mb": dict(mapper.cuda_peak_mb)}
 
 
-def _cpu_times(obs: _Observer, procs: NodeProcesses | None) -> dict[str, float]:
+def _cpu_times(obs: GraphObserver, procs: NodeProcesses | None) -> dict[str, float]:
     """CPU seconds of each node process so far (from its last stats) and of this runner; in one
     process (``--composed``) the process's total."""
     if procs is None:
         return {"all nodes": round(time.process_time(), 2)}
-    cpu = {n: obs.telemetry(n).cpu_s for n in _STATS_NODES}
+    cpu = {n: obs.telemetry(n).cpu_s for n in STATS_NODES}
     return {**{n: s for n, s in cpu.items() if s > 0}, "runner": round(time.process_time(), 2)}
 
 
@@ -686,7 +536,7 @@ def _player_ended_unheard(procs: NodeProcesses) -> bool:
     return True
 
 
-def _show_progress(bar: tqdm, obs: _Observer) -> None:
+def _show_progress(bar: tqdm, obs: GraphObserver) -> None:
     """Frames the player published out of its total, with keyframes and Gaussians beside them."""
     player = obs.telemetry("player")
     if player.frames_total and bar.total != player.frames_total:
@@ -697,31 +547,7 @@ def _show_progress(bar: tqdm, obs: _Observer) -> None:
                     refresh=False)
 
 
-def _compare_maps(obs: _Observer, final_seq: int, epoch: int, end: float) -> tuple[bool, float]:
-    """Ask mapper and merger for their whole maps at ``final_seq`` of ``epoch`` and compare them."""
-
-    obs.maps.clear()
-    obs.call(obs.snapshot_client, 120.0)
-    obs.call(obs.publish_map_client, 120.0)
-    decoded: dict[str, Any] = {}
-    while len(decoded) < 2:
-        for name, msg in list(obs.maps.items()):
-            m = decode(pointcloud2_to_structured(msg))
-            if m.seq >= final_seq and m.epoch == epoch:
-                decoded[name] = m
-        if time.monotonic() > end:
-            raise PipelineError("mapper and merger maps did not arrive for the final comparison")
-        time.sleep(0.05)
-    a = decoded["mapper"].upserts.select(np.argsort(decoded["mapper"].upserts.ids))
-    b = decoded["merger"].upserts.select(np.argsort(decoded["merger"].upserts.ids))
-    if len(a) != len(b) or not np.array_equal(a.ids, b.ids):
-        return False, float("inf")
-    diff = max((float(np.abs(getattr(a, f) - getattr(b, f)).max(initial=0.0))
-                for f in ("xyz", "f_dc", "f_rest", "opacity", "scale", "rot")), default=0.0)
-    return diff <= 1e-6, diff
-
-
-def _wait_for_view(obs: _Observer, procs: NodeProcesses | None, final_seq: int, epoch: int, end: float) -> None:
+def _wait_for_view(obs: GraphObserver, procs: NodeProcesses | None, final_seq: int, epoch: int, end: float) -> None:
     """Wait until the rerun_bridge has logged the final map (the one _compare_maps had the merger
     publish), so the recording ends with the saved map before the nodes are stopped."""
     while (view := obs.telemetry(VIEW_NODE)).map_seq < final_seq or view.map_epoch != epoch:
@@ -732,7 +558,7 @@ def _wait_for_view(obs: _Observer, procs: NodeProcesses | None, final_seq: int, 
         time.sleep(0.1)
 
 
-def _wait_for_final_render(obs: _Observer, procs: NodeProcesses | None, end: float) -> None:
+def _wait_for_final_render(obs: GraphObserver, procs: NodeProcesses | None, end: float) -> None:
     """Have the mapper render the final map at the last pose and wait until the Rerun view has
     logged it, so the recording ends with a view of the saved map: the live render's next tick may
     come after the nodes are stopped (a recording ended on a view 100 iterations old). A view that

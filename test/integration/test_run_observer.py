@@ -12,7 +12,7 @@ from nav_msgs.msg import Path as NavPath  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
-from memgs_ros.orchestration.pipeline import _Observer  # noqa: E402
+from memgs_ros.orchestration.graph_watch import GraphObserver  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
 from memgs_ros.ros.codecs import matrix_to_pose_stamped  # noqa: E402
 
@@ -35,7 +35,7 @@ def _translation(x: float) -> np.ndarray:
 def test_the_newest_path_is_decoded_at_the_end_and_older_corrections_kept(context) -> None:
     """The first path is decoded as it comes; a second within the decode period waits, serialized,
     until corrected_poses() (the run's end); poses that left the path keep their last correction."""
-    obs = _Observer(context)
+    obs = GraphObserver(context)
     talker = Node("path_talker", context=context)
     pub = talker.create_publisher(NavPath, "memgs/path", qos.reliable(5))
     executor = SingleThreadedExecutor(context=context)

@@ -213,9 +213,10 @@ def test_a_player_that_ended_cleanly_ends_the_replay_even_if_its_done_message_wa
 def test_a_kill_waits_until_the_node_has_state_to_lose() -> None:
     """Fault injection kills a mapper only once a checkpoint holds Gaussians (or, never
     checkpointing, once it maps), and a merger once it applied a delta; other nodes at once."""
-    from memgs_ros.orchestration.pipeline import _has_state_to_lose, _Observer
+    from memgs_ros.orchestration.graph_watch import GraphObserver
+    from memgs_ros.orchestration.pipeline import _has_state_to_lose
 
-    obs = _Observer.__new__(_Observer)  # the stats table alone, no rclpy node
+    obs = GraphObserver.__new__(GraphObserver)  # the stats table alone, no rclpy node
     obs.stats, obs._parsed = {}, {}  # each message's values are replaced whole, as the callback does
     assert not _has_state_to_lose(obs, "mapper")  # no stats from it yet
     obs.stats["mapper"] = {"checkpoint_period_s": "1.0", "gaussians": "5000", "checkpoint_gaussians": "0"}

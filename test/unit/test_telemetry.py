@@ -62,8 +62,8 @@ def test_the_mapping_sessions_gauges_and_counters_are_mapper_fields() -> None:
 
 
 def test_every_node_the_runner_watches_has_a_record() -> None:
-    from memgs_ros.orchestration.pipeline import _STATS_NODES
-    assert set(_STATS_NODES) <= set(TELEMETRY)
+    from memgs_ros.orchestration.graph_watch import STATS_NODES
+    assert set(STATS_NODES) <= set(TELEMETRY)
 
 
 def test_the_stats_keys_read_from_a_saved_timeline_are_record_fields() -> None:

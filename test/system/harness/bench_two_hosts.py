@@ -6,7 +6,7 @@ ends by ``tc ... tbf rate R`` (a telemetry radio). The ground station is a node 
 that does what ``memgs run``'s observer does, from the ground: it watches every node's stats,
 views the mapper's live render (``memgs/render/color``), finishes the mapper at the end of the
 source, waits for the merger to hold the final map and compares the two maps
-(``hooks.compare_maps``). DDS discovery is Fast DDS's own multicast, which crosses the veth.
+(``graph_watch.compare_maps``). DDS discovery is Fast DDS's own multicast, which crosses the veth.
 
 Measured: map-delta bytes (the merger's ``delta_bytes``) against the link rate, mean and peak
 (1 s); every byte on the wire from air to ground (the ground veth's counters); the time from the
@@ -59,7 +59,8 @@ from memgs_ros.core.runtime.cpu import MALLOC_ARENAS, PARENT_PID_ENV, die_with_p
 from memgs_ros.errors import MemgsError, PipelineError
 from memgs_ros.nodes.bag_player.node import LINGER_S
 from memgs_ros.nodes.registry import GRAPH, NODES
-from memgs_ros.orchestration.hooks import compare_maps, parse_map_answer, wait_for_graph
+from memgs_ros.core.maps.answers import MapAnswer
+from memgs_ros.orchestration.graph_watch import compare_maps, wait_for_graph
 from memgs_ros.orchestration.processes import (
     NodeProcesses,
     open_context,
@@ -424,7 +425,7 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
             procs.check()  # the player ended without its done message: only exit 0 is the source's end
         procs.player_reported = True
         t_finish = time.monotonic()
-        final = parse_map_answer(gs.call(gs.finish_client, max(60.0, end - time.monotonic())))
+        final = MapAnswer.parse(gs.call(gs.finish_client, max(60.0, end - time.monotonic())))
         t_finished = time.monotonic()
         final_seq, epoch = final.seq, final.epoch or 0
         while (t_conv := gs.converged_at(final_seq, epoch)) is None:
