@@ -20,12 +20,13 @@ logged once per kind, and skipped; topics nobody asked for (``/cortex_marker_arr
 from __future__ import annotations
 
 import logging
+import os
 from collections import defaultdict
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import numpy as np
 
@@ -195,7 +196,7 @@ def discover_topics(reader: Any, topics: BagTopics, with_depth: bool, where: str
             fields["rgb_info"] = sibling
         elif len(infos) == 1:
             fields["rgb_info"] = infos[0]
-    out = replace(topics, **fields)
+    out = replace(topics, **cast("dict[str, Any]", fields))  # topic names: str fields only
     if not chosen:
         return out, (f"{where}: camera_info {out.rgb_info}" if out.rgb_info != topics.rgb_info else "")
     line = "; ".join(f"{name} {chosen[key][0]} ({chosen[key][1]})"
@@ -261,7 +262,8 @@ class BagSource:
     or frame is skipped and counted in ``skipped`` by kind (``strict``: DataError instead).
     """
 
-    def __init__(self, path: str | Path, topics: BagTopics = BagTopics(), camera: PinholeCamera | None = None,
+    def __init__(self, path: str | os.PathLike[str], topics: BagTopics = BagTopics(),
+                 camera: PinholeCamera | None = None,
                  max_dt_s: float = 0.02, depth_scale: float = DEFAULT_DEPTH_SCALE, with_depth: bool = True,
                  gt_max_gap_s: float = 0.1, max_frames: int | None = None, strict: bool = False) -> None:
         self.path = Path(path)

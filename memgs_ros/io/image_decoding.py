@@ -331,7 +331,7 @@ def _holds_float_metres(msg: Any) -> bool:
     with np.errstate(invalid="ignore"):
         finite = np.isfinite(f) & (f != 0)
         plausible = int(np.count_nonzero(finite & (f > 0.05) & (f < 50.0)))
-    return plausible > 0 and plausible >= 0.9 * np.count_nonzero(finite)
+    return bool(plausible > 0 and plausible >= 0.9 * np.count_nonzero(finite))
 
 
 # --------------------------------------------------------------------------- camera info

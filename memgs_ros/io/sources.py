@@ -22,7 +22,7 @@ from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.bag_reader import BagSource, BagTopics
 from memgs_ros.io.frame_source import FrameSource as FrameSource  # the readers' protocol, here too
 from memgs_ros.io.image_decoding import DEFAULT_DEPTH_SCALE
-from memgs_ros.io.repeat import RepeatedSource
+from memgs_ros.io.repeat import PlannedSource, RepeatedSource
 from memgs_ros.io.synthetic import (
     SyntheticScene,
     SyntheticSpec,
@@ -123,7 +123,7 @@ def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = Non
         s = parse_spec(str(spec))
         if max_frames is not None and s.laps == 1 and max_frames < s.n_frames:
             s = replace(s, n_frames=max_frames)
-        source: FrameSource = SyntheticSource(s, with_depth=with_depth, max_frames=max_frames)
+        source: PlannedSource = SyntheticSource(s, with_depth=with_depth, max_frames=max_frames)
     elif kind == "tum":
         source = TumFolder(spec, camera=camera, depth_factor=depth_factor, max_dt_s=max_dt_s, with_depth=with_depth,
                            max_frames=max_frames, default_camera=default_camera, strict=strict, raw_depth=raw_depth)

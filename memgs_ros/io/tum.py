@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -94,7 +95,7 @@ def read_file_list(path: str | Path) -> tuple[np.ndarray, list[str]]:
     return np.asarray(stamps, dtype=np.int64)[order], [names[i] for i in order]
 
 
-def read_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+def read_trajectory(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     """groundtruth.txt (or any TUM trajectory) -> (stamps_ns [M] int64 increasing, T_wc [M, 4, 4])."""
     path = Path(path)
     stamps: list[int] = []
@@ -208,7 +209,8 @@ class TumFolder:
     factor per metre) instead of float metres, for a player that publishes it as 16UC1 unchanged.
     """
 
-    def __init__(self, path: str | Path, camera: PinholeCamera | None = None, depth_factor: float | None = None,
+    def __init__(self, path: str | os.PathLike[str], camera: PinholeCamera | None = None,
+                 depth_factor: float | None = None,
                  max_dt_s: float = 0.02, with_depth: bool = True, gt_max_gap_s: float = 0.1,
                  max_frames: int | None = None, default_camera: PinholeCamera | None = None,
                  strict: bool = False, raw_depth: bool = False) -> None:

@@ -357,8 +357,10 @@ def structured_to_pointcloud2(arr: np.ndarray, stamp_ns: int, frame_id: str) -> 
     fields: list[PointField] = []
     names = set(a.dtype.names)
     le_fields: dict[str, tuple] = {}
+    dtype_fields = a.dtype.fields
+    assert dtype_fields is not None  # a structured array (names checked above)
     for name in a.dtype.names:
-        ftype, offset = a.dtype.fields[name][:2]
+        ftype, offset = dtype_fields[name][:2]
         base, shape = ftype.base, ftype.shape
         count = int(np.prod(shape)) if shape else 1
         le_fields[name] = (base.newbyteorder("<") if base.itemsize > 1 else base, shape, offset)

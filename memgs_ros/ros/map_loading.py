@@ -49,7 +49,11 @@ def set_aside_checkpoint(path: str) -> Callable[[], Callable[[], None]]:
             return lambda: None
         aside = p.with_name(f"{p.name}.before-load-{int(time.time())}")
         p.replace(aside)
-        return lambda: aside.replace(p)
+
+        def undo() -> None:
+            aside.replace(p)
+
+        return undo
     return prepare
 
 

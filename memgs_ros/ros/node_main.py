@@ -75,8 +75,9 @@ def run_nodes(factories: Sequence[Callable[[], Node]], name: str, args: Sequence
             return code  # Ctrl-C / SIGTERM arrived while the nodes were still being built
         for node in nodes:
             check_declared(node)  # a misspelt parameter would otherwise run silently on its default
-        if lower_process and nodes and getattr(nodes[0], "niceness", 0):
-            lower_priority(int(getattr(nodes[0], "niceness", 0)))
+        niceness = int(getattr(nodes[0], "niceness", 0) or 0) if nodes else 0  # a node's own parameter
+        if lower_process and niceness:
+            lower_priority(niceness)
         for node in nodes:
             executor.add_node(node)
         settle_heap()  # started: no full garbage-collector pass over the imports mid-run

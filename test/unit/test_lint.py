@@ -1,5 +1,5 @@
 """Lint as a habit: ruff with the rules in pyproject.toml finds nothing in memgs_ros/, and mypy
-finds nothing in memgs_ros/core (the test extra installs both, pinned)."""
+finds nothing in what a node runs: memgs_ros/core, io, ros and nodes (the test extra installs both, pinned)."""
 from __future__ import annotations
 
 import subprocess
@@ -18,6 +18,7 @@ def test_ruff_finds_nothing() -> None:
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-2000:]
 
 
-def test_mypy_core_is_clean() -> None:
-    r = _run("mypy", "memgs_ros/core")
+def test_mypy_finds_nothing_in_what_a_node_runs() -> None:
+    """core/, io/, ros/ and nodes/: a node's code, so a renamed field or config is caught here."""
+    r = _run("mypy", "memgs_ros/core", "memgs_ros/io", "memgs_ros/ros", "memgs_ros/nodes")
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-2000:]

@@ -12,7 +12,7 @@ go to the mapper (``memgs/keyframe/refined_poses``).
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -75,7 +75,7 @@ class AnchoredPath:
         if heirs:
             self._ref = [heirs.get(r, r) for r in self._ref]
 
-    def update(self, result: TrackResult, corrections: list[Mapping[int, np.ndarray]]) -> set[int]:
+    def update(self, result: TrackResult, corrections: Sequence[Mapping[int, np.ndarray]]) -> set[int]:
         """The loop corrections committed during ``track()`` (oldest first), then the frame;
         returns the keyframes whose earlier frames moved."""
         moved: set[int] = set()

@@ -33,6 +33,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Iterable
+from typing import Any
 
 from rclpy.node import Node
 from rclpy.task import Future
@@ -70,7 +71,7 @@ class BagPlayer(Node):
     """Replays ``frames`` (or ``open_source(source)`` when None); ``finished`` completes at the end
     (True: every frame was played)."""
 
-    def __init__(self, frames: Iterable[Frame] | None = None, **node_kwargs: object) -> None:
+    def __init__(self, frames: Iterable[Frame] | None = None, **node_kwargs: Any) -> None:  # rclpy Node kwargs
         super().__init__("bag_player", **node_kwargs)
         self.cfg = cfg = declare_config(self, BagPlayerParams, "")
         frames = self._open(declare_calibration(self), frames)  # the camera of a TUM folder that names none

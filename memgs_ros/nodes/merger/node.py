@@ -83,7 +83,7 @@ class MergerNode(ManagedNode):
         # The map's deltas need no compiled code; the renders on request load theirs when first asked.
         self.stats.gauges["kernels_warm"] = 1
         self._saved_version: tuple[int, int] | None = None  # (epoch, seq) of the map saved and published
-        self._published_version = self._saved_version
+        self._published_version: tuple[int, int] | None = self._saved_version
         self.pub_map = self.create_publisher(PointCloud2, "memgs/map/gaussians", qos.latched())
         self.pub_points = self.create_publisher(PointCloud2, "memgs/map/points", qos.latched())
         self.views = ViewOutbox(self, self.stats, "memgs/merger/render", render_camera)

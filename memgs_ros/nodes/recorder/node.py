@@ -95,7 +95,7 @@ def _bag_qos(profile: QoSProfile) -> Any:
 class RecorderNode(Node):
     """Records ``topics`` into ``path`` (module docstring); the file is finished by :meth:`close`."""
 
-    def __init__(self, **node_kwargs: object) -> None:
+    def __init__(self, **node_kwargs: Any) -> None:  # rclpy Node's keyword arguments
         # The type store is the slow part of starting (rosbags builds it): load it before the node
         # shows in the graph, so whoever sees the node sees it ready moments later.
         typestore = ros2_typestore()

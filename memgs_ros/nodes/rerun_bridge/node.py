@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import sys
 from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path as FsPath
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -58,7 +60,7 @@ CONFIGS = NODE_CONFIGS["rerun_bridge"]
 
 
 class RerunBridgeNode(Node):
-    def __init__(self, **node_kwargs: object) -> None:
+    def __init__(self, **node_kwargs: Any) -> None:  # rclpy Node's keyword arguments
         super().__init__("rerun_bridge", **node_kwargs)
         v = declare_config(self, RerunBridgeParams, "")
         self.stats_keys: set[str] | None = (None if v.stats_keys.strip() == "*"
@@ -95,8 +97,7 @@ class RerunBridgeNode(Node):
         self.create_subscription(PointCloud2, "memgs/mapper/snapshot", self.on_full_map, qos.latched())
         self.create_subscription(PointCloud2, "memgs/map/gaussians", self.on_full_map, qos.latched())
         for node in STATS_NODES:
-            self.create_subscription(DiagnosticArray, f"memgs/{node}/stats",
-                                     lambda m, n=node: self.on_stats(n, m), qos.reliable(5))
+            self.create_subscription(DiagnosticArray, f"memgs/{node}/stats", self._stats_of(node), qos.reliable(5))
         # Last: the runner takes memgs/rerun_bridge/stats appearing to mean the node listens.
         self.stats = NodeStats(self, "rerun_bridge")
         self.view = LiveView(rerun_log, rec, self.stats.counters, v.frustum_size_m, v.jpeg_quality, v.log_sh,
@@ -172,6 +173,9 @@ class RerunBridgeNode(Node):
         self.view.map(self.map.replica.records)
         self.logged_version = epoch, seq, n = self.map.version
         self.stats.gauges.update(map_epoch=epoch, map_seq=seq, map_gaussians=n)
+
+    def _stats_of(self, node: str) -> Callable[[DiagnosticArray], None]:
+        return lambda m: self.on_stats(node, m)
 
     def on_stats(self, node: str, msg: DiagnosticArray) -> None:
         numbers = self.view.log.numeric_values(stats_values(msg), self.stats_keys)

@@ -5,7 +5,7 @@ refined and loop-corrected poses of earlier keyframes."""
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -53,7 +53,7 @@ class CorrectedPath:
         self._stale: set[int] = set()  # keyframes moved since the last message
         self._changed = False
 
-    def add(self, result: TrackResult, pose: PoseStamped | None, loops: list[Mapping[int, np.ndarray]],
+    def add(self, result: TrackResult, pose: PoseStamped | None, loops: Sequence[Mapping[int, np.ndarray]],
             heirs: Mapping[int, int] | None = None) -> None:
         """A tracked frame (``pose``: its published pose, None when lost) after the loop
         corrections committed while it was tracked; ``heirs``: {culled keyframe: heir} since the last."""
@@ -185,7 +185,7 @@ class TrackerOutbox:
         # The mount is settled before the first body pose goes out (map is anchored by it): the
         # parameters', or TF's where the robot publishes the camera (waited for camera_mount_wait_s).
         self.mount_settled = self.tf is None or not self.tf.available or self.tf.statics is None
-        self._mount_wait_ns, self._mount_asked_ns = int(params.camera_mount_wait_s * 1e9), None
+        self._mount_wait_ns, self._mount_asked_ns = int(params.camera_mount_wait_s * 1e9), 0  # 0: not asked yet
         self._log = node.get_logger()
         self._frame_cpu_ms = stats.computed["frame_cpu_ms_median"] = RollingMedian()  # message in to pose out
         self._frame_ms = stats.computed["frame_ms_median"] = RollingMedian()  # wall: a lockstep frame's share
@@ -212,7 +212,7 @@ class TrackerOutbox:
 
     def frame(self, result: TrackResult, camera: PinholeCamera, color: Image, depth: Image | None,
               refined: list[tuple[int, np.ndarray]], corrected: list[tuple[int, np.ndarray]],
-              loops: list[Mapping[int, np.ndarray]], culled: list[tuple[int, int, np.ndarray]] = ()) -> None:
+              loops: Sequence[Mapping[int, np.ndarray]], culled: Sequence[tuple[int, int, np.ndarray]] = ()) -> None:
         """A tracked frame: its state, pose and odometry (when not lost), its keyframe messages,
         the keyframe poses that moved meanwhile (``refined`` by local BA, ``corrected`` by a loop
         closure; ``loops``: the closures' world-frame corrections), the keyframes culling removed
