@@ -209,12 +209,11 @@ class TrackerNode(ManagedNode):
 
     def _handle(self, color: Image, depth: Image | None) -> None:
         cpu0, wall0 = time.thread_time(), time.perf_counter()  # this thread's CPU: the frame path alone
-        if self.compressed:
-            images = decompressed(color, depth, self.params.depth_scale, self.stats)
-            if images is None:
-                self.out.processed(stamp_to_ns(color.header.stamp))  # refused, counted
-                return
-            color, depth = images
+        images = decompressed(color, depth, self.params.depth_scale, self.stats) if self.compressed else (color, depth)
+        if images is None:
+            self.out.processed(stamp_to_ns(color.header.stamp))  # refused, counted
+            return
+        color, depth = images
         if not self._ready_camera(color, depth):
             return
         self.stats.counters["frames_in"] += 1
