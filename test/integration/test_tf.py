@@ -236,7 +236,7 @@ def test_odometry_from_tf_is_interpolated_to_the_frame_and_never_extrapolated() 
     broken.transform.translation.x = float("nan")  # another node's bad message: skipped, no crash
     track.add(SimpleNamespace(transforms=[tf(1_000_000_000, 0.0, 0.0), tf(1_100_000_000, 1.0, 0.2),
                                           tf(1_050_000_000, 9.0, 0.0, parent="map"), broken]))  # map: ignored
-    assert len(track.stamps) == 2
+    assert len(track.window.stamps) == 2
     mid = track.at(1_050_000_000, 10_000_000)
     assert np.allclose(mid[:3, 3], [0.5, 0, 0]) and np.allclose(rotmat_to_rotvec(mid[:3, :3]), [0, 0, 0.1])
     assert np.allclose(track.at(1_120_000_000, 30_000_000)[:3, 3], [1.0, 0, 0])  # nearest, within tolerance

@@ -14,8 +14,6 @@ memgs_ros.ros.tf2_msgs_build`` generates it. Without it the node says so once an
 """
 from __future__ import annotations
 
-import bisect
-from collections import deque
 from typing import Any
 
 import numpy as np
@@ -24,11 +22,9 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from memgs_ros.core.geometry.frames import FrameConvention
-from memgs_ros.core.geometry.poses import interpolate_poses
+from memgs_ros.core.geometry.transform_buffers import PoseWindow, StaticFrames
 from memgs_ros.errors import MessageError
 from memgs_ros.ros.codecs import pose_fields_to_matrix, set_pose_fields, set_stamp, stamp_to_ns
-
-MAX_ODOM_GAP_S = 0.5  # odometry further apart than this is not interpolated across
 
 __all__ = ["OdomTrack", "StaticTree", "TfOutbox", "tf_message_type", "tf_qos", "tf_static_qos"]
 
@@ -72,69 +68,30 @@ def _matrix(tf: Transform) -> np.ndarray | None:
 
 
 class OdomTrack:
-    """The latest ``odom -> base`` transforms seen on ``/tf`` (a bounded, stamp-ordered window)."""
+    """The ``odom -> base`` transforms seen on ``/tf``, in a ``PoseWindow``."""
 
     def __init__(self, odom_frame: str, base_frame: str, window: int = 400) -> None:
         self.odom_frame, self.base_frame = odom_frame, base_frame
-        self.stamps: deque[int] = deque(maxlen=window)
-        self.poses: deque[np.ndarray] = deque(maxlen=window)
+        self.window = PoseWindow(window)
 
     def add(self, msg: Any) -> None:
         for t in msg.transforms:
-            if t.header.frame_id.lstrip("/") == self.odom_frame and t.child_frame_id.lstrip("/") == self.base_frame:
-                if (T := _matrix(t.transform)) is None:
-                    continue
-                stamp = stamp_to_ns(t.header.stamp)
-                if self.stamps and stamp <= self.stamps[-1]:
-                    if stamp < self.stamps[-1]:  # time went back (a bag looped): start over
-                        self.stamps.clear()
-                        self.poses.clear()
-                    else:
-                        continue
-                self.stamps.append(stamp)
-                self.poses.append(T)
+            ours = t.header.frame_id.lstrip("/") == self.odom_frame and t.child_frame_id.lstrip("/") == self.base_frame
+            if ours and (T := _matrix(t.transform)) is not None:
+                self.window.add(stamp_to_ns(t.header.stamp), T)
 
     def at(self, stamp_ns: int, tolerance_ns: int) -> np.ndarray | None:
-        """``T_odom_base`` at ``stamp_ns``: interpolated between the two transforms around it (at
-        most ``MAX_ODOM_GAP_S`` apart), else the nearest if it lies within ``tolerance_ns`` (no
-        extrapolation past that); None otherwise."""
-        if not self.stamps:
-            return None
-        stamps = list(self.stamps)
-        i = bisect.bisect_left(stamps, stamp_ns)
-        if 0 < i < len(stamps):
-            pair, valid = interpolate_poses(np.array(stamps[i - 1:i + 1]), np.stack([self.poses[i - 1], self.poses[i]]),
-                                            np.array([stamp_ns]), max_gap_ns=int(MAX_ODOM_GAP_S * 1e9))
-            if valid[0]:
-                return pair[0]
-        best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp_ns))
-        return self.poses[best] if abs(stamps[best] - stamp_ns) <= tolerance_ns else None
+        """``T_odom_base`` at ``stamp_ns`` (``PoseWindow.at``)."""
+        return self.window.at(stamp_ns, tolerance_ns)
 
 
-class StaticTree:
-    """The static transforms seen on ``tf_static`` (child -> its parent and pose in it), chained on
-    lookup: the camera's mount as a robot description and the camera driver publish it
-    (``base_link -> camera_link -> camera_color_optical_frame``)."""
-
-    def __init__(self) -> None:
-        self.parents: dict[str, tuple[str, np.ndarray]] = {}
+class StaticTree(StaticFrames):
+    """The static transforms seen on ``tf_static`` (``StaticFrames``)."""
 
     def add(self, msg: Any) -> None:
         for t in msg.transforms:
             if (T := _matrix(t.transform)) is not None:
-                self.parents[t.child_frame_id.lstrip("/")] = (t.header.frame_id.lstrip("/"), T)
-
-    def lookup(self, parent: str, child: str) -> np.ndarray | None:
-        """``T_parent_child`` [4, 4] along the chain of static transforms, or None."""
-        T, frame = np.eye(4), child
-        for _ in range(64):  # a cycle or a broken chain ends the walk
-            if frame == parent:
-                return T
-            if frame not in self.parents:
-                return None
-            frame, T_up = self.parents[frame][0], self.parents[frame][1]
-            T = T_up @ T
-        return None
+                self.set(t.header.frame_id.lstrip("/"), t.child_frame_id.lstrip("/"), T)
 
 
 class TfOutbox:
