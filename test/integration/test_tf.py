@@ -280,7 +280,7 @@ def test_with_an_odom_frame_the_tracker_broadcasts_map_to_odom(context) -> None:
             t.header.frame_id, t.child_frame_id = "odom", "base_link"
             set_pose_fields(t.transform.translation, t.transform.rotation, T)
             pub.publish(TFMessage(transforms=[t]))
-            assert feed.spin_until(lambda s=f.stamp_ns: s in feed.node.out.tf.odom.stamps, 5.0)  # the tracker has it
+            assert feed.spin_until(lambda s=f.stamp_ns: s in feed.node.out.tf.odom.window.stamps, 5.0)  # the tracker has it
             feed.send(f.rgb, f.depth_m, f.stamp_ns)
         tracked = feed.node.stats.counters["tf_out"]
         assert tracked >= 5 and feed.node.stats.counters["tf_no_odom"] == 0
