@@ -52,15 +52,20 @@ def forward_back() -> tuple[list[Frame], int]:
     return fwd + back, len(fwd)
 
 
-def _track(frames: list[Frame], auto: bool) -> tuple[object, np.ndarray, list[int]]:
+def _track(frames: list[Frame], auto: bool) -> tuple[object, np.ndarray, list[int], list[int]]:
+    """ATE result, stamps of the posed frames, frames where the direction flipped, frames posed the
+    other way while the evidence built."""
     cfg = TrackerConfig(ba_threaded=False, rolling_shutter_readout_s=READOUT_S, rolling_shutter_auto_direction=auto)
     tracker = make_tracker(cfg, frames[0].camera)
-    est, stamps, flips = [], [], []
+    est, stamps, flips, held = [], [], [], []
     try:
         for k, f in enumerate(frames):
+            before = tracker.readout.held_other
             res = tracker.track(f)
             if tracker.readout.flips > len(flips):
                 flips.append(k)
+            if tracker.readout.held_other > before:
+                held.append(k)
             if res.T_wc is not None:
                 est.append(res.T_wc)
                 stamps.append(f.stamp_ns)
@@ -69,16 +74,18 @@ def _track(frames: list[Frame], auto: bool) -> tuple[object, np.ndarray, list[in
     gt_st = np.array([f.stamp_ns for f in frames])
     gt = np.array([f.T_wc_gt for f in frames])
     r = ate(np.array(stamps), np.array(est), gt_st, gt)
-    return r, np.array(stamps), flips
+    return r, np.array(stamps), flips, held
 
 
 def test_a_backward_pass_is_corrected_the_other_way(forward_back: tuple[list[Frame], int]) -> None:
     frames, n_fwd = forward_back
-    fixed, _, no_flips = _track(frames, auto=False)
-    auto, stamps, flips = _track(frames, auto=True)
-    assert no_flips == []
-    # Flipped once, soon after the turn, and never back.
+    fixed, _, no_flips, never = _track(frames, auto=False)
+    auto, stamps, flips, held = _track(frames, auto=True)
+    assert no_flips == [] and never == []
+    # Flipped once, soon after the turn, and never back; the frames before the flip that fit the
+    # other way better were posed that way.
     assert len(flips) == 1 and n_fwd <= flips[0] <= n_fwd + 15, flips
+    assert any(n_fwd <= k < flips[0] for k in held), (held, flips)
     back = stamps[auto.est_index] > frames[n_fwd].stamp_ns
     err_auto = float(np.sqrt(np.mean(auto.errors_m[back] ** 2)))
     back_f = stamps[fixed.est_index] > frames[n_fwd].stamp_ns
@@ -88,7 +95,7 @@ def test_a_backward_pass_is_corrected_the_other_way(forward_back: tuple[list[Fra
 
 def test_a_forward_sequence_keeps_its_direction(forward_back: tuple[list[Frame], int]) -> None:
     frames, n_fwd = forward_back
-    _, _, flips = _track(frames[:n_fwd], auto=True)
+    _, _, flips, _ = _track(frames[:n_fwd], auto=True)
     assert flips == []
 
 
