@@ -42,14 +42,17 @@ def _rolling_shutter_frames(spec: SyntheticSpec) -> list[Frame]:
 
 @pytest.fixture(scope="module")
 def forward_back() -> tuple[list[Frame], int]:
-    """120 frames forward, then the same frames backward on one clock (the turn shown once). The camera
-    turns at ~0.8 rad/s (skew up to 3.5 px) and moves slowly: the tracker corrects rotation only."""
+    """120 frames forward, then the same frames backward and forward again on one clock (two turns).
+    The camera turns at ~0.8 rad/s (skew up to 3.5 px) and moves slowly: the tracker corrects
+    rotation only."""
     spec = SyntheticSpec(width=320, height=240, n_frames=120, path_rot=1.0, path_amp=0.3, supersample=1)
     fwd = _rolling_shutter_frames(spec)
     dt = fwd[1].stamp_ns - fwd[0].stamp_ns
-    back = [Frame(fwd[-1].stamp_ns + dt * (i + 1), f.rgb, f.depth_m, f.camera, f.T_wc_gt)
-            for i, f in enumerate(reversed(fwd[:-1]))]
-    return fwd + back, len(fwd)
+    frames = list(fwd)
+    for seq in (list(reversed(fwd[:-1])), fwd[1:]):
+        frames += [Frame(frames[-1].stamp_ns + dt * (i + 1), f.rgb, f.depth_m, f.camera, f.T_wc_gt)
+                   for i, f in enumerate(seq)]
+    return frames, len(fwd)
 
 
 def _track(frames: list[Frame], auto: bool) -> tuple[object, np.ndarray, list[int], list[int]]:
@@ -79,13 +82,15 @@ def _track(frames: list[Frame], auto: bool) -> tuple[object, np.ndarray, list[in
 
 def test_a_backward_pass_is_corrected_the_other_way(forward_back: tuple[list[Frame], int]) -> None:
     frames, n_fwd = forward_back
+    turn = 2 * n_fwd - 1  # the first frame of the second forward pass
+    frames = frames[:turn]  # forward and back: one turn
     fixed, _, no_flips, never = _track(frames, auto=False)
     auto, stamps, flips, held = _track(frames, auto=True)
     assert no_flips == [] and never == []
-    # Flipped once, soon after the turn, and never back; the frames before the flip that fit the
-    # other way better were posed that way.
+    # Flipped once, soon after the turn, and never back; before the first flip every frame kept the
+    # direction in use.
     assert len(flips) == 1 and n_fwd <= flips[0] <= n_fwd + 15, flips
-    assert any(n_fwd <= k < flips[0] for k in held), (held, flips)
+    assert held == []
     back = stamps[auto.est_index] > frames[n_fwd].stamp_ns
     err_auto = float(np.sqrt(np.mean(auto.errors_m[back] ** 2)))
     back_f = stamps[fixed.est_index] > frames[n_fwd].stamp_ns
@@ -93,10 +98,22 @@ def test_a_backward_pass_is_corrected_the_other_way(forward_back: tuple[list[Fra
     assert err_auto < 0.7 * err_fixed, (err_auto, err_fixed)
 
 
+def test_after_a_first_turn_frames_before_the_next_flip_are_posed_the_other_way(
+        forward_back: tuple[list[Frame], int]) -> None:
+    """An input that turned once is a replay with turns: at its next turn, the frames that fit the
+    other direction better while the evidence builds are posed that way, before the flip."""
+    frames, n_fwd = forward_back
+    turn = 2 * n_fwd - 1
+    _, _, flips, held = _track(frames, auto=True)
+    assert len(flips) == 2 and turn <= flips[1] <= turn + 15, flips
+    assert held and all(flips[0] < k for k in held), (held, flips)
+    assert any(turn <= k < flips[1] for k in held), (held, flips)
+
+
 def test_a_forward_sequence_keeps_its_direction(forward_back: tuple[list[Frame], int]) -> None:
     frames, n_fwd = forward_back
-    _, _, flips, _ = _track(frames[:n_fwd], auto=True)
-    assert flips == []
+    _, _, flips, held = _track(frames[:n_fwd], auto=True)
+    assert flips == [] and held == []
 
 
 def test_evidence_adds_up_only_for_the_other_direction() -> None:

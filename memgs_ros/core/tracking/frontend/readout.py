@@ -49,7 +49,7 @@ class ReadoutDirection:
     flips: int = 0
     checks: int = 0
     evidence: float = 0.0
-    held_other: int = 0  # frames posed the other way before a flip (check_other_direction)
+    held_other: int = 0  # frames posed the other way before a flip, after the first (check_other_direction)
     _turning: int = 0  # turning frames seen
 
     @property
@@ -105,7 +105,8 @@ def check_other_direction(readout: ReadoutDirection, raw: FrameFeatures, in_use:
     same matches (points p_w [K, 3] at keypoints kp_idx [K], by ``optimise``), and the
     two fits' median errors over the points either kept weighed by ``readout.vote``. Returns the fit
     of the direction in use afterwards (``in_use``, or the other one when this vote flipped it), or,
-    while the evidence for flipping builds, the other fit of a frame it suits better."""
+    once the direction has flipped before and while the evidence for flipping again builds, the other
+    fit of a frame it suits better."""
     feats, T, inl = in_use
     other = unroll_rolling_shutter(raw, K, omega_c, -readout.readout_now_s, height)
     T_o, inl_o = optimise(other)
@@ -114,9 +115,11 @@ def check_other_direction(readout: ReadoutDirection, raw: FrameFeatures, in_use:
     err_now = median_reprojection_px(K, T, p_w[both], feats.uv[kp], w)
     err_other = median_reprojection_px(K, T_o, p_w[both], other.uv[kp], w)
     if not readout.vote(err_now, err_other):
-        # While the evidence builds, a frame that fits the other way better keeps that fit: the frames
-        # between a turn of the input's direction and the flip (6-10 on fr1/rpy) are posed as after it.
-        if readout.evidence > 0.0 and err_other < err_now:
+        # An input that has turned once is a replay with turns: while the evidence builds again, a frame
+        # that fits the other way better keeps that fit, so the frames between its next turn and the
+        # flip (6-10 on fr1/rpy) are posed as after it. Before any flip (every camera, one pass of a
+        # recording) a frame keeps the direction in use: there, a frame favouring the other way is noise.
+        if readout.flips and readout.evidence > 0.0 and err_other < err_now:
             readout.held_other += 1
             return other, T_o, inl_o
         return in_use
