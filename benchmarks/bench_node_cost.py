@@ -125,7 +125,7 @@ def node_cost(tum: Path, params: dict[str, Any], player: dict[str, Any], frames:
         overrides = [Parameter(k, value=v) for k, v in params.items() if not k.startswith("qos_overrides")]
         node = TrackerNode(context=ctx, parameter_overrides=overrides)
         orb = cv2.ORB_create(ORB_FEATURES)
-        enc, scale = player.get("depth_encoding", "32FC1"), float(player.get("depth_scale", 1000.0))
+        enc, scale = player.get("depth_encoding", "32FC1"), folder.depth_factor  # 16UC1: as the player writes it
         node_ms, orb_ms = [], []
         for i, frame in enumerate(folder):
             color = codecs.numpy_to_image(frame.rgb, "rgb8", frame.stamp_ns, "camera")

@@ -90,6 +90,16 @@ def source_kind(spec: str | os.PathLike[str]) -> str:
 _TUM_TOPICS = BagTopics()
 
 
+def player_depth_units(spec: str | os.PathLike[str]) -> float:
+    """The units a metre of the 16UC1 depth a replay of ``spec`` publishes: a TUM folder's PNGs go
+    out as stored (its depth factor, 5000 for TUM's own), depth read as metres in REP-118's
+    millimetres. The tracker reads the replay with these (``memgs run`` sets its ``depth_scale``)."""
+    from memgs_ros.io.tum import folder_depth_factor
+
+    is_tum = not is_spec_string(spec) and (Path(spec) / "rgb.txt").is_file()  # type: ignore[arg-type]
+    return folder_depth_factor(Path(spec)) if is_tum else 1000.0
+
+
 def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = None, max_dt_s: float = 0.02, *,
                 depth_factor: float | None = None, depth_scale: float = DEFAULT_DEPTH_SCALE,
                 topics: BagTopics = _TUM_TOPICS, with_depth: bool = True,
@@ -133,4 +143,4 @@ def open_source(spec: str | os.PathLike[str], camera: PinholeCamera | None = Non
     return source if repeat == 1 else RepeatedSource(source, repeat, forward_only=repeat_forward)
 
 
-__all__ = ["FrameSource", "SyntheticSource", "open_source", "source_kind"]
+__all__ = ["FrameSource", "SyntheticSource", "open_source", "player_depth_units", "source_kind"]

@@ -144,6 +144,18 @@ def camera_from_name(name: str) -> tuple[PinholeCamera, float] | None:
     return TUM_CAMERAS[key], TUM_DEPTH_FACTORS[key]
 
 
+def folder_guess(path: Path) -> tuple[PinholeCamera, float] | None:
+    """A TUM folder's camera and depth PNG units a metre from its camera.json, else its name."""
+    cam_file = path / CAMERA_JSON
+    return (read_camera_json(cam_file) if cam_file.is_file() else None) or camera_from_name(path.resolve().name)
+
+
+def folder_depth_factor(path: Path) -> float:
+    """The depth PNG units a metre of the TUM folder ``path``: camera.json, folder name, else 5000."""
+    guess = folder_guess(path)
+    return guess[1] if guess else DEFAULT_DEPTH_FACTOR
+
+
 def write_camera_json(path: Path, camera: PinholeCamera, depth_factor: float) -> None:
     """``camera.json``: one JSON object with ``width``, ``height`` (px), ``fx``, ``fy``, ``cx``,
     ``cy`` (px), ``dist`` (5 plumb_bob or 8 rational_polynomial coefficients, OpenCV order
@@ -222,10 +234,9 @@ class TumFolder:
         if not self.path.is_dir():
             raise DataError(f"{self.path}: not a directory (expected a TUM RGB-D folder)")
         self.name = self.path.name
-        cam_file = self.path / CAMERA_JSON
-        from_file = read_camera_json(cam_file) if cam_file.is_file() else None
+        from_file = (self.path / CAMERA_JSON).is_file()
         from_name = camera_from_name(self.path.resolve().name)
-        guess = from_file or from_name
+        guess = folder_guess(self.path)
         self.depth_factor = float(depth_factor if depth_factor is not None
                                   else guess[1] if guess else DEFAULT_DEPTH_FACTOR)
         if not self.depth_factor > 0:
@@ -331,6 +342,7 @@ __all__ = [
     "TumFolder",
     "associate",
     "camera_from_name",
+    "folder_depth_factor",
     "format_pose_line",
     "format_stamp",
     "load_depth",

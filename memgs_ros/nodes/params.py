@@ -45,8 +45,9 @@ class BagPlayerParams:
     # ... every pass forward, the camera jumping back to the start between them (a rolling-shutter
     # recording played backward reads its rows bottom to top)
     repeat_forward: bool = False
-    depth_encoding: str = "32FC1"  # depth image encoding: 32FC1 metres or 16UC1 scaled units
-    depth_scale: float = 1000.0  # 16UC1 units per metre (1000 = millimetres)
+    # depth image encoding: 32FC1 metres, or 16UC1 as a camera driver writes it: a TUM folder's PNG
+    # units as stored (5000 a metre), other depth in REP-118's millimetres
+    depth_encoding: str = "32FC1"
     frame_id: str = "camera_color_optical_frame"  # frame id of the images and camera info
     world_frame_id: str = "world"  # frame id of the ground-truth poses
     # stop at the first bad frame (unreadable or mis-sized image, stamp going backwards, a camera that
@@ -58,7 +59,7 @@ class BagPlayerParams:
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "rate": (0.01, 1000.0), "ack_timeout_s": (0.05, 3600.0), "start_delay_s": (0.0, 600.0),
-        "max_frames": (0, 2**31 - 1), "depth_scale": (1.0, 100000.0), "preload_mb": (0, 1_000_000),
+        "max_frames": (0, 2**31 - 1), "preload_mb": (0, 1_000_000),
         "repeat": (1, 1000),
     }
     CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"depth_encoding": ("32FC1", "16UC1")}

@@ -223,6 +223,12 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         world_frame_id="map",
         strict=bool(options.strict))
     params.setdefault("mapper", {})["lockstep"] = options.lockstep
+    if params["bag_player"].get("depth_encoding", "32FC1") == "16UC1":
+        from memgs_ros.io.sources import player_depth_units  # loads the bag readers: only here
+
+        # The player writes 16-bit depth in its source's units (a TUM folder's as stored): the
+        # tracker, the one node that reads a camera's units, reads them with the same scale.
+        params.setdefault("tracker", {})["depth_scale"] = player_depth_units(options.source)
     if float(options.start_delays_s.get("tracker", 0.0)) <= 0:
         # The first frame waits for the tracker's readers, not just any reader (a Rerun bridge
         # reads the frames too); the runner has already seen the tracker come up.
@@ -336,7 +342,7 @@ def check_parameters(params: Mapping[str, Mapping[str, Any]]) -> None:
         for prefix, config_cls in NODE_CONFIGS[node]:
             lines += check_values(config_cls, prefix, values, node=node)
     if not lines:
-        lines += _depth_scale_disagreements(params) + _mapper_device_problem(params)
+        lines += _mapper_device_problem(params)
     if lines:
         raise ConfigError("; ".join(lines))
 
@@ -357,26 +363,6 @@ def _mapper_device_problem(params: Mapping[str, Mapping[str, Any]]) -> list[str]
 
     problem = device_problem(device, backend)
     return [problem] if problem else []
-
-
-def _depth_scale_disagreements(params: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    """One line when the player writes 16UC1 depth in other units than the tracker reads it with
-    (the tracker alone reads the camera's units: it sends keyframe depth on in REP-118's)."""
-    from memgs_ros.nodes.params import NODE_CONFIGS
-
-    def scale(node: str) -> float:
-        own = dict(NODE_CONFIGS[node])[""]
-        return float(params.get(node, {}).get("depth_scale", own.depth_scale))
-
-    scales = {node: scale(node) for node in ("tracker",) if node in params}
-    player = params.get("bag_player", {})
-    if "bag_player" in params and player.get("depth_encoding", "32FC1") == "16UC1":
-        scales["bag_player"] = scale("bag_player")
-    if len(set(scales.values())) <= 1:
-        return []
-    listed = ", ".join(f"{n} {v:g}" for n, v in scales.items())
-    return [f"depth_scale differs between nodes ({listed}): the player writes 16UC1 depth in units the tracker "
-            "must read with the same scale (set depth_scale the same for both)"]
 
 
 def configured_camera(params: Mapping[str, Mapping[str, Any]]) -> ConfiguredCamera:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import ClassVar
 
 import pytest
@@ -181,20 +182,29 @@ def test_parameters_are_checked_without_rclpy() -> None:
     assert "resolution_scale" in out.stdout and "50" in out.stdout, out.stdout
 
 
-def test_a_player_writing_16_bit_depth_in_other_units_than_the_tracker_reads_is_refused_before_start() -> None:
-    """The tracker alone reads the camera's units (depth_scale; sampler and mapper get REP-118's
-    from it and declare none): a player that writes 16UC1 must write them with the same scale."""
-    from pathlib import Path
-
+def test_the_tracker_reads_a_replay_in_the_units_its_player_writes(tmp_path: Path) -> None:
+    """The tracker alone reads a camera's 16-bit units (depth_scale; the player declares none and
+    sampler and mapper get REP-118's): ``memgs run`` sets it to what the player writes, a TUM
+    folder's PNG units as stored (its camera.json's, or TUM's 5000) or millimetres for depth read as
+    metres; a user's own ``--set`` still wins."""
+    from memgs_ros.core.geometry.camera import PinholeCamera
+    from memgs_ros.io.tum import write_camera_json
     from memgs_ros.orchestration.run_files import RunOptions, build_params, check_parameters, node_params
 
-    tum = node_params(build_params(RunOptions("synthetic:w=32,h=24,n=2", config="tum_fr1"), Path("/tmp/m.ply")))
-    assert {tum[n]["depth_scale"] for n in ("tracker", "bag_player")} == {5000.0}
-    assert "depth_scale" not in tum["keyframe_sampler"] and "depth_scale" not in tum["mapper"]
-    check_parameters(tum)
-    for node in ("tracker", "bag_player"):
-        bad = {**tum, node: {**tum[node], "depth_scale": 1000.0}}
-        with pytest.raises(ConfigError, match=rf"depth_scale differs between nodes \(.*{node} 1000"):
-            check_parameters(bad)
-    floats = {**tum, "bag_player": {**tum["bag_player"], "depth_encoding": "32FC1", "depth_scale": 1000.0}}
-    check_parameters(floats)  # a player writing metres has no units to disagree on
+    def params(source: str, **kw: object) -> dict[str, dict]:
+        return node_params(build_params(RunOptions(source, config="tum_fr1", **kw), tmp_path / "m.ply"))
+
+    synth = params("synthetic:w=32,h=24,n=2")
+    assert synth["tracker"]["depth_scale"] == 1000.0 and synth["bag_player"]["depth_encoding"] == "16UC1"
+    assert not {"depth_scale"} & (set(synth["bag_player"]) | set(synth["keyframe_sampler"]) | set(synth["mapper"]))
+    check_parameters(synth)
+    folder = tmp_path / "rgbd_dataset_freiburg1_x"
+    folder.mkdir()
+    (folder / "rgb.txt").write_text("")
+    assert params(str(folder))["tracker"]["depth_scale"] == 5000.0  # TUM's own, by the folder's name
+    own = tmp_path / "my_room"
+    own.mkdir()
+    (own / "rgb.txt").write_text("")
+    write_camera_json(own / "camera.json", PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0), 1000.0)
+    assert params(str(own))["tracker"]["depth_scale"] == 1000.0
+    assert params(str(own), overrides={"tracker.depth_scale": 4000.0})["tracker"]["depth_scale"] == 4000.0

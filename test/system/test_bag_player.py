@@ -242,7 +242,7 @@ def test_a_named_reader_that_never_comes_delays_the_start_by_start_delay_s_only(
 
 def test_depth_as_16uc1_millimetres(ros_domain_id: int) -> None:
     frames = make_frames(2)
-    _, rx = play_in_process(frames, ros_domain_id, lockstep=True, depth_encoding="16UC1", depth_scale=1000.0)
+    _, rx = play_in_process(frames, ros_domain_id, lockstep=True, depth_encoding="16UC1")
     assert [img.encoding for _, img in rx.depth] == ["16UC1", "16UC1"]
     mm = image_to_numpy(rx.depth[1][1])
     np.testing.assert_array_equal(mm, np.rint(frames[1].depth_m.astype(np.float64) * 1000.0).astype(np.uint16))

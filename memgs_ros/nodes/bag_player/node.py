@@ -78,7 +78,7 @@ class BagPlayer(Node):
         self.feed = ReplayFeed(frames, cfg.loop, cfg.max_frames, cfg.strict)
         self.finished: Future = Future()
         self.ok = True
-        self.outbox = FrameOutbox(self, cfg.frame_id, cfg.world_frame_id, cfg.depth_encoding, cfg.depth_scale)
+        self.outbox = FrameOutbox(self, cfg.frame_id, cfg.world_frame_id, cfg.depth_encoding)
         self._pub_done = self.create_publisher(Bool, "memgs/player/done", qos.latched())
         self.stats = NodeStats(self, "player")
         # Frames this replay will publish (0 = unknown: looping, or a source of unknown length): a watcher's ETA.

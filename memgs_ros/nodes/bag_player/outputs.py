@@ -1,10 +1,12 @@
 """The camera topics a replay publishes, one shared header stamp per frame: ``color/image_raw``
-(rgb8), ``depth/image_raw`` (32FC1 metres or 16UC1 scaled units), ``color/camera_info`` and, when
+(rgb8), ``depth/image_raw`` (32FC1 metres or 16UC1 units), ``color/camera_info`` and, when
 the source has ground truth, ``groundtruth/pose`` (PoseStamped, camera in world).
 
-Depth crosses once: a frame that holds its depth as stored (a TUM folder's 16-bit PNG,
-``DepthUnits``) in the units the replay publishes goes out as it is; only other depth is encoded,
-by the compiled encoder, which the player then loads (:meth:`FrameOutbox.prepare`)."""
+Depth crosses once: as 16UC1 a frame that holds its depth as stored (a TUM folder's 16-bit PNG,
+``DepthUnits``) goes out as it is, in the units the camera wrote (the tracker reads them with its
+``depth_scale``: ``memgs run`` sets it, ``io.sources.player_depth_units``); other depth is encoded, in
+REP-118's millimetres or metres, by the compiled encoder, which the player then loads
+(:meth:`FrameOutbox.prepare`)."""
 from __future__ import annotations
 
 import numpy as np
@@ -22,20 +24,18 @@ __all__ = ["FrameOutbox"]
 class FrameOutbox:
     """Publishes frames as camera topics (relative names: they follow the node's namespace)."""
 
-    def __init__(self, node: Node, frame_id: str, world_frame_id: str, depth_encoding: str,
-                 depth_scale: float) -> None:
+    def __init__(self, node: Node, frame_id: str, world_frame_id: str, depth_encoding: str) -> None:
         self._node = node
         self._frame_id, self._world_frame_id = frame_id, world_frame_id
-        self._depth_encoding, self._depth_scale = depth_encoding, depth_scale
+        self._depth_encoding = depth_encoding
         self.color = node.create_publisher(Image, "color/image_raw", qos.reliable(5))
         self.depth = node.create_publisher(Image, "depth/image_raw", qos.reliable(5))
         self.info = node.create_publisher(CameraInfo, "color/camera_info", qos.reliable(5))
         self.gt = node.create_publisher(PoseStamped, "groundtruth/pose", qos.reliable(10))
 
     def _as_published(self, depth: np.ndarray | DepthUnits | None) -> bool:
-        """Whether ``depth`` goes out as it is: 16-bit units at the published scale."""
-        return (isinstance(depth, DepthUnits) and self._depth_encoding == "16UC1" and depth.raw.dtype == np.uint16
-                and depth.scale == self._depth_scale)
+        """Whether ``depth`` goes out as it is: 16-bit units as stored, published as 16UC1."""
+        return isinstance(depth, DepthUnits) and self._depth_encoding == "16UC1" and depth.raw.dtype == np.uint16
 
     def prepare(self, first: Frame) -> None:
         """Before the first frame (``first``) goes out: load the compiled depth passes when frames
@@ -50,7 +50,7 @@ class FrameOutbox:
             assert isinstance(frame.depth_m, DepthUnits)
             self.depth.publish(codecs.numpy_to_image(frame.depth_m.raw, "16UC1", stamp_ns, fid))
         elif (depth_m := frame.depth_metres()) is not None:
-            self.depth.publish(codecs.depth_to_image(depth_m, self._depth_encoding, stamp_ns, fid, self._depth_scale))
+            self.depth.publish(codecs.depth_to_image(depth_m, self._depth_encoding, stamp_ns, fid))  # 16UC1: mm
         self.info.publish(codecs.camera_to_camera_info(frame.camera, stamp_ns, fid))
         if frame.T_wc_gt is not None:
             self.gt.publish(codecs.matrix_to_pose_stamped(frame.T_wc_gt, stamp_ns, self._world_frame_id))
