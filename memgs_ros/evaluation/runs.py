@@ -64,6 +64,7 @@ from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.core.sampling import PatchGridConfig
 from memgs_ros.core.tracking.config import TrackerConfig
 from memgs_ros.errors import ConfigError, DataError
+from memgs_ros.evaluation.timeline import MapSample, map_samples, mapper_gauge_max, node_peak_rss_mb, training_rate
 from memgs_ros.io.bag_reader import BagTopics
 from memgs_ros.io.sources import open_source
 from memgs_ros.io.tum import read_trajectory
@@ -92,21 +93,17 @@ __all__ = [
     "FRAME_MATCH_MAX_DT_S",
     "AblationResult",
     "EvalResult",
-    "MapSample",
     "MemoryResult",
     "QualityResult",
     "TrajectoryResult",
     "ablation",
     "evaluate",
     "evaluate_run",
-    "map_samples",
     "mode_edits",
-    "node_peak_rss_mb",
     "result_from_dict",
     "run_edits",
     "score_map",
     "score_trajectory",
-    "training_rate",
     "write_json",
 ]
 
@@ -119,7 +116,6 @@ ABLATION_VARIANTS: dict[str, tuple[ConfigEdit[Any], ...]] = {
 }
 ABLATION_LABELS = {"full": "MemGS (full)", "no_merge": "w/o merging", "no_patch_grid": "w/o Patch-Grid"}
 # Stats-timeline node name -> the node's name elsewhere (the player publishes as "player").
-_TIMELINE_NODE_NAMES = {"player": "bag_player"}
 PEAK_RSS_SOURCE = "VmHWM of each node process: the peak of its 1 Hz stats (peak_rss_mb in stats_timeline.jsonl)"
 
 
@@ -162,17 +158,6 @@ class MemoryResult:
         if self.mapper_working_peak_bytes is not None:
             return "mapper_working_peak_rss (CPU)"
         return "model_bytes_peak (CPU)"
-
-
-@dataclass(frozen=True)
-class MapSample:
-    """One mapper stats message: seconds since the run started, map size and memory then."""
-
-    t_s: float
-    iteration: int
-    gaussians: int
-    model_bytes: int
-    cuda_max_allocated: int | None = None
 
 
 @dataclass(frozen=True)
@@ -270,67 +255,6 @@ def run_edits(mode: str, seed: int, resolution_scale: float | None) -> tuple[Con
 
     return (*mode_edits(mode), ConfigEdit("mapper", "mapping", MappingConfig, mapping),
             ConfigEdit("keyframe_sampler", "patch_grid", PatchGridConfig, lambda c: replace(c, seed=int(seed))))
-
-
-def training_rate(samples: Sequence[MapSample]) -> float | None:
-    """Mapping iterations per second while training ran: from the first sample with a positive
-    iteration count to the first sample at the final count (None with fewer than 2 such samples)."""
-    active = [m for m in samples if m.iteration > 0]
-    if len(active) < 2:
-        return None
-    final = max(m.iteration for m in active)
-    end = next(m for m in active if m.iteration == final)
-    start = active[0]
-    if end.t_s <= start.t_s:
-        return None
-    return (end.iteration - start.iteration) / (end.t_s - start.t_s)
-
-
-# ----------------------------------------------------------------------------- the run's stats
-
-
-def _number(value: Any) -> float | None:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
-
-
-def map_samples(timeline: Sequence[Mapping[str, Any]]) -> tuple[MapSample, ...]:
-    """The mapper's stats over the run (rows of ``stats_timeline.jsonl`` from node ``mapper``
-    that carry map gauges; before training starts the mapper has none)."""
-    out: list[MapSample] = []
-    for row in timeline:
-        if row.get("node") != "mapper" or "gaussians" not in row:
-            continue
-
-        def num(key: str, row: Mapping[str, Any] = row) -> int:
-            v = _number(row.get(key, 0))
-            return 0 if v is None else int(v)
-
-        cuda = _number(row["cuda_max_allocated"]) if "cuda_max_allocated" in row else None
-        out.append(MapSample(t_s=float(row["t_s"]), iteration=num("iteration"), gaussians=num("gaussians"),
-                             model_bytes=num("model_bytes"), cuda_max_allocated=None if cuda is None else int(cuda)))
-    return tuple(out)
-
-
-def _mapper_gauge_max(timeline: Sequence[Mapping[str, Any]], key: str) -> float | None:
-    """The largest value of a mapper stats gauge over the run (None when it never reported it)."""
-    vals = [v for row in timeline if row.get("node") == "mapper" and (v := _number(row.get(key))) is not None]
-    return max(vals) if vals else None
-
-
-def node_peak_rss_mb(timeline: Sequence[Mapping[str, Any]]) -> dict[str, float]:
-    """Peak RSS (MB) per node: the largest ``peak_rss_mb`` (VmHWM) each node reported."""
-    peaks: dict[str, float] = {}
-    for row in timeline:
-        v = _number(row.get("peak_rss_mb"))
-        if v is None:
-            continue
-        name = _TIMELINE_NODE_NAMES.get(str(row["node"]), str(row["node"]))
-        peaks[name] = max(peaks.get(name, 0.0), round(v, 1))
-    return peaks
 
 
 # ----------------------------------------------------------------------------- scoring
@@ -506,9 +430,9 @@ def _memory_result(summary: RunSummary, timeline: Sequence[Mapping[str, Any]], s
     """The memory figures of a run: the CUDA peak or, on CPU, the mapper's working peak; every node's
     peak RSS from the timeline (the summary's last stats where the timeline has none)."""
     cuda_peak = next((m.cuda_max_allocated for m in reversed(samples) if m.cuda_max_allocated is not None), None)
-    working = _mapper_gauge_max(timeline, "working_peak_mb")
-    baseline = _mapper_gauge_max(timeline, "rss_baseline_mb")
-    accounted = _mapper_gauge_max(timeline, "accounted_bytes_peak")
+    working = mapper_gauge_max(timeline, "working_peak_mb")
+    baseline = mapper_gauge_max(timeline, "rss_baseline_mb")
+    accounted = mapper_gauge_max(timeline, "accounted_bytes_peak")
     if cuda_peak is None:
         notes.append("memory: the mapper ran on CPU, where torch has no allocator peak; the table's "
                      + ("memory is the mapper's peak RSS above its start-up baseline" if working is not None

@@ -68,7 +68,7 @@ def test_vocabulary_scores_identical_images_highest(loop_frames: list) -> None:
 def test_compiled_words_equal_the_numpy_descent(loop_frames: list) -> None:
     """The kernel (popcounts) and the reference (+-1 dot products) give every descriptor the same
     word: real ones, random ones and the centres themselves (ties go to the first child in both)."""
-    from memgs_ros.core.tracking._compiled import numba_available
+    from memgs_ros.core.tracking.kernel_calls import numba_available
 
     if not numba_available():
         pytest.skip("numba is disabled here (MEMGS_DISABLE_NUMBA)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 from concurrent.futures import Future
 
 from memgs_ros.core.mapping.output_pacing import DeltaPacer, LiveView, delta_rows
-from memgs_ros.core.mapping.session import SessionStatus
+from memgs_ros.core.mapping.session_records import SessionStatus
 
 
 def test_delta_rows_split_the_link_budget_over_the_delta_rate() -> None:

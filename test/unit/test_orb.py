@@ -8,7 +8,7 @@ import pytest
 
 from memgs_ros.core.geometry.view import DepthUnits, depth_to_metres, metres_to_units
 from memgs_ros.core.tracking import TrackerConfig
-from memgs_ros.core.tracking.features import orb
+from memgs_ros.core.tracking.features import orb, orb_detect
 from memgs_ros.core.tracking.features.features import EDGE_PX, OrbExtractor
 from memgs_ros.io.synthetic import generate_frames, parse_spec
 
@@ -86,7 +86,7 @@ def test_select_grid_matches_the_numpy_reference(seed: int) -> None:
     else:
         resp = rng.uniform(0, 1e-3, m).astype(np.float32)
     want = ex._select_indices(pts, resp, 640, 480)  # noqa: SLF001
-    got = orb.select_grid(pts, resp, cfg.n_features, cfg.grid_cell_px, 640, 480)
+    got = orb_detect.select_grid(pts, resp, cfg.n_features, cfg.grid_cell_px, 640, 480)
     np.testing.assert_array_equal(got, want)
     assert len(got) == min(cfg.n_features, m)
 
@@ -129,7 +129,7 @@ def test_detect_level_is_opencvs_single_level_orb(levels: list[np.ndarray], thre
             corners = fast.detect(level)
             xy = np.array([k.pt for k in corners], np.float32).reshape(-1, 2)
             score = np.array([k.response for k in corners], np.float32)
-            idx, response, angle = orb.detect_level(level, xy, score, n, EDGE_PX)
+            idx, response, angle = orb_detect.detect_level(level, xy, score, n, EDGE_PX)
             ref = ref_orb.detect(level, None)
             np.testing.assert_array_equal(xy[idx], np.array([k.pt for k in ref], np.float32).reshape(-1, 2))
             np.testing.assert_array_equal(response, np.array([k.response for k in ref], np.float32))
@@ -153,21 +153,21 @@ def test_fast_scores_are_opencvs_responses(levels: list[np.ndarray], threshold: 
     starts = np.cumsum([0, *map(len, corners)])
     xy = np.array([k.pt for c in corners for k in c], np.float32)
     ref = np.array([k.response for c in corners for k in c], np.float32)
-    got = orb.fast_scores(np.concatenate(flat_parts), np.array(shapes), xy, starts, threshold)
+    got = orb_detect.fast_scores(np.concatenate(flat_parts), np.array(shapes), xy, starts, threshold)
     assert len(ref) > 2000
     np.testing.assert_array_equal(got, ref)
-    assert orb.fast_scores_agree()
+    assert orb_detect.fast_scores_agree()
     assert OrbExtractor(TrackerConfig())._scores_in_kernel  # noqa: SLF001
     # Scored inside the detection, only on the levels where ORB ranks by them: the same keypoints.
     flat = np.concatenate(flat_parts)
     counts = np.full(len(levels), 40, np.int64)  # few enough that most levels need the scores
     args = (starts, counts, EDGE_PX, np.ones(len(levels), np.float32), 200, 16.0, 640, 480)
-    given = orb.detect_and_select(flat, np.array(shapes), xy, ref, *args)
-    lazy = orb.detect_and_select(flat, np.array(shapes), xy, None, *args, threshold=threshold)
+    given = orb_detect.detect_and_select(flat, np.array(shapes), xy, ref, *args)
+    lazy = orb_detect.detect_and_select(flat, np.array(shapes), xy, None, *args, threshold=threshold)
     for a, b in zip(given, lazy):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="threshold"):
-        orb.detect_and_select(flat, np.array(shapes), xy, None, *args)
+        orb_detect.detect_and_select(flat, np.array(shapes), xy, None, *args)
 
 
 @pytest.mark.parametrize("keys", ["random", "ties", "ascending", "descending", "equal"])
@@ -180,7 +180,7 @@ def test_retain_best_keeps_the_n_best_and_their_ties(keys: str) -> None:
            "descending": -np.arange(m), "equal": np.zeros(m)}[keys].astype(np.float32)
     for n in (1, 2, 5, 700, 2999, 3000, 4000):
         a = np.arange(m)
-        count = orb._retain_best(a, m, key, n)  # noqa: SLF001
+        count = orb_detect._retain_best(a, m, key, n)  # noqa: SLF001
         kept = np.sort(a[:count])
         nth = np.sort(key)[::-1][min(n, m) - 1]
         np.testing.assert_array_equal(kept, np.flatnonzero(key >= nth))
@@ -247,8 +247,8 @@ def test_a_short_first_detection_goes_straight_to_the_retry(monkeypatch: pytest.
     ex, ref = OrbExtractor(cfg), OrbExtractor(cfg)
     ref._tests = None  # noqa: SLF001 - OpenCV's compute: never skips
     calls: list[int] = []
-    real = orb.detect_and_select
-    monkeypatch.setattr(orb, "detect_and_select", lambda *a, **k: calls.append(a[-1]) or real(*a, **k))
+    real = orb_detect.detect_and_select
+    monkeypatch.setattr(orb_detect, "detect_and_select", lambda *a, **k: calls.append(a[-1]) or real(*a, **k))
     for f in generate_frames(parse_spec("synthetic:w=640,h=480,n=2,seed=3")):
         grey = cv2.GaussianBlur(cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY), (9, 9), 3.0)  # little texture left
         calls.clear()

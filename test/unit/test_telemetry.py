@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from memgs_ros.core.mapping.session import SessionStatus
+from memgs_ros.core.mapping.session_records import SessionStatus
 from memgs_ros.core.runtime.telemetry import (
     TELEMETRY,
     MapperTelemetry,

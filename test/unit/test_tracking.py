@@ -10,9 +10,9 @@ from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.metrics.trajectory import ate, path_length_m
 from memgs_ros.core.tracking import SparseMapStats, Tracker, TrackerConfig, TrackingState, make_tracker
+from memgs_ros.core.tracking.backend.ba_reference import local_bundle_adjustment_scipy
 from memgs_ros.core.tracking.backend.bundle_adjustment import (
     BAProblem,
-    _local_bundle_adjustment_scipy,
     apply_left_update,
     local_bundle_adjustment,
     optimize_pose,
@@ -330,7 +330,7 @@ def test_local_ba_reduces_error_and_matches_reference() -> None:
     fixed[0] = True
     prob = BAProblem(T0, fixed, X0, cam, pt, uv, depth, np.ones(len(cam)))
     fast = local_bundle_adjustment(prob, K, BF, 2.45, 20)
-    ref = _local_bundle_adjustment_scipy(prob, K, BF, 2.45, 2000)  # TRF needs ~750 evaluations here
+    ref = local_bundle_adjustment_scipy(prob, K, BF, 2.45, 2000)  # TRF needs ~750 evaluations here
     assert fast.final_cost < 0.05 * fast.initial_cost
     assert np.array_equal(fast.T_cw[0], T0[0])  # fixed stays fixed
     cam_err = np.linalg.norm(fast.T_cw[:, :3, 3] - T[:, :3, 3], axis=1).max()

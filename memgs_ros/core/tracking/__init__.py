@@ -42,9 +42,9 @@ def warm_up() -> None:
     """Import the trackers' modules (scipy's optimisers among them: 0.2-0.3 s that the first frame of
     a live camera paid while its next frames queued) and load, or compile, their kernels and the
     bundle adjustments'."""
-    from memgs_ros.core.tracking._compiled import warm_up as load_kernels
     from memgs_ros.core.tracking.backend import ba_kernels
     from memgs_ros.core.tracking.frontend import monocular, rgbd  # noqa: F401 - imported now, not at the first frame
+    from memgs_ros.core.tracking.kernel_calls import warm_up as load_kernels
 
     load_kernels()
     ba_kernels.warm_up()  # the first local BA runs beside the frames that follow its keyframe

@@ -16,9 +16,9 @@ from scipy.spatial import cKDTree
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.view import DepthUnits
-from memgs_ros.core.tracking._compiled import match_by_projection_kernel, numba_available, unroll_kernel
 from memgs_ros.core.tracking.config import TrackerConfig
-from memgs_ros.core.tracking.features import orb
+from memgs_ros.core.tracking.features import orb, orb_detect
+from memgs_ros.core.tracking.kernel_calls import match_by_projection_kernel, numba_available, unroll_kernel
 
 DESCRIPTOR_BYTES = 32
 EDGE_PX = 19  # keypoints keep this far from a level's border (ORB's edgeThreshold)
@@ -58,7 +58,7 @@ class OrbExtractor:
     ``extract`` builds the image pyramid once, in one buffer, and runs OpenCV's FAST on each level;
     what OpenCV's single-level ORB then does (keep the best FAST scores, score them by Harris, keep
     the best, orient them) and the grid's selection run in one numba call
-    (``orb.detect_and_select``), without ORB's copy of each level, its Python keypoint objects and
+    (``orb_detect.detect_and_select``), without ORB's copy of each level, its Python keypoint objects and
     their conversions. The chosen keypoints are described in one more call (``orb.describe_at``) on
     the levels smoothed once into a second buffer, as exact as OpenCV's ``compute``, which copies
     and smooths each level again. Where numba is missing, ``_extract_opencv`` runs the single-level
@@ -83,13 +83,13 @@ class OrbExtractor:
         self._centre_shift = 0.5 * (cfg.scale_factor ** np.arange(cfg.n_levels) - 1.0)  # per octave, see _finish
         self._level_orb = [self._make_orb(c, 1, cfg.fast_threshold) for c in self._level_counts]
         self._level_orb_low = [self._make_orb(c, 1, cfg.fast_min_threshold) for c in self._level_counts]
-        # OpenCV's FAST as ORB runs it (9 of 16, non-maximum suppression), for ``orb.detect_level``.
+        # OpenCV's FAST as ORB runs it (9 of 16, non-maximum suppression), for ``orb_detect.detect_level``.
         self._fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
         self._fast_low = cv2.FastFeatureDetector_create(cfg.fast_min_threshold, True)  # type: ignore[attr-defined]
         # ORB's intensity tests for ``orb.describe``, where numba and the tests are at hand (else
         # OpenCV's ``compute`` describes).
         self._tests = orb.intensity_tests() if orb.compiled_orb_available() else None
-        self._scores_in_kernel = self._tests is not None and orb.fast_scores_agree()
+        self._scores_in_kernel = self._tests is not None and orb_detect.fast_scores_agree()
         self._layout: _PyramidLayout | None = None  # the pyramid's buffers, reused frame to frame
 
     def _make_orb(self, n: int, levels: int, fast_threshold: int) -> cv2.ORB:
@@ -196,7 +196,7 @@ class OrbExtractor:
     def _detect(self, pyr: _PyramidLayout, fast: cv2.FastFeatureDetector, threshold: int, skip_short: bool = False
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int] | None:
         """OpenCV's FAST (at ``threshold``) on each level, then what each level's single-level ORB
-        keeps of it and the grid's choice among those (``orb.detect_and_select``): (level-0
+        keeps of it and the grid's choice among those (``orb_detect.detect_and_select``): (level-0
         positions [K, 2] float32, level positions [K, 2], octaves [K], angles [K], how many ORB kept
         before the grid). ``skip_short``: None, without the selection, when FAST found fewer corners
         than ``n_features``: ORB keeps no more than FAST found, so the retry at the lower threshold
@@ -211,7 +211,7 @@ class OrbExtractor:
         if not self._scores_in_kernel:  # read off OpenCV's keypoint objects instead (~3000 of them)
             score = np.fromiter(chain.from_iterable(map(_RESPONSE, c) for c in corners), np.float32, int(starts[-1]))
         h, w = pyr.image_shape
-        return orb.detect_and_select(pyr.flat, pyr.shapes, xy, score, starts, self._level_counts_arr, EDGE_PX,
+        return orb_detect.detect_and_select(pyr.flat, pyr.shapes, xy, score, starts, self._level_counts_arr, EDGE_PX,
                                      self._scales_arr, self.cfg.n_features, self.cfg.grid_cell_px, w, h, threshold)
 
     def _extract_opencv(self, gray: np.ndarray, camera: PinholeCamera, depth_m: np.ndarray | DepthUnits | None
@@ -359,7 +359,7 @@ def undistort_points(uv_raw: np.ndarray, camera: PinholeCamera) -> np.ndarray:
 def unroll_rolling_shutter(feats: FrameFeatures, K: np.ndarray, omega_c: np.ndarray, readout_s: float,
                            height: int) -> FrameFeatures:
     """Keypoints moved to where a global shutter at the centre row's time would have seen them
-    (see ``_unroll_rolling_shutter``, the reference): by ``_compiled.unroll_kernel`` when numba is
+    (see ``_unroll_rolling_shutter``, the reference): by ``kernel_calls.unroll_kernel`` when numba is
     available (one pass over the keypoints instead of some twenty numpy temporaries)."""
     if len(feats) == 0 or readout_s == 0.0 or not np.any(omega_c):
         return feats
@@ -430,7 +430,7 @@ def match_by_projection(proj_uv: np.ndarray, point_desc: np.ndarray, feats: Fram
     (used by the plain path only).
     Returns (point_index [K], keypoint_index [K], hamming [K]) sorted by keypoint index; one
     keypoint per point and one point per keypoint (the lower distance wins, then the lower point).
-    Runs the numba kernel (``_compiled.match_by_projection_kernel``) when numba is available,
+    Runs the numba kernel (``kernel_calls.match_by_projection_kernel``) when numba is available,
     else its plain twin ``_match_by_projection``.
     """
     if len(proj_uv) == 0 or len(feats) == 0 or not numba_available():

@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from memgs_ros.core.tracking._compiled import numba_available, words_kernel
 from memgs_ros.core.tracking.features.features import DESCRIPTOR_BYTES
+from memgs_ros.core.tracking.kernel_calls import numba_available, words_kernel
 from memgs_ros.errors import DataError
 
 VOCABULARY_RESOURCE = "orb_vocabulary.npz"  # in the memgs_ros.data package
@@ -101,7 +101,7 @@ class Vocabulary:
         return words_kernel(desc, self._packed_centres, self.branching, self.depth)  # type: ignore[attr-defined]
 
     def _words_reference(self, desc: np.ndarray) -> np.ndarray:
-        """Twin of ``_compiled.words_kernel`` (numpy: +-1 dot products, the largest the nearest)."""
+        """Twin of ``kernel_calls.words_kernel`` (numpy: +-1 dot products, the largest the nearest)."""
         m = len(desc)
         if m == 0:
             return np.zeros(0, np.int64)

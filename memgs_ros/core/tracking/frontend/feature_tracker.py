@@ -30,7 +30,6 @@ import numpy as np
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.poses import invert_pose
-from memgs_ros.core.tracking._compiled import warm_up
 from memgs_ros.core.tracking.backend.actor import TrackingBackend
 from memgs_ros.core.tracking.backend.bundle_adjustment import orthonormalized
 from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
@@ -48,6 +47,7 @@ from memgs_ros.core.tracking.frontend.pose_tracking import (
 )
 from memgs_ros.core.tracking.frontend.readout import ReadoutDirection, refine_with_readout
 from memgs_ros.core.tracking.frontend.relocalisation import relocalise
+from memgs_ros.core.tracking.kernel_calls import warm_up
 from memgs_ros.core.tracking.loop_closing.place_recognition import LoopStats
 from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
 from memgs_ros.errors import DataError

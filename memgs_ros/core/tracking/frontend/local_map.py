@@ -19,9 +19,9 @@ from itertools import chain
 import numpy as np
 
 from memgs_ros.core.geometry.poses import invert_pose, nearest_pose_distance
-from memgs_ros.core.tracking._compiled import View, count_seen_kernel
 from memgs_ros.core.tracking.features.features import FrameFeatures
 from memgs_ros.core.tracking.frontend.map_snapshot import MapSnapshot
+from memgs_ros.core.tracking.kernel_calls import View, count_seen_kernel
 
 
 @dataclass(eq=False)

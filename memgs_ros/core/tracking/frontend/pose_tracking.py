@@ -3,7 +3,7 @@
 ``LocalMapMatcher``: project the local map's points with a predicted pose, match in a radius,
 robust motion-only optimisation, then again in a tight radius around the optimised pose (with
 PnP RANSAC and a keyframe's matches as fallbacks). Where numba is, each pass is one compiled call
-(``_compiled.track_pass_kernel``) on the map's store, read in place, and the visible / found
+(``kernel_calls.track_pass_kernel``) on the map's store, read in place, and the visible / found
 statistics another; the numpy path (``_match_and_optimise_reference``) is the reference they are
 tested against (same matches, same pose). It reads the map it is given and keeps only per-frame
 caches of the keypoints' arrays. ``MotionModel``: the per-frame motion T_cw(k) T_cw(k-1)^-1 and the
@@ -19,7 +19,6 @@ from scipy.spatial import cKDTree
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose, rotmat_to_rotvec
-from memgs_ros.core.tracking._compiled import View, numba_available, track_pass_kernel
 from memgs_ros.core.tracking.backend.bundle_adjustment import (
     CHI2_MONO,
     CHI2_STEREO,
@@ -37,6 +36,7 @@ from memgs_ros.core.tracking.features.features import (
     match_descriptors,
 )
 from memgs_ros.core.tracking.frontend.local_map import SparseMap
+from memgs_ros.core.tracking.kernel_calls import View, numba_available, track_pass_kernel
 
 _MIN_PROJECTION_MATCHES = 30  # below this the first pass is retried with a wider radius
 _WIDE_RADIUS_FACTOR = 3.0
