@@ -155,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     ok_ate = diffs["ate_cm"] is not None and abs(diffs["ate_cm"]) <= ATE_TARGET_CM
     print(f"target PSNR within {PSNR_TARGET_DB} dB: {'met' if ok_psnr else 'MISSED'}; "
           f"ATE within {ATE_TARGET_CM} cm: {'met' if ok_ate else 'MISSED'}")
-    from memgs_ros.evaluation import write_json
+    from memgs_ros.evaluation.runs import write_json
 
     summary = out / "bench_calibration.json" if args.json is None else args.json
     write_json(summary, {"uptime_before": load, "argv": sys.argv[1:], "source": str(args.source),

@@ -30,7 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"machine: {os.cpu_count()} cores, {load}")
     code = eval_cli.run(args)
     if code == 0:
-        from memgs_ros.evaluation import write_json
+        from memgs_ros.evaluation.runs import write_json
 
         name = "ablation.json" if args.ablation else "eval.json"
         record = json.loads((args.out / name).read_text())

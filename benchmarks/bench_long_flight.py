@@ -185,7 +185,7 @@ def analyse(out: Path, source: str, repeat: int, passes: int, flat_window_s: flo
     except Exception as err:  # noqa: BLE001 - a run without a trajectory still has its other figures
         row["ate_error"] = str(err)
     if psnr:
-        from memgs_ros.evaluation import evaluate_run
+        from memgs_ros.evaluation.runs import evaluate_run
 
         r = evaluate_run(out, use_lpips=False, progress=False)
         row["psnr_db"] = r.frames_quality.psnr_db

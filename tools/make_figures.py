@@ -98,7 +98,7 @@ def eval_figures(record: dict[str, Any], name: str, out_dir: Path) -> tuple[str,
     variant's trajectory and PSNR-per-frame plots and, for an ablation, map size per variant."""
     from memgs_ros.evaluation.figures import save_ablation_plot, save_plots
     from memgs_ros.evaluation.tables import ablation_table, markdown_table
-    from memgs_ros.evaluation import result_from_dict
+    from memgs_ros.evaluation.runs import result_from_dict
 
     result = record["result"]
     variants = result.get("variants") or [result]

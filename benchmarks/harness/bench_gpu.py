@@ -343,7 +343,7 @@ def _live(args: argparse.Namespace, name: str, env: dict[str, str] | None = None
         row.update(played=played, frames=s.frames, poses=s.poses, lost=s.lost_frames,
                    tracked_fraction=round(s.poses / max(played, 1), 3),
                    tracker_skipped=s.tracker_skipped, **_summary_figures(s.as_dict()))
-        from memgs_ros.evaluation import evaluate_run
+        from memgs_ros.evaluation.runs import evaluate_run
 
         r = evaluate_run(out_dir, str(args.tum), use_lpips=False, device=args.device, progress=False,
                          max_frames=args.max_frames)

@@ -80,7 +80,7 @@ def run_graph(tum: Path, config: str, out: Path, rate: float | None, timeout: fl
     s = run.summary
     if s is None:
         return row
-    from memgs_ros.evaluation import evaluate_run
+    from memgs_ros.evaluation.runs import evaluate_run
 
     r = evaluate_run(out, str(tum), use_lpips=False, progress=False)
     # Every frame of the folder is played in these runs (the player skips none that read); the

@@ -23,7 +23,7 @@ from memgs_ros.orchestration.run_files import check_record_path
 logger = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
-    from memgs_ros.evaluation import EvalResult
+    from memgs_ros.evaluation.runs import EvalResult
     from memgs_ros.viz import RerunTarget
 
 HELP = "evaluate a run like the paper: PSNR/SSIM, memory, Gaussians, ATE, FPS (optionally an ablation)"
@@ -127,8 +127,8 @@ def _evaluate(args: argparse.Namespace, source: str, config: str, overrides: dic
     matplotlib.use("Agg")
     import torch
 
-    from memgs_ros import evaluation
     from memgs_ros.core.runtime.cpu import configure_cpu_runtime
+    from memgs_ros.evaluation import runs as evaluation
     from memgs_ros.evaluation.figures import save_ablation_plot, save_plots
     from memgs_ros.evaluation.tables import ablation_json, ablation_table, markdown_table
 

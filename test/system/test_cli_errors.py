@@ -192,7 +192,7 @@ def test_corrupt_ply_where_evaluation_reads_one(tmp_path: Path) -> None:
     """``memgs eval`` scores the saved map through score_map: a corrupt PLY is a DataError naming it."""
     pytest.importorskip("torch")
     from memgs_ros.core.geometry.camera import PinholeCamera
-    from memgs_ros.evaluation import score_map
+    from memgs_ros.evaluation.runs import score_map
 
     p = save_ply(_records(4), tmp_path / "map.ply")
     p.write_bytes(p.read_bytes()[:-10])
