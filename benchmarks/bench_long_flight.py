@@ -45,19 +45,13 @@ from _common import ROOT, TUM_HELP, run_memgs, tum_path_or_exit, uptime, write_r
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from memgs_ros.evaluation.timeline import finite_number  # noqa: E402 - no torch: the table reads JSON only
+
 NODES = ("tracker", "keyframe_sampler", "mapper", "merger", "player")
 
 
 def _log(msg: str) -> None:
     print(f"[bench_long_flight {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
-
-
-def _num(v: Any) -> float | None:
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        return None
-    return f if np.isfinite(f) else None
 
 
 def timeline_series(rows: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, list[float]]]:
@@ -71,7 +65,7 @@ def timeline_series(rows: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, li
         for key, value in row.items():
             if key in ("t_s", "node"):
                 continue
-            v = _num(value)
+            v = finite_number(value)
             if v is None:
                 continue
             col = series.setdefault(key, [float("nan")] * n)

@@ -8,7 +8,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["MapSample", "map_samples", "mapper_gauge_max", "node_peak_rss_mb", "training_rate"]
+__all__ = ["MapSample", "finite_number", "map_samples", "mapper_gauge_max", "node_peak_rss_mb", "training_rate"]
 
 _TIMELINE_NODE_NAMES = {"player": "bag_player"}
 
@@ -38,7 +38,8 @@ def training_rate(samples: Sequence[MapSample]) -> float | None:
     return (end.iteration - start.iteration) / (end.t_s - start.t_s)
 
 
-def _number(value: Any) -> float | None:
+def finite_number(value: Any) -> float | None:  # noqa: ANN401 - a stats value of any JSON type
+    """``value`` as a finite float; None for a missing, non-numeric or non-finite one."""
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -55,10 +56,10 @@ def map_samples(timeline: Sequence[Mapping[str, Any]]) -> tuple[MapSample, ...]:
             continue
 
         def num(key: str, row: Mapping[str, Any] = row) -> int:
-            v = _number(row.get(key, 0))
+            v = finite_number(row.get(key, 0))
             return 0 if v is None else int(v)
 
-        cuda = _number(row["cuda_max_allocated"]) if "cuda_max_allocated" in row else None
+        cuda = finite_number(row["cuda_max_allocated"]) if "cuda_max_allocated" in row else None
         out.append(MapSample(t_s=float(row["t_s"]), iteration=num("iteration"), gaussians=num("gaussians"),
                              model_bytes=num("model_bytes"), cuda_max_allocated=None if cuda is None else int(cuda)))
     return tuple(out)
@@ -66,7 +67,7 @@ def map_samples(timeline: Sequence[Mapping[str, Any]]) -> tuple[MapSample, ...]:
 
 def mapper_gauge_max(timeline: Sequence[Mapping[str, Any]], key: str) -> float | None:
     """The largest value of a mapper stats gauge over the run (None when it never reported it)."""
-    vals = [v for row in timeline if row.get("node") == "mapper" and (v := _number(row.get(key))) is not None]
+    vals = [v for row in timeline if row.get("node") == "mapper" and (v := finite_number(row.get(key))) is not None]
     return max(vals) if vals else None
 
 
@@ -74,7 +75,7 @@ def node_peak_rss_mb(timeline: Sequence[Mapping[str, Any]]) -> dict[str, float]:
     """Peak RSS (MB) per node: the largest ``peak_rss_mb`` (VmHWM) each node reported."""
     peaks: dict[str, float] = {}
     for row in timeline:
-        v = _number(row.get("peak_rss_mb"))
+        v = finite_number(row.get("peak_rss_mb"))
         if v is None:
             continue
         name = _TIMELINE_NODE_NAMES.get(str(row["node"]), str(row["node"]))
