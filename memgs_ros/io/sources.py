@@ -32,7 +32,7 @@ from memgs_ros.io.synthetic import (
     parse_spec,
     trajectory,
 )
-from memgs_ros.io.tum import TumFolder
+from memgs_ros.io.tum import TumFolder, folder_depth_factor
 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 
@@ -94,8 +94,6 @@ def player_depth_units(spec: str | os.PathLike[str]) -> float:
     """The units a metre of the 16UC1 depth a replay of ``spec`` publishes: a TUM folder's PNGs go
     out as stored (its depth factor, 5000 for TUM's own), depth read as metres in REP-118's
     millimetres. The tracker reads the replay with these (``memgs run`` sets its ``depth_scale``)."""
-    from memgs_ros.io.tum import folder_depth_factor
-
     is_tum = not is_spec_string(spec) and (Path(spec) / "rgb.txt").is_file()  # type: ignore[arg-type]
     return folder_depth_factor(Path(spec)) if is_tum else 1000.0
 
