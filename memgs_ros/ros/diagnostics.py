@@ -12,9 +12,9 @@ import os
 import queue
 import resource
 import time
-from collections import Counter, deque
-from collections.abc import Callable, Mapping
-from typing import Any
+from collections import deque
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any, TypeVar
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
@@ -22,7 +22,17 @@ from std_msgs.msg import Header
 
 from memgs_ros.core.runtime.cpu import release_free_memory
 from memgs_ros.core.runtime.health import assess
+from memgs_ros.core.runtime.stat_fields import Family, Stat
 from memgs_ros.core.runtime.telemetry import TELEMETRY, NodeTelemetry, StatsError, check_key
+from memgs_ros.core.runtime.telemetry_fields import (
+    MergerFields,
+    NodeFields,
+    PlayerFields,
+    RecorderFields,
+    SamplerFields,
+    TrackerFields,
+    ViewFields,
+)
 from memgs_ros.ros import qos
 
 
@@ -46,55 +56,38 @@ class RollingMedian:
 
 
 STRICT_ENV = "MEMGS_STRICT_STATS"  # "1": a stats key no record names raises (the test suite sets it)
+F = TypeVar("F")
 
 
-class _CheckedCounter(Counter[str]):
-    """A Counter that takes only the keys its ``accepts`` allows."""
+class _StatsView(Mapping[str, Any]):
+    """A read-only view of the values written; a key not written yet reads 0 (as in a Counter)."""
 
-    def __init__(self, accepts: Callable[[str], bool]) -> None:
-        super().__init__()
-        self._accepts = accepts
+    def __init__(self, values: dict[str, Any]) -> None:
+        self._values = values
 
-    def __setitem__(self, key: str, value: int) -> None:
-        if self._accepts(key):
-            super().__setitem__(key, value)
+    def __getitem__(self, key: str) -> Any:  # noqa: ANN401 - a stats value
+        return self._values.get(key, 0)
 
-    def update(self, other: Any = None, /, **kwargs: int) -> None:  # noqa: ANN401 - Counter's signature
-        counts = Counter(other or ())
-        counts.update(kwargs)
-        for key, n in counts.items():
-            self[key] = self.get(key, 0) + n
+    def __contains__(self, key: object) -> bool:
+        return key in self._values
 
-    def assign(self, values: Mapping[str, int]) -> None:
-        """Set each of ``values`` (totals kept elsewhere), where ``update`` would add them."""
-        for key, value in values.items():
-            self[key] = value
+    def __iter__(self) -> Iterator[str]:
+        return iter(list(self._values))
+
+    def __len__(self) -> int:
+        return len(self._values)
 
 
-class _CheckedDict(dict[str, Any]):
-    """A dict that takes only the keys its ``accepts`` allows."""
-
-    def __init__(self, accepts: Callable[[str], bool]) -> None:
-        super().__init__()
-        self._accepts = accepts
-
-    def __setitem__(self, key: str, value: Any) -> None:  # noqa: ANN401 - a gauge's value
-        if self._accepts(key):
-            super().__setitem__(key, value)
-
-    def update(self, other: Any = None, /, **kwargs: Any) -> None:  # noqa: ANN401 - dict's signature
-        for key, value in [*dict(other or {}).items(), *kwargs.items()]:
-            self[key] = value
-
-
-class NodeStats:
+class NodeStats(NodeFields):
     """Counters and gauges a node publishes once a second, plus warn-once logging per problem kind.
 
-    ``counters``, ``gauges`` and ``problem`` belong to the node's default callback group (where
-    the publish timer runs). A node whose callbacks run in several groups at once posts from
-    the others (``post_count``, ``post_counter``, ``post_gauge``, ``post_problem``): the updates
-    queue up and ``apply_posted`` (called by ``message``, or by a default-group callback) applies
-    them in order, so the dicts never have two writers.
+    A node writes its fields by attribute through its subclass (``TrackerStats``, ...: the record's
+    generated twin, ``core/runtime/stat_fields.py``): ``stats.frames_in += 1``. The values belong
+    to the node's default callback group (where the publish timer runs). A node whose callbacks
+    run in several groups at once posts from the others (``post_add``, ``post_set``,
+    ``post_member``, ``post_problem``, each naming the field on the class, e.g.
+    ``MapperStats.checkpoints``): the updates queue up and ``apply_posted`` (called by ``message``,
+    or by a default-group callback) applies them in order, so the values never have two writers.
     """
 
     def __init__(self, node: Node, name: str, period_s: float = 1.0, trim_period_s: float = 30.0,
@@ -107,12 +100,11 @@ class NodeStats:
         self._last_trim = time.monotonic()
         self._name = name
         self._strict = os.environ.get(STRICT_ENV, "") == "1"
-        self.counters = _CheckedCounter(self._accepts)
-        self.gauges = _CheckedDict(self._accepts)
+        self._values: dict[str, Any] = {}  # key -> value, in the order first written
         # Gauges computed when the message is built, for those too costly to update per frame.
-        self.computed: dict[str, Callable[[], float | int | str]] = {}
+        self._gauge_fns: dict[str, Callable[[], float | int | str]] = {}
         self._warned: set[str] = set()
-        self._accepted: set[str] = set()  # keys checked once: a frame path sets a dozen a frame
+        self._accepted: set[str] = set()  # keys of ``assign`` checked once
         self._posted: queue.SimpleQueue[tuple[str, str, object]] = queue.SimpleQueue()
         self._pub = node.create_publisher(DiagnosticArray, f"memgs/{name}/stats", qos.reliable(5))
         # /diagnostics: absolute (every node of the robot on one topic), the aggregator's QoS
@@ -120,10 +112,22 @@ class NodeStats:
         self._before: dict[str, object] | None = None  # the values of the previous window
         self._timer = node.create_timer(period_s, self.publish)
 
+    def _stat(self, key: str, default: Any) -> Any:  # noqa: ANN401 - the field's type (stat_fields)
+        return self._values.get(key, default)
+
+    def _set_stat(self, key: str, value: Any) -> None:  # noqa: ANN401
+        self._values[key] = value
+
+    @property
+    def values(self) -> Mapping[str, Any]:
+        """What has been written so far, by stats key: a read-only view (write by attribute) that,
+        like a Counter, reads 0 for a key not written yet."""
+        return _StatsView(self._values)
+
     def _accepts(self, key: str) -> bool:
-        """Whether ``key`` is a field of the node's record. A key it does not name is a bug in the
-        node: the test suite (``MEMGS_STRICT_STATS=1``) fails on it; a robot's node drops the value
-        and counts ``problem.stats_key`` rather than stop."""
+        """Whether ``key`` (of a mapping handed to :meth:`assign`) is a field of the node's record.
+        A key it does not name is a bug in the node: the test suite (``MEMGS_STRICT_STATS=1``)
+        fails on it; a robot's node drops the value and counts ``problem.stats_key`` rather than stop."""
         if key in self._accepted:
             return True
         try:
@@ -136,27 +140,41 @@ class NodeStats:
         self._accepted.add(key)
         return True
 
+    def assign(self, values: Mapping[str, Any]) -> None:
+        """Set each of ``values`` (totals kept by code that reports through this node, e.g. the
+        mapping session's ``StatValues``), each key checked against the record."""
+        for key, value in values.items():
+            if self._accepts(key):
+                self._values[key] = value
+
+    def add(self, stat: Stat[int], n: int = 1) -> None:
+        """Add ``n`` to counter ``stat`` where the field is handed over, not named (``PacedRequests``)."""
+        self._values[stat.key] = self._values.get(stat.key, 0) + n
+
+    def compute(self, stat: Stat[F], compute: Callable[[], F]) -> None:
+        """Set ``stat`` from ``compute()`` each time the message is built (a rolling median)."""
+        self._gauge_fns[stat.key] = compute  # type: ignore[assignment]
+
     def problem(self, kind: str, message: str) -> None:
         """Count a problem; log it once per kind (then only the counter grows)."""
-        self.counters[f"problem.{kind}"] += 1
+        self.problem_counts[kind] += 1
         if kind not in self._warned:
             self._warned.add(kind)
             self._node.get_logger().warning(f"{message} (further '{kind}' problems are only counted)")
 
-    def post_count(self, name: str, n: int = 1) -> None:
-        """From any thread: add ``n`` to counter ``name``."""
-        if self._accepts(name):  # checked in the caller's thread, where the mistake is
-            self._posted.put(("count", name, n))
+    def post_add(self, stat: Stat[int], n: int = 1) -> None:
+        """From any thread: add ``n`` to counter ``stat``."""
+        self._posted.put(("add", stat.key, n))
 
-    def post_counter(self, name: str, value: int) -> None:
-        """From any thread: set counter ``name`` (a total kept elsewhere)."""
-        if self._accepts(name):
-            self._posted.put(("counter", name, value))
+    def post_set(self, stat: Stat[F], value: F) -> None:
+        """From any thread: set ``stat`` (a gauge, or a total kept elsewhere)."""
+        self._posted.put(("set", stat.key, value))
 
-    def post_gauge(self, name: str, value: float | int | str) -> None:
-        """From any thread: set gauge ``name``."""
-        if self._accepts(name):
-            self._posted.put(("gauge", name, value))
+    def post_member(self, family: Family[F], member: str, value: F) -> None:
+        """From any thread: set ``family[member]``."""
+        if not member:
+            raise ValueError(f"a member of {family.key}.* needs a name")
+        self._posted.put(("set", f"{family.key}.{member}", value))
 
     def post_problem(self, kind: str, message: str) -> None:
         """From any thread: :meth:`problem`."""
@@ -166,31 +184,29 @@ class NodeStats:
         """Apply what other threads posted, in order (on the default callback group)."""
         while True:
             try:
-                op, name, value = self._posted.get_nowait()
+                op, key, value = self._posted.get_nowait()
             except queue.Empty:
                 return
-            if op == "count":
-                self.counters[name] += int(value)  # type: ignore[call-overload]
-            elif op == "counter":
-                self.counters[name] = int(value)  # type: ignore[call-overload]
-            elif op == "gauge":
-                self.gauges[name] = value  # type: ignore[assignment]
+            if op == "add":
+                self._values[key] = self._values.get(key, 0) + int(value)  # type: ignore[call-overload]
+            elif op == "set":
+                self._values[key] = value
             else:
-                self.problem(name, str(value))
+                self.problem(key, str(value))
 
     def message(self) -> DiagnosticArray:
         self.apply_posted()
         if self._trim_period_s > 0 and time.monotonic() - self._last_trim >= self._trim_period_s:
             self._last_trim = time.monotonic()
             release_free_memory()  # so rss_mb is what the node uses, not its heap's high-water mark
-        for name, compute in self.computed.items():
-            self.gauges[name] = compute()
-        self.gauges["peak_rss_mb"] = round(peak_rss_mb(), 1)
-        self.gauges["rss_mb"] = round(rss_mb(), 1)
-        self.gauges["cpu_s"] = round(time.process_time(), 2)  # of the process (in one process: of all nodes)
+        for key, compute in self._gauge_fns.items():
+            self._values[key] = compute()
+        self.peak_rss_mb = round(peak_rss_mb(), 1)
+        self.rss_mb = round(rss_mb(), 1)
+        self.cpu_s = round(time.process_time(), 2)  # of the process (in one process: of all nodes)
         if hasattr(os, "getpriority"):
-            self.gauges["nice"] = os.getpriority(os.PRIO_PROCESS, 0)  # the Rerun view runs at 15 under memgs run
-        values: Mapping[str, object] = {**self.counters, **self.gauges}
+            self.nice = os.getpriority(os.PRIO_PROCESS, 0)  # the Rerun view runs at 15 under memgs run
+        values = {k: v for k, v in self._values.items() if v is not None}  # None: not reported yet
         health = assess(self._name, values, self._before)
         self._before = dict(values)
         status = DiagnosticStatus(
@@ -206,6 +222,36 @@ class NodeStats:
         msg = self.message()
         self._pub.publish(msg)
         self._diag_pub.publish(msg)
+
+
+class TrackerStats(NodeStats, TrackerFields):
+    def __init__(self, node: Node) -> None:
+        super().__init__(node, "tracker")
+
+
+class SamplerStats(NodeStats, SamplerFields):
+    def __init__(self, node: Node) -> None:
+        super().__init__(node, "keyframe_sampler")
+
+
+class MergerStats(NodeStats, MergerFields):
+    def __init__(self, node: Node) -> None:
+        super().__init__(node, "merger")
+
+
+class PlayerStats(NodeStats, PlayerFields):
+    def __init__(self, node: Node) -> None:
+        super().__init__(node, "player")
+
+
+class RecorderStats(NodeStats, RecorderFields):
+    def __init__(self, node: Node) -> None:
+        super().__init__(node, "recorder")
+
+
+class ViewStats(NodeStats, ViewFields):
+    def __init__(self, node: Node) -> None:
+        super().__init__(node, "rerun_bridge")
 
 
 def rss_mb() -> float:

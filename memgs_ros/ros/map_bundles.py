@@ -45,7 +45,7 @@ from memgs_ros.core.maps.bundle import (
 )
 from memgs_ros.core.maps.ply import ids_sidecar_path, save_ply
 from memgs_ros.errors import MemgsError, PipelineError
-from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.diagnostics import MergerStats
 from memgs_ros.ros.hand_over import HandOver
 from memgs_ros.ros.service_calls import call_within
 
@@ -88,7 +88,7 @@ def _tracker_header(path: Path) -> dict[str, Any]:
 class BundleAssembler:
     """The merger's side of ``memgs/save_map``: the parts asked for, the bundle committed."""
 
-    def __init__(self, node: Node, params: Any, stats: NodeStats) -> None:
+    def __init__(self, node: Node, params: Any, stats: MergerStats) -> None:
         self.node, self.params, self.stats = node, params, stats
         group = ReentrantCallbackGroup()
         self.tracker = node.create_client(Trigger, "memgs/tracker/save_map_part", callback_group=group)
@@ -141,9 +141,9 @@ class BundleAssembler:
                 raise
 
         bundle = await self.hand_over.result(in_thread(assemble, "map-bundle"))
-        self.stats.counters["bundles"] += 1
+        self.stats.bundles += 1
         size = sum(f.stat().st_size for f in bundle.iterdir() if f.is_file())
-        self.stats.gauges["bundle_mb"] = round(size / 1e6, 2)
+        self.stats.bundle_mb = round(size / 1e6, 2)
         self.node.get_logger().info(f"map bundle saved: {bundle} ({size / 1e6:.1f} MB; the PLY "
                                     f"{(bundle / PLY_FILE).stat().st_size / 1e6:.1f} MB, its ids "
                                     f"{ids_sidecar_path(bundle / PLY_FILE).stat().st_size / 1e6:.2f} MB)")

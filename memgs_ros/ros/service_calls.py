@@ -16,6 +16,7 @@ from rclpy.task import Future
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.maps.follower import RequestPacer
+from memgs_ros.core.runtime.stat_fields import Stat
 from memgs_ros.ros.diagnostics import NodeStats
 
 __all__ = ["PacedRequests", "call_trigger", "call_within"]
@@ -46,7 +47,7 @@ class PacedRequests:
     as ``counter``; a refused or failed one is ``problem.<kind>`` ("``what``: why").
     ``one_at_a_time``: none goes while the last one is unanswered."""
 
-    def __init__(self, node: Node, service: str, stats: NodeStats, pacer: RequestPacer, counter: str,
+    def __init__(self, node: Node, service: str, stats: NodeStats, pacer: RequestPacer, counter: Stat[int],
                  kind: str, what: str, one_at_a_time: bool = False) -> None:
         self.client = node.create_client(Trigger, service)
         self.pacer = pacer
@@ -60,7 +61,7 @@ class PacedRequests:
             return
         if self.client.service_is_ready() and self.pacer.ask(time.monotonic(), out_of_step):
             self._last = call_trigger(self.client, self._stats, self._kind, self._what)
-            self._stats.counters[self._counter] += 1
+            self._stats.add(self._counter)
 
 
 async def call_within(node: Node, client: Client, request: Any, timeout_s: float) -> Any | None:

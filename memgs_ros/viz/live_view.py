@@ -9,7 +9,7 @@ closure moves them noticeably. Each log call is timed into ``counters`` (``log_u
 from __future__ import annotations
 
 import time
-from collections import Counter, OrderedDict
+from collections import OrderedDict
 from collections.abc import Callable
 from types import ModuleType
 from typing import Any
@@ -18,6 +18,7 @@ import numpy as np
 
 from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.runtime.telemetry_fields import ViewFields
 
 __all__ = ["LiveView"]
 
@@ -31,9 +32,9 @@ class LiveView:
     stamps_kept: recent pose stamps whose frame index later data of the same stamp finds.
     """
 
-    def __init__(self, log: ModuleType, rec: Any, counters: Counter[str], frustum_m: float, jpeg_quality: int,
+    def __init__(self, log: ModuleType, rec: Any, stats: ViewFields, frustum_m: float, jpeg_quality: int,
                  log_sh: bool, stamps_kept: int = 120) -> None:
-        self.log, self.rec, self.counters = log, rec, counters
+        self.log, self.rec, self.stats = log, rec, stats
         self.frustum_m, self.jpeg_quality, self.log_sh = frustum_m, jpeg_quality, log_sh
         self._stamps_kept = stamps_kept
         self.frame_index = -1
@@ -57,9 +58,9 @@ class LiveView:
         t0 = time.perf_counter()
         out = fn(self.rec, *args)
         us = int((time.perf_counter() - t0) * 1e6)
-        self.counters["log_us_total"] += us
-        self.counters[f"log_us.{what}"] += us
-        self.counters[f"logged.{what}"] += 1
+        self.stats.log_us_total += us
+        self.stats.log_us[what] += us
+        self.stats.logged[what] += 1
         return out
 
     def pose(self, stamp_ns: int, T_wc: np.ndarray) -> None:  # [4, 4]

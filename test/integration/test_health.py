@@ -64,14 +64,14 @@ def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noq
             nonlocal stamp
             stamp += 33_333_333
             feed.send(rgb, depth, stamp)
-            return str(node.stats.gauges["tracking_state"])
+            return str(node.stats.values["tracking_state"])
 
         for f in frames[:2]:
             assert send(f.rgb, f.depth_m) == "OK"
         # No one reads the odometry yet: no covariance is computed and no odometry built.
-        assert node.stats.counters["odometry_out"] == 0 and node.tracker is not None
+        assert node.stats.values["odometry_out"] == 0 and node.tracker is not None
         assert not node.tracker.covariance_wanted
-        unread_ok = node.stats.counters["state.OK"]
+        unread_ok = node.stats.values["state.OK"]
         feed.peer.create_subscription(Odometry, "memgs/odom", odometry.append, qos.reliable(100))
         assert spin_until(node.out.odometry_wanted, 5.0)
         for f in frames[2:4]:
@@ -87,15 +87,15 @@ def test_diagnostics_say_lost_and_found_within_a_second(context) -> None:  # noq
         for f in itertools.islice(itertools.cycle(frames[:4]), 20):  # back over the mapped room
             if send(f.rgb, f.depth_m) == "OK":  # relocalised
                 break
-        assert node.stats.gauges["tracking_state"] == "OK"
+        assert node.stats.values["tracking_state"] == "OK"
         found_at = time.monotonic()
         assert spin_until(lambda: any(t >= found_at - 0.5 and lvl == 0 for t, lvl, _ in heard), 1.0), heard[-3:]
-        assert node.stats.counters["resets"] == 1
+        assert node.stats.values["resets"] == 1
         # Odometry: tracked frames only (none while coasting or lost), each with a covariance,
         # from the frame a subscriber came on
-        assert spin_until(lambda: len(odometry) == node.stats.counters["state.OK"] - unread_ok, 2.0), (
-            len(odometry), node.stats.counters["state.OK"], unread_ok)
-        assert node.stats.counters["state.RECENTLY_LOST"] > 0 and node.stats.counters["state.LOST"] > 0
+        assert spin_until(lambda: len(odometry) == node.stats.values["state.OK"] - unread_ok, 2.0), (
+            len(odometry), node.stats.values["state.OK"], unread_ok)
+        assert node.stats.values["state.RECENTLY_LOST"] > 0 and node.stats.values["state.LOST"] > 0
         covs = [np.array(o.pose.covariance).reshape(6, 6) for o in odometry]
         assert all(np.all(np.linalg.eigvalsh(c) > 0) for c in covs) and len({c[0, 0] for c in covs}) > 1
     finally:

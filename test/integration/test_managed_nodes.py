@@ -53,16 +53,16 @@ def test_the_tracker_is_configured_activated_paused_and_resumed_by_service(conte
         print(f"configure -> active, kernels warm: {time.perf_counter() - t0:.2f} s")
         feed.camera(frames[0].camera, frames[0].stamp_ns)
         send(frames[:5])
-        tracked = node.stats.counters["state.OK"]
+        tracked = node.stats.values["state.OK"]
         assert tracked >= 4
         # Paused: every frame answered and counted, none tracked.
         assert transition(Transition.TRANSITION_DEACTIVATE) and state() == State.PRIMARY_STATE_INACTIVE
         send(frames[5:10])
-        assert node.stats.counters["skipped.inactive"] == 5 and node.stats.counters["state.OK"] == tracked
+        assert node.stats.values["skipped.inactive"] == 5 and node.stats.values["state.OK"] == tracked
         # Resumed: tracking goes on from the map it kept.
         assert transition(Transition.TRANSITION_ACTIVATE)
         send(frames[10:])
-        assert node.stats.counters["state.OK"] == tracked + 5
+        assert node.stats.values["state.OK"] == tracked + 5
         # Cleanup removes the topics configure made; a second configure makes them again.
         assert transition(Transition.TRANSITION_DEACTIVATE) and transition(Transition.TRANSITION_CLEANUP)
         assert state() == State.PRIMARY_STATE_UNCONFIGURED and node.tracker is None

@@ -28,7 +28,7 @@ def test_a_failed_periodic_delta_or_snapshot_is_counted(context, kind: str) -> N
         Parameter("device", value="cpu"), Parameter("render_rate_hz", value=0.0), *PERIODIC[kind]])
     ex = SingleThreadedExecutor(context=context)
     ex.add_node(node)
-    c = node.stats.counters
+    c = node.stats.values
     try:
         def unreadable(m):  # noqa: ANN001, ANN202 - runs on the session's worker
             def snapshot():  # noqa: ANN202

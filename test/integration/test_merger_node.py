@@ -104,10 +104,10 @@ def test_merger_applies_deltas_resyncs_renders_and_saves(tmp_path: Path, ros_dom
         img = image_to_numpy(renders[0])
         assert img.shape == (48, 64, 3) and img.std() > 5.0
         merger.stats.apply_posted()
-        assert merger.stats.counters["renders"] == 1
+        assert merger.stats.values["renders"] == 1
         # Its stats say what it holds: the replica's rows and the render inputs, no training state.
         merger._gauges()
-        gauges = merger.stats.gauges
+        gauges = merger.stats.values
         assert gauges["map_bytes"] == merger.map.replica.records.nbytes > 0
         assert 0 < gauges["render_cache_bytes"] <= 2 * gauges["map_bytes"] and gauges["buffered_deltas"] == 0
         # The viewer cloud: every row a Gaussian of the map, in the map frame, near the others (the

@@ -123,7 +123,7 @@ class _Feeder:
 
 def _feed_bad_bundles(feeder: _Feeder, frames: list[Frame], on_refused: Callable[[str], None]) -> None:
     """One bundle per entry of BAD_BUNDLES; each must add exactly one problem of its kind."""
-    c = feeder.node.stats.counters
+    c = feeder.node.stats.values
     for i, (label, kind, breaker) in enumerate(BAD_BUNDLES):
         f = frames[1 + i % (len(frames) - 1)]
         b = _bundle(f, f.stamp_ns + 1000 * (i + 1))
@@ -141,7 +141,7 @@ def test_keyframe_sampler_refuses_bad_bundles_by_kind_and_keeps_sampling(context
     feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "keypoints"))
     seeds: list[PointCloud2] = []
     feeder.peer.create_subscription(PointCloud2, "memgs/keyframe/seeds", seeds.append, qos.reliable(50))
-    c = node.stats.counters
+    c = node.stats.values
     try:
         feeder.send(_bundle(frames[0], frames[0].stamp_ns), lambda: c["keyframes"] == 1 and len(seeds) == 1)
 
@@ -174,7 +174,7 @@ def test_mapper_refuses_bad_bundles_without_touching_the_map(context, frames) ->
         Parameter("lockstep", value=True), Parameter("lockstep_iterations", value=0), Parameter("device", value="cpu"),
         Parameter("render_rate_hz", value=0.0)])
     feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "seeds"))
-    c = node.stats.counters
+    c = node.stats.values
     try:
         feeder.send(_bundle(frames[0], frames[0].stamp_ns), lambda: c["keyframes"] == 1)
         before = node.session.snapshot().result(30)
@@ -232,7 +232,7 @@ def test_the_sampler_reads_keyframe_depth_in_rep118_units_without_a_scale_of_its
     feeder = _Feeder(context, KeyframeSamplerNode(context=context), ("color", "depth", "info", "pose", "keypoints"))
     seeds: list[Cloud] = []
     feeder.peer.create_subscription(Cloud, "memgs/keyframe/seeds", seeds.append, qos.keyframes())
-    c = feeder.node.stats.counters
+    c = feeder.node.stats.values
     try:
         f = frames[1]
         T_cw = np.linalg.inv(f.T_wc_gt)
@@ -277,12 +277,12 @@ def test_free_running_mapper_drops_and_counts_keyframes_it_cannot_insert(context
 
     node.session.call(hold_inserts).result(30)
     feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "seeds"))
-    c = node.stats.counters
+    c = node.stats.values
     try:
         stamps = [frames[i].stamp_ns for i in range(4)]
         feeder.send(_bundle(frames[0], stamps[0]), lambda: len(started) == 1)  # the insert thread holds it
         for i in (1, 2, 3):  # queue of 1: the 3rd drops the 2nd, the 4th drops the 3rd
-            feeder.send(_bundle(frames[i], stamps[i]), lambda i=i: node.stats.gauges.get("insert_queue") == 1
+            feeder.send(_bundle(frames[i], stamps[i]), lambda i=i: node.stats.values.get("insert_queue") == 1
                         and c["problem.keyframe_overload"] == i - 1)
         gate.set()
         assert _spin_until(feeder.ex, lambda: c["keyframes"] == 2)
@@ -353,7 +353,7 @@ def test_tracker_stamp_rules(context) -> None:  # noqa: ANN001
     ex = SingleThreadedExecutor(context=context)
     ex.add_node(node)
     ex.add_node(peer)
-    c = node.stats.counters
+    c = node.stats.values
     tracked = lambda: sum(v for k, v in c.items() if k.startswith("state."))  # noqa: E731
     try:
         assert _spin_until(ex, lambda: pc.get_subscription_count() and pd.get_subscription_count()
@@ -405,7 +405,7 @@ def test_merger_refuses_malformed_deltas_and_counts_unknown_removals(context, tm
     ex = SingleThreadedExecutor(context=context)
     ex.add_node(merger)
     ex.add_node(peer)
-    c = merger.stats.counters
+    c = merger.stats.values
     rng = np.random.default_rng(0)
     g = GaussianMap(max_sh_degree=0)
     g.add_from_points(rng.uniform(-1, 1, (20, 3)), rng.uniform(0, 1, (20, 3)), keyframe_id=0, iteration=0)
@@ -444,7 +444,7 @@ def test_merger_refuses_malformed_deltas_and_counts_unknown_removals(context, tm
         ghost["id"][1:] = [10**6, 10**6 + 1]
         send(structured_to_pointcloud2(ghost, 0, "map"), lambda: merger.map.replica.seq == 3)
         assert c["problem.unknown_removal"] == 1 and len(merger.map.replica) == 15 and not merger.map.resyncing
-        assert merger.stats.gauges["unknown_removals"] == 2
+        assert merger.stats.values["unknown_removals"] == 2
     finally:
         ex.shutdown()
         merger.destroy_node()
@@ -537,7 +537,7 @@ def test_mapper_checkpoints_written_while_keyframes_arrive_are_whole(context, fr
         Parameter("mapping.min_keyframes", value=100),
         Parameter("mapping.live_min_keyframes", value=100)])  # no training: insertions back to back
     feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "seeds"))
-    c = node.stats.counters
+    c = node.stats.values
     stop = threading.Event()
     written: list[checkpoint.MapperCheckpoint] = []
     errors: list[BaseException] = []

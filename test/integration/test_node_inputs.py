@@ -67,7 +67,7 @@ def test_tracker_survives_bad_frames_and_tracks_good_ones(context) -> None:  # n
         pd.publish(depth_to_image(f0.depth_m, "32FC1", f0.stamp_ns, "cam"))
         assert _spin_until(ex, lambda: node.cams.waiting, 10.0) and not processed
         pi.publish(camera_to_camera_info(f0.camera, f0.stamp_ns, "cam"))
-        assert _spin_until(ex, lambda: node.stats.counters["poses_out"] == 1 and len(processed) == 1)
+        assert _spin_until(ex, lambda: node.stats.values["poses_out"] == 1 and len(processed) == 1)
         sent = 1
         f1, f2, f3 = frames[1:4]
         # Wrong encoding on the colour image.
@@ -91,7 +91,7 @@ def test_tracker_survives_bad_frames_and_tracks_good_ones(context) -> None:  # n
         # And a good frame still tracks afterwards.
         f5 = frames[5]
         send(numpy_to_image(f5.rgb, "rgb8", f5.stamp_ns, "cam"), depth_to_image(f5.depth_m, "32FC1", f5.stamp_ns, "cam"))
-        c = node.stats.counters
+        c = node.stats.values
         assert c["problem.camera_info"] == 1
         assert c["problem.bad_image"] == 3
         assert c["problem.empty_depth"] == 1
@@ -132,8 +132,8 @@ def test_tracker_counts_undelivered_frames_and_drops_stale_ones(context) -> None
         node.on_color(color(3), info(5, 0.0))  # sequence 3 and 4 never arrived
         node.on_color(color(4), info(6, 0.5))  # waited 0.5 s: stale
         assert handled == [1, 2, 3]
-        assert node.stats.counters["skipped.busy"] == 2
-        assert node.stats.counters["skipped.stale"] == 1
+        assert node.stats.values["skipped.busy"] == 2
+        assert node.stats.values["skipped.stale"] == 1
     finally:
         node.destroy_node()
     reliable = TrackerNode(context=context, parameter_overrides=[Parameter("max_frame_age_s", value=0.0),
@@ -144,7 +144,7 @@ def test_tracker_counts_undelivered_frames_and_drops_stale_ones(context) -> None
     try:
         reliable.on_color(color(1), info(1, 0.0))
         reliable.on_color(color(2), info(2, 5.0))
-        assert seen == [1, 2] and reliable.stats.counters["skipped.stale"] == 0
+        assert seen == [1, 2] and reliable.stats.values["skipped.stale"] == 0
     finally:
         reliable.destroy_node()
 
@@ -170,13 +170,13 @@ def test_live_frames_before_the_kernels_are_in_are_counted_as_warming(context, m
             msg = Image()
             msg.header.stamp.sec = sec
             node.on_color(msg, {"source_timestamp": time.time_ns(), "publication_sequence_number": sec})
-        assert handled == [] and node.stats.counters["skipped.warming"] == 2 and len(answered) == 2
+        assert handled == [] and node.stats.values["skipped.warming"] == 2 and len(answered) == 2
         gate.set()
         assert node.wait_until_warm(30)
         msg = Image()
         msg.header.stamp.sec = 3
         node.on_color(msg, {"source_timestamp": time.time_ns(), "publication_sequence_number": 3})
-        assert handled == [3] and node.stats.counters["skipped.warming"] == 2
+        assert handled == [3] and node.stats.values["skipped.warming"] == 2
     finally:
         gate.set()
         node.destroy_node()
@@ -190,11 +190,11 @@ def test_tracker_loads_its_kernels_before_the_first_frame(context) -> None:  # n
         deadline = time.monotonic() + 120.0  # a fresh install compiles them
         while time.monotonic() < deadline:
             node.stats.apply_posted()
-            if node.stats.gauges.get("kernels_warm") == 1:
+            if node.stats.values.get("kernels_warm") == 1:
                 break
             time.sleep(0.05)
-        assert node.stats.gauges.get("kernels_warm") == 1
-        assert "problem.warm_up" not in node.stats.counters
+        assert node.stats.values.get("kernels_warm") == 1
+        assert "problem.warm_up" not in node.stats.values
         assert node.tracker is None  # built on the first frame, from warm kernels
     finally:
         node.destroy_node()
@@ -286,7 +286,7 @@ def test_tracker_takes_compressed_colour_and_depth(context) -> None:  # noqa: AN
             pc.publish(compressed(f.stamp_ns, fmt, data))
             pd.publish(compressed(f.stamp_ns, *compress_depth_units(metres_to_units(f.depth_m, 1000.0))))
             assert _spin_until(ex, lambda k=k: len(processed) > k), f"frame {k} was never handled"
-        c = node.stats.counters
+        c = node.stats.values
         assert c["frames_in"] == 6 and c["problem.bad_image"] == 1 and c["poses_out"] == 5, dict(c)
         assert c["state.OK"] == 5 and not c["state.LOST"]
     finally:
@@ -311,14 +311,14 @@ def test_colour_without_depth_is_warned_with_its_likely_cause(context) -> None: 
         assert _spin_until(ex, lambda: pc.get_subscription_count()) and node.wait_until_warm(120)
         f = next(iter(generate_frames(parse_spec("synthetic:w=64,h=48,n=1,seed=2"))))
         t0, k = time.monotonic(), 0
-        while not node.stats.counters["problem.unpaired_color"] and time.monotonic() - t0 < 10:
+        while not node.stats.values["problem.unpaired_color"] and time.monotonic() - t0 < 10:
             pc.publish(numpy_to_image(f.rgb, "rgb8", f.stamp_ns + k * 33_333_333, "cam"))
             k += 1
             _spin_until(ex, lambda: False, 0.05)
         waited = time.monotonic() - t0
-        assert node.stats.counters["problem.unpaired_color"] == 1 and 0.5 <= waited < 2.0, waited
-        assert node.stats.counters["skipped.unpaired"] >= k - 6  # all but the pairer's queue of 5
-        assert node.stats.counters["poses_out"] == 0
+        assert node.stats.values["problem.unpaired_color"] == 1 and 0.5 <= waited < 2.0, waited
+        assert node.stats.values["skipped.unpaired"] >= k - 6  # all but the pairer's queue of 5
+        assert node.stats.values["poses_out"] == 0
     finally:
         node.close()
         ex.shutdown()

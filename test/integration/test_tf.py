@@ -114,7 +114,7 @@ def test_tf_and_odometry_on_real_dds(context) -> None:  # noqa: ANN001
         feed.camera(frames[0].camera, frames[0].stamp_ns)
         for f in frames:
             feed.send(f.rgb, f.depth_m, f.stamp_ns)
-        tracked = node.stats.counters["state.OK"]
+        tracked = node.stats.values["state.OK"]
         assert tracked >= 15
         assert feed.spin_until(lambda: len(tf) >= tracked and len(odom) >= tracked - 1 and len(poses) >= tracked,
                                5.0)
@@ -134,7 +134,7 @@ def test_tf_and_odometry_on_real_dds(context) -> None:  # noqa: ANN001
         assert all((t.header.frame_id, t.child_frame_id) == ("map", "base_link") for t in sent)
         stamps = {f.stamp_ns for f in frames}
         assert len(sent) == tracked and all(stamp_to_ns(t.header.stamp) in stamps for t in sent)
-        assert node.stats.counters["tf_out"] == tracked
+        assert node.stats.values["tf_out"] == tracked
         first = sent[0].transform
         assert np.allclose([first.translation.x, first.translation.y, first.translation.z], 0, atol=1e-9)
         assert np.isclose(first.rotation.w, 1.0)  # the body's first pose: level, at the origin: z up
@@ -209,7 +209,7 @@ def test_the_mount_is_read_from_the_robots_tf_static(context) -> None:  # noqa: 
         by_stamp = {f.stamp_ns: f for f in frames}
         first = pose_to_matrix(odom[0].pose.pose)
         assert stamp_to_ns(odom[0].header.stamp) in by_stamp and np.isfinite(first).all()
-        assert feed.node.stats.counters["odometry_withheld"] == 0  # the robot's statics came first
+        assert feed.node.stats.values["odometry_withheld"] == 0  # the robot's statics came first
     finally:
         feed.close()
         robot.destroy_node()
@@ -282,8 +282,8 @@ def test_with_an_odom_frame_the_tracker_broadcasts_map_to_odom(context) -> None:
             pub.publish(TFMessage(transforms=[t]))
             assert feed.spin_until(lambda s=f.stamp_ns: s in feed.node.out.tf.odom.window.stamps, 5.0)  # the tracker has it
             feed.send(f.rgb, f.depth_m, f.stamp_ns)
-        tracked = feed.node.stats.counters["tf_out"]
-        assert tracked >= 5 and feed.node.stats.counters["tf_no_odom"] == 0
+        tracked = feed.node.stats.values["tf_out"]
+        assert tracked >= 5 and feed.node.stats.values["tf_no_odom"] == 0
         assert feed.spin_until(lambda: len(poses) >= tracked and sum(
             t.header.frame_id == "map" for m in heard for t in m.transforms) >= tracked, 5.0)
         ours = [t for m in heard for t in m.transforms if t.header.frame_id == "map"]

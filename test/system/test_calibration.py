@@ -294,7 +294,7 @@ def test_tracker_hands_on_the_configured_camera(context, override: bool) -> None
         assert node.wait_until_warm(120)  # a live frame before it is "warming"
         f = frames[0]
         pi.publish(camera_to_camera_info(wrong, f.stamp_ns, "cam"))
-        assert _spin_until(ex, lambda: node.cams.camera is not None or node.stats.counters["camera_info_differs"], 5.0)
+        assert _spin_until(ex, lambda: node.cams.camera is not None or node.stats.values["camera_info_differs"], 5.0)
         pc.publish(numpy_to_image(f.rgb, "rgb8", f.stamp_ns, "cam"))
         pd.publish(depth_to_image(f.depth_m, "32FC1", f.stamp_ns, "cam"))
         assert _spin_until(ex, lambda: len(infos) >= 1), "no keyframe from the first frame"
@@ -302,10 +302,10 @@ def test_tracker_hands_on_the_configured_camera(context, override: bool) -> None
         if override:
             assert got.width == true.width and np.allclose(
                 [got.fx, got.fy, got.cx, got.cy], [true.fx, true.fy, true.cx, true.cy], rtol=1e-9)
-            assert node.stats.counters["camera_info_differs"] == 1
+            assert node.stats.values["camera_info_differs"] == 1
         else:
             assert got == wrong
-            assert node.stats.counters["camera_info_differs"] == 0
+            assert node.stats.values["camera_info_differs"] == 0
     finally:
         node.close()
         ex.shutdown()

@@ -467,10 +467,11 @@ def test_request_pacer_backs_off_while_unanswered_and_asks_once_at_a_quiet_start
 def test_live_view_times_its_log_calls_on_the_pose_timeline() -> None:
     """The bridge's view without ROS or Rerun: data of a pose's stamp is logged at that frame,
     frusta wait for a camera, keyframes move only past 1 mm, and nothing is logged once closed."""
-    from collections import Counter
     from types import SimpleNamespace
 
     from memgs_ros.core.geometry.camera import PinholeCamera
+    from memgs_ros.core.runtime.stat_fields import StatValues
+    from memgs_ros.core.runtime.telemetry_fields import ViewFields
     from memgs_ros.viz.live_view import LiveView
 
     calls: list[tuple] = []
@@ -482,8 +483,11 @@ def test_live_view_times_its_log_calls_on_the_pose_timeline() -> None:
                           **{n: fake(n) for n in ("log_camera", "log_trajectory", "log_keyframe", "log_map",
                                                   "log_scalars")},
                           log_views=lambda rec, render, frame, t, q: 30.0)
-    counters: Counter[str] = Counter()
-    view = LiveView(log, "rec", counters, frustum_m=0.1, jpeg_quality=80, log_sh=False, stamps_kept=2)
+    class _Stats(ViewFields, StatValues):  # the bridge's stats, without a node
+        pass
+
+    stats = _Stats()
+    view = LiveView(log, "rec", stats, frustum_m=0.1, jpeg_quality=80, log_sh=False, stamps_kept=2)
     T = np.eye(4)
     view.keyframe(500, T)  # before any camera: logged without a frustum
     assert calls[-1] == ("log_keyframe", 0, T, (0, 0), None, 0.1)
@@ -502,8 +506,8 @@ def test_live_view_times_its_log_calls_on_the_pose_timeline() -> None:
     moved[0, 3] = 2e-3
     view.keyframes_moved([(500, moved)])
     assert calls[-1][0] == "log_keyframe" and calls[-1][3] == (2, 3000)
-    assert counters["logged.keyframe"] == 2 and counters["logged.keyframe_moved"] == 1
-    assert counters["logged.views"] == 2 and counters["log_us_total"] >= 0
+    assert stats.logged["keyframe"] == 2 and stats.logged["keyframe_moved"] == 1
+    assert stats.logged["views"] == 2 and stats.log_us_total >= 0
     view.close()
     n = len(calls)
     view.pose(4000, T)

@@ -7,6 +7,7 @@ from collections.abc import Iterator
 from concurrent.futures import Future
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -18,6 +19,7 @@ from memgs_ros.core.mapping.mapper_start import MapperStart, SessionOptions, sta
 from memgs_ros.core.mapping.reporting import IterationRate, report_failure
 from memgs_ros.core.mapping.session import MappingSession
 from memgs_ros.core.merge.config import MergeConfig
+from memgs_ros.core.runtime.stat_fields import Stat
 from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.errors import ConfigError, DataError
 
@@ -28,14 +30,11 @@ class _Posts:
     def __init__(self) -> None:
         self.posted: list[tuple[str, str, object]] = []
 
-    def post_count(self, name: str, n: int = 1) -> None:
-        self.posted.append(("count", name, n))
+    def post_add(self, stat: Stat[int], n: int = 1) -> None:
+        self.posted.append(("count", stat.key, n))
 
-    def post_counter(self, name: str, value: int) -> None:
-        self.posted.append(("counter", name, value))
-
-    def post_gauge(self, name: str, value: float | int | str) -> None:
-        self.posted.append(("gauge", name, value))
+    def post_set(self, stat: Stat[Any], value: object) -> None:
+        self.posted.append(("gauge", stat.key, value))
 
     def post_problem(self, kind: str, message: str) -> None:
         self.posted.append(("problem", kind, message))

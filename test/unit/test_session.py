@@ -96,7 +96,9 @@ def test_commands_from_many_threads_leave_map_and_keyframes_consistent(frames: l
     for t in threads:
         t.start()
     threads[0].join(60)
-    time.sleep(0.5)
+    deadline = time.monotonic() + 60  # the commands keep coming until training has stepped
+    while s.status.iteration == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
     stop.set()
     for t in threads[1:]:
         t.join(60)

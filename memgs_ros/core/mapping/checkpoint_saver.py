@@ -11,6 +11,7 @@ from typing import TypeVar
 from memgs_ros.core.mapping.checkpoint import CheckpointFile, MapperCheckpoint
 from memgs_ros.core.mapping.reporting import StatsPoster
 from memgs_ros.core.mapping.session import MappingSession
+from memgs_ros.core.runtime.telemetry_fields import MapperFields
 from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.errors import DataError
 
@@ -43,9 +44,9 @@ class CheckpointSaver:
 
         def write(state: MapperCheckpoint) -> Path:  # on the session's worker
             ckpt.write(state)
-            posts.post_count("checkpoints")
-            posts.post_gauge("checkpoint_gaussians", len(state.gaussians))
-            posts.post_gauge("checkpoint_ms", round((time.perf_counter() - t0) * 1e3, 1))
+            posts.post_add(MapperFields.checkpoints)
+            posts.post_set(MapperFields.checkpoint_gaussians, len(state.gaussians))
+            posts.post_set(MapperFields.checkpoint_ms, round((time.perf_counter() - t0) * 1e3, 1))
             return ckpt.path
 
         def failed(f: Future[Path | None]) -> None:

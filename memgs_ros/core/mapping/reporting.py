@@ -4,9 +4,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import Future
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
+from memgs_ros.core.runtime.stat_fields import Stat
 from memgs_ros.core.runtime.worker import WorkerStopped
+
+F = TypeVar("F")
 
 __all__ = ["IterationRate", "StatsPoster", "report_failure", "reportable_error"]
 
@@ -14,11 +17,9 @@ __all__ = ["IterationRate", "StatsPoster", "report_failure", "reportable_error"]
 class StatsPoster(Protocol):
     """Counters, gauges and problems posted from any thread (applied later, on the node's)."""
 
-    def post_count(self, name: str, n: int = 1) -> None: ...
+    def post_add(self, stat: Stat[int], n: int = 1) -> None: ...
 
-    def post_counter(self, name: str, value: int) -> None: ...
-
-    def post_gauge(self, name: str, value: float | int | str) -> None: ...
+    def post_set(self, stat: Stat[F], value: F) -> None: ...
 
     def post_problem(self, kind: str, message: str) -> None: ...
 

@@ -33,7 +33,6 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
@@ -49,7 +48,14 @@ from memgs_ros.core.mapping.checkpoint import MapperCheckpoint
 from memgs_ros.core.mapping.keyframe_timing import KeyframeTimings
 from memgs_ros.core.mapping.keyframes import KeyframeInput, TrainingKeyframe
 from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig, StepStats, prepare_keyframe
-from memgs_ros.core.mapping.session_records import DeltaBatch, FinishResult, RenderedView, SessionEvent, SessionStatus
+from memgs_ros.core.mapping.session_records import (
+    DeltaBatch,
+    FinishResult,
+    RenderedView,
+    SessionCounts,
+    SessionEvent,
+    SessionStatus,
+)
 from memgs_ros.core.maps.map_delta import DeltaOutbox
 from memgs_ros.core.raster.values import render_rgb8
 from memgs_ros.core.runtime.worker import BACKGROUND_ERROR_PAUSE_S, Command, CommandWorker, WorkerStopped
@@ -160,7 +166,7 @@ class MappingSession(CommandWorker):
         self._finished = False
         self._interrupted = threading.Event()  # set from any thread: a finish in progress stops early
         self._training = free_running
-        self._counters: Counter[str] = Counter()
+        self._counters = SessionCounts()
         self._peaks = [0, 0, 0]  # model bytes, Gaussians, accounted bytes
         self._last_loss: float | None = None
         self._captured: tuple[int, int] | None = None  # (iteration, keyframes) of the last state_dict
@@ -186,8 +192,8 @@ class MappingSession(CommandWorker):
         return replace(self._status, alive=self.alive and self._outbox.alive,
                        insert_queue=self._pending_inserts, delta_seq=sent.seq,
                        delta_pending_rows=sent.pending_rows,
-                       counters={**self._status.counters, "delta_messages": sent.messages,
-                                 "delta_bytes": sent.bytes, "snapshots": sent.snapshots})
+                       counters=SessionCounts.with_outbox(self._status.counters, sent.messages, sent.bytes,
+                                                          sent.snapshots))
 
     @property
     def device(self) -> torch.device:
@@ -380,10 +386,10 @@ class MappingSession(CommandWorker):
     def _after_step(self, st: StepStats) -> None:
         self._intake.trained(st.kf_id)
         c = self._counters
-        c["merged_removed"] += st.merged_removed
-        c["merged_added"] += st.merged_added
-        c["budget_merged"] += st.budget_merged
-        c["budget_pruned"] += st.budget_pruned
+        c.merged_removed += st.merged_removed
+        c.merged_added += st.merged_added
+        c.budget_merged += st.budget_merged
+        c.budget_pruned += st.budget_pruned
         self._last_loss = round(sum(st.terms.values()), 5)
         self._publish_status()
 
@@ -404,7 +410,7 @@ class MappingSession(CommandWorker):
             cuda_peak_by_work=dict(m.peaks.by_work),
             insert_queue=self._pending_inserts,
             finished=self._finished, render_camera=self._render_camera,
-            counters={**self._counters, "merge_passes": m.merge.passes, "seeds_covered": m.seeds_covered})
+            counters=self._counters.with_map(m.merge.passes, m.seeds_covered))
 
     def _event(self, kind: str, message: str) -> None:
         self._events.put(SessionEvent(kind, message))
@@ -418,7 +424,7 @@ class MappingSession(CommandWorker):
         if self._finished:
             return None
         if kf.stamp_ns in self._stamps:
-            self._counters["duplicate_keyframes"] += 1
+            self._counters.duplicate_keyframes += 1
             return None
         kf_id = len(self._stamps)
         t0, cpu0 = time.perf_counter(), time.thread_time()
@@ -436,9 +442,9 @@ class MappingSession(CommandWorker):
         self._stamps[kf.stamp_ns] = kf_id
         if self._render_camera is None:
             self._render_camera = view_preparation(kf.camera, self.cfg.resolution_scale).camera
-        self._counters["keyframes"] += 1
-        self._counters["seeded_gaussians"] += added
-        self._counters["insert_ms_total"] += round(1e3 * (time.perf_counter() - t0))
+        self._counters.keyframes += 1
+        self._counters.seeded_gaussians += added
+        self._counters.insert_ms_total += round(1e3 * (time.perf_counter() - t0))
         self._intake.inserted(kf_id, kf.decided_ns, 1e3 * (spent_cpu_s + time.thread_time() - cpu0))
         return added
 
@@ -447,20 +453,20 @@ class MappingSession(CommandWorker):
 
     def _update_poses(self, poses: Mapping[int, np.ndarray]) -> int:
         updated = self._mapper.update_keyframe_poses(self._ids_of(poses))
-        self._counters["keyframe_pose_updates"] += updated
-        self._counters["refined_poses_of_dropped_keyframes"] += len(poses) - updated
+        self._counters.keyframe_pose_updates += updated
+        self._counters.refined_poses_of_dropped_keyframes += len(poses) - updated
         return updated
 
     def _retire(self, stamps: list[int]) -> tuple[int, int]:
         retired, handed = self._mapper.retire_keyframes([self._stamps[s] for s in stamps if s in self._stamps])
-        self._counters["keyframes_retired"] += retired
-        self._counters["gaussians_handed_on"] += handed
+        self._counters.keyframes_retired += retired
+        self._counters.gaussians_handed_on += handed
         return retired, handed
 
     def _correct(self, poses: Mapping[int, np.ndarray]) -> tuple[int, int]:
         corrected, moved = self._mapper.correct_keyframes(self._ids_of(poses))
-        self._counters["keyframes_corrected"] += corrected
-        self._counters["gaussians_corrected"] += moved
+        self._counters.keyframes_corrected += corrected
+        self._counters.gaussians_corrected += moved
         return corrected, moved
 
     def _train(self, iterations: int) -> StepStats | None:
@@ -473,8 +479,8 @@ class MappingSession(CommandWorker):
             self._after_step(st)
             last = st
         # A lockstep frame's training time: train_ms_total / train_commands.
-        self._counters["train_commands"] += 1
-        self._counters["train_ms_total"] += round(1e3 * (time.perf_counter() - t0))
+        self._counters.train_commands += 1
+        self._counters.train_ms_total += round(1e3 * (time.perf_counter() - t0))
         return last
 
     def _render(self, T_wc: np.ndarray, camera: PinholeCamera | None,
@@ -487,7 +493,7 @@ class MappingSession(CommandWorker):
         view = RenderedView(np.ascontiguousarray(rgb), out.depth.cpu().numpy().astype(np.float32), cam)
         if publish is not None:
             publish(view)
-        self._counters["renders"] += 1
+        self._counters.renders += 1
         return view
 
     def _state_dict(self, only_if_changed: bool) -> MapperCheckpoint | None:

@@ -5,11 +5,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.mapping.keyframe_timing import KeyframeTimingSummary
+from memgs_ros.core.runtime.stat_fields import StatValues
+from memgs_ros.core.runtime.telemetry_fields import MapperFields
 
 __all__ = ["DeltaBatch", "FinishResult", "RenderedView", "SessionEvent", "SessionStatus"]
 
@@ -83,24 +86,47 @@ class SessionStatus:
     def gauges(self) -> dict[str, int | float]:
         """The values a node reports as gauges (the counters are reported as counters); the map's
         figures once training has begun, so a time series of them starts at the first step."""
-        out: dict[str, int | float] = {"insert_queue": self.insert_queue, "seq": self.delta_seq,
-                                       "delta_pending_rows": self.delta_pending_rows, "alive": int(self.alive)}
+        g = SessionCounts()
+        g.insert_queue, g.seq, g.delta_pending_rows, g.alive = (self.insert_queue, self.delta_seq,
+                                                                self.delta_pending_rows, int(self.alive))
         if self.iteration > 0:
-            out.update(iteration=self.iteration, gaussians=self.gaussians, model_bytes=self.model_bytes,
-                       model_bytes_peak=self.model_bytes_peak, gaussians_peak=self.gaussians_peak,
-                       keyframes_trained=self.keyframes_trained, keyframes_dropped=self.keyframes_dropped,
-                       budget_gaussians=self.budget_gaussians, keyframe_bytes=self.keyframe_bytes,
-                       accounted_bytes=self.accounted_bytes, accounted_bytes_peak=self.accounted_bytes_peak)
+            g.iteration, g.gaussians, g.gaussians_peak = self.iteration, self.gaussians, self.gaussians_peak
+            g.model_bytes, g.model_bytes_peak = self.model_bytes, self.model_bytes_peak
+            g.keyframes_trained, g.keyframes_dropped = self.keyframes_trained, self.keyframes_dropped
+            g.budget_gaussians, g.keyframe_bytes = self.budget_gaussians, self.keyframe_bytes
+            g.accounted_bytes, g.accounted_bytes_peak = self.accounted_bytes, self.accounted_bytes_peak
         if self.loss is not None:
-            out["loss"] = self.loss
+            g.loss = self.loss
         if self.cuda_max_allocated is not None:
-            out["cuda_max_allocated"] = self.cuda_max_allocated
+            g.cuda_max_allocated = self.cuda_max_allocated
         for work, peak in self.cuda_peak_by_work.items():
-            out[f"cuda_peak_mb.{work}"] = round(peak / 2**20, 1)
+            g.cuda_peak_mb[work] = round(peak / 2**20, 1)
         t = self.keyframe_timing
-        out.update(keyframes_used=t.used, keyframes_waiting=t.waiting, iterations_final=self.iterations_final)
-        for name in ("intake_ms_median", "intake_ms_p95", "latency_ms_median", "latency_ms_p95"):
-            value = getattr(t, name)
-            if value is not None:
-                out[f"keyframe_{name}"] = value
-        return out
+        g.keyframes_used, g.keyframes_waiting, g.iterations_final = t.used, t.waiting, self.iterations_final
+        if t.intake_ms_median is not None:
+            g.keyframe_intake_ms_median = t.intake_ms_median
+        if t.intake_ms_p95 is not None:
+            g.keyframe_intake_ms_p95 = t.intake_ms_p95
+        if t.latency_ms_median is not None:
+            g.keyframe_latency_ms_median = t.latency_ms_median
+        if t.latency_ms_p95 is not None:
+            g.keyframe_latency_ms_p95 = t.latency_ms_p95
+        return g.values
+
+
+class SessionCounts(MapperFields, StatValues):
+    """The mapping session's figures by the mapper record's names (``MapperTelemetry``), which the
+    node's stats take whole (``NodeStats.assign``)."""
+
+    def with_map(self, merge_passes: int, seeds_covered: int) -> dict[str, Any]:
+        """These counters and the map's own totals, for a status."""
+        out = SessionCounts.of(self.values)
+        out.merge_passes, out.seeds_covered = merge_passes, seeds_covered
+        return out.values
+
+    @staticmethod
+    def with_outbox(counters: Mapping[str, Any], messages: int, nbytes: int, snapshots: int) -> dict[str, Any]:
+        """``counters`` and the delta outbox's totals."""
+        out = SessionCounts.of(counters)
+        out.delta_messages, out.delta_bytes, out.snapshots = messages, nbytes, snapshots
+        return out.values

@@ -49,7 +49,7 @@ from memgs_ros.nodes.params import NODE_CONFIGS, BagPlayerParams
 from memgs_ros.ros import codecs, qos
 from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
+from memgs_ros.ros.diagnostics import PlayerStats, RollingMedian
 from memgs_ros.ros.node_main import run_node
 
 __all__ = ["LINGER_S", "BagPlayer", "main"]
@@ -80,13 +80,14 @@ class BagPlayer(Node):
         self.ok = True
         self.outbox = FrameOutbox(self, cfg.frame_id, cfg.world_frame_id, cfg.depth_encoding)
         self._pub_done = self.create_publisher(Bool, "memgs/player/done", qos.latched())
-        self.stats = NodeStats(self, "player")
+        self.stats = PlayerStats(self)
         # Frames this replay will publish (0 = unknown: looping, or a source of unknown length): a watcher's ETA.
-        self.stats.gauges["frames_total"] = 0 if cfg.loop else frames_total(frames, cfg.max_frames)
+        self.stats.frames_total = 0 if cfg.loop else frames_total(frames, cfg.max_frames)
         self._ack_sub = (self.create_subscription(Header, cfg.ack_topic, self._on_ack, qos.reliable(10))
                          if cfg.lockstep else None)
         self.acks = AckWait(cfg.ack_timeout_s)
-        self.stats.computed["ack_wait_ms_median"] = self._ack_wait_ms = RollingMedian()  # lockstep: sent to acked
+        self._ack_wait_ms = RollingMedian()
+        self.stats.compute(PlayerStats.ack_wait_ms_median, self._ack_wait_ms)  # lockstep: sent to acked
         self._gate = StartGate(SETTLE_S, cfg.start_delay_s, time.monotonic(), f"a publisher on '{cfg.ack_topic}'")
         self._wait_for = tuple(n.strip() for n in cfg.wait_for_readers.split(",") if n.strip())
         self._next: tuple[Frame, int] | None = None  # the next frame and its replay stamp
@@ -130,7 +131,7 @@ class BagPlayer(Node):
             due = self.clock.due(self._next[1])
             if now >= due:
                 # How late the frame goes out: a reader too slow for the source shows up here.
-                self.stats.gauges["late_ms"] = round((now - due) * 1e3, 1)
+                self.stats.late_ms = round((now - due) * 1e3, 1)
                 self._publish_next()
             if self._next is not None and self._finish_at is None:
                 self._sleep_until(self.clock.due(self._next[1]))
@@ -184,7 +185,7 @@ class BagPlayer(Node):
 
     def _count_skips(self) -> None:
         for kind, n in self.feed.skipped().items():  # totals (Counter.update would add them)
-            self.stats.counters[f"skipped.{kind}"] = n
+            self.stats.skipped[kind] = n
 
     def _publish_next(self) -> None:
         if self._next is None:
@@ -192,8 +193,8 @@ class BagPlayer(Node):
             return
         frame, stamp_ns = self._next
         self.outbox.publish(frame, stamp_ns)
-        self.stats.counters["frames_published"] += 1
-        self.stats.gauges["ack_timeouts"] = self.acks.timeouts
+        self.stats.frames_published += 1
+        self.stats.ack_timeouts = self.acks.timeouts
         self._last_sent_ns = stamp_ns
         if self.cfg.lockstep:
             self.acks.sent(stamp_ns, time.monotonic())
@@ -212,7 +213,7 @@ class BagPlayer(Node):
         self._finish_at = now + LINGER_S
 
     def _log_progress(self, now: float, final: bool = False) -> None:
-        n, elapsed = self.stats.counters["frames_published"], max(now - (self.clock.t0 or now), 1e-9)
+        n, elapsed = self.stats.frames_published, max(now - (self.clock.t0 or now), 1e-9)
         rate, last_s = n / elapsed, self._last_sent_ns * 1e-9
         self.get_logger().info(f"{'done: ' if final else ''}{n} frames in {elapsed:.1f} s ({rate:.1f} frames/s), "
                                f"last stamp {last_s:.3f} s, ack timeouts {self.acks.timeouts}")

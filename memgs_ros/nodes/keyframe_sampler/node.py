@@ -33,7 +33,7 @@ from memgs_ros.ros.codecs import (
     structured_to_pointcloud2,
 )
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.diagnostics import SamplerStats
 from memgs_ros.ros.keyframe_bundle import KeyframeBundleError, decode_keyframe_images
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.node_main import run_node
@@ -53,8 +53,8 @@ class KeyframeSamplerNode(ManagedNode):
         self.start_lifecycle(v.autostart)
 
     def configure_node(self) -> None:
-        self.stats = NodeStats(self, "keyframe_sampler")
-        self.stats.gauges["kernels_warm"] = 1  # nothing to compile: warm as soon as it runs
+        self.stats = SamplerStats(self)
+        self.stats.kernels_warm = 1  # nothing to compile: warm as soon as it runs
         parts = {"color", "camera_info", "pose", "keypoints"} | ({"depth"} if self.mode == "rgbd" else set())
         self.bundler = StampBundler(parts, max_pending=16)
         self.n_keyframes = 0
@@ -70,11 +70,10 @@ class KeyframeSamplerNode(ManagedNode):
 
     def _add(self, part: str, msg) -> None:  # noqa: ANN001 - any of the bundle's message types
         if not self.active:  # paused (lifecycle inactive): the keyframe's parts are counted, not sampled
-            self.stats.counters["skipped.inactive"] += 1
+            self.stats.skipped["inactive"] += 1
             return
         bundle = self.bundler.add(part, stamp_to_ns(msg.header.stamp), msg)
-        self.stats.gauges["pending_bundles"] = self.bundler.pending
-        self.stats.gauges["dropped_bundles"] = self.bundler.dropped
+        self.stats.pending_bundles, self.stats.dropped_bundles = self.bundler.pending, self.bundler.dropped
         if bundle is not None:
             self._sample(stamp_to_ns(msg.header.stamp), bundle)
 
@@ -109,9 +108,9 @@ class KeyframeSamplerNode(ManagedNode):
         self.n_keyframes += 1
         self.pub.publish(structured_to_pointcloud2(encode_seeds(seeds.points_w, seeds.colors, seeds.source),
                                                    stamp_ns, self.world_frame))
-        self.stats.counters["keyframes"] += 1
-        self.stats.counters["seeds_keypoint"] += int((seeds.source == 0).sum())
-        self.stats.counters["seeds_patch_grid"] += int((seeds.source == 1).sum())
+        self.stats.keyframes += 1
+        self.stats.seeds_keypoint += int((seeds.source == 0).sum())
+        self.stats.seeds_patch_grid += int((seeds.source == 1).sum())
 
 
 def main(args: list[str] | None = None) -> int:

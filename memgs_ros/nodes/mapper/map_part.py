@@ -9,6 +9,7 @@ from std_srvs.srv import Trigger
 
 from memgs_ros.core.mapping import checkpoint
 from memgs_ros.errors import MemgsError
+from memgs_ros.nodes.mapper.stats import MapperStats
 from memgs_ros.ros.hand_over import HandOver
 from memgs_ros.ros.map_bundles import answer, part_path
 
@@ -19,7 +20,7 @@ class MapperMapPart:
     """The mapper's part (``memgs/mapper/save_map_part``): the session's state as a checkpoint file,
     captured and written on the session's worker (``MappingSession.save_state``)."""
 
-    def __init__(self, node: Node, params: Any, stats: Any, session: Any, hand_over: HandOver,
+    def __init__(self, node: Node, params: Any, stats: MapperStats, session: Any, hand_over: HandOver,
                  sh_degree: int) -> None:
         self.params, self.stats, self.session, self.hand_over = params, stats, session, hand_over
         self.sh_degree = sh_degree
@@ -34,5 +35,5 @@ class MapperMapPart:
             await self.hand_over.result(self.session.save_state(lambda st: checkpoint.save(st, path)))
         except (OSError, MemgsError) as err:
             return answer(res, False, f"could not write the mapper state {path}: {err}")
-        self.stats.post_count("map_parts")
+        self.stats.post_add(MapperStats.map_parts)
         return answer(res, True, f"{path} sh_degree={self.sh_degree}")

@@ -89,7 +89,7 @@ class MapperNode(ManagedNode):
             delta_rows(p.delta_budget_kbytes_per_s, p.delta_rate_hz, message_dtype(self.cfg.max_sh_degree).itemsize),
             lambda rows: self.stats.watch(self.session.delta(rows, False, self.out.delta_rows), "delta"),
             self.out.receivers_acked,
-            lambda: self.stats.post_count("delta_waits"))
+            lambda: self.stats.post_add(MapperStats.delta_waits))
         self.live_view = LiveView()
         self.lockstep = LockstepAcknowledger(
             p.lockstep_window, lambda: self.stats.watch(self.session.train(0 if self.frozen else p.lockstep_iterations),
@@ -150,7 +150,7 @@ class MapperNode(ManagedNode):
         if start.set_aside:
             log.error(start.set_aside)
         elif start.resumed is not None and (where := start.from_bundle or start.checkpoint) is not None:
-            self.stats.counters["resumed"] += 1
+            self.stats.resumed += 1
             r = start.resumed
             log.info(f"resumed from {getattr(where, 'path', where)}: {len(r.gaussians)} Gaussians, {len(r.keyframes)} "
                      f"keyframes, iteration {r.iteration}{' (localize: not trained)' if self.frozen else ''}")
@@ -168,8 +168,8 @@ class MapperNode(ManagedNode):
         """A complete bundle is decoded and queued, or refused whole and counted by kind (bad_seeds...)."""
         cpu0 = time.thread_time()
         got = self.keyframes.add(part, msg, info)
-        self.stats.post_counter("duplicate_keyframe_parts", self.keyframes.intake.duplicate_parts)
-        self.stats.post_gauge("dropped_keyframe_bundles", self.keyframes.intake.dropped)
+        self.stats.post_set(MapperStats.duplicate_keyframe_parts, self.keyframes.intake.duplicate_parts)
+        self.stats.post_set(MapperStats.dropped_keyframe_bundles, self.keyframes.intake.dropped)
         if got is None:
             return
         if got.keyframe is None:
@@ -212,7 +212,7 @@ class MapperNode(ManagedNode):
         stamp, keyframe = stamp_to_ns(msg.stamp), msg.frame_id == "keyframe"
         if keyframe:
             self.keyframes.intake.announce(stamp, time.monotonic())
-            self.stats.post_count("keyframes_announced")
+            self.stats.post_add(MapperStats.keyframes_announced)
         if self.params.lockstep:
             self.lockstep.processed(stamp, keyframe, self.keyframes.intake.seen(stamp))
 

@@ -13,6 +13,7 @@ from memgs_ros.core.mapping.config import MappingConfig
 from memgs_ros.core.mapping.mapper_start import warm_kernels
 from memgs_ros.core.mapping.reporting import IterationRate, report_failure, reportable_error
 from memgs_ros.core.mapping.session import MappingSession
+from memgs_ros.core.runtime.telemetry_fields import MapperFields
 from memgs_ros.ros.diagnostics import NodeStats, RollingMedian, peak_rss_mb, rss_mb
 from memgs_ros.ros.stamp_sync import KeyframeIntake
 
@@ -21,7 +22,7 @@ __all__ = ["MapperStats"]
 T = TypeVar("T")
 
 
-class MapperStats(NodeStats):
+class MapperStats(NodeStats, MapperFields):
     """``NodeStats`` of the mapper: gauges ``raster_backend``, ``checkpoint_period_s`` (0: this
     mapper never checkpoints; fault injection waits for a checkpoint to resume from) and
     ``kernels_warm``; ``lockstep_ack_ms_median`` over ``ack_ms``."""
@@ -30,11 +31,9 @@ class MapperStats(NodeStats):
         # Free heap pages go back every 2 s (each trim ~5 ms): training leaves ~30-50 MB of
         # freed step buffers a step, and at the default 30 s they piled up into the peak RSS.
         super().__init__(node, "mapper", trim_period_s=2.0)
-        self.gauges["raster_backend"] = raster_backend
-        self.gauges["checkpoint_period_s"] = checkpoint_period_s
-        self.gauges["kernels_warm"] = 0
+        self.raster_backend, self.checkpoint_period_s, self.kernels_warm = raster_backend, checkpoint_period_s, 0
         self.ack_ms = RollingMedian()  # a lockstep frame's time here: the tracker's word to the acknowledgement
-        self.computed["lockstep_ack_ms_median"] = self.ack_ms
+        self.compute(MapperStats.lockstep_ack_ms_median, self.ack_ms)
         self._rate = IterationRate(time.monotonic())
         self._rss_baseline_mb: float | None = None  # set by the warm-up, on the session's worker
 
@@ -53,15 +52,15 @@ class MapperStats(NodeStats):
         def warm(_mapper: object) -> None:  # on the session's worker
             warm_kernels(device, cfg)
             self._rss_baseline_mb = rss_mb()
-            self.post_gauge("rss_baseline_mb", round(self._rss_baseline_mb, 1))
-            self.post_gauge("warm_up_s", round(time.perf_counter() - t0, 2))
-            self.post_gauge("kernels_warm", 1)
+            self.post_set(MapperStats.rss_baseline_mb, round(self._rss_baseline_mb, 1))
+            self.post_set(MapperStats.warm_up_s, round(time.perf_counter() - t0, 2))
+            self.post_set(MapperStats.kernels_warm, 1)
 
         def failed(future: Future[Any]) -> None:
             err = reportable_error(future)
             if err is not None:
                 self.post_problem("warm_up", f"could not load the mapping kernels: {type(err).__name__}: {err}")
-                self.post_gauge("kernels_warm", 1)
+                self.post_set(MapperStats.kernels_warm, 1)
 
         session.call(warm).add_done_callback(failed)
 
@@ -69,15 +68,15 @@ class MapperStats(NodeStats):
         """Session problems and status, and lost keyframes, into the stats; also applies what other
         threads posted (the node's default callback group, 10 times a second)."""
         self.apply_posted()
-        self.counters["keyframes_missed"] += intake.missed(time.monotonic())
+        self.keyframes_missed += intake.missed(time.monotonic())
         for ev in session.poll_events():
             self.problem(ev.kind, ev.message)
         st = session.status
-        self.counters.assign(st.counters)  # assigned, not added (Counter.update): totals
-        self.gauges.update(st.gauges())
+        self.assign(st.counters)  # assigned, not added: totals
+        self.assign(st.gauges())
         rate = self._rate.update(time.monotonic(), st.iteration)  # over the last sync period
         if rate is not None:
-            self.gauges["iterations_per_s"] = rate
+            self.iterations_per_s = rate
         # Peak resident memory above the start-up baseline (VmHWM, read 10 times a second).
         if self._rss_baseline_mb is not None:
-            self.gauges["working_peak_mb"] = round(max(peak_rss_mb() - self._rss_baseline_mb, 0.0), 1)
+            self.working_peak_mb = round(max(peak_rss_mb() - self._rss_baseline_mb, 0.0), 1)

@@ -49,7 +49,7 @@ from memgs_ros.nodes.params import NODE_CONFIGS, MergerParams
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.diagnostics import MergerStats
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.map_bundles import BundleAssembler
 from memgs_ros.ros.map_loading import GraphMapLoader
@@ -79,9 +79,9 @@ class MergerNode(ManagedNode):
         render_camera = PinholeCamera(v.render_width, v.render_height, v.render_fx, v.render_fy, v.render_cx,
                                       v.render_cy)
         self.renderer = ViewRenderer(render_camera, sh_degree=3)
-        self.stats = NodeStats(self, "merger")
+        self.stats = MergerStats(self)
         # The map's deltas need no compiled code; the renders on request load theirs when first asked.
-        self.stats.gauges["kernels_warm"] = 1
+        self.stats.kernels_warm = 1
         self._saved_version: tuple[int, int] | None = None  # (epoch, seq) of the map saved and published
         self._published_version: tuple[int, int] | None = self._saved_version
         self.pub_map = self.create_publisher(PointCloud2, "memgs/map/gaussians", qos.latched())
@@ -92,8 +92,9 @@ class MergerNode(ManagedNode):
         self.create_subscription(PoseStamped, "memgs/merger/view_pose", self.on_view_request, qos.reliable(5))
         pacer = RequestPacer(v.resync_interval_s, max_backoff=8, start_after_s=START_ASK_AFTER_S,
                              started_s=time.monotonic())
-        self.snapshots = PacedRequests(self, "memgs/mapper/publish_snapshot", self.stats, pacer, "snapshot_requests",
-                                       "snapshot_request", "the mapper did not take a snapshot request")
+        self.snapshots = PacedRequests(self, "memgs/mapper/publish_snapshot", self.stats, pacer,
+                                       MergerStats.snapshot_requests, "snapshot_request",
+                                       "the mapper did not take a snapshot request")
         self.bundles, _ = BundleAssembler(self, v, self.stats), GraphMapLoader(self)  # save and load bundles
         self.create_service(Trigger, "memgs/save_map", self.on_save, callback_group=ReentrantCallbackGroup())
         self.create_service(Trigger, "memgs/merger/publish_map", self.on_publish_map)
@@ -108,11 +109,11 @@ class MergerNode(ManagedNode):
         m = decode_map_message(msg, self.stats)
         if m is None:
             return
-        self.stats.counters["deltas"] += 1
-        self.stats.counters["delta_bytes"] += len(msg.data)
+        self.stats.deltas += 1
+        self.stats.delta_bytes += len(msg.data)
         self.snapshots.pacer.heard()
         if self.drop_delta():
-            self.stats.counters["fault_dropped_deltas"] += 1
+            self.stats.fault_dropped_deltas += 1
             return
         self._report(self.map.on_delta(m))
 
@@ -120,7 +121,7 @@ class MergerNode(ManagedNode):
         m = decode_map_message(msg, self.stats)
         if m is None or m.kind is not MessageKind.SNAPSHOT:
             return
-        self.stats.counters["snapshots"] += 1
+        self.stats.snapshots += 1
         replayed = self.map.on_full_map(m)
         if replayed is not None:
             self.snapshots.pacer.answered()
@@ -137,7 +138,7 @@ class MergerNode(ManagedNode):
             self.stats.problem("unknown_removal", f"delta {outcome.seq} removes {outcome.unknown_removals} "
                                                   "id(s) the replica does not hold; ignored")
         if outcome.lost_step and outcome.status is not None:
-            self.stats.counters[f"resync.{outcome.status.value}"] += 1
+            self.stats.resync[outcome.status.value] += 1
             self.get_logger().warning(f"delta {outcome.seq}: {outcome.status.value} at replica seq "
                                       f"{self.map.replica.seq}; resynchronising")
             self._ask_snapshot()
@@ -148,10 +149,10 @@ class MergerNode(ManagedNode):
     def _gauges(self) -> None:
         replica = self.map.replica
         # The replica's rows, deltas buffered in a resync, the last view's render inputs (no training state).
-        self.stats.gauges.update(seq=replica.seq, epoch=replica.epoch, gaussians=len(replica),
-                                 resyncing=int(self.map.resyncing), unknown_removals=replica.unknown_removals,
-                                 map_bytes=replica.records.nbytes if len(replica) else 0,
-                                 buffered_deltas=self.map.buffered, render_cache_bytes=self.renderer.cache_bytes)
+        s = self.stats
+        s.seq, s.epoch, s.gaussians, s.resyncing = replica.seq, replica.epoch, len(replica), int(self.map.resyncing)
+        s.unknown_removals, s.map_bytes = replica.unknown_removals, replica.records.nbytes if len(replica) else 0
+        s.buffered_deltas, s.render_cache_bytes = self.map.buffered, self.renderer.cache_bytes
 
     # ------------------------------------------------------------------ outputs
     def save(self) -> Path | None:
@@ -162,7 +163,7 @@ class MergerNode(ManagedNode):
         if version != self._saved_version or not self.map_path.exists():
             save_ply(self.map.replica.records, self.map_path)
             self._saved_version = version
-            self.stats.counters["saves"] += 1
+            self.stats.saves += 1
         return self.map_path
 
     def _save_periodic(self) -> None:

@@ -12,7 +12,7 @@ from memgs_ros.core.maps.view_renderer import RenderedView
 from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image
-from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.diagnostics import MergerStats
 
 __all__ = ["ViewOutbox"]
 
@@ -24,7 +24,7 @@ class ViewOutbox:
     camera_info, stamped as requested) and counts it as ``renders``; a failed render is counted as
     ``problem.render_failed`` (posted: this runs on the renderer's thread)."""
 
-    def __init__(self, node: Node, stats: NodeStats, prefix: str, camera: PinholeCamera) -> None:
+    def __init__(self, node: Node, stats: MergerStats, prefix: str, camera: PinholeCamera) -> None:
         self._stats, self._camera = stats, camera
         self._color = node.create_publisher(Image, f"{prefix}/color", qos.reliable(2))
         self._depth = node.create_publisher(Image, f"{prefix}/depth", qos.reliable(2))
@@ -43,7 +43,7 @@ class ViewOutbox:
         except Exception as err:  # noqa: BLE001 - counted and logged; the next request may succeed
             self._stats.post_problem("render_failed", f"view not rendered: {type(err).__name__}: {err}")
             return
-        self._stats.post_count("renders")  # before the images: whoever receives them sees the count
+        self._stats.post_add(MergerStats.renders)  # before the images: whoever receives them sees the count
         self._color.publish(numpy_to_image(view.rgb, "rgb8", view.stamp_ns, RENDER_FRAME))
         self._depth.publish(depth_to_image(view.depth_m, "32FC1", view.stamp_ns, RENDER_FRAME))
         self._info.publish(camera_to_camera_info(self._camera, view.stamp_ns, RENDER_FRAME))

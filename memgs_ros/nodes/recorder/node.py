@@ -35,7 +35,7 @@ from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.bag_stream import BackgroundBagStream, ros2_typestore
 from memgs_ros.nodes.params import DEFAULT_TOPICS, NODE_CONFIGS, RecorderParams
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.diagnostics import RecorderStats
 from memgs_ros.ros.node_main import run_node
 
 __all__ = ["CONFIGS", "DEFAULT_TOPICS", "RecorderNode", "RecorderParams", "main"]
@@ -109,7 +109,7 @@ class RecorderNode(Node):
             raise ConfigError("parameter 'path' is required: the .mcap file to record into")
         if Path(path).suffix != ".mcap":
             raise ConfigError(f"parameter 'path' = {path!r} must end in .mcap")
-        self.stats = NodeStats(self, "recorder")
+        self.stats = RecorderStats(self)
         # Absolute names, as the graph and the bag name topics (remaps and namespace applied).
         try:
             self.pending: list[str] = list(dict.fromkeys(self.resolve_topic_name(t.strip()) for t in topics))
@@ -148,15 +148,15 @@ class RecorderNode(Node):
             self.create_subscription(msg_class, topic, functools.partial(self._on_message, topic),
                                      subscription_qos(publishers), raw=True)
             self.recorded[topic] = types[0]
-        self.stats.gauges["topics"] = len(self.recorded)
+        self.stats.topics = len(self.recorded)
         if not self.pending:
             self._discovery.cancel()
 
     def _on_message(self, topic: str, data: bytes) -> None:
         # A DataError (disk full) leaves the spin: main() logs it as fatal and the node exits 2.
         if self.bag.write(topic, self.get_clock().now().nanoseconds, data):
-            self.stats.counters["messages"] += 1
-            self.stats.counters["bytes"] += len(data)
+            self.stats.messages += 1
+            self.stats.bytes += len(data)
 
     def close(self) -> None:
         """Close the file (summary, footer) and move it into place."""

@@ -43,7 +43,7 @@ from memgs_ros.nodes.registry import GRAPH
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import NodeStats, stats_values
+from memgs_ros.ros.diagnostics import ViewStats, stats_values
 from memgs_ros.ros.map_messages import decode_map_message
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.service_calls import PacedRequests
@@ -99,12 +99,12 @@ class RerunBridgeNode(Node):
         for node in STATS_NODES:
             self.create_subscription(DiagnosticArray, f"memgs/{node}/stats", self._stats_of(node), qos.reliable(5))
         # Last: the runner takes memgs/rerun_bridge/stats appearing to mean the node listens.
-        self.stats = NodeStats(self, "rerun_bridge")
-        self.view = LiveView(rerun_log, rec, self.stats.counters, v.frustum_size_m, v.jpeg_quality, v.log_sh,
+        self.stats = ViewStats(self)
+        self.view = LiveView(rerun_log, rec, self.stats, v.frustum_size_m, v.jpeg_quality, v.log_sh,
                              stamps_kept=4 * _FRAMES_KEPT)
         self.full_maps = PacedRequests(self, "memgs/merger/publish_map", self.stats, RequestPacer(_RESYNC_INTERVAL_S),
-                                       "map_requests", "map_request", "the merger did not take a full-map request",
-                                       one_at_a_time=True)
+                                       ViewStats.map_requests, "map_request",
+                                       "the merger did not take a full-map request", one_at_a_time=True)
         if v.map_period_s > 0:
             self.create_timer(v.map_period_s, self.log_map)
         sinks = ", ".join(s for s in (v.spawn and "spawned viewer", v.connect_url, v.save_path) if s)
@@ -146,7 +146,7 @@ class RerunBridgeNode(Node):
             return
         value = self.view.views(stamp, render, frame)
         if value is not None:
-            self.stats.gauges["psnr_db"] = round(value, 2)
+            self.stats.psnr_db = round(value, 2)
 
     def on_delta(self, msg: PointCloud2) -> None:
         m = decode_map_message(msg, self.stats)
@@ -172,7 +172,7 @@ class RerunBridgeNode(Node):
             return
         self.view.map(self.map.replica.records)
         self.logged_version = epoch, seq, n = self.map.version
-        self.stats.gauges.update(map_epoch=epoch, map_seq=seq, map_gaussians=n)
+        self.stats.map_epoch, self.stats.map_seq, self.stats.map_gaussians = epoch, seq, n
 
     def _stats_of(self, node: str) -> Callable[[DiagnosticArray], None]:
         return lambda m: self.on_stats(node, m)

@@ -13,7 +13,7 @@ from sensor_msgs.msg import CompressedImage, Image
 
 from memgs_ros.errors import MessageError
 from memgs_ros.ros.codecs import compressed_to_image, stamp_to_ns
-from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.diagnostics import TrackerStats
 from memgs_ros.ros.stamp_sync import NearestPairer, UnpairedWatch
 
 __all__ = ["RgbdPairing", "decompressed", "subscribe_camera"]
@@ -35,7 +35,7 @@ def subscribe_camera(node: Node, color_topic: str, depth_topic: str | None, comp
     return line
 
 
-def decompressed(color: Any, depth: Any | None, depth_scale: float, stats: NodeStats
+def decompressed(color: Any, depth: Any | None, depth_scale: float, stats: TrackerStats
                  ) -> tuple[Image, Image | None] | None:
     """A compressed colour (and depth) message pair as the Images the tracker reads; None when one
     does not decode (counted in ``stats``: frames_in, problem.bad_image). Decoded only once a frame
@@ -44,7 +44,7 @@ def decompressed(color: Any, depth: Any | None, depth_scale: float, stats: NodeS
         return (compressed_to_image(color, depth_scale),
                 None if depth is None else compressed_to_image(depth, depth_scale))
     except MessageError as err:
-        stats.counters["frames_in"] += 1
+        stats.frames_in += 1
         stats.problem("bad_image", f"compressed frame {stamp_to_ns(color.header.stamp)} refused: {err}")
         return None
 
@@ -73,7 +73,7 @@ class RgbdPairing:
 
     def _done(self, dropped_before: int, pair: tuple[int, Any, Any] | None, colour: bool = True) -> None:
         stats = self._node.stats
-        stats.counters["skipped.unpaired"] += self.pairer.dropped_a - dropped_before
+        stats.skipped["unpaired"] += self.pairer.dropped_a - dropped_before
         if pair is not None:
             self.watch.paired()
             self._handle(pair)

@@ -13,7 +13,7 @@ from std_srvs.srv import Trigger
 from memgs_ros.core.maps.bundle import TRACKER_FILE, resolve_bundle
 from memgs_ros.core.tracking.config import TrackingState
 from memgs_ros.errors import DataError, MemgsError
-from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.diagnostics import TrackerStats
 from memgs_ros.ros.hand_over import HandOver
 from memgs_ros.ros.map_bundles import answer, in_thread, part_path
 
@@ -32,7 +32,7 @@ class TrackerMapPart:
     """The tracker's part: ``memgs/tracker/save_map_part``, and loading ``map_bundle`` into a new tracker.
     ``tracker()``: the node's tracker (None before the camera is known); ``extra()``: header fields."""
 
-    def __init__(self, node: Node, params: Any, stats: NodeStats, tracker: Callable[[], Any],
+    def __init__(self, node: Node, params: Any, stats: TrackerStats, tracker: Callable[[], Any],
                  extra: Callable[[], dict[str, Any]]) -> None:
         self.params, self.stats, self._tracker, self._extra = params, stats, tracker, extra
         self._log = node.get_logger()
@@ -69,11 +69,11 @@ class TrackerMapPart:
 
         t0 = time.perf_counter()
         m = tracker.export_map(self._extra())  # on the tracking thread: a copy, milliseconds
-        self.stats.gauges["map_part_copy_ms"] = round((time.perf_counter() - t0) * 1e3, 2)
+        self.stats.map_part_copy_ms = round((time.perf_counter() - t0) * 1e3, 2)
         path = part_path(self.params.bundle_dir, "tracker")
         try:
             await self.hand_over.result(in_thread(lambda: write_tracker_map(m, path), "tracker-map-part"))
         except (OSError, MemgsError) as err:
             return answer(res, False, f"could not write the tracker map {path}: {err}")
-        self.stats.counters["map_parts"] += 1
+        self.stats.map_parts += 1
         return answer(res, True, str(path))

@@ -60,7 +60,7 @@ from memgs_ros.ros import qos
 from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.codecs import stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import NodeStats
+from memgs_ros.ros.diagnostics import TrackerStats
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.map_loading import NodeMapLoader
 from memgs_ros.ros.node_main import run_node
@@ -97,10 +97,10 @@ class TrackerNode(ManagedNode):
         self.gate = LiveGate(int(1e9 * v.max_frame_age_s))  # 0: never stale (the runner's lockstep replays)
         self.pairing = RgbdPairing(self, v, lambda pair: self._handle(pair[1], pair[2]))
         self.tracker: Tracker | None = None
-        self.stats = NodeStats(self, "tracker")
+        self.stats = TrackerStats(self)
         self.out = TrackerOutbox(self, v, self.stats)
         self.bundle = TrackerMapPart(self, v, self.stats, lambda: self.tracker, lambda: {
-            "frames": self.stats.counters["frames_in"], "depth_scale": v.depth_scale, "map_frame": v.map_frame})
+            "frames": self.stats.frames_in, "depth_scale": v.depth_scale, "map_frame": v.map_frame})
         sensor = qos.sensor() if v.input_reliability == "best_effort" else qos.reliable(5)
         self.create_subscription(CameraInfo, v.camera_info_topic, self.on_camera_info, sensor)
         self.compressed = v.image_transport == "compressed"  # decoded once a frame is taken
@@ -111,14 +111,14 @@ class TrackerNode(ManagedNode):
         # first frame (a live camera does not wait) nor in __init__ (a compiling node missed its stop
         # deadline). The runner starts a replay once ``kernels_warm`` is 1; a live frame before
         # that is counted (skipped.warming); a lockstep frame waits (inside make_tracker).
-        self.stats.gauges["kernels_warm"] = 0
+        self.stats.kernels_warm = 0
         self._warm = WarmUpThread(warm_up, self._warmed, name="tracker-warm-up")
 
     def _warmed(self, seconds: float, error: Exception | None) -> None:
         if error is not None:
             self.stats.post_problem("warm_up", f"could not load the tracking kernels ahead of time: {error}")
-        self.stats.post_gauge("warm_up_s", round(seconds, 2))
-        self.stats.post_gauge("kernels_warm", 1)
+        self.stats.post_set(TrackerStats.warm_up_s, round(seconds, 2))
+        self.stats.post_set(TrackerStats.kernels_warm, 1)
 
     def wait_until_warm(self, timeout_s: float) -> bool:
         """Whether the kernels are in within ``timeout_s`` (a live frame before that is "warming")."""
@@ -139,7 +139,7 @@ class TrackerNode(ManagedNode):
         elif verdict.kind == "changed":
             self.stats.problem("camera_changed", "camera_info changed after tracking started; keeping the first")
         elif verdict.kind == "differs":
-            self.stats.counters["camera_info_differs"] += 1
+            self.stats.camera_info_differs += 1
             self.get_logger().warning(
                 f"camera_info on {self.resolve_topic_name(self.params.camera_info_topic)} ({describe_camera(cam)}) "
                 f"differs from the configured calibration by more than 1 % ({'; '.join(verdict.differences)}): "
@@ -153,14 +153,14 @@ class TrackerNode(ManagedNode):
 
     def on_color(self, msg: Image, info: MessageInfo) -> None:
         if not self.active:  # paused (lifecycle inactive): counted, answered, not tracked
-            self.stats.counters["skipped.inactive"] += 1
+            self.stats.skipped["inactive"] += 1
             self.out.processed(stamp_to_ns(msg.header.stamp))
             return
         seq, sent = int(info.get("publication_sequence_number") or 0), int(info.get("source_timestamp") or 0)
         refused, lost = self.gate.admit(seq, sent, time.time_ns(), self._warm.ready.is_set())
-        self.stats.counters["skipped.busy"] += lost
+        self.stats.skipped["busy"] += lost
         if refused is not None:
-            self.stats.counters[f"skipped.{refused}"] += 1
+            self.stats.skipped[refused] += 1
             self.out.processed(stamp_to_ns(msg.header.stamp))
         elif not self.rgbd:
             self._handle(msg, None)
@@ -175,7 +175,7 @@ class TrackerNode(ManagedNode):
             known, dropped = self.cams.for_frame((color, depth), color.width, color.height)
         except DataError as err:
             self.stats.problem("camera_info", f"the configured calibration does not fit the images: {err}")
-            self.stats.counters["frames_in"] += 1
+            self.stats.frames_in += 1
             self.out.processed(stamp_to_ns(color.header.stamp))
             return False
         if dropped is not None:
@@ -216,7 +216,7 @@ class TrackerNode(ManagedNode):
         color, depth = images
         if not self._ready_camera(color, depth):
             return
-        self.stats.counters["frames_in"] += 1
+        self.stats.frames_in += 1
         frame = self._frame(color, depth)
         if frame is None:
             self.out.processed(stamp_to_ns(color.header.stamp))
@@ -238,7 +238,7 @@ class TrackerNode(ManagedNode):
         if not self.cfg.ba_threaded:
             ba_dt = tracker.ba_time_s - ba_before
             dt -= ba_dt
-            self.stats.counters["ba_us_total"] += int(ba_dt * 1e6)
+            self.stats.ba_us_total += int(ba_dt * 1e6)
         smap = track_stats(self.stats, tracker, dt, result.keyframe is not None)
         if smap is not None:
             self.out.keyframes.forget(smap.keyframe_ids, smap.keyframes)

@@ -33,7 +33,7 @@ from memgs_ros.ros.codecs import (
     stamp_to_ns,
     structured_to_pointcloud2,
 )
-from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
+from memgs_ros.ros.diagnostics import RollingMedian, TrackerStats
 
 __all__ = ["KEYPOINT_DTYPE", "CorrectedPath", "KeyframeOutbox", "TrackerOutbox", "track_stats"]
 
@@ -145,26 +145,25 @@ class KeyframeOutbox:
             self.stamps = {i: s for i, s in self.stamps.items() if i in kept_ids}
 
 
-def track_stats(stats: NodeStats, tracker: Any, dt_s: float, keyframe: bool) -> Any | None:
+def track_stats(stats: TrackerStats, tracker: Any, dt_s: float, keyframe: bool) -> Any | None:
     """A tracked frame's cost (``dt_s``: the front end alone) and the tracker's gauges; on a
     keyframe the sparse map's size too, whose stats it returns (else None)."""
-    g = stats.gauges
-    g["track_ms"] = round(dt_s * 1e3, 2)
-    g["keyframes_deferred"], g["ba_waits"], g["ba_refused"] = (
-        int(getattr(tracker, k, 0)) for k in ("keyframes_deferred", "ba_waits", "ba_refused"))
+    stats.track_ms = round(dt_s * 1e3, 2)
+    stats.keyframes_deferred = int(getattr(tracker, "keyframes_deferred", 0))
+    stats.ba_waits, stats.ba_refused = int(getattr(tracker, "ba_waits", 0)), int(getattr(tracker, "ba_refused", 0))
     if getattr(tracker, "stamps_before_map", False):
         stats.problem("map_stamps", "frames stamped before the loaded map's newest keyframe (the same recording "
                                     "played again?): their keyframes may collide with the map's, keyed by stamp")
     # A loaded map (map_bundle): frames given no pose before the first relocalisation in it.
-    g["relocalizing"], g["relocalized_after"] = (int(getattr(tracker, k, 0)) for k in ("frames_relocalizing",
-                                                                                     "relocalized_after"))
+    stats.relocalizing = int(getattr(tracker, "frames_relocalizing", 0))
+    stats.relocalized_after = int(getattr(tracker, "relocalized_after", 0))
     if (ro := getattr(tracker, "readout", None)) is not None:
-        g["readout_flips"], g["readout_sign"] = ro.flips, ro.sign  # the rows' direction as checked
-    stats.counters["track_us_total"] += int(dt_s * 1e6)
+        stats.readout_flips, stats.readout_sign = ro.flips, ro.sign  # the rows' direction as checked
+    stats.track_us_total += int(dt_s * 1e6)
     smap = tracker.map_stats() if keyframe else None
     if smap is not None:
-        g["map_keyframes"], g["map_points"] = smap.keyframes, smap.points
-        g["map_keyframes_removed"], g["map_keyframes_culled"] = smap.keyframes_removed, smap.keyframes_culled
+        stats.map_keyframes, stats.map_points = smap.keyframes, smap.points
+        stats.map_keyframes_removed, stats.map_keyframes_culled = smap.keyframes_removed, smap.keyframes_culled
     return smap
 
 
@@ -173,7 +172,7 @@ class TrackerOutbox:
     counted in ``stats`` (``state.<STATE>``, ``poses_out``, ``keyframes``, the refined and
     loop-corrected keyframe poses)."""
 
-    def __init__(self, node: Node, params: Any, stats: NodeStats) -> None:
+    def __init__(self, node: Node, params: Any, stats: TrackerStats) -> None:
         """``params``: the node's TrackerParams (frames, mount, path length and rate)."""
         world_frame, path_max_len = params.world_frame, params.path_max_len
         self.world_frame, self.camera_frame, self.stats = world_frame, params.camera_frame, stats
@@ -187,8 +186,9 @@ class TrackerOutbox:
         self.mount_settled = self.tf is None or not self.tf.available or self.tf.statics is None
         self._mount_wait_ns, self._mount_asked_ns = int(params.camera_mount_wait_s * 1e9), 0  # 0: not asked yet
         self._log = node.get_logger()
-        self._frame_cpu_ms = stats.computed["frame_cpu_ms_median"] = RollingMedian()  # message in to pose out
-        self._frame_ms = stats.computed["frame_ms_median"] = RollingMedian()  # wall: a lockstep frame's share
+        self._frame_cpu_ms, self._frame_ms = RollingMedian(), RollingMedian()
+        stats.compute(TrackerStats.frame_cpu_ms_median, self._frame_cpu_ms)  # message in to pose out
+        stats.compute(TrackerStats.frame_ms_median, self._frame_ms)  # wall: a lockstep frame's share
         rel = qos.reliable(10)
         self.pose = node.create_publisher(PoseStamped, "memgs/pose", rel)  # the camera in world_frame
         # Tracked poses only (state OK), with the covariance: what a flight controller fuses. The body
@@ -221,13 +221,12 @@ class TrackerOutbox:
         camera_frame = color.header.frame_id or self.camera_frame
         self._state.data = name = result.state.name
         self.state.publish(self._state)
-        stats.counters[f"state.{name}"] += 1
-        previous = stats.gauges.get("tracking_state")
-        stats.gauges["tracking_state"] = name
-        if result.segment_id != stats.gauges.get("segment", result.segment_id) or (
-                previous == "LOST" and name == "OK"):
-            stats.counters["resets"] += 1  # relocalised, or a new map segment: poses may jump
-        stats.gauges["segment"] = result.segment_id
+        stats.state[name] += 1
+        previous = stats.tracking_state or None  # None: the first frame (segment is set with it)
+        stats.tracking_state = name
+        if previous is not None and (result.segment_id != stats.segment or (previous == "LOST" and name == "OK")):
+            stats.resets += 1  # relocalised, or a new map segment: poses may jump
+        stats.segment = result.segment_id
         if previous is not None and (name == "LOST") != (previous == "LOST"):
             stats.publish()  # lost, or back: /diagnostics hears it now, not at the next second
         pose = None
@@ -236,25 +235,28 @@ class TrackerOutbox:
         if result.T_wc is not None:
             pose = matrix_to_pose_stamped(result.T_wc, stamp, self.world_frame)
             self.pose.publish(pose)
-            stats.counters["poses_out"] += 1
+            stats.poses_out += 1
             if not self.mount_settled:
-                stats.counters["odometry_withheld"] += 1  # the body's pose waits for the camera's mount
+                stats.odometry_withheld += 1  # the body's pose waits for the camera's mount
             elif result.pose_cov is not None:  # tracked (not coasted, not a start without a pose fit), and read
                 self._tracked_odometry(result.T_wc, result.pose_cov, stamp)
             else:
                 self._last_tracked = None
             if self.mount_settled and self.tf is not None and self.tf.available and name == "OK":
                 # False only with an odom_frame and no odom -> base_link near the frame's stamp
-                stats.counters["tf_out" if self.tf.tracked(result.T_wc, stamp) else "tf_no_odom"] += 1
+                if self.tf.tracked(result.T_wc, stamp):
+                    stats.tf_out += 1
+                else:
+                    stats.tf_no_odom += 1
             if result.keyframe is not None:
                 self.keyframes.publish(result, camera, camera_frame, color, depth)
-                stats.counters["keyframes"] += 1
-        for poses, pub, counter in ((refined, self.keyframes.refined, "refined_keyframe_poses"),
-                                    (corrected, self.keyframes.loop, "loop_corrected_keyframe_poses")):
-            if poses:
-                stats.counters[counter] += self.keyframes.publish_poses(poses, pub)
+                stats.keyframes += 1
+        if refined:
+            stats.refined_keyframe_poses += self.keyframes.publish_poses(refined, self.keyframes.refined)
+        if corrected:
+            stats.loop_corrected_keyframe_poses += self.keyframes.publish_poses(corrected, self.keyframes.loop)
         if culled:
-            stats.counters["culled_keyframes"] += self.keyframes.publish_culled(list(culled))
+            stats.culled_keyframes += self.keyframes.publish_culled(list(culled))
         self.path.add(result, pose, loops, {k: heir for k, heir, _ in culled})
         self.processed(stamp, keyframe=result.keyframe is not None)
 
@@ -285,8 +287,8 @@ class TrackerOutbox:
         cost_ms = (time.thread_time() - cpu0) * 1e3
         self._frame_cpu_ms.add(cost_ms)
         self._frame_ms.add((time.perf_counter() - wall0) * 1e3)
-        self.stats.counters["frame_cpu_us_total"] += int(cost_ms * 1e3)
-        self.stats.gauges["frame_cpu_ms"] = round(cost_ms, 2)
+        self.stats.frame_cpu_us_total += int(cost_ms * 1e3)
+        self.stats.frame_cpu_ms = round(cost_ms, 2)
 
     def odometry_wanted(self) -> bool:
         """Whether anything subscribes to ``memgs/odom`` or ``memgs/pose_with_covariance``: without a
@@ -309,7 +311,7 @@ class TrackerOutbox:
         cov.pose.pose, cov.pose.covariance = body.pose, odom.pose.covariance
         self.pose_cov.publish(cov)
         self._last_tracked = (stamp, T_mb)
-        self.stats.counters["odometry_out"] += 1
+        self.stats.odometry_out += 1
 
     def publish_path(self) -> None:
         msg = self.path.take_message()
