@@ -238,6 +238,12 @@ class MergerStats(NodeStats, MergerFields):
     def __init__(self, node: Node) -> None:
         super().__init__(node, "merger")
 
+    def replica(self, replica: Any, resyncing: bool, buffered: int, render_cache_bytes: int) -> None:  # noqa: ANN401
+        """The replica's rows, deltas buffered in a resync, the last view's render inputs (no training state)."""
+        self.seq, self.epoch, self.gaussians, self.resyncing = replica.seq, replica.epoch, len(replica), int(resyncing)
+        self.unknown_removals, self.map_bytes = replica.unknown_removals, replica.records.nbytes if len(replica) else 0
+        self.buffered_deltas, self.render_cache_bytes = buffered, render_cache_bytes
+
 
 class PlayerStats(NodeStats, PlayerFields):
     def __init__(self, node: Node) -> None:

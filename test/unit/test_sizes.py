@@ -11,10 +11,13 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from layout_figures import figures  # noqa: E402 - the benchmarks folder is not a package
 
 # ros2/demos nodes are 50-100 lines; ours translate messages and parameters over core services.
-NODE_BOUNDS = {"TrackerNode": 180, "MapperNode": 220}
-OTHER_NODE_BOUND = 150
+# Each bound sits about 10 % above the size measured when it was set (issue 49: TrackerNode 180,
+# MapperNode 220, other nodes 150, largest class 350), so a small change does not trip it and
+# growth past that does.
+NODE_BOUNDS = {"TrackerNode": 198, "MapperNode": 242}
+OTHER_NODE_BOUND = 165
 FUNCTION_BOUND = 80
-CLASS_BOUND = 400
+CLASS_BOUND = 385
 
 
 def test_nodes_are_thin() -> None:
@@ -25,7 +28,7 @@ def test_nodes_are_thin() -> None:
     assert fat == {}, "node classes over their bound (move the logic into a core service)"
 
 
-def test_no_function_is_over_80_lines_and_no_class_over_400() -> None:
+def test_no_function_is_over_80_lines_and_no_class_over_the_bound() -> None:
     f = figures(longest=FUNCTION_BOUND)
     assert f["functions_over"] == []
     assert f["largest_classes"][0][0] <= CLASS_BOUND, f["largest_classes"][0]

@@ -34,7 +34,6 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.geometry.view import view_preparation
 from memgs_ros.core.mapping.anchors import KeyframeAnchors
-from memgs_ros.core.mapping.checkpoint import ID_BLOCK, KeyframeState, MapperCheckpoint
 from memgs_ros.core.mapping.config import MappingConfig
 from memgs_ros.core.mapping.coverage import settled_uncovered
 from memgs_ros.core.mapping.device_peaks import PeakAttribution
@@ -42,16 +41,15 @@ from memgs_ros.core.mapping.device_view import device_view
 from memgs_ros.core.mapping.exposure import ExposureCompensation
 from memgs_ros.core.mapping.keyframes import KeyframeStore, TrainingKeyframe, make_keyframe
 from memgs_ros.core.mapping.losses import mapping_loss
+from memgs_ros.core.mapping.mapper_state import MapperState
 from memgs_ros.core.mapping.rigid import move_with_keyframes
 from memgs_ros.core.mapping.strategies import (
-    DELTA_BYTES_PER_GAUSSIAN,
     BudgetStrategy,
     DensifyStrategy,
     MemoryAccount,
     MergeFn,
     MergeSchedule,
     TrainingSetStrategy,
-    step_buffer_bytes,
 )
 from memgs_ros.errors import ConfigError, DataError
 
@@ -128,7 +126,7 @@ def _torch_compatible(a: np.ndarray) -> np.ndarray:
     return np.array(a, dtype=a.dtype.newbyteorder("="), order="C")
 
 
-class GaussianMapper:
+class GaussianMapper(MapperState):
     """Trains a Gaussian map on keyframes (see module docstring). ``device``: torch device.
 
     Not thread-safe: one thread calls it (``MappingSession``'s worker, or a script). Its state
@@ -184,25 +182,12 @@ class GaussianMapper:
         """The memory budget as a Gaussian count (0 = none), see ``BudgetStrategy.limit``."""
         return self.budget.limit(self.gmap, self._fixed_bytes())
 
-    def _training_pixels(self) -> int:
-        """Pixels of the largest full-resolution training view (0 without keyframes)."""
-        return max((kf.camera.width * kf.camera.height for kf in self.keyframes.all()), default=0)
-
     def _fixed_bytes(self) -> int:
-        """The accounted memory that does not scale with the Gaussians: keyframes and the
-        per-pixel step buffers (only needed when ``max_mapper_mbytes`` is set)."""
-        if self.cfg.max_mapper_mbytes <= 0:
-            return 0
-        return self.keyframes.nbytes() + step_buffer_bytes(0, self._training_pixels())
+        return self.budget.fixed_bytes(self.keyframes)
 
     def memory_account(self) -> MemoryAccount:
-        """The accounted working memory now (``mapping.max_mapper_mbytes`` bounds its total): the
-        model at its trained cost (gradients and Adam moments counted before they exist, as the
-        budget does), the stored keyframes, the step buffers and the delta bytes."""
-        n = len(self.gmap)
-        return MemoryAccount(model=n * self.trained_bytes_per_gaussian(), keyframes=self.keyframes.nbytes(),
-                             step_buffers=step_buffer_bytes(n, self._training_pixels()),
-                             delta=n * DELTA_BYTES_PER_GAUSSIAN)
+        """The accounted working memory now (``BudgetStrategy.account``)."""
+        return self.budget.account(self.gmap, self.keyframes)
 
     def trained_bytes_per_gaussian(self) -> int:
         return self.budget.trained_bytes_per_gaussian(self.gmap)
@@ -484,47 +469,3 @@ class GaussianMapper:
             return self.gmap.to_records()
 
     # ----------------------------------------------------------- state
-    def state_dict(self, extra: Mapping[str, Any] | None = None) -> MapperCheckpoint:
-        """Everything needed to resume, in host memory (no Adam moments: restored, they restart at zero,
-        as merged Gaussians do). ``extra``: JSON-able additions (the session's keyframe-stamp table)."""
-        gmap, kfs = self.gmap, []
-        for kf in self.keyframes.all():
-            kfs.append(KeyframeState(
-                int(kf.kf_id), int(kf.stamp_ns), np.array(kf.T_wc, dtype=np.float64),
-                kf.rgb.permute(1, 2, 0).contiguous().cpu().numpy(),
-                None if kf.depth_m is None else kf.depth_m.detach().cpu().numpy().astype(np.float32),
-                None if kf.valid_mask is None else kf.valid_mask.detach().cpu().numpy().astype(bool),
-                kf.camera, None if self.exposure is None else self.exposure.get(kf.kf_id),
-                self.keyframes.uses(kf.kf_id)))
-        return MapperCheckpoint(gmap.to_records(), gmap.keyframe_ids.detach().cpu().numpy().astype(np.int64),
-                                gmap.created_iter.detach().cpu().numpy().astype(np.int64), tuple(kfs),
-                                int(self.iteration), int(gmap.next_id), int(gmap.active_sh_degree),
-                                float(self.scene_extent), time.time(), dict(extra or {}))
-
-    def load_state_dict(self, ckpt: MapperCheckpoint) -> None:
-        """Load ``ckpt`` into this fresh mapper (no keyframes, no Gaussians yet).
-
-        New Gaussians get ids from the next ``ID_BLOCK`` boundary above the checkpoint's next id,
-        above every id the writer could have handed out after it: ids are never reused.
-        """
-        if len(self.gmap) or len(self.keyframes):
-            raise DataError("a checkpoint can only be restored into an empty mapper")
-        dev = self.device
-        for k in ckpt.keyframes:
-            image = torch.from_numpy(np.ascontiguousarray(k.image)).to(dev).permute(2, 0, 1)  # uint8
-            depth = None if k.depth_m is None else torch.from_numpy(k.depth_m).to(dev)
-            mask = None if k.valid_mask is None else torch.from_numpy(k.valid_mask).to(dev)
-            self.add_prepared_keyframe(make_keyframe(k.kf_id, k.stamp_ns, k.T_wc, image.contiguous(), depth,
-                                                     k.camera, valid_mask=mask))
-            self.keyframes.restored(k.kf_id, k.uses)  # trained already: no new keyframe's coarse draws
-            if self.exposure is not None and k.exposure is not None:
-                self.exposure.set(k.kf_id, k.exposure)
-        gmap = self.gmap
-        if len(ckpt.gaussians):
-            gmap.load_records(ckpt.gaussians, iteration=0)
-            gmap.keyframe_ids[:] = torch.from_numpy(ckpt.keyframe_ids).to(gmap.keyframe_ids)
-            gmap.created_iter[:] = torch.from_numpy(ckpt.created_iter).to(gmap.created_iter)
-        gmap.next_id = -(-max(ckpt.next_id, 1) // ID_BLOCK) * ID_BLOCK
-        while gmap.active_sh_degree < min(ckpt.active_sh_degree, gmap.max_sh_degree):
-            gmap.raise_sh_degree()
-        self.iteration = ckpt.iteration

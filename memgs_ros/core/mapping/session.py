@@ -56,6 +56,7 @@ from memgs_ros.core.mapping.session_records import (
     SessionEvent,
     SessionStatus,
 )
+from memgs_ros.core.mapping.session_tally import SessionTally, StampedKeyframes
 from memgs_ros.core.maps.map_delta import DeltaOutbox
 from memgs_ros.core.raster.values import render_rgb8
 from memgs_ros.core.runtime.worker import BACKGROUND_ERROR_PAUSE_S, Command, CommandWorker, WorkerStopped
@@ -139,6 +140,15 @@ def _forward(src: Future[Any], dst: Future[Any], errors_only: bool = False) -> N
     src.add_done_callback(done)
 
 
+def _drain(q: queue.SimpleQueue[SessionEvent]) -> list[SessionEvent]:
+    out = []
+    while True:
+        try:
+            out.append(q.get_nowait())
+        except queue.Empty:
+            return out
+
+
 class MappingSession(CommandWorker):
     """The one owner of a live Gaussian map (see module docstring).
 
@@ -161,14 +171,13 @@ class MappingSession(CommandWorker):
         self._mapper = GaussianMapper(self.cfg, device=device, merge_cfg=merge_cfg)
         self._device = self._mapper.device  # callers read this, never the mapper
         self._epoch = int(delta_epoch)
-        self._stamps: dict[int, int] = {}  # keyframe stamp -> keyframe id (ids 0, 1, ... by arrival)
         self._render_camera: PinholeCamera | None = None
         self._finished = False
         self._interrupted = threading.Event()  # set from any thread: a finish in progress stops early
         self._training = free_running
-        self._counters = SessionCounts()
-        self._peaks = [0, 0, 0]  # model bytes, Gaussians, accounted bytes
-        self._last_loss: float | None = None
+        self._tally = SessionTally()
+        self._counters = self._tally.counts
+        self._keys = StampedKeyframes(self._mapper, self._counters)  # keyframe stamp -> id
         self._captured: tuple[int, int] | None = None  # (iteration, keyframes) of the last state_dict
         self._pending_inserts = 0  # changed under the worker's condition only
         self._events: queue.SimpleQueue[SessionEvent] = queue.SimpleQueue()
@@ -176,7 +185,7 @@ class MappingSession(CommandWorker):
         self._iterations_final = 0
         if checkpoint is not None:
             self._load(checkpoint)
-        self.resumed_stamps: frozenset[int] = frozenset(self._stamps)
+        self.resumed_stamps: frozenset[int] = frozenset(self._keys.ids)
         self._status = SessionStatus()
         self._publish_status()
         self._outbox = _Outbox(self.cfg.max_sh_degree, delta_tolerance, delta_epoch, niceness)
@@ -201,12 +210,7 @@ class MappingSession(CommandWorker):
 
     def poll_events(self) -> list[SessionEvent]:
         """Problems met since the last call, oldest first."""
-        out = []
-        while True:
-            try:
-                out.append(self._events.get_nowait())
-            except queue.Empty:
-                return out
+        return _drain(self._events)
 
     # ----------------------------------------------------------------- commands
     def insert_keyframe(self, kf: KeyframeInput, received_cpu_s: float = 0.0) -> Future[int | None]:
@@ -245,19 +249,19 @@ class MappingSession(CommandWorker):
     def update_poses(self, poses: Mapping[int, np.ndarray]) -> Future[int]:
         """Replace keyframe poses ({stamp_ns: T_wc [4, 4]}, e.g. bundle adjustment); the Gaussians
         stay. The future gives how many keyframes were updated (unknown and dropped ones are not)."""
-        return self.submit("update_poses", lambda: self._update_poses(dict(poses)))
+        return self.submit("update_poses", lambda: self._keys.update_poses(dict(poses)))
 
     def retire_keyframes(self, stamps: list[int]) -> Future[tuple[int, int]]:
         """Keyframes the tracker culled (by stamp): out of training, their Gaussians handed on to the
         nearest kept keyframe (``GaussianMapper.retire_keyframes``). The future gives (retired,
         Gaussians handed on); unknown stamps are ignored."""
-        return self.submit("retire", lambda: self._retire(list(stamps)))
+        return self.submit("retire", lambda: self._keys.retire(list(stamps)))
 
     def correct_keyframes(self, poses: Mapping[int, np.ndarray]) -> Future[tuple[int, int]]:
         """Rigidly move keyframes ({stamp_ns: corrected T_wc}) and the Gaussians anchored to them,
         then train them with priority (``GaussianMapper.correct_keyframes``). The future gives
         (keyframes corrected, Gaussians moved)."""
-        return self.submit("correct", lambda: self._correct(dict(poses)))
+        return self.submit("correct", lambda: self._keys.correct(dict(poses)))
 
     def set_training(self, on: bool) -> Future[bool]:
         """Pause (False) or resume the free-running training between commands (a managed node's
@@ -385,32 +389,14 @@ class MappingSession(CommandWorker):
 
     def _after_step(self, st: StepStats) -> None:
         self._intake.trained(st.kf_id)
-        c = self._counters
-        c.merged_removed += st.merged_removed
-        c.merged_added += st.merged_added
-        c.budget_merged += st.budget_merged
-        c.budget_pruned += st.budget_pruned
-        self._last_loss = round(sum(st.terms.values()), 5)
+        self._tally.step(st)
         self._publish_status()
 
     def _publish_status(self) -> None:
-        m = self._mapper
-        model = m.gmap.memory_bytes().total
-        account = m.memory_account()
-        cuda = torch.cuda.max_memory_allocated(m.device) if m.device.type == "cuda" else None
-        self._peaks = [max(self._peaks[0], model), max(self._peaks[1], len(m.gmap)),
-                       max(self._peaks[2], account.total)]
-        self._status = SessionStatus(
-            iteration=m.iteration, gaussians=len(m.gmap), keyframes=len(self._stamps),
-            keyframes_trained=len(m.keyframes), keyframes_dropped=m.keyframes_dropped,
-            budget_gaussians=m.budget_gaussians, model_bytes=model, model_bytes_peak=self._peaks[0],
-            keyframe_bytes=account.keyframes, accounted_bytes=account.total, accounted_bytes_peak=self._peaks[2],
-            gaussians_peak=self._peaks[1], loss=self._last_loss, cuda_max_allocated=cuda,
-            keyframe_timing=self._intake.summary(), iterations_final=self._iterations_final,
-            cuda_peak_by_work=dict(m.peaks.by_work),
-            insert_queue=self._pending_inserts,
-            finished=self._finished, render_camera=self._render_camera,
-            counters=self._counters.with_map(m.merge.passes, m.seeds_covered))
+        self._status = self._tally.status(
+            self._mapper, keyframes=len(self._keys.ids), keyframe_timing=self._intake.summary(),
+            iterations_final=self._iterations_final, insert_queue=self._pending_inserts,
+            finished=self._finished, render_camera=self._render_camera)
 
     def _event(self, kind: str, message: str) -> None:
         self._events.put(SessionEvent(kind, message))
@@ -423,10 +409,10 @@ class MappingSession(CommandWorker):
     def _insert(self, kf: KeyframeInput, prepared: TrainingKeyframe | None, spent_cpu_s: float) -> int | None:
         if self._finished:
             return None
-        if kf.stamp_ns in self._stamps:
+        if kf.stamp_ns in self._keys.ids:
             self._counters.duplicate_keyframes += 1
             return None
-        kf_id = len(self._stamps)
+        kf_id = len(self._keys.ids)
         t0, cpu0 = time.perf_counter(), time.thread_time()
         try:
             if prepared is None:  # on a GPU: uploaded and prepared here, between two steps
@@ -439,7 +425,7 @@ class MappingSession(CommandWorker):
         except DataError as err:
             self._event("bad_keyframe", f"keyframe {kf.stamp_ns} refused: {err}")
             return None
-        self._stamps[kf.stamp_ns] = kf_id
+        self._keys.ids[kf.stamp_ns] = kf_id
         if self._render_camera is None:
             self._render_camera = view_preparation(kf.camera, self.cfg.resolution_scale).camera
         self._counters.keyframes += 1
@@ -447,27 +433,6 @@ class MappingSession(CommandWorker):
         self._counters.insert_ms_total += round(1e3 * (time.perf_counter() - t0))
         self._intake.inserted(kf_id, kf.decided_ns, 1e3 * (spent_cpu_s + time.thread_time() - cpu0))
         return added
-
-    def _ids_of(self, poses: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
-        return {self._stamps[s]: T for s, T in poses.items() if s in self._stamps}
-
-    def _update_poses(self, poses: Mapping[int, np.ndarray]) -> int:
-        updated = self._mapper.update_keyframe_poses(self._ids_of(poses))
-        self._counters.keyframe_pose_updates += updated
-        self._counters.refined_poses_of_dropped_keyframes += len(poses) - updated
-        return updated
-
-    def _retire(self, stamps: list[int]) -> tuple[int, int]:
-        retired, handed = self._mapper.retire_keyframes([self._stamps[s] for s in stamps if s in self._stamps])
-        self._counters.keyframes_retired += retired
-        self._counters.gaussians_handed_on += handed
-        return retired, handed
-
-    def _correct(self, poses: Mapping[int, np.ndarray]) -> tuple[int, int]:
-        corrected, moved = self._mapper.correct_keyframes(self._ids_of(poses))
-        self._counters.keyframes_corrected += corrected
-        self._counters.gaussians_corrected += moved
-        return corrected, moved
 
     def _train(self, iterations: int) -> StepStats | None:
         t0 = time.perf_counter()
@@ -497,24 +462,20 @@ class MappingSession(CommandWorker):
         return view
 
     def _state_dict(self, only_if_changed: bool) -> MapperCheckpoint | None:
-        version = (self._mapper.iteration, len(self._stamps))
+        version = (self._mapper.iteration, len(self._keys.ids))
         if only_if_changed and version == self._captured:
             return None
-        ckpt = self._mapper.state_dict({"keyframe_stamps": {str(s): k for s, k in self._stamps.items()}})
+        ckpt = self._mapper.state_dict(self._keys.table())
         self._captured = version
         return ckpt
 
     def _load(self, ckpt: MapperCheckpoint) -> None:
         """Before the worker starts: the mapper's state and the stamp table."""
-        try:
-            stamps = {int(s): int(k) for s, k in ckpt.extra.get("keyframe_stamps", {}).items()}
-        except (TypeError, ValueError, AttributeError) as err:
-            raise DataError(f"checkpoint keyframe_stamps are not a stamp -> id table: {err}") from err
+        self._keys.load(ckpt.extra)
         self._mapper.load_state_dict(ckpt)
-        self._stamps = stamps
         if ckpt.keyframes:
             self._render_camera = ckpt.keyframes[-1].camera  # prepared: undistorted and scaled
-        self._captured = (self._mapper.iteration, len(self._stamps))
+        self._captured = (self._mapper.iteration, len(self._keys.ids))
 
     def _finish(self, final_iterations: int, densify: bool, budget_s: float = 0.0,
                 total_iterations: int = 0) -> FinishResult:

@@ -179,6 +179,27 @@ class BudgetStrategy:
         every parameter row four times (value, gradient, Adam exp_avg and exp_avg_sq)."""
         return 4 * sum(math.prod(p.shape[1:]) * p.element_size() for p in gmap.params().values())
 
+    @staticmethod
+    def training_pixels(keyframes: KeyframeStore) -> int:
+        """Pixels of the largest full-resolution training view (0 without keyframes)."""
+        return max((kf.camera.width * kf.camera.height for kf in keyframes.all()), default=0)
+
+    def fixed_bytes(self, keyframes: KeyframeStore) -> int:
+        """The accounted memory that does not scale with the Gaussians: keyframes and the
+        per-pixel step buffers (only needed when ``max_mapper_mbytes`` is set)."""
+        if self.cfg.max_mapper_mbytes <= 0:
+            return 0
+        return keyframes.nbytes() + step_buffer_bytes(0, self.training_pixels(keyframes))
+
+    def account(self, gmap: GaussianMap, keyframes: KeyframeStore) -> MemoryAccount:
+        """The accounted working memory now (``mapping.max_mapper_mbytes`` bounds its total): the
+        model at its trained cost (gradients and Adam moments counted before they exist, as the
+        budget does), the stored keyframes, the step buffers and the delta bytes."""
+        n = len(gmap)
+        return MemoryAccount(model=n * self.trained_bytes_per_gaussian(gmap), keyframes=keyframes.nbytes(),
+                             step_buffers=step_buffer_bytes(n, self.training_pixels(keyframes)),
+                             delta=n * DELTA_BYTES_PER_GAUSSIAN)
+
     def limit(self, gmap: GaussianMap, fixed_bytes: int = 0) -> int:
         """The budget as a Gaussian count (0 = none): the tightest of ``max_gaussians``,
         ``max_model_mbytes`` at a trained map's bytes per Gaussian, and ``max_mapper_mbytes``

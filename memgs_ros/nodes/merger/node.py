@@ -147,12 +147,7 @@ class MergerNode(ManagedNode):
         self.snapshots.ask(self.map.resyncing)
 
     def _gauges(self) -> None:
-        replica = self.map.replica
-        # The replica's rows, deltas buffered in a resync, the last view's render inputs (no training state).
-        s = self.stats
-        s.seq, s.epoch, s.gaussians, s.resyncing = replica.seq, replica.epoch, len(replica), int(self.map.resyncing)
-        s.unknown_removals, s.map_bytes = replica.unknown_removals, replica.records.nbytes if len(replica) else 0
-        s.buffered_deltas, s.render_cache_bytes = self.map.buffered, self.renderer.cache_bytes
+        self.stats.replica(self.map.replica, self.map.resyncing, self.map.buffered, self.renderer.cache_bytes)
 
     # ------------------------------------------------------------------ outputs
     def save(self) -> Path | None:
