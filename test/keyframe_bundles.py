@@ -10,7 +10,7 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.nodes.tracker.outputs import KEYPOINT_DTYPE
+from memgs_ros.ros.keyframe_bundle import KEYPOINT_DTYPE
 from memgs_ros.ros.codecs import (
     camera_to_camera_info,
     depth_to_image,

@@ -21,7 +21,7 @@ from memgs_ros.core.geometry.frame import Frame  # noqa: E402
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap  # noqa: E402
 from memgs_ros.core.maps.map_delta import DeltaOutbox, message_dtype  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
-from memgs_ros.nodes.tracker.outputs import KEYPOINT_DTYPE  # noqa: E402
+from memgs_ros.ros.keyframe_bundle import KEYPOINT_DTYPE  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
 from memgs_ros.ros.codecs import (  # noqa: E402
     camera_to_camera_info, depth_to_image, matrix_to_pose_stamped, numpy_to_image, structured_to_pointcloud2,

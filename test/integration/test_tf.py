@@ -94,7 +94,7 @@ def test_tf_and_odometry_on_real_dds(context) -> None:  # noqa: ANN001
     from memgs_ros.io.synthetic import generate_frames, parse_spec
     from memgs_ros.ros import qos
     from memgs_ros.ros.codecs import pose_fields_to_matrix, pose_to_matrix, stamp_to_ns
-    from memgs_ros.nodes.tracker.tf import tf_qos, tf_static_qos
+    from memgs_ros.ros.tf import tf_qos, tf_static_qos
 
     mount = [0.1, 0.0, -0.05, 0.0, 0.2, 0.0]
     names = ("x", "y", "z", "roll", "pitch", "yaw")
@@ -171,7 +171,7 @@ def test_the_mount_is_read_from_the_robots_tf_static(context) -> None:  # noqa: 
     from memgs_ros.io.synthetic import generate_frames, parse_spec
     from memgs_ros.ros import qos
     from memgs_ros.ros.codecs import pose_to_matrix, set_pose_fields, stamp_to_ns
-    from memgs_ros.nodes.tracker.tf import tf_static_qos
+    from memgs_ros.ros.tf import tf_static_qos
 
     def transform(parent: str, child: str, T: np.ndarray) -> TransformStamped:
         t = TransformStamped()
@@ -222,7 +222,7 @@ def test_odometry_from_tf_is_interpolated_to_the_frame_and_never_extrapolated() 
     from geometry_msgs.msg import TransformStamped
 
     from memgs_ros.ros.codecs import set_pose_fields, set_stamp
-    from memgs_ros.nodes.tracker.tf import OdomTrack
+    from memgs_ros.ros.tf import OdomTrack
 
     def tf(stamp_ns: int, x: float, yaw: float, parent: str = "odom") -> TransformStamped:
         t = TransformStamped()
@@ -257,7 +257,7 @@ def test_with_an_odom_frame_the_tracker_broadcasts_map_to_odom(context) -> None:
     from memgs_ros.io.synthetic import generate_frames, parse_spec
     from memgs_ros.ros import qos
     from memgs_ros.ros.codecs import pose_fields_to_matrix, pose_to_matrix, set_pose_fields, set_stamp, stamp_to_ns
-    from memgs_ros.nodes.tracker.tf import tf_qos
+    from memgs_ros.ros.tf import tf_qos
 
     feed = TrackerFeed(context, [Parameter("odom_frame", value="odom")])
     heard: list = []

@@ -1,6 +1,6 @@
 """Transforms as a robot's TF tree holds them, without ROS: a window of stamped poses of one frame
 in another (odometry), read at a stamp, and static frames chained from child to parent. The
-tracker's TF (``nodes/tracker/tf.py``) feeds them from ``/tf`` and ``/tf_static``."""
+TF listeners (``ros/tf.py``) feed them from ``/tf`` and ``/tf_static``."""
 from __future__ import annotations
 
 import bisect

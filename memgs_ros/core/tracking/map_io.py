@@ -146,3 +146,22 @@ def restore_map(m: TrackerMap) -> tuple[SparseMap, list[tuple[int, BowVector]]]:
                                   a["bow_weights"][bo[i]:bo[i + 1]].astype(np.float64)))
                for i, k in enumerate(a["bow_kf"].tolist())]
     return smap, vectors
+
+
+def load_bundle_map(tracker: Any, path: Path | None, map_mode: str) -> TrackerMap | None:  # noqa: ANN401 - a Tracker
+    """Start ``tracker`` (before its first frame) in ``map_mode`` ("localize": the map is not
+    changed) from the tracker map at ``path`` (a bundle's ``tracker.npz``; None: none). Returns
+    the map loaded. A map it cannot take raises DataError and leaves the tracker LOST in an empty
+    map: no pose, and no new world started."""
+    from memgs_ros.core.tracking.config import TrackingState
+
+    tracker.localize_only = map_mode == "localize"
+    if path is None:
+        return None
+    try:
+        m = read_tracker_map(path)
+        tracker.load_map(m)
+    except DataError:
+        tracker.state = TrackingState.LOST  # no map, no pose: nothing to relocalise in
+        raise
+    return m

@@ -11,7 +11,6 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.maps.bundle import TRACKER_FILE, resolve_bundle
-from memgs_ros.core.tracking.config import TrackingState
 from memgs_ros.errors import DataError, MemgsError
 from memgs_ros.ros.diagnostics import TrackerStats
 from memgs_ros.ros.hand_over import HandOver
@@ -41,23 +40,19 @@ class TrackerMapPart:
                             callback_group=ReentrantCallbackGroup())
 
     def load_into(self, tracker: Any) -> None:
-        """Start ``tracker`` from the bundle's tracker map, in ``map_mode``. A map it cannot take
-        leaves it relocalising in an empty map: no pose, and no new world started."""
-        p = self.params
-        tracker.localize_only = p.map_mode == "localize"
-        if not p.map_bundle:
-            return
-        from memgs_ros.core.tracking.map_io import read_tracker_map  # numba: the tracker's, once it tracks
+        """Start ``tracker`` from ``map_bundle`` in ``map_mode`` (``map_io.load_bundle_map``)."""
+        from memgs_ros.core.tracking.map_io import load_bundle_map  # numba: the tracker's, once it tracks
 
+        p = self.params
         try:
-            m = read_tracker_map(resolve_bundle(p.map_bundle) / TRACKER_FILE)
-            tracker.load_map(m)
+            path = resolve_bundle(p.map_bundle) / TRACKER_FILE if p.map_bundle else None
+            m = load_bundle_map(tracker, path, p.map_mode)
         except DataError as err:
-            tracker.state = TrackingState.LOST  # no map, no pose: nothing to relocalise in
             self.stats.problem("map_refused", f"cannot start from map bundle {p.map_bundle}: {err}")
             return
-        self._log.info(f"map bundle {p.map_bundle}: {m.n_keyframes} keyframes, {m.header['points']} points loaded "
-                       f"({p.map_mode}); relocalising before the first pose")
+        if m is not None:
+            self._log.info(f"map bundle {p.map_bundle}: {m.n_keyframes} keyframes, {m.header['points']} points "
+                           f"loaded ({p.map_mode}); relocalising before the first pose")
 
     async def on_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         tracker = self._tracker()

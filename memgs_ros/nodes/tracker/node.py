@@ -50,12 +50,13 @@ from memgs_ros.core.geometry.view import DepthUnits
 from memgs_ros.core.runtime.warm import WarmUpThread
 from memgs_ros.core.tracking import Tracker, TrackerConfig, TrackResult, make_tracker, warm_up
 from memgs_ros.core.tracking.frame_gate import CameraSource, LiveGate, StampRules
+from memgs_ros.core.tracking.telemetry import track_stats
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, depth_view, rgb_view
 from memgs_ros.nodes.params import NODE_CONFIGS, TrackerParams
 from memgs_ros.nodes.tracker.inputs import RgbdPairing, decompressed, subscribe_camera
 from memgs_ros.nodes.tracker.map_part import TrackerMapPart, map_check
-from memgs_ros.nodes.tracker.outputs import KEYPOINT_DTYPE, TrackerOutbox, track_stats
+from memgs_ros.nodes.tracker.outputs import TrackerOutbox
 from memgs_ros.ros import qos
 from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.codecs import stamp_to_ns
@@ -65,7 +66,7 @@ from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.map_loading import NodeMapLoader
 from memgs_ros.ros.node_main import run_node
 
-__all__ = ["KEYPOINT_DTYPE", "TrackerNode", "main"]
+__all__ = ["TrackerNode", "main"]
 
 # What rclpy hands a subscription callback that takes two arguments (rmw's message info):
 # source_timestamp (ns, the publisher's clock), received_timestamp, publication_sequence_number, ...
@@ -239,7 +240,7 @@ class TrackerNode(ManagedNode):
             ba_dt = tracker.ba_time_s - ba_before
             dt -= ba_dt
             self.stats.ba_us_total += int(ba_dt * 1e6)
-        smap = track_stats(self.stats, tracker, dt, result.keyframe is not None)
+        smap = track_stats(self.stats, tracker, dt, result.keyframe is not None, self.stats.problem)
         if smap is not None:
             self.out.keyframes.forget(smap.keyframe_ids, smap.keyframes)
         return result

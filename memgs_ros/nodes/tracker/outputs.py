@@ -12,8 +12,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
-from rclpy.publisher import Publisher
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import Image
 from std_msgs.msg import Header, String
 
 from memgs_ros.core.geometry.camera import PinholeCamera
@@ -24,21 +23,16 @@ from memgs_ros.nodes.tracker.tf import TfOutbox
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
     append_to_path,
-    camera_to_camera_info,
     matrix_to_pose_stamped,
     pose_to_odometry,
-    rep118_depth,
     set_header,
     set_tracked_odometry,
     stamp_to_ns,
-    structured_to_pointcloud2,
 )
 from memgs_ros.ros.diagnostics import RollingMedian, TrackerStats
+from memgs_ros.ros.keyframe_bundle import KeyframeOutbox
 
-__all__ = ["KEYPOINT_DTYPE", "CorrectedPath", "KeyframeOutbox", "TrackerOutbox", "track_stats"]
-
-KEYPOINT_DTYPE = np.dtype([("u", np.float32), ("v", np.float32), ("depth", np.float32), ("active", np.uint8)])
-
+__all__ = ["CorrectedPath", "TrackerOutbox"]
 
 class CorrectedPath:
     """``memgs/path``: every published pose, moved with the keyframe it was tracked against when a
@@ -78,93 +72,6 @@ class CorrectedPath:
                 old = self.msg.poses[i]
                 self.msg.poses[i] = matrix_to_pose_stamped(T, stamp_to_ns(old.header.stamp), self.world_frame)
         return self.msg
-
-
-class KeyframeOutbox:
-    """The keyframe topics of ``node`` (transient local: a restarted sampler or mapper gets them
-    again) and the keyframe-id -> stamp table that names refined and loop-corrected poses."""
-
-    def __init__(self, node: Node, world_frame: str, depth_scale: float) -> None:
-        kf = qos.keyframes()
-        self.world_frame, self.depth_scale = world_frame, depth_scale  # the camera's 16-bit units a metre
-        self.color = node.create_publisher(Image, "memgs/keyframe/color", kf)
-        self.depth = node.create_publisher(Image, "memgs/keyframe/depth", kf)
-        self.info = node.create_publisher(CameraInfo, "memgs/keyframe/camera_info", kf)
-        self.pose = node.create_publisher(PoseStamped, "memgs/keyframe/pose", kf)
-        self.keypoints = node.create_publisher(PointCloud2, "memgs/keyframe/keypoints", kf)
-        self.refined = node.create_publisher(Path, "memgs/keyframe/refined_poses", qos.reliable(20))
-        self.loop = node.create_publisher(Path, "memgs/keyframe/loop_corrected_poses", qos.reliable(20))
-        self.culled = node.create_publisher(Path, "memgs/keyframe/culled", qos.reliable(20))
-        self.stamps: dict[int, int] = {}
-        self._poses = Path()
-        self._poses.header.frame_id = world_frame
-
-    def publish(self, result: TrackResult, camera: PinholeCamera, camera_frame: str, color: Image,
-                depth: Image | None) -> None:
-        """The keyframe ``result`` made. Its colour goes out as it came in (each consumer decodes
-        and undistorts it once), its depth in REP-118's units (``rep118_depth``: as it came in
-        unless the camera's 16-bit scale is not millimetres); a depth paired from another stamp
-        takes the colour's, which names the keyframe's bundle."""
-        kf = result.keyframe
-        assert kf is not None
-        stamp = result.stamp_ns
-        kps = np.zeros(len(kf.keypoints_uv), dtype=KEYPOINT_DTYPE)
-        kps["u"], kps["v"] = kf.keypoints_uv[:, 0], kf.keypoints_uv[:, 1]
-        kps["depth"], kps["active"] = kf.keypoint_depth, kf.keypoint_active
-        self.info.publish(camera_to_camera_info(camera, stamp, camera_frame))
-        self.color.publish(color)
-        if depth is not None:
-            depth = rep118_depth(depth, self.depth_scale)
-            depth.header.stamp = color.header.stamp
-            self.depth.publish(depth)
-        self.keypoints.publish(structured_to_pointcloud2(kps, stamp, camera_frame))
-        self.pose.publish(matrix_to_pose_stamped(kf.T_wc, stamp, self.world_frame))
-        self.stamps[kf.keyframe_id] = stamp
-
-    def publish_poses(self, poses: list[tuple[int, np.ndarray]], pub: Publisher) -> int:
-        """Keyframe poses [(keyframe id, T_wc)] as one Path on ``pub`` (``refined`` or ``loop``),
-        by the keyframes' stamps; returns how many (ids it never published are left out)."""
-        msgs = [matrix_to_pose_stamped(T, self.stamps[i], self.world_frame) for i, T in poses if i in self.stamps]
-        if msgs:
-            self._poses.poses = msgs
-            pub.publish(self._poses)
-        return len(msgs)
-
-    def publish_culled(self, culled: list[tuple[int, int, np.ndarray]]) -> int:
-        """Keyframes culling removed, by stamp (their last poses), on ``memgs/keyframe/culled``; the
-        table forgets them. Returns how many went out."""
-        n = self.publish_poses([(k, T) for k, _, T in culled], self.culled)
-        for k, _, _ in culled:
-            self.stamps.pop(k, None)
-        return n
-
-    def forget(self, kept_ids: set[int] | frozenset[int], map_keyframes: int) -> None:
-        """Drop the stamps of keyframes the map no longer holds (bundle adjustment refines only
-        kept ones), once the table has grown well past the map."""
-        if len(self.stamps) > 2 * map_keyframes + 64:
-            self.stamps = {i: s for i, s in self.stamps.items() if i in kept_ids}
-
-
-def track_stats(stats: TrackerStats, tracker: Any, dt_s: float, keyframe: bool) -> Any | None:
-    """A tracked frame's cost (``dt_s``: the front end alone) and the tracker's gauges; on a
-    keyframe the sparse map's size too, whose stats it returns (else None)."""
-    stats.track_ms = round(dt_s * 1e3, 2)
-    stats.keyframes_deferred = int(getattr(tracker, "keyframes_deferred", 0))
-    stats.ba_waits, stats.ba_refused = int(getattr(tracker, "ba_waits", 0)), int(getattr(tracker, "ba_refused", 0))
-    if getattr(tracker, "stamps_before_map", False):
-        stats.problem("map_stamps", "frames stamped before the loaded map's newest keyframe (the same recording "
-                                    "played again?): their keyframes may collide with the map's, keyed by stamp")
-    # A loaded map (map_bundle): frames given no pose before the first relocalisation in it.
-    stats.relocalizing = int(getattr(tracker, "frames_relocalizing", 0))
-    stats.relocalized_after = int(getattr(tracker, "relocalized_after", 0))
-    if (ro := getattr(tracker, "readout", None)) is not None:
-        stats.readout_flips, stats.readout_sign = ro.flips, ro.sign  # the rows' direction as checked
-    stats.track_us_total += int(dt_s * 1e6)
-    smap = tracker.map_stats() if keyframe else None
-    if smap is not None:
-        stats.map_keyframes, stats.map_points = smap.keyframes, smap.points
-        stats.map_keyframes_removed, stats.map_keyframes_culled = smap.keyframes_removed, smap.keyframes_culled
-    return smap
 
 
 class TrackerOutbox:
