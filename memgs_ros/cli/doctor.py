@@ -156,10 +156,13 @@ def collect(check_gsplat: bool = True) -> dict[str, Any]:
     for name, info in (("rclpy", rclpy_info), *packages.items()):
         if not info["available"]:
             problems.append(f"{name} is missing or broken: {info['error']}")
-    tf2 = {"available": importlib.util.find_spec("tf2_msgs") is not None}
-    if rclpy_info["available"] and not tf2["available"]:
-        warnings.append("tf2_msgs is missing: the tracker publishes no /tf (apt's ROS has it; with the PyPI "
-                        "wheels: python -m memgs_ros.ros.tf2_msgs_build)")
+    tf2 = {"available": False}
+    if rclpy_info["available"]:  # whether TFMessage imports, as the tracker finds out (ros/tf.py)
+        from memgs_ros.ros.tf import TF_MISSING, tf_message_type
+
+        tf2["available"] = tf_message_type() is not None
+        if not tf2["available"]:
+            warnings.append(TF_MISSING)
     if choice.fallback_warning:
         warnings.append("CUDA is present but gsplat is not: the mapper uses the torch fallback rasterizer, "
                         "several times slower; install gsplat: see README 'On a Jetson'")
