@@ -24,15 +24,7 @@ from memgs_ros.core.runtime.cpu import release_free_memory
 from memgs_ros.core.runtime.health import assess
 from memgs_ros.core.runtime.stat_fields import Family, Stat
 from memgs_ros.core.runtime.telemetry import TELEMETRY, NodeTelemetry, StatsError, check_key
-from memgs_ros.core.runtime.telemetry_fields import (
-    MergerFields,
-    NodeFields,
-    PlayerFields,
-    RecorderFields,
-    SamplerFields,
-    TrackerFields,
-    ViewFields,
-)
+from memgs_ros.core.runtime.telemetry_fields import NodeFields
 from memgs_ros.ros import qos
 
 
@@ -81,8 +73,9 @@ class _StatsView(Mapping[str, Any]):
 class NodeStats(NodeFields):
     """Counters and gauges a node publishes once a second, plus warn-once logging per problem kind.
 
-    A node writes its fields by attribute through its subclass (``TrackerStats``, ...: the record's
-    generated twin, ``core/runtime/stat_fields.py``): ``stats.frames_in += 1``. The values belong
+    A node writes its fields by attribute through its subclass (``nodes/<name>``'s, e.g.
+    ``class TrackerStats(NodeStats, TrackerFields)``: the record's generated twin,
+    ``core/runtime/stat_fields.py``): ``stats.frames_in += 1``. The values belong
     to the node's default callback group (where the publish timer runs). A node whose callbacks
     run in several groups at once posts from the others (``post_add``, ``post_set``,
     ``post_member``, ``post_problem``, each naming the field on the class, e.g.
@@ -90,8 +83,11 @@ class NodeStats(NodeFields):
     or by a default-group callback) applies them in order, so the values never have two writers.
     """
 
-    def __init__(self, node: Node, name: str, period_s: float = 1.0, trim_period_s: float = 30.0,
+    stats_name = ""  # a subclass's default ``name``
+
+    def __init__(self, node: Node, name: str = "", period_s: float = 1.0, trim_period_s: float = 30.0,
                  record: type[NodeTelemetry] | None = None) -> None:
+        name = name or self.stats_name
         if record is None and name not in TELEMETRY:
             raise StatsError(f"no telemetry record for node {name!r} (core/runtime/telemetry.py)")
         self.record = record or TELEMETRY[name]
@@ -222,42 +218,6 @@ class NodeStats(NodeFields):
         msg = self.message()
         self._pub.publish(msg)
         self._diag_pub.publish(msg)
-
-
-class TrackerStats(NodeStats, TrackerFields):
-    def __init__(self, node: Node) -> None:
-        super().__init__(node, "tracker")
-
-
-class SamplerStats(NodeStats, SamplerFields):
-    def __init__(self, node: Node) -> None:
-        super().__init__(node, "keyframe_sampler")
-
-
-class MergerStats(NodeStats, MergerFields):
-    def __init__(self, node: Node) -> None:
-        super().__init__(node, "merger")
-
-    def replica(self, replica: Any, resyncing: bool, buffered: int, render_cache_bytes: int) -> None:  # noqa: ANN401
-        """The replica's rows, deltas buffered in a resync, the last view's render inputs (no training state)."""
-        self.seq, self.epoch, self.gaussians, self.resyncing = replica.seq, replica.epoch, len(replica), int(resyncing)
-        self.unknown_removals, self.map_bytes = replica.unknown_removals, replica.records.nbytes if len(replica) else 0
-        self.buffered_deltas, self.render_cache_bytes = buffered, render_cache_bytes
-
-
-class PlayerStats(NodeStats, PlayerFields):
-    def __init__(self, node: Node) -> None:
-        super().__init__(node, "player")
-
-
-class RecorderStats(NodeStats, RecorderFields):
-    def __init__(self, node: Node) -> None:
-        super().__init__(node, "recorder")
-
-
-class ViewStats(NodeStats, ViewFields):
-    def __init__(self, node: Node) -> None:
-        super().__init__(node, "rerun_bridge")
 
 
 def rss_mb() -> float:

@@ -14,7 +14,8 @@ from dataclasses import dataclass  # noqa: E402
 from memgs_ros.core.runtime.stat_fields import Family, Stat  # noqa: E402
 from memgs_ros.core.runtime.telemetry import NodeTelemetry, StatsError  # noqa: E402
 from memgs_ros.core.runtime.telemetry_fields import NodeFields  # noqa: E402
-from memgs_ros.ros.diagnostics import NodeStats, TrackerStats, stats_values  # noqa: E402
+from memgs_ros.nodes.tracker.stats import TrackerStats  # noqa: E402
+from memgs_ros.ros.diagnostics import NodeStats, stats_values  # noqa: E402
 
 
 @dataclass(frozen=True)

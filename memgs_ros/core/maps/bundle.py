@@ -17,7 +17,7 @@ previous bundles and ``latest`` as they were, and a staging folder that nothing 
 manifest, or a hidden name; the next save removes it). Loading checks the manifest and every
 file's size and hash before any node starts, and refuses with one line naming what is wrong.
 
-No ROS here; the nodes write their parts and the merger assembles them (``ros/map_bundles.py``).
+No ROS here; the nodes write their parts and the merger assembles them (``nodes/merger/bundles.py``).
 """
 from __future__ import annotations
 

@@ -128,6 +128,7 @@ def render() -> str:
     from memgs_ros.core.runtime import telemetry
 
     records: list[type] = [telemetry.NodeTelemetry, *dict.fromkeys(telemetry.TELEMETRY.values())]
+    comments = _field_comments(Path(telemetry.__file__).read_text())
     lines = ['"""Generated from core/runtime/telemetry.py by `python -m memgs_ros.core.runtime.stat_fields',
              '--write`: do not edit (test_telemetry fails while it is stale). See stat_fields.py."""',
              "from __future__ import annotations", "",
@@ -144,11 +145,25 @@ def render() -> str:
             name = RENAMED.get(f.name, f.name)
             if typing.get_origin(hint) is Mapping:
                 kind = typing.get_args(hint)[1]
-                lines.append(f'    {name} = Family[{kind.__name__}]("{f.name}", {kind(0)!r})')
+                line = f'    {name} = Family[{kind.__name__}]("{f.name}", {kind(0)!r})'
             else:
                 default = f'"{f.default}"' if isinstance(f.default, str) else repr(f.default)
-                lines.append(f"    {name} = Stat[{_type_name(hint)}]({default})")
+                line = f"    {name} = Stat[{_type_name(hint)}]({default})"
+            comment = comments.get((record.__name__, f.name))
+            lines.append(f"{line}  # {comment}" if comment else line)
     return "\n".join(lines) + "\n"
+
+
+def _field_comments(source: str) -> dict[tuple[str, str], str]:
+    """{(record, field): the comment on the field's line in telemetry.py}: the twin says what each means."""
+    out: dict[tuple[str, str], str] = {}
+    record = ""
+    for line in source.splitlines():
+        if line.startswith("class "):
+            record = line[6:].split("(")[0].split(":")[0]
+        elif line.startswith("    ") and ":" in line and "  # " in line and not line.lstrip().startswith("#"):
+            out[(record, line.strip().split(":")[0])] = line.split("  # ", 1)[1].strip()
+    return out
 
 
 def _twin(record: type) -> str:

@@ -42,6 +42,7 @@ from std_msgs.msg import Bool, Header
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.runtime.replay_pacing import AckWait, RealTimeClock, StartGate
+from memgs_ros.core.runtime.telemetry_fields import PlayerFields
 from memgs_ros.errors import MemgsError
 from memgs_ros.io.replay import ReplayFeed, frames_total, open_frames, replay_frames
 from memgs_ros.nodes.bag_player.outputs import FrameOutbox
@@ -49,7 +50,7 @@ from memgs_ros.nodes.params import NODE_CONFIGS, BagPlayerParams
 from memgs_ros.ros import codecs, qos
 from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import PlayerStats, RollingMedian
+from memgs_ros.ros.diagnostics import NodeStats, RollingMedian
 from memgs_ros.ros.node_main import run_node
 
 __all__ = ["LINGER_S", "BagPlayer", "main"]
@@ -65,6 +66,10 @@ PROGRESS_EVERY_S = 5.0
 
 
 CONFIGS = NODE_CONFIGS["bag_player"]
+
+
+class PlayerStats(NodeStats, PlayerFields):
+    stats_name = "player"
 
 
 class BagPlayer(Node):

@@ -23,6 +23,7 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from memgs_ros.core.geometry.view import undistorter_for, view_preparation
+from memgs_ros.core.runtime.telemetry_fields import SamplerFields
 from memgs_ros.core.sampling import PatchGridConfig, seeds_mono, seeds_rgbd
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.nodes.params import NODE_CONFIGS, KeyframeSamplerParams
@@ -33,7 +34,7 @@ from memgs_ros.ros.codecs import (
     structured_to_pointcloud2,
 )
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import SamplerStats
+from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.keyframe_bundle import KeyframeBundleError, decode_keyframe_images
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.node_main import run_node
@@ -41,6 +42,10 @@ from memgs_ros.ros.seed_cloud import encode_seeds
 from memgs_ros.ros.stamp_sync import StampBundler
 
 CONFIGS = NODE_CONFIGS["keyframe_sampler"]
+
+
+class SamplerStats(NodeStats, SamplerFields):
+    stats_name = "keyframe_sampler"
 
 
 class KeyframeSamplerNode(ManagedNode):

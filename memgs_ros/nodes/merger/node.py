@@ -6,7 +6,7 @@ full map in the delta protocol's layout, on request and every ``publish_period_s
 ``memgs/map/points`` (latched: the map as x, y, z, rgb, opacity points for RViz and Foxglove),
 ``memgs/merger/render/{color,depth,camera_info}`` and ``memgs/merger/stats``. Services: ``memgs/save_map``
 (std_srvs/Trigger: write the PLY atomically, answers its path; with ``bundle_dir`` also a map bundle,
-``ros/map_bundles.py``, whose path then comes first: a ``MapAnswer``) and
+``nodes/merger/bundles.py``, whose path then comes first: a ``MapAnswer``) and
 ``memgs/merger/publish_map``.
 Saves periodically and on shutdown.
 
@@ -44,14 +44,14 @@ from memgs_ros.core.maps.map_delta import MessageKind
 from memgs_ros.core.maps.ply import save_ply
 from memgs_ros.core.maps.view_renderer import ViewRenderer
 from memgs_ros.errors import MemgsError
+from memgs_ros.nodes.merger.bundles import BundleAssembler
 from memgs_ros.nodes.merger.outputs import ViewOutbox
+from memgs_ros.nodes.merger.stats import MergerStats
 from memgs_ros.nodes.params import NODE_CONFIGS, MergerParams
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import MergerStats
 from memgs_ros.ros.lifecycle import ManagedNode
-from memgs_ros.ros.map_bundles import BundleAssembler
 from memgs_ros.ros.map_loading import GraphMapLoader
 from memgs_ros.ros.map_messages import decode_map_message, full_map_message, viewer_cloud_message
 from memgs_ros.ros.node_main import run_node

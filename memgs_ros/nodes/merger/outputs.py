@@ -10,9 +10,9 @@ from sensor_msgs.msg import CameraInfo, Image
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.maps.view_renderer import RenderedView
 from memgs_ros.core.runtime.worker import WorkerStopped
+from memgs_ros.nodes.merger.stats import MergerStats
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image
-from memgs_ros.ros.diagnostics import MergerStats
 
 __all__ = ["ViewOutbox"]
 

@@ -31,11 +31,12 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.topic_endpoint_info import TopicEndpointInfo
 
+from memgs_ros.core.runtime.telemetry_fields import RecorderFields
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.bag_stream import BackgroundBagStream, ros2_typestore
 from memgs_ros.nodes.params import DEFAULT_TOPICS, NODE_CONFIGS, RecorderParams
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import RecorderStats
+from memgs_ros.ros.diagnostics import NodeStats
 from memgs_ros.ros.node_main import run_node
 
 __all__ = ["CONFIGS", "DEFAULT_TOPICS", "RecorderNode", "RecorderParams", "main"]
@@ -90,6 +91,10 @@ def _bag_qos(profile: QoSProfile) -> Any:
                liveliness=QosLiveliness(int(profile.liveliness)),
                liveliness_lease_duration=t(profile.liveliness_lease_duration),
                avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
+
+
+class RecorderStats(NodeStats, RecorderFields):
+    stats_name = "recorder"
 
 
 class RecorderNode(Node):

@@ -36,6 +36,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from memgs_ros.core.maps.follower import MapFollower, RequestPacer
+from memgs_ros.core.runtime.telemetry_fields import ViewFields
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, decode_rgb
 from memgs_ros.nodes.params import NODE_CONFIGS, RerunBridgeParams
@@ -43,7 +44,7 @@ from memgs_ros.nodes.registry import GRAPH
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import ViewStats, stats_values
+from memgs_ros.ros.diagnostics import NodeStats, stats_values
 from memgs_ros.ros.map_messages import decode_map_message
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.service_calls import PacedRequests
@@ -57,6 +58,10 @@ _RESYNC_INTERVAL_S = 2.0  # least time between full-map requests while out of st
 
 
 CONFIGS = NODE_CONFIGS["rerun_bridge"]
+
+
+class ViewStats(NodeStats, ViewFields):
+    stats_name = "rerun_bridge"
 
 
 class RerunBridgeNode(Node):

@@ -12,8 +12,8 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CompressedImage, Image
 
 from memgs_ros.errors import MessageError
+from memgs_ros.nodes.tracker.stats import TrackerStats
 from memgs_ros.ros.codecs import compressed_to_image, stamp_to_ns
-from memgs_ros.ros.diagnostics import TrackerStats
 from memgs_ros.ros.stamp_sync import NearestPairer, UnpairedWatch
 
 __all__ = ["RgbdPairing", "decompressed", "subscribe_camera"]

@@ -12,7 +12,7 @@ from std_srvs.srv import Trigger
 
 from memgs_ros.core.maps.bundle import TRACKER_FILE, resolve_bundle
 from memgs_ros.errors import DataError, MemgsError
-from memgs_ros.ros.diagnostics import TrackerStats
+from memgs_ros.nodes.tracker.stats import TrackerStats
 from memgs_ros.ros.hand_over import HandOver
 from memgs_ros.ros.map_bundles import answer, in_thread, part_path
 

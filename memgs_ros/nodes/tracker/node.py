@@ -57,11 +57,11 @@ from memgs_ros.nodes.params import NODE_CONFIGS, TrackerParams
 from memgs_ros.nodes.tracker.inputs import RgbdPairing, decompressed, subscribe_camera
 from memgs_ros.nodes.tracker.map_part import TrackerMapPart, map_check
 from memgs_ros.nodes.tracker.outputs import TrackerOutbox
+from memgs_ros.nodes.tracker.stats import TrackerStats
 from memgs_ros.ros import qos
 from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.codecs import stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
-from memgs_ros.ros.diagnostics import TrackerStats
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.map_loading import NodeMapLoader
 from memgs_ros.ros.node_main import run_node

@@ -19,6 +19,7 @@ from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frames import FrameConvention
 from memgs_ros.core.tracking import TrackResult
 from memgs_ros.core.tracking.anchored_path import AnchoredPath
+from memgs_ros.nodes.tracker.stats import TrackerStats
 from memgs_ros.nodes.tracker.tf import TfOutbox
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
@@ -29,7 +30,7 @@ from memgs_ros.ros.codecs import (
     set_tracked_odometry,
     stamp_to_ns,
 )
-from memgs_ros.ros.diagnostics import RollingMedian, TrackerStats
+from memgs_ros.ros.diagnostics import RollingMedian
 from memgs_ros.ros.keyframe_bundle import KeyframeOutbox
 
 __all__ = ["CorrectedPath", "TrackerOutbox"]
