@@ -160,11 +160,12 @@ def check_topics(text: str) -> None:
     BagTopics.parse(text)
 
 
-def check_config(config: str, overrides: dict | None = None) -> dict[str, dict]:
-    """The run's per-node parameters from ``config`` and ``overrides``; ConfigError (before any node
-    starts) when the config does not load, names a parameter no node declares or gives one a value
-    its node would refuse (type, range, choices)."""
-    params = node_params(build_params(RunOptions(source="", config=config, overrides=overrides or {}),
+def check_config(config: str, overrides: dict | None = None, source: str = "") -> dict[str, dict]:
+    """The run's per-node parameters from ``config``, ``overrides`` and ``source`` (whose depth units
+    the tracker is given, as the run gives them); ConfigError (before any node starts) when the
+    config does not load, names a parameter no node declares or gives one a value its node would
+    refuse (type, range, choices)."""
+    params = node_params(build_params(RunOptions(source=source, config=config, overrides=overrides or {}),
                                       Path("map.ply")))
     check_parameters(params)
     return params
@@ -197,7 +198,7 @@ def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict 
     from memgs_ros.io.sources import open_source  # opening a source loads the bag readers
     from memgs_ros.io.tum import CAMERA_JSON, TumFolder
 
-    params = check_config(config, overrides)
+    params = check_config(config, overrides, source)  # the tracker's depth_scale as the run sets it
     configured = configured_camera(params)
     src = open_source(source, max_frames=(max_frames or None) if repeat == 1 else None,
                       default_camera=configured.camera, repeat=repeat, repeat_forward=repeat_forward,

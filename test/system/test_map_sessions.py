@@ -106,3 +106,30 @@ def test_a_bundle_is_checked_before_any_node_starts(tmp_path: Path) -> None:
         check_map_bundle(None, "localize", params, PinholeCamera(320, 240, 267.7, 269.6, 159.8, 123.55))
     with pytest.raises(BundleError, match="no such folder"):
         check_map_bundle(tmp_path / "nothing", "mapping", params, PinholeCamera(320, 240, 267.7, 269.6, 159.8, 123.55))
+
+
+def test_a_tum_folders_bundle_is_checked_in_the_units_the_run_gives_the_tracker(frames: list, tmp_path: Path) -> None:
+    """A TUM folder's depth PNGs hold 1/5000 m: the run gives the tracker depth_scale 5000, so its
+    bundle is made at 5000 and taken back by ``memgs run --map`` over the same folder, while one
+    made at millimetres is refused, before any node starts (the check once used the default 1000)."""
+    from memgs_ros.cli.run import check_config, check_inputs
+    from memgs_ros.core.maps.bundle import MAPPER_FILE, PLY_FILE, TRACKER_FILE, Manifest, commit_bundle, new_staging
+    from memgs_ros.io.synthetic import write_tum_folder
+    from memgs_ros.orchestration.run_files import configured_camera
+
+    folder = tmp_path / "tum"
+    write_tum_folder(frames[:3], folder, depth_factor=5000.0)
+    configured = configured_camera(check_config("tum_fr1")).camera  # the config's calibration replaces camera_info
+    assert configured is not None
+    camera = configured.fitted(frames[0].camera.width, frames[0].camera.height)
+
+    def bundle(depth_scale: float) -> Path:
+        staging = new_staging(tmp_path / f"maps{depth_scale:g}")
+        for f in (PLY_FILE, TRACKER_FILE, MAPPER_FILE):
+            (staging / f).write_bytes(f.encode())
+        return commit_bundle(staging, Manifest(0, camera.as_dict(), "rgbd", depth_scale, 3, "map_optical",
+                                               3, 1, 10, "test", "now"))
+
+    assert check_inputs(str(folder), "tum_fr1", map_bundle=bundle(5000.0)) is not None  # its 16UC1 depth as stored
+    with pytest.raises(BundleError, match="depth_scale 1000 units per metre .this source: 5000"):
+        check_inputs(str(folder), "tum_fr1", map_bundle=bundle(1000.0))
