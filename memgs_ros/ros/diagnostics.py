@@ -143,10 +143,6 @@ class NodeStats(NodeFields):
             if self._accepts(key):
                 self._values[key] = value
 
-    def add(self, stat: Stat[int], n: int = 1) -> None:
-        """Add ``n`` to counter ``stat`` where the field is handed over, not named (``PacedRequests``)."""
-        self._values[stat.key] = self._values.get(stat.key, 0) + n
-
     def compute(self, stat: Stat[F], compute: Callable[[], F]) -> None:
         """Set ``stat`` from ``compute()`` each time the message is built (a rolling median)."""
         self._gauge_fns[stat.key] = compute  # type: ignore[assignment]

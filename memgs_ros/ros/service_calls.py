@@ -61,7 +61,7 @@ class PacedRequests:
             return
         if self.client.service_is_ready() and self.pacer.ask(time.monotonic(), out_of_step):
             self._last = call_trigger(self.client, self._stats, self._kind, self._what)
-            self._stats.add(self._counter)
+            self._stats.post_add(self._counter)  # counted with the next stats message
 
 
 async def call_within(node: Node, client: Client, request: Any, timeout_s: float) -> Any | None:
