@@ -257,6 +257,7 @@ class MergerParams:
     publish_period_s: float = 30.0
     resync_interval_s: float = 1.0  # least time between snapshot requests (doubles, up to 8x, while unanswered)
     max_buffered_deltas: int = 200  # deltas kept while resynchronising
+    delta_topic: str = "memgs/map/delta"  # the mapper's deltas as they reach here (a bridge may rename them)
     world_frame: str = "map_optical"  # frame id (the SLAM world; TF: map -> map_optical) of the published map
     render_width: int = 320  # render width (px) for view requests
     render_height: int = 240  # render height (px) for view requests

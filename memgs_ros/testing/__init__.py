@@ -1,2 +1,2 @@
-"""Test-only machinery that the nodes read, never part of the product's parameters: see
-:mod:`memgs_ros.testing.faults`."""
+"""What tests and benchmarks put beside a graph, never inside a node: :mod:`memgs_ros.testing.delta_relay`
+(a lossy link for the map deltas)."""

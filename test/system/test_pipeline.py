@@ -24,7 +24,7 @@ from memgs_ros.io.bag_writer import write_bag  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.io.tum import read_trajectory  # noqa: E402
 from memgs_ros.orchestration.pipeline import RunOptions, run_pipeline  # noqa: E402
-from memgs_ros.testing.faults import faults_env  # noqa: E402
+from memgs_ros.testing.delta_relay import LOSSY_MERGER, lossy_deltas  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -91,20 +91,21 @@ def generate_stamps_and_poses() -> tuple[np.ndarray, np.ndarray]:
     return np.array([f.stamp_ns for f in frames]), np.stack([f.T_wc_gt for f in frames])
 
 
-def test_late_merger_with_dropped_deltas_resyncs(bag: Path, tmp_path: Path, ros_domain_id: int,
-                                                 monkeypatch: pytest.MonkeyPatch) -> None:
-    """The merger process starts 1 s into the replay and drops every 2nd delta: it resyncs from
+def test_late_merger_with_dropped_deltas_resyncs(bag: Path, tmp_path: Path, ros_domain_id: int) -> None:
+    """The merger process starts 1 s into the replay and a relay drops every 2nd delta on its way: it resyncs from
     snapshots and ends with the mapper's map. (Counted from the replay start: the replay takes
     only ~6 s on an idle machine, and a delay counted from process launch once let the whole run
     finish before the merger came up, leaving nothing to resync; the final iterations send more
     deltas after the replay.)"""
     # 8 iterations a frame: the replay lasts long enough for a few periodic deltas after the late
     # start (no periodic delta leaves during the final iterations: the final flush carries all).
-    overrides = {**FAST, "mapper.lockstep_iterations": 8, "mapper.delta_rate_hz": 4.0}
-    monkeypatch.setenv(*faults_env({"merger.drop_every_nth_delta": 2}).popitem())  # the node processes inherit it
-    s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path, domain_id=ros_domain_id,
-                                namespace=_own_ns(), overrides=overrides, start_delays_s={"merger": 1.0}, timeout_s=600),
-                     progress=False)
+    overrides = {**FAST, "mapper.lockstep_iterations": 8, "mapper.delta_rate_hz": 4.0, **LOSSY_MERGER}
+    ns = _own_ns()
+    with lossy_deltas(ros_domain_id, ns, every=2) as relay:  # the merger reads the deltas through it
+        s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path, domain_id=ros_domain_id,
+                                    namespace=ns, overrides=overrides, start_delays_s={"merger": 1.0},
+                                    timeout_s=600), progress=False)
+    assert relay.dropped >= 1 and relay.forwarded >= 1
     assert s.merger_resyncs >= 1
     assert s.replica_identical, s.replica_max_abs_diff
     assert len(load_ply(s.ply_path)) == s.gaussians

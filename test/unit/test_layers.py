@@ -11,7 +11,7 @@ import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[2] / "memgs_ros"
-TIERS = ("errors", "testing", "core", "io", "viz", "ros", "nodes", "orchestration", "evaluation", "cli")
+TIERS = ("errors", "core", "io", "viz", "ros", "nodes", "orchestration", "evaluation", "cli", "testing")
 # Tiers that may sit side by side (neither imports the other).
 SAME: dict[str, str] = {}
 

@@ -179,7 +179,6 @@ class MergerTelemetry(NodeTelemetry):
     resyncing: int = 0  # 1 while waiting for a full map
     seq: int = 0  # the last delta applied
     unknown_removals: int = 0  # removals of ids the replica never held
-    fault_dropped_deltas: int = 0  # test-only fault injection (MEMGS_TEST_FAULTS)
     resync: Mapping[str, int] = _family()  # resync.<status>: why the replica resynchronised
 
 

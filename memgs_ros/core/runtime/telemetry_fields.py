@@ -157,7 +157,6 @@ class MergerFields(NodeFields):
     resyncing = Stat[int](0)  # 1 while waiting for a full map
     seq = Stat[int](0)  # the last delta applied
     unknown_removals = Stat[int](0)  # removals of ids the replica never held
-    fault_dropped_deltas = Stat[int](0)  # test-only fault injection (MEMGS_TEST_FAULTS)
     resync = Family[int]("resync", 0)  # resync.<status>: why the replica resynchronised
 
 

@@ -1,6 +1,6 @@
 """merger node: the consolidated global map, built from the mapper's deltas (may run elsewhere).
 
-Subscribes: ``memgs/map/delta`` (reliable) and ``memgs/mapper/snapshot`` (latched) from the mapper,
+Subscribes: ``memgs/map/delta`` (reliable; ``delta_topic``, e.g. behind a radio bridge) and ``memgs/mapper/snapshot`` (latched) from the mapper,
 ``memgs/merger/view_pose`` (PoseStamped render requests). Publishes ``memgs/map/gaussians`` (latched
 full map in the delta protocol's layout, on request and every ``publish_period_s``) and with it
 ``memgs/map/points`` (latched: the map as x, y, z, rgb, opacity points for RViz and Foxglove),
@@ -56,7 +56,6 @@ from memgs_ros.ros.map_loading import GraphMapLoader
 from memgs_ros.ros.map_messages import decode_map_message, full_map_message, viewer_cloud_message
 from memgs_ros.ros.node_main import run_node
 from memgs_ros.ros.service_calls import PacedRequests
-from memgs_ros.testing.faults import EveryNth, fault
 
 CONFIGS = NODE_CONFIGS["merger"]
 START_ASK_AFTER_S = 2.0  # a merger that heard no delta this long after its start asks for the map
@@ -73,9 +72,6 @@ class MergerNode(ManagedNode):
         v = self.params
         self.map_path, self.world_frame = Path(v.map_path), v.world_frame
         self.map = MapFollower(v.max_buffered_deltas)
-        self.drop_delta = EveryNth(fault("merger.drop_every_nth_delta"))  # tests only: memgs_ros.testing.faults
-        if self.drop_delta.n:
-            self.get_logger().warning(f"test fault: one delta in every {self.drop_delta.n} is dropped on arrival")
         render_camera = PinholeCamera(v.render_width, v.render_height, v.render_fx, v.render_fy, v.render_cx,
                                       v.render_cy)
         self.renderer = ViewRenderer(render_camera, sh_degree=3)
@@ -87,7 +83,7 @@ class MergerNode(ManagedNode):
         self.pub_map = self.create_publisher(PointCloud2, "memgs/map/gaussians", qos.latched())
         self.pub_points = self.create_publisher(PointCloud2, "memgs/map/points", qos.latched())
         self.views = ViewOutbox(self, self.stats, "memgs/merger/render", render_camera)
-        self.create_subscription(PointCloud2, "memgs/map/delta", self.on_delta, qos.reliable(50))
+        self.create_subscription(PointCloud2, v.delta_topic, self.on_delta, qos.reliable(50))
         self.create_subscription(PointCloud2, "memgs/mapper/snapshot", self.on_snapshot, qos.latched())
         self.create_subscription(PoseStamped, "memgs/merger/view_pose", self.on_view_request, qos.reliable(5))
         pacer = RequestPacer(v.resync_interval_s, max_backoff=8, start_after_s=START_ASK_AFTER_S,
@@ -112,9 +108,6 @@ class MergerNode(ManagedNode):
         self.stats.deltas += 1
         self.stats.delta_bytes += len(msg.data)
         self.snapshots.pacer.heard()
-        if self.drop_delta():
-            self.stats.fault_dropped_deltas += 1
-            return
         self._report(self.map.on_delta(m))
 
     def on_snapshot(self, msg: PointCloud2) -> None:

@@ -17,7 +17,7 @@ Faults (46 cases):
 - The output folder made read-only early and late (a tmpfs remounted ``ro``; root ignores
   chmod; without root: chmod 0555). The nodes' logs live on a second mount under ``logs/``: a
   file open for writing would refuse the remount, and an error must stay readable.
-- 20 % message loss on ``memgs/map/delta`` (``MEMGS_TEST_FAULTS=merger.drop_every_nth_delta=5``), and a
+- 20 % message loss on ``memgs/map/delta`` (a relay beside the graph, ``memgs_ros.testing.delta_relay``, drops every 5th), and a
   baseline without a fault.
 
 Each case checks, after the runner ended:
@@ -65,7 +65,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "benchmarks"))  # benchmarks/ (not a package): _common
 from _common import ROOT, write_results  # noqa: E402
 
-from memgs_ros.testing.faults import faults_env  # noqa: E402
+from memgs_ros.testing.delta_relay import LOSSY_MERGER, lossy_deltas  # noqa: E402
 
 SPEC = "synthetic:w=128,h=96,n=40,seed=3"
 # Short training, and saves and checkpoints every second, so a late fault finds both on disk.
@@ -438,7 +438,7 @@ def _runner_command(out: Path, domain: int, namespace: str, fault: Fault, spec: 
     if fault.kind == "delta_loss":
         # 4 deltas a second: the 5th, dropped, is mid-run (a gap the merger must resync), not the
         # last one of a short run, which the mapper's final snapshot repairs without a resync.
-        settings.update({"mapper.delta_rate_hz": 4.0})  # the loss: MEMGS_TEST_FAULTS (run_case)
+        settings.update({"mapper.delta_rate_hz": 4.0, **LOSSY_MERGER})  # the loss: the relay (run_case)
     cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", spec, "--config", "synthetic", "--out", str(out),
            "--domain-id", str(domain), "--namespace", namespace, "--timeout", str(RUN_TIMEOUT_S)]
     for key, value in settings.items():
@@ -529,8 +529,10 @@ def run_case(fault: Fault, work: Path, index: int, mount: bool, keep: bool = Fal
     folder = OutputFolder(out, fault, mount)
     domain = random.Random(f"{os.getpid()}-{index}-{time.time()}").randrange(1, 233)
     namespace = f"/faults_{os.getpid()}_{index}"
-    env = dict(os.environ, PYTHONUNBUFFERED="1", **folder.env,
-               **(faults_env({"merger.drop_every_nth_delta": 5}) if fault.kind == "delta_loss" else {}))
+    env = dict(os.environ, PYTHONUNBUFFERED="1", **folder.env)
+    links = contextlib.ExitStack()  # the lossy link beside the graph, up before the runner starts it
+    if fault.kind == "delta_loss":
+        links.enter_context(lossy_deltas(domain, namespace, every=5))
     started = time.time()
     t0 = time.monotonic()
     stdout, stderr = open(case_dir / "runner.out", "wb"), open(case_dir / "runner.err", "wb")  # noqa: SIM115
@@ -579,6 +581,7 @@ def run_case(fault: Fault, work: Path, index: int, mount: bool, keep: bool = Fal
         frames_total = int(watch.stat("player", "frames_total"))
     finally:
         watch.close()
+        links.close()
         if runner.poll() is None:
             runner.kill()
             runner.wait()

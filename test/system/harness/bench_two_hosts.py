@@ -71,7 +71,7 @@ from memgs_ros.orchestration.run_files import LOGS_DIR, MAP_FILE, PARAMS_FILE, R
 from memgs_ros.orchestration.signals import exit_status, stop_on_signals
 from memgs_ros.ros import qos
 from memgs_ros.ros.diagnostics import stats_values
-from memgs_ros.testing.faults import faults_env
+from memgs_ros.testing.delta_relay import LOSSY_MERGER, DeltaRelay
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "benchmarks"))  # benchmarks/ (not a package): _common
 from _common import TUM_ENV, tum_path, write_results  # noqa: E402
@@ -395,6 +395,8 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
     end = time.monotonic() + spec["timeout_s"]
     try:
         gs = GroundStation(context, spec["render_view"])
+        # Loss on the link: the deltas reach the merger through a relay here that drops every n-th.
+        relay = DeltaRelay(gs.node, int(spec.get("drop_every", 0))) if spec.get("drop_every") else None
         executor.add_node(gs.node)
         spin = spin_in_background(executor)
         procs = TwoHostProcesses(Path(spec["params_file"]), ns, env, out / LOGS_DIR, spec["air_netns"],
@@ -447,6 +449,7 @@ def ground_station(spec: Mapping[str, Any]) -> dict[str, Any]:
             "merger_series": [(t, float(v.get("delta_bytes", 0)), int(float(v.get("deltas", 0))))
                               for t, v in gs.merger_rows],
             "render_views": gs.render_views, "render_bytes": gs.render_bytes,
+            "dropped_deltas": relay.dropped if relay is not None else 0,
         }
     finally:
         if procs is not None:
@@ -478,7 +481,7 @@ class TwoHostsOptions:
     rate_mbit: float = 5.0  # the link, each way
     config: str = ""  # "" = from the source's name, as memgs run guesses it
     overrides: Mapping[str, Any] = field(default_factory=dict)  # "node.param" -> value
-    drop_every: int = 0  # the merger ignores every n-th delta (loss on the link; 0 = none)
+    drop_every: int = 0  # a relay before the merger drops every n-th delta (loss on the link; 0 = none)
     render_view: bool = True  # a ground subscriber to the mapper's live render
     # The mapper's writers that cross the link (deltas, snapshots, render) paced by config/fastdds_radio.xml's
     # flow controller at this rate: None = 90 % of the link, as that profile; 0 = unpaced (config/fastdds.xml).
@@ -564,7 +567,8 @@ def run_two_hosts(opts: TwoHostsOptions) -> TwoHostsResult:
     (out / LOGS_DIR).mkdir(parents=True, exist_ok=True)
     config = opts.config or guess_config(opts.source)
     overrides = dict(opts.overrides)
-    fault_env = faults_env({"merger.drop_every_nth_delta": opts.drop_every}) if opts.drop_every else {}
+    if opts.drop_every:  # the merger reads the deltas through the ground station's lossy relay
+        overrides.update(LOSSY_MERGER)
     # As memgs run does before any node starts: a misspelt --set or a source that does not open
     # is one line here, not a node failing across the link.
     for warning in check_inputs(opts.source, config, opts.frames, overrides):
@@ -583,7 +587,8 @@ def run_two_hosts(opts: TwoHostsOptions) -> TwoHostsResult:
         spec = {"parent_pid": os.getpid(), "out_dir": str(out), "namespace": namespace, "domain_id": domain,
                 "params_file": str(out / PARAMS_FILE), "air_netns": link.air,
                 "profiles": write_profiles(out, namespace, pace),
-                "render_view": opts.render_view, "timeout_s": opts.timeout_s, "result_path": str(result_path)}
+                "render_view": opts.render_view, "timeout_s": opts.timeout_s, "result_path": str(result_path),
+                "drop_every": opts.drop_every}
         spec_path = out / "two_hosts_spec.json"
         spec_path.write_text(json.dumps(spec, indent=1))
         driver: subprocess.Popen | None = None
@@ -593,7 +598,7 @@ def run_two_hosts(opts: TwoHostsOptions) -> TwoHostsResult:
                 driver = subprocess.Popen(
                     ["ip", "netns", "exec", link.ground, sys.executable, str(Path(__file__).resolve()),
                      "--ground-station", str(spec_path)],
-                    stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1", **fault_env),
+                    stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
                     start_new_session=True)
             meter = WireMeter(driver.pid, link.dev[link.ground]).start()
             driver.wait(timeout=opts.timeout_s + 120.0)
@@ -659,7 +664,7 @@ def _result(opts: TwoHostsOptions, raw: Mapping[str, Any], wire: Sequence[tuple[
         after_final_map_s=t1 - (raw["t_finish"] + _final_training_s(out)), identical=bool(raw["identical"]),
         max_abs_diff=float(raw["max_abs_diff"]),
         merger_resyncs=sum(int(float(v)) for k, v in stats.get("merger", {}).items() if k.startswith("resync.")),
-        fault_dropped_deltas=stat("merger", "fault_dropped_deltas"), leftover_processes=len(link.leftover),
+        fault_dropped_deltas=int(raw.get("dropped_deltas", 0)), leftover_processes=len(link.leftover),
         netns=(link.air, link.ground), out_dir=str(out))
 
 
