@@ -1,6 +1,7 @@
 """merger node: the consolidated global map, built from the mapper's deltas (may run elsewhere).
 
-Subscribes: ``memgs/map/delta`` (reliable; ``delta_topic``, e.g. behind a radio bridge) and ``memgs/mapper/snapshot`` (latched) from the mapper,
+Subscribes: ``memgs/map/delta`` (reliable; ``delta_topic`` names it, e.g. behind a radio bridge) and
+``memgs/mapper/snapshot`` (latched) from the mapper,
 ``memgs/merger/view_pose`` (PoseStamped render requests). Publishes ``memgs/map/gaussians`` (latched
 full map in the delta protocol's layout, on request and every ``publish_period_s``) and with it
 ``memgs/map/points`` (latched: the map as x, y, z, rgb, opacity points for RViz and Foxglove),

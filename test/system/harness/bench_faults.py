@@ -17,8 +17,8 @@ Faults (46 cases):
 - The output folder made read-only early and late (a tmpfs remounted ``ro``; root ignores
   chmod; without root: chmod 0555). The nodes' logs live on a second mount under ``logs/``: a
   file open for writing would refuse the remount, and an error must stay readable.
-- 20 % message loss on ``memgs/map/delta`` (a relay beside the graph, ``memgs_ros.testing.delta_relay``, drops every 5th), and a
-  baseline without a fault.
+- 20 % message loss on ``memgs/map/delta`` (a relay beside the graph,
+  ``memgs_ros.testing.delta_relay``, drops every 5th), and a baseline without a fault.
 
 Each case checks, after the runner ended:
 
