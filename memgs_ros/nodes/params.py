@@ -195,7 +195,7 @@ class MapperParams:
         and counted (problem.keyframe_overload)
     lockstep_window: lockstep: a frame is acknowledged once at most this many frames' training (its own
         included) is unfinished, so the tracker works on the next frame while the mapper trains (1); 0 waits
-        for the frame's own training. The map is the same either way (core/mapping/lockstep.py)
+        for the frame's own training. The map is the same either way (core/runtime/replay.py)
     """
     # configure and activate at start (ros2 run, launch); false: wait for lifecycle transitions
     # (<node>/change_state, lifecycle_msgs/srv/ChangeState), as memgs run and a lifecycle manager drive them

@@ -1,11 +1,11 @@
-"""Lockstep acknowledgements with a window (core/mapping/lockstep.py)."""
+"""The replay service's acknowledgement window (core/runtime/replay.py: AckWindow)."""
 from __future__ import annotations
 
 from concurrent.futures import Future
 
 import pytest
 
-from memgs_ros.core.mapping.lockstep import LockstepAcks
+from memgs_ros.core.runtime.replay import AckWindow
 
 
 def _done(f: Future) -> None:
@@ -13,7 +13,7 @@ def _done(f: Future) -> None:
 
 
 def test_window_zero_acknowledges_a_frame_after_its_own_training() -> None:
-    acks = LockstepAcks(0)
+    acks = AckWindow(0)
     f1: Future = Future()
     acks.submitted(1, f1)
     assert acks.due() == []
@@ -22,7 +22,7 @@ def test_window_zero_acknowledges_a_frame_after_its_own_training() -> None:
 
 
 def test_window_one_acknowledges_at_once_while_only_the_frame_itself_trains() -> None:
-    acks = LockstepAcks(1)
+    acks = AckWindow(1)
     f1, f2, f3 = Future(), Future(), Future()
     acks.submitted(1, f1)
     assert acks.due() == [1]  # the tracker may take frame 2 while frame 1 trains
@@ -36,7 +36,7 @@ def test_window_one_acknowledges_at_once_while_only_the_frame_itself_trains() ->
 
 
 def test_a_failed_training_still_lets_the_replay_go_on_in_order() -> None:
-    acks = LockstepAcks(0)
+    acks = AckWindow(0)
     f1, f2 = Future(), Future()
     acks.submitted(1, f1)
     acks.submitted(2, f2)
@@ -48,4 +48,4 @@ def test_a_failed_training_still_lets_the_replay_go_on_in_order() -> None:
 
 def test_a_negative_window_is_refused() -> None:
     with pytest.raises(ValueError):
-        LockstepAcks(-1)
+        AckWindow(-1)

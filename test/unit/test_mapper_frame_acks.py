@@ -1,11 +1,11 @@
-"""The mapper's lockstep acknowledgement (core/mapping/frame_acks.py), without ROS: the training
+"""The mapper's side of the replay service (core/runtime/replay.py: FrameAcknowledger), without ROS: the training
 futures complete on this thread and the hand-over runs what it gets at once, in order."""
 from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import Future
 
-from memgs_ros.core.mapping.frame_acks import LockstepAcknowledger
+from memgs_ros.core.runtime.replay import FrameAcknowledger
 
 
 class _Mapper:
@@ -17,7 +17,7 @@ class _Mapper:
         self.ack_ms: list[float] = []
         self.handed: list[Callable[[], None]] = []
         self.now = 0.0
-        self.acks = LockstepAcknowledger(window, self.train, self.handed.append, self.acked.append,
+        self.acks = FrameAcknowledger(window, self.train, self.handed.append, self.acked.append,
                                          self.ack_ms.append, clock=lambda: self.now)
 
     def train(self) -> Future:

@@ -9,7 +9,7 @@ import pytest
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.core.runtime.replay_pacing import AckWait, RealTimeClock, StartGate
+from memgs_ros.core.runtime.replay import AckWait, RealTimeClock, StartGate
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.replay import ReplayFeed, frames_total, open_frames
 

@@ -23,7 +23,7 @@ that names none. Replacing a source's camera_info is the tracker's job (``camera
 so it happens once for every source, live cameras included.
 
 The frame order, loops and skips are :class:`memgs_ros.io.replay.ReplayFeed`'s; the start rule
-and the lockstep acknowledgement are :mod:`memgs_ros.core.runtime.replay_pacing`'s; the messages
+and the acknowledgement awaited are the replay service's (:mod:`memgs_ros.core.runtime.replay`); the messages
 :class:`memgs_ros.nodes.bag_player.outputs.FrameOutbox`'s.
 
     python -m memgs_ros.nodes.bag_player.node --ros-args -p source:=synthetic:w=64,h=48,n=20 -p lockstep:=true
@@ -41,7 +41,7 @@ from std_msgs.msg import Bool, Header
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.core.runtime.replay_pacing import AckWait, RealTimeClock, StartGate
+from memgs_ros.core.runtime.replay import AckWait, RealTimeClock, StartGate
 from memgs_ros.core.runtime.telemetry_fields import PlayerFields
 from memgs_ros.errors import MemgsError
 from memgs_ros.io.replay import ReplayFeed, frames_total, open_frames, replay_frames

@@ -13,9 +13,10 @@ written there atomically (periodically, at finish and shutdown) and a restarted 
 from it under a new delta epoch, publishing a snapshot so the merger replaces its copy.
 
 The node translates messages and parameters; the rules are ROS-free services in core/mapping/:
-``mapper_start`` (device, resume), ``frame_acks`` (the lockstep acknowledgement), ``output_pacing``
-(periodic deltas, live view), ``finish`` and ``checkpoint_saver``. Messages are read in
-nodes/mapper/inputs.py and sent from nodes/mapper/outputs.py; the stats are nodes/mapper/stats.py's.
+``mapper_start`` (device, resume), ``output_pacing`` (periodic deltas, live view), ``finish`` and
+``checkpoint_saver``; a replay's acknowledgements are the replay service's (core/runtime/replay.py).
+Messages are read in nodes/mapper/inputs.py and sent from nodes/mapper/outputs.py; the stats are
+nodes/mapper/stats.py's.
 """
 from __future__ import annotations
 
@@ -34,7 +35,6 @@ from std_srvs.srv import Trigger
 
 from memgs_ros.core.mapping.checkpoint_saver import CheckpointSaver
 from memgs_ros.core.mapping.finish import FinalPlan, FinishSteps, finish_map
-from memgs_ros.core.mapping.frame_acks import LockstepAcknowledger
 from memgs_ros.core.mapping.mapper import MappingConfig
 from memgs_ros.core.mapping.mapper_start import MapperStart, SessionOptions, start_mapper
 from memgs_ros.core.mapping.output_pacing import DeltaPacer, LiveView, delta_rows
@@ -42,6 +42,7 @@ from memgs_ros.core.maps.answers import MapAnswer
 from memgs_ros.core.maps.map_delta import message_dtype
 from memgs_ros.core.merge.config import MergeConfig
 from memgs_ros.core.raster.backend_choice import device_label
+from memgs_ros.core.runtime.replay import FrameAcknowledger
 from memgs_ros.nodes.mapper.inputs import KeyframeReceiver, keyframe_poses
 from memgs_ros.nodes.mapper.map_part import MapperMapPart
 from memgs_ros.nodes.mapper.outputs import MapperOutbox
@@ -91,7 +92,7 @@ class MapperNode(ManagedNode):
             self.out.receivers_acked,
             lambda: self.stats.post_add(MapperStats.delta_waits))
         self.live_view = LiveView()
-        self.lockstep = LockstepAcknowledger(
+        self.lockstep = FrameAcknowledger(
             p.lockstep_window, lambda: self.stats.watch(self.session.train(0 if self.frozen else p.lockstep_iterations),
                                                         "train"),
             self.out.hand_over, self.out.ack, self.stats.ack_ms.add)
@@ -207,7 +208,7 @@ class MapperNode(ManagedNode):
 
     def on_processed(self, msg: Header) -> None:
         """Lockstep: acknowledge a frame once its keyframe (if any) is queued and training ran
-        (``LockstepAcknowledger``). Always: remember announced keyframes, so ones that never
+        (``FrameAcknowledger``). Always: remember announced keyframes, so ones that never
         arrive are counted."""
         stamp, keyframe = stamp_to_ns(msg.stamp), msg.frame_id == "keyframe"
         if keyframe:
