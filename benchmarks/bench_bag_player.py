@@ -153,7 +153,7 @@ def idle_cpu_fraction(seconds: float, domain: int) -> float:
     rclpy.init(context=ctx, domain_id=domain)
     executor = SingleThreadedExecutor(context=ctx)
     player = BagPlayer(context=ctx, parameter_overrides=[
-        Parameter("source", value="synthetic:w=64,h=48,n=2"), Parameter("lockstep", value=True),
+        Parameter("source", value="synthetic:w=64,h=48,n=2"), Parameter("pacing", value="lockstep"),
         Parameter("start_delay_s", value=600.0)])
     try:
         executor.add_node(player)
@@ -198,7 +198,7 @@ def main() -> int:
         xml.write_text(FASTDDS_XML.format(ns=int(args.heartbeat_ms * 1e6)))
         env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(xml)
         os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(xml)  # this process's participant too
-    common = ["--ros-args", "-p", "lockstep:=true", "-p", "start_delay_s:=60.0", "-p", "ack_timeout_s:=30.0"]
+    common = ["--ros-args", "-p", "pacing:=lockstep", "-p", "start_delay_s:=60.0", "-p", "ack_timeout_s:=30.0"]
     if args.source:
         cmd = [sys.executable, "-m", "memgs_ros.nodes.bag_player.node", *common, "-p", f"source:={args.source}"]
         label = args.source

@@ -44,6 +44,7 @@ def run(tum: Path, drop: float, seed: int, frames: int, config: str) -> dict[str
     from rclpy.parameter import Parameter
 
     from memgs_ros.core.metrics.trajectory import ate
+    from memgs_ros.core.runtime.replay import Pacing
     from memgs_ros.core.tracking import warm_up
     from memgs_ros.io.tum import TumFolder
     from memgs_ros.nodes.tracker.node import TrackerNode
@@ -52,7 +53,7 @@ def run(tum: Path, drop: float, seed: int, frames: int, config: str) -> dict[str
 
     work = ROOT / "results" / "bench_frame_drops"
     work.mkdir(parents=True, exist_ok=True)
-    params = node_params(build_params(RunOptions(source=str(tum), config=config, out_dir=work, lockstep=False),
+    params = node_params(build_params(RunOptions(source=str(tum), config=config, out_dir=work, pacing=Pacing.LIVE),
                                       work / "map.ply"))["tracker"]
     every = list(TumFolder(tum, max_frames=frames))
     rng = np.random.default_rng(seed)

@@ -46,12 +46,12 @@ def run_one(args: argparse.Namespace) -> dict:
     import numpy as np
     import torch
 
+    from memgs_ros.core.geometry.view import view_preparation
     from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
     from memgs_ros.core.merge.voxel_merge import MergeConfig
     from memgs_ros.core.metrics.image import psnr
     from memgs_ros.core.runtime.cpu import configure_cpu_runtime
     from memgs_ros.core.sampling import seeds_rgbd
-    from memgs_ros.core.geometry.view import view_preparation
     from memgs_ros.io.sources import open_source
 
     configure_cpu_runtime(torch_threads=args.threads)

@@ -188,11 +188,12 @@ def opencv_floor(tum: Path, tracker: dict[str, Any], frames: int) -> dict[str, f
 
 
 def run(tum: Path, config: str, frames: int) -> dict[str, Any]:
+    from memgs_ros.core.runtime.replay import Pacing
     from memgs_ros.orchestration.run_files import RunOptions, build_params, node_params
 
     work = ROOT / "results" / "bench_node_cost_run"
     work.mkdir(parents=True, exist_ok=True)
-    params = node_params(build_params(RunOptions(source=str(tum), config=config, out_dir=work, lockstep=False),
+    params = node_params(build_params(RunOptions(source=str(tum), config=config, out_dir=work, pacing=Pacing.LIVE),
                                       work / "map.ply"))
     timer = StageTimer()
     timer.install()

@@ -10,7 +10,6 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.ros.keyframe_bundle import KEYPOINT_DTYPE
 from memgs_ros.ros.codecs import (
     camera_to_camera_info,
     depth_to_image,
@@ -18,6 +17,7 @@ from memgs_ros.ros.codecs import (
     numpy_to_image,
     structured_to_pointcloud2,
 )
+from memgs_ros.ros.keyframe_bundle import KEYPOINT_DTYPE
 from memgs_ros.ros.seed_cloud import encode_seeds
 
 SPEC = "synthetic:w=64,h=48,n=6,seed=3"

@@ -18,7 +18,7 @@ Stages (each can be skipped; each writes its part of one JSON, default results/b
   eval     ``memgs eval`` on the TUM head, lockstep, scale 1.0: PSNR over all frames, ATE, the
            mapper's peak torch.cuda.max_memory_allocated and the work that set it, the graph's
            memory (every node's peak RSS plus the CUDA peak), where a lockstep frame's time goes
-           (the run summary's lockstep_ms), wall time.
+           (the run summary's frame_ms), wall time.
   memory   ``benchmarks/bench_memory.py`` on the eval's final map: parameters and Adam, keyframes,
            rasterizer buffers, SSIM, a merge and a densify pass, renders, the caching allocator.
   composed the eval's graph as components of one process (``memgs eval --composed``): its memory
@@ -48,8 +48,9 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ (not a package): _common
 from _common import ROOT, TUM_HELP, TumNotFound, run_memgs, tum_path, write_results  # noqa: E402
@@ -269,7 +270,7 @@ def _summary_figures(s: dict[str, Any]) -> dict[str, Any]:
             "keyframes_trained": s.get("keyframes_trained"), "keyframe_latency_ms": s.get("keyframe_latency_ms"),
             "keyframe_intake_ms": s.get("keyframe_intake_ms"), "graph_memory_mb": s.get("graph_memory_mb"),
             "peak_rss_mb": s.get("peak_rss_mb"), "cuda_peak_mb": s.get("cuda_peak_mb"),
-            "cuda_peak_by_work_mb": s.get("cuda_peak_by_work_mb"), "lockstep_ms": s.get("lockstep_ms"),
+            "cuda_peak_by_work_mb": s.get("cuda_peak_by_work_mb"), "frame_ms": s.get("frame_ms"),
             "cpu_s": s.get("cpu_s")}
 
 
@@ -374,7 +375,7 @@ def _targets(res: dict[str, Any]) -> dict[str, tuple[float, str]]:
 
 def headline(res: dict[str, Any]) -> dict[str, float | None]:
     """The figures the issue names, flat (None where a stage did not run or failed)."""
-    h: dict[str, float | None] = {k: None for k in _targets(res)}
+    h: dict[str, float | None] = dict.fromkeys(_targets(res))
     for row in res.get("raster", {}).get("rows", []):
         if "ms" in row:
             h[f"raster_{row['backend']}_{row['gaussians']}_ms"] = row["ms"]

@@ -110,10 +110,11 @@ def cost_stage(tum: Path, config: str, work: Path, frames: int, niceness: int, p
     """The node cost, mapper idle then training, with the tracker parameters ``memgs run
     --realtime`` gives it (local BA on the back-end's thread, as in the live rows); each the median
     of ``passes`` passes over the frames."""
+    from memgs_ros.core.runtime.replay import Pacing
     from memgs_ros.orchestration.run_files import RunOptions, build_params, node_params
 
     work.mkdir(parents=True, exist_ok=True)
-    params = node_params(build_params(RunOptions(source=str(tum), config=config, out_dir=work, lockstep=False),
+    params = node_params(build_params(RunOptions(source=str(tum), config=config, out_dir=work, pacing=Pacing.LIVE),
                                       work / "map.ply"))
     tracker, player = params.get("tracker", {}), params.get("bag_player", {})
     res: dict[str, Any] = {"idle": median_pass([node_cost(tum, tracker, player, frames) for _ in range(passes)])}

@@ -128,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import yaml
 
+    from memgs_ros.core.runtime.replay import Pacing
     from memgs_ros.io.bag_writer import write_bag
     from memgs_ros.io.synthetic import generate_frames, parse_spec
     from memgs_ros.orchestration.pipeline import RunOptions, run_pipeline
@@ -148,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         overrides[key.strip()] = yaml.safe_load(value)
     load0 = os.getloadavg()[0]
     t1 = time.perf_counter()
-    s = run_pipeline(RunOptions(source=str(bag), config=args.config, out_dir=work / "run", lockstep=False,
+    s = run_pipeline(RunOptions(source=str(bag), config=args.config, out_dir=work / "run", pacing=Pacing.LIVE,
                                 max_frames=n_frames, overrides=overrides,
                                 timeout_s=args.seconds * 4 + 900), progress=True)
     wall = time.perf_counter() - t1

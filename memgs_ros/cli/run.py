@@ -14,6 +14,7 @@ import yaml
 
 from memgs_ros.cli.rerun_options import add_rerun_arguments, rerun_target
 from memgs_ros.core.geometry.camera import PinholeCamera, calibration_differences, describe_camera
+from memgs_ros.core.runtime.replay import Pacing
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.orchestration.run_files import (
     GRAPH_NODE_NAMES,
@@ -137,7 +138,7 @@ def options_from_args(args: argparse.Namespace, source: str) -> RunOptions:
         overrides[key.strip()] = yaml.safe_load(value)
     return RunOptions(
         source=source, config=args.config or guess_config(source), out_dir=args.out,
-        composed=args.composed, lockstep=not args.realtime, rate=args.rate,
+        composed=args.composed, pacing=Pacing.LIVE if args.realtime else Pacing.LOCKSTEP, rate=args.rate,
         namespace=args.namespace, domain_id=args.domain_id, max_frames=args.max_frames, repeat=args.repeat,
         repeat_forward=args.repeat_forward, bag_topics=args.topics,
         overrides=overrides, timeout_s=args.timeout, kill_after_s=kills, strict=args.strict,
@@ -302,8 +303,8 @@ def print_summary(summary: RunSummary, json_path: Path | None, record: Path | No
         i, lat = s.keyframe_intake_ms, s.keyframe_latency_ms
         print(f"keyframe      intake {i.get('median', 0):.1f} ms CPU (p95 {i.get('p95', 0):.1f}); decision to first "
               f"training step {lat.get('median', 0):.0f} ms (p95 {lat.get('p95', 0):.0f})")
-    if s.lockstep_ms:
-        t = s.lockstep_ms
+    if s.frame_ms:
+        t = s.frame_ms
         print(f"lockstep      a frame {t['frame']:.0f} ms (median): tracker {t['tracker']:.0f} ms, mapper's "
               f"acknowledgement {t['mapper']:.0f} ms after it (training {t['training']:.0f} ms a frame); the rest "
               "is messages and handshakes")

@@ -61,6 +61,7 @@ from memgs_ros.core.metrics.scoring import (
     TrajectoryResult,
 )
 from memgs_ros.core.runtime.atomic import atomic_write
+from memgs_ros.core.runtime.replay import Pacing
 from memgs_ros.core.sampling import PatchGridConfig
 from memgs_ros.core.tracking.config import TrackerConfig
 from memgs_ros.errors import ConfigError, DataError
@@ -485,7 +486,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
     out.mkdir(parents=True, exist_ok=True)
     all_edits = (*run_edits(mode, seed, resolution_scale), *edits)
     options = RunOptions(source=str(source), config=config, out_dir=out, composed=composed,
-                         lockstep=True, namespace=namespace, domain_id=domain_id,
+                         pacing=Pacing.LOCKSTEP, namespace=namespace, domain_id=domain_id,
                          max_frames=int(max_frames), repeat=int(repeat), repeat_forward=bool(repeat_forward),
                          edits=all_edits, overrides=dict(overrides or {}), timeout_s=timeout_s,
                          record=record, rerun=rerun, map_bundle=map_bundle, map_mode=map_mode)

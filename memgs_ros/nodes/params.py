@@ -15,6 +15,7 @@ from memgs_ros.core.geometry.camera import CAMERA_PREFIX, CameraCalibration
 from memgs_ros.core.geometry.frames import FrameConvention, mount_transform
 from memgs_ros.core.mapping.config import MappingConfig
 from memgs_ros.core.merge.config import MergeConfig
+from memgs_ros.core.runtime.replay import Pacing
 from memgs_ros.core.sampling import PatchGridConfig
 from memgs_ros.core.tracking import TrackerConfig
 from memgs_ros.errors import ConfigError
@@ -31,11 +32,12 @@ class BagPlayerParams:
     source: str = ""  # frame source: TUM folder, .bag, ROS 2 bag folder/.mcap, or 'synthetic:...' spec
     # a bag's topics, 'color=/a,depth=/b,camera_info=/c' (any of them); empty: TUM's names, else found by type
     bag_topics: str = ""
-    rate: float = 1.0  # real-time factor (2.0 plays twice as fast); ignored in lockstep
+    rate: float = 1.0  # real-time factor (2.0 plays twice as fast); live pacing only
     loop: bool = False  # start over at the end (stamps keep increasing)
-    lockstep: bool = False  # publish the next frame only after the pipeline acks the current one
-    ack_topic: str = "memgs/frame_ack"  # std_msgs/Header acks (stamp of the finished frame), lockstep only
-    ack_timeout_s: float = 10.0  # lockstep: warn and go on when no ack arrives within this time
+    # live: the recorded rate; lockstep: the next frame only after the mapper acknowledged this one
+    pacing: str = "live"
+    ack_topic: str = "memgs/frame_ack"  # std_msgs/Header acks (stamp of the finished frame), acknowledged pacing
+    ack_timeout_s: float = 10.0  # acknowledged pacing: warn and go on when no ack arrives within this time
     start_delay_s: float = 5.0  # wait at most this long for a color subscriber before the first frame
     wait_for_readers: str = ""
     max_frames: int = 0  # stop after this many frames, over all loops (0 = no limit)
@@ -62,7 +64,11 @@ class BagPlayerParams:
         "max_frames": (0, 2**31 - 1), "preload_mb": (0, 1_000_000),
         "repeat": (1, 1000),
     }
-    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"depth_encoding": ("32FC1", "16UC1")}
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"depth_encoding": ("32FC1", "16UC1"), "pacing": Pacing.choices()}
+
+    @property
+    def replay(self) -> Pacing:
+        return Pacing(self.pacing)
 
 
 @dataclass(frozen=True)
@@ -193,7 +199,7 @@ class MapperParams:
     checkpoint_period_s: write a checkpoint this often while the map changes (0 = only at finish/shutdown)
     insert_queue: free-running: complete keyframes waiting for insertion; when full the oldest is dropped
         and counted (problem.keyframe_overload)
-    lockstep_window: lockstep: a frame is acknowledged once at most this many frames' training (its own
+    ack_window: acknowledged pacing: a frame is acknowledged once at most this many frames' training (its own
         included) is unfinished, so the tracker works on the next frame while the mapper trains (1); 0 waits
         for the frame's own training. The map is the same either way (core/runtime/replay.py)
     """
@@ -203,9 +209,10 @@ class MapperParams:
 
     mode: str = "rgbd"  # camera mode: rgbd, or mono (keyframes carry no depth)
     device: str = "auto"  # torch device for the map: auto (CUDA when present), cpu, cuda, cuda:N
-    lockstep: bool = False  # train a fixed number of iterations per frame and acknowledge each (deterministic replay)
-    lockstep_iterations: int = 10  # training iterations per frame in lockstep mode
-    lockstep_window: int = 1
+    # live: train freely beside the frames; lockstep: train iterations_per_frame for each frame, then acknowledge it
+    pacing: str = "live"
+    iterations_per_frame: int = 10  # training iterations per frame in an acknowledged replay
+    ack_window: int = 1
     final_iterations: int = 0  # extra training iterations run by the finish service before the final flush
     final_densify: bool = True
     final_budget_s: float = 0.0
@@ -216,7 +223,7 @@ class MapperParams:
     snapshot_period_s: float = 0.0  # publish a full snapshot this often (0 = only on request)
     render_rate_hz: float = 1.0  # live view renders per second (0 = off)
     world_frame: str = "map_optical"  # frame id (the SLAM world; TF: map -> map_optical) of published maps and poses
-    ack_topic: str = "memgs/frame_ack"  # lockstep acknowledgement topic (to the player)
+    ack_topic: str = "memgs/frame_ack"  # the acknowledgement topic (to the player), acknowledged pacing
     checkpoint_path: str = ""  # file for map + keyframe checkpoints (.npz); empty = no checkpoints
     checkpoint_period_s: float = 30.0
     resume: bool = True  # start from the checkpoint at checkpoint_path when one exists
@@ -227,18 +234,23 @@ class MapperParams:
     bundle_dir: str = ""  # where bundles are saved (memgs/save_map); this node stages its part in <bundle_dir>/.parts
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
-        "niceness": (0, 19), "lockstep_iterations": (0, 10000),
-        "lockstep_window": (0, 100),
+        "niceness": (0, 19), "iterations_per_frame": (0, 10000),
+        "ack_window": (0, 100),
         "final_iterations": (0, 10**7), "final_budget_s": (0.0, 1e6), "final_total_iterations": (0, 10**8),
         "delta_rate_hz": (0.01, 100.0), "delta_budget_kbytes_per_s": (1.0, 1e7), "delta_tolerance": (0.0, 10.0),
         "snapshot_period_s": (0.0, 1e6), "render_rate_hz": (0.0, 60.0), "checkpoint_period_s": (0.0, 1e6),
         "insert_queue": (1, 1000),
     }
-    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": ("rgbd", "mono"), "map_mode": ("mapping", "localize")}
+    CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": ("rgbd", "mono"), "map_mode": ("mapping", "localize"),
+                                                     "pacing": Pacing.choices()}
 
     def __post_init__(self) -> None:  # CHOICES refuses a bad parameter; this, a bad direct construction
         if self.mode not in self.CHOICES["mode"]:
             raise ConfigError(f"mode must be rgbd or mono, got {self.mode!r}")
+
+    @property
+    def replay(self) -> Pacing:
+        return Pacing(self.pacing)
 
 
 @dataclass(frozen=True)

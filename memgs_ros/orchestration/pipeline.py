@@ -325,7 +325,7 @@ def _wait_for_warm_graph(obs: GraphObserver, procs: NodeProcesses | None, nodes:
     """The player starts once every node has its compiled kernels in (stats ``kernels_warm``):
     from the kernel cache in about a second; on a fresh install they compile first (a minute on 2
     cores, which ``memgs doctor --warm`` does ahead). A frame played before that would be dropped
-    by a live tracker (skipped.warming) or wait in lockstep, and cost the track the next dozen."""
+    by a live tracker (skipped.warming) or wait for their acknowledgement, and cost the track the next dozen."""
     start, told = time.monotonic(), False
     while missing := [n for n in nodes if obs.telemetry(n).kernels_warm < 1]:
         if procs is not None:
@@ -364,7 +364,7 @@ def _drive(obs: GraphObserver, options: RunOptions, procs: NodeProcesses | None,
         # What was played is still mapped and saved; the caller reports the failure.
         logger.error("the source failed part-way (see the bag_player log): finishing and saving the map "
                      "of the frames played")
-    if not options.lockstep:
+    if not options.pacing.acknowledged:
         time.sleep(2.0)  # let the last frames drain through the graph
     logger.info("source finished after %.1f s; finishing the mapper", time.monotonic() - t0)
     final = MapAnswer.parse(obs.call(obs.finish_client, max(60.0, end - time.monotonic())))
@@ -498,10 +498,10 @@ def _mapper_figures(obs: GraphObserver, composed: bool) -> dict[str, Any]:
     cuda_mb = round(mapper.cuda_max_allocated / 2**20, 1) if mapper.cuda_max_allocated is not None else None
     rss = [obs.telemetry(n).peak_rss_mb for n in GRAPH_NODES]
     host = max(rss, default=0.0) if composed else sum(rss)
-    lockstep = {} if mapper.train_commands <= 0 else {
+    per_frame = {} if mapper.train_commands <= 0 else {
         "frame": obs.telemetry("player").ack_wait_ms_median, "tracker": obs.telemetry("tracker").frame_ms_median,
-        "mapper": mapper.lockstep_ack_ms_median, "training": round(mapper.train_ms_total / mapper.train_commands, 2)}
-    return {"lockstep_ms": lockstep, "mapping_iterations_final": mapper.iterations_final,
+        "mapper": mapper.frame_ack_ms_median, "training": round(mapper.train_ms_total / mapper.train_commands, 2)}
+    return {"frame_ms": per_frame, "mapping_iterations_final": mapper.iterations_final,
             "keyframes_mapped": mapper.keyframes, "keyframes_trained": mapper.keyframes_used,
             "keyframe_intake_ms": pair("intake_ms"), "keyframe_latency_ms": pair("latency_ms"),
             "cuda_peak_mb": cuda_mb, "graph_memory_mb": round(host + (cuda_mb or 0.0), 1),

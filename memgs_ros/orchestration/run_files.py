@@ -18,6 +18,7 @@ from typing import Any, Generic, NamedTuple, TypeVar
 import yaml
 
 from memgs_ros.core.geometry.camera import CameraCalibration, PinholeCamera
+from memgs_ros.core.runtime.replay import Pacing
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.nodes.registry import GRAPH, NODES
 from memgs_ros.viz import RerunTarget
@@ -80,7 +81,7 @@ class RunOptions:
     config: str = "synthetic"
     out_dir: Path = Path("memgs_out")
     composed: bool = False  # the nodes as components of the runner's process, on one executor
-    lockstep: bool = True
+    pacing: Pacing = Pacing.LOCKSTEP  # memgs run replays in lockstep unless --realtime
     rate: float = 1.0
     namespace: str = ""
     domain_id: int | None = None
@@ -164,11 +165,11 @@ class RunSummary:
     # what the graph held at its peaks: every node process's peak RSS (one process when composed)
     # plus the CUDA peak; on a Jetson both come out of one memory
     graph_memory_mb: float = 0.0
-    # lockstep: where a frame's time goes (ms): ``frame`` the player's wait from publishing it to
+    # an acknowledged replay: where a frame's time goes (ms): ``frame`` the player's wait from publishing it to
     # its acknowledgement (median), ``tracker`` the tracker's time on it (median), ``mapper`` from
     # the tracker's word on it to the mapper's acknowledgement (median), ``training`` the mapper's
     # training per frame (mean); what ``frame`` holds beyond them is messages and handshakes
-    lockstep_ms: dict[str, float] = field(default_factory=dict)
+    frame_ms: dict[str, float] = field(default_factory=dict)
     repeat: int = 1  # the source was played this many times, forward and back (``open_source(repeat=)``)
     repeat_forward: bool = False  # ... every pass forward
     bag_topics: str = ""  # the bag topics the run was given (``BagTopics.parse``)
@@ -217,12 +218,12 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
                               f"got {section!r:.80}")
         params[node] = dict(node_params)
     params.setdefault("bag_player", {}).update(
-        source=str(options.source), lockstep=options.lockstep, rate=float(options.rate),
+        source=str(options.source), pacing=options.pacing.value, rate=float(options.rate),
         max_frames=int(options.max_frames), repeat=int(options.repeat), repeat_forward=bool(options.repeat_forward),
         bag_topics=str(options.bag_topics), ack_topic="memgs/frame_ack",
         world_frame_id="map",
         strict=bool(options.strict))
-    params.setdefault("mapper", {})["lockstep"] = options.lockstep
+    params.setdefault("mapper", {})["pacing"] = options.pacing.value
     if params["bag_player"].get("depth_encoding", "32FC1") == "16UC1":
         from memgs_ros.io.sources import player_depth_units  # loads the bag readers: only here
 
@@ -234,10 +235,10 @@ def build_params(options: RunOptions, map_path: Path) -> dict[str, Any]:
         # reads the frames too); the runner has already seen the tracker come up.
         params["bag_player"].setdefault("wait_for_readers", "tracker")
         params["bag_player"].setdefault("start_delay_s", 30.0)
-    if options.lockstep:
+    if options.pacing.acknowledged:
         # Background BA would refine poses at timing-dependent moments: run it in step instead.
         params.setdefault("tracker", {}).setdefault("tracker.ba_threaded", False)
-        params["tracker"].setdefault("input_reliability", "reliable")  # lockstep must not lose a frame
+        params["tracker"].setdefault("input_reliability", "reliable")  # a frame waited for must not be lost
         params["tracker"].setdefault("max_frame_age_s", 0.0)  # and never drops one as stale
     else:
         # The player is a reliable publisher on this host: a reliable reader gets each frame it

@@ -222,6 +222,11 @@ def changed_parameters(prefix: str, before: object, after: object) -> dict[str, 
             if getattr(after, f.name) != getattr(before, f.name)}
 
 
+# Parameters that were renamed (old leaf name -> new): a saved config or command line still using
+# the old name is told the new one. (The replay's pacing became one value, 2026-12.)
+RENAMED = {"lockstep": "pacing", "lockstep_iterations": "iterations_per_frame", "lockstep_window": "ack_window"}
+
+
 def unknown_parameters(node_name: str, given: Iterable[str], declared: Collection[str]) -> list[str]:
     """One line for each name in ``given`` that ``declared`` lacks, with the closest declared names.
 
@@ -232,6 +237,9 @@ def unknown_parameters(node_name: str, given: Iterable[str], declared: Collectio
         if name.startswith("qos_overrides."):
             continue  # declared by rclpy with a publisher or subscription that allows QoS overrides
         leaf = name.rsplit(".", 1)[-1]
+        if leaf in RENAMED and RENAMED[leaf] in declared:
+            lines.append(f"{node_name} has no parameter '{name}': it is called '{RENAMED[leaf]}' now")
+            continue
         close = [d for d in declared if d.rsplit(".", 1)[-1] == leaf] or difflib.get_close_matches(name, declared, 3)
         hint = f" (did you mean {' or '.join(sorted(close)[:3])}?)" if close else ""
         lines.append(f"{node_name} has no parameter '{name}'{hint}")

@@ -16,7 +16,7 @@ from memgs_ros.nodes.bag_player.node import BagPlayer
 from memgs_ros.nodes.keyframe_sampler.node import KeyframeSamplerNode
 from memgs_ros.nodes.merger.node import MergerNode
 from memgs_ros.nodes.params import DEFAULT_TOPICS, KeyframeSamplerParams, MapperParams, MergerParams, RecorderParams
-from memgs_ros.ros.config_params import check_values, config_specs, parameter_names
+from memgs_ros.ros.config_params import check_values, config_specs, parameter_names, unknown_parameters
 from memgs_ros.ros.params import ParamSpec
 
 
@@ -93,6 +93,17 @@ def test_out_of_range_and_nan_are_refused() -> None:
 def test_a_bad_choice_lists_the_allowed_values() -> None:
     assert check_values(MapperParams, "", {"mode": "stereo"}, node="mapper") == [
         "mapper: parameter 'mode' = 'stereo' is not one of ['rgbd', 'mono']"]
+
+
+def test_the_pacing_is_one_value_and_its_old_parameters_name_the_new_ones() -> None:
+    assert check_values(MapperParams, "", {"pacing": "fast"}, node="mapper") == [
+        "mapper: parameter 'pacing' = 'fast' is not one of ['live', 'lockstep']"]
+    assert MapperParams(pacing="lockstep").replay.acknowledged and not MapperParams().replay.acknowledged
+    declared = parameter_names([("", MapperParams)])
+    assert unknown_parameters("mapper", ["lockstep_iterations", "lockstep", "lockstep_windw"], declared) == [
+        "mapper has no parameter 'lockstep': it is called 'pacing' now",
+        "mapper has no parameter 'lockstep_iterations': it is called 'iterations_per_frame' now",
+        "mapper has no parameter 'lockstep_windw' (did you mean ack_window?)"]
 
 
 def test_the_configs_own_validation_judges_the_whole_group() -> None:

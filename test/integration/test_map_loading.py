@@ -16,6 +16,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from ros_spin import spin_until  # noqa: E402
 
+from memgs_ros.core.gaussians.records import GaussianRecords  # noqa: E402
 from memgs_ros.core.mapping import checkpoint  # noqa: E402
 from memgs_ros.core.maps.bundle import (  # noqa: E402
     MANIFEST,
@@ -27,7 +28,6 @@ from memgs_ros.core.maps.bundle import (  # noqa: E402
     new_staging,
 )
 from memgs_ros.core.maps.ply import save_ply  # noqa: E402
-from memgs_ros.core.gaussians.records import GaussianRecords  # noqa: E402
 
 pytestmark = pytest.mark.ros
 R = LoadMap.Response

@@ -12,22 +12,26 @@ import pytest
 rclpy = pytest.importorskip("rclpy", reason="the ROS extra is not installed")
 
 from geometry_msgs.msg import PoseStamped  # noqa: E402
+from keyframe_bundles import SPEC, Bundle, _bundle, _without_field  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from ros_spin import spin_until  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
-from memgs_ros.core.geometry.frame import Frame  # noqa: E402
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap  # noqa: E402
+from memgs_ros.core.geometry.frame import Frame  # noqa: E402
 from memgs_ros.core.maps.map_delta import DeltaOutbox, message_dtype  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
-from memgs_ros.ros.keyframe_bundle import KEYPOINT_DTYPE  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
 from memgs_ros.ros.codecs import (  # noqa: E402
-    camera_to_camera_info, depth_to_image, matrix_to_pose_stamped, numpy_to_image, structured_to_pointcloud2,
+    camera_to_camera_info,
+    depth_to_image,
+    matrix_to_pose_stamped,
+    numpy_to_image,
+    structured_to_pointcloud2,
 )
-from keyframe_bundles import SPEC, Bundle, _bundle, _without_field  # noqa: E402
-from ros_spin import spin_until  # noqa: E402
+from memgs_ros.ros.keyframe_bundle import KEYPOINT_DTYPE  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -171,7 +175,7 @@ def test_mapper_refuses_bad_bundles_without_touching_the_map(context, frames) ->
     from memgs_ros.nodes.mapper.node import MapperNode
 
     node = MapperNode(context=context, parameter_overrides=[
-        Parameter("lockstep", value=True), Parameter("lockstep_iterations", value=0), Parameter("device", value="cpu"),
+        Parameter("pacing", value="lockstep"), Parameter("iterations_per_frame", value=0), Parameter("device", value="cpu"),
         Parameter("render_rate_hz", value=0.0)])
     feeder = _Feeder(context, node, ("color", "depth", "info", "pose", "seeds"))
     c = node.stats.values
@@ -577,8 +581,8 @@ def test_every_node_declares_exactly_its_parameter_table(context) -> None:  # no
     from memgs_ros.nodes.keyframe_sampler import node as keyframe_sampler
     from memgs_ros.nodes.mapper import node as mapper
     from memgs_ros.nodes.merger import node as merger
-    from memgs_ros.nodes.tracker import node as tracker
     from memgs_ros.nodes.merger.node import MergerNode
+    from memgs_ros.nodes.tracker import node as tracker
     from memgs_ros.nodes.tracker.node import TrackerNode
     from memgs_ros.ros.config_params import check_declared, module_parameter_names
 

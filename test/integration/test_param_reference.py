@@ -48,7 +48,7 @@ def test_ranges_and_choices_are_those_the_nodes_enforce() -> None:
     assert rows["tracker", "camera.fx"].range == "[0, 1000000]"  # CameraCalibration.RANGES
     assert rows["mapper", "mapping.max_gaussians"].range == "[0, 1000000000]"  # MappingConfig.RANGES
     assert rows["tracker", "camera_info_override"].range == ""  # bool: no range
-    assert rows["merger", "render_fx"].default == "`258.65`" and rows["mapper", "lockstep_iterations"].default == "`10`"
+    assert rows["merger", "render_fx"].default == "`258.65`" and rows["mapper", "iterations_per_frame"].default == "`10`"
     assert rows["recorder", "topics"].type == "string array"
 
 

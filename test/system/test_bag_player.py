@@ -134,7 +134,7 @@ def _assert_frame_equal(receiver: Receiver, i: int, frame: Frame, stamp_ns: int)
 
 def test_lockstep_delivers_every_frame_once_in_order(ros_domain_id: int) -> None:
     frames = make_frames(8)
-    player, rx = play_in_process(frames, ros_domain_id, lockstep=True)
+    player, rx = play_in_process(frames, ros_domain_id, pacing="lockstep")
     stamps = [f.stamp_ns for f in frames]
     for kind in KINDS:
         assert [s for s, _ in getattr(rx, kind)] == stamps, kind
@@ -147,7 +147,7 @@ def test_lockstep_delivers_every_frame_once_in_order(ros_domain_id: int) -> None
 
 def test_loop_keeps_stamps_increasing_and_stops_at_max_frames(ros_domain_id: int) -> None:
     frames = make_frames(4, period_ns=100_000_000)
-    _, rx = play_in_process(frames, ros_domain_id, lockstep=True, loop=True, max_frames=10)
+    _, rx = play_in_process(frames, ros_domain_id, pacing="lockstep", loop=True, max_frames=10)
     got = [s for s, _ in rx.color]
     # Each pass is shifted by its span (0.3 s) plus one period (0.1 s).
     expected = [frames[0].stamp_ns + k * 100_000_000 for k in range(10)]
@@ -159,7 +159,7 @@ def test_loop_keeps_stamps_increasing_and_stops_at_max_frames(ros_domain_id: int
 
 def test_real_time_paces_by_stamps_over_rate(ros_domain_id: int) -> None:
     frames = make_frames(6, period_ns=100_000_000)  # 0.5 s of stamps
-    _, rx = play_in_process(frames, ros_domain_id, lockstep=False, rate=2.0)
+    _, rx = play_in_process(frames, ros_domain_id, pacing="live", rate=2.0)
     assert [s for s, _ in rx.color] == [f.stamp_ns for f in frames]
     span = rx.arrival_s[-1] - rx.arrival_s[0]
     # 0.25 s at x2 (unpaced it would be a few ms); first-message latency may eat a little of it,
@@ -170,7 +170,7 @@ def test_real_time_paces_by_stamps_over_rate(ros_domain_id: int) -> None:
 
 def test_lockstep_without_acks_times_out_and_goes_on(ros_domain_id: int) -> None:
     frames = make_frames(3)
-    player, rx = play_in_process(frames, ros_domain_id, ack=False, lockstep=True, ack_timeout_s=0.2)
+    player, rx = play_in_process(frames, ros_domain_id, ack=False, pacing="lockstep", ack_timeout_s=0.2)
     assert [s for s, _ in rx.color] == [f.stamp_ns for f in frames]
     assert player.acks.timeouts == 3 and player.stats.values["frames_published"] == 3 and rx.done == [True]
 
@@ -223,7 +223,7 @@ def test_first_frame_waits_for_the_named_reader_not_any_reader(ros_domain_id: in
     comes 1.5 s later and must still get every lockstep frame, with no ack timeout. Without
     wait_for_readers the player starts after 0.5 s of steady counts and frame 1 is lost."""
     frames = make_frames(4)
-    player, bystander, rx = _play_with_late_receiver(frames, ros_domain_id, 1.5, lockstep=True, ack_timeout_s=3.0,
+    player, bystander, rx = _play_with_late_receiver(frames, ros_domain_id, 1.5, pacing="lockstep", ack_timeout_s=3.0,
                                                      wait_for_readers="receiver", start_delay_s=20.0)
     stamps = [f.stamp_ns for f in frames]
     assert rx is not None and [s for s, _ in rx.color] == stamps
@@ -234,7 +234,7 @@ def test_first_frame_waits_for_the_named_reader_not_any_reader(ros_domain_id: in
 def test_a_named_reader_that_never_comes_delays_the_start_by_start_delay_s_only(ros_domain_id: int) -> None:
     frames = make_frames(2)
     t0 = time.monotonic()
-    player, bystander, _ = _play_with_late_receiver(frames, ros_domain_id, None, lockstep=True, ack_timeout_s=0.2,
+    player, bystander, _ = _play_with_late_receiver(frames, ros_domain_id, None, pacing="lockstep", ack_timeout_s=0.2,
                                                     wait_for_readers="tracker", start_delay_s=1.5)
     assert time.monotonic() - t0 >= 1.5
     assert bystander.color == [f.stamp_ns for f in frames] and player.acks.timeouts == 2
@@ -242,7 +242,7 @@ def test_a_named_reader_that_never_comes_delays_the_start_by_start_delay_s_only(
 
 def test_depth_as_16uc1_millimetres(ros_domain_id: int) -> None:
     frames = make_frames(2)
-    _, rx = play_in_process(frames, ros_domain_id, lockstep=True, depth_encoding="16UC1")
+    _, rx = play_in_process(frames, ros_domain_id, pacing="lockstep", depth_encoding="16UC1")
     assert [img.encoding for _, img in rx.depth] == ["16UC1", "16UC1"]
     mm = image_to_numpy(rx.depth[1][1])
     np.testing.assert_array_equal(mm, np.rint(frames[1].depth_m.astype(np.float64) * 1000.0).astype(np.uint16))
@@ -280,7 +280,7 @@ class _BrokenSource:
 
 def test_source_failure_ends_with_done_false(ros_domain_id: int) -> None:
     frames = make_frames(4)
-    player, rx = play_in_process(_BrokenSource(frames), ros_domain_id, lockstep=True)
+    player, rx = play_in_process(_BrokenSource(frames), ros_domain_id, pacing="lockstep")
     assert [s for s, _ in rx.color] == [f.stamp_ns for f in frames[:2]]
     assert rx.done == [False] and player.finished.result() is False
 
@@ -300,7 +300,7 @@ class _OnceSource:
 def test_preloaded_replay_publishes_the_same_frames_from_memory(ros_domain_id: int) -> None:
     frames = make_frames(6)
     source = _OnceSource(frames)
-    player, rx = play_in_process(source, ros_domain_id, lockstep=True, preload_mb=1)
+    player, rx = play_in_process(source, ros_domain_id, pacing="lockstep", preload_mb=1)
     assert source.reads == 1 and rx.done == [True]
     for i, f in enumerate(frames):
         _assert_frame_equal(rx, i, f, f.stamp_ns)
@@ -355,7 +355,7 @@ def test_process_lockstep_replay_of_synthetic_source(ros_domain_id: int, tmp_pat
     expected = list(generate_frames(parse_spec(spec)))
     params = tmp_path / "player.yaml"
     params.write_text(
-        "/**:\n  ros__parameters:\n    lockstep: true\n    start_delay_s: 30.0\n    ack_timeout_s: 30.0\n"
+        "/**:\n  ros__parameters:\n    pacing: lockstep\n    start_delay_s: 30.0\n    ack_timeout_s: 30.0\n"
         "    frame_id: cam\n"
     )
     proc = subprocess.Popen(
@@ -441,7 +441,7 @@ def test_frames_going_backwards_or_changing_camera_are_skipped_and_counted(ros_d
     other = replace(CAM, fx=CAM.fx * 1.5)
     bad = [*frames[:2], replace(frames[0], stamp_ns=frames[0].stamp_ns - 1), *frames[2:4],
            replace(frames[4], camera=other), frames[5]]
-    player, rx = play_in_process(bad, ros_domain_id, lockstep=True, strict=strict)
+    player, rx = play_in_process(bad, ros_domain_id, pacing="lockstep", strict=strict)
     sent = [s for s, _ in rx.color]
     if strict:
         assert sent == [f.stamp_ns for f in frames[:2]] and rx.done == [False]

@@ -19,13 +19,23 @@ import yaml
 from memgs_ros.cli import main
 from memgs_ros.cli.run import calibration_warning, check_inputs, run_log
 from memgs_ros.core.geometry.camera import (
-    TUM_CAMERAS, TUM_FR1, TUM_FR3, CameraCalibration, PinholeCamera, calibration_differences,
+    TUM_CAMERAS,
+    TUM_FR1,
+    TUM_FR3,
+    CameraCalibration,
+    PinholeCamera,
+    calibration_differences,
 )
 from memgs_ros.errors import ConfigError, DataError, PipelineError
 from memgs_ros.io.synthetic import generate_frames, parse_spec, write_tum_folder
 from memgs_ros.io.tum import CAMERA_JSON, TumFolder, write_camera_json
 from memgs_ros.orchestration.run_files import (
-    ConfiguredCamera, RunOptions, build_params, config_path, configured_camera, node_params,
+    ConfiguredCamera,
+    RunOptions,
+    build_params,
+    config_path,
+    configured_camera,
+    node_params,
 )
 
 # What TUM's ROS 1 bags publish as camera_info (reference section 6).
@@ -362,7 +372,7 @@ def test_run_on_a_bag_with_wrong_camera_info_maps_with_the_true_camera(tmp_path:
     spec = "synthetic:w=320,h=240,n=30,seed=3"  # the test_pipeline sequence: its path tracks to ~1 cm
     bag, true = _wrong_info_bag(tmp_path, spec)
     config = _config_with_camera(tmp_path, true.scaled(2.0))  # given at 640x480, rescaled by the nodes
-    fast = {"mapper.lockstep_iterations": 2, "mapper.final_iterations": 30}
+    fast = {"mapper.iterations_per_frame": 2, "mapper.final_iterations": 30}
     s = run_pipeline(RunOptions(source=str(bag), config=str(config), out_dir=tmp_path / "run",
                                 namespace=f"/memgs_calib_{os.getpid()}_{os.urandom(3).hex()}",
                                 domain_id=ros_domain_id, overrides=fast, timeout_s=600), progress=False)

@@ -17,14 +17,14 @@ import torch
 
 pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install -e '.[ros]')")
 
-from memgs_ros.evaluation import runs as evaluation  # noqa: E402
 from memgs_ros.cli import main  # noqa: E402
-from memgs_ros.evaluation.tables import ablation_table  # noqa: E402
 from memgs_ros.core.maps.ply import load_ply  # noqa: E402
+from memgs_ros.evaluation import runs as evaluation  # noqa: E402
+from memgs_ros.evaluation.tables import ablation_table  # noqa: E402
 from memgs_ros.io.tum import read_trajectory  # noqa: E402
 
 SPEC = "synthetic:w=128,h=96,n=20,seed=0"
-TINY = ["--set", "mapper.lockstep_iterations=2", "--set", "mapper.final_iterations=50"]
+TINY = ["--set", "mapper.iterations_per_frame=2", "--set", "mapper.final_iterations=50"]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -67,7 +67,7 @@ def _check_outputs(eval_run: Path) -> None:
         # buffers), well below the baseline itself (imports and kernels are not working memory).
         assert mem["headline_bytes"] == mem["mapper_working_peak_bytes"] > 0
         assert mem["headline_kind"].startswith("mapper_working_peak_rss")
-        assert 100.0 < mem["mapper_rss_baseline_mb"] and mem["headline_bytes"] < mem["mapper_rss_baseline_mb"] * 2**20
+        assert mem["mapper_rss_baseline_mb"] > 100.0 and mem["headline_bytes"] < mem["mapper_rss_baseline_mb"] * 2**20
         assert mem["accounted_bytes_peak"] >= mem["model_bytes_peak"]
     # Peak RSS per node process: VmHWM, the peak each node reported in the run's stats timeline.
     assert {"tracker", "keyframe_sampler", "mapper", "merger"} <= set(mem["peak_rss_mb"])

@@ -15,8 +15,8 @@ from types import ModuleType
 import numpy as np
 import pytest
 
-from memgs_ros.core.maps.ply import ids_sidecar_path, load_ply, save_ply
 from memgs_ros.core.gaussians.records import GaussianRecords
+from memgs_ros.core.maps.ply import ids_sidecar_path, load_ply, save_ply
 from memgs_ros.core.runtime import atomic
 
 ROOT = Path(__file__).resolve().parents[2]

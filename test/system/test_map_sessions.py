@@ -27,7 +27,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 SPEC = "synthetic:w=320,h=240,n=60,seed=3"
 LATER_NS = 100 * 10**9  # session 2 flies 100 s after session 1: stamps never repeat
-FAST = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 60}
+FAST = {"mapper.iterations_per_frame": 3, "mapper.final_iterations": 60}
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 def test_live_render_skips_an_unchanged_view_of_an_unchanged_map(tmp_path: Path, ros_domain_id: int) -> None:
     log = tmp_path / "mapper.log"
     # Lockstep without acknowledgements: the map does not train, so only the pose can change it.
-    params = {"lockstep": True, "render_rate_hz": 20.0, "mapping.min_keyframes": 1, "device": "cpu"}
+    params = {"pacing": "lockstep", "render_rate_hz": 20.0, "mapping.min_keyframes": 1, "device": "cpu"}
     proc = _start("memgs_ros.nodes.mapper.node", ros_domain_id, params, log)
     peer = _Peer(ros_domain_id, "mapper")
     renders: list[Image] = []

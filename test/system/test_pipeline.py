@@ -14,8 +14,8 @@ import torch
 
 pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install -e '.[ros]')")
 
-from memgs_ros.core.geometry.poses import invert_pose  # noqa: E402
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap  # noqa: E402
+from memgs_ros.core.geometry.poses import invert_pose  # noqa: E402
 from memgs_ros.core.maps.ply import load_ply  # noqa: E402
 from memgs_ros.core.metrics.image import psnr  # noqa: E402
 from memgs_ros.core.metrics.trajectory import ate  # noqa: E402
@@ -31,7 +31,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 SPEC = "synthetic:w=320,h=240,n=30,seed=3"
 # Short, CPU-friendly training: the assertions are about the graph, the quality bounds are
 # loose but far above what a broken map gives (an empty or misplaced map renders ~8-12 dB).
-FAST = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 150,
+FAST = {"mapper.iterations_per_frame": 3, "mapper.final_iterations": 150,
         "mapper.mapping.merge_start_iter": 60, "mapper.mapping.merge_interval": 60}
 
 
@@ -99,7 +99,7 @@ def test_late_merger_with_dropped_deltas_resyncs(bag: Path, tmp_path: Path, ros_
     deltas after the replay.)"""
     # 8 iterations a frame: the replay lasts long enough for a few periodic deltas after the late
     # start (no periodic delta leaves during the final iterations: the final flush carries all).
-    overrides = {**FAST, "mapper.lockstep_iterations": 8, "mapper.delta_rate_hz": 4.0, **LOSSY_MERGER}
+    overrides = {**FAST, "mapper.iterations_per_frame": 8, "mapper.delta_rate_hz": 4.0, **LOSSY_MERGER}
     ns = _own_ns()
     with lossy_deltas(ros_domain_id, ns, every=2) as relay:  # the merger reads the deltas through it
         s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path, domain_id=ros_domain_id,
@@ -116,7 +116,7 @@ def test_killed_mapper_resumes_from_checkpoint_and_killed_merger_resyncs(bag: Pa
     """SIGKILL (no chance to save) the mapper, then the merger, mid-run; both restart at once.
     (More iterations per frame than FAST: the replay must outlast both kills, and with FAST's 3 it
     could end before 12 s on an idle machine, leaving nothing killed.)"""
-    overrides = {**FAST, "mapper.lockstep_iterations": 12, "mapper.checkpoint_period_s": 1.0,
+    overrides = {**FAST, "mapper.iterations_per_frame": 12, "mapper.checkpoint_period_s": 1.0,
                  "merger.save_period_s": 1.0}
     # An earlier run's checkpoint in the folder is set aside (kept), not resumed by this run.
     (tmp_path / "mapper_checkpoint.npz").write_bytes(b"an earlier run")
@@ -145,7 +145,7 @@ def test_namespaced_instances_do_not_cross_talk(tmp_path: Path, ros_domain_id: i
         out = tmp_path / ns.strip("/")
         cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", f"synthetic:w=128,h=96,n={n},seed=1",
                "--config", "synthetic", "--composed", "--namespace", ns, "--domain-id", str(ros_domain_id),
-               "--out", str(out), "--json", str(out / "summary.json"), "--set", "mapper.lockstep_iterations=1",
+               "--out", str(out), "--json", str(out / "summary.json"), "--set", "mapper.iterations_per_frame=1",
                "--set", "mapper.mapping.merge_enabled=false", "--timeout", "500"]
         out.mkdir()
         procs[ns] = (n, out, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
@@ -174,7 +174,7 @@ def test_a_corrupt_frame_is_skipped_and_counted_or_with_strict_ends_the_run(tmp_
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "memgs_ros", "run", "--bag", str(folder), "--config", "synthetic",
            "--composed", "--domain-id", str(ros_domain_id), "--namespace", _own_ns(), "--out", str(out), "--json",
-           str(tmp_path / "summary.json"), "--set", "mapper.lockstep_iterations=1",
+           str(tmp_path / "summary.json"), "--set", "mapper.iterations_per_frame=1",
            "--set", "mapper.mapping.merge_enabled=false", "--timeout", "400", *(["--strict"] if strict else [])]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     summary = json.loads((tmp_path / "summary.json").read_text())

@@ -160,7 +160,7 @@ def test_memgs_run_maps_a_compressed_realsense_bag(tmp_path: Path, ros_domain_id
     spec = SyntheticSpec(width=320, height=240, n_frames=30, seed=3)
     frames = list(generate_frames(spec))
     bag = write_realsense_bag(frames, tmp_path / "rs_compressed", compressed=True).path
-    fast = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 100,
+    fast = {"mapper.iterations_per_frame": 3, "mapper.final_iterations": 100,
             "mapper.mapping.merge_start_iter": 60, "mapper.mapping.merge_interval": 60}
     s = run_pipeline(RunOptions(source=str(bag), config="synthetic", out_dir=tmp_path / "out",
                                 namespace=f"/memgs_test_{os.getpid()}_{os.urandom(3).hex()}", domain_id=ros_domain_id,

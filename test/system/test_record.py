@@ -236,7 +236,7 @@ def test_recorder_node_adapts_to_publishers_and_writes_the_file_on_shutdown(
 
 
 SPEC = "synthetic:w=320,h=240,n=15,seed=3"
-FAST = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 50,
+FAST = {"mapper.iterations_per_frame": 3, "mapper.final_iterations": 50,
         "mapper.mapping.merge_start_iter": 60, "mapper.mapping.merge_interval": 60}
 
 

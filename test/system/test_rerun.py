@@ -19,8 +19,8 @@ rr = pytest.importorskip("rerun", reason="the [viz] extra is not installed (pip 
 from rerun.chunk import RrdReader  # noqa: E402
 
 from memgs_ros.cli import main  # noqa: E402
-from memgs_ros.core.maps.ply import load_ply, save_ply  # noqa: E402
 from memgs_ros.core.gaussians.records import GaussianRecords  # noqa: E402
+from memgs_ros.core.maps.ply import load_ply, save_ply  # noqa: E402
 from memgs_ros.errors import ConfigError  # noqa: E402
 from memgs_ros.io.image_decoding import decode_compressed_rgb  # noqa: E402
 from memgs_ros.viz import RerunTarget  # noqa: E402
@@ -384,7 +384,7 @@ def test_bridge_node_refuses_no_sink_and_missing_rerun(context: Any, tmp_path: P
 
 SPEC = "synthetic:w=320,h=240,n=30,seed=3"
 # As test_pipeline's FAST: short CPU training, the graph is what is tested.
-FAST = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 150,
+FAST = {"mapper.iterations_per_frame": 3, "mapper.final_iterations": 150,
         "mapper.mapping.merge_start_iter": 60, "mapper.mapping.merge_interval": 60}
 
 

@@ -18,14 +18,18 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 
-from memgs_ros.core.mapping import checkpoint  # noqa: E402
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap  # noqa: E402
+from memgs_ros.core.mapping import checkpoint  # noqa: E402
 from memgs_ros.core.maps.map_delta import DeltaOutbox  # noqa: E402
 from memgs_ros.core.maps.ply import load_ply  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
 from memgs_ros.ros.codecs import (  # noqa: E402
-    camera_to_camera_info, depth_to_image, matrix_to_pose_stamped, numpy_to_image, structured_to_pointcloud2,
+    camera_to_camera_info,
+    depth_to_image,
+    matrix_to_pose_stamped,
+    numpy_to_image,
+    structured_to_pointcloud2,
 )
 from memgs_ros.ros.diagnostics import stats_values  # noqa: E402
 from memgs_ros.ros.seed_cloud import encode_seeds  # noqa: E402

@@ -24,7 +24,7 @@ SPEC = "synthetic:w=320,h=240,n=24,seed=3"
 RATE_MBIT = 5.0
 # Short CPU training, as test_pipeline's FAST, with few final iterations: the time to converge
 # after the last frame should measure the link, not the final training.
-FAST = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 20,
+FAST = {"mapper.iterations_per_frame": 3, "mapper.final_iterations": 20,
         "mapper.mapping.merge_start_iter": 60, "mapper.mapping.merge_interval": 60}
 
 

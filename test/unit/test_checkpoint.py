@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from memgs_ros.core.mapping import checkpoint
 from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.mapping import checkpoint
 from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
 from memgs_ros.errors import DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames

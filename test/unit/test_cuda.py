@@ -7,9 +7,9 @@ import pytest
 import torch
 from test_raster import CAM_64, PARAM_NAMES, _scene
 
+from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.raster import _rasterize_reference, rasterize
 from memgs_ros.core.raster.gsplat_backend import gsplat_available
-from memgs_ros.core.gaussians.tensors import Gaussians
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 

@@ -12,7 +12,11 @@ import pytest
 from memgs_ros.errors import DataError
 from memgs_ros.evaluation.timeline import MapSample, map_samples, node_peak_rss_mb, training_rate
 from memgs_ros.orchestration.run_files import (
-    NODE_NAMES, RunSummary, read_params, read_stats_timeline, read_summary,
+    NODE_NAMES,
+    RunSummary,
+    read_params,
+    read_stats_timeline,
+    read_summary,
 )
 
 TIMELINE = [

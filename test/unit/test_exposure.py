@@ -4,13 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from frame_seeds import grid_seeds
 
 from memgs_ros.core.mapping.exposure import ExposureCompensation
 from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
-
-from frame_seeds import grid_seeds
 
 
 def test_starts_at_identity_and_fits_a_gain_and_bias() -> None:

@@ -7,8 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from memgs_ros.core.gaussians.gaussian_map import (render_tensors, 
-    PARAM_NAMES, SH_C0, SIDE_NAMES, GaussianMap, GaussianRecords, num_sh_rest,
+from memgs_ros.core.gaussians.gaussian_map import (
+    PARAM_NAMES,
+    SH_C0,
+    SIDE_NAMES,
+    GaussianMap,
+    GaussianRecords,
+    num_sh_rest,
+    render_tensors,
 )
 from memgs_ros.errors import DataError
 

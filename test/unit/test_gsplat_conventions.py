@@ -19,11 +19,11 @@ import pytest
 import torch
 from test_raster import CAM_64, CAM_OFFCENTRE, PARAM_NAMES, _scene
 
+from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.raster import rasterize
 from memgs_ros.core.raster.projection import project_gaussians, screen_radii
 from memgs_ros.core.raster.reference import _composite_reference
-from memgs_ros.core.gaussians.tensors import Gaussians
 
 
 def _fake_rasterization(

@@ -6,7 +6,13 @@ import pytest
 
 from memgs_ros.core.gaussians.gaussian_map import GaussianRecords
 from memgs_ros.core.maps.map_delta import (
-    ApplyStatus, MapReplica, MessageKind, decode, encode, f_rest_columns, message_dtype,
+    ApplyStatus,
+    MapReplica,
+    MessageKind,
+    decode,
+    encode,
+    f_rest_columns,
+    message_dtype,
 )
 from memgs_ros.errors import MessageError
 

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from memgs_ros.core.gaussians.gaussian_map import SH_C0
+from memgs_ros.core.gaussians.records import PLY_F_REST, GaussianRecords
 from memgs_ros.core.maps.map_delta import (
     DeltaOutbox,
     MapReplica,
@@ -15,7 +16,6 @@ from memgs_ros.core.maps.map_delta import (
     packed_rgb,
     unpack_rgb,
 )
-from memgs_ros.core.gaussians.records import PLY_F_REST, GaussianRecords
 
 
 def _records(n: int, seed: int = 0) -> GaussianRecords:

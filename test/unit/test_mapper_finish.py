@@ -9,9 +9,9 @@ from typing import Any
 
 import pytest
 
-from memgs_ros.core.maps.answers import MapAnswer
 from memgs_ros.core.mapping.finish import FinalPlan, FinishSteps, finish_map
 from memgs_ros.core.mapping.session_records import FinishResult
+from memgs_ros.core.maps.answers import MapAnswer
 from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.errors import DataError
 

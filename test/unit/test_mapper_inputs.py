@@ -7,12 +7,12 @@ import pytest
 
 pytest.importorskip("rclpy", reason="the ROS extra is not installed")
 
-from nav_msgs.msg import Path  # noqa: E402
 from keyframe_bundles import SPEC, Bundle, _bundle, _without_field  # noqa: E402
+from nav_msgs.msg import Path  # noqa: E402
 
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
-from memgs_ros.ros.codecs import matrix_to_pose_stamped  # noqa: E402
 from memgs_ros.nodes.mapper.inputs import KeyframeReceiver, keyframe_poses  # noqa: E402
+from memgs_ros.ros.codecs import matrix_to_pose_stamped  # noqa: E402
 
 PARTS = {"color": "color", "depth": "depth", "camera_info": "info", "pose": "pose", "seeds": "seeds"}
 

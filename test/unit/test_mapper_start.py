@@ -19,6 +19,7 @@ from memgs_ros.core.mapping.mapper_start import MapperStart, SessionOptions, sta
 from memgs_ros.core.mapping.reporting import IterationRate, report_failure
 from memgs_ros.core.mapping.session import MappingSession
 from memgs_ros.core.merge.config import MergeConfig
+from memgs_ros.core.runtime.replay import Pacing
 from memgs_ros.core.runtime.stat_fields import Stat
 from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.errors import ConfigError, DataError
@@ -76,7 +77,7 @@ def test_a_mapper_without_a_checkpoint_starts_an_empty_free_running_session(star
 def test_a_lockstep_mapper_resumes_from_its_checkpoint(tmp_path: Path, started: list[MapperStart]) -> None:
     path = tmp_path / "ck.npz"
     _saved_state(path)
-    s = _start(started, lockstep=True, checkpoint_path=str(path))
+    s = _start(started, pacing=Pacing.LOCKSTEP, checkpoint_path=str(path))
     assert s.resumed is not None and s.set_aside is None and s.checkpoint == CheckpointFile(path)
     assert not s.session.free_running
     ignored = _start(started, checkpoint_path=str(path), resume=False)  # the file stays, to be overwritten

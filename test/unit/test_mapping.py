@@ -7,19 +7,18 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from frame_seeds import grid_seeds
 
-from memgs_ros.core.metrics import ssim as ssim_module
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.view import Undistorter, view_preparation
 from memgs_ros.core.mapping.keyframes import KeyframeStore, make_keyframe
 from memgs_ros.core.mapping.losses import depth_l1_loss, isotropic_loss, mapping_loss, photometric_loss
 from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
+from memgs_ros.core.metrics import ssim as ssim_module
 from memgs_ros.core.runtime.cpu import numba_available
-from memgs_ros.core.geometry.view import Undistorter, view_preparation
 from memgs_ros.errors import ConfigError, DataError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
-
-from frame_seeds import grid_seeds
 
 # ----------------------------------------------------------------------------- losses
 

@@ -13,15 +13,14 @@ from collections.abc import Iterator
 
 import pytest
 import torch
+from frame_seeds import grid_seeds
+from test_mapping import _full_res_loss
 
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
 from memgs_ros.core.merge.voxel_merge import MergeConfig
 from memgs_ros.core.raster.gsplat_backend import gsplat_available
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
-
-from frame_seeds import grid_seeds
-from test_mapping import _full_res_loss
 
 CASES = [
     pytest.param("cpu", "torch", id="cpu-torch"),

@@ -1,10 +1,10 @@
 """The mapper's memory budget: hard cap on Gaussians / MiB, merge then prune, ids reported."""
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import torch
+from frame_seeds import grid_seeds
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frame import Frame
@@ -12,8 +12,6 @@ from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig
 from memgs_ros.core.metrics.image import psnr
 from memgs_ros.errors import ConfigError
 from memgs_ros.io.synthetic import generate_frames, parse_spec
-
-from frame_seeds import grid_seeds
 
 
 @pytest.fixture(scope="module")

@@ -11,10 +11,16 @@ from scipy import ndimage
 
 from memgs_ros.core.metrics import ssim as ssim_module
 from memgs_ros.core.metrics.image import (
-    FrameScore, make_lpips, match_frames, psnr, score_frame, ssim_value, summarize_scores,
+    FrameScore,
+    make_lpips,
+    match_frames,
+    psnr,
+    score_frame,
+    ssim_value,
+    summarize_scores,
 )
-from memgs_ros.core.runtime.cpu import numba_available
 from memgs_ros.core.metrics.ssim import _ssim_map, gaussian_window_1d, ssim, ssim_map
+from memgs_ros.core.runtime.cpu import numba_available
 from memgs_ros.errors import ConfigError
 
 

@@ -6,10 +6,10 @@ import math
 import pytest
 import torch
 
+from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import quat_wxyz_to_rotmat_torch
 from memgs_ros.core.raster.projection import project_gaussians
-from memgs_ros.core.gaussians.tensors import Gaussians
 
 OUTPUTS = ("means2d", "cov2d", "conics", "depths", "opacities", "colors")
 INPUTS = ("means", "quats_wxyz", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "T_cw")

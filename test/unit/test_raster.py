@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import torch
 
+from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import quat_wxyz_to_rotmat_torch
 from memgs_ros.core.raster import RenderOutput, _rasterize_reference, rasterize
 from memgs_ros.core.raster.composite import composite
-from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.projection import alpha_cutoff_sq, project_gaussians
+from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.tiles import build_tile_plan
-from memgs_ros.core.gaussians.tensors import Gaussians
 from memgs_ros.core.raster.values import Splats2D
 
 PARAM_NAMES = ("means", "quats_wxyz", "log_scales", "opacity_logits", "sh_dc", "sh_rest")

@@ -7,11 +7,17 @@ import pytest
 
 from memgs_ros.core.geometry.camera import TUM_FR1, PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose
-from memgs_ros.core.sampling import (
-    PG_RGBD, SOURCE_KEYPOINT, SOURCE_PATCH_GRID, PatchGridConfig, SeedPoints, patch_grid_uv,
-    seeds_mono, seeds_rgbd,
-)
 from memgs_ros.core.geometry.view import Undistorter, undistort_uv, view_preparation
+from memgs_ros.core.sampling import (
+    PG_RGBD,
+    SOURCE_KEYPOINT,
+    SOURCE_PATCH_GRID,
+    PatchGridConfig,
+    SeedPoints,
+    patch_grid_uv,
+    seeds_mono,
+    seeds_rgbd,
+)
 from memgs_ros.errors import ConfigError, DataError
 
 

@@ -8,15 +8,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from frame_seeds import grid_seeds
 
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.poses import quat_wxyz_to_rotmat_torch
-from memgs_ros.core.mapping.mapper import MappingConfig
 from memgs_ros.core.mapping.keyframes import KeyframeInput
+from memgs_ros.core.mapping.mapper import MappingConfig
 from memgs_ros.core.mapping.session import MappingSession, SessionError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
-
-from frame_seeds import grid_seeds
 
 
 @pytest.fixture(scope="module")

@@ -9,8 +9,8 @@ import torch
 
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 from memgs_ros.core.mapping.mapper import MappingConfig
-from memgs_ros.core.merge.voxel_merge import MergeConfig
 from memgs_ros.core.mapping.strategies import BudgetStrategy, DensifyStrategy, MergeSchedule
+from memgs_ros.core.merge.voxel_merge import MergeConfig
 
 
 def _map(n: int, log_scale: float = math.log(0.001), opacity: float = 0.5) -> GaussianMap:

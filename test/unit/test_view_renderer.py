@@ -7,8 +7,8 @@ import threading
 import numpy as np
 import pytest
 
-from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.gaussians.records import GaussianRecords
+from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.maps.view_renderer import ViewRenderer
 
 

@@ -17,6 +17,7 @@ from memgs_ros.core.merge.config import MergeConfig
 from memgs_ros.core.raster import warm_up
 from memgs_ros.core.raster.backend_choice import BackendChoice, choose_backend, device_problem, resolve_device
 from memgs_ros.core.runtime.cpu import configure_cpu_runtime
+from memgs_ros.core.runtime.replay import Pacing
 from memgs_ros.errors import ConfigError, DataError
 
 __all__ = ["MapperStart", "SessionOptions", "start_mapper", "warm_kernels"]
@@ -24,10 +25,10 @@ __all__ = ["MapperStart", "SessionOptions", "start_mapper", "warm_kernels"]
 
 @dataclass(frozen=True)
 class SessionOptions:
-    """The mapper's parameters that shape its session (``MapperParams``: lockstep, insert_queue,
+    """The mapper's parameters that shape its session (``MapperParams``: pacing, insert_queue,
     delta_tolerance, niceness; checkpoint_path empty: no checkpoints)."""
 
-    lockstep: bool = False
+    pacing: Pacing = Pacing.LIVE
     insert_queue: int = 4
     delta_tolerance: float = 1e-3
     niceness: int = 0
@@ -76,7 +77,8 @@ def start_mapper(cfg: MappingConfig, merge_cfg: MergeConfig, device_param: str, 
 
     def start(state: MapperCheckpoint | None) -> MappingSession:
         # A new delta epoch every start: a merger that held the map of an earlier life resynchronises.
-        return MappingSession(cfg, device, merge_cfg=merge_cfg, free_running=not (opts.lockstep or opts.frozen),
+        free_running = not (opts.pacing.acknowledged or opts.frozen)
+        return MappingSession(cfg, device, merge_cfg=merge_cfg, free_running=free_running,
                               insert_queue=opts.insert_queue, delta_tolerance=opts.delta_tolerance,
                               delta_epoch=secrets.randbits(32), niceness=opts.niceness, checkpoint=state)
 

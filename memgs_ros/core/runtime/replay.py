@@ -26,6 +26,7 @@ waits until its bundle is complete (inserted or refused).
 """
 from __future__ import annotations
 
+import enum
 import functools
 import time
 from collections import deque
@@ -34,7 +35,25 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["AckWait", "AckWindow", "FrameAcknowledger", "RealTimeClock", "StartGate"]
+__all__ = ["AckWait", "AckWindow", "FrameAcknowledger", "Pacing", "RealTimeClock", "StartGate"]
+
+
+class Pacing(str, enum.Enum):
+    """How a replay's frames go through the graph: the ``pacing`` parameter of the player and the
+    mapper, set for both from one value by ``memgs run`` (``--realtime``: live)."""
+
+    LIVE = "live"  # the recorded rate (x rate); the graph drops what it cannot take, as from a camera
+    LOCKSTEP = "lockstep"  # each frame acknowledged before the next: deterministic, nothing dropped
+
+    @property
+    def acknowledged(self) -> bool:
+        """Every frame waits for the mapper's acknowledgement: the player sends the next one after it,
+        the mapper trains ``iterations_per_frame`` for it, and the tracker takes it however late."""
+        return self is Pacing.LOCKSTEP
+
+    @classmethod
+    def choices(cls) -> tuple[str, ...]:
+        return tuple(p.value for p in cls)
 
 
 class StartGate:

@@ -102,7 +102,7 @@ class MapperTelemetry(NodeTelemetry):
     warm_up_s: float = 0.0  # the kernels' load (or compile) time
     working_peak_mb: float = 0.0  # peak RSS above the baseline
     iterations_per_s: float = 0.0  # over the last stats period
-    lockstep_ack_ms_median: float = 0.0  # tracker's word to the acknowledgement
+    frame_ack_ms_median: float = 0.0  # tracker's word to the acknowledgement
     keyframes_announced: int = 0  # decisions heard from the tracker
     keyframes_missed: int = 0  # announced but never received whole
     duplicate_keyframe_parts: int = 0  # a part that came twice

@@ -83,7 +83,7 @@ class MapperFields(NodeFields):
     warm_up_s = Stat[float](0.0)  # the kernels' load (or compile) time
     working_peak_mb = Stat[float](0.0)  # peak RSS above the baseline
     iterations_per_s = Stat[float](0.0)  # over the last stats period
-    lockstep_ack_ms_median = Stat[float](0.0)  # tracker's word to the acknowledgement
+    frame_ack_ms_median = Stat[float](0.0)  # tracker's word to the acknowledgement
     keyframes_announced = Stat[int](0)  # decisions heard from the tracker
     keyframes_missed = Stat[int](0)  # announced but never received whole
     duplicate_keyframe_parts = Stat[int](0)  # a part that came twice

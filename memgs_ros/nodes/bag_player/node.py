@@ -26,7 +26,7 @@ The frame order, loops and skips are :class:`memgs_ros.io.replay.ReplayFeed`'s; 
 and the acknowledgement awaited are the replay service's (:mod:`memgs_ros.core.runtime.replay`); the messages
 :class:`memgs_ros.nodes.bag_player.outputs.FrameOutbox`'s.
 
-    python -m memgs_ros.nodes.bag_player.node --ros-args -p source:=synthetic:w=64,h=48,n=20 -p lockstep:=true
+    python -m memgs_ros.nodes.bag_player.node --ros-args -p source:=synthetic:w=64,h=48,n=20 -p pacing:=lockstep
 """
 from __future__ import annotations
 
@@ -89,21 +89,21 @@ class BagPlayer(Node):
         # Frames this replay will publish (0 = unknown: looping, or a source of unknown length): a watcher's ETA.
         self.stats.frames_total = 0 if cfg.loop else frames_total(frames, cfg.max_frames)
         self._ack_sub = (self.create_subscription(Header, cfg.ack_topic, self._on_ack, qos.reliable(10))
-                         if cfg.lockstep else None)
+                         if cfg.replay.acknowledged else None)
         self.acks = AckWait(cfg.ack_timeout_s)
         self._ack_wait_ms = RollingMedian()
-        self.stats.compute(PlayerStats.ack_wait_ms_median, self._ack_wait_ms)  # lockstep: sent to acked
+        self.stats.compute(PlayerStats.ack_wait_ms_median, self._ack_wait_ms)  # acknowledged pacing: sent to acked
         self._gate = StartGate(SETTLE_S, cfg.start_delay_s, time.monotonic(), f"a publisher on '{cfg.ack_topic}'")
         self._wait_for = tuple(n.strip() for n in cfg.wait_for_readers.split(",") if n.strip())
         self._next: tuple[Frame, int] | None = None  # the next frame and its replay stamp
         self._last_sent_ns = 0
-        self.clock = RealTimeClock(cfg.rate)  # also marks the start in lockstep (clock.t0)
+        self.clock = RealTimeClock(cfg.rate)  # also marks the start when acknowledged (clock.t0)
         self._last_progress = 0.0
         self._finish_at: float | None = None
         self._timer = self.create_timer(MAX_TICK_S, self._tick)
         count = f"{len(frames)} frames, " if hasattr(frames, "__len__") else ""  # type: ignore[arg-type]
         self.get_logger().info(f"replaying '{cfg.source or type(frames).__name__}' ({count}"
-                               f"{'lockstep' if cfg.lockstep else f'real time x{cfg.rate:g}'}"
+                               f"{cfg.pacing if cfg.replay.acknowledged else f'real time x{cfg.rate:g}'}"
                                f"{', looping' if cfg.loop else ''})")
 
     def _open(self, folder_camera: PinholeCamera | None, frames: Iterable[Frame] | None) -> Iterable[Frame]:
@@ -124,7 +124,7 @@ class BagPlayer(Node):
             return
         if self.clock.t0 is None and not self._start(now):
             return
-        if self.cfg.lockstep:
+        if self.cfg.replay.acknowledged:
             expired = self.acks.expire(now)
             if expired is not None:
                 self.get_logger().warning(f"no ack for stamp {expired} within {self.cfg.ack_timeout_s:g} s on "
@@ -201,10 +201,10 @@ class BagPlayer(Node):
         self.stats.frames_published += 1
         self.stats.ack_timeouts = self.acks.timeouts
         self._last_sent_ns = stamp_ns
-        if self.cfg.lockstep:
+        if self.cfg.replay.acknowledged:
             self.acks.sent(stamp_ns, time.monotonic())
         self._prefetch()
-        if self._next is None and not self.cfg.lockstep:
+        if self._next is None and not self.cfg.replay.acknowledged:
             self._finish(ok=self.ok)
 
     def _finish(self, ok: bool) -> None:

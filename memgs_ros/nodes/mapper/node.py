@@ -4,7 +4,7 @@
 In: ``memgs/keyframe/{color,depth,camera_info,pose,seeds}`` (one stamp per keyframe),
 ``memgs/keyframe/refined_poses`` (bundle adjustment), ``memgs/keyframe/loop_corrected_poses``,
 ``memgs/keyframe/culled`` (keyframes the tracker culled: out of training),
-``memgs/pose`` (live view), ``memgs/render/view_pose``, ``memgs/tracker/processed`` (lockstep).
+``memgs/pose`` (live view), ``memgs/render/view_pose``, ``memgs/tracker/processed`` (an acknowledged replay).
 Out: ``memgs/map/delta`` (core/maps/map_delta.py), ``memgs/mapper/snapshot`` (latched, with a packed ``rgb`` colour),
 ``memgs/render/{color,depth,camera_info}``, ``memgs/frame_ack``, ``memgs/mapper/stats``; services
 ``memgs/mapper/publish_snapshot`` and ``memgs/mapper/finish``
@@ -75,7 +75,7 @@ class MapperNode(ManagedNode):
         """torch and the device, the session (resumed from the checkpoint), the topics and timers."""
         p = self.params
         self.frozen = p.map_mode == "localize"  # a loaded map rendered, never trained
-        opts = SessionOptions(lockstep=p.lockstep, insert_queue=p.insert_queue, delta_tolerance=p.delta_tolerance,
+        opts = SessionOptions(pacing=p.replay, insert_queue=p.insert_queue, delta_tolerance=p.delta_tolerance,
                               niceness=p.niceness, checkpoint_path=p.checkpoint_path, resume=p.resume,
                               map_bundle=p.map_bundle, frozen=self.frozen)
         start = start_mapper(self.cfg, self.merge_cfg, p.device, opts)
@@ -92,9 +92,9 @@ class MapperNode(ManagedNode):
             self.out.receivers_acked,
             lambda: self.stats.post_add(MapperStats.delta_waits))
         self.live_view = LiveView()
-        self.lockstep = FrameAcknowledger(
-            p.lockstep_window, lambda: self.stats.watch(self.session.train(0 if self.frozen else p.lockstep_iterations),
-                                                        "train"),
+        self.acks = FrameAcknowledger(
+            p.ack_window, lambda: self.stats.watch(self.session.train(0 if self.frozen else p.iterations_per_frame),
+                                                   "train"),
             self.out.hand_over, self.out.ack, self.stats.ack_ms.add)
         self.latest_pose: PoseStamped | None = None
         topics = {"color": Image, "camera_info": CameraInfo, "pose": PoseStamped, "seeds": PointCloud2,
@@ -118,7 +118,7 @@ class MapperNode(ManagedNode):
         # through one queue (MapperOutbox.hand_over); the services that must wait for them are
         # coroutines, each in a group of its own, so everything else goes on meanwhile. (A
         # multi-threaded executor took ~30 ms, at times seconds, to pick up a message here: every
-        # lockstep frame waited on it.)
+        # acknowledged frame waited on it.)
         kfq = qos.keyframes()  # a resumed mapper gets the keyframes sent while it was down
         for part, msg_type in topics.items():
             self.create_subscription(msg_type, f"memgs/keyframe/{part}", lambda m, info, p=part: self._part(p, m, info),
@@ -156,7 +156,8 @@ class MapperNode(ManagedNode):
             log.info(f"resumed from {getattr(where, 'path', where)}: {len(r.gaussians)} Gaussians, {len(r.keyframes)} "
                      f"keyframes, iteration {r.iteration}{' (localize: not trained)' if self.frozen else ''}")
         log.info(f"mapper on {device_label(start.device)}, rasterizer {start.raster.backend}, "
-                 f"{'lockstep' if self.params.lockstep else 'free-running'} training")
+                 f"{'per-frame' if self.params.replay.acknowledged else 'free-running'} training "
+                 f"({self.params.pacing})")
         if start.raster.fallback_warning:
             log.warning("CUDA without gsplat: the torch fallback rasterizer is several times slower; "
                         "install gsplat (README 'On a Jetson')")
@@ -177,7 +178,7 @@ class MapperNode(ManagedNode):
             self.stats.post_problem(got.problem, got.message)
         else:
             self.stats.watch(self.session.insert_keyframe(got.keyframe, time.thread_time() - cpu0), "insert_keyframe")
-        self.lockstep.bundle_complete(got.stamp_ns)
+        self.acks.bundle_complete(got.stamp_ns)
 
     def _keyframe_poses(self, msg: Path) -> dict[int, Any]:
         poses, refused = keyframe_poses(msg)
@@ -207,15 +208,15 @@ class MapperNode(ManagedNode):
             self.stats.watch(self.session.correct_keyframes(poses), "correct_keyframes")
 
     def on_processed(self, msg: Header) -> None:
-        """Lockstep: acknowledge a frame once its keyframe (if any) is queued and training ran
+        """Acknowledged pacing: acknowledge a frame once its keyframe (if any) is queued and training ran
         (``FrameAcknowledger``). Always: remember announced keyframes, so ones that never
         arrive are counted."""
         stamp, keyframe = stamp_to_ns(msg.stamp), msg.frame_id == "keyframe"
         if keyframe:
             self.keyframes.intake.announce(stamp, time.monotonic())
             self.stats.post_add(MapperStats.keyframes_announced)
-        if self.params.lockstep:
-            self.lockstep.processed(stamp, keyframe, self.keyframes.intake.seen(stamp))
+        if self.params.replay.acknowledged:
+            self.acks.processed(stamp, keyframe, self.keyframes.intake.seen(stamp))
 
     def publish_snapshot(self) -> Future:
         """Queue the whole map as a (latched) snapshot at the next seq: (rows, size, seq)."""

@@ -25,7 +25,7 @@ T = TypeVar("T")
 class MapperStats(NodeStats, MapperFields):
     """``NodeStats`` of the mapper: gauges ``raster_backend``, ``checkpoint_period_s`` (0: this
     mapper never checkpoints; fault injection waits for a checkpoint to resume from) and
-    ``kernels_warm``; ``lockstep_ack_ms_median`` over ``ack_ms``."""
+    ``kernels_warm``; ``frame_ack_ms_median`` over ``ack_ms``."""
 
     def __init__(self, node: Node, raster_backend: str, checkpoint_period_s: float) -> None:
         # Free heap pages go back every 2 s (each trim ~5 ms): training leaves ~30-50 MB of
@@ -33,7 +33,7 @@ class MapperStats(NodeStats, MapperFields):
         super().__init__(node, "mapper", trim_period_s=2.0)
         self.raster_backend, self.checkpoint_period_s, self.kernels_warm = raster_backend, checkpoint_period_s, 0
         self.ack_ms = RollingMedian()  # a lockstep frame's time here: the tracker's word to the acknowledgement
-        self.compute(MapperStats.lockstep_ack_ms_median, self.ack_ms)
+        self.compute(MapperStats.frame_ack_ms_median, self.ack_ms)
         self._rate = IterationRate(time.monotonic())
         self._rss_baseline_mb: float | None = None  # set by the warm-up, on the session's worker
 

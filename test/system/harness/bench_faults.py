@@ -69,7 +69,7 @@ from memgs_ros.testing.delta_relay import LOSSY_MERGER, lossy_deltas  # noqa: E4
 
 SPEC = "synthetic:w=128,h=96,n=40,seed=3"
 # Short training, and saves and checkpoints every second, so a late fault finds both on disk.
-SETTINGS = {"mapper.lockstep_iterations": 3, "mapper.final_iterations": 30, "mapper.checkpoint_period_s": 1.0,
+SETTINGS = {"mapper.iterations_per_frame": 3, "mapper.final_iterations": 30, "mapper.checkpoint_period_s": 1.0,
             "merger.save_period_s": 1.0}
 TARGETS = ("tracker", "keyframe_sampler", "mapper", "merger", "bag_player", "runner")
 SIGNALS = (signal.SIGKILL, signal.SIGTERM, signal.SIGINT)
