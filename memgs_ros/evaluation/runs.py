@@ -8,7 +8,7 @@ The tools tier between the pure scorers (:mod:`memgs_ros.core.metrics.scoring`) 
   :mod:`memgs_ros.orchestration.run_files`) and the source's ground truth, and scores them. It
   opens no ROS context: map size over time, the CUDA peak and each node's peak RSS come from
   the stats timeline the run recorded;
-- :func:`evaluate` runs the graph on a source in lockstep (:func:`run_pipeline`) and then
+- :func:`evaluate` runs the graph on a source, every frame acknowledged (:func:`run_pipeline`) and then
   :func:`evaluate_run` on its output; :func:`ablation` does so once per variant.
 
 What is measured:
@@ -465,7 +465,7 @@ def evaluate(source: str, config: str = "synthetic", mode: str = "rgbd",
              device: str | None = None, progress: bool = True, record: Path | None = None,
              rerun: RerunTarget | None = None, map_bundle: Path | None = None,
              map_mode: str = "mapping", edits: Sequence[ConfigEdit[Any]] = ()) -> EvalResult:
-    """Run the graph on ``source`` in lockstep (from ``map_bundle`` in ``map_mode`` when given),
+    """Run the graph on ``source``, every frame acknowledged (from ``map_bundle`` in ``map_mode`` when given),
     then :func:`evaluate_run` on its output.
 
     resolution_scale: mapping resolution (``mapper.mapping.resolution_scale``); None keeps the

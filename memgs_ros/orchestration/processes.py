@@ -63,7 +63,7 @@ class _NodeFactories(Mapping[str, Callable[..., Any]]):
 NODE_MODULES: Mapping[str, ModuleType] = _NodeModules()
 NODE_FACTORIES: Mapping[str, Callable[..., Any]] = _NodeFactories()
 # The Rerun view yields the cores to mapping: on 2 cores its CPU (~3 % of a run's) otherwise
-# lengthens the run by as much. It still runs whenever a core idles (lockstep waits, I/O).
+# lengthens the run by as much. It still runs whenever a core idles (acknowledgement waits, I/O).
 # Below the mapper, which runs at its own niceness (10, the node's parameter) below the tracker.
 NICENESS = {VIEW_NODE: 15}
 KILL_WAIT_S = 10.0  # how long the runner waits for a SIGKILLed node to be reaped

@@ -81,7 +81,7 @@ class RunOptions:
     config: str = "synthetic"
     out_dir: Path = Path("memgs_out")
     composed: bool = False  # the nodes as components of the runner's process, on one executor
-    pacing: Pacing = Pacing.LOCKSTEP  # memgs run replays in lockstep unless --realtime
+    pacing: Pacing = Pacing.LOCKSTEP  # memgs run acknowledges every frame unless --realtime
     rate: float = 1.0
     namespace: str = ""
     domain_id: int | None = None

@@ -3,7 +3,7 @@
 - ``sensor()``: what camera subscribers use (BEST_EFFORT, VOLATILE, depth 5). It also
   receives from RELIABLE publishers, so it works with RealSense (RELIABLE by default)
   and with the bag player.
-- ``reliable(depth)``: keyframes, seeds, map deltas, lockstep acks, and the bag player's
+- ``reliable(depth)``: keyframes, seeds, map deltas, replay acknowledgements, and the bag player's
   sensor topics (a RELIABLE publisher serves both kinds of subscriber; a BEST_EFFORT one
   would starve RELIABLE subscribers).
 - ``latched()``: RELIABLE + TRANSIENT_LOCAL, depth 1: the latest map snapshot or "done"

@@ -64,7 +64,7 @@ class MappingConfig:
     seed_coverage: bool = True
     seed_coverage_age_s: float = 6.0
     # ... or inserted this many training iterations before it (0: by age only): a flight that turns
-    # back over what it saw seconds ago finds that surface trained (in lockstep, 8 iterations a
+    # back over what it saw seconds ago finds that surface trained (acknowledged, 8 iterations a
     # frame, ~1000 iterations), and its age alone had the revisit seed and densify as new (the head
     # twice, forward and back: 38.4k Gaussians, 21.5k with this; one pass 28.4k -> 21.2k, -0.14 dB)
     seed_coverage_trained_iters: int = 300
@@ -88,7 +88,7 @@ class MappingConfig:
     densify_grad_threshold: float = 0.001
     # ... and only within this many iterations of the newest keyframe's arrival (0: at any time): a
     # long flight over a room already mapped brings no keyframe, and densification would grow the
-    # map with the training time (the fr1/rpy head five times in lockstep: 2.4x one pass's Gaussians);
+    # map with the training time (the fr1/rpy head five times, every frame acknowledged: 2.4x one pass's Gaussians);
     # a keyframe opens it in proportion to the share of its seeds the map lacked (a revisit: ~none)
     densify_window_iters: int = 500
     percent_dense: float = 0.01
@@ -98,7 +98,7 @@ class MappingConfig:
     prune_min_age_iters: int = 200
     max_screen_size_px: float = 0.0
     # Training views
-    min_keyframes: int = 10  # lockstep training starts with this many (the final iterations train on any number)
+    min_keyframes: int = 10  # per-frame training starts with this many (the final iterations train on any number)
     # Live (free-running) training starts with this many: the map is for use in flight, and a mapper
     # that waited for min_keyframes trained nothing while the camera moved
     live_min_keyframes: int = 1

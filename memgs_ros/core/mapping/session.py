@@ -16,7 +16,7 @@ alone owns the delta outbox and sends in the order cut. Both are ``CommandWorker
 and a worker that stops or dies fails every pending future, the outbox's included.
 
 Free-running (``free_running=True``): between commands the worker trains, one step at a time, so
-a command waits at most for the step in progress. Lockstep: the worker trains only on ``train``
+a command waits at most for the step in progress. Acknowledged pacing: the worker trains only on ``train``
 commands ("train N steps, then acknowledge"), the same code path, so a replay is deterministic.
 
 Overload: at most ``insert_queue`` keyframe insertions wait in the queue (free-running only);
@@ -265,7 +265,7 @@ class MappingSession(CommandWorker):
 
     def set_training(self, on: bool) -> Future[bool]:
         """Pause (False) or resume the free-running training between commands (a managed node's
-        deactivate / activate); keyframes, deltas, renders and saves go on. Lockstep sessions train
+        deactivate / activate); keyframes, deltas, renders and saves go on. Sessions of an acknowledged replay train
         by command only and are unchanged. The future gives whether it trains now."""
         def run() -> bool:
             self._training = bool(on) and self.free_running and not self._finished
@@ -274,7 +274,7 @@ class MappingSession(CommandWorker):
 
     def train(self, iterations: int) -> Future[StepStats | None]:
         """Run ``iterations`` training steps now (nothing before ``ready``); the future gives the
-        last step's stats. Lockstep replays call this once per frame."""
+        last step's stats. Acknowledged replays call this once per frame."""
         return self.submit("train", lambda: self._train(int(iterations)))
 
     def delta(self, max_rows: int | None, exact: bool = False,
@@ -338,7 +338,7 @@ class MappingSession(CommandWorker):
         each, so at least one runs): a robot that must hand its map over by a deadline trades the
         last polish for time. ``total_iterations`` > 0 runs more final iterations while the map has
         trained fewer in all: a live run on a slow machine, which trained little while the camera
-        moved, still gets the training a lockstep replay's map had."""
+        moved, still gets the training an acknowledged replay's map had."""
         return self.submit("finish", lambda: self._finish(int(final_iterations), bool(densify), float(budget_s),
                                                           int(total_iterations)))
 
@@ -375,7 +375,7 @@ class MappingSession(CommandWorker):
         return self._training and not self._finished
 
     def _background(self) -> float:
-        # Live, training starts at live_min_keyframes (1): the map is for use in flight. Lockstep
+        # Live, training starts at live_min_keyframes (1): the map is for use in flight. Acknowledged
         # replays keep min_keyframes (their train commands), so they reproduce the offline schedule.
         st = self._mapper.step(min_keyframes=self.cfg.live_min_keyframes)
         if st is None:
@@ -443,7 +443,7 @@ class MappingSession(CommandWorker):
                 break
             self._after_step(st)
             last = st
-        # A lockstep frame's training time: train_ms_total / train_commands.
+        # An acknowledged frame's training time: train_ms_total / train_commands.
         self._counters.train_commands += 1
         self._counters.train_ms_total += round(1e3 * (time.perf_counter() - t0))
         return last

@@ -322,7 +322,7 @@ class DensifyStrategy:
         It opens the window in that proportion: a new view all of it, a revisit whose seeds the map
         already explains almost none (it counts as having come that much earlier). Without this a
         flight over one room densified after every revisit's keyframe and grew the map with the
-        flight (lockstep ping-pong: 1.35x one pass's Gaussians, 1.24x with it)."""
+        flight (acknowledged ping-pong: 1.35x one pass's Gaussians, 1.24x with it)."""
         unseen = self.cfg.densify_window_iters * (1.0 - min(max(novel, 0.0), 1.0))
         self._window_from = max(self._window_from, iteration - round(unseen))
 

@@ -4,7 +4,7 @@ tiles, projection chunks): ``parallel_map``.
 The kernels release the GIL (numba ``nogil``, torch ops), so Python threads run them in parallel.
 A pool made per call started new threads every call; in a process lowered to niceness 10 (the
 mapper, ``lower_priority``) those new threads kept landing on the core of the thread that made
-them, and a 12k-Gaussian training step took 39 ms instead of 28 (57 ms inside the lockstep graph).
+them, and a 12k-Gaussian training step took 39 ms instead of 28 (57 ms inside the graph, every frame acknowledged).
 Threads that live as long as the process are spread by the scheduler once and stay spread.
 
 A job that itself calls ``parallel_map`` runs its inner jobs inline: a pool thread waiting on the

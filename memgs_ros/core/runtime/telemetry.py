@@ -53,7 +53,7 @@ class TrackerTelemetry(NodeTelemetry):
     frame_cpu_us_total: int = 0  # CPU from message in to pose out, over all frames
     frame_cpu_ms: float = 0.0  # the last frame's
     frame_cpu_ms_median: float = 0.0  # its rolling median
-    frame_ms_median: float = 0.0  # wall: a lockstep frame's share
+    frame_ms_median: float = 0.0  # wall: an acknowledged frame's share
     camera_info_differs: int = 0  # camera_info messages unlike the first (kept)
     refined_keyframe_poses: int = 0  # keyframe poses re-published after local BA
     loop_corrected_keyframe_poses: int = 0  # ... after a loop closure
@@ -125,7 +125,7 @@ class MapperTelemetry(NodeTelemetry):
     keyframes_corrected: int = 0  # moved by loop closures
     gaussians_corrected: int = 0  # Gaussians moved with them
     renders: int = 0  # views rendered on request
-    train_commands: int = 0  # lockstep train commands run
+    train_commands: int = 0  # per-frame train commands run
     train_ms_total: int = 0  # their time
     merged_removed: int = 0  # Gaussians the voxel merge removed
     merged_added: int = 0  # ... and added in their place
@@ -186,8 +186,8 @@ class MergerTelemetry(NodeTelemetry):
 class PlayerTelemetry(NodeTelemetry):
     frames_published: int = 0  # frames sent
     frames_total: int = 0  # in the source (0: looping)
-    ack_timeouts: int = 0  # lockstep frames whose acknowledgement never came
-    ack_wait_ms_median: float = 0.0  # a lockstep frame's round trip
+    ack_timeouts: int = 0  # acknowledged frames whose acknowledgement never came
+    ack_wait_ms_median: float = 0.0  # an acknowledged frame's round trip
     late_ms: float = 0.0  # behind the real-time schedule
     skipped: Mapping[str, int] = _family()  # skipped.<kind>: frames the source could not give
 

@@ -33,7 +33,7 @@ class TrackerFields(NodeFields):
     frame_cpu_us_total = Stat[int](0)  # CPU from message in to pose out, over all frames
     frame_cpu_ms = Stat[float](0.0)  # the last frame's
     frame_cpu_ms_median = Stat[float](0.0)  # its rolling median
-    frame_ms_median = Stat[float](0.0)  # wall: a lockstep frame's share
+    frame_ms_median = Stat[float](0.0)  # wall: an acknowledged frame's share
     camera_info_differs = Stat[int](0)  # camera_info messages unlike the first (kept)
     refined_keyframe_poses = Stat[int](0)  # keyframe poses re-published after local BA
     loop_corrected_keyframe_poses = Stat[int](0)  # ... after a loop closure
@@ -105,7 +105,7 @@ class MapperFields(NodeFields):
     keyframes_corrected = Stat[int](0)  # moved by loop closures
     gaussians_corrected = Stat[int](0)  # Gaussians moved with them
     renders = Stat[int](0)  # views rendered on request
-    train_commands = Stat[int](0)  # lockstep train commands run
+    train_commands = Stat[int](0)  # per-frame train commands run
     train_ms_total = Stat[int](0)  # their time
     merged_removed = Stat[int](0)  # Gaussians the voxel merge removed
     merged_added = Stat[int](0)  # ... and added in their place
@@ -165,8 +165,8 @@ class PlayerFields(NodeFields):
 
     frames_published = Stat[int](0)  # frames sent
     frames_total = Stat[int](0)  # in the source (0: looping)
-    ack_timeouts = Stat[int](0)  # lockstep frames whose acknowledgement never came
-    ack_wait_ms_median = Stat[float](0.0)  # a lockstep frame's round trip
+    ack_timeouts = Stat[int](0)  # acknowledged frames whose acknowledgement never came
+    ack_wait_ms_median = Stat[float](0.0)  # an acknowledged frame's round trip
     late_ms = Stat[float](0.0)  # behind the real-time schedule
     skipped = Family[int]("skipped", 0)  # skipped.<kind>: frames the source could not give
 

@@ -1,7 +1,7 @@
 """Which incoming frames the tracker takes, decided without ROS: the stamp rules, a live camera's
 gate (frames lost in transport, frames before the kernels, stale frames) and the camera the
 tracker runs with (the frames that wait for it). The tracker node answers every refused frame on its
-``processed`` topic (a lockstep player goes on) and counts it under the kind named here.
+``processed`` topic (a player awaiting acknowledgements goes on) and counts it under the kind named here.
 
 Stamp rules (a frame's stamp is its colour image's):
 - equal to the previous frame's: a duplicate delivery, refused (``stamp_duplicate``);
@@ -70,7 +70,7 @@ class StampRules:
 
 
 class LiveGate:
-    """A live camera's colour frames as they reach the node (``max_age_ns`` 0: a lockstep replay,
+    """A live camera's colour frames as they reach the node (``max_age_ns`` 0: an acknowledged replay,
     where every frame is taken and nothing is counted).
 
     ``admit`` counts the frames the camera published that never arrived (the reader's queue

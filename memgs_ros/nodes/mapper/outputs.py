@@ -1,5 +1,5 @@
 """Everything the mapper node publishes: map deltas and snapshots (rows the session's outbox
-thread made), rendered views, and the lockstep acknowledgements. What the session's threads
+thread made), rendered views, and the replay's acknowledgements. What the session's threads
 produce is handed over to the executor's thread and published there, in the order handed over
 (deltas, snapshots and the final flush leave in seq order)."""
 from __future__ import annotations
@@ -64,7 +64,7 @@ class MapperOutbox:
         return lambda view: self.hand_over(lambda: send(view))
 
     def ack(self, stamp_ns: int) -> None:
-        """Acknowledge a lockstep frame to the player."""
+        """Acknowledge an acknowledged frame to the player."""
         self.acks.publish(make_header(stamp_ns, "mapper"))
 
     def _cloud(self, rows: np.ndarray) -> PointCloud2:

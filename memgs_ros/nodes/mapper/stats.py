@@ -32,7 +32,7 @@ class MapperStats(NodeStats, MapperFields):
         # freed step buffers a step, and at the default 30 s they piled up into the peak RSS.
         super().__init__(node, "mapper", trim_period_s=2.0)
         self.raster_backend, self.checkpoint_period_s, self.kernels_warm = raster_backend, checkpoint_period_s, 0
-        self.ack_ms = RollingMedian()  # a lockstep frame's time here: the tracker's word to the acknowledgement
+        self.ack_ms = RollingMedian()  # an acknowledged frame's time here: the tracker's word to the acknowledgement
         self.compute(MapperStats.frame_ack_ms_median, self.ack_ms)
         self._rate = IterationRate(time.monotonic())
         self._rss_baseline_mb: float | None = None  # set by the warm-up, on the session's worker

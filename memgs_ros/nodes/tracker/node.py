@@ -16,7 +16,7 @@ BA on ``memgs/keyframe/refined_poses``, the keyframes a loop closure corrected o
 (Path each, one PoseStamped per keyframe stamp: the mapper takes the first as new training poses,
 moves each keyframe's Gaussians with the second, and retires the third's views), and
 ``memgs/tracker/processed`` (Header; frame_id "keyframe" or "frame") for every frame handled, which
-the lockstep player or the mapper waits on.
+the player awaiting acknowledgements or the mapper waits on.
 
 ``memgs/pose``, ``memgs/odom`` and ``memgs/pose_with_covariance`` are per-frame odometry, published
 once and never revised.
@@ -27,7 +27,7 @@ only to the mapper).
 Frames are gated by ``core/tracking/frame_gate.py`` (its docstring has the stamp rules: duplicates,
 late frames, time resets, stamps from a broken clock; a live camera's frames lost in transport,
 before the kernels, or stale).
-Every dropped frame is still answered on ``memgs/tracker/processed`` so a lockstep player goes on.
+Every dropped frame is still answered on ``memgs/tracker/processed`` so a player awaiting acknowledgements goes on.
 Problems are counted on ``memgs/tracker/stats`` as ``problem.<kind>`` and logged once per kind.
 
 Calibration: the camera comes from the first valid camera_info, or, with ``camera_info_override``,
@@ -95,7 +95,7 @@ class TrackerNode(ManagedNode):
             calibration if v.camera_info_override else None)
         self.rgbd = self.cfg.mode == "rgbd"
         self.stamps = StampRules(int(1e9 * v.time_jump_back_s), int(1e9 * v.max_stamp_ahead_s))
-        self.gate = LiveGate(int(1e9 * v.max_frame_age_s))  # 0: never stale (the runner's lockstep replays)
+        self.gate = LiveGate(int(1e9 * v.max_frame_age_s))  # 0: never stale (the runner's acknowledged replays)
         self.pairing = RgbdPairing(self, v, lambda pair: self._handle(pair[1], pair[2]))
         self.tracker: Tracker | None = None
         self.stats = TrackerStats(self)
@@ -111,7 +111,7 @@ class TrackerNode(ManagedNode):
         # The kernels load (on a fresh install: compile, ~10 s) beside the executor, neither on the
         # first frame (a live camera does not wait) nor in __init__ (a compiling node missed its stop
         # deadline). The runner starts a replay once ``kernels_warm`` is 1; a live frame before
-        # that is counted (skipped.warming); a lockstep frame waits (inside make_tracker).
+        # that is counted (skipped.warming); an acknowledged frame waits (inside make_tracker).
         self.stats.kernels_warm = 0
         self._warm = WarmUpThread(warm_up, self._warmed, name="tracker-warm-up")
 
@@ -231,7 +231,7 @@ class TrackerNode(ManagedNode):
 
     def _track(self, tracker: Tracker, frame: Frame) -> TrackResult:
         """``tracker.track(frame)`` with its cost in the stats: the front end alone (an inline local
-        BA, in lockstep replays, is back-end work and counted beside it) and the sparse map's size."""
+        BA, in acknowledged replays, is back-end work and counted beside it) and the sparse map's size."""
         ba_before, t0 = tracker.ba_time_s, time.perf_counter()
         tracker.covariance_wanted = self.out.odometry_wanted()
         result = tracker.track(frame)

@@ -1,5 +1,5 @@
 """Everything the tracker node publishes, from its results: per frame the tracking state, pose,
-odometry and TF and the ``processed`` answer a lockstep player waits on; the corrected trajectory
+odometry and TF and the ``processed`` answer a player awaiting acknowledgements waits on; the corrected trajectory
 (``memgs/path``); per keyframe its images as received, camera_info, pose and keypoints; the
 refined and loop-corrected poses of earlier keyframes."""
 from __future__ import annotations
@@ -96,7 +96,7 @@ class TrackerOutbox:
         self._log = node.get_logger()
         self._frame_cpu_ms, self._frame_ms = RollingMedian(), RollingMedian()
         stats.compute(TrackerStats.frame_cpu_ms_median, self._frame_cpu_ms)  # message in to pose out
-        stats.compute(TrackerStats.frame_ms_median, self._frame_ms)  # wall: a lockstep frame's share
+        stats.compute(TrackerStats.frame_ms_median, self._frame_ms)  # wall: an acknowledged frame's share
         rel = qos.reliable(10)
         self.pose = node.create_publisher(PoseStamped, "memgs/pose", rel)  # the camera in world_frame
         # Tracked poses only (state OK), with the covariance: what a flight controller fuses. The body
@@ -115,7 +115,7 @@ class TrackerOutbox:
         self._state, self._odom, self._processed = String(), Odometry(), Header()
 
     def processed(self, stamp_ns: int, keyframe: bool = False) -> None:
-        """The answer for every frame handled, tracked or refused (a lockstep player waits on it)."""
+        """The answer for every frame handled, tracked or refused (a player awaiting acknowledgements waits on it)."""
         self.processed_pub.publish(set_header(self._processed, stamp_ns, "keyframe" if keyframe else "frame"))
 
     def frame(self, result: TrackResult, camera: PinholeCamera, color: Image, depth: Image | None,

@@ -14,7 +14,7 @@ Scheduling, on the one thread:
   so local BA and place recognition go on between its iterations; a newer global BA request
   supersedes the one in progress (whose result would be stale).
 
-Without a thread (``threaded=False``: lockstep replays, tests, benchmarks) every request runs
+Without a thread (``threaded=False``: acknowledged replays, tests, benchmarks) every request runs
 inline inside ``submit``, background work included, so results are deterministic.
 """
 from __future__ import annotations

@@ -61,7 +61,7 @@ class BackendLink:
         self.stats = LoopStats()
         self.ba_runs = 0
         self.ba_refused = 0  # local BAs not committed: they moved their new keyframe too far
-        self.ba_time_s = 0.0  # local BA time (threaded); every inline back-end second (lockstep)
+        self.ba_time_s = 0.0  # local BA time (threaded); every inline back-end second (acknowledged replay)
         self.refined: list[tuple[int, np.ndarray]] = []
         self.loop_refined: list[tuple[int, np.ndarray]] = []
         self.loop_done: list[dict[int, np.ndarray]] = []
@@ -241,7 +241,7 @@ class BackendResults:
 
     @property
     def ba_time_s(self) -> float:
-        """Seconds of local BA so far (threaded), or of all back-end work done inline (lockstep)."""
+        """Seconds of local BA so far (threaded), or of all back-end work done inline (acknowledged replay)."""
         return self._link.ba_time_s
 
     @ba_time_s.setter

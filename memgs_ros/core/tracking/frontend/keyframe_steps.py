@@ -137,6 +137,6 @@ class KeyframeSteps:
         if kf.keyframe_id not in self._local_kfs:
             self._local_kfs.append(kf.keyframe_id)
         self._follow(self._link.keyframe_added(self.map, kf, self.segment_id))
-        info = keyframe_info(self.map, kf)  # inline (lockstep) back-end: the refined pose already
+        info = keyframe_info(self.map, kf)  # inline (acknowledged replay) back-end: the refined pose already
         self._last_kf_info = info
         return info
