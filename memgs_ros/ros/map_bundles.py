@@ -24,11 +24,16 @@ import threading
 from collections.abc import Callable
 from concurrent.futures import Future
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-__all__ = ["PART_TIMEOUT_S", "answer", "in_thread", "part_path"]
+from memgs_ros.errors import MemgsError
+from memgs_ros.ros.hand_over import HandOver
+
+__all__ = ["PART_TIMEOUT_S", "PartService", "answer", "in_thread", "part_path"]
 
 T = TypeVar("T")
 PART_TIMEOUT_S = 120.0  # a mapper part holds every keyframe view: seconds on a busy CPU
@@ -57,3 +62,32 @@ def part_path(bundle_dir: str, node: str, suffix: str = ".npz") -> Path:
 def answer(res: Trigger.Response, ok: bool, message: str) -> Trigger.Response:
     res.success, res.message = ok, message
     return res
+
+
+class PartService:
+    """A node's part of a bundle: ``memgs/<name>/save_map_part`` (std_srvs/Trigger), refused while
+    ``bundle_dir`` is empty. ``write(path)`` starts writing the part (on a thread or a worker: the
+    future resolves once it is on disk) or answers why there is none yet (a string);
+    ``saved()`` counts a part written. Answered with the part's path (and ``note``)."""
+
+    def __init__(self, node: Node, name: str, bundle_dir: str, hand_over: HandOver,
+                 write: Callable[[Path], Future[Any] | str], saved: Callable[[], None], what: str,
+                 note: str = "") -> None:
+        self.name, self.bundle_dir, self.hand_over = name, bundle_dir, hand_over
+        self._write, self._saved, self._what, self._note = write, saved, what, note
+        node.create_service(Trigger, f"memgs/{name}/save_map_part", self.on_save,
+                            callback_group=ReentrantCallbackGroup())
+
+    async def on_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        if not self.bundle_dir:
+            return answer(res, False, "bundle_dir is not set: no map bundle to save into")
+        path = part_path(self.bundle_dir, self.name)
+        started = self._write(path)
+        if isinstance(started, str):
+            return answer(res, False, started)
+        try:
+            await self.hand_over.result(started)
+        except (OSError, MemgsError) as err:
+            return answer(res, False, f"could not write {self._what} {path}: {err}")
+        self._saved()
+        return answer(res, True, f"{path}{self._note}")

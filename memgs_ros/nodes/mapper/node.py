@@ -33,6 +33,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
+from memgs_ros.core.mapping import checkpoint
 from memgs_ros.core.mapping.checkpoint_saver import CheckpointSaver
 from memgs_ros.core.mapping.finish import FinalPlan, FinishSteps, finish_map
 from memgs_ros.core.mapping.mapper import MappingConfig
@@ -44,7 +45,6 @@ from memgs_ros.core.merge.config import MergeConfig
 from memgs_ros.core.raster.backend_choice import device_label
 from memgs_ros.core.runtime.replay import FrameAcknowledger
 from memgs_ros.nodes.mapper.inputs import KeyframeReceiver, keyframe_poses
-from memgs_ros.nodes.mapper.map_part import MapperMapPart
 from memgs_ros.nodes.mapper.outputs import MapperOutbox
 from memgs_ros.nodes.mapper.stats import MapperStats
 from memgs_ros.nodes.params import NODE_CONFIGS, MapperParams
@@ -52,6 +52,7 @@ from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
 from memgs_ros.ros.lifecycle import ManagedNode
+from memgs_ros.ros.map_bundles import PartService
 from memgs_ros.ros.map_loading import NodeMapLoader, set_aside_checkpoint
 from memgs_ros.ros.node_main import run_node
 
@@ -102,7 +103,11 @@ class MapperNode(ManagedNode):
         self.keyframes = KeyframeReceiver(set(topics), self.session.resumed_stamps)
         self._subscribe(topics)
         self._serve(checkpoints=start.checkpoint is not None)
-        MapperMapPart(self, p, self.stats, self.session, self.out.hand_over, self.cfg.max_sh_degree)
+        # The bundle's mapper part: the session's state as a checkpoint file, captured and written on its worker.
+        PartService(self, "mapper", p.bundle_dir, self.out.hand_over,
+                    lambda path: self.session.save_state(lambda st: checkpoint.save(st, path)),
+                    lambda: self.stats.post_add(MapperStats.map_parts), "the mapper state",
+                    f" sh_degree={self.cfg.max_sh_degree}")
         if start.resumed is not None:
             self._periodic_snapshot()  # latched: the merger takes the resumed map and its epoch
         # The rasterizer's and SSIM's compiled kernels load (on a fresh install: compile) as the

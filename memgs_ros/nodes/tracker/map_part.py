@@ -4,17 +4,17 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
+from pathlib import Path
 from typing import Any
 
-from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
-from std_srvs.srv import Trigger
 
 from memgs_ros.core.maps.bundle import TRACKER_FILE, resolve_bundle
-from memgs_ros.errors import DataError, MemgsError
+from memgs_ros.errors import DataError
 from memgs_ros.nodes.tracker.stats import TrackerStats
 from memgs_ros.ros.hand_over import HandOver
-from memgs_ros.ros.map_bundles import answer, in_thread, part_path
+from memgs_ros.ros.map_bundles import PartService, in_thread
 
 __all__ = ["TrackerMapPart", "map_check"]
 
@@ -28,16 +28,16 @@ def map_check(node: Any) -> dict[str, Any]:
 
 
 class TrackerMapPart:
-    """The tracker's part: ``memgs/tracker/save_map_part``, and loading ``map_bundle`` into a new tracker.
+    """The tracker's part: ``memgs/tracker/save_map_part`` (``PartService``: the map copied on the
+    tracking thread, written beside it), and loading ``map_bundle`` into a new tracker.
     ``tracker()``: the node's tracker (None before the camera is known); ``extra()``: header fields."""
 
     def __init__(self, node: Node, params: Any, stats: TrackerStats, tracker: Callable[[], Any],
                  extra: Callable[[], dict[str, Any]]) -> None:
         self.params, self.stats, self._tracker, self._extra = params, stats, tracker, extra
         self._log = node.get_logger()
-        self.hand_over = HandOver(node)
-        node.create_service(Trigger, "memgs/tracker/save_map_part", self.on_save,
-                            callback_group=ReentrantCallbackGroup())
+        self.service = PartService(node, "tracker", params.bundle_dir, HandOver(node), self._write,
+                                   self._saved, "the tracker map")
 
     def load_into(self, tracker: Any) -> None:
         """Start ``tracker`` from ``map_bundle`` in ``map_mode`` (``map_io.load_bundle_map``)."""
@@ -54,21 +54,16 @@ class TrackerMapPart:
             self._log.info(f"map bundle {p.map_bundle}: {m.n_keyframes} keyframes, {m.header['points']} points "
                            f"loaded ({p.map_mode}); relocalising before the first pose")
 
-    async def on_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+    def _write(self, path: Path) -> Future[Any] | str:
         tracker = self._tracker()
-        if not self.params.bundle_dir:
-            return answer(res, False, "bundle_dir is not set: no map bundle to save into")
         if tracker is None or not hasattr(tracker, "export_map"):
-            return answer(res, False, "no tracker map yet (no camera or no frame)")
+            return "no tracker map yet (no camera or no frame)"
         from memgs_ros.core.tracking.map_io import write_tracker_map
 
         t0 = time.perf_counter()
         m = tracker.export_map(self._extra())  # on the tracking thread: a copy, milliseconds
         self.stats.map_part_copy_ms = round((time.perf_counter() - t0) * 1e3, 2)
-        path = part_path(self.params.bundle_dir, "tracker")
-        try:
-            await self.hand_over.result(in_thread(lambda: write_tracker_map(m, path), "tracker-map-part"))
-        except (OSError, MemgsError) as err:
-            return answer(res, False, f"could not write the tracker map {path}: {err}")
+        return in_thread(lambda: write_tracker_map(m, path), "tracker-map-part")
+
+    def _saved(self) -> None:
         self.stats.map_parts += 1
-        return answer(res, True, str(path))
