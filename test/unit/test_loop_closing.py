@@ -7,7 +7,7 @@ import pytest
 
 from memgs_ros.core.geometry.poses import invert_pose
 from memgs_ros.core.tracking import TrackerConfig, make_tracker
-from memgs_ros.core.tracking.anchored_path import AnchoredPath
+from memgs_ros.core.tracking.anchored_path import AnchoredPath, PathChanges
 from memgs_ros.core.tracking.backend.bundle_adjustment import apply_left_update
 from memgs_ros.core.tracking.features.features import OrbExtractor
 from memgs_ros.core.tracking.features.vocabulary import (
@@ -195,6 +195,31 @@ def test_frames_of_a_culled_keyframe_follow_its_heir() -> None:
     assert path.correct({5: D}) == {5}
     _, T = path.poses()
     np.testing.assert_allclose(T[:, 1, 3], [0.2, 0.2, 0.2, 0.2], atol=1e-12)
+
+
+def test_path_changes_say_what_a_published_copy_must_change() -> None:
+    from memgs_ros.core.tracking.config import TrackingState, TrackResult
+
+    def frame(i: int, ref: int, tracked: bool = True) -> TrackResult:
+        return TrackResult(stamp_ns=i, T_wc=np.eye(4) if tracked else None, state=TrackingState.OK, keyframe=None,
+                           n_matches=0, n_inliers=0, time_s=0.0, reference_keyframe_id=ref)
+
+    changes = PathChanges(AnchoredPath())
+    assert changes.take() is None  # nothing yet
+    for i in range(4):
+        changes.update(frame(i, 0 if i < 2 else 1), [])
+    idx, T = changes.take()
+    assert len(idx) == 0 and T.shape == (0, 4, 4)  # frames added, none moved
+    assert changes.take() is None
+    changes.update(frame(4, 1, tracked=False), [])
+    assert changes.take() is None  # a lost frame adds nothing
+    D = np.eye(4)
+    D[:3, 3] = (0.0, 0.0, 0.5)
+    changes.update(frame(5, 1), [{1: D}], heirs={0: 1})  # keyframe 0 culled into 1, then 1 corrected
+    idx, T = changes.take()
+    assert idx.tolist() == [0, 1, 2, 3, 4]  # every frame follows keyframe 1 now (the new one as it is)
+    np.testing.assert_allclose(T[:, 2, 3], [0.5, 0.5, 0.5, 0.5, 0.0])  # the new frame was tracked after it
+    assert changes.take() is None
 
 
 def test_a_second_session_closes_the_loop_onto_the_first_sessions_keyframes(loop_frames: list) -> None:

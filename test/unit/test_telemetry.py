@@ -123,3 +123,20 @@ def test_mypy_catches_a_misspelt_or_mistyped_stats_field(tmp_path: Path) -> None
     assert '"TrackerFields" has no attribute "frames_inn"' in r.stdout
     assert 'probe.py:8: error: Incompatible types in assignment' in r.stdout
     assert "probe.py:5" not in r.stdout and "probe.py:6" not in r.stdout
+
+
+def test_the_tracking_state_counts_resets_and_says_when_tracking_is_lost_or_back() -> None:
+    from memgs_ros.core.runtime.stat_fields import StatValues
+    from memgs_ros.core.runtime.telemetry_fields import TrackerFields
+    from memgs_ros.core.tracking.telemetry import state_stats
+
+    class Stats(TrackerFields, StatValues):
+        pass
+
+    stats = Stats()
+    says = [state_stats(stats, name, seg) for name, seg in
+            [("OK", 0), ("OK", 0), ("RECENTLY_LOST", 0), ("LOST", 0), ("LOST", 0), ("OK", 0), ("OK", 1)]]
+    assert says == [False, False, False, True, False, True, False]  # lost, and back: at once
+    assert stats.resets == 2  # relocalised (LOST -> OK) and a new segment (0 -> 1)
+    assert (stats.tracking_state, stats.segment) == ("OK", 1)
+    assert stats.values["state.OK"] == 4 and stats.values["state.LOST"] == 2

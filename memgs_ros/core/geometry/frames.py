@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["OPTICAL_IN_BODY", "FrameConvention", "FrameError", "mount_transform", "rpy_to_rotmat"]
+__all__ = ["OPTICAL_IN_BODY", "FrameConvention", "FrameError", "MountWait", "mount_transform", "rpy_to_rotmat"]
 
 # Columns: the optical frame's x (right), y (down), z (forward) in a REP-103 body (x fwd, y left, z up).
 OPTICAL_IN_BODY = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -84,3 +84,24 @@ class FrameConvention:
         J[:3, 3:] = -R @ _skew(lever_w)
         J[3:, 3:] = R
         return J @ np.asarray(cov_w, np.float64) @ J.T
+
+
+class MountWait:
+    """When the camera's mount in the body is settled, before the first body pose goes out (the map
+    is anchored by it): from TF as soon as TF has it, else from the parameters once ``wait_ns`` has
+    passed since it was first asked. ``settled`` from the start where nothing is to be waited for."""
+
+    def __init__(self, wait_ns: int, settled: bool) -> None:
+        self.wait_ns, self.settled = wait_ns, settled
+        self._asked_ns: int | None = None
+
+    def settle(self, now_ns: int, from_tf: np.ndarray | None) -> str | None:
+        """"tf" or "parameters" when this call settles the mount (``from_tf``: TF's [4, 4], None
+        while TF has none); None while it waits, or when it was settled before."""
+        if self.settled:
+            return None
+        self._asked_ns = now_ns if self._asked_ns is None else self._asked_ns
+        if from_tf is None and now_ns - self._asked_ns < self.wait_ns:
+            return None
+        self.settled = True
+        return "tf" if from_tf is not None else "parameters"

@@ -92,6 +92,7 @@ class AnchoredPath:
             return idx, np.zeros((0, 4, 4))
         return idx, np.stack([self._T_wc[i] for i in idx.tolist()])
 
+
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps_ns [N] int64, T_wc [N, 4, 4]) with every correction applied."""
         if not self._stamps:
@@ -110,4 +111,30 @@ def _interpolate(A: np.ndarray, B: np.ndarray, t: float) -> np.ndarray:
     return out
 
 
-__all__ = ["AnchoredPath"]
+class PathChanges:
+    """What a published copy of an :class:`AnchoredPath` must change since it was last taken: the
+    frames added (``added``) and the keyframes whose frames moved (re-expressed when taken)."""
+
+    def __init__(self, path: AnchoredPath) -> None:
+        self.path = path
+        self.added = False
+        self._stale: set[int] = set()
+
+    def update(self, result: TrackResult, corrections: Sequence[Mapping[int, np.ndarray]],
+               heirs: Mapping[int, int] | None = None) -> None:
+        """One frame: ``heirs`` ({culled keyframe: heir} since the last), then ``path.update``."""
+        self.path.reanchor(heirs or {})
+        self._stale |= self.path.update(result, corrections)
+        self.added |= result.T_wc is not None
+
+    def take(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """None when nothing changed since the last take; else the moved frames (index [K] into the
+        path, T_wc [K, 4, 4]; K may be 0), and the changes count as published."""
+        if not (self.added or self._stale):
+            return None
+        moved = self.path.poses_following(self._stale) if self._stale else (np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+        self.added, self._stale = False, set()
+        return moved
+
+
+__all__ = ["AnchoredPath", "PathChanges"]

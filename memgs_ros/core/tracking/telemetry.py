@@ -2,12 +2,13 @@
 generated ``TrackerFields``): what the node reports per tracked frame, without ROS."""
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import Any
 
 from memgs_ros.core.runtime.telemetry_fields import TrackerFields
 
-__all__ = ["track_stats"]
+__all__ = ["state_stats", "timed_track", "track_stats"]
 
 
 def track_stats(stats: TrackerFields, tracker: Any, dt_s: float, keyframe: bool,  # noqa: ANN401 - any Tracker
@@ -32,3 +33,32 @@ def track_stats(stats: TrackerFields, tracker: Any, dt_s: float, keyframe: bool,
         stats.map_keyframes, stats.map_points = smap.keyframes, smap.points
         stats.map_keyframes_removed, stats.map_keyframes_culled = smap.keyframes_removed, smap.keyframes_culled
     return smap
+
+
+def state_stats(stats: TrackerFields, name: str, segment_id: int) -> bool:
+    """A frame's tracking state ``name`` (and map segment) into ``stats``: ``state.<STATE>``,
+    ``tracking_state``, ``segment``, and ``resets`` when tracking came back or a new segment began
+    (poses may jump). True when the frame lost tracking or regained it: worth reporting at once."""
+    stats.state[name] += 1
+    previous = stats.tracking_state or None  # None: the first frame (segment is set with it)
+    stats.tracking_state = name
+    if previous is not None and (segment_id != stats.segment or (previous == "LOST" and name == "OK")):
+        stats.resets += 1
+    stats.segment = segment_id
+    return previous is not None and (name == "LOST") != (previous == "LOST")
+
+
+def timed_track(stats: TrackerFields, tracker: Any, frame: Any, inline_ba: bool,  # noqa: ANN401 - any Tracker
+                problem: Callable[[str, str], None]) -> tuple[Any, Any | None]:  # noqa: ANN401
+    """``tracker.track(frame)`` with its cost in ``stats``: the front end alone (with ``inline_ba``,
+    as in acknowledged replays, the local BA run inside it is back-end work, counted beside it as
+    ``ba_us_total``) and the tracker's gauges (``track_stats``). (result, the sparse map's stats
+    on a keyframe, else None)."""
+    ba_before, t0 = tracker.ba_time_s, time.perf_counter()
+    result = tracker.track(frame)
+    dt = time.perf_counter() - t0
+    if inline_ba:
+        ba_dt = tracker.ba_time_s - ba_before
+        dt -= ba_dt
+        stats.ba_us_total += int(ba_dt * 1e6)
+    return result, track_stats(stats, tracker, dt, result.keyframe is not None, problem)

@@ -50,7 +50,7 @@ from memgs_ros.core.geometry.view import DepthUnits
 from memgs_ros.core.runtime.warm import WarmUpThread
 from memgs_ros.core.tracking import Tracker, TrackerConfig, TrackResult, make_tracker, warm_up
 from memgs_ros.core.tracking.frame_gate import CameraSource, LiveGate, StampRules
-from memgs_ros.core.tracking.telemetry import track_stats
+from memgs_ros.core.tracking.telemetry import timed_track
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, depth_view, rgb_view
 from memgs_ros.nodes.params import NODE_CONFIGS, TrackerParams
@@ -230,17 +230,9 @@ class TrackerNode(ManagedNode):
         self.out.frame_cost(cpu0, wall0)
 
     def _track(self, tracker: Tracker, frame: Frame) -> TrackResult:
-        """``tracker.track(frame)`` with its cost in the stats: the front end alone (an inline local
-        BA, in acknowledged replays, is back-end work and counted beside it) and the sparse map's size."""
-        ba_before, t0 = tracker.ba_time_s, time.perf_counter()
+        """``tracker.track(frame)``, its cost and the sparse map's size in the stats (``timed_track``)."""
         tracker.covariance_wanted = self.out.odometry_wanted()
-        result = tracker.track(frame)
-        dt = time.perf_counter() - t0
-        if not self.cfg.ba_threaded:
-            ba_dt = tracker.ba_time_s - ba_before
-            dt -= ba_dt
-            self.stats.ba_us_total += int(ba_dt * 1e6)
-        smap = track_stats(self.stats, tracker, dt, result.keyframe is not None, self.stats.problem)
+        result, smap = timed_track(self.stats, tracker, frame, not self.cfg.ba_threaded, self.stats.problem)
         if smap is not None:
             self.out.keyframes.forget(smap.keyframe_ids, smap.keyframes)
         return result

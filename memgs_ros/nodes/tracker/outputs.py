@@ -18,7 +18,8 @@ from std_msgs.msg import Header, String
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.frames import FrameConvention
 from memgs_ros.core.tracking import TrackResult
-from memgs_ros.core.tracking.anchored_path import AnchoredPath
+from memgs_ros.core.tracking.anchored_path import AnchoredPath, PathChanges
+from memgs_ros.core.tracking.telemetry import state_stats
 from memgs_ros.nodes.tracker.stats import TrackerStats
 from memgs_ros.nodes.tracker.tf import TfOutbox
 from memgs_ros.ros import qos
@@ -37,41 +38,31 @@ __all__ = ["CorrectedPath", "TrackerOutbox"]
 
 class CorrectedPath:
     """``memgs/path``: every published pose, moved with the keyframe it was tracked against when a
-    loop closure corrects that keyframe (:class:`AnchoredPath`). The message and the anchored
-    poses hold the same frames, index for index; ``max_len`` 0 keeps all."""
+    loop closure corrects that keyframe (:class:`AnchoredPath`, its changes :class:`PathChanges`).
+    The message and the anchored poses hold the same frames, index for index; ``max_len`` 0 keeps all."""
 
     def __init__(self, world_frame: str, max_len: int) -> None:
         self.world_frame, self.max_len = world_frame, max_len
         self.msg = Path()
         self.msg.header.frame_id = world_frame
-        self.anchored = AnchoredPath(max_len)
-        self._stale: set[int] = set()  # keyframes moved since the last message
-        self._changed = False
+        self.changes = PathChanges(AnchoredPath(max_len))
 
     def add(self, result: TrackResult, pose: PoseStamped | None, loops: Sequence[Mapping[int, np.ndarray]],
             heirs: Mapping[int, int] | None = None) -> None:
         """A tracked frame (``pose``: its published pose, None when lost) after the loop
         corrections committed while it was tracked; ``heirs``: {culled keyframe: heir} since the last."""
-        self.anchored.reanchor(heirs or {})
         if pose is not None:
             append_to_path(self.msg, pose, self.max_len)
-            self._changed = True
-        moved = self.anchored.update(result, loops)
-        if moved:
-            self._stale |= moved  # re-expressed when the message is next taken
-            self._changed = True
+        self.changes.update(result, loops, heirs)
 
     def take_message(self) -> Path | None:
         """The path to publish, corrections applied, or None when nothing changed since."""
-        if not self._changed:
+        moved = self.changes.take()
+        if moved is None:
             return None
-        self._changed = False
-        if self._stale:
-            idx, T_wc = self.anchored.poses_following(self._stale)
-            self._stale = set()
-            for i, T in zip(idx.tolist(), T_wc):
-                old = self.msg.poses[i]
-                self.msg.poses[i] = matrix_to_pose_stamped(T, stamp_to_ns(old.header.stamp), self.world_frame)
+        for i, T in zip(moved[0].tolist(), moved[1]):
+            old = self.msg.poses[i]
+            self.msg.poses[i] = matrix_to_pose_stamped(T, stamp_to_ns(old.header.stamp), self.world_frame)
         return self.msg
 
 
@@ -84,16 +75,9 @@ class TrackerOutbox:
         """``params``: the node's TrackerParams (frames, mount, path length and rate)."""
         world_frame, path_max_len = params.world_frame, params.path_max_len
         self.world_frame, self.camera_frame, self.stats = world_frame, params.camera_frame, stats
-        self.frames: FrameConvention = params.frame_convention()
         self.map_frame, self.base_frame = params.map_frame, params.base_frame
-        self.tf = TfOutbox(node, self.frames, params.map_frame, world_frame, params.base_frame, params.camera_frame,
-                           params.publish_camera_tf, params.odom_frame,
-                           params.odom_tolerance_s) if params.publish_tf else None
-        # The mount is settled before the first body pose goes out (map is anchored by it): the
-        # parameters', or TF's where the robot publishes the camera (waited for camera_mount_wait_s).
-        self.mount_settled = self.tf is None or not self.tf.available or self.tf.statics is None
-        self._mount_wait_ns, self._mount_asked_ns = int(params.camera_mount_wait_s * 1e9), 0  # 0: not asked yet
-        self._log = node.get_logger()
+        self.tf = TfOutbox(node, params) if params.publish_tf else None  # it settles the camera's mount
+        self._frames: FrameConvention = params.frame_convention()  # without TF: the parameters' mount
         self._frame_cpu_ms, self._frame_ms = RollingMedian(), RollingMedian()
         stats.compute(TrackerStats.frame_cpu_ms_median, self._frame_cpu_ms)  # message in to pose out
         stats.compute(TrackerStats.frame_ms_median, self._frame_ms)  # wall: an acknowledged frame's share
@@ -129,16 +113,10 @@ class TrackerOutbox:
         camera_frame = color.header.frame_id or self.camera_frame
         self._state.data = name = result.state.name
         self.state.publish(self._state)
-        stats.state[name] += 1
-        previous = stats.tracking_state or None  # None: the first frame (segment is set with it)
-        stats.tracking_state = name
-        if previous is not None and (result.segment_id != stats.segment or (previous == "LOST" and name == "OK")):
-            stats.resets += 1  # relocalised, or a new map segment: poses may jump
-        stats.segment = result.segment_id
-        if previous is not None and (name == "LOST") != (previous == "LOST"):
+        if state_stats(stats, name, result.segment_id):
             stats.publish()  # lost, or back: /diagnostics hears it now, not at the next second
         pose = None
-        if self.settle_mount(camera_frame) and self.tf is not None:
+        if self.tf is not None and self.tf.settle_mount(camera_frame):
             self.tf.set_camera_frame(camera_frame)
         if result.T_wc is not None:
             pose = matrix_to_pose_stamped(result.T_wc, stamp, self.world_frame)
@@ -168,26 +146,13 @@ class TrackerOutbox:
         self.path.add(result, pose, loops, {k: heir for k, heir, _ in culled})
         self.processed(stamp, keyframe=result.keyframe is not None)
 
-    def settle_mount(self, camera_frame: str) -> bool:
-        """Whether the camera's mount is settled; settles it from TF when TF has it, else from the
-        parameters once ``camera_mount_wait_s`` has passed (warned)."""
-        if self.mount_settled:
-            return True
-        assert self.tf is not None
-        now = time.monotonic_ns()
-        self._mount_asked_ns = self._mount_asked_ns or now
-        E = self.tf.mount(camera_frame)
-        if E is not None:
-            self.frames = self.tf.frames = FrameConvention(E)
-            self._log.info(f"camera mount from tf_static: {self.base_frame} -> {camera_frame} at "
-                           f"{np.round(E[:3, 3], 3).tolist()} m")
-        elif now - self._mount_asked_ns >= self._mount_wait_ns:
-            self._log.warning(f"no {self.base_frame} -> {camera_frame} on tf_static within the wait: using the "
-                              "camera_mount_* parameters (set publish_camera_tf true if nothing publishes it)")
-        else:
-            return False
-        self.mount_settled = True
-        return True
+    @property
+    def frames(self) -> FrameConvention:
+        return self._frames if self.tf is None else self.tf.frames
+
+    @property
+    def mount_settled(self) -> bool:
+        return self.tf is None or self.tf.mount_wait.settled
 
     def frame_cost(self, cpu0: float, wall0: float) -> None:
         """The frame path's cost since ``cpu0`` (this thread's CPU: the frame path alone) and ``wall0``

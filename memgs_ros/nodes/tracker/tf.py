@@ -13,10 +13,13 @@ once and publishes no TF (everything else is unchanged).
 """
 from __future__ import annotations
 
+import time
+from typing import Any
+
 import numpy as np
 from rclpy.node import Node
 
-from memgs_ros.core.geometry.frames import FrameConvention
+from memgs_ros.core.geometry.frames import FrameConvention, MountWait
 from memgs_ros.ros.tf import (
     TF_MISSING,
     OdomTrack,
@@ -33,17 +36,20 @@ __all__ = ["TfOutbox"]
 class TfOutbox:
     """The tracker's transforms (see the module docstring); ``available`` is False without tf2_msgs."""
 
-    def __init__(self, node: Node, frames: FrameConvention, map_frame: str, world_frame: str, base_frame: str,
-                 camera_frame: str, publish_camera_tf: bool, odom_frame: str = "",
-                 odom_tolerance_s: float = 0.05) -> None:
-        self.frames, self.map_frame, self.world_frame = frames, map_frame, world_frame
-        self.base_frame, self.publish_camera_tf = base_frame, publish_camera_tf
-        self.camera_frame = ""
-        self.odom_frame, self._odom_tol_ns = odom_frame, int(odom_tolerance_s * 1e9)
+    def __init__(self, node: Node, params: Any) -> None:
+        """``params``: the node's TrackerParams (frames, mount, odometry)."""
+        self.frames: FrameConvention = params.frame_convention()
+        self.map_frame, self.world_frame, self.base_frame = params.map_frame, params.world_frame, params.base_frame
+        self.publish_camera_tf, self.camera_frame = params.publish_camera_tf, ""
+        self.odom_frame, self._odom_tol_ns = params.odom_frame, int(params.odom_tolerance_s * 1e9)
+        self._log = node.get_logger()
         msg_type = tf_message_type()
         self.available = msg_type is not None
+        # Where the robot publishes the camera, its mount is read from tf_static (within camera_mount_wait_s).
+        self.mount_wait = MountWait(int(params.camera_mount_wait_s * 1e9),
+                                    settled=msg_type is None or params.publish_camera_tf)
         if msg_type is None:
-            node.get_logger().warning(TF_MISSING)
+            self._log.warning(TF_MISSING)
             return
         self._type = msg_type
         # Relative: /tf in the root namespace; under a namespace (a second drone) <ns>/tf, as Nav2's
@@ -51,14 +57,28 @@ class TfOutbox:
         self.pub = node.create_publisher(msg_type, "tf", tf_qos())
         self.pub_static = node.create_publisher(msg_type, "tf_static", tf_static_qos())
         self.odom: OdomTrack | None = None
-        if odom_frame:
-            self.odom = OdomTrack(odom_frame, base_frame)
+        if self.odom_frame:
+            self.odom = OdomTrack(self.odom_frame, self.base_frame)
             node.create_subscription(msg_type, "tf", self.odom.add, tf_qos())
         self.statics: StaticTree | None = None
-        if not publish_camera_tf:  # the robot publishes the camera: read its mount there
+        if not self.publish_camera_tf:  # the robot publishes the camera: read its mount there
             self.statics = StaticTree()
             node.create_subscription(msg_type, "tf_static", self.statics.add, tf_static_qos())
         self._stamp_ns = node.get_clock().now().nanoseconds
+
+    def settle_mount(self, camera_frame: str) -> bool:
+        """Whether the camera's mount is settled (``MountWait``); from tf_static when it has it (the
+        frames then follow it), else from the parameters after the wait (warned)."""
+        E = self.mount(camera_frame) if not self.mount_wait.settled else None
+        how = self.mount_wait.settle(time.monotonic_ns(), E)
+        if how == "tf" and E is not None:
+            self.frames = FrameConvention(E)
+            self._log.info(f"camera mount from tf_static: {self.base_frame} -> {camera_frame} at "
+                           f"{np.round(E[:3, 3], 3).tolist()} m")
+        elif how == "parameters":
+            self._log.warning(f"no {self.base_frame} -> {camera_frame} on tf_static within the wait: using the "
+                              "camera_mount_* parameters (set publish_camera_tf true if nothing publishes it)")
+        return self.mount_wait.settled
 
     def mount(self, camera_frame: str) -> np.ndarray | None:
         """The camera's optical frame in the body as TF has it [4, 4] (None: not (yet) on tf_static)."""
