@@ -1,4 +1,4 @@
-"""The mapper's finish sequence (core/mapping/finish.py), without ROS: asyncio stands in for the
+"""The mapper's finish sequence (core/mapper_service/finish.py), without ROS: asyncio stands in for the
 node's executor, plain futures for the session's."""
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from typing import Any
 
 import pytest
 
-from memgs_ros.core.mapping.finish import FinalPlan, FinishSteps, finish_map
-from memgs_ros.core.mapping.session_records import FinishResult
+from memgs_ros.core.mapper_service.finish import FinalPlan, FinishSteps, finish_map
+from memgs_ros.core.mapper_service.session_records import FinishResult
 from memgs_ros.core.maps.answers import MapAnswer
 from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.errors import DataError

@@ -1,10 +1,10 @@
-"""The mapper's periodic deltas and live view (core/mapping/output_pacing.py), without ROS."""
+"""The mapper's periodic deltas and live view (core/mapper_service/output_pacing.py), without ROS."""
 from __future__ import annotations
 
 from concurrent.futures import Future
 
-from memgs_ros.core.mapping.output_pacing import DeltaPacer, LiveView, delta_rows
-from memgs_ros.core.mapping.session_records import SessionStatus
+from memgs_ros.core.mapper_service.output_pacing import DeltaPacer, LiveView, delta_rows
+from memgs_ros.core.mapper_service.session_records import SessionStatus
 
 
 def test_delta_rows_split_the_link_budget_over_the_delta_rate() -> None:

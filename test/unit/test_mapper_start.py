@@ -1,4 +1,4 @@
-"""The mapper's start, checkpoint writes and reporting, without ROS (core/mapping/mapper_start.py,
+"""The mapper's start, checkpoint writes and reporting, without ROS (core/mapper_service/mapper_start.py,
 checkpoint_saver.py, reporting.py, keyframe_decisions.py): real sessions on the CPU, a recording
 stand-in for the node's stats."""
 from __future__ import annotations
@@ -11,13 +11,13 @@ from typing import Any
 
 import pytest
 
+from memgs_ros.core.mapper_service.checkpoint_saver import CheckpointSaver
+from memgs_ros.core.mapper_service.keyframe_decisions import DecisionTimes
+from memgs_ros.core.mapper_service.mapper_start import MapperStart, SessionOptions, start_mapper
+from memgs_ros.core.mapper_service.reporting import IterationRate, report_failure
+from memgs_ros.core.mapper_service.session import MappingSession
 from memgs_ros.core.mapping.checkpoint import CheckpointFile
-from memgs_ros.core.mapping.checkpoint_saver import CheckpointSaver
 from memgs_ros.core.mapping.config import MappingConfig
-from memgs_ros.core.mapping.keyframe_decisions import DecisionTimes
-from memgs_ros.core.mapping.mapper_start import MapperStart, SessionOptions, start_mapper
-from memgs_ros.core.mapping.reporting import IterationRate, report_failure
-from memgs_ros.core.mapping.session import MappingSession
 from memgs_ros.core.merge.config import MergeConfig
 from memgs_ros.core.runtime.replay import Pacing
 from memgs_ros.core.runtime.stat_fields import Stat

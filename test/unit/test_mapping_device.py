@@ -103,8 +103,8 @@ def test_training_step_stays_on_device(frames: list[Frame], device: str, backend
 def test_session_reports_the_cuda_memory_figure(frames: list[Frame]) -> None:
     """The evaluation's memory column on a GPU is the mapper's torch.cuda.max_memory_allocated,
     reported by the session's status (and so in the mapper's stats gauges)."""
+    from memgs_ros.core.mapper_service.session import MappingSession
     from memgs_ros.core.mapping.keyframes import KeyframeInput
-    from memgs_ros.core.mapping.session import MappingSession
 
     cfg = MappingConfig(min_keyframes=2, pyramid_uses_per_level=2, merge_enabled=False, densify_start_iter=10_000)
     s = MappingSession(cfg, "cuda", free_running=False)

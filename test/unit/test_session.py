@@ -12,9 +12,9 @@ from frame_seeds import grid_seeds
 
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.poses import quat_wxyz_to_rotmat_torch
+from memgs_ros.core.mapper_service.session import MappingSession, SessionError
 from memgs_ros.core.mapping.keyframes import KeyframeInput
 from memgs_ros.core.mapping.mapper import MappingConfig
-from memgs_ros.core.mapping.session import MappingSession, SessionError
 from memgs_ros.io.synthetic import SyntheticSpec, generate_frames
 
 
@@ -352,7 +352,7 @@ def test_lockstep_waits_for_min_keyframes_whatever_live_would_do(frames: list[Fr
 
 
 def test_keyframe_timings_count_the_first_draw_only() -> None:
-    from memgs_ros.core.mapping.keyframe_timing import KeyframeTimings
+    from memgs_ros.core.mapper_service.keyframe_timing import KeyframeTimings
 
     t = KeyframeTimings()
     t.inserted(0, 1_000_000_000, 5.0)

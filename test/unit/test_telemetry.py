@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from memgs_ros.core.mapping.session_records import SessionStatus
+from memgs_ros.core.mapper_service.session_records import SessionStatus
 from memgs_ros.core.runtime.telemetry import (
     TELEMETRY,
     MapperTelemetry,
@@ -51,7 +51,7 @@ def test_the_mapping_sessions_gauges_and_counters_are_mapper_fields() -> None:
                                  cuda_peak_by_work={"backward": 2**20})
     for key in status.gauges():
         check_key(MapperTelemetry, key)
-    from memgs_ros.core.mapping.session_records import SessionCounts
+    from memgs_ros.core.mapper_service.session_records import SessionCounts
     from memgs_ros.core.runtime.telemetry_fields import MapperFields
     assert issubclass(SessionCounts, MapperFields)  # the session's counters are written by attribute
     counts = SessionCounts()

@@ -14,8 +14,8 @@ import pytest
 from test_session import _cfg, _kf, frames  # noqa: F401 - frames is a fixture
 
 from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.mapper_service.session import MappingSession, SessionError
 from memgs_ros.core.mapping.mapper import GaussianMapper
-from memgs_ros.core.mapping.session import MappingSession, SessionError
 from memgs_ros.core.runtime.worker import CommandWorker, WorkerStopped
 
 WAIT_S = 20.0

@@ -9,7 +9,7 @@ merges (MemGS voxel merge, ``memgs_ros.core.merge.voxel_merge.merge_pass``) and 
 The policies that change the map's size live in ``memgs_ros.core.mapping.strategies`` (densify/prune,
 merge schedule, memory budget). ``GaussianMapper`` is single-threaded: it has no lock. A program
 that trains while other threads insert, render or read the map uses
-``memgs_ros.core.mapping.session.MappingSession``, the one owner of a mapper, whose worker thread runs
+``memgs_ros.core.mapper_service.session.MappingSession``, the one owner of a mapper, whose worker thread runs
 every call.
 
 Densification choices (documented differences from plain 3DGS): no opacity reset (reference

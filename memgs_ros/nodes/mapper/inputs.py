@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from nav_msgs.msg import Path
 
-from memgs_ros.core.mapping.keyframe_decisions import DecisionTimes
+from memgs_ros.core.mapper_service.keyframe_decisions import DecisionTimes
 from memgs_ros.core.mapping.keyframe_input import KeyframeInput
 from memgs_ros.errors import DataError, MessageError
 from memgs_ros.ros.codecs import pointcloud2_to_structured, pose_to_matrix, stamp_to_ns

@@ -1,5 +1,5 @@
 """mapper node: turns keyframes, poses and requests into commands of a ``MappingSession``
-(core/mapping/session.py, the one owner of the Gaussian map) and publishes what it returns.
+(core/mapper_service/session.py, the one owner of the Gaussian map) and publishes what it returns.
 
 In: ``memgs/keyframe/{color,depth,camera_info,pose,seeds}`` (one stamp per keyframe),
 ``memgs/keyframe/refined_poses`` (bundle adjustment), ``memgs/keyframe/loop_corrected_poses``,
@@ -33,12 +33,12 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
+from memgs_ros.core.mapper_service.checkpoint_saver import CheckpointSaver
+from memgs_ros.core.mapper_service.finish import FinalPlan, FinishSteps, finish_map
+from memgs_ros.core.mapper_service.mapper_start import MapperStart, SessionOptions, start_mapper
+from memgs_ros.core.mapper_service.output_pacing import DeltaPacer, LiveView, delta_rows
 from memgs_ros.core.mapping import checkpoint
-from memgs_ros.core.mapping.checkpoint_saver import CheckpointSaver
-from memgs_ros.core.mapping.finish import FinalPlan, FinishSteps, finish_map
 from memgs_ros.core.mapping.mapper import MappingConfig
-from memgs_ros.core.mapping.mapper_start import MapperStart, SessionOptions, start_mapper
-from memgs_ros.core.mapping.output_pacing import DeltaPacer, LiveView, delta_rows
 from memgs_ros.core.maps.answers import MapAnswer
 from memgs_ros.core.maps.map_delta import message_dtype
 from memgs_ros.core.merge.config import MergeConfig
@@ -238,7 +238,7 @@ class MapperNode(ManagedNode):
 
     async def on_finish(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         """Insert what is queued, stop training, run the final iterations, flush every change
-        (core/mapping/finish.py)."""
+        (core/mapper_service/finish.py)."""
         p, hand_over = self.params, self.out.hand_over
         self.deltas.finishing = True  # a latch, read by the periodic delta timer
         steps = FinishSteps(

@@ -12,7 +12,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 
-from memgs_ros.core.mapping.session_records import RenderedView
+from memgs_ros.core.mapper_service.session_records import RenderedView
 from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import (
     camera_to_camera_info,

@@ -9,10 +9,10 @@ from typing import Any, TypeVar
 
 from rclpy.node import Node
 
+from memgs_ros.core.mapper_service.mapper_start import warm_kernels
+from memgs_ros.core.mapper_service.reporting import IterationRate, report_failure, reportable_error
+from memgs_ros.core.mapper_service.session import MappingSession
 from memgs_ros.core.mapping.config import MappingConfig
-from memgs_ros.core.mapping.mapper_start import warm_kernels
-from memgs_ros.core.mapping.reporting import IterationRate, report_failure, reportable_error
-from memgs_ros.core.mapping.session import MappingSession
 from memgs_ros.core.runtime.telemetry_fields import MapperFields
 from memgs_ros.ros.diagnostics import NodeStats, RollingMedian, peak_rss_mb, rss_mb
 from memgs_ros.ros.stamp_sync import KeyframeIntake

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.mapping.keyframe_timing import KeyframeTimingSummary
+from memgs_ros.core.mapper_service.keyframe_timing import KeyframeTimingSummary
 from memgs_ros.core.runtime.stat_fields import StatValues
 from memgs_ros.core.runtime.telemetry_fields import MapperFields
 

@@ -21,7 +21,7 @@ from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.errors import DataError
 
 if TYPE_CHECKING:
-    from memgs_ros.core.mapping.session import MappingSession
+    from memgs_ros.core.mapper_service.session import MappingSession
 
 __all__ = ["FLUSH_ACK_TIMEOUT_S", "FinalPlan", "FinishSteps", "finish_map"]
 

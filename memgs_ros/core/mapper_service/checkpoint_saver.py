@@ -8,9 +8,9 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import TypeVar
 
+from memgs_ros.core.mapper_service.reporting import StatsPoster
+from memgs_ros.core.mapper_service.session import MappingSession
 from memgs_ros.core.mapping.checkpoint import CheckpointFile, MapperCheckpoint
-from memgs_ros.core.mapping.reporting import StatsPoster
-from memgs_ros.core.mapping.session import MappingSession
 from memgs_ros.core.runtime.telemetry_fields import MapperFields
 from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.errors import DataError

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from memgs_ros.core.mapping.session_records import SessionCounts, SessionStatus
+from memgs_ros.core.mapper_service.session_records import SessionCounts, SessionStatus
 from memgs_ros.errors import DataError
 
 if TYPE_CHECKING:

@@ -8,7 +8,7 @@ from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from memgs_ros.core.mapping.session_records import SessionStatus
+    from memgs_ros.core.mapper_service.session_records import SessionStatus
 
 __all__ = ["DeltaPacer", "LiveView", "delta_rows"]
 
