@@ -61,6 +61,18 @@ def test_rgbd_tracks_synthetic_sequence(frames: list[Frame]) -> None:
     assert 2 <= n_kf < N_FRAMES // 2
 
 
+def test_the_inlier_bound_is_the_frame_paths(frames: list[Frame]) -> None:
+    """``max_reprojection_px`` bounds the frame path's inliers: 1.0 at its default (ORB-SLAM's
+    chi-square bounds exactly), a tighter bound keeps fewer of the same matches."""
+    assert TrackerConfig().chi2_scale == 1.0
+    assert TrackerConfig(max_reprojection_px=1.225).chi2_scale == pytest.approx(0.25)
+    loose = _run(frames[:8], TrackerConfig(ba_threaded=False))
+    tight = _run(frames[:8], TrackerConfig(ba_threaded=False, max_reprojection_px=0.3))
+    n_loose = sum(r.n_inliers for r in loose[1:] if r.T_wc is not None)
+    n_tight = sum(r.n_inliers for r in tight[1:] if r.T_wc is not None)
+    assert 0 < n_tight < 0.9 * n_loose, (n_tight, n_loose)
+
+
 def test_keyframe_info_shapes_and_refinement(frames: list[Frame]) -> None:
     tracker = make_tracker(TrackerConfig(), frames[0].camera)
     try:

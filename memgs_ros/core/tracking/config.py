@@ -65,7 +65,9 @@ class TrackerConfig:
     max_descriptor_distance: int = 80  # Hamming, of 256 bits
     match_ratio: float = 0.85  # best / second-best among candidates of one map point
     # Pose estimation.
-    max_reprojection_px: float = 2.45  # inlier bound at level 0 (sqrt of chi2(2) 95 % = 5.991)
+    # The frame path's inlier bound at level 0, px: 2.45 is chi2(2) 95 % (5.991) and chi2(3) 95 % (7.815)
+    # for a depth residual; another value scales both by (value / 2.45)^2 (``chi2_scale``)
+    max_reprojection_px: float = 2.45
     min_inliers: int = 25  # fewer -> tracking failure for this frame
     ransac_iterations: int = 100
     ransac_reprojection_px: float = 4.0
@@ -177,6 +179,12 @@ class TrackerConfig:
         "mono_homography_ratio": (0.0, 1.0), "mono_ba_max_frames_behind": (0, 1000),
     }
     CHOICES: ClassVar[dict[str, tuple[str, ...]]] = {"mode": MODES}
+
+    @property
+    def chi2_scale(self) -> float:
+        """What ``max_reprojection_px`` does to the chi-square inlier bounds of the frame path's
+        pose optimisation (1.0 at its default, exactly)."""
+        return (self.max_reprojection_px / 2.45) ** 2
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:

@@ -156,6 +156,7 @@ class LocalMapMatcher:
     def __init__(self, cfg: TrackerConfig, camera: PinholeCamera, inv_sigma_levels: np.ndarray,
                  compiled: bool | None = None) -> None:
         self.cfg, self.camera, self.K = cfg, camera, camera.K
+        self.chi2_scale = cfg.chi2_scale  # the inlier bounds, from max_reprojection_px
         self.bf = camera.fx * cfg.virtual_baseline_m
         self.inv_sigma_levels = inv_sigma_levels
         # One compiled call per projection pass and one for the statistics, on the map's own
@@ -197,7 +198,7 @@ class LocalMapMatcher:
         """Motion-only refinement on matches (points p_w [K, 3], keypoints kp_idx [K]): (T_cw, inlier [K])."""
         depth = feats.depth_m[kp_idx] if self.cfg.track_with_depth else np.full(len(kp_idx), np.nan)
         return optimize_pose(T_cw, p_w, feats.uv[kp_idx], depth, self.inv_sigma(feats.octave[kp_idx]),
-                             self.K, self.bf, rounds=rounds)
+                             self.K, self.bf, chi2_scale=self.chi2_scale, rounds=rounds)
 
     def _observations(self, feats: FrameFeatures) -> _Observations:
         """The keypoint arrays of ``feats`` for the compiled pass (made once per features object)."""
@@ -221,7 +222,8 @@ class LocalMapMatcher:
         T, pi, ki, inl = track_pass_kernel(
             pos, desc, octave, pids, T_init, self._view, radius_px, self.inv_sigma_levels, feats.uv, feats.desc,
             kp.obs, kp.has_depth, kp.w2, self.cfg.max_descriptor_distance, self.cfg.match_ratio, max_candidates,
-            MATCH_CELL_PX, self.bf, CHI2_MONO, CHI2_STEREO, rounds, _POSE_ITERATIONS)
+            MATCH_CELL_PX, self.bf, CHI2_MONO * self.chi2_scale, CHI2_STEREO * self.chi2_scale, rounds,
+            _POSE_ITERATIONS)
         return (T_init if len(pi) < 4 else orthonormalized(T)), pi, ki, inl
 
     def _match_and_optimise_reference(self, feats: FrameFeatures, p_w: np.ndarray, desc: np.ndarray,
