@@ -77,7 +77,7 @@ class TrackerConfig:
     # The reference keyframe is the one sharing the most tracked points with the frame (ORB-SLAM's),
     # not the last inserted: on a revisit it is the keyframe already there.
     keyframe_tracked_ratio: float = 0.75  # insert when tracked points fall below this of the reference KF's
-    keyframe_min_new_points: int = 70  # ... and at least this many close untracked keypoints
+    keyframe_min_new_points: int = 70  # ... or (RGB-D) few close points tracked and more than this many untracked
     keyframe_max_frames: int = 20  # a keyframe at least every this many frames, where the map needs one
     keyframe_min_frames: int = 1
     keyframe_max_rotation_deg: float = 15.0  # ... or this far from the last keyframe

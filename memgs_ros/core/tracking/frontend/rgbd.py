@@ -11,8 +11,8 @@ from memgs_ros.core.tracking.frontend.feature_tracker import FeatureTracker
 from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
 
 _MIN_INIT_POINTS = 100  # keypoints with depth needed to start a map
-_CLOSE_TRACKED = 100  # ORB-SLAM: insert a keyframe when few close points are tracked ...
-_CLOSE_UNTRACKED = 70  # ... and many close keypoints could become points
+_CLOSE_TRACKED = 100  # ORB-SLAM: insert a keyframe when few close points are tracked (and many
+# close keypoints could become points: keyframe_min_new_points)
 
 
 class RGBDTracker(FeatureTracker):
@@ -60,7 +60,7 @@ class RGBDTracker(FeatureTracker):
         tracked = np.zeros(len(feats), dtype=bool)
         tracked[kp_idx] = True
         return (int((tracked & with_depth).sum()) < _CLOSE_TRACKED
-                and int((~tracked & with_depth).sum()) > _CLOSE_UNTRACKED)
+                and int((~tracked & with_depth).sum()) > self.cfg.keyframe_min_new_points)
 
     def _min_point_obs(self) -> int:
         return 2
