@@ -45,6 +45,10 @@ class DeltaRelay:
         self._pub = node.create_publisher(PointCloud2, LOSSY_DELTA_TOPIC, qos.reliable(50))
         node.create_subscription(PointCloud2, DELTA_TOPIC, self._on_delta, qos.reliable(50), raw=True)
 
+    def readers(self) -> int:
+        """Subscriptions matched to the lossy topic (the merger, once discovery has run)."""
+        return self._pub.get_subscription_count()
+
     def _on_delta(self, raw: bytes) -> None:
         with self._lock:
             n = self.forwarded + self.dropped + 1
