@@ -142,7 +142,7 @@ def _files(root: Path) -> dict[str, tuple[int, str]]:
 
 def bad_bundles(good: Path, work: Path, source: Path) -> list[dict[str, Any]]:
     """Each damaged copy of ``good`` given to ``memgs run --map``: its lines, exit code, files changed."""
-    from memgs_ros.core.maps.bundle import MANIFEST, PLY_FILE, TRACKER_FILE
+    from memgs_ros.core.map_io.bundle import MANIFEST, PLY_FILE, TRACKER_FILE
 
     def edit_manifest(b: Path, **fields: Any) -> None:
         m = json.loads((b / MANIFEST).read_text())
@@ -180,8 +180,8 @@ def bad_bundles(good: Path, work: Path, source: Path) -> list[dict[str, Any]]:
 _SAVER = textwrap.dedent("""
     import shutil, sys
     from pathlib import Path
-    from memgs_ros.core.maps.bundle import MANIFEST, commit_bundle, new_staging, read_manifest
-    from memgs_ros.core.maps.ply import load_ply, save_ply
+    from memgs_ros.core.map_io.bundle import MANIFEST, commit_bundle, new_staging, read_manifest
+    from memgs_ros.core.map_io.ply import load_ply, save_ply
     good, root = Path(sys.argv[1]), Path(sys.argv[2])
     while True:  # saves back to back until killed
         staging = new_staging(root)
@@ -195,7 +195,7 @@ _SAVER = textwrap.dedent("""
 def kills_during_save(good: Path, work: Path, trials: int) -> dict[str, Any]:
     """SIGKILL a process saving bundles back to back at ``trials`` random moments; after each,
     every visible bundle must load whole and ``latest`` must name one."""
-    from memgs_ros.core.maps.bundle import LATEST, check_bundle
+    from memgs_ros.core.map_io.bundle import LATEST, check_bundle
 
     root = work / "kill_root"
     root.mkdir()
@@ -237,7 +237,7 @@ def load_time(bundle: Path, tum2: Path) -> dict[str, float]:
     """Seconds from reading the bundle to the first relocalised pose (tracker, kernels warm), and
     to the mapper's state in memory."""
     from memgs_ros.core.mapping.checkpoint import load as load_checkpoint
-    from memgs_ros.core.maps.bundle import MAPPER_FILE, TRACKER_FILE, check_bundle
+    from memgs_ros.core.map_io.bundle import MAPPER_FILE, TRACKER_FILE, check_bundle
     from memgs_ros.core.tracking import TrackerConfig, make_tracker, warm_up
     from memgs_ros.core.tracking.map_io import read_tracker_map
     from memgs_ros.io.sources import open_source
@@ -372,7 +372,7 @@ def main() -> int:
     one_rmse, A_one = one_alignment([_poses(w / "one_session")], gt_s, gt_T)
     two_rmse, A_two = one_alignment([_poses(w / "session1"), _poses(w / "session2", OFFSET_NS)], gt_s, gt_T)
     loc_rmse, _ = one_alignment([_poses(w / "localize", OFFSET_NS)], gt_s, gt_T)
-    from memgs_ros.core.maps.bundle import PLY_FILE, check_bundle
+    from memgs_ros.core.map_io.bundle import PLY_FILE, check_bundle
 
     _, manifest = check_bundle(bundle)
     res.update(

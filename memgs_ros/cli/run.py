@@ -221,7 +221,7 @@ def check_inputs(source: str, config: str, max_frames: int = 0, overrides: dict 
 def check_map_bundle(bundle: Path | None, mode: str, params: dict[str, dict], camera: PinholeCamera) -> None:
     """ConfigError for ``--mode localize`` without a map; BundleError (one line naming the field or
     file) for a bundle that is damaged or made with another camera, depth unit or tracker mode."""
-    from memgs_ros.core.maps.bundle import check_bundle
+    from memgs_ros.core.map_io.bundle import check_bundle
 
     if bundle is None:
         if mode == "localize":

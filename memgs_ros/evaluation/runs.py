@@ -48,8 +48,8 @@ from tqdm import tqdm
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.view import view_preparation
+from memgs_ros.core.map_io.ply import load_ply
 from memgs_ros.core.mapping.config import MappingConfig
-from memgs_ros.core.maps.ply import load_ply
 from memgs_ros.core.metrics import scoring
 from memgs_ros.core.metrics.image import make_lpips
 from memgs_ros.core.metrics.scoring import (

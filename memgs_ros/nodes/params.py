@@ -135,7 +135,7 @@ class TrackerParams:
     max_stamp_ahead_s: float = 3600.0  # drop frames stamped more than this ahead of the node's clock (0 = no check)
     camera_info_override: bool = False
     max_frame_age_s: float = 0.1
-    map_bundle: str = ""  # a saved map bundle to start from (core/maps/bundle.py): no pose until relocalised in it
+    map_bundle: str = ""  # a saved map bundle to start from (core/map_io/bundle.py): no pose until relocalised in it
     map_mode: str = "mapping"  # with map_bundle: mapping (continue the map) or localize (track, change nothing)
     bundle_dir: str = ""  # where bundles are saved (memgs/save_map); this node stages its part in <bundle_dir>/.parts
 

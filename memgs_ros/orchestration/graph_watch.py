@@ -21,7 +21,7 @@ from sensor_msgs.msg import Image, PointCloud2
 from std_msgs.msg import Bool
 from std_srvs.srv import Trigger
 
-from memgs_ros.core.maps.map_delta import decode
+from memgs_ros.core.map_io.map_delta import decode
 from memgs_ros.core.runtime.telemetry import TELEMETRY, parse_stats
 from memgs_ros.errors import PipelineError
 from memgs_ros.orchestration.processes import VIEW_NODE

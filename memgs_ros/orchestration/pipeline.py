@@ -24,7 +24,7 @@ from rclpy.executors import Executor, SingleThreadedExecutor
 from tqdm import tqdm
 
 from memgs_ros.core.geometry.poses import pose_to_tq
-from memgs_ros.core.maps.answers import MapAnswer
+from memgs_ros.core.map_io.answers import MapAnswer
 from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.core.runtime.cpu import MALLOC_ARENAS
 from memgs_ros.errors import ConfigError, PipelineError

@@ -41,7 +41,7 @@ GRAPH_NODE_NAMES = GRAPH
 PARAMS_FILE = "params.yaml"  # the effective per-node parameters
 MAP_FILE = "map.ply"
 CHECKPOINT_FILE = "mapper_checkpoint.npz"  # the mapper's checkpoint (resumed by a mapper restarted mid-run)
-BUNDLES_DIR = "maps"  # map bundles the run saves (core/maps/bundle.py), and their "latest" link
+BUNDLES_DIR = "maps"  # map bundles the run saves (core/map_io/bundle.py), and their "latest" link
 TRAJECTORY_FILE = "trajectory.txt"  # every tracked pose, TUM format
 KEYFRAMES_FILE = "keyframes.txt"  # keyframe poses at insertion, TUM format
 STATS_TIMELINE_FILE = "stats_timeline.jsonl"  # every node stats message: {"t_s", "node", key: value}
@@ -105,7 +105,7 @@ class RunOptions:
     record: Path | None = None
     # Stream the run to Rerun (viewer and/or .rrd file) through a rerun_bridge node; None = no view.
     rerun: RerunTarget | None = None
-    # A saved map bundle to start from (core/maps/bundle.py), and what to do with it: mapping (continue
+    # A saved map bundle to start from (core/map_io/bundle.py), and what to do with it: mapping (continue
     # it; the run saves a new bundle) or localize (track in it, change nothing, save no bundle).
     map_bundle: Path | None = None
     map_mode: str = "mapping"

@@ -14,8 +14,8 @@ import numpy as np
 from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.poses import invert_pose
-from memgs_ros.core.maps.bundle import LATEST, MANIFEST, PLY_FILE, TRACKER_FILE, check_bundle, resolve_bundle
-from memgs_ros.core.maps.ply import load_ply
+from memgs_ros.core.map_io.bundle import LATEST, MANIFEST, PLY_FILE, TRACKER_FILE, check_bundle, resolve_bundle
+from memgs_ros.core.map_io.ply import load_ply
 from memgs_ros.errors import DataError
 from memgs_ros.io.tum import read_trajectory
 from memgs_ros.orchestration.run_files import (
@@ -94,7 +94,7 @@ def load_saved_run(path: str | os.PathLike[str], trajectory: str | os.PathLike[s
 
 
 def _saved_bundle(bundle: Path, trajectory: str | os.PathLike[str] | None) -> SavedRun:
-    """A map bundle (core/maps/bundle.py): its map, its tracker's keyframes and its camera."""
+    """A map bundle (core/map_io/bundle.py): its map, its tracker's keyframes and its camera."""
     _, m = check_bundle(bundle, verify_files=False)
     try:
         with np.load(bundle / TRACKER_FILE, allow_pickle=False) as z:

@@ -5,7 +5,7 @@ writing off the executor). The merger's ``nodes/merger/bundles.py`` assembles th
 (``memgs/tracker/save_map_part``) and the mapper (``memgs/mapper/save_map_part``) for their
 parts, each written atomically into ``<bundle_dir>/.parts`` and answered with its path, then
 moves them into a staging folder with the PLY of its own map and commits the bundle
-(``core/maps/bundle.py``): the answer's first word is the bundle's path. The three nodes must
+(``core/map_io/bundle.py``): the answer's first word is the bundle's path. The three nodes must
 share that folder's file system (one robot). Every wait is a coroutine's (the executors go on:
 the tracker keeps tracking while its part is written, after a copy of milliseconds on its
 thread) and bounded.

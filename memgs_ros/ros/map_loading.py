@@ -26,7 +26,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.client import Client
 from rclpy.node import Node
 
-from memgs_ros.core.maps.bundle import BundleError, check_bundle
+from memgs_ros.core.map_io.bundle import BundleError, check_bundle
 from memgs_ros.ros.service_calls import call_within
 
 __all__ = ["GraphMapLoader", "NodeMapLoader", "bundle_from_url", "set_aside_checkpoint"]

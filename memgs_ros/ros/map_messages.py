@@ -1,12 +1,12 @@
 """Map messages on the wire (sensor_msgs/PointCloud2) for the nodes that receive or publish whole
-maps: the merger and the Rerun bridge. The format itself is :mod:`memgs_ros.core.maps.map_delta`;
+maps: the merger and the Rerun bridge. The format itself is :mod:`memgs_ros.core.map_io.map_delta`;
 ``viewer_cloud_message`` is the plain cloud for RViz and Foxglove (``memgs/map/points``)."""
 from __future__ import annotations
 
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 
-from memgs_ros.core.maps.map_delta import MapMessage, MapReplica, MessageKind, decode, encode, viewer_points
+from memgs_ros.core.map_io.map_delta import MapMessage, MapReplica, MessageKind, decode, encode, viewer_points
 from memgs_ros.errors import MessageError
 from memgs_ros.ros.codecs import pointcloud2_to_structured, structured_to_pointcloud2
 from memgs_ros.ros.diagnostics import NodeStats

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from memgs_ros.core.maps.map_delta import pack_rgb8, unpack_rgb
+from memgs_ros.core.map_io.map_delta import pack_rgb8, unpack_rgb
 from memgs_ros.errors import MessageError
 
 SEED_DTYPE = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32), ("rgb", np.float32),

@@ -15,7 +15,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 from std_srvs.srv import Trigger
 
-from memgs_ros.core.maps.follower import RequestPacer
+from memgs_ros.core.map_io.follower import RequestPacer
 from memgs_ros.core.runtime.stat_fields import Stat
 from memgs_ros.ros.diagnostics import NodeStats
 

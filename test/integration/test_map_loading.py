@@ -18,7 +18,7 @@ from ros_spin import spin_until  # noqa: E402
 
 from memgs_ros.core.gaussians.records import GaussianRecords  # noqa: E402
 from memgs_ros.core.mapping import checkpoint  # noqa: E402
-from memgs_ros.core.maps.bundle import (  # noqa: E402
+from memgs_ros.core.map_io.bundle import (  # noqa: E402
     MANIFEST,
     MAPPER_FILE,
     PLY_FILE,
@@ -27,7 +27,7 @@ from memgs_ros.core.maps.bundle import (  # noqa: E402
     commit_bundle,
     new_staging,
 )
-from memgs_ros.core.maps.ply import save_ply  # noqa: E402
+from memgs_ros.core.map_io.ply import save_ply  # noqa: E402
 
 pytestmark = pytest.mark.ros
 R = LoadMap.Response

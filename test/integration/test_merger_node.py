@@ -18,8 +18,8 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap  # noqa: E402
 from memgs_ros.core.gaussians.records import base_rgb8  # noqa: E402
-from memgs_ros.core.maps.map_delta import DeltaOutbox, unpack_rgb  # noqa: E402
-from memgs_ros.core.maps.ply import load_ply  # noqa: E402
+from memgs_ros.core.map_io.map_delta import DeltaOutbox, unpack_rgb  # noqa: E402
+from memgs_ros.core.map_io.ply import load_ply  # noqa: E402
 from memgs_ros.io.image_decoding import image_to_numpy  # noqa: E402
 from memgs_ros.nodes.merger.node import MergerNode  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402

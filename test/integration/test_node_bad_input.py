@@ -21,7 +21,7 @@ from std_msgs.msg import Header  # noqa: E402
 
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap  # noqa: E402
 from memgs_ros.core.geometry.frame import Frame  # noqa: E402
-from memgs_ros.core.maps.map_delta import DeltaOutbox, message_dtype  # noqa: E402
+from memgs_ros.core.map_io.map_delta import DeltaOutbox, message_dtype  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
 from memgs_ros.ros.codecs import (  # noqa: E402

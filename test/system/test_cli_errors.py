@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 import memgs_ros
 from memgs_ros.cli import main
 from memgs_ros.core.gaussians.gaussian_map import PLY_F_REST, GaussianRecords
-from memgs_ros.core.maps.ply import ids_sidecar_path, load_ply, save_ply
+from memgs_ros.core.map_io.ply import ids_sidecar_path, load_ply, save_ply
 from memgs_ros.errors import DataError
 
 SPEC = "synthetic:w=32,h=24,n=3,seed=1"
@@ -307,7 +307,7 @@ def test_a_map_bundle_that_does_not_fit_is_one_line(command: str, tmp_path: Path
                                                     capsys: pytest.CaptureFixture[str]) -> None:
     """--map is checked against the source before any node starts: missing, another camera, a
     changed file; --mode localize needs a map."""
-    from memgs_ros.core.maps.bundle import MAPPER_FILE, PLY_FILE, TRACKER_FILE, Manifest, commit_bundle, new_staging
+    from memgs_ros.core.map_io.bundle import MAPPER_FILE, PLY_FILE, TRACKER_FILE, Manifest, commit_bundle, new_staging
     from memgs_ros.io.synthetic import parse_spec
 
     source_cam = parse_spec(SPEC).camera

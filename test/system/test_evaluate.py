@@ -18,7 +18,7 @@ import torch
 pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install -e '.[ros]')")
 
 from memgs_ros.cli import main  # noqa: E402
-from memgs_ros.core.maps.ply import load_ply  # noqa: E402
+from memgs_ros.core.map_io.ply import load_ply  # noqa: E402
 from memgs_ros.evaluation import runs as evaluation  # noqa: E402
 from memgs_ros.evaluation.tables import ablation_table  # noqa: E402
 from memgs_ros.io.tum import read_trajectory  # noqa: E402

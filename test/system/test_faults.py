@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from memgs_ros.core.gaussians.records import GaussianRecords
-from memgs_ros.core.maps.ply import ids_sidecar_path, load_ply, save_ply
+from memgs_ros.core.map_io.ply import ids_sidecar_path, load_ply, save_ply
 from memgs_ros.core.runtime import atomic
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -16,7 +16,7 @@ import pytest
 
 pytest.importorskip("rclpy", reason="the ROS extra is not installed")
 
-from memgs_ros.core.maps.ply import load_ply  # noqa: E402
+from memgs_ros.core.map_io.ply import load_ply  # noqa: E402
 from memgs_ros.nodes.registry import node_name  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]

@@ -12,8 +12,8 @@ import pytest
 pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install -e '.[ros]')")
 
 from memgs_ros.cli.run import check_map_bundle  # noqa: E402
-from memgs_ros.core.maps.bundle import LATEST, BundleError, check_bundle  # noqa: E402
-from memgs_ros.core.maps.ply import load_ply  # noqa: E402
+from memgs_ros.core.map_io.bundle import LATEST, BundleError, check_bundle  # noqa: E402
+from memgs_ros.core.map_io.ply import load_ply  # noqa: E402
 from memgs_ros.core.metrics.trajectory import align_umeyama, associate  # noqa: E402
 from memgs_ros.core.tracking.map_io import read_tracker_map  # noqa: E402
 from memgs_ros.errors import ConfigError  # noqa: E402
@@ -113,7 +113,7 @@ def test_a_tum_folders_bundle_is_checked_in_the_units_the_run_gives_the_tracker(
     bundle is made at 5000 and taken back by ``memgs run --map`` over the same folder, while one
     made at millimetres is refused, before any node starts (the check once used the default 1000)."""
     from memgs_ros.cli.run import check_config, check_inputs
-    from memgs_ros.core.maps.bundle import MAPPER_FILE, PLY_FILE, TRACKER_FILE, Manifest, commit_bundle, new_staging
+    from memgs_ros.core.map_io.bundle import MAPPER_FILE, PLY_FILE, TRACKER_FILE, Manifest, commit_bundle, new_staging
     from memgs_ros.io.synthetic import write_tum_folder
     from memgs_ros.orchestration.run_files import configured_camera
 

@@ -16,7 +16,7 @@ pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install
 
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap  # noqa: E402
 from memgs_ros.core.geometry.poses import invert_pose  # noqa: E402
-from memgs_ros.core.maps.ply import load_ply  # noqa: E402
+from memgs_ros.core.map_io.ply import load_ply  # noqa: E402
 from memgs_ros.core.metrics.image import psnr  # noqa: E402
 from memgs_ros.core.metrics.trajectory import ate  # noqa: E402
 from memgs_ros.core.raster import rasterize  # noqa: E402

@@ -244,8 +244,8 @@ FAST = {"mapper.iterations_per_frame": 3, "mapper.final_iterations": 50,
 @pytest.mark.slow
 def test_run_records_every_output_topic(tmp_path: Path, ros_domain_id: int) -> None:
     pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install -e '.[ros]')")
-    from memgs_ros.core.maps.map_delta import decode, unpack_rgb
-    from memgs_ros.core.maps.ply import load_ply
+    from memgs_ros.core.map_io.map_delta import decode, unpack_rgb
+    from memgs_ros.core.map_io.ply import load_ply
     from memgs_ros.orchestration.pipeline import RunOptions, run_pipeline
 
     bag = write_bag(generate_frames(parse_spec(SPEC)), tmp_path / "synthetic.mcap").path

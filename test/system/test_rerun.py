@@ -20,7 +20,7 @@ from rerun.chunk import RrdReader  # noqa: E402
 
 from memgs_ros.cli import main  # noqa: E402
 from memgs_ros.core.gaussians.records import GaussianRecords  # noqa: E402
-from memgs_ros.core.maps.ply import load_ply, save_ply  # noqa: E402
+from memgs_ros.core.map_io.ply import load_ply, save_ply  # noqa: E402
 from memgs_ros.errors import ConfigError  # noqa: E402
 from memgs_ros.io.image_decoding import decode_compressed_rgb  # noqa: E402
 from memgs_ros.viz import RerunTarget  # noqa: E402
@@ -118,7 +118,7 @@ def test_viz_imports_no_rclpy() -> None:
     """The view's library half runs where ROS does not (memgs view on a laptop)."""
     import subprocess
 
-    code = ("import sys, memgs_ros.viz.rerun_log, memgs_ros.orchestration.saved_run, memgs_ros.core.maps.follower, "
+    code = ("import sys, memgs_ros.viz.rerun_log, memgs_ros.orchestration.saved_run, memgs_ros.core.map_io.follower, "
             "memgs_ros.viz.live_view, "
             "memgs_ros.cli.view; assert 'rclpy' not in sys.modules, 'rclpy imported'")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
@@ -166,8 +166,8 @@ def test_log_views_pairs_frame_and_render(tmp_path: Path) -> None:
 def test_map_follower_follows_deltas_and_repairs_gaps_from_full_maps() -> None:
     """The bridge's and the merger's copy of the map: in step from deltas; a lost delta or a late
     start is repaired by a full map, and the deltas that arrived meanwhile are replayed on top of it."""
-    from memgs_ros.core.maps.follower import MapFollower
-    from memgs_ros.core.maps.map_delta import ApplyStatus, DeltaOutbox, decode
+    from memgs_ros.core.map_io.follower import MapFollower
+    from memgs_ros.core.map_io.map_delta import ApplyStatus, DeltaOutbox, decode
 
     out = DeltaOutbox(sh_degree=3, tolerance=0.0, epoch=5)
     maps = [_records(50 + 10 * i, seed=0) for i in range(8)]  # grows by 10 Gaussians a step, same ids kept
@@ -203,8 +203,8 @@ def test_map_follower_follows_deltas_and_repairs_gaps_from_full_maps() -> None:
 def test_map_follower_replays_past_a_second_gap_and_reports_unknown_removals() -> None:
     """A gap among the replayed deltas holds the rest back again (none is lost), and a delta
     removing ids the replica never held says how many."""
-    from memgs_ros.core.maps.follower import MapFollower
-    from memgs_ros.core.maps.map_delta import ApplyStatus, DeltaOutbox, decode, message_dtype
+    from memgs_ros.core.map_io.follower import MapFollower
+    from memgs_ros.core.map_io.map_delta import ApplyStatus, DeltaOutbox, decode, message_dtype
 
     out = DeltaOutbox(sh_degree=3, tolerance=0.0, epoch=1)
     maps = [_records(20 + 5 * i, seed=1) for i in range(7)]
@@ -447,7 +447,7 @@ def test_run_rerun_save_end_to_end(tmp_path: Path, ros_domain_id: int) -> None:
 
 
 def test_request_pacer_backs_off_while_unanswered_and_asks_once_at_a_quiet_start() -> None:
-    from memgs_ros.core.maps.follower import RequestPacer
+    from memgs_ros.core.map_io.follower import RequestPacer
 
     p = RequestPacer(1.0, max_backoff=8, start_after_s=2.0, started_s=100.0)
     assert not p.ask(101.0, out_of_step=False) and not p.ask(102.0, out_of_step=False)

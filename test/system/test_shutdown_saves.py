@@ -20,8 +20,8 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap  # noqa: E402
 from memgs_ros.core.mapping import checkpoint  # noqa: E402
-from memgs_ros.core.maps.map_delta import DeltaOutbox  # noqa: E402
-from memgs_ros.core.maps.ply import load_ply  # noqa: E402
+from memgs_ros.core.map_io.map_delta import DeltaOutbox  # noqa: E402
+from memgs_ros.core.map_io.ply import load_ply  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
 from memgs_ros.ros.codecs import (  # noqa: E402

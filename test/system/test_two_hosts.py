@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("rclpy", reason="the ROS extra is not installed (pip install -e '.[ros]')")
 
-from memgs_ros.core.maps.ply import load_ply  # noqa: E402
+from memgs_ros.core.map_io.ply import load_ply  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec, write_tum_folder  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]

@@ -39,7 +39,7 @@ codecs.numpy_to_image(frame.rgb, "rgb8", 1, "cam")
 codecs.numpy_to_image(frame.depth_m.raw, "16UC1", 1, "cam")
 """
 _MERGER = """
-from memgs_ros.core.maps.follower import MapFollower
+from memgs_ros.core.map_io.follower import MapFollower
 """
 
 CASES = {

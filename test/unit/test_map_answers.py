@@ -1,9 +1,9 @@
-"""The map services' Trigger answers (core/maps/answers.py): written and read in one place."""
+"""The map services' Trigger answers (core/map_io/answers.py): written and read in one place."""
 from __future__ import annotations
 
 import pytest
 
-from memgs_ros.core.maps.answers import MapAnswer
+from memgs_ros.core.map_io.answers import MapAnswer
 from memgs_ros.errors import MessageError
 
 

@@ -1,4 +1,4 @@
-"""Map bundles on disk (core/maps/bundle.py): a save is all or nothing, a bundle is never
+"""Map bundles on disk (core/map_io/bundle.py): a save is all or nothing, a bundle is never
 overwritten, and a bundle that does not fit is refused with one line naming the field or file."""
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from memgs_ros.core.maps.bundle import (
+from memgs_ros.core.map_io.bundle import (
     LATEST,
     MANIFEST,
     MAPPER_FILE,
@@ -80,7 +80,7 @@ def _edit(bundle: Path, **fields: object) -> None:
 _DIES = textwrap.dedent("""
     import os, signal, sys
     from pathlib import Path
-    import memgs_ros.core.maps.bundle as bundle
+    import memgs_ros.core.map_io.bundle as bundle
     root, where = Path(sys.argv[1]), sys.argv[2]
     def die(*a, **k):
         os.kill(os.getpid(), signal.SIGKILL)

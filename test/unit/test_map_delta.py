@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from memgs_ros.core.gaussians.gaussian_map import GaussianRecords
-from memgs_ros.core.maps.map_delta import (
+from memgs_ros.core.map_io.map_delta import (
     ApplyStatus,
     MapReplica,
     MessageKind,
@@ -101,7 +101,7 @@ def test_count_mismatch_is_reported() -> None:
 
 
 def test_outbox_budgeted_deltas_keep_replica_in_step() -> None:
-    from memgs_ros.core.maps.map_delta import DeltaOutbox
+    from memgs_ros.core.map_io.map_delta import DeltaOutbox
 
     out, rep = DeltaOutbox(sh_degree=3), MapReplica()
     live = _records(range(10))
@@ -116,7 +116,7 @@ def test_outbox_budgeted_deltas_keep_replica_in_step() -> None:
 
 
 def test_outbox_sends_only_changes_over_tolerance_then_flushes_exactly() -> None:
-    from memgs_ros.core.maps.map_delta import DeltaOutbox
+    from memgs_ros.core.map_io.map_delta import DeltaOutbox
 
     out, rep = DeltaOutbox(sh_degree=3, tolerance=1e-3), MapReplica()
     live = _records(range(5))
@@ -134,7 +134,7 @@ def test_outbox_sends_only_changes_over_tolerance_then_flushes_exactly() -> None
 
 
 def test_outbox_snapshot_then_deltas() -> None:
-    from memgs_ros.core.maps.map_delta import DeltaOutbox
+    from memgs_ros.core.map_io.map_delta import DeltaOutbox
 
     out = DeltaOutbox(sh_degree=3)
     out.next_delta(_records([1, 2, 3]))
@@ -153,7 +153,7 @@ def test_a_snapshot_of_the_map_the_last_delta_made_keeps_its_seq() -> None:
     """After the final flush the snapshot is the same map: a receiver that has the flush is done
     (the snapshot is no news), one that lost it takes the snapshot; a snapshot after any change,
     or after a delta that held rows back, takes a new seq."""
-    from memgs_ros.core.maps.map_delta import DeltaOutbox
+    from memgs_ros.core.map_io.map_delta import DeltaOutbox
 
     out, has, lost = DeltaOutbox(sh_degree=3), MapReplica(), MapReplica()
     first = decode(out.next_delta(_records([1, 2, 3], seed=1)))
@@ -172,7 +172,7 @@ def test_a_snapshot_of_the_map_the_last_delta_made_keeps_its_seq() -> None:
 
 
 def test_restarted_sender_new_epoch_resyncs_from_its_snapshot() -> None:
-    from memgs_ros.core.maps.map_delta import DeltaOutbox
+    from memgs_ros.core.map_io.map_delta import DeltaOutbox
 
     first = DeltaOutbox(sh_degree=3, epoch=7)
     rep = MapReplica()

@@ -6,7 +6,7 @@ import pytest
 
 from memgs_ros.core.gaussians.gaussian_map import SH_C0
 from memgs_ros.core.gaussians.records import PLY_F_REST, GaussianRecords
-from memgs_ros.core.maps.map_delta import (
+from memgs_ros.core.map_io.map_delta import (
     DeltaOutbox,
     MapReplica,
     MessageKind,

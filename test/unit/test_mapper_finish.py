@@ -11,7 +11,7 @@ import pytest
 
 from memgs_ros.core.mapper_service.finish import FinalPlan, FinishSteps, finish_map
 from memgs_ros.core.mapper_service.session_records import FinishResult
-from memgs_ros.core.maps.answers import MapAnswer
+from memgs_ros.core.map_io.answers import MapAnswer
 from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.errors import DataError
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from memgs_ros.core.gaussians.gaussian_map import GaussianRecords
-from memgs_ros.core.maps.ply import PLY_PROPERTIES, ids_sidecar_path, load_ply, save_ply
+from memgs_ros.core.map_io.ply import PLY_PROPERTIES, ids_sidecar_path, load_ply, save_ply
 from memgs_ros.errors import DataError
 
 
@@ -113,7 +113,7 @@ def test_truncated_corrupt_and_non_3dgs_files_raise_data_error_naming_the_file(t
 
 
 def test_failed_write_keeps_the_previous_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import memgs_ros.core.maps.ply as ply_mod
+    import memgs_ros.core.map_io.ply as ply_mod
 
     p = save_ply(_records(2), tmp_path / "m.ply", write_ids=False)
     before = p.read_bytes()

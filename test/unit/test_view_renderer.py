@@ -9,7 +9,7 @@ import pytest
 
 from memgs_ros.core.gaussians.records import GaussianRecords
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.maps.view_renderer import ViewRenderer
+from memgs_ros.core.map_io.view_renderer import ViewRenderer
 
 
 def _wall(n: int = 200) -> GaussianRecords:

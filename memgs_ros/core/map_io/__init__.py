@@ -1,2 +1,2 @@
-"""A Gaussian map as data outside the trainer: host records (the 3DGS PLY fields), PLY files, and
-the deltas and replicas that carry a map from the mapper to a merger."""
+"""The map in and out of a process (core/mapping/ trains it): PLY files and map bundles, the deltas
+and replicas that carry a map from the mapper to a merger, its renders there, the services' answers."""

@@ -15,7 +15,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from memgs_ros.core.maps.map_delta import ApplyStatus, MapMessage, MapReplica, MessageKind
+from memgs_ros.core.map_io.map_delta import ApplyStatus, MapMessage, MapReplica, MessageKind
 
 __all__ = ["DeltaOutcome", "MapFollower", "RequestPacer"]
 

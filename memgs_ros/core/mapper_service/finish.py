@@ -16,7 +16,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from memgs_ros.core.maps.answers import MapAnswer
+from memgs_ros.core.map_io.answers import MapAnswer
 from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.errors import DataError
 

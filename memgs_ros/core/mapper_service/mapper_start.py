@@ -7,12 +7,12 @@ import pathlib
 import secrets
 from dataclasses import dataclass
 
+from memgs_ros.core.map_io.bundle import MAPPER_FILE, resolve_bundle
 from memgs_ros.core.mapper_service.session import MappingSession
 from memgs_ros.core.mapping import losses
 from memgs_ros.core.mapping.checkpoint import CheckpointFile, MapperCheckpoint
 from memgs_ros.core.mapping.checkpoint import load as load_checkpoint
 from memgs_ros.core.mapping.config import MappingConfig
-from memgs_ros.core.maps.bundle import MAPPER_FILE, resolve_bundle
 from memgs_ros.core.merge.config import MergeConfig
 from memgs_ros.core.raster import warm_up
 from memgs_ros.core.raster.backend_choice import BackendChoice, choose_backend, device_problem, resolve_device

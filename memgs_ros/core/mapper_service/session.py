@@ -44,6 +44,7 @@ import torch
 from memgs_ros.core.gaussians.gaussian_map import GaussianRecords
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.core.geometry.view import view_preparation
+from memgs_ros.core.map_io.map_delta import DeltaOutbox
 from memgs_ros.core.mapper_service.keyframe_timing import KeyframeTimings
 from memgs_ros.core.mapper_service.session_records import (
     DeltaBatch,
@@ -57,7 +58,6 @@ from memgs_ros.core.mapper_service.session_tally import SessionTally, StampedKey
 from memgs_ros.core.mapping.checkpoint import MapperCheckpoint
 from memgs_ros.core.mapping.keyframes import KeyframeInput, TrainingKeyframe
 from memgs_ros.core.mapping.mapper import GaussianMapper, MappingConfig, StepStats, prepare_keyframe
-from memgs_ros.core.maps.map_delta import DeltaOutbox
 from memgs_ros.core.raster.values import render_rgb8
 from memgs_ros.core.runtime.worker import BACKGROUND_ERROR_PAUSE_S, Command, CommandWorker, WorkerStopped
 from memgs_ros.errors import DataError

@@ -1,6 +1,6 @@
 """The tracker's map as a file: keyframes, map points and the place-recognition vectors, saved
 from one session and loaded into the next (the tracker's part of a map bundle,
-``core/maps/bundle.py``).
+``core/map_io/bundle.py``).
 
 What is kept: every keyframe (id, stamp, T_cw, segment, its ORB features: raw and undistorted
 keypoints, octaves, descriptors, depth at the keypoints, and the map point of each keypoint),

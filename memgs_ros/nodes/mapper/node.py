@@ -5,7 +5,7 @@ In: ``memgs/keyframe/{color,depth,camera_info,pose,seeds}`` (one stamp per keyfr
 ``memgs/keyframe/refined_poses`` (bundle adjustment), ``memgs/keyframe/loop_corrected_poses``,
 ``memgs/keyframe/culled`` (keyframes the tracker culled: out of training),
 ``memgs/pose`` (live view), ``memgs/render/view_pose``, ``memgs/tracker/processed`` (an acknowledged replay).
-Out: ``memgs/map/delta`` (core/maps/map_delta.py), ``memgs/mapper/snapshot`` (latched, with a packed ``rgb`` colour),
+Out: ``memgs/map/delta`` (core/map_io/map_delta.py), ``memgs/mapper/snapshot`` (latched, with a packed ``rgb`` colour),
 ``memgs/render/{color,depth,camera_info}``, ``memgs/frame_ack``, ``memgs/mapper/stats``; services
 ``memgs/mapper/publish_snapshot`` and ``memgs/mapper/finish``
 (answers a ``MapAnswer``: seq, gaussians, epoch). With ``checkpoint_path`` the session's state is
@@ -33,14 +33,14 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
+from memgs_ros.core.map_io.answers import MapAnswer
+from memgs_ros.core.map_io.map_delta import message_dtype
 from memgs_ros.core.mapper_service.checkpoint_saver import CheckpointSaver
 from memgs_ros.core.mapper_service.finish import FinalPlan, FinishSteps, finish_map
 from memgs_ros.core.mapper_service.mapper_start import MapperStart, SessionOptions, start_mapper
 from memgs_ros.core.mapper_service.output_pacing import DeltaPacer, LiveView, delta_rows
 from memgs_ros.core.mapping import checkpoint
 from memgs_ros.core.mapping.mapper import MappingConfig
-from memgs_ros.core.maps.answers import MapAnswer
-from memgs_ros.core.maps.map_delta import message_dtype
 from memgs_ros.core.merge.config import MergeConfig
 from memgs_ros.core.raster.backend_choice import device_label
 from memgs_ros.core.runtime.replay import FrameAcknowledger

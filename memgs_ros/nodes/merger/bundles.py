@@ -15,7 +15,7 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.gaussians.records import GaussianRecords
-from memgs_ros.core.maps.bundle import (
+from memgs_ros.core.map_io.bundle import (
     MAPPER_FILE,
     PLY_FILE,
     TRACKER_FILE,
@@ -24,7 +24,7 @@ from memgs_ros.core.maps.bundle import (
     discard_staging,
     new_staging,
 )
-from memgs_ros.core.maps.ply import ids_sidecar_path, save_ply
+from memgs_ros.core.map_io.ply import ids_sidecar_path, save_ply
 from memgs_ros.errors import MemgsError, PipelineError
 from memgs_ros.nodes.merger.stats import MergerStats
 from memgs_ros.ros.hand_over import HandOver

@@ -39,11 +39,11 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.maps.answers import MapAnswer
-from memgs_ros.core.maps.follower import DeltaOutcome, MapFollower, RequestPacer
-from memgs_ros.core.maps.map_delta import MessageKind
-from memgs_ros.core.maps.ply import save_ply
-from memgs_ros.core.maps.view_renderer import ViewRenderer
+from memgs_ros.core.map_io.answers import MapAnswer
+from memgs_ros.core.map_io.follower import DeltaOutcome, MapFollower, RequestPacer
+from memgs_ros.core.map_io.map_delta import MessageKind
+from memgs_ros.core.map_io.ply import save_ply
+from memgs_ros.core.map_io.view_renderer import ViewRenderer
 from memgs_ros.errors import MemgsError
 from memgs_ros.nodes.merger.bundles import BundleAssembler
 from memgs_ros.nodes.merger.outputs import ViewOutbox

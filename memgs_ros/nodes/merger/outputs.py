@@ -8,7 +8,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
 from memgs_ros.core.geometry.camera import PinholeCamera
-from memgs_ros.core.maps.view_renderer import RenderedView
+from memgs_ros.core.map_io.view_renderer import RenderedView
 from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.nodes.merger.stats import MergerStats
 from memgs_ros.ros import qos

@@ -35,7 +35,7 @@ from nav_msgs.msg import Path
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
-from memgs_ros.core.maps.follower import MapFollower, RequestPacer
+from memgs_ros.core.map_io.follower import MapFollower, RequestPacer
 from memgs_ros.core.runtime.telemetry_fields import ViewFields
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, decode_rgb

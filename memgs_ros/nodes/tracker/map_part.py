@@ -10,7 +10,7 @@ from typing import Any
 
 from rclpy.node import Node
 
-from memgs_ros.core.maps.bundle import TRACKER_FILE, resolve_bundle
+from memgs_ros.core.map_io.bundle import TRACKER_FILE, resolve_bundle
 from memgs_ros.errors import DataError
 from memgs_ros.nodes.tracker.stats import TrackerStats
 from memgs_ros.ros.hand_over import HandOver

@@ -325,7 +325,7 @@ class OutputFolder:
 # ---------------------------------------------------------------------------------- maps
 def check_map(out: Path) -> MapCheck:
     """The map in ``out`` as the project reads it: parses, and its ids sidecar fits its rows."""
-    from memgs_ros.core.maps.ply import ids_sidecar_path, load_ply
+    from memgs_ros.core.map_io.ply import ids_sidecar_path, load_ply
     from memgs_ros.errors import DataError
 
     path = out / "map.ply"

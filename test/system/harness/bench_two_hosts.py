@@ -55,7 +55,7 @@ from std_msgs.msg import Bool
 from std_srvs.srv import Trigger
 
 from memgs_ros.cli.run import check_inputs, guess_config
-from memgs_ros.core.maps.answers import MapAnswer
+from memgs_ros.core.map_io.answers import MapAnswer
 from memgs_ros.core.runtime.cpu import MALLOC_ARENAS, PARENT_PID_ENV, die_with_parent
 from memgs_ros.errors import MemgsError, PipelineError
 from memgs_ros.nodes.bag_player.node import LINGER_S
