@@ -39,6 +39,7 @@ from memgs_ros.ros.codecs import (
     matrix_to_pose_stamped,
     pose_to_matrix,
     rep118_depth,
+    set_stamp,
     structured_to_pointcloud2,
 )
 
@@ -124,19 +125,22 @@ class KeyframeOutbox:
         self.pose.publish(matrix_to_pose_stamped(kf.T_wc, stamp, self.world_frame))
         self.stamps[kf.keyframe_id] = stamp
 
-    def publish_poses(self, poses: list[tuple[int, np.ndarray]], pub: Publisher) -> int:
+    def publish_poses(self, poses: list[tuple[int, np.ndarray]], pub: Publisher, frame_ns: int) -> int:
         """Keyframe poses [(keyframe id, T_wc)] as one Path on ``pub`` (``refined`` or ``loop``),
-        by the keyframes' stamps; returns how many (ids it never published are left out)."""
+        by the keyframes' stamps, the Path stamped with the frame they went out with (``frame_ns``:
+        an acknowledged replay's mapper trains that frame after them); returns how many (ids it
+        never published are left out)."""
         msgs = [matrix_to_pose_stamped(T, self.stamps[i], self.world_frame) for i, T in poses if i in self.stamps]
         if msgs:
             self._poses.poses = msgs
+            set_stamp(self._poses.header.stamp, frame_ns)
             pub.publish(self._poses)
         return len(msgs)
 
-    def publish_culled(self, culled: list[tuple[int, int, np.ndarray]]) -> int:
+    def publish_culled(self, culled: list[tuple[int, int, np.ndarray]], frame_ns: int) -> int:
         """Keyframes culling removed, by stamp (their last poses), on ``memgs/keyframe/culled``; the
         table forgets them. Returns how many went out."""
-        n = self.publish_poses([(k, T) for k, _, T in culled], self.culled)
+        n = self.publish_poses([(k, T) for k, _, T in culled], self.culled, frame_ns)
         for k, _, _ in culled:
             self.stamps.pop(k, None)
         return n

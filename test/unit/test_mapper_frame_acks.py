@@ -95,3 +95,45 @@ def test_frames_are_acknowledged_in_order_when_training_finishes_late() -> None:
         f.set_result(None)
     m.run_handed()
     assert m.acked == [1, 2, 3] and len(m.ack_ms) == 3
+
+
+def test_a_frame_trains_after_the_pose_messages_sent_with_it_whichever_comes_first() -> None:
+    """The tracker names the pose messages it sent with a frame ("refined", "loop", "culled": topics
+    of their own, no order across them); the frame's training is queued only once each is in, so
+    the session's commands keep one order (an acknowledged replay's map the same every run)."""
+    m = _Mapper(window=0)
+    m.acks.processed(1, keyframe=False, bundle_complete=False, parts=frozenset({"refined", "loop"}))
+    m.run_handed()
+    assert m.trains == [] and m.acks.awaiting == {1}  # the word came first: it waits
+    m.acks.part_arrived(1, "refined")
+    assert m.trains == []
+    m.acks.part_arrived(1, "loop")
+    m.run_handed()
+    assert len(m.trains) == 1 and m.acks.awaiting == frozenset()
+    m.trains[0].set_result(None)
+    m.run_handed()
+    assert m.acked == [1]
+    # The usual order: the part first, then the word; the frame trains at once.
+    m.acks.part_arrived(2, "culled")
+    assert m.trains[1:] == []
+    m.acks.processed(2, keyframe=False, bundle_complete=False, parts=frozenset({"culled"}))
+    m.run_handed()
+    assert len(m.trains) == 2
+    # A keyframe waits for its bundle and its parts alike.
+    m.acks.processed(3, keyframe=True, bundle_complete=False, parts=frozenset({"refined"}))
+    m.acks.bundle_complete(3)
+    assert len(m.trains) == 2 and m.acks.awaiting == {3}
+    m.acks.part_arrived(3, "refined")
+    m.run_handed()
+    assert len(m.trains) == 3 and m.acks.awaiting == frozenset()
+
+
+def test_a_part_that_never_comes_holds_its_frame_no_longer_than_the_wait() -> None:
+    from memgs_ros.core.runtime.replay import PART_WAIT_S
+
+    m = _Mapper(window=0)
+    m.acks.processed(1, keyframe=False, bundle_complete=False, parts=frozenset({"refined"}))
+    m.now += PART_WAIT_S + 0.1
+    m.acks.processed(2, keyframe=False, bundle_complete=False)
+    m.run_handed()
+    assert len(m.trains) == 2 and m.acks.awaiting == frozenset()  # 1 given up on, then 2

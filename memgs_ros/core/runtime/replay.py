@@ -178,6 +178,10 @@ class AckWindow:
         return sum(not f.acked for f in self._frames)
 
 
+_EARLY_KEPT = 256  # parts kept for frames the tracker has not yet announced
+PART_WAIT_S = 5.0  # a frame waits this long for its pose messages, then trains without them
+
+
 class FrameAcknowledger:
     """Queues each announced frame's training (``train()``, a session command) and calls
     ``acknowledge(stamp_ns)`` once the frame is due, then ``ack_ms(ms)`` with the time from the
@@ -194,29 +198,58 @@ class FrameAcknowledger:
         self._acks = AckWindow(window)
         self._train, self._hand_over, self._acknowledge, self._ack_ms = train, hand_over, acknowledge, ack_ms
         self._clock = clock
-        self._awaiting: set[int] = set()  # keyframes announced, their bundle not yet complete
+        # Frames announced whose training waits for parts of the frame still on their way: "bundle"
+        # (its keyframe's messages), or the keyframe poses the tracker sent with it ("refined",
+        # "loop", "culled", on topics of their own: DDS keeps no order across topics).
+        self._awaiting: dict[int, set[str]] = {}
+        self._early: dict[int, set[str]] = {}  # parts that came before the tracker's word on their frame
         self._announced_at: dict[int, float] = {}  # when the tracker's word on a frame came
 
     @property
     def awaiting(self) -> frozenset[int]:
-        """Keyframe stamps whose frame waits for its bundle."""
+        """Stamps of frames whose training waits for a part."""
         return frozenset(self._awaiting)
 
-    def processed(self, stamp_ns: int, keyframe: bool, bundle_complete: bool) -> None:
+    def processed(self, stamp_ns: int, keyframe: bool, bundle_complete: bool,
+                  parts: frozenset[str] = frozenset()) -> None:
         """The tracker handled frame ``stamp_ns`` (``keyframe``: it made one, whose bundle is
-        ``bundle_complete`` or not yet): queue its training now, or once its bundle is in."""
-        self._announced_at[stamp_ns] = self._clock()
+        ``bundle_complete`` or not yet; ``parts``: the pose messages it sent with the frame): queue
+        its training now, or once every part is in (its commands queued first: the map's order)."""
+        now = self._clock()
+        for old in [k for k in self._awaiting if now - self._announced_at.get(k, now) > PART_WAIT_S]:
+            # A pose message that never comes (sent before this mapper subscribed: a restart) holds
+            # no frame for longer; its keyframe's bundle is still waited for, as always.
+            self._awaiting[old] &= {"bundle"}
+            if not self._awaiting[old]:
+                del self._awaiting[old]
+                self._queue(old)
+        self._announced_at[stamp_ns] = now
+        waits = set(parts) - self._early.pop(stamp_ns, set())
         if keyframe and not bundle_complete:
-            self._awaiting.add(stamp_ns)
+            waits.add("bundle")
+        if waits:
+            self._awaiting[stamp_ns] = waits
             return
         self._queue(stamp_ns)
 
-    def bundle_complete(self, stamp_ns: int) -> None:
-        """Keyframe ``stamp_ns``'s bundle completed (its insertion is queued, or it was refused):
-        the training of a frame that waited for it is queued after it."""
-        if stamp_ns in self._awaiting:
-            self._awaiting.discard(stamp_ns)
+    def part_arrived(self, stamp_ns: int, part: str) -> None:
+        """A part of frame ``stamp_ns`` arrived and its command is queued: the frame's training
+        follows once nothing else is awaited."""
+        waits = self._awaiting.get(stamp_ns)
+        if waits is None:
+            if part != "bundle":  # a complete bundle before the word is already counted as seen
+                self._early.setdefault(stamp_ns, set()).add(part)
+                while len(self._early) > _EARLY_KEPT:  # parts of frames no word will come for (a restart)
+                    del self._early[next(iter(self._early))]
+            return
+        waits.discard(part)
+        if not waits:
+            del self._awaiting[stamp_ns]
             self._queue(stamp_ns)
+
+    def bundle_complete(self, stamp_ns: int) -> None:
+        """Keyframe ``stamp_ns``'s bundle completed (its insertion is queued, or it was refused)."""
+        self.part_arrived(stamp_ns, "bundle")
 
     def _queue(self, stamp_ns: int) -> None:
         trained = self._train()

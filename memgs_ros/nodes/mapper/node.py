@@ -197,6 +197,7 @@ class MapperNode(ManagedNode):
         poses = self._keyframe_poses(msg)
         if poses:
             self.stats.watch(self.session.update_poses(poses), "update_poses")
+        self._part_arrived(msg, "refined")
 
     def on_culled(self, msg: Path) -> None:
         """Keyframes the tracker culled as redundant: their views leave training and their Gaussians
@@ -204,6 +205,7 @@ class MapperNode(ManagedNode):
         poses = self._keyframe_poses(msg)
         if poses:
             self.stats.watch(self.session.retire_keyframes(list(poses)), "retire_keyframes")
+        self._part_arrived(msg, "culled")
 
     def on_loop_corrected(self, msg: Path) -> None:
         """Keyframe poses a loop closure corrected: each keyframe's Gaussians move with it and
@@ -211,17 +213,25 @@ class MapperNode(ManagedNode):
         poses = self._keyframe_poses(msg)
         if poses:
             self.stats.watch(self.session.correct_keyframes(poses), "correct_keyframes")
+        self._part_arrived(msg, "loop")
+
+    def _part_arrived(self, msg: Path, part: str) -> None:
+        """Acknowledged pacing: a pose message the tracker sent with the frame it is stamped with,
+        its command queued; that frame's training may follow (``FrameAcknowledger``)."""
+        if self.params.replay.acknowledged:
+            self.acks.part_arrived(stamp_to_ns(msg.header.stamp), part)
 
     def on_processed(self, msg: Header) -> None:
-        """Acknowledged pacing: acknowledge a frame once its keyframe (if any) is queued and training ran
-        (``FrameAcknowledger``). Always: remember announced keyframes, so ones that never
-        arrive are counted."""
-        stamp, keyframe = stamp_to_ns(msg.stamp), msg.frame_id == "keyframe"
+        """Acknowledged pacing: acknowledge a frame once its keyframe (if any) and the pose messages
+        sent with it are queued and training ran (``FrameAcknowledger``). Always: remember announced
+        keyframes, so ones that never arrive are counted."""
+        kind, *parts = msg.frame_id.split("+")  # "keyframe" or "frame", then the pose messages sent with it
+        stamp, keyframe = stamp_to_ns(msg.stamp), kind == "keyframe"
         if keyframe:
             self.keyframes.intake.announce(stamp, time.monotonic())
             self.stats.post_add(MapperStats.keyframes_announced)
         if self.params.replay.acknowledged:
-            self.acks.processed(stamp, keyframe, self.keyframes.intake.seen(stamp))
+            self.acks.processed(stamp, keyframe, self.keyframes.intake.seen(stamp), frozenset(parts))
 
     def publish_snapshot(self) -> Future:
         """Queue the whole map as a (latched) snapshot at the next seq: (rows, size, seq)."""

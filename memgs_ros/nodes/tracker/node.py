@@ -15,7 +15,8 @@ BA on ``memgs/keyframe/refined_poses``, the keyframes a loop closure corrected o
 ``memgs/keyframe/loop_corrected_poses`` and the keyframes culling removed on ``memgs/keyframe/culled``
 (Path each, one PoseStamped per keyframe stamp: the mapper takes the first as new training poses,
 moves each keyframe's Gaussians with the second, and retires the third's views), and
-``memgs/tracker/processed`` (Header; frame_id "keyframe" or "frame") for every frame handled, which
+``memgs/tracker/processed`` (Header; frame_id "keyframe" or "frame", then "+refined", "+loop",
+"+culled" for the pose messages sent with it, each stamped with the frame) for every frame handled, which
 the player awaiting acknowledgements or the mapper waits on.
 
 ``memgs/pose``, ``memgs/odom`` and ``memgs/pose_with_covariance`` are per-frame odometry, published

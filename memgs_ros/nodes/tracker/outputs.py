@@ -98,9 +98,11 @@ class TrackerOutbox:
         # per-frame messages nothing keeps. The poses are new each frame: the path keeps them.
         self._state, self._odom, self._processed = String(), Odometry(), Header()
 
-    def processed(self, stamp_ns: int, keyframe: bool = False) -> None:
-        """The answer for every frame handled, tracked or refused (a player awaiting acknowledgements waits on it)."""
-        self.processed_pub.publish(set_header(self._processed, stamp_ns, "keyframe" if keyframe else "frame"))
+    def processed(self, stamp_ns: int, keyframe: bool = False, parts: tuple[str, ...] = ()) -> None:
+        """The answer for every frame handled, tracked or refused (a player awaiting acknowledgements
+        waits on it): "keyframe" or "frame", then "+<part>" for each pose message sent with it."""
+        self.processed_pub.publish(set_header(self._processed, stamp_ns,
+                                              "+".join(("keyframe" if keyframe else "frame", *parts))))
 
     def frame(self, result: TrackResult, camera: PinholeCamera, color: Image, depth: Image | None,
               refined: list[tuple[int, np.ndarray]], corrected: list[tuple[int, np.ndarray]],
@@ -137,14 +139,18 @@ class TrackerOutbox:
             if result.keyframe is not None:
                 self.keyframes.publish(result, camera, camera_frame, color, depth)
                 stats.keyframes += 1
-        if refined:
-            stats.refined_keyframe_poses += self.keyframes.publish_poses(refined, self.keyframes.refined)
-        if corrected:
-            stats.loop_corrected_keyframe_poses += self.keyframes.publish_poses(corrected, self.keyframes.loop)
-        if culled:
-            stats.culled_keyframes += self.keyframes.publish_culled(list(culled))
+        kf, parts = self.keyframes, []  # the pose messages sent with this frame, named in its answer
+        if refined and (n := kf.publish_poses(refined, kf.refined, stamp)):
+            stats.refined_keyframe_poses += n
+            parts.append("refined")
+        if corrected and (n := kf.publish_poses(corrected, kf.loop, stamp)):
+            stats.loop_corrected_keyframe_poses += n
+            parts.append("loop")
+        if culled and (n := kf.publish_culled(list(culled), stamp)):
+            stats.culled_keyframes += n
+            parts.append("culled")
         self.path.add(result, pose, loops, {k: heir for k, heir, _ in culled})
-        self.processed(stamp, keyframe=result.keyframe is not None)
+        self.processed(stamp, keyframe=result.keyframe is not None, parts=tuple(parts))
 
     @property
     def frames(self) -> FrameConvention:
