@@ -22,7 +22,9 @@ old rule. Training commands finish in order (one queue), so the unfinished ones 
 Why a keyframe's frame waits. The tracker answers every frame it handled (``processed``); a
 keyframe's answer can come before the keyframe's parts are all in. A frame's training is queued
 after its keyframe's insertion (the session's one queue keeps that order), so a keyframe's frame
-waits until its bundle is complete (inserted or refused).
+waits until its bundle is complete (inserted or refused), and any frame for the keyframe-pose
+messages the tracker names in its answer (refined, loop-corrected, culled: their own topics, in
+no order with it), at most ``PART_WAIT_S``.
 """
 from __future__ import annotations
 
