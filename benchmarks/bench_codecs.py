@@ -42,28 +42,28 @@ def main() -> int:
     from sensor_msgs.msg import Image
 
     from memgs_ros.io import image_decoding
-    from memgs_ros.ros import codecs
+    from memgs_ros.ros import codecs, images
 
     load_before = os.getloadavg()[0]
     rng = np.random.default_rng(0)
     rgb = rng.integers(0, 256, (480, 640, 3), dtype=np.uint8)
     depth = rng.uniform(0.3, 5.0, (480, 640)).astype(np.float32)
-    bgr_msg = codecs.numpy_to_image(np.ascontiguousarray(rgb[:, :, ::-1]), "bgr8", 0, "c")
-    rgb_msg = codecs.numpy_to_image(rgb, "rgb8", 0, "c")
-    f32_msg = codecs.depth_to_image(depth, "32FC1", 0, "c")
-    u16_msg = codecs.depth_to_image(depth, "16UC1", 0, "c")
+    bgr_msg = images.numpy_to_image(np.ascontiguousarray(rgb[:, :, ::-1]), "bgr8", 0, "c")
+    rgb_msg = images.numpy_to_image(rgb, "rgb8", 0, "c")
+    f32_msg = images.depth_to_image(depth, "32FC1", 0, "c")
+    u16_msg = images.depth_to_image(depth, "16UC1", 0, "c")
     # A map delta: id (uint64), position, and the 56 other float32 of an SH-degree-3 Gaussian.
     cloud = np.zeros(args.points, [("id", "<u8"), ("xyz", "<f4", (3,)), ("params", "<f4", (56,))])
     cloud_msg = codecs.structured_to_pointcloud2(cloud, 0, "map")
     rgb_wire = serialize_message(rgb_msg)
     r, rp = args.repeats, max(5, args.repeats // 10)
     rows = [
-        ("rgb8", "encode", median_ms(lambda: codecs.numpy_to_image(rgb, "rgb8", 0, "c"), r)),
+        ("rgb8", "encode", median_ms(lambda: images.numpy_to_image(rgb, "rgb8", 0, "c"), r)),
         ("rgb8", "decode", median_ms(lambda: image_decoding.decode_rgb(rgb_msg), r)),
         ("bgr8", "decode to RGB", median_ms(lambda: image_decoding.decode_rgb(bgr_msg), r)),
-        ("32FC1", "encode", median_ms(lambda: codecs.depth_to_image(depth, "32FC1", 0, "c"), r)),
+        ("32FC1", "encode", median_ms(lambda: images.depth_to_image(depth, "32FC1", 0, "c"), r)),
         ("32FC1", "decode", median_ms(lambda: image_decoding.decode_depth(f32_msg), r)),
-        ("16UC1 mm", "encode", median_ms(lambda: codecs.depth_to_image(depth, "16UC1", 0, "c"), r)),
+        ("16UC1 mm", "encode", median_ms(lambda: images.depth_to_image(depth, "16UC1", 0, "c"), r)),
         ("16UC1 mm", "decode", median_ms(lambda: image_decoding.decode_depth(u16_msg), r)),
         ("rgb8", "rclpy serialize", median_ms(lambda: serialize_message(rgb_msg), r)),
         ("rgb8", "rclpy deserialize", median_ms(lambda: deserialize_message(rgb_wire, Image), r)),

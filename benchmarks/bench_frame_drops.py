@@ -49,7 +49,7 @@ def run(tum: Path, drop: float, seed: int, frames: int, config: str) -> dict[str
     from memgs_ros.io.tum import TumFolder
     from memgs_ros.nodes.tracker.node import TrackerNode
     from memgs_ros.orchestration.run_files import RunOptions, build_params, node_params
-    from memgs_ros.ros import codecs
+    from memgs_ros.ros import images
 
     work = ROOT / "results" / "bench_frame_drops"
     work.mkdir(parents=True, exist_ok=True)
@@ -58,8 +58,8 @@ def run(tum: Path, drop: float, seed: int, frames: int, config: str) -> dict[str
     every = list(TumFolder(tum, max_frames=frames))
     rng = np.random.default_rng(seed)
     fed = [f for i, f in enumerate(every) if i < 5 or rng.random() >= drop]
-    msgs = [(f.stamp_ns, codecs.numpy_to_image(f.rgb, "rgb8", f.stamp_ns, "camera"),
-             codecs.depth_to_image(f.depth_m, "32FC1", f.stamp_ns, "camera")) for f in fed]
+    msgs = [(f.stamp_ns, images.numpy_to_image(f.rgb, "rgb8", f.stamp_ns, "camera"),
+             images.depth_to_image(f.depth_m, "32FC1", f.stamp_ns, "camera")) for f in fed]
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "78")))
     try:

@@ -113,7 +113,7 @@ def node_cost(tum: Path, params: dict[str, Any], player: dict[str, Any], frames:
 
     from memgs_ros.io.tum import TumFolder
     from memgs_ros.nodes.tracker.node import TrackerNode
-    from memgs_ros.ros import codecs
+    from memgs_ros.ros import images
 
     # All of OpenCV's work on the calling thread, for both: thread CPU time then counts all of it.
     threads = cv2.getNumThreads()
@@ -128,8 +128,8 @@ def node_cost(tum: Path, params: dict[str, Any], player: dict[str, Any], frames:
         enc, scale = player.get("depth_encoding", "32FC1"), folder.depth_factor  # 16UC1: as the player writes it
         node_ms, orb_ms = [], []
         for i, frame in enumerate(folder):
-            color = codecs.numpy_to_image(frame.rgb, "rgb8", frame.stamp_ns, "camera")
-            depth = codecs.depth_to_image(frame.depth_m, enc, frame.stamp_ns, "camera", scale)
+            color = images.numpy_to_image(frame.rgb, "rgb8", frame.stamp_ns, "camera")
+            depth = images.depth_to_image(frame.depth_m, enc, frame.stamp_ns, "camera", scale)
             ms = _thread_ms(lambda c=color, d=depth: node._handle(c, d))  # noqa: SLF001 - the frame path itself
             grey = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
             o = _thread_ms(lambda g=grey: orb.detectAndCompute(g, None))

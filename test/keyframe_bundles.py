@@ -10,13 +10,8 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.ros.codecs import (
-    camera_to_camera_info,
-    depth_to_image,
-    matrix_to_pose_stamped,
-    numpy_to_image,
-    structured_to_pointcloud2,
-)
+from memgs_ros.ros.codecs import matrix_to_pose_stamped, structured_to_pointcloud2
+from memgs_ros.ros.images import camera_to_camera_info, depth_to_image, numpy_to_image
 from memgs_ros.ros.keyframe_bundle import KEYPOINT_DTYPE
 from memgs_ros.ros.seed_cloud import encode_seeds
 

@@ -26,7 +26,7 @@ from std_msgs.msg import Header
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.nodes.tracker.node import TrackerNode
 from memgs_ros.ros import qos
-from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image
+from memgs_ros.ros.images import camera_to_camera_info, depth_to_image, numpy_to_image
 
 INPUT_PARAMS = (("color_topic", "color/image_raw"), ("depth_topic", "depth/image_raw"),
                 ("camera_info_topic", "color/camera_info"), ("sync", "exact"), ("max_frame_age_s", 0.0))

@@ -28,6 +28,7 @@ from memgs_ros.core.map_io.answers import MapAnswer
 from memgs_ros.core.runtime.atomic import atomic_write
 from memgs_ros.core.runtime.cpu import MALLOC_ARENAS
 from memgs_ros.errors import ConfigError, PipelineError
+from memgs_ros.io.image_decoding import image_to_numpy
 from memgs_ros.orchestration.bring_up import AUTOSTART_OFF, bring_up
 from memgs_ros.orchestration.graph_watch import STATS_NODES, GraphObserver, compare_maps, wait_for_graph
 from memgs_ros.orchestration.processes import (
@@ -56,10 +57,7 @@ from memgs_ros.orchestration.run_files import (
     node_params,
 )
 from memgs_ros.orchestration.signals import stop_on_signals
-from memgs_ros.ros.codecs import (
-    image_to_numpy,
-    matrix_to_pose_stamped,
-)
+from memgs_ros.ros.codecs import matrix_to_pose_stamped
 
 logger = logging.getLogger(__name__)
 

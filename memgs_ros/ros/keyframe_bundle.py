@@ -34,14 +34,8 @@ from memgs_ros.io.image_decoding import (
     rgb_view,
 )
 from memgs_ros.ros import qos
-from memgs_ros.ros.codecs import (
-    camera_to_camera_info,
-    matrix_to_pose_stamped,
-    pose_to_matrix,
-    rep118_depth,
-    set_stamp,
-    structured_to_pointcloud2,
-)
+from memgs_ros.ros.codecs import matrix_to_pose_stamped, pose_to_matrix, set_stamp, structured_to_pointcloud2
+from memgs_ros.ros.images import camera_to_camera_info, rep118_depth
 
 
 class KeyframeBundleError(MessageError):
@@ -58,7 +52,7 @@ def decode_keyframe_images(bundle: Mapping[str, Any], stamp_ns: int, decided_ns:
 
     The images stay as the tracker forwarded them: colour a read-only view on the message where
     it is rgb8, depth in REP-118's units as the tracker sends it (16UC1 millimetres or 32FC1
-    metres, ``codecs.rep118_depth``). The
+    metres, ``images.rep118_depth``). The
     bundle's messages must outlive the returned keyframe's use (the caller holds them).
     Raises KeyframeBundleError naming the kind of the first check that fails.
     """

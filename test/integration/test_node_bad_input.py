@@ -24,13 +24,8 @@ from memgs_ros.core.geometry.frame import Frame  # noqa: E402
 from memgs_ros.core.map_io.map_delta import DeltaOutbox, message_dtype  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
-from memgs_ros.ros.codecs import (  # noqa: E402
-    camera_to_camera_info,
-    depth_to_image,
-    matrix_to_pose_stamped,
-    numpy_to_image,
-    structured_to_pointcloud2,
-)
+from memgs_ros.ros.codecs import matrix_to_pose_stamped, structured_to_pointcloud2  # noqa: E402
+from memgs_ros.ros.images import camera_to_camera_info, depth_to_image, numpy_to_image  # noqa: E402
 from memgs_ros.ros.keyframe_bundle import KEYPOINT_DTYPE  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -227,7 +222,8 @@ def test_the_sampler_reads_keyframe_depth_in_rep118_units_without_a_scale_of_its
 
     from memgs_ros.core.geometry.view import ViewPreparation
     from memgs_ros.nodes.keyframe_sampler.node import KeyframeSamplerNode
-    from memgs_ros.ros.codecs import pointcloud2_to_structured, rep118_depth
+    from memgs_ros.ros.codecs import pointcloud2_to_structured
+    from memgs_ros.ros.images import rep118_depth
 
     prepared: list[int] = []
     real = ViewPreparation.__call__

@@ -14,10 +14,11 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
+from memgs_ros.io.image_decoding import image_to_numpy  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.nodes.tracker.node import TrackerNode  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
-from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, image_to_numpy, numpy_to_image  # noqa: E402
+from memgs_ros.ros.images import camera_to_camera_info, depth_to_image, numpy_to_image  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

@@ -276,7 +276,7 @@ def test_tracker_hands_on_the_configured_camera(context, override: bool) -> None
     from memgs_ros.io.image_decoding import decode_camera_info
     from memgs_ros.nodes.tracker.node import TrackerNode
     from memgs_ros.ros import qos
-    from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image
+    from memgs_ros.ros.images import camera_to_camera_info, depth_to_image, numpy_to_image
 
     frames = list(generate_frames(parse_spec("synthetic:w=128,h=96,n=2,seed=2")))
     true = frames[0].camera

@@ -19,19 +19,14 @@ from geometry_msgs.msg import PoseStamped  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 
 from memgs_ros.core.gaussians.gaussian_map import GaussianMap  # noqa: E402
-from memgs_ros.core.mapping import checkpoint  # noqa: E402
 from memgs_ros.core.map_io.map_delta import DeltaOutbox  # noqa: E402
 from memgs_ros.core.map_io.ply import load_ply  # noqa: E402
+from memgs_ros.core.mapping import checkpoint  # noqa: E402
 from memgs_ros.io.synthetic import generate_frames, parse_spec  # noqa: E402
 from memgs_ros.ros import qos  # noqa: E402
-from memgs_ros.ros.codecs import (  # noqa: E402
-    camera_to_camera_info,
-    depth_to_image,
-    matrix_to_pose_stamped,
-    numpy_to_image,
-    structured_to_pointcloud2,
-)
+from memgs_ros.ros.codecs import matrix_to_pose_stamped, structured_to_pointcloud2  # noqa: E402
 from memgs_ros.ros.diagnostics import stats_values  # noqa: E402
+from memgs_ros.ros.images import camera_to_camera_info, depth_to_image, numpy_to_image  # noqa: E402
 from memgs_ros.ros.seed_cloud import encode_seeds  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]

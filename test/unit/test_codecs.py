@@ -18,7 +18,7 @@ from memgs_ros.core.geometry.camera import TUM_FR1, TUM_FR3, PinholeCamera  # no
 from memgs_ros.core.geometry.poses import pose_from_tq, rotmat_to_quat_xyzw  # noqa: E402
 from memgs_ros.errors import MessageError  # noqa: E402
 from memgs_ros.io.image_decoding import decode_camera_info, decode_depth, decode_rgb, image_to_numpy  # noqa: E402
-from memgs_ros.ros import codecs  # noqa: E402
+from memgs_ros.ros import codecs, images  # noqa: E402
 
 ENC_DTYPES = {"rgb8": ("u1", 3), "bgr8": ("u1", 3), "rgba8": ("u1", 4), "bgra8": ("u1", 4), "mono8": ("u1", 1),
               "16UC1": ("u2", 1), "32FC1": ("f4", 1)}
@@ -49,7 +49,7 @@ def _hand_image(arr: np.ndarray, enc: str, pad: int, big: bool) -> Image:
 @pytest.mark.parametrize("enc", list(ENC_DTYPES))
 def test_image_round_trip_every_encoding(enc: str) -> None:
     arr = _random_image(enc, 5, 7, np.random.default_rng(1))
-    msg = codecs.numpy_to_image(arr, enc, 1_500_000_123, "cam")
+    msg = images.numpy_to_image(arr, enc, 1_500_000_123, "cam")
     assert msg.step == 7 * arr.dtype.itemsize * ENC_DTYPES[enc][1]
     assert msg.is_bigendian == 0 and isinstance(msg.data, array.array)
     assert codecs.stamp_to_ns(msg.header.stamp) == 1_500_000_123 and msg.header.frame_id == "cam"
@@ -83,7 +83,7 @@ def test_image_decode_property(enc: str, h: int, w: int, pad: int, big: bool, se
 
 def test_image_accepts_bytes_and_list_data() -> None:
     arr = _random_image("rgb8", 2, 3, np.random.default_rng(3))
-    msg = codecs.numpy_to_image(arr, "rgb8", 0, "c")
+    msg = images.numpy_to_image(arr, "rgb8", 0, "c")
     for data in (bytes(msg.data), list(msg.data)):
         msg2 = Image(height=2, width=3, encoding="rgb8", step=9)
         msg2.data = data
@@ -100,11 +100,11 @@ def test_decode_rgb_converts_channel_orders() -> None:
         "bgra8": np.concatenate([rgb[:, :, ::-1], rgba[:, :, 3:]], axis=2),
     }
     for enc, arr in cases.items():
-        out = decode_rgb(codecs.numpy_to_image(np.ascontiguousarray(arr), enc, 0, "c"))
+        out = decode_rgb(images.numpy_to_image(np.ascontiguousarray(arr), enc, 0, "c"))
         assert out.dtype == np.uint8 and out.shape == (4, 5, 3), enc
         np.testing.assert_array_equal(out, rgb, err_msg=enc)
     gray = rgb[:, :, 0].copy()
-    out = decode_rgb(codecs.numpy_to_image(gray, "mono8", 0, "c"))
+    out = decode_rgb(images.numpy_to_image(gray, "mono8", 0, "c"))
     np.testing.assert_array_equal(out, np.stack([gray] * 3, axis=2))
 
 
@@ -116,18 +116,18 @@ def test_rgb_from_padded_image(enc: str, order: list[int]) -> None:
 
 def test_depth_16uc1_scaled_and_zero_is_nan() -> None:
     mm = np.array([[0, 1000, 1500], [65535, 250, 0]], np.uint16)
-    d = decode_depth(codecs.numpy_to_image(mm, "16UC1", 0, "c"), depth_scale=1000.0)
+    d = decode_depth(images.numpy_to_image(mm, "16UC1", 0, "c"), depth_scale=1000.0)
     assert d.dtype == np.float32
     np.testing.assert_allclose(d[0, 1:], [1.0, 1.5])
     np.testing.assert_allclose(d[1, :2], [65.535, 0.25], rtol=1e-6)
     assert np.isnan(d[0, 0]) and np.isnan(d[1, 2])
-    d5000 = decode_depth(codecs.numpy_to_image(mm, "16UC1", 0, "c"), depth_scale=5000.0)
+    d5000 = decode_depth(images.numpy_to_image(mm, "16UC1", 0, "c"), depth_scale=5000.0)
     np.testing.assert_allclose(d5000[0, 1], 0.2)
 
 
 def test_depth_32fc1_invalid_values_become_nan_without_touching_the_message() -> None:
     m = np.array([[1.25, np.nan, np.inf], [-1.0, 0.0, 3.0]], np.float32)
-    msg = codecs.numpy_to_image(m, "32FC1", 0, "c")
+    msg = images.numpy_to_image(m, "32FC1", 0, "c")
     d = decode_depth(msg)
     np.testing.assert_array_equal(d[[0, 1], [0, 2]], [1.25, 3.0])
     assert np.isnan(d[0, 1:]).all() and np.isnan(d[1, :2]).all()
@@ -139,14 +139,14 @@ def test_depth_round_trip(enc: str, scale: float) -> None:
     rng = np.random.default_rng(5)
     d = rng.uniform(0.3, 6.0, size=(6, 8)).astype(np.float32)
     d[0, 0], d[1, 1], d[2, 2] = np.nan, 0.0, -2.0
-    out = decode_depth(codecs.depth_to_image(d, enc, 0, "c", depth_scale=scale), depth_scale=scale)
+    out = decode_depth(images.depth_to_image(d, enc, 0, "c", depth_scale=scale), depth_scale=scale)
     valid = np.isfinite(d) & (d > 0)
     np.testing.assert_array_equal(np.isnan(out), ~valid)
     np.testing.assert_allclose(out[valid], d[valid], atol=0.5 / scale + 1e-6)
 
 
 def test_depth_to_16uc1_marks_out_of_range_invalid() -> None:
-    img = codecs.depth_to_image(np.array([[70.0, 1.0]], np.float32), "16UC1", 0, "c", depth_scale=1000.0)
+    img = images.depth_to_image(np.array([[70.0, 1.0]], np.float32), "16UC1", 0, "c", depth_scale=1000.0)
     np.testing.assert_array_equal(image_to_numpy(img), [[0, 1000]])
 
 
@@ -179,18 +179,18 @@ def test_wrong_kind_of_image_and_wrong_arrays_are_refused() -> None:
     with pytest.raises(MessageError, match="depth_scale"):
         decode_depth(_image(enc="16UC1", step=6, n=12), depth_scale=0.0)
     with pytest.raises(MessageError, match=r"rgb8 needs dtype uint8, got float32"):
-        codecs.numpy_to_image(np.zeros((2, 2, 3), np.float32), "rgb8", 0, "c")
+        images.numpy_to_image(np.zeros((2, 2, 3), np.float32), "rgb8", 0, "c")
     with pytest.raises(MessageError, match=r"32FC1 needs an array \[H, W\], got shape \(2, 2, 3\)"):
-        codecs.numpy_to_image(np.zeros((2, 2, 3), np.float32), "32FC1", 0, "c")
+        images.numpy_to_image(np.zeros((2, 2, 3), np.float32), "32FC1", 0, "c")
     with pytest.raises(MessageError, match="unsupported image encoding 'rgb16'"):
-        codecs.numpy_to_image(np.zeros((2, 2, 3), np.uint16), "rgb16", 0, "c")
+        images.numpy_to_image(np.zeros((2, 2, 3), np.uint16), "rgb16", 0, "c")
     with pytest.raises(MessageError, match="depth encoding must be 32FC1 or 16UC1"):
-        codecs.depth_to_image(np.zeros((2, 2), np.float32), "mono8", 0, "c")
+        images.depth_to_image(np.zeros((2, 2), np.float32), "mono8", 0, "c")
 
 
 def test_numpy_to_image_byte_swaps_big_endian_input() -> None:
     arr = np.arange(6, dtype=">u2").reshape(2, 3) * 300
-    msg = codecs.numpy_to_image(arr, "16UC1", 0, "c")
+    msg = images.numpy_to_image(arr, "16UC1", 0, "c")
     assert msg.is_bigendian == 0
     np.testing.assert_array_equal(image_to_numpy(msg), arr.astype(np.uint16))
 
@@ -213,7 +213,7 @@ def test_stamp_out_of_range(ns: int) -> None:
 
 @pytest.mark.parametrize("cam", [TUM_FR1, TUM_FR3, PinholeCamera(64, 48, 50.0, 51.0, 31.5, 23.5)])
 def test_camera_info_round_trip(cam: PinholeCamera) -> None:
-    msg = codecs.camera_to_camera_info(cam, 42, "cam")
+    msg = images.camera_to_camera_info(cam, 42, "cam")
     assert msg.distortion_model == "plumb_bob" and len(msg.d) == 5
     assert list(msg.p) == [cam.fx, 0, cam.cx, 0, 0, cam.fy, cam.cy, 0, 0, 0, 1, 0]
     assert decode_camera_info(msg) == cam
@@ -221,7 +221,7 @@ def test_camera_info_round_trip(cam: PinholeCamera) -> None:
 
 def test_camera_info_rational_polynomial_round_trips_in_full() -> None:
     cam = PinholeCamera(64, 48, 50.0, 51.0, 31.5, 23.5, (0.1, -0.2, 0.001, 0.002, 0.05, 0.01, -0.02, 0.003))
-    msg = codecs.camera_to_camera_info(cam, 0, "c")
+    msg = images.camera_to_camera_info(cam, 0, "c")
     assert msg.distortion_model == "rational_polynomial" and list(msg.d) == list(cam.dist)
     assert decode_camera_info(msg) == cam
     # k4..k6 all zero is the plumb_bob camera: both spellings of one calibration compare equal
@@ -230,13 +230,13 @@ def test_camera_info_rational_polynomial_round_trips_in_full() -> None:
 
 
 def test_camera_info_without_distortion_model() -> None:
-    msg = codecs.camera_to_camera_info(TUM_FR3, 0, "c")
+    msg = images.camera_to_camera_info(TUM_FR3, 0, "c")
     msg.distortion_model, msg.d = "", []
     assert decode_camera_info(msg) == TUM_FR3
 
 
 def _info(**changes: object) -> CameraInfo:
-    msg = codecs.camera_to_camera_info(TUM_FR1, 0, "c")
+    msg = images.camera_to_camera_info(TUM_FR1, 0, "c")
     for k, v in changes.items():
         setattr(msg, k, v)
     return msg
@@ -488,13 +488,13 @@ def test_keyframe_depth_goes_on_in_rep118_units() -> None:
     """Millimetres and metres pass as they are; 16-bit depth of another scale (TUM: 5000 a metre)
     becomes 32FC1 metres with the value each unit stood for (0 -> NaN), stamp and frame kept."""
     units = np.array([[5000, 0], [12345, 65535]], np.uint16)
-    tum = codecs.numpy_to_image(units, "16UC1", 7, "cam")
-    out = codecs.rep118_depth(tum, 5000.0)
+    tum = images.numpy_to_image(units, "16UC1", 7, "cam")
+    out = images.rep118_depth(tum, 5000.0)
     assert out.encoding == "32FC1" and out.header.frame_id == "cam" and codecs.stamp_to_ns(out.header.stamp) == 7
     got = decode_depth(out)
     np.testing.assert_allclose(got[~np.isnan(got)], units[units > 0] / np.float32(5000.0), rtol=1e-7)
     assert np.isnan(got[0, 1])
-    mm = codecs.numpy_to_image(units, "16UC1", 7, "cam")
-    assert codecs.rep118_depth(mm, 1000.0) is mm
-    metres = codecs.depth_to_image(np.ones((2, 2), np.float32), "32FC1", 7, "cam")
-    assert codecs.rep118_depth(metres, 5000.0) is metres
+    mm = images.numpy_to_image(units, "16UC1", 7, "cam")
+    assert images.rep118_depth(mm, 1000.0) is mm
+    metres = images.depth_to_image(np.ones((2, 2), np.float32), "32FC1", 7, "cam")
+    assert images.rep118_depth(metres, 5000.0) is metres

@@ -122,7 +122,7 @@ def test_camera_info_round_trips_in_every_flavour(f: tuple[float, float], c: tup
                                                    rational: bool, size: tuple[int, int]) -> None:
     d = tuple(dist) if rational and any(dist[5:]) else tuple(dist[:5])
     cam = PinholeCamera(size[0], size[1], f[0], f[1], c[0], c[1], d)
-    from memgs_ros.ros.codecs import camera_to_camera_info
+    from memgs_ros.ros.images import camera_to_camera_info
 
     for msg in (camera_to_camera_info(cam, 0, "c"), ROS2.camera_info(ROS2.header(0, "c"), cam),
                 ROS1.camera_info(ROS1.header(0, "c"), cam)):
@@ -234,7 +234,7 @@ def test_any_image_header_decodes_consistently_or_raises_message_error(enc: str,
 def _info(flavour: str, **changes: Any) -> Any:
     cam = PinholeCamera(64, 48, 50.0, 51.0, 31.5, 23.5, (0.1, -0.2, 0.001, 0.002, 0.05))
     if flavour == "rclpy":
-        from memgs_ros.ros.codecs import camera_to_camera_info
+        from memgs_ros.ros.images import camera_to_camera_info
 
         msg = camera_to_camera_info(cam, 0, "c")
     else:

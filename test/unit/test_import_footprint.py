@@ -33,10 +33,10 @@ import numpy as np
 from memgs_ros.core.geometry.camera import TUM_FR1
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.view import DepthUnits
-from memgs_ros.ros import codecs
+from memgs_ros.ros import images
 frame = Frame(1, np.zeros((480, 640, 3), np.uint8), DepthUnits(np.ones((480, 640), np.uint16), 5000.0), TUM_FR1)
-codecs.numpy_to_image(frame.rgb, "rgb8", 1, "cam")
-codecs.numpy_to_image(frame.depth_m.raw, "16UC1", 1, "cam")
+images.numpy_to_image(frame.rgb, "rgb8", 1, "cam")
+images.numpy_to_image(frame.depth_m.raw, "16UC1", 1, "cam")
 """
 _MERGER = """
 from memgs_ros.core.map_io.follower import MapFollower

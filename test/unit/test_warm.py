@@ -49,14 +49,14 @@ from memgs_ros.core.tracking import TrackerConfig, _compiled, make_tracker, warm
 from memgs_ros.core.tracking.features import orb
 from memgs_ros.io.image_decoding import depth_view, rgb_view
 from memgs_ros.io.synthetic import generate_frames, parse_spec
-from memgs_ros.ros import codecs
+from memgs_ros.ros import images
 
 def depth_kernels():
     return {f"view._depth_kernels[{i}]": len(k.signatures) for i, k in enumerate(view._depth_kernels)}
 
 frames = list(generate_frames(parse_spec("synthetic:w=320,h=240,n=8,seed=4")))
-msgs = [(codecs.numpy_to_image(f.rgb, "rgb8", f.stamp_ns, "cam"),
-         codecs.depth_to_image(f.depth_m, "16UC1", f.stamp_ns, "cam", 5000.0)) for f in frames]
+msgs = [(images.numpy_to_image(f.rgb, "rgb8", f.stamp_ns, "cam"),
+         images.depth_to_image(f.depth_m, "16UC1", f.stamp_ns, "cam", 5000.0)) for f in frames]
 warm_up()
 before = {**signatures(_compiled, orb), **depth_kernels()}
 assert before and all(v == 1 for v in before.values()), before

@@ -16,7 +16,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from memgs_ros.core.geometry.frame import Frame
 from memgs_ros.core.geometry.view import DepthUnits, load_kernels
-from memgs_ros.ros import codecs, qos
+from memgs_ros.ros import codecs, images, qos
 
 __all__ = ["FrameOutbox"]
 
@@ -45,13 +45,13 @@ class FrameOutbox:
 
     def publish(self, frame: Frame, stamp_ns: int) -> None:
         fid = self._frame_id
-        self.color.publish(codecs.numpy_to_image(frame.rgb, "rgb8", stamp_ns, fid))
+        self.color.publish(images.numpy_to_image(frame.rgb, "rgb8", stamp_ns, fid))
         if self._as_published(frame.depth_m):
             assert isinstance(frame.depth_m, DepthUnits)
-            self.depth.publish(codecs.numpy_to_image(frame.depth_m.raw, "16UC1", stamp_ns, fid))
+            self.depth.publish(images.numpy_to_image(frame.depth_m.raw, "16UC1", stamp_ns, fid))
         elif (depth_m := frame.depth_metres()) is not None:
-            self.depth.publish(codecs.depth_to_image(depth_m, self._depth_encoding, stamp_ns, fid))  # 16UC1: mm
-        self.info.publish(codecs.camera_to_camera_info(frame.camera, stamp_ns, fid))
+            self.depth.publish(images.depth_to_image(depth_m, self._depth_encoding, stamp_ns, fid))  # 16UC1: mm
+        self.info.publish(images.camera_to_camera_info(frame.camera, stamp_ns, fid))
         if frame.T_wc_gt is not None:
             self.gt.publish(codecs.matrix_to_pose_stamped(frame.T_wc_gt, stamp_ns, self._world_frame_id))
 

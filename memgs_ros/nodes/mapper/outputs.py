@@ -14,14 +14,9 @@ from std_msgs.msg import Header
 
 from memgs_ros.core.mapper_service.session_records import RenderedView
 from memgs_ros.ros import qos
-from memgs_ros.ros.codecs import (
-    camera_to_camera_info,
-    depth_to_image,
-    make_header,
-    numpy_to_image,
-    structured_to_pointcloud2,
-)
+from memgs_ros.ros.codecs import make_header, structured_to_pointcloud2
 from memgs_ros.ros.hand_over import HandOver
+from memgs_ros.ros.images import camera_to_camera_info, depth_to_image, numpy_to_image
 
 __all__ = ["MapperOutbox"]
 

@@ -12,7 +12,7 @@ from memgs_ros.core.map_io.view_renderer import RenderedView
 from memgs_ros.core.runtime.worker import WorkerStopped
 from memgs_ros.nodes.merger.stats import MergerStats
 from memgs_ros.ros import qos
-from memgs_ros.ros.codecs import camera_to_camera_info, depth_to_image, numpy_to_image
+from memgs_ros.ros.images import camera_to_camera_info, depth_to_image, numpy_to_image
 
 __all__ = ["ViewOutbox"]
 

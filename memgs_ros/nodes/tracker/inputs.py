@@ -13,7 +13,8 @@ from sensor_msgs.msg import CompressedImage, Image
 
 from memgs_ros.errors import MessageError
 from memgs_ros.nodes.tracker.stats import TrackerStats
-from memgs_ros.ros.codecs import compressed_to_image, stamp_to_ns
+from memgs_ros.ros.codecs import stamp_to_ns
+from memgs_ros.ros.images import compressed_to_image
 from memgs_ros.ros.stamp_sync import NearestPairer, UnpairedWatch
 
 __all__ = ["RgbdPairing", "decompressed", "subscribe_camera"]
