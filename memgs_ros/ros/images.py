@@ -8,10 +8,13 @@ conversion that can fail raises :class:`MessageError` naming the field, encoding
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from sensor_msgs.msg import CameraInfo, Image
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from memgs_ros.core.geometry.camera import PinholeCamera
 from memgs_ros.errors import MessageError
@@ -32,6 +35,7 @@ __all__ = [
     "depth_to_image",
     "numpy_to_image",
     "rep118_depth",
+    "subscribe_camera",
 ]
 
 
@@ -120,3 +124,19 @@ def camera_to_camera_info(cam: PinholeCamera, stamp_ns: int, frame_id: str) -> C
     msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
     msg.p = [float(cam.fx), 0.0, float(cam.cx), 0.0, 0.0, float(cam.fy), float(cam.cy), 0.0, 0.0, 0.0, 1.0, 0.0]
     return msg
+
+
+def subscribe_camera(node: Node, color_topic: str, depth_topic: str | None, compressed: bool,
+                     on_color: Callable[..., None], on_depth: Callable[[Any], None], qos: QoSProfile) -> str:
+    """Subscribe to colour (and depth unless None): raw Images, or with ``compressed`` the
+    CompressedImages on ``<color_topic>/compressed`` and ``<depth_topic>/compressedDepth``.
+    Returns a line naming the topics, resolved."""
+    kind = CompressedImage if compressed else Image
+    color = f"{color_topic}/compressed" if compressed else color_topic
+    node.create_subscription(kind, color, on_color, qos)
+    line = node.resolve_topic_name(color)
+    if depth_topic is not None:
+        depth = f"{depth_topic}/compressedDepth" if compressed else depth_topic
+        node.create_subscription(kind, depth, on_depth, qos)
+        line += f" + {node.resolve_topic_name(depth)}"
+    return line

@@ -1,15 +1,13 @@
-"""The tracker's camera input: its subscriptions (raw, or image_transport's compressed topics),
-colour/depth pairing with the colour it could not pair counted and explained, and compressed
-messages turned into the Images the frame path reads."""
+"""The tracker's camera input (subscribed by ``ros/images.subscribe_camera``): colour/depth pairing
+with the colour it could not pair counted and explained, and compressed messages turned into the
+Images the frame path reads."""
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
 from typing import Any
 
-from rclpy.node import Node
-from rclpy.qos import QoSProfile
-from sensor_msgs.msg import CompressedImage, Image
+from sensor_msgs.msg import Image
 
 from memgs_ros.errors import MessageError
 from memgs_ros.nodes.tracker.stats import TrackerStats
@@ -17,23 +15,7 @@ from memgs_ros.ros.codecs import stamp_to_ns
 from memgs_ros.ros.images import compressed_to_image
 from memgs_ros.ros.stamp_sync import NearestPairer, UnpairedWatch
 
-__all__ = ["RgbdPairing", "decompressed", "subscribe_camera"]
-
-
-def subscribe_camera(node: Node, color_topic: str, depth_topic: str | None, compressed: bool,
-                     on_color: Callable[..., None], on_depth: Callable[[Any], None], qos: QoSProfile) -> str:
-    """Subscribe to colour (and depth unless None): raw Images, or with ``compressed`` the
-    CompressedImages on ``<color_topic>/compressed`` and ``<depth_topic>/compressedDepth``.
-    Returns a line naming the topics, resolved."""
-    kind = CompressedImage if compressed else Image
-    color = f"{color_topic}/compressed" if compressed else color_topic
-    node.create_subscription(kind, color, on_color, qos)
-    line = node.resolve_topic_name(color)
-    if depth_topic is not None:
-        depth = f"{depth_topic}/compressedDepth" if compressed else depth_topic
-        node.create_subscription(kind, depth, on_depth, qos)
-        line += f" + {node.resolve_topic_name(depth)}"
-    return line
+__all__ = ["RgbdPairing", "decompressed"]
 
 
 def decompressed(color: Any, depth: Any | None, depth_scale: float, stats: TrackerStats

@@ -1,29 +1,10 @@
-"""tracker node: colour (+ depth) + camera_info in; pose, path, tracking state and keyframes out.
-
-Subscribes (sensor-data QoS): ``color_topic``, ``depth_topic`` (RGB-D only), ``camera_info_topic``.
-Publishes: ``memgs/pose`` (PoseStamped, the camera in ``world_frame``, every pose: coasted ones
-too), ``memgs/odom`` (Odometry) and ``memgs/pose_with_covariance`` (tracked poses only, state OK:
-what a flight controller fuses; the body ``base_frame`` in ``map_frame``, z up; the covariance is
-the pose optimisation's at 1 px noise, ``pose_covariance``, carried to the body; twist in the body
-frame from the last tracked pose; with no subscriber on either, neither the covariance nor the
-messages are made), TF (``nodes/tracker/tf.py``: ``map -> base_link`` per tracked
-frame, ``map -> map_optical`` and the camera mount static), ``memgs/path`` (Path),
-``memgs/tracking_state`` (String), per keyframe ``memgs/keyframe/{color,depth,camera_info,pose,
-keypoints}`` sharing the frame's stamp (images as recorded with the camera's distortion in
-camera_info; keypoint u, v are undistorted pixel positions), refined keyframe poses after local
-BA on ``memgs/keyframe/refined_poses``, the keyframes a loop closure corrected on
-``memgs/keyframe/loop_corrected_poses`` and the keyframes culling removed on ``memgs/keyframe/culled``
-(Path each, one PoseStamped per keyframe stamp: the mapper takes the first as new training poses,
-moves each keyframe's Gaussians with the second, and retires the third's views), and
-``memgs/tracker/processed`` (Header; frame_id "keyframe" or "frame", then "+refined", "+loop",
-"+culled" for the pose messages sent with it, each stamped with the frame) for every frame handled, which
-the player awaiting acknowledgements or the mapper waits on.
-
-``memgs/pose``, ``memgs/odom`` and ``memgs/pose_with_covariance`` are per-frame odometry, published
-once and never revised.
-``memgs/path`` is the corrected trajectory: each pose moves with the keyframe it was tracked
-against when a loop closure corrects that keyframe (``AnchoredPath``; local BA refinements go
-only to the mapper).
+"""tracker node: colour (+ depth) + camera_info in (sensor-data QoS; raw Images, or image_transport's
+compressed topics); the camera's pose, odometry, TF, path and tracking state, each keyframe's images,
+pose and keypoints, earlier keyframes' refined, loop-corrected and culled poses, and every frame's
+answer (``memgs/tracker/processed``) out. Each topic's type, content and QoS: the tracker's rows of
+the topic table in docs/design.md; the messages are made in ``outputs.py``, TF in ``tf.py``.
+``memgs/pose`` and the odometry are per-frame, published once and never revised; ``memgs/path`` is
+the corrected trajectory (each pose moves with its keyframe when a loop closure corrects it).
 
 Frames are gated by ``core/tracking/frame_gate.py`` (its docstring has the stamp rules: duplicates,
 late frames, time resets, stamps from a broken clock; a live camera's frames lost in transport,
@@ -55,7 +36,7 @@ from memgs_ros.core.tracking.telemetry import timed_track
 from memgs_ros.errors import ConfigError, DataError, MessageError
 from memgs_ros.io.image_decoding import decode_camera_info, depth_view, rgb_view
 from memgs_ros.nodes.params import NODE_CONFIGS, TrackerParams
-from memgs_ros.nodes.tracker.inputs import RgbdPairing, decompressed, subscribe_camera
+from memgs_ros.nodes.tracker.inputs import RgbdPairing, decompressed
 from memgs_ros.nodes.tracker.map_part import TrackerMapPart, map_check
 from memgs_ros.nodes.tracker.outputs import TrackerOutbox
 from memgs_ros.nodes.tracker.stats import TrackerStats
@@ -63,6 +44,7 @@ from memgs_ros.ros import qos
 from memgs_ros.ros.camera_params import declare_calibration
 from memgs_ros.ros.codecs import stamp_to_ns
 from memgs_ros.ros.config_params import declare_config
+from memgs_ros.ros.images import subscribe_camera
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.map_loading import NodeMapLoader
 from memgs_ros.ros.node_main import run_node
