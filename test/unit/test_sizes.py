@@ -12,9 +12,9 @@ from layout_figures import figures  # noqa: E402 - the benchmarks folder is not 
 
 # ros2/demos nodes are 50-100 lines; ours translate messages and parameters over core services.
 # Each bound sits about 10 % above the size measured when it was set (issue 49: TrackerNode 180,
-# MapperNode 220, other nodes 150, largest class 350), so a small change does not trip it and
-# growth past that does.
-NODE_BOUNDS = {"TrackerNode": 198, "MapperNode": 242}
+# other nodes 150, largest class 350; MapperNode 235 on 12-03), so a small change does not trip it
+# and growth past that does.
+NODE_BOUNDS = {"TrackerNode": 198, "MapperNode": 260}
 OTHER_NODE_BOUND = 165
 FUNCTION_BOUND = 80
 CLASS_BOUND = 385
