@@ -81,3 +81,14 @@ def test_the_tracker_warm_up_loads_the_depth_kernels() -> None:
     code = ("from memgs_ros.core.geometry import view\nassert view._depth_kernels is None\n"
             "from memgs_ros.core.tracking import warm_up\nwarm_up()\nassert view._depth_kernels is not None\n")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
+
+
+def test_decoding_a_pose_loads_no_scipy() -> None:
+    """Every node's executor decodes poses (keyframe poses, TF, corrected paths). A first scipy
+    import there, beside a worker importing scipy's linear algebra (numba's compile does), stopped a
+    resumed mapper with Python's import _DeadlockError: the conversion is numpy's."""
+    pytest.importorskip("rclpy", reason="the message types come from rclpy's packages")
+    code = ("import sys\nfrom geometry_msgs.msg import Pose\nfrom memgs_ros.ros.codecs import pose_to_matrix\n"
+            "p = Pose()\np.orientation.x, p.orientation.w = 0.6, 0.8\nT = pose_to_matrix(p)\n"
+            "assert abs(T[1, 2] + 0.96) < 1e-12, T\nassert 'scipy' not in sys.modules\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

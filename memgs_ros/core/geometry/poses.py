@@ -16,11 +16,24 @@ if TYPE_CHECKING:  # torch is imported only by the torch helpers, so light nodes
 
 
 def quat_xyzw_to_rotmat(q_xyzw: np.ndarray) -> np.ndarray:
-    """Unit or unnormalised quaternions [..., 4] (x, y, z, w) to rotation matrices [..., 3, 3]."""
-    from scipy.spatial.transform import Rotation  # here: the light nodes (merger, sampler) need no scipy
+    """Unit or unnormalised quaternions [..., 4] (x, y, z, w) to rotation matrices [..., 3, 3];
+    ValueError for a zero quaternion. scipy's ``Rotation.from_quat(q).as_matrix()`` products in its
+    order: the same bits (its reference in the tests).
 
+    numpy, not scipy: a node's executor decodes poses with it, and a first scipy import there beside
+    a worker importing scipy's linear algebra (numba's compile does) stopped a resumed mapper with
+    Python's import _DeadlockError; the light nodes (merger, sampler) need no scipy either."""
     q = np.asarray(q_xyzw, dtype=np.float64)
-    return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    if np.any(n == 0):
+        raise ValueError("a zero quaternion has no rotation")
+    x, y, z, w = np.moveaxis(q / n, -1, 0)
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    rows = [x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw),
+            2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw),
+            2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2]
+    return np.stack(rows, axis=-1).reshape(q.shape[:-1] + (3, 3))
 
 
 def rotmat_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
