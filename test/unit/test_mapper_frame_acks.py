@@ -137,3 +137,17 @@ def test_a_part_that_never_comes_holds_its_frame_no_longer_than_the_wait() -> No
     m.acks.processed(2, keyframe=False, bundle_complete=False)
     m.run_handed()
     assert len(m.trains) == 2 and m.acks.awaiting == frozenset()  # 1 given up on, then 2
+
+
+def test_the_last_frame_waits_no_longer_than_the_wait_without_another_announcement() -> None:
+    """No later frame's word comes to end the wait: the node's timer does (``expire_parts``)."""
+    from memgs_ros.core.runtime.replay import PART_WAIT_S
+
+    m = _Mapper(window=0)
+    m.acks.processed(1, keyframe=False, bundle_complete=False, parts=frozenset({"loop"}))
+    m.acks.expire_parts()
+    assert len(m.trains) == 0 and m.acks.awaiting == {1}  # not yet
+    m.now += PART_WAIT_S + 0.1
+    m.acks.expire_parts()
+    m.run_handed()
+    assert len(m.trains) == 1 and m.acks.awaiting == frozenset()

@@ -217,15 +217,8 @@ class FrameAcknowledger:
         """The tracker handled frame ``stamp_ns`` (``keyframe``: it made one, whose bundle is
         ``bundle_complete`` or not yet; ``parts``: the pose messages it sent with the frame): queue
         its training now, or once every part is in (its commands queued first: the map's order)."""
-        now = self._clock()
-        for old in [k for k in self._awaiting if now - self._announced_at.get(k, now) > PART_WAIT_S]:
-            # A pose message that never comes (sent before this mapper subscribed: a restart) holds
-            # no frame for longer; its keyframe's bundle is still waited for, as always.
-            self._awaiting[old] &= {"bundle"}
-            if not self._awaiting[old]:
-                del self._awaiting[old]
-                self._queue(old)
-        self._announced_at[stamp_ns] = now
+        self.expire_parts()
+        self._announced_at[stamp_ns] = self._clock()
         waits = set(parts) - self._early.pop(stamp_ns, set())
         if keyframe and not bundle_complete:
             waits.add("bundle")
@@ -233,6 +226,18 @@ class FrameAcknowledger:
             self._awaiting[stamp_ns] = waits
             return
         self._queue(stamp_ns)
+
+    def expire_parts(self) -> None:
+        """Stop waiting for pose messages announced more than ``PART_WAIT_S`` ago (each frame's
+        announcement runs this, and a timer for the last frame, which no announcement follows). A
+        pose message that never comes (sent before this mapper subscribed: a restart) holds no frame
+        longer; a keyframe's bundle is still waited for, as always."""
+        now = self._clock()
+        for old in [k for k in self._awaiting if now - self._announced_at.get(k, now) > PART_WAIT_S]:
+            self._awaiting[old] &= {"bundle"}
+            if not self._awaiting[old]:
+                del self._awaiting[old]
+                self._queue(old)
 
     def part_arrived(self, stamp_ns: int, part: str) -> None:
         """A part of frame ``stamp_ns`` arrived and its command is queued: the frame's training

@@ -144,6 +144,8 @@ class MapperNode(ManagedNode):
                             callback_group=ReentrantCallbackGroup())
         self.create_service(Trigger, "memgs/mapper/finish", self.on_finish, callback_group=ReentrantCallbackGroup())
         self.create_timer(1.0 / p.delta_rate_hz, self.deltas.tick)
+        if p.replay.acknowledged:
+            self.create_timer(1.0, self.acks.expire_parts)  # the last frame's pose messages, at most PART_WAIT_S
         if p.snapshot_period_s > 0:
             self.create_timer(p.snapshot_period_s, self._periodic_snapshot)
         if checkpoints and p.checkpoint_period_s > 0:
