@@ -205,7 +205,6 @@ class NodeStats(NodeFields):
             level=bytes([int(health.level)]), name=f"memgs/{self._name}",
             hardware_id=self._node.get_fully_qualified_name(), message=health.message,
             values=[KeyValue(key=k, value=str(v)) for k, v in sorted(values.items())])
-        # Not codecs.make_header: codecs loads scipy, which a light node (the recorder) does without.
         return DiagnosticArray(header=Header(stamp=self._node.get_clock().now().to_msg()), status=[status])
 
     def publish(self) -> None:
