@@ -6,6 +6,7 @@ station in another) takes the same ones. A step reads only what :class:`GraphWat
 """
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Sequence
@@ -30,7 +31,9 @@ from memgs_ros.ros import qos
 from memgs_ros.ros.codecs import pointcloud2_to_structured, pose_to_matrix, stamp_to_ns
 from memgs_ros.ros.diagnostics import stats_values
 
-__all__ = ["READY_TOPICS", "STATS_NODES", "GraphObserver", "GraphWatcher", "NodeChecker", "compare_maps",
+logger = logging.getLogger(__name__)
+
+__all__ = ["READY_TOPICS", "STATS_NODES", "GraphObserver", "GraphWatcher", "NodeChecker", "compare_maps", "end_flight",
            "wait_for_graph"]
 
 STATS_NODES = (*GRAPH_NODE_NAMES, "player", VIEW_NODE, "recorder")  # the names on memgs/<name>/stats
@@ -127,6 +130,7 @@ class GraphObserver:
                                       qos.reliable(2))
         self.view_request = self.node.create_publisher(PoseStamped, "memgs/render/view_pose", qos.reliable(5))
         self.finish_client = self.node.create_client(Trigger, "memgs/mapper/finish")
+        self.end_flight_client = self.node.create_client(Trigger, "memgs/tracker/end_flight")
         self.snapshot_client = self.node.create_client(Trigger, "memgs/mapper/publish_snapshot")
         self.publish_map_client = self.node.create_client(Trigger, "memgs/merger/publish_map")
         self.save_client = self.node.create_client(Trigger, "memgs/save_map")
@@ -216,3 +220,27 @@ def compare_maps(obs: GraphWatcher, final_seq: int, epoch: int, end: float) -> t
     diff = max((float(np.abs(getattr(a, f) - getattr(b, f)).max(initial=0.0))
                 for f in ("xyz", "f_dc", "f_rest", "opacity", "scale", "rot")), default=0.0)
     return diff <= 1e-6, diff
+
+
+_END_FLIGHT_WAIT_S = 15.0  # for the mapper to hold the flight's last keyframe: tracker, sampler, mapper insert
+
+
+def end_flight(obs: GraphObserver) -> None:
+    """The flight's last view made a keyframe where no keyframe sees it (``memgs/tracker/end_flight``),
+    and the mapper's insertion of it awaited (its stats count it), so the finish trains it. A tracker
+    that does not answer (gone, restarting) costs a warning, not the run."""
+    before = obs.telemetry("mapper").keyframes  # read first: the new keyframe cannot be in it yet
+    try:
+        answer = obs.call(obs.end_flight_client, 10.0)
+    except PipelineError as err:
+        logger.warning("the last view was not offered as a keyframe: %s", err)
+        return
+    if not answer.startswith("keyframe"):
+        return
+    end = time.monotonic() + _END_FLIGHT_WAIT_S
+    while obs.telemetry("mapper").keyframes <= before:
+        if time.monotonic() > end:
+            logger.warning("the mapper did not count the flight's last keyframe within %.0f s; finishing",
+                           _END_FLIGHT_WAIT_S)
+            return
+        time.sleep(0.05)

@@ -30,7 +30,7 @@ from memgs_ros.core.runtime.cpu import MALLOC_ARENAS
 from memgs_ros.errors import ConfigError, PipelineError
 from memgs_ros.io.image_decoding import image_to_numpy
 from memgs_ros.orchestration.bring_up import AUTOSTART_OFF, bring_up
-from memgs_ros.orchestration.graph_watch import STATS_NODES, GraphObserver, compare_maps, wait_for_graph
+from memgs_ros.orchestration.graph_watch import STATS_NODES, GraphObserver, compare_maps, end_flight, wait_for_graph
 from memgs_ros.orchestration.processes import (
     NODE_FACTORIES,
     NODE_MODULES,
@@ -365,6 +365,7 @@ def _drive(obs: GraphObserver, options: RunOptions, procs: NodeProcesses | None,
     if not options.pacing.acknowledged:
         time.sleep(2.0)  # let the last frames drain through the graph
     logger.info("source finished after %.1f s; finishing the mapper", time.monotonic() - t0)
+    end_flight(obs)
     final = MapAnswer.parse(obs.call(obs.finish_client, max(60.0, end - time.monotonic())))
     final_seq, gaussians, epoch = final.seq, final.gaussians, final.epoch or 0
     _wait_for_merger(obs, procs, final_seq, epoch, end)

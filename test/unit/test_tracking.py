@@ -101,6 +101,38 @@ def test_keyframe_info_shapes_and_refinement(frames: list[Frame]) -> None:
     assert tracker.poll_refined_keyframes() == []
 
 
+def test_end_flight_makes_the_last_view_a_keyframe_once_and_only_where_none_sees_it(frames: list[Frame]) -> None:
+    cfg = TrackerConfig(ba_threaded=False)
+    tracker = make_tracker(cfg, frames[0].camera)
+    try:
+        results = [tracker.track(f) for f in frames[:44]]
+        kf_at = [i for i, r in enumerate(results) if r.keyframe is not None]
+        near = np.linalg.norm(results[-1].T_wc[:3, 3] - results[kf_at[-1]].T_wc[:3, 3])
+        assert near < cfg.keyframe_weak_cover_m and kf_at[-1] < 43, (near, kf_at)
+        assert tracker.end_flight() is None  # the last keyframe sees the last view from nearby
+        results += [tracker.track(f) for f in frames[44:46]]
+        far = np.linalg.norm(results[-1].T_wc[:3, 3] - results[kf_at[-1]].T_wc[:3, 3])
+        assert results[-1].keyframe is None and far > cfg.keyframe_weak_cover_m, far
+        end = tracker.end_flight()
+        assert end is not None and end.keyframe is not None
+        assert end.stamp_ns == frames[45].stamp_ns == end.keyframe.stamp_ns
+        assert end.keyframe.keyframe_id > results[kf_at[-1]].keyframe.keyframe_id
+        assert np.linalg.norm(end.T_wc[:3, 3] - results[-1].T_wc[:3, 3]) < 0.01  # the last frame's pose
+        assert len(end.keyframe.keypoints_uv) > 100 and end.keyframe.keypoint_active.any()
+        assert tracker.end_flight() is None  # once: the view is a keyframe now
+    finally:
+        tracker.close()
+    localizing = make_tracker(cfg, frames[0].camera)
+    try:
+        for f in frames[:3]:
+            localizing.track(f)
+        localizing.localize_only = True
+        localizing.track(frames[3])
+        assert localizing.end_flight() is None  # a localizing tracker adds no keyframe
+    finally:
+        localizing.close()
+
+
 def _black(f: Frame) -> Frame:
     return Frame(f.stamp_ns, np.zeros_like(f.rgb), np.zeros_like(f.depth_m), f.camera, f.T_wc_gt)
 

@@ -72,6 +72,11 @@ class Tracker(Protocol):
         a backend without loop closure has none."""
         return []
 
+    def end_flight(self) -> TrackResult | None:
+        """At the end of a flight (the source's end): the last tracked frame as a keyframe when no
+        keyframe sees its view yet, else None; a backend without keyframes of its own has none."""
+        return None
+
     @abstractmethod
     def map_stats(self) -> SparseMapStats | None:
         """The sparse map's stats, or None for a backend that exposes no map."""

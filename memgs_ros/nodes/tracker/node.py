@@ -25,6 +25,7 @@ import time
 from typing import Any
 
 from sensor_msgs.msg import CameraInfo, Image
+from std_srvs.srv import Trigger
 
 from memgs_ros.core.geometry.camera import describe_camera
 from memgs_ros.core.geometry.frame import Frame
@@ -69,6 +70,8 @@ class TrackerNode(ManagedNode):
             raise ConfigError("camera_info_override is true but no calibration is set: give camera.width, "
                               "camera.height, camera.fx, camera.fy, camera.cx, camera.cy (and distortion)")
         NodeMapLoader(self, "memgs/tracker/load_map", lambda: map_check(self))  # a map at run time
+        self._last_images: tuple[Image, Image | None] | None = None  # the last tracked frame's (end_flight)
+        self.create_service(Trigger, "memgs/tracker/end_flight", self.on_end_flight)
         self.start_lifecycle(v.autostart)
 
     def configure_node(self) -> None:
@@ -208,6 +211,7 @@ class TrackerNode(ManagedNode):
         t, cam = self.tracker, self.cams.camera
         assert t is not None and cam is not None  # made together with the camera (_camera_set)
         result = self._track(t, frame)
+        self._last_images = (color, depth)
         self.out.frame(result, cam, color, depth, t.poll_refined_keyframes(),
                        t.poll_loop_corrected_keyframes(), t.poll_loop_corrections(), t.poll_culled_keyframes())
         self.out.frame_cost(cpu0, wall0)
@@ -219,6 +223,21 @@ class TrackerNode(ManagedNode):
         if smap is not None:
             self.out.keyframes.forget(smap.keyframe_ids, smap.keyframes)
         return result
+
+    def on_end_flight(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        """``memgs/tracker/end_flight`` (the runner calls it at the source's end): the last tracked
+        frame becomes a keyframe unless one sees its view (``Tracker.end_flight``). Answers
+        "keyframe <stamp ns>" or "none"."""
+        t, images, cam = getattr(self, "tracker", None), self._last_images, getattr(self, "cams", None)
+        result = t.end_flight() if t is not None and images is not None and cam is not None else None
+        self._last_images = None
+        if result is None or cam is None or cam.camera is None or images is None or t is None:
+            res.success, res.message = True, "none"
+            return res
+        self.out.end_flight(result, cam.camera, *images, t.poll_refined_keyframes(), t.poll_culled_keyframes())
+        self.get_logger().info(f"the flight's last view ({result.stamp_ns}) made a keyframe")
+        res.success, res.message = True, f"keyframe {result.stamp_ns}"
+        return res
 
     def close_node(self) -> None:
         if self.tracker is not None:

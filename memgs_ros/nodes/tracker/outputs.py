@@ -152,6 +152,18 @@ class TrackerOutbox:
         self.path.add(result, pose, loops, {k: heir for k, heir, _ in culled})
         self.processed(stamp, keyframe=result.keyframe is not None, parts=tuple(parts))
 
+    def end_flight(self, result: TrackResult, camera: PinholeCamera, color: Image, depth: Image | None,
+                   refined: list[tuple[int, np.ndarray]], culled: Sequence[tuple[int, int, np.ndarray]]) -> None:
+        """The flight's last view made a keyframe after its frame went out (``Tracker.end_flight``):
+        its keyframe messages, and the keyframe poses its insertion moved or culled."""
+        stamp, kf = result.stamp_ns, self.keyframes
+        self.keyframes.publish(result, camera, color.header.frame_id or self.camera_frame, color, depth)
+        self.stats.keyframes += 1
+        if refined:
+            self.stats.refined_keyframe_poses += kf.publish_poses(refined, kf.refined, stamp)
+        if culled:
+            self.stats.culled_keyframes += kf.publish_culled(list(culled), stamp)
+
     @property
     def frames(self) -> FrameConvention:
         return self._frames if self.tf is None else self.tf.frames

@@ -36,7 +36,7 @@ from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, Tracking
 from memgs_ros.core.tracking.features.features import FrameFeatures, OrbExtractor, unroll_rolling_shutter
 from memgs_ros.core.tracking.features.vocabulary import KeyframeDatabase, Vocabulary, default_vocabulary
 from memgs_ros.core.tracking.frontend.corrections import BackendLink, BackendResults, KeyframesMoved
-from memgs_ros.core.tracking.frontend.keyframe_steps import KeyframeSteps, keyframe_info
+from memgs_ros.core.tracking.frontend.keyframe_steps import KeyframeSteps, LastView, keyframe_info
 from memgs_ros.core.tracking.frontend.local_map import SparseMap
 from memgs_ros.core.tracking.frontend.map_session import MapSession
 from memgs_ros.core.tracking.frontend.pose_tracking import (
@@ -126,6 +126,7 @@ class FeatureTracker(BackendResults, MapSession, KeyframeSteps, Tracker):
         # ((map layout, segment), point ids) the last tracked frame found (ids hold until a compaction)
         self._last_tracked: tuple[tuple[int, int], np.ndarray | None] = ((-1, -1), None)
         self._last_kf_info: KeyframeInfo | None = None
+        self._last_view: LastView | None = None  # the last frame, tracked and not a keyframe (end_flight)
         self.vocabulary: Vocabulary | None = None
         try:
             self.vocabulary = default_vocabulary()
@@ -141,6 +142,7 @@ class FeatureTracker(BackendResults, MapSession, KeyframeSteps, Tracker):
         """Estimate the pose of ``frame``; see TrackResult for what each state carries."""
         t0 = time.perf_counter()
         self._stamp_ns = frame.stamp_ns
+        self._last_view = None  # set by _tracked when this frame is tracked and not a keyframe
         self._pose_cov: np.ndarray | None = None  # set by _tracked
         if frame.camera.width != self.camera.width or frame.camera.height != self.camera.height:
             raise DataError(
@@ -363,6 +365,8 @@ class FeatureTracker(BackendResults, MapSession, KeyframeSteps, Tracker):
                 kf = self._insert_keyframe(frame, feats, T, outcome)
         else:
             self._keyframe_deferrals = 0  # no longer due: a later keyframe gets its own deferrals
+        if kf is None:
+            self._last_view = LastView(frame, feats, outcome)
         return T, kf, outcome.n_matches, len(outcome.point_ids)
 
     def _relocalise(self, feats: FrameFeatures) -> TrackOutcome | None:

@@ -4,13 +4,14 @@ keyframe cap) and to the back-end (local BA, place recognition); plus the hooks 
 overrides (how points are made, the keyframe ratio, the map's scale)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from memgs_ros.core.geometry.poses import invert_pose
-from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig
-from memgs_ros.core.tracking.frontend.keyframe_rules import cull_around, keyframe_needed
+from memgs_ros.core.tracking.config import KeyframeInfo, TrackerConfig, TrackingState, TrackResult
+from memgs_ros.core.tracking.frontend.keyframe_rules import covered, cull_around, keyframe_needed
 from memgs_ros.core.tracking.frontend.local_map import SparseKeyframe, SparseMap
 
 if TYPE_CHECKING:
@@ -19,7 +20,7 @@ if TYPE_CHECKING:
     from memgs_ros.core.tracking.frontend.corrections import BackendLink, KeyframesMoved
     from memgs_ros.core.tracking.frontend.pose_tracking import TrackOutcome
 
-__all__ = ["KeyframeSteps", "keyframe_info"]
+__all__ = ["KeyframeSteps", "LastView", "keyframe_info"]
 
 
 def keyframe_info(smap: SparseMap, kf: SparseKeyframe) -> KeyframeInfo:
@@ -31,6 +32,15 @@ def keyframe_info(smap: SparseMap, kf: SparseKeyframe) -> KeyframeInfo:
         depth[active] = (p_w @ kf.T_cw[2, :3] + kf.T_cw[2, 3]).astype(np.float32)
     return KeyframeInfo(kf.keyframe_id, kf.stamp_ns, invert_pose(kf.T_cw),
                         kf.feats.uv.astype(np.float32), depth, active)
+
+
+@dataclass(frozen=True, eq=False)
+class LastView:
+    """The last tracked frame when it did not become a keyframe: what ``end_flight`` needs to make it one."""
+
+    frame: Frame
+    feats: FrameFeatures
+    outcome: TrackOutcome
 
 
 class KeyframeSteps:
@@ -50,9 +60,36 @@ class KeyframeSteps:
     _local_kfs: list[int]
     _culled: list[tuple[int, int, np.ndarray]]
     _last_kf_info: KeyframeInfo | None
+    _last_view: LastView | None
+    state: TrackingState
 
     def _follow(self, moves: list[KeyframesMoved]) -> None:
         raise NotImplementedError
+
+    def _commit_backend(self, wait: bool) -> np.ndarray:
+        raise NotImplementedError
+
+    def end_flight(self) -> TrackResult | None:
+        """The flight's last view as a keyframe: the last frame, when it was tracked and did not
+        become one, unless a keyframe of the local map (settled or not) sees from within
+        ``keyframe_weak_cover_*``. Keyframes go in by time and motion, so the frames after the last
+        one (up to ``keyframe_max_frames``, or ``keyframe_max_rotation_deg`` of turn) were never
+        mapped: a flight's map ended short of its last view, and a map continued from it started
+        there (the fr1/rpy head, frames 80-199 continuing a map of 0-119: the last keyframe was
+        frame 191, the views of 192-199 rendered 3 dB below the one session's, whose frame 199 was
+        a keyframe by chance). None when nothing is added (call once, after the last frame)."""
+        last, self._last_view = self._last_view, None
+        if last is None or self.localize_only or self.state != TrackingState.OK:
+            return None
+        T = self._commit_backend(wait=True)  # the last frame's pose, moved with the BA results
+        cfg = self.cfg
+        if len(last.outcome.point_ids) < cfg.min_inliers or covered(
+                self.map, [self._ref_kf_id, *self._local_kfs], T, last.frame.stamp_ns,
+                cfg.keyframe_weak_cover_deg, cfg.keyframe_weak_cover_m * self._scale_unit()):
+            return None
+        kf = self._insert_keyframe(last.frame, last.feats, T, last.outcome)
+        return TrackResult(last.frame.stamp_ns, invert_pose(T), self.state, kf, last.outcome.n_matches,
+                           len(last.outcome.point_ids), 0.0, self.segment_id, kf.keyframe_id)
 
     # -- hooks ----------------------------------------------------------------------------
     def _create_points(self, kf: SparseKeyframe, frame: Frame) -> None:
