@@ -339,7 +339,7 @@ def check_parameters(params: Mapping[str, Mapping[str, Any]]) -> None:
     for node, values in params.items():
         if node not in NODE_NAMES:
             raise ConfigError(f"parameters for '{node}': no such node (nodes: {', '.join(NODE_NAMES)})")
-        lines += unknown_parameters(node, values, parameter_names(NODE_CONFIGS[node]))
+        lines += unknown_parameters(node, values, parameter_names(NODE_CONFIGS[node]), set_form=True)
         for prefix, config_cls in NODE_CONFIGS[node]:
             lines += check_values(config_cls, prefix, values, node=node)
     if not lines:

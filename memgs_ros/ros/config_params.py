@@ -227,8 +227,11 @@ def changed_parameters(prefix: str, before: object, after: object) -> dict[str, 
 RENAMED = {"lockstep": "pacing", "lockstep_iterations": "iterations_per_frame", "lockstep_window": "ack_window"}
 
 
-def unknown_parameters(node_name: str, given: Iterable[str], declared: Collection[str]) -> list[str]:
-    """One line for each name in ``given`` that ``declared`` lacks, with the closest declared names.
+def unknown_parameters(node_name: str, given: Iterable[str], declared: Collection[str],
+                       set_form: bool = False) -> list[str]:
+    """One line for each name in ``given`` that ``declared`` lacks, with the closest declared names
+    (``set_form``: also as ``memgs run --set`` takes them, the node's name first: a parameter named
+    like its node, ``tracker.keyframe_max_frames``, is ``--set tracker.tracker.keyframe_max_frames``).
 
     rclpy ignores a parameter-file entry that no node declares, so a typo (``keyframe_max_frames``
     for ``tracker.keyframe_max_frames``) would silently run with the default."""
@@ -241,7 +244,11 @@ def unknown_parameters(node_name: str, given: Iterable[str], declared: Collectio
             lines.append(f"{node_name} has no parameter '{name}': it is called '{RENAMED[leaf]}' now")
             continue
         close = [d for d in declared if d.rsplit(".", 1)[-1] == leaf] or difflib.get_close_matches(name, declared, 3)
-        hint = f" (did you mean {' or '.join(sorted(close)[:3])}?)" if close else ""
+        names = sorted(close)[:3]
+        hint = f" (did you mean {' or '.join(names)}?" if close else ""
+        if close and set_form:
+            hint += f" with --set: {' or '.join(f'{node_name}.{n}=...' for n in names)}"
+        hint += ")" if close else ""
         lines.append(f"{node_name} has no parameter '{name}'{hint}")
     return lines
 

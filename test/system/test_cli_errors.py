@@ -111,7 +111,8 @@ def test_bad_outputs_and_options_are_one_line(files: dict[str, Path], tmp_path: 
 
 _MISTAKES = [
     (["--set", "tracker.keyframe_max_frames=10"],
-     ("tracker has no parameter 'keyframe_max_frames'", "did you mean tracker.keyframe_max_frames")),
+     ("tracker has no parameter 'keyframe_max_frames'", "did you mean tracker.keyframe_max_frames?",
+      "with --set: tracker.tracker.keyframe_max_frames=...")),
     (["--set", "mapper.mapping.iterationz=3"], ("mapper has no parameter 'mapping.iterationz'",)),
     # Values are checked before anything starts, in the words the node would use at start.
     (["--set", "mapper.mapping.resolution_scale=50.0"],
