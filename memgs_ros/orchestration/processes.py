@@ -209,9 +209,22 @@ def open_context(domain_id: int | None, ros_args: list[str], probe_s: float = 1.
 SPIN_JOIN_TIMEOUT_S = 10.0  # how long stop_spinning waits for the executor's thread to end
 
 
+def _spin(executor: Any) -> None:
+    """``executor.spin()``, quiet about rclpy's own race at its end: ``Executor.shutdown`` destroys
+    its guard condition without waiting for the thread inside ``spin``, which then can raise
+    ``AttributeError: 'NoneType' object has no attribute 'handle'`` while building its next wait
+    (a ``memgs run`` ending on a failed source printed the traceback). Only then: the spin was
+    over anyway; any other error is raised."""
+    try:
+        executor.spin()
+    except AttributeError:
+        if getattr(executor, "_guard", None) is not None:  # not shut down: a real error
+            raise
+
+
 def spin_in_background(executor: Any) -> threading.Thread:
     """Spin ``executor`` on a thread of its own; end it with :func:`stop_spinning`."""
-    thread = threading.Thread(target=executor.spin, name="executor-spin", daemon=True)
+    thread = threading.Thread(target=_spin, args=(executor,), name="executor-spin", daemon=True)
     thread.start()
     return thread
 
