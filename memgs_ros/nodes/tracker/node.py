@@ -228,13 +228,12 @@ class TrackerNode(ManagedNode):
         """``memgs/tracker/end_flight`` (the runner calls it at the source's end): the last tracked
         frame becomes a keyframe unless one sees its view (``Tracker.end_flight``). Answers
         "keyframe <stamp ns>" or "none"."""
-        t, images, cam = getattr(self, "tracker", None), self._last_images, getattr(self, "cams", None)
-        result = t.end_flight() if t is not None and images is not None and cam is not None else None
-        self._last_images = None
-        if result is None or cam is None or cam.camera is None or images is None or t is None:
-            res.success, res.message = True, "none"
+        t, images, self._last_images = getattr(self, "tracker", None), self._last_images, None
+        result = t.end_flight() if t is not None and images is not None else None  # a tracker: a camera
+        res.success, res.message = True, "none"
+        if result is None or t is None or images is None or self.cams.camera is None:
             return res
-        self.out.end_flight(result, cam.camera, *images, t.poll_refined_keyframes(), t.poll_culled_keyframes())
+        self.out.end_flight(result, self.cams.camera, *images, t.poll_refined_keyframes(), t.poll_culled_keyframes())
         self.get_logger().info(f"the flight's last view ({result.stamp_ns}) made a keyframe")
         res.success, res.message = True, f"keyframe {result.stamp_ns}"
         return res

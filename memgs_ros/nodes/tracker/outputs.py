@@ -139,7 +139,16 @@ class TrackerOutbox:
             if result.keyframe is not None:
                 self.keyframes.publish(result, camera, camera_frame, color, depth)
                 stats.keyframes += 1
-        kf, parts = self.keyframes, []  # the pose messages sent with this frame, named in its answer
+        parts = self._moved_keyframes(stamp, refined, corrected, culled)
+        self.path.add(result, pose, loops, {k: heir for k, heir, _ in culled})
+        self.processed(stamp, keyframe=result.keyframe is not None, parts=tuple(parts))
+
+    def _moved_keyframes(self, stamp: int, refined: list[tuple[int, np.ndarray]],
+                         corrected: list[tuple[int, np.ndarray]],
+                         culled: Sequence[tuple[int, int, np.ndarray]]) -> list[str]:
+        """The keyframe poses that moved (``refined``, ``corrected``) or went (``culled``), sent with
+        the frame stamped ``stamp`` and counted; returns the parts its answer names."""
+        kf, stats, parts = self.keyframes, self.stats, []
         if refined and (n := kf.publish_poses(refined, kf.refined, stamp)):
             stats.refined_keyframe_poses += n
             parts.append("refined")
@@ -149,20 +158,15 @@ class TrackerOutbox:
         if culled and (n := kf.publish_culled(list(culled), stamp)):
             stats.culled_keyframes += n
             parts.append("culled")
-        self.path.add(result, pose, loops, {k: heir for k, heir, _ in culled})
-        self.processed(stamp, keyframe=result.keyframe is not None, parts=tuple(parts))
+        return parts
 
     def end_flight(self, result: TrackResult, camera: PinholeCamera, color: Image, depth: Image | None,
                    refined: list[tuple[int, np.ndarray]], culled: Sequence[tuple[int, int, np.ndarray]]) -> None:
         """The flight's last view made a keyframe after its frame went out (``Tracker.end_flight``):
         its keyframe messages, and the keyframe poses its insertion moved or culled."""
-        stamp, kf = result.stamp_ns, self.keyframes
         self.keyframes.publish(result, camera, color.header.frame_id or self.camera_frame, color, depth)
         self.stats.keyframes += 1
-        if refined:
-            self.stats.refined_keyframe_poses += kf.publish_poses(refined, kf.refined, stamp)
-        if culled:
-            self.stats.culled_keyframes += kf.publish_culled(list(culled), stamp)
+        self._moved_keyframes(result.stamp_ns, refined, [], culled)
 
     @property
     def frames(self) -> FrameConvention:
