@@ -66,6 +66,7 @@ __all__ = ["GRAPH_NODES", "NODE_MODULES", "PipelineError", "RunOptions", "RunSum
 GRAPH_NODES = GRAPH_NODE_NAMES
 _STATS_ROUND_S = 1.5  # every node publishes its stats once a second: one round, with margin
 _FINAL_RENDER_TIMEOUT_S = 30.0  # a render of the final map takes < 1 s on CPU at 640x480
+_DESTROY_TIMEOUT_S = 10.0  # how long the runner waits for each of its own teardown calls in rclpy
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -200,15 +201,17 @@ def _start_processes(options: RunOptions, observer: GraphObserver, params: dict[
 
 def _stop_graph(procs: NodeProcesses | None, in_process: Sequence[Any], executor: Executor,
                 spin: threading.Thread | None, observer: GraphObserver | None, context: Any) -> None:
-    """Stop the node processes (each saves what it holds) or the composed nodes, then the
-    runner's own executor and context."""
-    if procs is not None:
-        procs.stop()
-    for node in in_process:
-        hook = getattr(node, "close", None)
-        if hook is not None:
-            hook()
-    stop_spinning(executor, spin)  # before the context ends, or rclpy may abort at exit
+    """Stop the node processes (each saves what it holds) or the composed nodes, then the runner's
+    executor (also after a second Ctrl-C: its thread left in rclpy crashed the runner, SIGSEGV) and context."""
+    try:
+        if procs is not None:
+            procs.stop()
+        for node in in_process:
+            hook = getattr(node, "close", None)
+            if hook is not None:
+                hook()
+    finally:
+        stop_spinning(executor, spin)  # before the context ends, or rclpy may abort at exit
     for node in in_process:
         node.destroy_node()
     if observer is not None:
@@ -216,9 +219,6 @@ def _stop_graph(procs: NodeProcesses | None, in_process: Sequence[Any], executor
         # publishers once hung in rclpy for over 5 minutes (and SIGTERM could not end the runner).
         _bounded(observer.node.destroy_node, _DESTROY_TIMEOUT_S, "destroying the runner's node")
     _bounded(lambda: rclpy.try_shutdown(context=context), _DESTROY_TIMEOUT_S, "shutting down the runner's context")
-
-
-_DESTROY_TIMEOUT_S = 10.0
 
 
 def _bounded(fn: Any, timeout_s: float, what: str) -> None:
