@@ -20,7 +20,7 @@ class _InterruptedProcs:
         raise KeyboardInterrupt
 
 
-def test_a_second_interrupt_still_ends_the_spin_thread_and_the_context(context: Any) -> None:
+def test_a_second_interrupt_still_ends_the_spin_thread(context: Any) -> None:
     executor = SingleThreadedExecutor(context=context)
     node = rclpy.create_node("memgs_run_stop_probe", context=context)
     executor.add_node(node)
