@@ -204,7 +204,7 @@ def run(name: str, args: argparse.Namespace) -> dict:
     n_seed = len(mapper.gmap)
     t_insert = time.perf_counter() - t1
     print(f"[{name}] {len(frames)} frames, {len(kfs)} keyframes, {n_seed} seed Gaussians, "
-          f"extent {mapper.scene_extent:.2f} m, merge {'on' if mapper.merge_available and cfg.merge_enabled else 'off'}",
+          f"extent {mapper.scene_extent:.2f} m, merge {'on' if mapper.merge.available and cfg.merge_enabled else 'off'}",
           flush=True)
     psnr_kf0 = float(np.mean([psnr_of(mapper, f, scale)[0] for f in kfs]))
     merges = []

@@ -97,7 +97,7 @@ def run_one(args: argparse.Namespace) -> dict:
     t0 = time.perf_counter()
     for _ in range(args.iters):
         st = mapper.step()
-        r = mapper.last_merge
+        r = mapper.merge.last
         if st is not None and r is not None and r is not seen:  # a pass ran in this step
             seen = r
             merges.append({"iteration": st.iteration, "n_candidates": r.n_candidates, "n_pairs": r.n_pairs,

@@ -56,6 +56,7 @@ class ManagedNode(LifecycleNode):
         cls.__init__ = guarded  # type: ignore[method-assign]
 
     def __init__(self, node_name: str, **kwargs: Any) -> None:
+        self._at_destroy: dict[str, Callable[[], object]] = {}  # before Node's: a refused node is destroyed
         super().__init__(node_name, **kwargs)
         self.active = False
         self.configured = False
@@ -89,7 +90,15 @@ class ManagedNode(LifecycleNode):
             self.configured = False
             self.close_node()
 
+    def end_with_node(self, name: str, stop: Callable[[], object]) -> None:
+        """``stop()`` (bounded) runs first when the node is destroyed; a later call with the same
+        ``name`` replaces it (a reconfigure). For threads that may still be in native code (a
+        compile, a training step): a process that exits under one aborts."""
+        self._at_destroy[name] = stop
+
     def destroy_node(self) -> None:
+        for stop in reversed(list(self._at_destroy.values())):
+            stop()
         # rclpy's lifecycle state machine holds the node's handle: destroyed with the node, not
         # left to the garbage collector (until then the node stayed on the DDS graph).
         self._state_machine.destroy_when_not_in_use()

@@ -169,15 +169,6 @@ class GaussianMapper(MapperState):
         return len(self.keyframes) >= max(self.cfg.min_keyframes, 1)
 
     @property
-    def merge_available(self) -> bool:
-        return self.merge.available
-
-    @property
-    def last_merge(self) -> Any:
-        """The latest scheduled ``MergeResult`` (None before the first)."""
-        return self.merge.last
-
-    @property
     def budget_gaussians(self) -> int:
         """The memory budget as a Gaussian count (0 = none), see ``BudgetStrategy.limit``."""
         return self.budget.limit(self.gmap, self._fixed_bytes())

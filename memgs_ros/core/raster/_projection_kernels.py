@@ -331,6 +331,14 @@ def _quat_vjp(c: _Cov, gM: tuple[float, ...], v_quats: np.ndarray, i: int) -> No
 
 
 @njit(cache=True, fastmath=False, inline="always")
+def _add_scaled3(g: np.ndarray, k: int, s: float, a: float, b: float, c: float) -> None:
+    """g[k:k + 3] += s (a, b, c): one row of an outer product into the pose accumulator."""
+    g[k] += s * a
+    g[k + 1] += s * b
+    g[k + 2] += s * c
+
+
+@njit(cache=True, fastmath=False, inline="always")
 def _jw_vjp(v: _View, vJ: tuple[float, ...], R: tuple[float, ...], cam: np.ndarray, g: np.ndarray
             ) -> tuple[float, float, float]:
     """J W rows ax (R0 - tx R2), ay (R1 - ty R2): adds dL/dR to g[0:9], returns dL/d(x, y, 1/z)
@@ -342,12 +350,8 @@ def _jw_vjp(v: _View, vJ: tuple[float, ...], R: tuple[float, ...], cam: np.ndarr
     ax, ay, tx, ty = v.ax, v.ay, v.tx, v.ty
     e0, e1, e2 = r00 - tx * r20, r01 - tx * r21, r02 - tx * r22
     f0, f1, f2 = r10 - ty * r20, r11 - ty * r21, r12 - ty * r22
-    g[0] += vj00 * ax
-    g[1] += vj01 * ax
-    g[2] += vj02 * ax
-    g[3] += vj10 * ay
-    g[4] += vj11 * ay
-    g[5] += vj12 * ay
+    _add_scaled3(g, 0, ax, vj00, vj01, vj02)
+    _add_scaled3(g, 3, ay, vj10, vj11, vj12)
     g[6] -= vj00 * ax * tx + vj10 * ay * ty
     g[7] -= vj01 * ax * tx + vj11 * ay * ty
     g[8] -= vj02 * ax * tx + vj12 * ay * ty
@@ -385,15 +389,9 @@ def _rigid_vjp(R: tuple[float, ...], mx: float, my: float, mz: float, vx: float,
                g: np.ndarray) -> tuple[float, float, float]:
     """p_c = R m + t: adds dL/dR to g[0:9] and dL/dt to g[9:12], returns dL/dm."""
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = R
-    g[0] += vx * mx
-    g[1] += vx * my
-    g[2] += vx * mz
-    g[3] += vy * mx
-    g[4] += vy * my
-    g[5] += vy * mz
-    g[6] += vz * mx
-    g[7] += vz * my
-    g[8] += vz * mz
+    _add_scaled3(g, 0, vx, mx, my, mz)
+    _add_scaled3(g, 3, vy, mx, my, mz)
+    _add_scaled3(g, 6, vz, mx, my, mz)
     g[9] += vx
     g[10] += vy
     g[11] += vz

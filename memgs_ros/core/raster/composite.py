@@ -1,4 +1,4 @@
-"""Front-to-back alpha compositing over tiles as one custom autograd Function.
+"""Front-to-back alpha compositing over tiles, in torch, behind the compositors' one autograd boundary.
 
 Twin of :func:`memgs_ros.core.raster.reference._composite_reference` (brute force, plain
 autograd, same semantics). Per pixel p and depth-sorted Gaussian i:
@@ -26,12 +26,12 @@ How it stays fast and small on a CPU:
 """
 from __future__ import annotations
 
-from typing import Any
+import functools
 
 import torch
 from torch import Tensor
-from torch.autograd.function import once_differentiable
 
+from memgs_ros.core.raster.composite_autograd import CompositeBackward, apply_compositor
 from memgs_ros.core.raster.rules import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
 from memgs_ros.core.raster.tiles import Chunk, TilePlan
 from memgs_ros.core.raster.values import Splats2D
@@ -156,75 +156,42 @@ def _saves_pairs(plan: TilePlan, dtype: torch.dtype) -> bool:
     return 2 * item * slots * plan.tile_size * plan.tile_size <= SAVED_PAIRS_BUDGET_BYTES
 
 
-class _CompositeFn(torch.autograd.Function):
-    @staticmethod
-    def forward(  # type: ignore[override]
-        ctx: Any,
-        means2d: Tensor,  # [N, 2]
-        conics: Tensor,  # [N, 3]
-        opacities: Tensor,  # [N]
-        colors: Tensor,  # [N, 3]
-        depths: Tensor,  # [N]
-        background: Tensor,  # [3]
-        plan: TilePlan,
-        workers: int,
-        differentiable: bool,
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        dtype, device = means2d.dtype, means2d.device
-        table = _slot_table(plan, means2d, conics, opacities, colors, depths)  # [10, S]
-        feat = _pixel_features(plan.tile_size, dtype, device)  # [P, 6]
-        alpha_floor = _float_below(MIN_ALPHA, dtype)
-        t_floor = _float_below(MIN_TRANSMITTANCE, dtype)
+def _composite_forward(splats: Splats2D, background: Tensor, plan: TilePlan, workers: int,
+                       differentiable: bool) -> tuple[Tensor, Tensor, Tensor, CompositeBackward]:
+    """The torch compositor behind :func:`apply_compositor`: colour, depth, alpha and the backward pass."""
+    means2d = splats.means2d
+    dtype, device = means2d.dtype, means2d.device
+    table = _slot_table(plan, *splats)  # [10, S]
+    feat = _pixel_features(plan.tile_size, dtype, device)  # [P, 6]
+    alpha_floor = _float_below(MIN_ALPHA, dtype)
+    t_floor = _float_below(MIN_TRANSMITTANCE, dtype)
 
-        keep = differentiable and _saves_pairs(plan, dtype)
+    keep = differentiable and _saves_pairs(plan, dtype)
 
-        def run(chunk: Chunk) -> tuple[Tensor, Tensor | None, Tensor | None]:
-            out, alpha, t_excl = _forward_chunk(plan, chunk, table, feat, alpha_floor, t_floor)
-            return (out, alpha, t_excl) if keep else (out, None, None)
+    def run(chunk: Chunk) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        out, alpha, t_excl = _forward_chunk(plan, chunk, table, feat, alpha_floor, t_floor)
+        return (out, alpha, t_excl) if keep else (out, None, None)
 
-        results = parallel_map(run, plan.chunks, workers)
-        n_tiles = plan.tiles_x * plan.tiles_y
-        p = plan.tile_size * plan.tile_size
-        buf = torch.zeros(n_tiles, 5, p, dtype=dtype, device=device)  # r, g, b, depth, sum w
-        if results:
-            tiles = torch.cat([ch.tiles for ch in plan.chunks])
-            buf.index_copy_(0, tiles, torch.cat([r[0] for r in results]))
-        t_end = 1.0 - buf[:, 4]  # [n_tiles, P]
-        buf[:, :3] += t_end.unsqueeze(1) * background.detach().to(dtype).view(1, 3, 1)
-        buf[:, 4] = t_end
-        img = _from_tiles(buf, plan)  # [5, H, W]
+    results = parallel_map(run, plan.chunks, workers)
+    n_tiles = plan.tiles_x * plan.tiles_y
+    p = plan.tile_size * plan.tile_size
+    buf = torch.zeros(n_tiles, 5, p, dtype=dtype, device=device)  # r, g, b, depth, sum w
+    if results:
+        tiles = torch.cat([ch.tiles for ch in plan.chunks])
+        buf.index_copy_(0, tiles, torch.cat([r[0] for r in results]))
+    t_end = 1.0 - buf[:, 4]  # [n_tiles, P]
+    buf[:, :3] += t_end.unsqueeze(1) * background.detach().to(dtype).view(1, 3, 1)
+    buf[:, 4] = t_end
+    img = _from_tiles(buf, plan)  # [5, H, W]
+    saved_pairs = [r[1:] for r in results]
+    n = means2d.shape[0]
 
-        ctx.plan = plan
-        ctx.workers = workers
-        ctx.table = table
-        ctx.thresholds = (alpha_floor, t_floor)
-        ctx.saved_pairs = [r[1:] for r in results]
-        ctx.t_end_tiles = t_end
-        ctx.save_for_backward(means2d, background)
-        return img[:3], img[3].contiguous(), (1.0 - img[4]).contiguous()
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx: Any, v_color: Tensor, v_depth: Tensor, v_alpha: Tensor) -> tuple[Any, ...]:
-        means2d, background = ctx.saved_tensors
-        plan: TilePlan = ctx.plan
-        table: Tensor = ctx.table
-        dtype, device = means2d.dtype, means2d.device
-        h, w_ = plan.height, plan.width
-        if v_color is None:
-            v_color = torch.zeros(3, h, w_, dtype=dtype, device=device)
-        if v_depth is None:
-            v_depth = torch.zeros(h, w_, dtype=dtype, device=device)
-        if v_alpha is None:
-            v_alpha = torch.zeros(h, w_, dtype=dtype, device=device)
-        grads = _to_tiles(torch.cat([v_color, v_depth[None], v_alpha[None]]), plan)  # [n_tiles, 5, P]
-        t_end = ctx.t_end_tiles  # [n_tiles, P]
+    def backward(image_grads: Tensor, background_needed: bool) -> tuple[Tensor, Tensor | None]:
+        grads = _to_tiles(image_grads, plan)  # [n_tiles, 5, P]
         bg = background.detach().to(dtype)
         # d/dT_end of (T_end bg . v_C - T_end v_A): what lies "behind the last Gaussian".
         behind = t_end * ((grads[:, :3] * bg.view(1, 3, 1)).sum(1) - grads[:, 4])  # [n_tiles, P]
-        feat = _pixel_features(plan.tile_size, dtype, device)  # [P, 6]
         feat_t = feat.T.contiguous()  # [6, P]
-        alpha_floor, t_floor = ctx.thresholds
         # Per slot: dL/d (mean x, mean y, conic a, b, c, opacity, r, g, b, z).
         v_table = torch.empty_like(table)
 
@@ -257,25 +224,15 @@ class _CompositeFn(torch.autograd.Function):
             vx[_CB] = -g1 + g3 * mv + g4 * mu - g5 * mu * mv
             vx[_CC] = -0.5 * g2 + g4 * mv - 0.5 * g5 * mv * mv
 
-        parallel_map(run, list(zip(plan.chunks, ctx.saved_pairs)), ctx.workers)
-        n = means2d.shape[0]
+        parallel_map(run, list(zip(plan.chunks, saved_pairs)), workers)
         v_gauss = torch.zeros(10, n + 1, dtype=dtype, device=device)
         v_gauss.index_add_(1, plan.slot_gid, v_table)
-        v_gauss = v_gauss[:, :n].T
         v_bg = None
-        if ctx.needs_input_grad[5]:
+        if background_needed:
             v_bg = (grads[:, :3] * t_end.unsqueeze(1)).sum((0, 2)).to(background.dtype)
-        return (
-            v_gauss[:, _MX : _MY + 1],
-            v_gauss[:, _CA : _CC + 1],
-            v_gauss[:, _OP],
-            v_gauss[:, _CR : _CBL + 1],
-            v_gauss[:, _Z],
-            v_bg,
-            None,
-            None,
-            None,
-        )
+        return v_gauss[:, :n].T, v_bg
+
+    return img[:3], img[3].contiguous(), (1.0 - img[4]).contiguous(), backward
 
 
 def composite(
@@ -297,4 +254,5 @@ def composite(
     # Nothing to keep for a render without gradients (e.g. the published views); inside
     # forward() grad mode is always off, so this is decided here.
     differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
-    return _CompositeFn.apply(*splats.contiguous(), background, plan, workers, differentiable)
+    run = functools.partial(_composite_forward, workers=workers, differentiable=differentiable)
+    return apply_compositor(run, splats, background, plan)

@@ -20,13 +20,14 @@ Python threads have neither problem.
 """
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
-from torch.autograd.function import once_differentiable
 
+from memgs_ros.core.raster.composite_autograd import CompositeBackward, apply_compositor
 from memgs_ros.core.raster.rules import MIN_ALPHA
 from memgs_ros.core.raster.tiles import BIN_MARGIN, TilePlan
 from memgs_ros.core.raster.values import Splats2D
@@ -106,80 +107,38 @@ def _gaussian_table(
     return torch.cat(cols, dim=1).contiguous()
 
 
-class _CompositeNumbaFn(torch.autograd.Function):
-    @staticmethod
-    def forward(  # type: ignore[override]
-        ctx: Any,
-        means2d: Tensor,  # [N, 2]
-        conics: Tensor,  # [N, 3]
-        opacities: Tensor,  # [N]
-        colors: Tensor,  # [N, 3]
-        depths: Tensor,  # [N]
-        background: Tensor,  # [3]
-        plan: TilePlan,
-        threads: int,
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        k = _kernels()
-        dtype = means2d.dtype
-        h, w = plan.height, plan.width
-        table = _gaussian_table(means2d, conics, opacities, colors, depths)  # [N, 14]
-        # Tiles without Gaussians are not visited: they keep these values.
-        out = torch.zeros(5, h, w, dtype=torch.float64)  # r, g, b, depth, sum of weights
-        t_end = torch.ones(h, w, dtype=torch.float64)
-        n_used = torch.zeros(h, w, dtype=torch.int32)
-        jobs = _tile_jobs(plan, threads)
-        _run_tiles(k.composite_forward, jobs, threads, _plan_args(table, plan), out.numpy(), t_end.numpy(),
-                   n_used.numpy())
-        bg = background.detach().to(torch.float64)
-        color = out[:3] + t_end.unsqueeze(0) * bg.view(3, 1, 1)
-        ctx.plan = plan
-        ctx.table = table
-        ctx.t_end = t_end
-        ctx.n_used = n_used
-        ctx.n = means2d.shape[0]
-        ctx.dtype = dtype
-        ctx.threads = threads
-        ctx.jobs = jobs
-        ctx.save_for_backward(background)
-        return color.to(dtype), out[3].to(dtype), (1.0 - t_end).to(dtype)
+def _composite_numba_forward(splats: Splats2D, background: Tensor, plan: TilePlan,
+                             threads: int) -> tuple[Tensor, Tensor, Tensor, CompositeBackward]:
+    """The numba compositor behind :func:`apply_compositor`: colour, depth, alpha and the backward pass."""
+    k = _kernels()
+    dtype = splats.means2d.dtype
+    n = splats.means2d.shape[0]
+    h, w = plan.height, plan.width
+    table = _gaussian_table(*splats)  # [N, 14]
+    # Tiles without Gaussians are not visited: they keep these values.
+    out = torch.zeros(5, h, w, dtype=torch.float64)  # r, g, b, depth, sum of weights
+    t_end = torch.ones(h, w, dtype=torch.float64)
+    n_used = torch.zeros(h, w, dtype=torch.int32)
+    jobs = _tile_jobs(plan, threads)
+    _run_tiles(k.composite_forward, jobs, threads, _plan_args(table, plan), out.numpy(), t_end.numpy(),
+               n_used.numpy())
+    bg = background.detach().to(torch.float64)
+    color = out[:3] + t_end.unsqueeze(0) * bg.view(3, 1, 1)
 
-    @staticmethod
-    @once_differentiable
-    def backward(ctx: Any, v_color: Tensor, v_depth: Tensor, v_alpha: Tensor) -> tuple[Any, ...]:
-        (background,) = ctx.saved_tensors
-        k = _kernels()
-        plan: TilePlan = ctx.plan
-        h, w = plan.height, plan.width
-        f64 = torch.float64
-        grads = torch.zeros(5, h, w, dtype=f64)  # dL/d (r, g, b, depth, alpha)
-        if v_color is not None:
-            grads[:3] = v_color
-        if v_depth is not None:
-            grads[3] = v_depth
-        if v_alpha is not None:
-            grads[4] = v_alpha
-        bg = background.detach().to(f64)
-        t_end: Tensor = ctx.t_end
+    def backward(image_grads: Tensor, background_needed: bool) -> tuple[Tensor, Tensor | None]:
+        grads = image_grads.to(torch.float64).contiguous()  # dL/d (r, g, b, depth, alpha), [5, H, W]
         # d/dT_end of (T_end bg . v_C - T_end v_A): what lies behind the last Gaussian.
         behind = (grads[:3] * bg.view(3, 1, 1)).sum(0) - grads[4]  # [H, W]
-        v_pair = torch.empty(plan.num_pairs, k.V_COLS, dtype=f64)  # [M, 10]
-        _run_tiles(k.composite_backward, ctx.jobs, ctx.threads, _plan_args(ctx.table, plan), t_end.numpy(),
-                   ctx.n_used.numpy(), grads.numpy(), behind.numpy(), v_pair.numpy())
-        v_gauss = torch.from_numpy(k.reduce_pairs(plan.pair_gid.numpy(), v_pair.numpy(), ctx.n))  # [N, 10]
-        v_gauss = v_gauss.to(ctx.dtype)
+        v_pair = torch.empty(plan.num_pairs, k.V_COLS, dtype=torch.float64)  # [M, 10]
+        _run_tiles(k.composite_backward, jobs, threads, _plan_args(table, plan), t_end.numpy(),
+                   n_used.numpy(), grads.numpy(), behind.numpy(), v_pair.numpy())
+        v_gauss = torch.from_numpy(k.reduce_pairs(plan.pair_gid.numpy(), v_pair.numpy(), n))  # [N, 10]
         v_bg = None
-        if ctx.needs_input_grad[5]:
+        if background_needed:
             v_bg = (grads[:3] * t_end.unsqueeze(0)).sum((1, 2)).to(background.dtype)
-        return (
-            v_gauss[:, 0:2],
-            v_gauss[:, 2:5],
-            v_gauss[:, 5],
-            v_gauss[:, 6:9],
-            v_gauss[:, 9],
-            v_bg,
-            None,
-            None,
-        )
+        return v_gauss.to(dtype), v_bg
+
+    return color.to(dtype), out[3].to(dtype), (1.0 - t_end).to(dtype), backward
 
 
 def composite_numba(
@@ -198,5 +157,5 @@ def composite_numba(
     for name, t in (("means2d", splats.means2d), ("background", background)):
         if t.device.type != "cpu":
             raise ValueError(f"composite_numba: {name} must be a CPU tensor, got {t.device}")
-    return _CompositeNumbaFn.apply(*splats.contiguous(), background, plan,
-                                   cpu_threads() if threads is None else threads)
+    run = functools.partial(_composite_numba_forward, threads=cpu_threads() if threads is None else threads)
+    return apply_compositor(run, splats, background, plan)

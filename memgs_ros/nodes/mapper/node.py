@@ -20,6 +20,7 @@ nodes/mapper/stats.py's.
 """
 from __future__ import annotations
 
+import functools
 import pathlib
 import sys
 import time
@@ -81,6 +82,8 @@ class MapperNode(ManagedNode):
                               map_bundle=p.map_bundle, frozen=self.frozen)
         start = start_mapper(self.cfg, self.merge_cfg, p.device, opts)
         self.session = start.session
+        # its threads end with the node (close is idempotent): a worker still compiling aborts an exiting process
+        self.end_with_node("session", functools.partial(self.session.close, SESSION_CLOSE_TIMEOUT_S))
         before = start.resumed.iteration if start.from_bundle is not None and start.resumed else 0  # a bundle's
         self.final_total = p.final_total_iterations and p.final_total_iterations + before  # ... are not this flight's
         self.stats = MapperStats(self, start.raster.backend, p.checkpoint_period_s if p.checkpoint_path else 0.0)
@@ -291,13 +294,6 @@ class MapperNode(ManagedNode):
                 self.get_logger().info(f"checkpoint written to {saved} ({self.session.status.gaussians} Gaussians)")
         self.session.close(SESSION_CLOSE_TIMEOUT_S)
         self.out.hand_over.close()  # a cleanup destroys the publishers: what the session sent late is dropped
-
-    def destroy_node(self) -> None:
-        # The session's threads end with the node (idempotent after close): a worker still in
-        # native code (a warm-up's compile) when the process exits aborts it.
-        if (session := getattr(self, "session", None)) is not None:
-            session.close(SESSION_CLOSE_TIMEOUT_S)
-        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:

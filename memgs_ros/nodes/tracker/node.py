@@ -20,6 +20,7 @@ the override applies once, to every source.
 """
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from typing import Any
@@ -100,6 +101,9 @@ class TrackerNode(ManagedNode):
         # that is counted (skipped.warming); an acknowledged frame waits (inside make_tracker).
         self.stats.kernels_warm = 0
         self._warm = WarmUpThread(warm_up, self._warmed, name="tracker-warm-up")
+        # It starts by reading ORB's tests off OpenCV (~0.5 s, in native code): a process that exits
+        # under it aborts. Bounded: a first compile after that can take ~10 s.
+        self.end_with_node("warm-up", functools.partial(self._warm.join, _WARM_UP_JOIN_S))
 
     def _warmed(self, seconds: float, error: Exception | None) -> None:
         if error is not None:
@@ -242,13 +246,6 @@ class TrackerNode(ManagedNode):
         if self.tracker is not None:
             self.tracker.close()
             self.tracker = None
-
-    def destroy_node(self) -> None:
-        # The warm-up starts by reading ORB's tests off OpenCV (~0.5 s, in native code): a process
-        # that exits under it aborts. Bounded: a first compile after that can take ~10 s.
-        if (warm := getattr(self, "_warm", None)) is not None:
-            warm.join(_WARM_UP_JOIN_S)
-        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:

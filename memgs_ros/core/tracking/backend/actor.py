@@ -47,7 +47,6 @@ from memgs_ros.core.tracking.loop_closing.loops import LoopCorrection
 from memgs_ros.core.tracking.loop_closing.place_recognition import LoopStats, PlaceOutcome, PlaceRecognition
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 T = TypeVar("T")
 

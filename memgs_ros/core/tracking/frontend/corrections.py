@@ -31,7 +31,6 @@ from memgs_ros.core.tracking.loop_closing.loops import LoopCorrection
 from memgs_ros.core.tracking.loop_closing.place_recognition import LoopStats, PlaceOutcome
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 Moved = dict[int, tuple[np.ndarray, np.ndarray]]  # keyframe id -> (old T_cw, new T_cw)
 

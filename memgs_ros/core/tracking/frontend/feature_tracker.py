@@ -53,7 +53,6 @@ from memgs_ros.core.tracking.protocol import SparseMapStats, Tracker
 from memgs_ros.errors import DataError
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 _WAIT_KINDS_BA = frozenset({"local_ba"})
 _WAIT_KINDS_ALL = frozenset({"local_ba", "place", "global_ba"})

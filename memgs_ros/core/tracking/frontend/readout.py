@@ -25,7 +25,6 @@ from memgs_ros.core.tracking.features.features import FrameFeatures, unroll_roll
 __all__ = ["ReadoutDirection", "check_other_direction", "median_reprojection_px", "refine_with_readout"]
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 
 @dataclass

@@ -24,7 +24,6 @@ from memgs_ros.core.tracking.frontend.map_snapshot import MapSnapshot
 from memgs_ros.core.tracking.loop_closing.loops import LoopCorrection, LoopDetector, optimise_pose_graph, verify_loop
 
 logger = logging.getLogger(__name__)
-logger.addHandler(logging.NullHandler())
 
 _LOOP_CANDIDATES = 3  # best BoW candidates per query that enter the consistency check
 _LOOP_GROUP = 10  # covisible keyframes forming a candidate's group
