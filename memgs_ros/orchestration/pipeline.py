@@ -389,8 +389,7 @@ def _drive(obs: GraphObserver, options: RunOptions, procs: NodeProcesses | None,
         tracking_fps=(tracker.frames_in / track_s) if track_s > 0 else 0.0, wall_s=wall,
         ply_path=saved_map.ply or "", trajectory_path=str(out / TRAJECTORY_FILE),
         bundle_path=saved_map.bundle or "", map_bundle=str(options.map_bundle or ""),
-        relocalizing=int(tracker.relocalizing),
-        delta_messages=merger.deltas,
+        relocalizing=int(tracker.relocalizing), delta_messages=merger.deltas,
         delta_bytes=merger.delta_bytes, delta_bytes_per_s=merger.delta_bytes / wall if wall > 0 else 0.0,
         lost_frames=tracker.state.get("LOST", 0), merger_seq=merger.seq,
         namespace=options.namespace, domain_id=int(os.environ["ROS_DOMAIN_ID"]),
@@ -483,6 +482,8 @@ def _write_trajectories(obs: GraphObserver, out: Path) -> int:
     _write_text(out / TRAJECTORY_FILE, _tum_trajectory(traj))
     _write_text(out / KEYFRAMES_FILE, _tum_trajectory(kfs))  # poses at insertion
     _write_text(out / STATS_TIMELINE_FILE, timeline)
+    if (sent := obs.telemetry("tracker").poses_out) > len(traj):  # DDS dropped some on the way: say so
+        logger.warning(f"trajectory.txt holds {len(traj)} of the {sent} poses the tracker published")
     return len(traj)
 
 

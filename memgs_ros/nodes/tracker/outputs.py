@@ -82,7 +82,9 @@ class TrackerOutbox:
         stats.compute(TrackerStats.frame_cpu_ms_median, self._frame_cpu_ms)  # message in to pose out
         stats.compute(TrackerStats.frame_ms_median, self._frame_ms)  # wall: an acknowledged frame's share
         rel = qos.reliable(10)
-        self.pose = node.create_publisher(PoseStamped, "memgs/pose", rel)  # the camera in world_frame
+        # The camera in world_frame. Keep last 100: a reliable writer drops what its history no longer holds, and
+        # a replay tracks ~100 frames a second; at 10 a runner stalled for 0.1 s lost a pose of its trajectory
+        self.pose = node.create_publisher(PoseStamped, "memgs/pose", qos.reliable(100))
         # Tracked poses only (state OK), with the covariance: what a flight controller fuses. The body
         # (base_frame) in map_frame, z up (REP-103/105)
         self.odom = node.create_publisher(Odometry, "memgs/odom", rel)
