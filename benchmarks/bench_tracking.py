@@ -166,8 +166,12 @@ def run_case(name: str, frames: list, camera: object, cfg: TrackerConfig, sim3: 
 
 def perturbed_frames(frames: list, kind: str) -> list:
     """The head as a realsense-layout bag would give it: depth rounded to whole millimetres (16UC1),
-    and ``kind``: "raw", "jpegQ" (colour encoded at quality Q and decoded as the tracker does), or
-    "noiseS" (+-1 grey level, uniform, every channel; seed S)."""
+    and ``kind``: "raw", "jpegQ" (colour encoded at quality Q and decoded as the tracker does),
+    "noiseS" (+-1 grey level, uniform, every channel; seed S), or "jpegQ+noiseS" (both, in that order:
+    the same noise as "noiseS" on the decoded JPEG)."""
+    if "+" in kind:
+        first, rest = kind.split("+", 1)
+        return perturbed_frames(perturbed_frames(frames, first), rest)
     import dataclasses
 
     from memgs_ros.core.geometry.view import depth_to_metres, metres_to_units
@@ -205,6 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--flip-backward-readout", action="store_true",
                     help="pingpong: read the shutter bottom to top on the backward passes (the case list)")
     ap.add_argument("--draws", type=int, default=11, help="perturbed: runs with +-1 grey level of noise")
+    ap.add_argument("--paired", action="store_true",
+                    help="perturbed: also JPEG 95 with each draw's noise, and JPEG 95 against raw over the pairs "
+                         "(the compression's own effect, apart from the track's spread)")
     ap.add_argument("--pace", action="store_true",
                     help="feed frames at their recorded rate (live camera) instead of back to back")
     ap.add_argument("--plot", default=None, help="save a trajectory PNG (top view) here")
@@ -263,7 +270,8 @@ def main(argv: list[str] | None = None) -> int:
                                     flip_backward_readout=args.flip_backward_readout))
         elif case == "perturbed":
             fr, cam = get("tum", args.tum, args.n_frames)
-            kinds = ["raw", "jpeg95", "jpeg90", *(f"noise{k}" for k in range(1, args.draws + 1))]
+            kinds = ["raw", "jpeg95", "jpeg90", *(f"noise{k}" for k in range(1, args.draws + 1)),
+                     *(f"jpeg95+noise{k}" for k in range(1, args.draws + 1) if args.paired)]
             for kind in kinds:
                 results.append(run_case(f"perturbed:{kind}", perturbed_frames(fr, kind), cam,
                                         config(ba_threaded=False, keyframe_max_frames=10,
@@ -280,6 +288,20 @@ def main(argv: list[str] | None = None) -> int:
                       f"{np.percentile(noise, 75):.3f}; raw {ate_of['raw']:.3f}, JPEG 95 {ate_of['jpeg95']:.3f} "
                       f"(above {sum(v < ate_of['jpeg95'] for v in noise)} of {len(noise)} draws), "
                       f"JPEG 90 {ate_of['jpeg90']:.3f}", flush=True)
+            if args.paired and noise:
+                raw_n = np.array([ate_of[f"noise{k}"] for k in range(1, args.draws + 1)])
+                jpeg_n = np.array([ate_of[f"jpeg95+noise{k}"] for k in range(1, args.draws + 1)])
+                paired = {"draws": int(args.draws), "raw_median_cm": float(np.median(raw_n)),
+                          "jpeg95_median_cm": float(np.median(jpeg_n)),
+                          "median_difference_cm": float(np.median(jpeg_n) - np.median(raw_n)),
+                          "median_paired_difference_cm": float(np.median(jpeg_n - raw_n)),
+                          "jpeg95_worse_in": int((jpeg_n > raw_n).sum())}
+                results[-1]["jpeg95_against_raw_paired"] = paired
+                print(f"perturbed: JPEG 95 against raw, {args.draws} paired draws (the same noise on both): ATE "
+                      f"median {paired['jpeg95_median_cm']:.3f} against {paired['raw_median_cm']:.3f} cm "
+                      f"({paired['median_difference_cm']:+.3f}), median paired difference "
+                      f"{paired['median_paired_difference_cm']:+.3f} cm, JPEG worse in "
+                      f"{paired['jpeg95_worse_in']} of {args.draws}", flush=True)
             continue
         elif case == "mono":
             fr, cam = get("synth", "synthetic", args.n_frames)
