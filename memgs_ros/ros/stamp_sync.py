@@ -5,11 +5,13 @@ tracker publishes a keyframe as colour, depth, pose and keypoints with one stamp
 ``NearestPairer`` pairs two streams (colour, depth) whose stamps differ by at most
 ``max_dt_ns``, as message_filters' approximate policy does for two inputs.
 Both drop the oldest pending items when full and count what they dropped.
+``RgbdPairing`` is the tracker's colour/depth input: a ``NearestPairer`` whose unpaired colour is
+counted and, after a while, explained (``UnpairedWatch``).
 """
 from __future__ import annotations
 
 from collections import OrderedDict, deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
@@ -178,3 +180,33 @@ class UnpairedWatch:
                     "and is the RealSense's align_depth.enable on? (tracker.mode mono maps colour alone)")
         return (f"no depth on {depth} within {max_sync_dt_s * 1e3:.0f} ms of colour for {waited:.0f} s: "
                 "do colour and depth share a clock (max_sync_dt_s, sync)?")
+
+
+class RgbdPairing:
+    """Colour and depth paired by stamp (``NearestPairer``, ``max_dt_ns``; each pair goes to ``handle``);
+    the colour frames it dropped unpaired go to ``unpaired(n)`` (with each message, n >= 0), and the
+    reason to ``problem(why)`` once colour has found no depth for ``warn_s`` (``UnpairedWatch``).
+    ``where``: (colour topic, depth topic, pairing tolerance s), for that reason."""
+
+    def __init__(self, max_dt_ns: int, warn_s: float, where: tuple[str, str, float],
+                 handle: Callable[[tuple[int, Any, Any]], None], unpaired: Callable[[int], None],
+                 problem: Callable[[str], None]) -> None:
+        self.pairer: NearestPairer[Any] = NearestPairer(max_dt_ns=max_dt_ns, queue_size=5)
+        self.watch = UnpairedWatch(warn_s)
+        self._where, self._handle, self._unpaired, self._problem = where, handle, unpaired, problem
+
+    def color(self, stamp_ns: int, msg: Any, now_s: float) -> None:
+        """A colour message at monotonic time ``now_s``."""
+        self._done(self.pairer.dropped_a, self.pairer.add_a(stamp_ns, msg), now_s)
+
+    def depth(self, stamp_ns: int, msg: Any) -> None:
+        self.watch.depth_seen = True
+        self._done(self.pairer.dropped_a, self.pairer.add_b(stamp_ns, msg), None)
+
+    def _done(self, dropped_before: int, pair: tuple[int, Any, Any] | None, now_s: float | None) -> None:
+        self._unpaired(self.pairer.dropped_a - dropped_before)
+        if pair is not None:
+            self.watch.paired()
+            self._handle(pair)
+        elif now_s is not None and (why := self.watch.waiting(now_s, *self._where)) is not None:
+            self._problem(why)

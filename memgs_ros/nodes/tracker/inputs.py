@@ -1,21 +1,23 @@
-"""The tracker's camera input (subscribed by ``ros/images.subscribe_camera``): colour/depth pairing
-with the colour it could not pair counted and explained, and compressed messages turned into the
-Images the frame path reads."""
+"""The tracker's camera input (subscribed by ``ros/images.subscribe_camera``, paired by
+``ros/stamp_sync.RgbdPairing``): compressed messages turned into the Images the frame path reads, and
+the frame made of them once its stamp is taken."""
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from typing import Any
 
 from sensor_msgs.msg import Image
 
-from memgs_ros.errors import MessageError
+from memgs_ros.core.geometry.camera import PinholeCamera
+from memgs_ros.core.geometry.frame import Frame
+from memgs_ros.core.geometry.view import DepthUnits
+from memgs_ros.core.tracking.frame_gate import StampRules
+from memgs_ros.errors import DataError, MessageError
+from memgs_ros.io.image_decoding import depth_view, rgb_view
 from memgs_ros.nodes.tracker.stats import TrackerStats
 from memgs_ros.ros.codecs import stamp_to_ns
 from memgs_ros.ros.images import compressed_to_image
-from memgs_ros.ros.stamp_sync import NearestPairer, UnpairedWatch
 
-__all__ = ["RgbdPairing", "decompressed"]
+__all__ = ["decompressed", "to_frame"]
 
 
 def decompressed(color: Any, depth: Any | None, depth_scale: float, stats: TrackerStats
@@ -32,33 +34,24 @@ def decompressed(color: Any, depth: Any | None, depth_scale: float, stats: Track
         return None
 
 
-class RgbdPairing:
-    """Colour and depth of a tracker node (``params``: its TrackerParams) paired by stamp
-    (``NearestPairer``; each pair goes to ``handle``), the colour frames it dropped unpaired counted
-    (``skipped.unpaired``), and the reason said when colour has found no depth for
-    ``unpaired_warn_s`` (``UnpairedWatch``, ``problem.unpaired_color``)."""
-
-    def __init__(self, node: Any, params: Any, handle: Callable[[tuple[int, Any, Any]], None]) -> None:
-        self.pairer: NearestPairer[Any] = NearestPairer(
-            max_dt_ns=0 if params.sync == "exact" else int(params.max_sync_dt_s * 1e9), queue_size=5)
-        self.watch = UnpairedWatch(params.unpaired_warn_s)
-        self._where = (node.resolve_topic_name(params.color_topic), node.resolve_topic_name(params.depth_topic),
-                       params.max_sync_dt_s)
-        self._node, self._handle = node, handle  # its stats are made after this
-
-    def color(self, stamp_ns: int, msg: Any) -> None:
-        self._done(self.pairer.dropped_a, self.pairer.add_a(stamp_ns, msg))
-
-    def depth_message(self, msg: Any) -> None:
-        """A depth Image (or compressedDepth) as it arrives: the depth subscription's callback."""
-        self.watch.depth_seen = True
-        self._done(self.pairer.dropped_a, self.pairer.add_b(stamp_to_ns(msg.header.stamp), msg), colour=False)
-
-    def _done(self, dropped_before: int, pair: tuple[int, Any, Any] | None, colour: bool = True) -> None:
-        stats = self._node.stats
-        stats.skipped["unpaired"] += self.pairer.dropped_a - dropped_before
-        if pair is not None:
-            self.watch.paired()
-            self._handle(pair)
-        elif colour and (why := self.watch.waiting(time.monotonic(), *self._where)) is not None:
-            stats.problem("unpaired_color", why)
+def to_frame(color: Image, depth: Image | None, camera: PinholeCamera, stamps: StampRules, now_ns: int,
+             depth_scale: float, stats: TrackerStats) -> Frame | None:
+    """The frame to track, or None (counted, logged once) when its stamp (``stamps`` at ``now_ns``)
+    or its images are refused."""
+    stamp = stamp_to_ns(color.header.stamp)
+    verdict = stamps.check(stamp, now_ns)
+    if verdict.problem is not None:
+        stats.problem(verdict.problem, verdict.message)
+    if not verdict.take:
+        return None
+    try:
+        # Views on the messages: the tracker reads the grey of one and the depth at its keypoints.
+        units = None if depth is None else DepthUnits(*depth_view(depth, depth_scale))
+        frame = Frame(stamp, rgb_view(color), units, camera)
+    except (MessageError, DataError) as err:
+        stats.problem("bad_image", f"frame {stamp} refused: {err}")
+        return None
+    if units is not None and not units.has_valid():
+        stats.problem("empty_depth", f"frame {stamp} has no valid depth")
+    stamps.took(stamp)
+    return frame

@@ -1,22 +1,14 @@
 """tracker node: colour (+ depth) + camera_info in (sensor-data QoS; raw Images, or image_transport's
 compressed topics); the camera's pose, odometry, TF, path and tracking state, each keyframe's images,
 pose and keypoints, earlier keyframes' refined, loop-corrected and culled poses, and every frame's
-answer (``memgs/tracker/processed``) out. Each topic's type, content and QoS: the tracker's rows of
-the topic table in docs/design.md; the messages are made in ``outputs.py``, TF in ``tf.py``.
-``memgs/pose`` and the odometry are per-frame, published once and never revised; ``memgs/path`` is
-the corrected trajectory (each pose moves with its keyframe when a loop closure corrects it).
+answer (``memgs/tracker/processed``) out: each topic's type, content and QoS in docs/design.md's topic
+table; the messages are made in ``outputs.py``, TF in ``tf.py``.
 
-Frames are gated by ``core/tracking/frame_gate.py`` (its docstring has the stamp rules: duplicates,
-late frames, time resets, stamps from a broken clock; a live camera's frames lost in transport,
-before the kernels, or stale).
-Every dropped frame is still answered on ``memgs/tracker/processed`` so a player awaiting acknowledgements goes on.
-Problems are counted on ``memgs/tracker/stats`` as ``problem.<kind>`` and logged once per kind.
-
-Calibration: the camera comes from the first valid camera_info, or, with ``camera_info_override``,
-from the ``camera.*`` parameters (fitted to the image size; camera_info is then only compared
-with it, one warning when they differ by more than 1 %). The tracker is the one entry point of
-the camera into the graph: sampler and mapper take the keyframe camera_info it republishes, so
-the override applies once, to every source.
+Frames are gated by ``core/tracking/frame_gate.py`` (its docstring has the stamp rules); a frame
+dropped is still answered on ``memgs/tracker/processed``, so a player awaiting acknowledgements goes
+on. Problems are counted as ``problem.<kind>`` in the stats and logged once per kind. The camera is
+the first valid camera_info's, or the ``camera.*`` parameters' with ``camera_info_override``
+(docs/usage.md, "Calibration from the config": the tracker is the camera's one way into the graph).
 """
 from __future__ import annotations
 
@@ -30,15 +22,14 @@ from std_srvs.srv import Trigger
 
 from memgs_ros.core.geometry.camera import describe_camera
 from memgs_ros.core.geometry.frame import Frame
-from memgs_ros.core.geometry.view import DepthUnits
 from memgs_ros.core.runtime.warm import WarmUpThread
 from memgs_ros.core.tracking import Tracker, TrackerConfig, TrackResult, make_tracker, warm_up
 from memgs_ros.core.tracking.frame_gate import CameraSource, LiveGate, StampRules
 from memgs_ros.core.tracking.telemetry import timed_track
 from memgs_ros.errors import ConfigError, DataError, MessageError
-from memgs_ros.io.image_decoding import decode_camera_info, depth_view, rgb_view
+from memgs_ros.io.image_decoding import decode_camera_info
 from memgs_ros.nodes.params import NODE_CONFIGS, TrackerParams
-from memgs_ros.nodes.tracker.inputs import RgbdPairing, decompressed
+from memgs_ros.nodes.tracker.inputs import decompressed, to_frame
 from memgs_ros.nodes.tracker.map_part import TrackerMapPart, map_check
 from memgs_ros.nodes.tracker.outputs import TrackerOutbox
 from memgs_ros.nodes.tracker.stats import TrackerStats
@@ -50,6 +41,7 @@ from memgs_ros.ros.images import subscribe_camera
 from memgs_ros.ros.lifecycle import ManagedNode
 from memgs_ros.ros.map_loading import NodeMapLoader
 from memgs_ros.ros.node_main import run_node
+from memgs_ros.ros.stamp_sync import RgbdPairing
 
 __all__ = ["TrackerNode", "main"]
 
@@ -83,7 +75,11 @@ class TrackerNode(ManagedNode):
         self.rgbd = self.cfg.mode == "rgbd"
         self.stamps = StampRules(int(1e9 * v.time_jump_back_s), int(1e9 * v.max_stamp_ahead_s))
         self.gate = LiveGate(int(1e9 * v.max_frame_age_s))  # 0: never stale (the runner's acknowledged replays)
-        self.pairing = RgbdPairing(self, v, lambda pair: self._handle(pair[1], pair[2]))
+        self.pairing = RgbdPairing(
+            0 if v.sync == "exact" else int(v.max_sync_dt_s * 1e9), v.unpaired_warn_s,
+            (self.resolve_topic_name(v.color_topic), self.resolve_topic_name(v.depth_topic), v.max_sync_dt_s),
+            lambda pair: self._handle(pair[1], pair[2]), self._unpaired,
+            lambda why: self.stats.problem("unpaired_color", why))
         self.tracker: Tracker | None = None
         self.stats = TrackerStats(self)
         self.out = TrackerOutbox(self, v, self.stats)
@@ -94,7 +90,7 @@ class TrackerNode(ManagedNode):
         self.compressed = v.image_transport == "compressed"  # decoded once a frame is taken
         self.get_logger().info(f"tracking {self.cfg.mode} from " + subscribe_camera(
             self, v.color_topic, v.depth_topic if self.rgbd else None, self.compressed, self.on_color,
-            self.pairing.depth_message, sensor))
+            lambda msg: self.pairing.depth(stamp_to_ns(msg.header.stamp), msg), sensor))
         # The kernels load (on a fresh install: compile, ~10 s) beside the executor, neither on the
         # first frame (a live camera does not wait) nor in __init__ (a compiling node missed its stop
         # deadline). The runner starts a replay once ``kernels_warm`` is 1; a live frame before
@@ -156,7 +152,10 @@ class TrackerNode(ManagedNode):
         elif not self.rgbd:
             self._handle(msg, None)
         else:
-            self.pairing.color(stamp_to_ns(msg.header.stamp), msg)
+            self.pairing.color(stamp_to_ns(msg.header.stamp), msg, time.monotonic())
+
+    def _unpaired(self, n: int) -> None:
+        self.stats.skipped["unpaired"] += n
 
     def _ready_camera(self, color: Image, depth: Image | None) -> bool:
         """Whether the camera is known; else the frame waits for camera_info (the one it pushes out
@@ -177,27 +176,6 @@ class TrackerNode(ManagedNode):
             self._camera_set("the configured calibration (camera_info_override)")
         return known
 
-    def _frame(self, color: Image, depth: Image | None) -> Frame | None:
-        """The frame to track, or None (counted, logged once) when its stamp or images are refused."""
-        assert self.cams.camera is not None
-        stamp = stamp_to_ns(color.header.stamp)
-        verdict = self.stamps.check(stamp, self.get_clock().now().nanoseconds)
-        if verdict.problem is not None:
-            self.stats.problem(verdict.problem, verdict.message)
-        if not verdict.take:
-            return None
-        try:
-            # Views on the messages: the tracker reads the grey of one and the depth at its keypoints.
-            units = None if depth is None else DepthUnits(*depth_view(depth, self.params.depth_scale))
-            frame = Frame(stamp, rgb_view(color), units, self.cams.camera)
-        except (MessageError, DataError) as err:
-            self.stats.problem("bad_image", f"frame {stamp} refused: {err}")
-            return None
-        if units is not None and not units.has_valid():
-            self.stats.problem("empty_depth", f"frame {stamp} has no valid depth")
-        self.stamps.took(stamp)
-        return frame
-
     def _handle(self, color: Image, depth: Image | None) -> None:
         cpu0, wall0 = time.thread_time(), time.perf_counter()  # this thread's CPU: the frame path alone
         images = decompressed(color, depth, self.params.depth_scale, self.stats) if self.compressed else (color, depth)
@@ -208,12 +186,13 @@ class TrackerNode(ManagedNode):
         if not self._ready_camera(color, depth):
             return
         self.stats.frames_in += 1
-        frame = self._frame(color, depth)
+        t, cam = self.tracker, self.cams.camera
+        assert t is not None and cam is not None  # made together with the camera (_camera_set)
+        frame = to_frame(color, depth, cam, self.stamps, self.get_clock().now().nanoseconds, self.params.depth_scale,
+                         self.stats)
         if frame is None:
             self.out.processed(stamp_to_ns(color.header.stamp))
             return
-        t, cam = self.tracker, self.cams.camera
-        assert t is not None and cam is not None  # made together with the camera (_camera_set)
         result = self._track(t, frame)
         self._last_images = (color, depth)
         self.out.frame(result, cam, color, depth, t.poll_refined_keyframes(),

@@ -1,7 +1,5 @@
-"""Everything the tracker node publishes, from its results: per frame the tracking state, pose,
-odometry and TF and the ``processed`` answer a player awaiting acknowledgements waits on; the corrected trajectory
-(``memgs/path``); per keyframe its images as received, camera_info, pose and keypoints; the
-refined and loop-corrected poses of earlier keyframes."""
+"""Everything the tracker node publishes, made from its results (each topic: docs/design.md's table):
+``TrackerOutbox``, and ``CorrectedPath`` for ``memgs/path``."""
 from __future__ import annotations
 
 import time

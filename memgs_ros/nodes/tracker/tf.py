@@ -1,15 +1,7 @@
-"""The tracker's TF (REP-105): ``map -> base_link`` per tracked frame on ``/tf``, at the frame's
-stamp; ``map -> <world_frame>`` (the SLAM world: the first camera's optical frame) and
-``base_link -> <camera optical frame>`` (the mount, unless the robot publishes it) on
-``/tf_static``. Both topics are relative (``<namespace>/tf`` under a namespace, as multi-robot
-Nav2 launches remap them). With an ``odom_frame``, ``map -> odom`` instead of ``map -> base_link``, from the
-``odom -> base_link`` a flight controller or wheel odometry publishes (interpolated to the
-frame's stamp, or the nearest within ``odom_tolerance_s``). Where the robot publishes the camera (``publish_camera_tf``
-false), the mount is read from ``tf_static`` (``StaticTree``) and fixed before the first pose goes
-out; the ``camera_mount_*`` parameters stand in after ``camera_mount_wait_s``.
-
-The wire (QoS, messages, the listeners) is ``ros/tf.py``'s. Without ``tf2_msgs`` the node says so
-once and publishes no TF (everything else is unchanged).
+"""The tracker's TF (REP-103/105): ``map -> base_link`` (or ``map -> odom``) per tracked frame on ``tf``,
+``map -> <world_frame>`` and the camera's mount on ``tf_static``. What each frame is and the parameters:
+README, "Frames and TF"; docs/design.md's topic table. The wire (QoS, messages, the listeners) is
+``ros/tf.py``'s; without ``tf2_msgs`` the node says so once and publishes no TF.
 """
 from __future__ import annotations
 
