@@ -42,7 +42,7 @@ ORB_FEATURES = 1000  # the ORB unit: OpenCV's ORB extraction of this many featur
 # (label, module, attribute path): each one's thread CPU, less the stages called inside it. A
 # module-level name is patched where the frame path looks it up (the importing module).
 STAGES: list[tuple[str, str, str]] = [
-    ("decode (messages to a Frame)", "memgs_ros.nodes.tracker.node", "TrackerNode._frame"),
+    ("decode (messages to a Frame)", "memgs_ros.nodes.tracker.node", "to_frame"),
     ("feature extraction (grey, grid ORB)", "memgs_ros.core.tracking.features.features", "OrbExtractor.extract_rgb"),
     ("rolling-shutter correction", "memgs_ros.core.tracking.frontend.feature_tracker", "unroll_rolling_shutter"),
     ("projection passes (compiled: project, match, pose)", "memgs_ros.core.tracking.frontend.pose_tracking",

@@ -68,3 +68,17 @@ def test_the_opencv_floor_times_each_part_and_the_table_shows_what_remains(tmp_p
     text = table(res)
     assert "| **floor** | **1.50** | **0.75** |" in text
     assert "1.25 remain for everything else" in text and "spends 2.25 there" in text
+
+
+def test_every_stage_names_a_function_that_exists() -> None:
+    """A stage renamed or moved in the code fails here, not in the benchmark's run."""
+    import importlib
+
+    from bench_node_cost import STAGES
+
+    for label, module, attr in STAGES:
+        owner = importlib.import_module(module)
+        for part in attr.split("."):
+            owner = getattr(owner, part, None)
+            assert owner is not None, f"{label}: {module}.{attr} is gone"
+        assert callable(owner), label
