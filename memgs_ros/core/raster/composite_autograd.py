@@ -6,8 +6,8 @@ backward pass needs. :func:`apply_compositor` wraps it in a single ``torch.autog
 so the argument list, the missing-cotangent handling and the layout of the per-Gaussian
 gradients are written once, not once per compositor.
 
-Per-Gaussian gradient layout ([N, 10], :data:`GRAD_COLUMNS`): mean x, mean y, conic a, b, c,
-opacity, r, g, b, z. The same order as the compositors' own tables.
+Per-Gaussian gradient layout, [N, 10]: mean x, mean y, conic a, b, c, opacity, r, g, b, z (the
+order of the compositors' own tables).
 """
 from __future__ import annotations
 
@@ -21,10 +21,8 @@ from torch.autograd.function import once_differentiable
 from memgs_ros.core.raster.tiles import TilePlan
 from memgs_ros.core.raster.values import Splats2D
 
-GRAD_COLUMNS = ("mean_x", "mean_y", "conic_a", "conic_b", "conic_c", "opacity", "r", "g", "b", "z")
-
 # backward(grads [5, H, W] dL/d (r, g, b, depth, alpha), background_needed) ->
-# (dL/d splats [N, 10] in GRAD_COLUMNS order, dL/d background [3] or None)
+# (dL/d splats [N, 10] in the layout above, dL/d background [3] or None)
 CompositeBackward = Callable[[Tensor, bool], "tuple[Tensor, Tensor | None]"]
 # forward(splats, background [3], plan) -> (colour [3, H, W], depth [H, W], alpha [H, W], backward)
 CompositeForward = Callable[[Splats2D, Tensor, TilePlan], "tuple[Tensor, Tensor, Tensor, CompositeBackward]"]
